@@ -1,0 +1,126 @@
+"""Input validation shared by every vadgs module.
+
+Public functions validate their inputs at the boundary with these helpers, so that bad input
+fails with a :class:`ValueError` that names the argument, the expected and the actual shape,
+instead of a crash deep inside a kernel (kornia's ``KORNIA_CHECK_SHAPE`` in spirit).
+
+Shape specs are sequences whose items are an ``int`` (that exact size), a ``str`` (a named
+dimension: every use of the same name within one call must agree) or ``"*"`` (any number of
+leading dimensions, only as the first item) or ``"_"`` (any size).
+
+Example:
+    >>> import torch
+    >>> dims = check_shape(torch.zeros(2, 3, 3), "K", ("B", 3, 3))
+    >>> dims["B"]
+    2
+    >>> check_shape(torch.zeros(2, 4), "K", ("B", 3, 3))
+    Traceback (most recent call last):
+    ...
+    ValueError: K: expected shape (B, 3, 3), got (2, 4)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+__all__ = ["check_finite", "check_same_device", "check_shape", "check_size"]
+
+
+def _fmt(spec: Sequence[int | str]) -> str:
+    return "(" + ", ".join(str(s) for s in spec) + ")"
+
+
+def check_shape(
+    x: torch.Tensor,
+    name: str,
+    spec: Sequence[int | str],
+    dims: dict[str, int] | None = None,
+) -> dict[str, int]:
+    """Check that ``x`` is a tensor of shape ``spec``.
+
+    Args:
+        x: the tensor to check.
+        name: the argument's name, used in the error message.
+        spec: the expected shape (see the module docstring).
+        dims: sizes already bound to named dimensions (updated in place and returned), so that
+            several arguments can be checked against each other.
+
+    Returns:
+        The mapping of named dimensions to sizes.
+
+    Raises:
+        ValueError: if ``x`` is not a tensor or its shape does not match.
+    """
+    dims = {} if dims is None else dims
+    if not isinstance(x, torch.Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor of shape {_fmt(spec)}, got {type(x).__name__}")
+    shape = tuple(x.shape)
+    spec = list(spec)
+    if spec and spec[0] == "*":
+        tail = spec[1:]
+        if len(shape) < len(tail):
+            raise ValueError(f"{name}: expected shape {_fmt(spec)}, got {shape}")
+        lead, shape_tail = shape[: len(shape) - len(tail)], shape[len(shape) - len(tail) :]
+        if "*" in dims and tuple(dims["*"]) != lead:  # type: ignore[arg-type]
+            raise ValueError(
+                f"{name}: expected leading shape {tuple(dims['*'])}, got leading shape {lead}"  # type: ignore[arg-type]
+            )
+        spec_tail = tail
+    else:
+        shape_tail, spec_tail = shape, spec
+    if len(shape_tail) != len(spec_tail):
+        raise ValueError(f"{name}: expected shape {_fmt(spec)}, got {shape}")
+    for size, want in zip(shape_tail, spec_tail):
+        if isinstance(want, int):
+            if size != want:
+                raise ValueError(f"{name}: expected shape {_fmt(spec)}, got {shape}")
+        elif want == "_":
+            continue
+        elif want in dims:
+            if dims[want] != size:
+                raise ValueError(f"{name}: expected shape {_fmt(spec)} with {want}={dims[want]}, got {shape}")
+        else:
+            dims[want] = size
+    return dims
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    """Raise a :class:`ValueError` if ``x`` has a NaN or infinite entry.
+
+    Example:
+        >>> check_finite(torch.tensor([1.0, float("nan")]), "points")
+        Traceback (most recent call last):
+        ...
+        ValueError: points: expected finite values, got 1 non-finite of 2
+    """
+    if x.is_floating_point():
+        bad = ~torch.isfinite(x)
+        if bool(bad.any()):
+            raise ValueError(
+                f"{name}: expected finite values, got {int(bad.sum())} non-finite of {x.numel()}"
+            )
+
+
+def check_size(size: Sequence[int], name: str = "image_size") -> tuple[int, int]:
+    """Validate an image size ``(H, W)`` of positive ints and return it as a tuple.
+
+    Example:
+        >>> check_size((288, 480))
+        (288, 480)
+    """
+    try:
+        h, w = (int(s) for s in size)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected (H, W), got {size!r}") from None
+    if h <= 0 or w <= 0:
+        raise ValueError(f"{name}: expected positive (H, W), got {(h, w)}")
+    return h, w
+
+
+def check_same_device(*named: tuple[str, torch.Tensor]) -> None:
+    """Raise a :class:`ValueError` if the named tensors live on different devices."""
+    devices = {name: t.device for name, t in named if isinstance(t, torch.Tensor)}
+    if len(set(devices.values())) > 1:
+        raise ValueError(f"expected all tensors on one device, got {devices}")

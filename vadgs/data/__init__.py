@@ -1,0 +1,3 @@
+"""Scene loaders: the benchmark scene format, COLMAP reconstructions and TRI's DGP format."""
+
+__all__: list[str] = []

@@ -1,0 +1,40 @@
+"""Geometry: cameras, poses, plane homographies, voxel grids and the voxel z-buffer.
+
+Knows nothing about Gaussians or scenes: every function takes tensors and small dataclasses.
+"""
+
+from vadgs.geometry.camera import (
+    Cameras,
+    backproject_depth,
+    camera_centers,
+    cameras_in_object_frame,
+    invert_rigid,
+    pixel_grid,
+    project_points,
+    relative_pose,
+    scale_intrinsics,
+)
+from vadgs.geometry.homography import (
+    apply_homography,
+    homography_warp,
+    plane_distance,
+    plane_homography,
+    warp_patches,
+)
+
+__all__ = [
+    "Cameras",
+    "apply_homography",
+    "backproject_depth",
+    "camera_centers",
+    "cameras_in_object_frame",
+    "homography_warp",
+    "invert_rigid",
+    "pixel_grid",
+    "plane_distance",
+    "plane_homography",
+    "project_points",
+    "relative_pose",
+    "scale_intrinsics",
+    "warp_patches",
+]

@@ -1,0 +1,273 @@
+"""Pinhole cameras: batched intrinsics and extrinsics, projection and back-projection.
+
+Conventions (``docs/conventions.md``): OpenCV camera axes (x right, y down, z forward),
+``K (B, 3, 3)``, ``world_to_cam (B, 4, 4)`` maps world points into the camera frame,
+``cam_to_world`` is its inverse, integer pixel coordinates are pixel centres, pixel points are
+``(x, y)`` and image sizes ``(H, W)``. Depth means z-depth along the optical axis.
+
+The heavy lifting is kornia's (:func:`kornia.geometry.linalg.transform_points`,
+:func:`kornia.geometry.depth.depth_to_3d_v2`); this module fixes names and shapes and adds the
+checks and the small pieces kornia lacks (rigid inversion, object-frame cameras).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.depth import depth_to_3d_v2
+from kornia.geometry.linalg import transform_points
+
+from vadgs.checks import check_finite, check_shape, check_size
+
+__all__ = [
+    "Cameras",
+    "backproject_depth",
+    "camera_centers",
+    "cameras_in_object_frame",
+    "invert_rigid",
+    "pixel_grid",
+    "project_points",
+    "relative_pose",
+    "scale_intrinsics",
+]
+
+
+def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
+    """Invert rigid transforms ``[R | t]`` in closed form (``[R^T | -R^T t]``).
+
+    Differentiable.
+
+    Args:
+        transform: rigid transforms of shape ``(*, 4, 4)``.
+
+    Returns:
+        The inverse transforms, ``(*, 4, 4)``.
+
+    Example:
+        >>> T = torch.eye(4); T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+        >>> invert_rigid(T)[:3, 3]
+        tensor([-1., -2., -3.])
+    """
+    check_shape(transform, "transform", ("*", 4, 4))
+    rot = transform[..., :3, :3]
+    trans = transform[..., :3, 3:]
+    rot_t = rot.transpose(-1, -2)
+    out = torch.zeros_like(transform)
+    out[..., :3, :3] = rot_t
+    out[..., :3, 3:] = -rot_t @ trans
+    out[..., 3, 3] = 1
+    return out
+
+
+def relative_pose(world_to_ref: torch.Tensor, world_to_src: torch.Tensor) -> torch.Tensor:
+    """Return ``src_from_ref = world_to_src @ ref_to_world``: ref camera points into the source.
+
+    Args:
+        world_to_ref: ``(*, 4, 4)`` world-to-camera transforms of the reference views.
+        world_to_src: ``(*, 4, 4)`` world-to-camera transforms of the source views
+            (broadcast against ``world_to_ref``).
+
+    Returns:
+        ``(*, 4, 4)`` transforms mapping reference-camera coordinates to source-camera ones.
+    """
+    check_shape(world_to_ref, "world_to_ref", ("*", 4, 4))
+    check_shape(world_to_src, "world_to_src", ("*", 4, 4))
+    return world_to_src @ invert_rigid(world_to_ref)
+
+
+def camera_centers(world_to_cam: torch.Tensor) -> torch.Tensor:
+    """Camera centres in world coordinates, ``(*, 3)``, from ``world_to_cam (*, 4, 4)``."""
+    check_shape(world_to_cam, "world_to_cam", ("*", 4, 4))
+    rot = world_to_cam[..., :3, :3]
+    return -(rot.transpose(-1, -2) @ world_to_cam[..., :3, 3:]).squeeze(-1)
+
+
+def project_points(
+    points: torch.Tensor, K: torch.Tensor, world_to_cam: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project 3D points into pixels.
+
+    Differentiable w.r.t. points, intrinsics and poses. Points at or behind the camera get
+    non-finite or meaningless pixel coordinates: mask them with ``depth > 0``.
+
+    Args:
+        points: ``(B, N, 3)`` points in world coordinates (or camera coordinates when
+            ``world_to_cam`` is None).
+        K: ``(B, 3, 3)`` intrinsics.
+        world_to_cam: optional ``(B, 4, 4)`` world-to-camera transforms.
+
+    Returns:
+        A tuple ``(uv, depth)``: pixel coordinates ``(B, N, 2)`` as ``(x, y)`` with pixel centres
+        at integers, and z-depths ``(B, N)``.
+
+    Example:
+        >>> K = torch.tensor([[[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]])
+        >>> uv, z = project_points(torch.tensor([[[0.0, 0.0, 2.0]]]), K)
+        >>> uv, z
+        (tensor([[[50., 40.]]]), tensor([[2.]]))
+    """
+    dims = check_shape(points, "points", ("B", "N", 3))
+    check_shape(K, "K", ("B", 3, 3), dims)
+    if world_to_cam is not None:
+        check_shape(world_to_cam, "world_to_cam", ("B", 4, 4), dims)
+        points = transform_points(world_to_cam, points)
+    z = points[..., 2]
+    xy = points[..., :2] / z.unsqueeze(-1)
+    uv = xy @ K[:, :2, :2].transpose(-1, -2) + K[:, None, :2, 2]
+    return uv, z
+
+
+def pixel_grid(
+    image_size: tuple[int, int], device: torch.device | None = None, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """Pixel-centre coordinates ``(H, W, 2)`` as ``(x, y)``: ``grid[v, u] = (u, v)``."""
+    h, w = check_size(image_size)
+    ys, xs = torch.meshgrid(
+        torch.arange(h, device=device, dtype=dtype or torch.float32),
+        torch.arange(w, device=device, dtype=dtype or torch.float32),
+        indexing="ij",
+    )
+    return torch.stack([xs, ys], dim=-1)
+
+
+def backproject_depth(
+    depth: torch.Tensor, K: torch.Tensor, cam_to_world: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Back-project z-depth maps to 3D points (kornia ``depth_to_3d_v2`` plus a pose).
+
+    Differentiable w.r.t. depth, intrinsics and pose.
+
+    Args:
+        depth: ``(B, 1, H, W)`` z-depth maps.
+        K: ``(B, 3, 3)`` intrinsics.
+        cam_to_world: optional ``(B, 4, 4)``; when given the points are in world coordinates,
+            otherwise in camera coordinates.
+
+    Returns:
+        ``(B, 3, H, W)`` points.
+
+    Example:
+        >>> K = torch.tensor([[[2.0, 0, 1], [0, 2.0, 1], [0, 0, 1]]])
+        >>> backproject_depth(torch.full((1, 1, 3, 3), 4.0), K)[0, :, 1, 1]
+        tensor([0., 0., 4.])
+    """
+    dims = check_shape(depth, "depth", ("B", 1, "H", "W"))
+    check_shape(K, "K", ("B", 3, 3), dims)
+    pts = depth_to_3d_v2(depth[:, 0], K)  # (B, H, W, 3)
+    if cam_to_world is not None:
+        check_shape(cam_to_world, "cam_to_world", ("B", 4, 4), dims)
+        b, h, w, _ = pts.shape
+        pts = transform_points(cam_to_world, pts.reshape(b, h * w, 3)).reshape(b, h, w, 3)
+    return pts.permute(0, 3, 1, 2)
+
+
+def scale_intrinsics(K: torch.Tensor, scale: float) -> torch.Tensor:
+    """Intrinsics for an image resized by ``scale``, keeping pixel centres at integers.
+
+    With pixel centres at integers a resize by ``s`` maps ``x -> s (x + 0.5) - 0.5``, so
+    ``f' = s f`` and ``c' = s (c + 0.5) - 0.5``.
+
+    Example:
+        >>> K = torch.tensor([[384.0, 0, 239.5], [0, 384.0, 143.5], [0, 0, 1]])
+        >>> scale_intrinsics(K, 0.5)[:2]
+        tensor([[192.0000,   0.0000, 119.5000],
+                [  0.0000, 192.0000,  71.5000]])
+    """
+    check_shape(K, "K", ("*", 3, 3))
+    out = K.clone()
+    out[..., :2, :2] = K[..., :2, :2] * scale
+    out[..., :2, 2] = (K[..., :2, 2] + 0.5) * scale - 0.5
+    return out
+
+
+def cameras_in_object_frame(world_to_cam: torch.Tensor, object_to_world: torch.Tensor) -> torch.Tensor:
+    """Express cameras in a rigid object's own frame: ``object_to_cam = world_to_cam @ object_to_world``.
+
+    A rigidly moving object is static in its own frame, so multi-view stereo on it runs on
+    these poses as on a static scene (paper, "MVS Reconstruction from Selected Views").
+
+    Args:
+        world_to_cam: ``(B, 4, 4)`` per-view world-to-camera transforms.
+        object_to_world: ``(B, 4, 4)`` the object's pose at each view's timestamp.
+
+    Returns:
+        ``(B, 4, 4)`` object-to-camera transforms: use them as ``world_to_cam`` of the views.
+    """
+    dims = check_shape(world_to_cam, "world_to_cam", ("B", 4, 4))
+    check_shape(object_to_world, "object_to_world", ("B", 4, 4), dims)
+    return world_to_cam @ object_to_world
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A batch of pinhole cameras sharing one image size.
+
+    Attributes:
+        K: ``(B, 3, 3)`` intrinsics.
+        world_to_cam: ``(B, 4, 4)`` world-to-camera transforms.
+        image_size: ``(H, W)``.
+
+    Example:
+        >>> world_to_cam = torch.eye(4)[None]; world_to_cam[0, :3, 3] = torch.tensor([1.0, 2.0, 5.0])
+        >>> cams = Cameras(torch.eye(3)[None], world_to_cam, (4, 6))
+        >>> len(cams), cams.cam_to_world.shape, cams.centers
+        (1, torch.Size([1, 4, 4]), tensor([[-1., -2., -5.]]))
+    """
+
+    K: torch.Tensor
+    world_to_cam: torch.Tensor
+    image_size: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        dims = check_shape(self.K, "K", ("B", 3, 3))
+        check_shape(self.world_to_cam, "world_to_cam", ("B", 4, 4), dims)
+        check_finite(self.K, "K")
+        check_finite(self.world_to_cam, "world_to_cam")
+        object.__setattr__(self, "image_size", check_size(self.image_size))
+
+    @classmethod
+    def from_cam_to_world(
+        cls, K: torch.Tensor, cam_to_world: torch.Tensor, image_size: tuple[int, int]
+    ) -> Cameras:
+        """Build cameras from camera-to-world transforms."""
+        check_shape(cam_to_world, "cam_to_world", ("B", 4, 4))
+        return cls(K, invert_rigid(cam_to_world), image_size)
+
+    def __len__(self) -> int:
+        return self.K.shape[0]
+
+    def __getitem__(self, idx: int | slice | torch.Tensor | list[int]) -> Cameras:
+        if isinstance(idx, int):
+            idx = [idx]
+        return Cameras(self.K[idx], self.world_to_cam[idx], self.image_size)
+
+    @property
+    def cam_to_world(self) -> torch.Tensor:
+        """``(B, 4, 4)`` camera-to-world transforms."""
+        return invert_rigid(self.world_to_cam)
+
+    @property
+    def centers(self) -> torch.Tensor:
+        """``(B, 3)`` camera centres in world coordinates."""
+        return camera_centers(self.world_to_cam)
+
+    @property
+    def device(self) -> torch.device:
+        """The device of the tensors."""
+        return self.K.device
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Cameras:
+        """Move (and optionally cast) to a device, as :meth:`torch.Tensor.to`."""
+        return Cameras(self.K.to(device, dtype), self.world_to_cam.to(device, dtype), self.image_size)
+
+    def rescale(self, scale: float) -> Cameras:
+        """Cameras for images resized by ``scale`` (see :func:`scale_intrinsics`)."""
+        h, w = self.image_size
+        return Cameras(
+            scale_intrinsics(self.K, scale), self.world_to_cam, (round(h * scale), round(w * scale))
+        )
+
+    def in_object_frame(self, object_to_world: torch.Tensor) -> Cameras:
+        """These cameras in a rigid object's frame (see :func:`cameras_in_object_frame`)."""
+        return Cameras(self.K, cameras_in_object_frame(self.world_to_cam, object_to_world), self.image_size)

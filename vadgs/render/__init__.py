@@ -1,0 +1,3 @@
+"""Pure-torch differentiable Gaussian splatting."""
+
+__all__: list[str] = []

@@ -1,0 +1,3 @@
+"""Diversity-aware view selection."""
+
+__all__: list[str] = []
