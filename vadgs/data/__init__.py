@@ -1,3 +1,39 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions and TRI's DGP format."""
+"""Scene loaders: the benchmark scene format, COLMAP reconstructions and TRI's DGP format.
 
-__all__: list[str] = []
+Every loader returns a :class:`~vadgs.data.scene.Scene`; per-view images, depth and instance
+maps are read lazily.
+"""
+
+from pathlib import Path
+
+from vadgs.data.scene import (
+    CameraInfo,
+    FrameInfo,
+    InstanceInfo,
+    LidarFrame,
+    Scene,
+    Track,
+    ViewInfo,
+    load_scene,
+)
+
+__all__ = [
+    "CameraInfo",
+    "FrameInfo",
+    "InstanceInfo",
+    "LidarFrame",
+    "Scene",
+    "Track",
+    "ViewInfo",
+    "load_scene",
+    "sample_scene_path",
+]
+
+
+def sample_scene_path() -> Path:
+    """Path of the small sample scene bundled with vadgs (a cut of street_a at 240×144).
+
+    Frames 16–23 of street_a, three cameras, LiDAR subsampled to 12k points per frame, made by
+    ``tools/make_sample_scene.py``. Ground-truth depth is nearest-subsampled from full resolution.
+    """
+    return Path(__file__).resolve().parent / "sample_scene"

@@ -1,0 +1,499 @@
+"""The scene object shared by every loader, and the loader of the benchmark scene format.
+
+A :class:`Scene` holds cameras, frames and views, LiDAR per frame, the instance table, the tracks
+of rigidly moving objects and the train/test split. Per-view images, depth maps and instance maps
+are loaded lazily from disk (or from memory for scenes built in code).
+
+The benchmark format (``scene.json`` beside ``images/``, ``depth/``, ``instances/``, ``lidar/``)
+is described in ``../shared/data/README.md``; :func:`load_scene` reads it. Loading validates the
+whole ``scene.json`` and checks that every referenced file exists before returning, so a scene is
+never half-loaded silently.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+
+from vadgs.checks import check_finite
+from vadgs.geometry.camera import Cameras, invert_rigid, scale_intrinsics
+
+__all__ = [
+    "CameraInfo",
+    "FrameInfo",
+    "InstanceInfo",
+    "LidarFrame",
+    "Scene",
+    "Track",
+    "ViewInfo",
+    "load_scene",
+]
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """A physical camera of the rig.
+
+    Attributes:
+        name: camera name (e.g. ``"front"``).
+        K: ``(3, 3)`` intrinsics at the scene's (possibly rescaled) resolution.
+        image_size: ``(H, W)`` at the scene's resolution.
+        cam_to_ego: ``(4, 4)`` camera-to-ego transform, or None when unknown.
+    """
+
+    name: str
+    K: torch.Tensor
+    image_size: tuple[int, int]
+    cam_to_ego: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class ViewInfo:
+    """One image: a camera at a frame.
+
+    Attributes:
+        index: the view's index in ``Scene.views``.
+        frame: the frame index.
+        camera: the camera name.
+        timestamp: seconds.
+        cam_to_world: ``(4, 4)``.
+        image: path of the colour image, or None when it lives in memory.
+        depth: path of the ground-truth depth ``.npz``, or None.
+        instances: path of the instance-id PNG, or None.
+    """
+
+    index: int
+    frame: int
+    camera: str
+    timestamp: float
+    cam_to_world: torch.Tensor
+    image: Path | None = None
+    depth: Path | None = None
+    instances: Path | None = None
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """A timestamp of the recording: the ego pose and its views."""
+
+    index: int
+    timestamp: float
+    ego_to_world: torch.Tensor | None
+    view_ids: tuple[int, ...]
+    lidar: Path | None = None
+
+
+@dataclass(frozen=True)
+class InstanceInfo:
+    """An entry of the instance table: ``class_name`` is e.g. road, building, tree, sign, car."""
+
+    id: int
+    name: str
+    class_name: str
+    dynamic: bool
+
+
+@dataclass(frozen=True)
+class Track:
+    """A rigidly moving object.
+
+    Attributes:
+        id: its instance id.
+        class_name: e.g. ``"car"``.
+        size_lwh: ``(3,)`` box length, width, height in metres.
+        object_to_world: ``(F, 4, 4)`` pose per frame of the scene (identity where unknown).
+        valid: ``(F,)`` bool, frames where the pose is known.
+        mesh: path of the object's mesh in its own frame, if any.
+    """
+
+    id: int
+    class_name: str
+    size_lwh: torch.Tensor
+    object_to_world: torch.Tensor
+    valid: torch.Tensor
+    mesh: Path | None = None
+
+
+class LidarFrame(NamedTuple):
+    """LiDAR of one frame.
+
+    Attributes:
+        points: ``(N, 3)`` float32 world coordinates.
+        instance: ``(N,)`` int64 instance ids (0 where unknown).
+        origin: ``(3,)`` sensor position in world.
+    """
+
+    points: torch.Tensor
+    instance: torch.Tensor
+    origin: torch.Tensor
+
+
+@dataclass
+class Scene:
+    """A recorded scene: rig, frames, views, LiDAR, instances, tracks and split.
+
+    Per-view data is read lazily through :meth:`load_images`, :meth:`load_depths` and
+    :meth:`load_instances`; the ``scale`` given at load time resizes images (area) and depth and
+    instance maps (nearest) on the fly and rescales the intrinsics to match.
+
+    Attributes:
+        name: scene name.
+        root: the folder it was loaded from (or None).
+        cameras_info: camera name → :class:`CameraInfo`.
+        frames: the frames in order.
+        views: all views, frame-major in camera order (``views[i].index == i``).
+        instances: instance id → :class:`InstanceInfo`.
+        tracks: instance id → :class:`Track` for the rigidly moving objects.
+        train_frames / test_frames: the split by frame index.
+        scale: the resolution factor applied at load time.
+    """
+
+    name: str
+    root: Path | None
+    cameras_info: dict[str, CameraInfo]
+    frames: list[FrameInfo]
+    views: list[ViewInfo]
+    instances: dict[int, InstanceInfo] = field(default_factory=dict)
+    tracks: dict[int, Track] = field(default_factory=dict)
+    train_frames: list[int] = field(default_factory=list)
+    test_frames: list[int] = field(default_factory=list)
+    scale: float = 1.0
+    lidar_loader: Callable[[int], LidarFrame] | None = None
+    image_loader: Callable[[ViewInfo], torch.Tensor] | None = None
+
+    # -- indexing -------------------------------------------------------------------------------------
+
+    @property
+    def num_views(self) -> int:
+        """Number of views."""
+        return len(self.views)
+
+    @property
+    def camera_names(self) -> list[str]:
+        """The rig's camera names in order."""
+        return list(self.cameras_info)
+
+    @property
+    def train_views(self) -> list[int]:
+        """Indices of the views of the training frames."""
+        frames = set(self.train_frames)
+        return [v.index for v in self.views if v.frame in frames]
+
+    @property
+    def test_views(self) -> list[int]:
+        """Indices of the views of the test frames."""
+        frames = set(self.test_frames)
+        return [v.index for v in self.views if v.frame in frames]
+
+    def view_id(self, frame: int, camera: str) -> int:
+        """The index of the view of ``camera`` at ``frame``."""
+        for v in self.frames[self._frame_pos(frame)].view_ids:
+            if self.views[v].camera == camera:
+                return v
+        raise KeyError(f"no view of camera {camera!r} at frame {frame}")
+
+    def _frame_pos(self, frame: int) -> int:
+        for i, f in enumerate(self.frames):
+            if f.index == frame:
+                return i
+        raise KeyError(f"no frame {frame} in scene {self.name!r}")
+
+    def _ids(self, view_ids: Sequence[int] | None) -> list[int]:
+        if view_ids is None:
+            return list(range(self.num_views))
+        ids = [int(v) for v in view_ids]
+        bad = [v for v in ids if not 0 <= v < self.num_views]
+        if bad:
+            raise ValueError(f"view_ids: out of range [0, {self.num_views}): {bad[:5]}")
+        return ids
+
+    # -- cameras --------------------------------------------------------------------------------------
+
+    def cameras(self, view_ids: Sequence[int] | None = None) -> Cameras:
+        """The views' cameras in the world frame, batched (all views share one image size).
+
+        Raises:
+            ValueError: if the selected views have different image sizes.
+        """
+        ids = self._ids(view_ids)
+        infos = [self.cameras_info[self.views[i].camera] for i in ids]
+        sizes = {c.image_size for c in infos}
+        if len(sizes) > 1:
+            raise ValueError(f"view_ids: views have different image sizes {sorted(sizes)}; select fewer")
+        K = torch.stack([c.K for c in infos])
+        cam_to_world = torch.stack([self.views[i].cam_to_world for i in ids])
+        return Cameras(K, invert_rigid(cam_to_world), infos[0].image_size)
+
+    # -- lazy per-view data ---------------------------------------------------------------------------
+
+    def image_size(self, view_id: int) -> tuple[int, int]:
+        """``(H, W)`` of a view at the scene's resolution."""
+        return self.cameras_info[self.views[view_id].camera].image_size
+
+    def load_images(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
+        """Colour images ``(B, 3, H, W)`` float in [0, 1]."""
+        ids = self._ids(view_ids)
+        out = []
+        for i in ids:
+            v = self.views[i]
+            if self.image_loader is not None:
+                img = self.image_loader(v)
+            else:
+                if v.image is None:
+                    raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no image")
+                img = torch.from_numpy(_read_png(v.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+            out.append(self._resize(img[None], i, "area")[0])
+        return torch.stack(out)
+
+    def load_depths(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
+        """Ground-truth z-depth ``(B, 1, H, W)`` float32 (0 = no surface).
+
+        Raises:
+            FileNotFoundError: if a view has no depth.
+        """
+        out = []
+        for i in self._ids(view_ids):
+            v = self.views[i]
+            if v.depth is None:
+                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no ground-truth depth")
+            with np.load(v.depth) as z:
+                d = torch.from_numpy(z["depth"].astype(np.float32))
+            out.append(self._resize(d[None, None], i, "nearest")[0])
+        return torch.stack(out)
+
+    def load_instances(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
+        """Instance-id maps ``(B, H, W)`` int64 (0 = sky / none).
+
+        Raises:
+            FileNotFoundError: if a view has no instance map.
+        """
+        out = []
+        for i in self._ids(view_ids):
+            v = self.views[i]
+            if v.instances is None:
+                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no instance map")
+            ins = torch.from_numpy(_read_png(v.instances).astype(np.int64))
+            out.append(self._resize(ins[None, None].double(), i, "nearest")[0, 0].long())
+        return torch.stack(out)
+
+    def _resize(self, x: torch.Tensor, view_id: int, mode: str) -> torch.Tensor:
+        h, w = self.image_size(view_id)
+        if x.shape[-2:] == (h, w):
+            return x
+        return F.interpolate(x, size=(h, w), mode=mode)
+
+    # -- LiDAR ----------------------------------------------------------------------------------------
+
+    def lidar(self, frame: int) -> LidarFrame:
+        """The LiDAR sweep of a frame (world coordinates).
+
+        Raises:
+            FileNotFoundError: if the scene has no LiDAR for that frame.
+        """
+        if self.lidar_loader is None:
+            raise FileNotFoundError(f"scene {self.name!r} has no LiDAR")
+        return self.lidar_loader(frame)
+
+    def classes(self) -> dict[int, str]:
+        """Instance id → class name."""
+        return {i: inst.class_name for i, inst in self.instances.items()}
+
+    def instance_ids(self, class_name: str) -> list[int]:
+        """Ids of the instances of a class (e.g. ``"sign"``)."""
+        return [i for i, inst in self.instances.items() if inst.class_name == class_name]
+
+    def __repr__(self) -> str:
+        return (
+            f"Scene({self.name!r}, {len(self.frames)} frames, {self.num_views} views, "
+            f"cameras={self.camera_names}, {len(self.tracks)} tracks, scale={self.scale})"
+        )
+
+
+# ---------------------------------------------------------------------------------------------------
+# the benchmark scene format
+
+
+def _read_png(path: Path, expect_rgb: bool = False) -> np.ndarray:
+    if not path.is_file():
+        raise FileNotFoundError(f"missing file {path}")
+    with Image.open(path) as im:
+        if expect_rgb:
+            im = im.convert("RGB")
+        return np.asarray(im).copy()
+
+
+def _matrix(value: object, shape: tuple[int, ...], what: str) -> torch.Tensor:
+    try:
+        t = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"scene.json: {what}: expected a {shape} matrix of numbers, got {value!r}") from None
+    if tuple(t.shape) != shape:
+        raise ValueError(f"scene.json: {what}: expected shape {shape}, got {tuple(t.shape)}")
+    check_finite(t, f"scene.json: {what}")
+    return t.float()
+
+
+def _get(d: dict, key: str, what: str) -> object:
+    if not isinstance(d, dict) or key not in d:
+        raise ValueError(f"scene.json: {what}: missing key {key!r}")
+    return d[key]
+
+
+def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -> Scene:
+    """Load a scene in the benchmark format (``scene.json`` and its files).
+
+    Args:
+        path: the scene folder (or its ``scene.json``).
+        scale: resolution factor; images are resized on load and intrinsics rescaled
+            (e.g. ``0.5`` for 240×144 from 480×288).
+        check_files: verify that every referenced file exists before returning.
+
+    Returns:
+        The :class:`Scene`, with per-view data loaded lazily.
+
+    Raises:
+        FileNotFoundError: if ``scene.json`` or a referenced file is missing.
+        ValueError: if ``scene.json`` is malformed (the message names the entry).
+
+    Example:
+        >>> from vadgs.data import sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> scene.num_views, scene.camera_names
+        (24, ['front', 'front_left', 'front_right'])
+        >>> scene.load_images([0]).shape
+        torch.Size([1, 3, 144, 240])
+    """
+    path = Path(path)
+    root = path.parent if path.name == "scene.json" else path
+    meta_path = root / "scene.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"no scene.json in {root}")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{meta_path}: not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{meta_path}: expected a JSON object at the top level")
+    if not (isinstance(scale, (int, float)) and scale > 0):
+        raise ValueError(f"scale: expected a positive number, got {scale!r}")
+
+    cams_meta = _get(meta, "cameras", "top level")
+    if not isinstance(cams_meta, dict) or not cams_meta:
+        raise ValueError("scene.json: cameras: expected a non-empty object")
+    cameras: dict[str, CameraInfo] = {}
+    for name, c in cams_meta.items():
+        w, h = int(_get(c, "width", f"cameras.{name}")), int(_get(c, "height", f"cameras.{name}"))
+        K = _matrix(_get(c, "K", f"cameras.{name}"), (3, 3), f"cameras.{name}.K")
+        size = (round(h * scale), round(w * scale))
+        if scale != 1.0:
+            K = scale_intrinsics(K, size[1] / w)
+        c2e = _matrix(c["cam_to_ego"], (4, 4), f"cameras.{name}.cam_to_ego") if "cam_to_ego" in c else None
+        cameras[name] = CameraInfo(name, K, size, c2e)
+
+    frames: list[FrameInfo] = []
+    views: list[ViewInfo] = []
+    frames_meta = _get(meta, "frames", "top level")
+    if not isinstance(frames_meta, list) or not frames_meta:
+        raise ValueError("scene.json: frames: expected a non-empty list")
+    for fi, fm in enumerate(frames_meta):
+        what = f"frames[{fi}]"
+        index = int(_get(fm, "index", what))
+        ts = float(fm.get("timestamp", index))
+        e2w = _matrix(fm["ego_to_world"], (4, 4), f"{what}.ego_to_world") if "ego_to_world" in fm else None
+        ids = []
+        vms = _get(fm, "views", what)
+        if not isinstance(vms, list):
+            raise ValueError(f"scene.json: {what}.views: expected a list")
+        for vi, vm in enumerate(vms):
+            vwhat = f"{what}.views[{vi}]"
+            cam = str(_get(vm, "camera", vwhat))
+            if cam not in cameras:
+                raise ValueError(f"scene.json: {vwhat}.camera: unknown camera {cam!r}, have {list(cameras)}")
+            c2w = _matrix(_get(vm, "cam_to_world", vwhat), (4, 4), f"{vwhat}.cam_to_world")
+            files = {k: (root / vm[k]) if vm.get(k) else None for k in ("image", "depth", "instances")}
+            if files["image"] is None:
+                raise ValueError(f"scene.json: {vwhat}: missing key 'image'")
+            views.append(ViewInfo(len(views), index, cam, ts, c2w, **files))
+            ids.append(len(views) - 1)
+        lidar = root / fm["lidar"] if fm.get("lidar") else None
+        frames.append(FrameInfo(index, ts, e2w, tuple(ids), lidar))
+
+    instances = {}
+    for im in meta.get("instances", []):
+        iid = int(_get(im, "id", "instances[]"))
+        instances[iid] = InstanceInfo(
+            iid, str(im.get("name", iid)), str(im.get("class", "unknown")), bool(im.get("dynamic", False))
+        )
+
+    frame_pos = {f.index: i for i, f in enumerate(frames)}
+    tracks = {}
+    for ti, tm in enumerate(meta.get("tracks", [])):
+        what = f"tracks[{ti}]"
+        tid = int(_get(tm, "id", what))
+        poses = torch.eye(4).repeat(len(frames), 1, 1)
+        valid = torch.zeros(len(frames), dtype=torch.bool)
+        for key, mat in _get(tm, "object_to_world", what).items():
+            if int(key) in frame_pos:
+                poses[frame_pos[int(key)]] = _matrix(mat, (4, 4), f"{what}.object_to_world[{key}]")
+                valid[frame_pos[int(key)]] = True
+        tracks[tid] = Track(
+            tid,
+            str(tm.get("class", "car")),
+            torch.tensor(tm.get("size_lwh", [0.0, 0.0, 0.0]), dtype=torch.float32),
+            poses,
+            valid,
+            root / tm["mesh"] if tm.get("mesh") else None,
+        )
+
+    split = meta.get("split", {})
+    all_frames = [f.index for f in frames]
+    test_frames = [int(f) for f in split.get("test_frames", [])]
+    train_frames = [
+        int(f) for f in split.get("train_frames", [f for f in all_frames if f not in test_frames])
+    ]
+
+    if check_files:
+        missing = [
+            p for v in views for p in (v.image, v.depth, v.instances) if p is not None and not p.is_file()
+        ] + [f.lidar for f in frames if f.lidar is not None and not f.lidar.is_file()]
+        if missing:
+            raise FileNotFoundError(
+                f"scene {root}: {len(missing)} referenced file(s) missing, "
+                f"e.g. {[str(m) for m in missing[:3]]}"
+            )
+
+    lidar_paths = {f.index: f.lidar for f in frames}
+
+    def lidar_loader(frame: int) -> LidarFrame:
+        p = lidar_paths.get(frame)
+        if p is None:
+            raise FileNotFoundError(f"scene {root}: no LiDAR for frame {frame}")
+        with np.load(p) as z:
+            pts = torch.from_numpy(z["points"].astype(np.float32))
+            ins = torch.from_numpy(z["instance"].astype(np.int64)) if "instance" in z else None
+            origin = torch.from_numpy(z["origin"].astype(np.float32)) if "origin" in z else torch.zeros(3)
+        if ins is None:
+            ins = torch.zeros(len(pts), dtype=torch.int64)
+        return LidarFrame(pts, ins, origin)
+
+    return Scene(
+        name=str(meta.get("name", root.name)),
+        root=root,
+        cameras_info=cameras,
+        frames=frames,
+        views=views,
+        instances=instances,
+        tracks=tracks,
+        train_frames=train_frames,
+        test_frames=test_frames,
+        scale=float(scale),
+        lidar_loader=lidar_loader if any(lidar_paths.values()) else None,
+    )
