@@ -6,6 +6,7 @@ maps are read lazily.
 
 from pathlib import Path
 
+from vadgs.data.colmap import ColmapPoints, ColmapScene, load_colmap
 from vadgs.data.scene import (
     CameraInfo,
     FrameInfo,
@@ -19,12 +20,15 @@ from vadgs.data.scene import (
 
 __all__ = [
     "CameraInfo",
+    "ColmapPoints",
+    "ColmapScene",
     "FrameInfo",
     "InstanceInfo",
     "LidarFrame",
     "Scene",
     "Track",
     "ViewInfo",
+    "load_colmap",
     "load_scene",
     "sample_scene_path",
 ]
