@@ -1,3 +1,33 @@
-"""Pure-torch differentiable Gaussian splatting."""
+"""Pure-torch differentiable 3D Gaussian splatting (see ``docs/render.md``).
 
-__all__: list[str] = []
+:func:`rasterize_gaussians` renders colour, opacity, expected and median depth and normals, with
+the per-Gaussian screen radii, visibility and 2D-mean gradients that densification needs;
+:class:`GaussianRasterizer` is its ``nn.Module``. The pieces are public too: EWA projection,
+spherical harmonics, tile binning, compositing and 3DGS PLY input/output.
+"""
+
+from vadgs.render.composite import CompositeOutput, composite_gaussians
+from vadgs.render.projection import ProjectedGaussians, project_gaussians, quaternion_to_rotation
+from vadgs.render.sh import SH_C0, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, sh_to_rgb
+from vadgs.render.splat import GaussianRasterizer, RasterConfig, RenderOutput, rasterize_gaussians
+from vadgs.render.tiles import TileBins, bin_gaussians
+
+__all__ = [
+    "SH_C0",
+    "CompositeOutput",
+    "GaussianRasterizer",
+    "ProjectedGaussians",
+    "RasterConfig",
+    "RenderOutput",
+    "TileBins",
+    "bin_gaussians",
+    "composite_gaussians",
+    "eval_sh",
+    "num_sh_bases",
+    "project_gaussians",
+    "quaternion_to_rotation",
+    "rasterize_gaussians",
+    "rgb_to_sh",
+    "sh_basis",
+    "sh_to_rgb",
+]

@@ -1,0 +1,141 @@
+"""Real spherical harmonics up to degree 3, in the basis of 3DGS and gsplat.
+
+A Gaussian's view-dependent colour is ``c(d) = max(0, sum_k Y_k(d) f_k + 0.5)`` with
+``Y_k`` the real SH basis below, ``f_k`` its ``(K, 3)`` coefficients (``K = (degree + 1)^2``)
+and ``d`` the unit direction from the camera centre to the Gaussian's mean, in world
+coordinates. The ``+0.5`` offset and the clamp at zero are those of 3DGS and gsplat, so
+coefficients move between vadgs and those codebases unchanged (``f_0 = (rgb - 0.5) / C0``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from vadgs.checks import check_shape
+
+__all__ = ["SH_C0", "eval_sh", "num_sh_bases", "rgb_to_sh", "sh_basis", "sh_to_rgb"]
+
+SH_C0 = 0.28209479177387814
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def num_sh_bases(degree: int) -> int:
+    """Number of SH coefficients of a degree, ``(degree + 1)^2``.
+
+    Example:
+        >>> [num_sh_bases(d) for d in range(4)]
+        [1, 4, 9, 16]
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError(f"degree: expected 0 to 3, got {degree}")
+    return (degree + 1) ** 2
+
+
+def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Evaluate the real SH basis of 3DGS / gsplat at unit directions.
+
+    Differentiable w.r.t. ``dirs``.
+
+    Args:
+        dirs: ``(*, 3)`` unit directions.
+        degree: 0 to 3.
+
+    Returns:
+        ``(*, (degree + 1)^2)`` basis values.
+
+    Example:
+        >>> sh_basis(torch.tensor([[0.0, 1.0, 0.0]]), 1).abs().tolist() == [[SH_C0, _C1, 0.0, 0.0]]
+        True
+    """
+    num_sh_bases(degree)
+    check_shape(dirs, "dirs", ("*", 3))
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree > 0:
+        out += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree > 1:
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        out += [
+            _C2[0] * xy,
+            _C2[1] * yz,
+            _C2[2] * (2.0 * zz - xx - yy),
+            _C2[3] * xz,
+            _C2[4] * (xx - yy),
+        ]
+    if degree > 2:
+        out += [
+            _C3[0] * y * (3.0 * xx - yy),
+            _C3[1] * xy * z,
+            _C3[2] * y * (4.0 * zz - xx - yy),
+            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            _C3[4] * x * (4.0 * zz - xx - yy),
+            _C3[5] * z * (xx - yy),
+            _C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> torch.Tensor:
+    r"""View-dependent colours from SH coefficients: ``max(0, sum_k Y_k(d) f_k + 0.5)``.
+
+    Only the first ``(degree + 1)^2`` coefficients are used, so a model can raise its degree
+    during training (as 3DGS does) without reallocating. Differentiable w.r.t. ``coeffs`` and
+    ``dirs`` (the clamp at zero has zero gradient below it).
+
+    .. math::
+
+        c(\mathbf{d}) = \max\big(0, \tfrac12 + \textstyle\sum_k Y_k(\mathbf{d})\,\mathbf{f}_k\big)
+
+    Args:
+        coeffs: ``(N, K, C)`` coefficients, ``K`` a square number ≤ 16.
+        dirs: ``(*, N, 3)`` unit viewing directions (camera centre to Gaussian, world frame).
+        degree: SH degree to evaluate; ``None`` uses all of ``K``.
+
+    Returns:
+        ``(*, N, C)`` colours.
+
+    Example:
+        >>> coeffs = torch.zeros(1, 4, 3); coeffs[0, 0] = rgb_to_sh(torch.tensor([0.2, 0.4, 0.6]))
+        >>> eval_sh(coeffs, torch.tensor([[1.0, 0.0, 0.0]]))
+        tensor([[0.2000, 0.4000, 0.6000]])
+    """
+    dims = check_shape(coeffs, "coeffs", ("N", "K", "C"))
+    check_shape(dirs, "dirs", ("*", "N", 3), dims)
+    k = dims["K"]
+    max_degree = math.isqrt(k) - 1
+    if (max_degree + 1) ** 2 != k or k > 16:
+        raise ValueError(f"coeffs: expected K = (degree + 1)^2 in (1, 4, 9, 16), got K={k}")
+    degree = max_degree if degree is None else degree
+    if not 0 <= degree <= max_degree:
+        raise ValueError(f"degree: expected 0 to {max_degree} for K={k} coefficients, got {degree}")
+    basis = sh_basis(dirs, degree)  # (*, N, K')
+    colors = (basis.unsqueeze(-1) * coeffs[:, : basis.shape[-1]]).sum(-2)
+    return torch.clamp_min(colors + 0.5, 0.0)
+
+
+def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
+    """The degree-0 coefficient that renders a constant colour: ``(rgb - 0.5) / C0``.
+
+    Example:
+        >>> sh_to_rgb(rgb_to_sh(torch.tensor([0.25])))
+        tensor([0.2500])
+    """
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`rgb_to_sh`: ``sh * C0 + 0.5``."""
+    return sh * SH_C0 + 0.5
