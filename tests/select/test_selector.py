@@ -1,0 +1,236 @@
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+import torch
+from select_helpers import random_scene, yaw_pose
+
+from vadgs.select import (
+    Covisibility,
+    ViewSelection,
+    ViewSelectionConfig,
+    ViewSelector,
+    diversity_scores,
+    select_views,
+)
+
+
+def _ring(num_views=8, num_voxels=30, step_deg=12.0, radius=10.0, seed=0):
+    """Cameras on an arc around voxels near the origin, every view sees every voxel."""
+    g = torch.Generator().manual_seed(seed)
+    w2c = torch.stack(
+        [
+            yaw_pose(
+                step_deg * v,
+                (
+                    -radius * math.sin(math.radians(step_deg * v)),
+                    0.0,
+                    -radius * math.cos(math.radians(step_deg * v)),
+                ),
+            )
+            for v in range(num_views)
+        ]
+    )
+    centers = torch.randn(num_voxels, 3, generator=g) * 0.5
+    return Covisibility.from_visible([torch.arange(num_voxels)] * num_views, centers, w2c)
+
+
+def _objective(covis, ref, views, lam, scores=None):
+    """Noiseless objective of a set of supporting views."""
+    s = (scores or diversity_scores(covis)).score
+    pair = (s + s.T) / 2
+    views = list(views)
+    return float(
+        sum(s[ref, i] for i in views) + lam * sum(pair[i, j] for i, j in itertools.combinations(views, 2))
+    )
+
+
+class TestViewSelectionConfig:
+    @pytest.mark.parametrize(
+        "kwargs",
+        [dict(k=0), dict(method="random"), dict(noise_std=-1.0), dict(k=5, max_candidates=4), dict(eps=0.0)],
+    )
+    def test_exception(self, kwargs):
+        with pytest.raises(ValueError):
+            ViewSelectionConfig(**kwargs)
+
+
+class TestSelectViews:
+    def test_smoke(self):
+        sel = select_views(0, _ring(), ViewSelectionConfig(noise_std=0.0))
+        assert isinstance(sel, ViewSelection) and sel.reason == "ok" and sel.complete
+
+    def test_exception(self):
+        covis = _ring()
+        with pytest.raises(ValueError, match="ref"):
+            select_views(8, covis)
+        with pytest.raises(ValueError, match="allowed"):
+            select_views(0, covis, allowed=torch.ones(3, dtype=torch.bool))
+        with pytest.raises(ValueError, match="camera_ids"):
+            select_views(0, covis, ViewSelectionConfig(method="consecutive"))
+
+    @pytest.mark.parametrize("method", ["diversity", "consecutive", "mvsnet", "colmap"])
+    def test_cardinality(self, method):
+        covis = _ring(num_views=10)
+        covis = Covisibility(
+            covis.voxel_centers,
+            covis.incidence,
+            covis.world_to_cam,
+            torch.zeros(10, dtype=torch.long),
+            torch.arange(10),
+        )
+        sel = select_views(
+            4, covis, ViewSelectionConfig(k=3, method=method), torch.Generator().manual_seed(0)
+        )
+        assert sel.views.shape == (3,) and sel.views.dtype == torch.int64
+        assert 4 not in sel.views.tolist() and len(set(sel.views.tolist())) == 3
+        assert set(sel.views.tolist()) <= set(sel.candidates.tolist())
+
+    def test_exact_against_brute_force(self):
+        centers, visible, w2c = random_scene(num_views=10, seed=11, p=0.6)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        cfg = ViewSelectionConfig(k=3, lam=0.7, noise_std=0.0, min_shared=1)
+        scores = diversity_scores(covis)
+        for ref in range(10):
+            sel = select_views(ref, covis, cfg, scores=scores)
+            cand = sel.candidates.tolist()
+            adj = scores.shared >= cfg.min_shared
+            best = max(
+                (_objective(covis, ref, c, cfg.lam, scores), c)
+                for c in itertools.combinations(cand, 3)
+                if all(adj[i, j] for i, j in itertools.combinations(c, 2))
+            )
+            assert sel.score == pytest.approx(best[0], rel=1e-5)
+
+    def test_prefers_other_camera_over_forward_motion(self):
+        # views 1, 2: the reference camera driven forward (no rotation, no lateral baseline): s = 0;
+        # views 3, 4: a side camera turned 40° and shifted sideways: chosen
+        w2c = torch.stack(
+            [
+                yaw_pose(0.0, (0.0, 0.0, 0.0)),
+                yaw_pose(0.0, (0.0, 0.0, 1.0)),
+                yaw_pose(0.0, (0.0, 0.0, 2.0)),
+                yaw_pose(40.0, (1.0, 0.0, 0.5)),
+                yaw_pose(-40.0, (-1.0, 0.0, 1.0)),
+            ]
+        )
+        centers = torch.randn(20, 3) + torch.tensor([0.0, 0.0, 10.0])
+        covis = Covisibility.from_visible([torch.arange(20)] * 5, centers, w2c)
+        sel = select_views(0, covis, ViewSelectionConfig(k=2, min_shared=5))
+        assert sel.views.tolist() == [3, 4] and sel.candidates.tolist() == [3, 4]
+
+    # graceful results
+    def test_no_voxels(self):
+        covis = Covisibility.from_visible(
+            [torch.tensor([], dtype=torch.long), torch.tensor([0, 1])],
+            torch.rand(2, 3) + 5,
+            torch.eye(4).repeat(2, 1, 1),
+        )
+        sel = select_views(0, covis)
+        assert len(sel.views) == 0 and sel.reason.startswith("no_voxels") and not sel.complete
+
+    def test_empty_candidate_set(self):
+        covis = _ring(num_views=4)
+        sel = select_views(0, covis, allowed=torch.tensor([True, False, False, False]))
+        assert len(sel.views) == 0 and sel.reason.startswith("no_candidates") and sel.score == 0.0
+
+    def test_fewer_candidates_than_k(self):
+        sel = select_views(0, _ring(num_views=3), ViewSelectionConfig(k=4))
+        assert sel.views.tolist() == [1, 2] and sel.reason.startswith("few_candidates")
+
+    def test_disconnected_graph(self):
+        # views 1, 2 see voxels 0..9, views 3, 4 see voxels 10..19; the reference sees all
+        w2c = torch.stack([yaw_pose(10.0 * v, (float(v), 0.0, 0.0)) for v in range(5)])
+        centers = torch.randn(20, 3) + torch.tensor([0.0, 0.0, 10.0])
+        a, b = torch.arange(10), torch.arange(10, 20)
+        covis = Covisibility.from_visible([torch.arange(20), a, a, b, b], centers, w2c)
+        sel = select_views(0, covis, ViewSelectionConfig(k=3, min_shared=5))
+        assert len(sel.views) == 2 and sel.reason.startswith("no_k_clique")
+        assert sel.views.tolist() in ([1, 2], [3, 4])
+
+    def test_allowed_mask(self):
+        allowed = torch.tensor([True, True, False, True, False, True, True, True])
+        sel = select_views(0, _ring(), allowed=allowed)
+        assert all(allowed[sel.views])
+
+    def test_candidate_cap(self):
+        covis = _ring(num_views=12)
+        sel = select_views(0, covis, ViewSelectionConfig(k=2, max_candidates=4, noise_std=0.0))
+        assert len(sel.candidates) == 4 and "capped to 4 of 11" in sel.reason and sel.complete
+        s = diversity_scores(covis).score[0]
+        assert set(sel.candidates.tolist()) == set(torch.topk(s, 4).indices.tolist())
+
+    # the noise
+    def test_seed_reproducible(self):
+        centers, visible, w2c = random_scene(num_views=16, seed=3)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        cfg = ViewSelectionConfig(noise_std=0.5, min_shared=1)
+        a = [s.views.tolist() for s in ViewSelector(cfg, seed=7).select_all(covis)]
+        b = [s.views.tolist() for s in ViewSelector(cfg, seed=7).select_all(covis)]
+        c = [s.views.tolist() for s in ViewSelector(cfg, seed=8).select_all(covis)]
+        assert a == b
+        assert a != c  # large noise does change picks
+
+    def test_small_noise_changes_picks_only_among_near_ties(self):
+        eps = 1e-3
+        for seed in range(6):
+            centers, visible, w2c = random_scene(num_views=12, seed=seed, p=0.7)
+            covis = Covisibility.from_visible(visible, centers, w2c)
+            scores = diversity_scores(covis)
+            exact = ViewSelectionConfig(noise_std=0.0, min_shared=1)
+            noisy = ViewSelectionConfig(noise_std=eps, min_shared=1)
+            g = torch.Generator().manual_seed(seed)
+            for ref in range(12):
+                best = select_views(ref, covis, exact, scores=scores)
+                opt = _objective(covis, ref, best.views.tolist(), exact.lam, scores)
+                pick = select_views(ref, covis, noisy, g, scores=scores)
+                got = _objective(covis, ref, pick.views.tolist(), exact.lam, scores)
+                # |ξ - 1| < 6ε with overwhelming probability: the pick is within 12ε of the optimum
+                assert got >= opt * (1 - 12 * eps) - 1e-12
+                if pick.views.tolist() != best.views.tolist():
+                    assert got >= opt * (1 - 12 * eps)  # a different pick is a near-tie
+
+    def test_noise_breaks_exact_ties_both_ways(self):
+        # views 1 and 2 are mirror images w.r.t. the reference: an exact tie for k=1
+        w2c = torch.stack(
+            [
+                yaw_pose(0.0, (0.0, 0.0, 0.0)),
+                yaw_pose(20.0, (2.0, 0.0, 0.0)),
+                yaw_pose(-20.0, (-2.0, 0.0, 0.0)),
+            ]
+        )
+        centers = torch.tensor([[0.0, 0.0, 10.0], [0.0, 1.0, 10.0], [0.0, -1.0, 10.0]])
+        covis = Covisibility.from_visible([torch.arange(3)] * 3, centers, w2c)
+        cfg = ViewSelectionConfig(k=1, noise_std=1e-3, min_shared=1, max_candidates=2)
+        picks = {
+            select_views(0, covis, cfg, torch.Generator().manual_seed(s)).views.item() for s in range(20)
+        }
+        assert picks == {1, 2}
+
+
+class TestViewSelector:
+    def test_module_equals_function(self):
+        centers, visible, w2c = random_scene(num_views=10, seed=5)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        cfg = ViewSelectionConfig(noise_std=0.1, min_shared=1)
+        selector = ViewSelector(cfg, seed=3)
+        g = torch.Generator().manual_seed(3)
+        for ref in range(10):
+            a = selector(ref, covis)
+            b = select_views(ref, covis, cfg, g)
+            assert (
+                torch.equal(a.views, b.views) and a.score == pytest.approx(b.score) and a.reason == b.reason
+            )
+
+    def test_select_all_equals_loop(self):
+        centers, visible, w2c = random_scene(num_views=10, seed=6)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        cfg = ViewSelectionConfig(min_shared=1)
+        batch = ViewSelector(cfg, seed=1).select_all(covis, refs=[2, 5, 7])
+        one = ViewSelector(cfg, seed=1)
+        assert [s.views.tolist() for s in batch] == [one(r, covis).views.tolist() for r in (2, 5, 7)]
+
+    def test_repr(self):
+        assert "seed=4" in repr(ViewSelector(seed=4))

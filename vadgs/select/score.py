@@ -1,0 +1,198 @@
+r"""The diversity score between two views (paper, "Diversity-Aware View Selection", eq. diversity).
+
+.. math::
+
+    s = \frac{N}{\mathbf{d}_R^\top \mathbf{d}_S}
+        \frac{\sqrt{t_x^2 + t_y^2}}{|t_z| + \epsilon} \sin\theta
+
+``N`` voxels are seen by both the reference view ``R`` and the supporting view ``S``;
+``d_R``, ``d_S`` hold their distances to each camera centre; ``t`` is the supporting camera's
+centre in the reference camera frame (lateral ``t_x, t_y``, longitudinal ``t_z``); ``θ`` is the
+angle of the relative rotation. Large lateral baselines, little forward motion, different
+orientations and close voxels score high.
+
+A note on the count term: ``d_R^T d_S`` is a sum over the same ``N`` voxels, so
+``N / (d_R^T d_S) = 1 / mean(d_R d_S)``: taken literally, the equation does not grow with the
+number of shared voxels (only with their closeness), although the paper's text says that "denser"
+voxels score higher. ``count_exponent=1`` (the default) is the equation as printed;
+``count_exponent=2`` multiplies it by ``N`` (``N / mean(d_R d_S)``) so that views sharing more of
+the instance score higher, as the text describes.
+
+All pairs are scored at once: with ``B`` the sparse 0/1 view × voxel incidence and ``A`` the same
+pattern holding voxel-to-camera distances, ``N = B B^T`` and ``d_R^T d_S = A A^T`` (two sparse
+products), and the pose terms are broadcast over ``(V, V)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from vadgs.checks import check_shape
+from vadgs.geometry.camera import camera_centers, relative_pose
+from vadgs.select.covisibility import Covisibility, sparse_gram
+
+__all__ = ["DiversityScores", "diversity_score", "diversity_scores", "pose_terms", "shared_voxel_stats"]
+
+
+class DiversityScores(NamedTuple):
+    """All pairwise diversity scores of a set of views.
+
+    Attributes:
+        score: ``(V, V)`` ``score[r, s]`` is the diversity of view ``s`` as a support of the
+            reference ``r`` (``t`` expressed in ``r``'s frame, so not symmetric); ``0`` on the
+            diagonal and wherever no voxel is shared.
+        shared: ``(V, V)`` symmetric, the number ``N`` of voxels both views see.
+        dist_dot: ``(V, V)`` symmetric, ``d_R^T d_S`` over those voxels.
+    """
+
+    score: torch.Tensor
+    shared: torch.Tensor
+    dist_dot: torch.Tensor
+
+
+def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shared voxel counts ``N`` and distance products ``d_R^T d_S`` of all pairs of views.
+
+    Two sparse products, ``B B^T`` and ``A A^T`` (see the module docstring); no loop over pairs.
+    Not differentiable (runs under ``torch.no_grad()``).
+
+    Args:
+        covis: the views, voxels and visibility.
+
+    Returns:
+        ``(shared, dist_dot)``, both ``(V, V)`` dense and symmetric, dtype of the voxel centres.
+
+    Example:
+        >>> cams = torch.eye(4).repeat(2, 1, 1); cams[1, 0, 3] = -1.0  # second centre at x = 1
+        >>> covis = Covisibility.from_visible(
+        ...     [torch.tensor([0, 1]), torch.tensor([1])], torch.tensor([[0.0, 0, 2], [1.0, 0, 2]]), cams)
+        >>> shared, dist_dot = shared_voxel_stats(covis)
+        >>> shared[0, 1].item(), round(dist_dot[0, 1].item(), 4)  # voxel 1: sqrt(5) and 2 away
+        (1.0, 4.4721)
+    """
+    with torch.no_grad():
+        inc = covis.incidence
+        idx = inc.indices()
+        centers = camera_centers(covis.world_to_cam)  # (V, 3)
+        dist = (covis.voxel_centers[idx[1]] - centers[idx[0]].to(covis.voxel_centers.dtype)).norm(dim=-1)
+        shape = tuple(inc.shape)
+        shared = sparse_gram(idx, inc.values(), inc.values(), shape)
+        dist_dot = sparse_gram(idx, dist, dist, shape)
+    return shared, dist_dot
+
+
+def pose_terms(
+    world_to_ref: torch.Tensor, world_to_src: torch.Tensor, eps: float = 0.1
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The baseline ratio ``sqrt(t_x² + t_y²) / (|t_z| + ε)`` and ``sin θ`` of pairs of views.
+
+    ``t`` is the source camera centre in the reference camera frame (the translation of
+    ``ref_from_src``); ``θ ∈ [0, π]`` is the angle of the relative rotation
+    ``R_ref R_src^T``. Differentiable w.r.t. the poses (except where ``t_x = t_y = 0``).
+
+    Args:
+        world_to_ref: ``(*, 4, 4)`` reference views.
+        world_to_src: ``(*, 4, 4)`` source views, broadcast against ``world_to_ref``.
+        eps: ``ε`` in metres, keeps the ratio finite when ``t_z = 0``.
+
+    Returns:
+        ``(baseline_ratio, sin_theta)``, each of the broadcast shape ``(*)``.
+
+    Example:
+        >>> ref = torch.eye(4); src = torch.eye(4); src[0, 3] = -2.0  # src centre 2 m to the right
+        >>> pose_terms(ref, src, eps=0.5)
+        (tensor(4.), tensor(0.))
+    """
+    check_shape(world_to_ref, "world_to_ref", ("*", 4, 4))
+    check_shape(world_to_src, "world_to_src", ("*", 4, 4))
+    ref_from_src = relative_pose(world_to_src, world_to_ref)
+    t = ref_from_src[..., :3, 3]
+    ratio = t[..., :2].norm(dim=-1) / (t[..., 2].abs() + eps)
+    # sin θ = |vee(R - R^T)| / 2 for θ in [0, π]: accurate for small angles, unlike sqrt(1 - cos²)
+    rot = ref_from_src[..., :3, :3]
+    skew = torch.stack(
+        [rot[..., 2, 1] - rot[..., 1, 2], rot[..., 0, 2] - rot[..., 2, 0], rot[..., 1, 0] - rot[..., 0, 1]],
+        -1,
+    )
+    return ratio, skew.norm(dim=-1) / 2
+
+
+def diversity_score(
+    shared: torch.Tensor,
+    dist_dot: torch.Tensor,
+    world_to_ref: torch.Tensor,
+    world_to_src: torch.Tensor,
+    eps: float = 0.1,
+    count_exponent: float = 1.0,
+) -> torch.Tensor:
+    r"""The diversity score of pairs of views from their shared-voxel statistics and poses.
+
+    .. math::
+
+        s = \frac{N^{p}}{\mathbf{d}_R^\top \mathbf{d}_S}
+            \frac{\sqrt{t_x^2 + t_y^2}}{|t_z| + \epsilon} \sin\theta
+
+    with ``p = count_exponent`` (``1``: the paper's equation as printed; see the module
+    docstring). Pairs sharing no voxel score ``0``. Elementwise and broadcast; differentiable
+    w.r.t. ``dist_dot`` and the poses.
+
+    Args:
+        shared: ``(*)`` number ``N`` of voxels both views see.
+        dist_dot: ``(*)`` ``d_R^T d_S``, the sum over those voxels of the product of their
+            distances to the two camera centres.
+        world_to_ref: ``(*, 4, 4)`` reference views.
+        world_to_src: ``(*, 4, 4)`` supporting views.
+        eps: ``ε`` in metres (see :func:`pose_terms`).
+        count_exponent: ``p`` above.
+
+    Returns:
+        ``(*)`` the scores, ``>= 0``.
+
+    Shape:
+        All leading shapes broadcast together.
+
+    Example:
+        >>> ref = torch.eye(4)
+        >>> src = torch.eye(4); src[:3, :3] = torch.tensor([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])
+        >>> src[:3, 3] = torch.tensor([0.0, 0, -2.0])  # turned 90°, centre 2 m to the right
+        >>> diversity_score(torch.tensor(10.0), torch.tensor(40.0), ref, src, eps=0.5)
+        tensor(1.)
+    """
+    ratio, sin = pose_terms(world_to_ref, world_to_src, eps)
+    safe = torch.where(shared > 0, dist_dot, torch.ones_like(dist_dot))
+    density = torch.where(shared > 0, shared.to(dist_dot.dtype) ** count_exponent / safe, 0.0)
+    return density * ratio * sin
+
+
+def diversity_scores(covis: Covisibility, eps: float = 0.1, count_exponent: float = 1.0) -> DiversityScores:
+    """Score every ordered pair of views at once (:func:`diversity_score` on ``(V, V)``).
+
+    Runs under ``torch.no_grad()``: view selection is a search, nothing is learned.
+
+    Args:
+        covis: the views, voxels and visibility (restrict it to an instance's voxels first to
+            score views for that instance).
+        eps: ``ε`` in metres (see :func:`pose_terms`).
+        count_exponent: see :func:`diversity_score`.
+
+    Returns:
+        A :class:`DiversityScores` with ``score[r, s]`` for reference ``r`` and support ``s``.
+
+    Example:
+        >>> w2c = torch.eye(4).repeat(3, 1, 1)
+        >>> w2c[1, :3, :3] = torch.tensor([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])
+        >>> w2c[1, :3, 3] = torch.tensor([0.0, 0, -2.0])
+        >>> covis = Covisibility.from_visible(
+        ...     [torch.tensor([0, 1]), torch.tensor([0, 1]), torch.tensor([5])], torch.rand(6, 3) + 1, w2c)
+        >>> out = diversity_scores(covis)
+        >>> out.shared[0].tolist(), bool(out.score[0, 1] > 0), out.score[0, 2].item()
+        ([2.0, 2.0, 0.0], True, 0.0)
+    """
+    with torch.no_grad():
+        shared, dist_dot = shared_voxel_stats(covis)
+        w2c = covis.world_to_cam
+        score = diversity_score(shared, dist_dot, w2c[:, None], w2c[None, :], eps, count_exponent)
+        score.fill_diagonal_(0)
+    return DiversityScores(score, shared, dist_dot)

@@ -1,0 +1,296 @@
+r"""Select the supporting views of a reference view: diversity-aware (max-weight k-clique) or a baseline.
+
+For a reference view ``R`` and a set of voxels (one instance's, or everything ``R`` sees), the
+diversity-aware selection (paper, "Diversity-Aware View Selection"; supplement, "View Selection")
+
+1. scores every pair of views (:func:`vadgs.select.diversity_scores`);
+2. takes as candidates the views sharing at least ``min_shared`` voxels with ``R`` and a positive
+   score ``s_iR`` (across all cameras and timestamps), keeping the ``max_candidates`` best by
+   ``s_iR`` when there are more;
+3. joins two candidates by an edge when they co-observe at least ``min_shared`` voxels;
+4. draws ``ξ ~ N(1, noise_std²)`` (seeded) and solves, exactly,
+
+.. math::
+
+    \max_{V_s \subset V_c,\ |V_s| = k}
+    \sum_{i \in V_s} s_{iR} \xi_{iR} + \lambda \sum_{\{i, j\} \subset V_s} s_{ij} \xi_{ij}
+
+over the k-cliques of that graph (:func:`vadgs.select.max_weight_clique`), with ``s_ij`` the
+symmetrised pair score ``(s[i, j] + s[j, i]) / 2``.
+
+Exactness is over the candidate set after the cap; the cap keeps the clique search bounded
+(``C(24, 4) = 10626`` subsets at most) and drops only the views least diverse w.r.t. ``R``.
+
+Nothing here raises on a hard case: no voxel, no candidate, fewer candidates than ``k`` or a
+graph without a k-clique all return a :class:`ViewSelection` with fewer views (or none) and the
+reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from vadgs.checks import check_shape
+from vadgs.select.baselines import colmap_scores, consecutive_views, mvsnet_scores, top_k_views
+from vadgs.select.clique import max_weight_clique
+from vadgs.select.covisibility import Covisibility
+from vadgs.select.score import DiversityScores, diversity_scores
+
+__all__ = ["METHODS", "ViewSelection", "ViewSelectionConfig", "ViewSelector", "select_views"]
+
+METHODS = ("diversity", "consecutive", "mvsnet", "colmap")
+
+
+@dataclass(frozen=True)
+class ViewSelectionConfig:
+    """Settings of :func:`select_views`.
+
+    Attributes:
+        k: supporting views wanted.
+        lam: ``λ``, weight of the pairwise diversity among the supporting views.
+        noise_std: standard deviation of ``ξ ~ N(1, noise_std²)``; ``0`` is deterministic.
+        eps: ``ε`` of the diversity score, metres (see :func:`vadgs.select.pose_terms`).
+        count_exponent: ``1`` is the paper's equation as printed; ``2`` makes the score grow with
+            the number of shared voxels (see :mod:`vadgs.select.score`).
+        min_shared: voxels a candidate must share with the reference, and two candidates with
+            each other to be joined in the graph.
+        max_candidates: cap on the candidates entering the clique search (best ``s_iR`` kept).
+        method: ``"diversity"`` (the paper), or a baseline: ``"consecutive"`` (same camera,
+            nearest frames), ``"mvsnet"``, ``"colmap"`` (see :mod:`vadgs.select.baselines`).
+    """
+
+    k: int = 4
+    lam: float = 0.5
+    noise_std: float = 0.05
+    eps: float = 0.1
+    count_exponent: float = 1.0
+    min_shared: int = 8
+    max_candidates: int = 24
+    method: str = "diversity"
+
+    def __post_init__(self) -> None:
+        if self.k < 1:
+            raise ValueError(f"k: expected >= 1, got {self.k}")
+        if self.max_candidates < self.k:
+            raise ValueError(f"max_candidates: expected >= k = {self.k}, got {self.max_candidates}")
+        if self.noise_std < 0 or self.eps <= 0 or self.lam < 0 or self.min_shared < 1:
+            raise ValueError(
+                "expected noise_std >= 0, eps > 0, lam >= 0, min_shared >= 1, got "
+                f"noise_std={self.noise_std}, eps={self.eps}, lam={self.lam}, min_shared={self.min_shared}"
+            )
+        if self.method not in METHODS:
+            raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
+
+
+@dataclass(frozen=True)
+class ViewSelection:
+    """The supporting views chosen for one reference view.
+
+    Attributes:
+        views: ``(s,)`` int64 view ids, ``s <= k`` (fewer, or none, only when ``reason`` says why).
+        score: the objective of ``views`` (diversity: with the drawn noise; baselines: the sum of
+            their scores; ``0.0`` when empty).
+        reason: ``"ok"`` when ``k`` views were found, otherwise why not: starts with one of
+            ``"no_voxels"``, ``"no_candidates"``, ``"few_candidates"``, ``"no_k_clique"``.
+            A ``"; capped ..."`` suffix says the candidate cap was applied.
+        candidates: ``(c,)`` int64 the candidate views the choice was made from.
+    """
+
+    views: torch.Tensor
+    score: float
+    reason: str
+    candidates: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
+
+    @property
+    def complete(self) -> bool:
+        """Whether ``k`` views were found (``reason == "ok"``, possibly capped)."""
+        return self.reason.startswith("ok")
+
+
+def _empty(device: torch.device) -> torch.Tensor:
+    return torch.zeros(0, dtype=torch.long, device=device)
+
+
+def _allowed(allowed: torch.Tensor | None, num_views: int, device: torch.device) -> torch.Tensor:
+    if allowed is None:
+        return torch.ones(num_views, dtype=torch.bool, device=device)
+    check_shape(allowed, "allowed", (num_views,))
+    if allowed.dtype != torch.bool:
+        raise ValueError(f"allowed: expected a bool mask, got {allowed.dtype}")
+    return allowed.to(device)
+
+
+def _select_baseline(
+    ref: int, covis: Covisibility, config: ViewSelectionConfig, allowed: torch.Tensor
+) -> ViewSelection:
+    device = covis.world_to_cam.device
+    if config.method == "consecutive":
+        if covis.camera_ids is None or covis.frame_ids is None:
+            raise ValueError("method='consecutive' needs covis.camera_ids and covis.frame_ids")
+        cand = consecutive_views(ref, covis.camera_ids, covis.frame_ids, covis.num_views, allowed)
+        views = cand[: config.k]
+        score = 0.0
+    else:
+        fn = mvsnet_scores if config.method == "mvsnet" else colmap_scores
+        scores = fn(covis, ref)
+        cand = top_k_views(scores, ref, covis.num_views, allowed)
+        views = cand[: config.k]
+        score = float(scores[views].sum()) if len(views) else 0.0
+    if len(cand) == 0:
+        return ViewSelection(_empty(device), 0.0, f"no_candidates: {config.method} found none", cand)
+    if len(views) < config.k:
+        reason = f"few_candidates: {len(cand)} candidates < k={config.k}"
+        return ViewSelection(views, score, reason, cand)
+    return ViewSelection(views, score, "ok", cand)
+
+
+def select_views(
+    ref: int,
+    covis: Covisibility,
+    config: ViewSelectionConfig | None = None,
+    generator: torch.Generator | None = None,
+    scores: DiversityScores | None = None,
+    allowed: torch.Tensor | None = None,
+) -> ViewSelection:
+    """Choose the supporting views of reference view ``ref`` (see the module docstring).
+
+    Runs under ``torch.no_grad()``; nothing is differentiable.
+
+    Args:
+        ref: the reference view, an index into ``covis``'s views.
+        covis: the views, voxels and visibility; restrict it to an instance's voxels
+            (:meth:`Covisibility.restrict`) to select for that instance, in the object's frame for
+            a moving one.
+        config: settings (defaults: :class:`ViewSelectionConfig`).
+        generator: draws ``ξ`` (``None``: torch's global generator). Seed it for reproducible picks.
+        scores: the output of :func:`vadgs.select.diversity_scores` for ``covis`` with the same
+            ``eps`` / ``count_exponent``, to score all pairs once for many references.
+        allowed: optional ``(V,)`` bool, the views that may be chosen (e.g. training views).
+
+    Returns:
+        A :class:`ViewSelection`; fewer than ``k`` views (or none) only with a reason.
+
+    Raises:
+        ValueError: if ``ref`` is out of range, ``allowed`` or ``scores`` has the wrong shape, or a
+            baseline lacks the ids it needs.
+
+    Example:
+        >>> import math
+        >>> # six cameras on a circle of radius 10 looking at the origin; everything sees 20 voxels
+        >>> w2c = torch.eye(4).repeat(6, 1, 1)
+        >>> for v in range(6):
+        ...     a = math.radians(20.0 * v)
+        ...     R = torch.tensor([[math.cos(a), 0, -math.sin(a)], [0, 1, 0], [math.sin(a), 0, math.cos(a)]])
+        ...     w2c[v, :3, :3] = R; w2c[v, :3, 3] = torch.tensor([0.0, 0, 10.0])
+        >>> covis = Covisibility.from_visible([torch.arange(20)] * 6, torch.randn(20, 3) * 0.5, w2c)
+        >>> sel = select_views(0, covis, ViewSelectionConfig(k=3, noise_std=0.0))
+        >>> sel.views.tolist(), sel.reason
+        ([1, 2, 3], 'ok')
+        >>> select_views(0, covis, ViewSelectionConfig(k=3, method="mvsnet")).views.tolist()
+        [1, 2, 3]
+    """
+    config = ViewSelectionConfig() if config is None else config
+    num, device = covis.num_views, covis.world_to_cam.device
+    if not 0 <= int(ref) < num:
+        raise ValueError(f"ref: expected a view index in [0, {num}), got {ref}")
+    ref = int(ref)
+    ok = _allowed(allowed, num, device)
+    with torch.no_grad():
+        if config.method != "diversity":
+            return _select_baseline(ref, covis, config, ok)
+        if scores is None:
+            scores = diversity_scores(covis, config.eps, config.count_exponent)
+        check_shape(scores.score, "scores.score", (num, num))
+        check_shape(scores.shared, "scores.shared", (num, num))
+        if scores.shared[ref, ref] <= 0:
+            return ViewSelection(_empty(device), 0.0, "no_voxels: the reference sees none of the voxels")
+        s_ref = scores.score[ref]
+        mask = (scores.shared[ref] >= config.min_shared) & (s_ref > 0) & ok
+        mask[ref] = False
+        cand = torch.nonzero(mask).squeeze(1)
+        total = len(cand)
+        if total == 0:
+            reason = f"no_candidates: no view shares >= {config.min_shared} voxels and a baseline with it"
+            return ViewSelection(_empty(device), 0.0, reason, cand)
+        capped = ""
+        if total > config.max_candidates:
+            cand = cand[torch.topk(s_ref[cand], config.max_candidates).indices]
+            cand = torch.sort(cand).values
+            capped = f"; capped to {config.max_candidates} of {total} candidates by s_iR"
+        c = len(cand)
+        node = s_ref[cand]
+        pair = scores.score[cand][:, cand]
+        pair = (pair + pair.T) / 2
+        if config.noise_std > 0:
+            gdev = generator.device if generator is not None else torch.device("cpu")
+            xi_node = torch.randn(c, generator=generator, device=gdev, dtype=node.dtype)
+            xi_pair = torch.randn(c, c, generator=generator, device=gdev, dtype=node.dtype).triu(1)
+            xi_pair = xi_pair + xi_pair.T
+            node = node * (1 + config.noise_std * xi_node.to(device))
+            pair = pair * (1 + config.noise_std * xi_pair.to(device))
+        adjacency = scores.shared[cand][:, cand] >= config.min_shared
+        clique = max_weight_clique(node, config.lam * pair, config.k, adjacency)
+        views = cand[clique.nodes]
+        if len(views) == config.k:
+            reason = "ok" + capped
+        elif c < config.k:
+            reason = f"few_candidates: {c} candidates < k={config.k}" + capped
+        else:
+            reason = (
+                f"no_k_clique: the largest group of {c} candidates that pairwise co-observe "
+                f">= {config.min_shared} voxels has {len(views)} views" + capped
+            )
+        return ViewSelection(views, clique.weight, reason, cand)
+
+
+class ViewSelector:
+    """Holds a :class:`ViewSelectionConfig` and a seeded generator; see :func:`select_views`.
+
+    Args:
+        config: settings.
+        seed: seed of the generator drawing ``ξ``: the same seed and calls give the same picks.
+
+    Example:
+        >>> w2c = torch.eye(4).repeat(3, 1, 1); w2c[1, 0, 3] = -1.0; w2c[2, 0, 3] = 1.0
+        >>> w2c[1, :3, :3] = torch.tensor([[0.96, 0, -0.28], [0, 1, 0], [0.28, 0, 0.96]])
+        >>> w2c[2, :3, :3] = torch.tensor([[0.96, 0, 0.28], [0, 1, 0], [-0.28, 0, 0.96]])
+        >>> covis = Covisibility.from_visible([torch.arange(10)] * 3, torch.rand(10, 3) + 3, w2c)
+        >>> selector = ViewSelector(ViewSelectionConfig(k=2, min_shared=5), seed=0)
+        >>> [sel.views.tolist() for sel in selector.select_all(covis)]
+        [[1, 2], [0, 2], [0, 1]]
+    """
+
+    def __init__(self, config: ViewSelectionConfig | None = None, seed: int = 0) -> None:
+        self.config = ViewSelectionConfig() if config is None else config
+        self.seed = seed
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def scores(self, covis: Covisibility) -> DiversityScores:
+        """All pairwise diversity scores of ``covis`` with this config's ``eps`` / ``count_exponent``."""
+        return diversity_scores(covis, self.config.eps, self.config.count_exponent)
+
+    def __call__(
+        self,
+        ref: int,
+        covis: Covisibility,
+        scores: DiversityScores | None = None,
+        allowed: torch.Tensor | None = None,
+    ) -> ViewSelection:
+        """Select for one reference view (see :func:`select_views`)."""
+        return select_views(ref, covis, self.config, self.generator, scores, allowed)
+
+    def select_all(
+        self,
+        covis: Covisibility,
+        refs: list[int] | torch.Tensor | None = None,
+        allowed: torch.Tensor | None = None,
+    ) -> list[ViewSelection]:
+        """Select for every view in ``refs`` (default: all views), scoring the pairs once."""
+        refs = range(covis.num_views) if refs is None else [int(r) for r in refs]
+        scores = self.scores(covis) if self.config.method == "diversity" else None
+        return [self(r, covis, scores, allowed) for r in refs]
+
+    def __repr__(self) -> str:
+        return f"ViewSelector({self.config!r}, seed={self.seed})"
