@@ -7,6 +7,7 @@ maps are read lazily.
 from pathlib import Path
 
 from vadgs.data.colmap import ColmapPoints, ColmapScene, load_colmap
+from vadgs.data.dgp import load_dgp
 from vadgs.data.scene import (
     CameraInfo,
     FrameInfo,
@@ -29,6 +30,7 @@ __all__ = [
     "Track",
     "ViewInfo",
     "load_colmap",
+    "load_dgp",
     "load_scene",
     "sample_scene_path",
 ]
