@@ -21,20 +21,29 @@ from vadgs.geometry.homography import (
     plane_homography,
     warp_patches,
 )
+from vadgs.geometry.voxel import VoxelGrid, observing_views, voxelize
+from vadgs.geometry.zbuffer import VoxelRaster, VoxelRasterizer, ZBufferConfig, rasterize_voxels
 
 __all__ = [
     "Cameras",
+    "VoxelGrid",
+    "VoxelRaster",
+    "VoxelRasterizer",
+    "ZBufferConfig",
     "apply_homography",
     "backproject_depth",
     "camera_centers",
     "cameras_in_object_frame",
     "homography_warp",
     "invert_rigid",
+    "observing_views",
     "pixel_grid",
     "plane_distance",
     "plane_homography",
     "project_points",
+    "rasterize_voxels",
     "relative_pose",
     "scale_intrinsics",
+    "voxelize",
     "warp_patches",
 ]
