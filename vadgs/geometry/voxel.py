@@ -39,8 +39,8 @@ class VoxelGrid:
         vis_views: ``(nnz,)`` int64 view ids.
         num_views: number of views the ids refer to.
         point_to_voxel: ``(N,)`` int64 voxel of each input point.
-        normals: ``(M, 3)`` unit normal of the plane fitted to each voxel's points (smallest
-            principal axis, sign arbitrary), ``0`` where fewer than 3 points or no clear plane.
+        normals: ``(M, 3)`` unit normal of the plane fitted to the points of each voxel and its
+            26 neighbours (smallest principal axis, sign arbitrary), ``0`` where no clear plane.
     """
 
     voxel_size: float
@@ -190,8 +190,9 @@ def voxelize(
     counts = torch.bincount(p2v, minlength=m)
     means = torch.zeros(m, 3, dtype=points.dtype, device=device).index_add_(0, p2v, points)
     means = means / counts[:, None].to(points.dtype)
-    normals = _voxel_normals(points, means, counts, p2v)
-    ucoords = torch.stack([ukey // (ext[1] * ext[2]), (ukey // ext[2]) % ext[1], ukey % ext[2]], 1) + cmin
+    ucoords = torch.stack([ukey // (ext[1] * ext[2]), (ukey // ext[2]) % ext[1], ukey % ext[2]], 1)
+    normals = _voxel_normals(points, means, p2v, ukey, ucoords, ext)
+    ucoords = ucoords + cmin
 
     if point_views is None:
         indptr = torch.zeros(m + 1, dtype=torch.int64, device=device)
@@ -221,19 +222,58 @@ def voxelize(
 
 
 def _voxel_normals(
-    points: torch.Tensor, means: torch.Tensor, counts: torch.Tensor, p2v: torch.Tensor, flatness: float = 0.25
+    points: torch.Tensor,
+    means: torch.Tensor,
+    p2v: torch.Tensor,
+    keys: torch.Tensor,
+    coords: torch.Tensor,
+    ext: torch.Tensor,
+    flatness: float = 0.25,
 ) -> torch.Tensor:
-    """Per-voxel plane normals by PCA of the voxel's points; 0 where not planar enough.
+    """Per-voxel plane normals by PCA of the points of the voxel and its 26 neighbours.
 
-    A voxel is planar when its smallest covariance eigenvalue is below ``flatness`` times the
-    middle one (and it has at least 3 points).
+    Pooling the 3×3×3 neighbourhood makes planes estimable from sparse LiDAR (a few points per
+    voxel). A voxel gets a normal when the pooled covariance has at least 3 points and its
+    smallest eigenvalue is below ``flatness`` times the middle one; otherwise 0.
     """
-    d = points - means[p2v]
-    cov = torch.zeros(means.shape[0], 3, 3, dtype=points.dtype, device=points.device)
-    cov.index_add_(0, p2v, d[:, :, None] * d[:, None, :])
-    evals, evecs = torch.linalg.eigh(cov.double())
-    normal = evecs[:, :, 0].to(points.dtype)
-    planar = (counts >= 3) & (evals[:, 0] <= flatness * evals[:, 1]) & (evals[:, 1] > 0)
+    m = means.shape[0]
+    dt = points.dtype
+    # centred at the voxel means for numerical stability: sums of d and d d^T per voxel
+    d = (points - means[p2v]).double()
+    cnt = torch.bincount(p2v, minlength=m).double()
+    s1 = torch.zeros(m, 3, dtype=torch.float64, device=points.device).index_add_(0, p2v, d)
+    s2 = torch.zeros(m, 3, 3, dtype=torch.float64, device=points.device).index_add_(
+        0, p2v, d[:, :, None] * d[:, None, :]
+    )
+    mu = means.double()
+    n_tot = torch.zeros_like(cnt)
+    p_tot = torch.zeros(m, 3, dtype=torch.float64, device=points.device)
+    pp_tot = torch.zeros(m, 3, 3, dtype=torch.float64, device=points.device)
+    offsets = torch.tensor(
+        [[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], device=points.device
+    )
+    for off in offsets:
+        c = coords + off
+        inside = ((c >= 0) & (c < ext)).all(1)
+        key = (c[:, 0] * ext[1] + c[:, 1]) * ext[2] + c[:, 2]
+        pos = torch.searchsorted(keys, key).clamp(max=m - 1)
+        nb = inside & (keys[pos] == key)
+        j = pos[nb]
+        # neighbour's raw sums: sum p = s1 + n mu, sum p p^T = s2 + mu s1^T + s1 mu^T + n mu mu^T
+        mj, s1j, nj = mu[j], s1[j], cnt[j]
+        n_tot[nb] += nj
+        p_tot[nb] += s1j + nj[:, None] * mj
+        pp_tot[nb] += (
+            s2[j]
+            + mj[:, :, None] * s1j[:, None, :]
+            + s1j[:, :, None] * mj[:, None, :]
+            + nj[:, None, None] * mj[:, :, None] * mj[:, None, :]
+        )
+    mean = p_tot / n_tot.clamp(min=1)[:, None]
+    cov = pp_tot / n_tot.clamp(min=1)[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    evals, evecs = torch.linalg.eigh(cov)
+    normal = evecs[:, :, 0].to(dt)
+    planar = (n_tot >= 3) & (evals[:, 0] <= flatness * evals[:, 1]) & (evals[:, 1] > 0)
     return torch.where(planar[:, None], normal, torch.zeros_like(normal))
 
 
