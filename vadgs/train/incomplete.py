@@ -1,0 +1,228 @@
+r"""Find instances with incomplete geometry (paper, "Voxel-Based Visibility Reasoning").
+
+For each instance (a mask of an instance map) of each view, the depth rendered from the Gaussians
+is compared with the depth of the voxel z-buffer. The instance is flagged for re-initialisation
+when
+
+- the rendered depth is absent or significantly larger than the voxel depth: the median over
+  the instance's pixels that have a voxel depth of :math:`z_\text{render} / z_\text{voxel}`
+  exceeds ``depth_ratio`` (1.1 in the paper; pixels with no rendered depth count as
+  :math:`+\infty`), or
+- more than ``low_alpha_fraction`` (25%) of its pixels have an accumulated opacity below
+  ``alpha_threshold`` (0.7).
+
+Rendered depth consistently *smaller* than the voxel depth is not flagged: it means completed
+geometry in front of the voxels, or redundancy that opacity can resolve.
+
+Optionally (``foreign_fraction``, off by default, beyond the paper), when each voxel carries an
+instance label, an instance whose pixels mostly map to voxels of *other* instances (the z-buffer
+sees through it to what lies behind) is flagged too: its own geometry is missing from the voxels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from vadgs.checks import check_shape
+
+__all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "voxel_labels"]
+
+
+@dataclass(frozen=True)
+class IncompleteConfig:
+    """Thresholds of :func:`find_incomplete` (paper values by default).
+
+    Attributes:
+        depth_ratio: flag when the median rendered/voxel depth ratio exceeds this.
+        alpha_threshold: a pixel is "transparent" below this accumulated opacity.
+        low_alpha_fraction: flag when more than this share of the instance's pixels is transparent.
+        min_pixels: instances with fewer pixels in a view are skipped.
+        min_alpha_for_depth: rendered depth counts as absent where alpha is below this.
+        foreign_fraction: if set and ``voxel_labels`` are given, flag when more than this share of
+            the instance's voxel-covered pixels map to voxels of other instances.
+        ignore_ids: instance ids never tested (0 = sky / none).
+    """
+
+    depth_ratio: float = 1.1
+    alpha_threshold: float = 0.7
+    low_alpha_fraction: float = 0.25
+    min_pixels: int = 20
+    min_alpha_for_depth: float = 0.05
+    foreign_fraction: float | None = None
+    ignore_ids: tuple[int, ...] = (0,)
+
+
+class IncompleteInstances(NamedTuple):
+    """One row per (view, instance) tested.
+
+    Attributes:
+        view: ``(R,)`` int64 batch index of the view.
+        instance: ``(R,)`` int64 instance id.
+        flagged: ``(R,)`` bool.
+        depth_ratio: ``(R,)`` median rendered/voxel depth ratio (``nan`` without voxel depth,
+            ``inf`` when nothing is rendered there).
+        low_alpha: ``(R,)`` share of pixels with alpha below the threshold.
+        foreign: ``(R,)`` share of voxel-covered pixels mapping to other instances' voxels
+            (``nan`` without labels).
+        pixels: ``(R,)`` int64 pixel count of the instance.
+        voxel_pixels: ``(R,)`` int64 pixels that have a voxel depth.
+    """
+
+    view: torch.Tensor
+    instance: torch.Tensor
+    flagged: torch.Tensor
+    depth_ratio: torch.Tensor
+    low_alpha: torch.Tensor
+    foreign: torch.Tensor
+    pixels: torch.Tensor
+    voxel_pixels: torch.Tensor
+
+
+def _segment_median(values: torch.Tensor, segment: torch.Tensor, num: int) -> torch.Tensor:
+    """Lower median of ``values`` per segment id in ``[0, num)``; nan for empty segments."""
+    out = torch.full((num,), float("nan"), dtype=values.dtype, device=values.device)
+    if values.numel() == 0:
+        return out
+    # sort by (segment, value): values are sorted within each segment
+    order = torch.argsort(values, stable=True)
+    order = order[torch.argsort(segment[order], stable=True)]
+    seg_sorted = segment[order]
+    counts = torch.bincount(seg_sorted, minlength=num)
+    starts = counts.cumsum(0) - counts
+    has = counts > 0
+    mid = starts[has] + (counts[has] - 1) // 2
+    out[has] = values[order][mid]
+    return out
+
+
+def find_incomplete(
+    instances: torch.Tensor,
+    voxel_depth: torch.Tensor,
+    rendered_depth: torch.Tensor,
+    rendered_alpha: torch.Tensor,
+    config: IncompleteConfig | None = None,
+    voxel_index: torch.Tensor | None = None,
+    voxel_labels: torch.Tensor | None = None,
+) -> IncompleteInstances:
+    """Flag the instances whose rendered geometry is absent, behind the voxels or transparent.
+
+    Not differentiable (a test, run under ``torch.no_grad()``); vectorised over all views and
+    instances at once.
+
+    Args:
+        instances: ``(B, H, W)`` int64 instance ids (0 = none).
+        voxel_depth: ``(B, 1, H, W)`` voxel z-buffer depth, 0 where empty.
+        rendered_depth: ``(B, 1, H, W)`` depth rendered from the Gaussians (expected or median).
+        rendered_alpha: ``(B, 1, H, W)`` accumulated opacity.
+        config: :class:`IncompleteConfig`.
+        voxel_index: ``(B, H, W)`` voxel index map (needed with ``voxel_labels``).
+        voxel_labels: ``(M,)`` int64 instance label of each voxel.
+
+    Returns:
+        :class:`IncompleteInstances`, rows sorted by (view, instance).
+
+    Example:
+        >>> ins = torch.zeros(1, 8, 8, dtype=torch.long); ins[0, :4] = 5; ins[0, 4:] = 6
+        >>> vox = torch.full((1, 1, 8, 8), 10.0)
+        >>> ren = vox.clone(); ren[0, 0, 4:] = 14.0  # instance 6 rendered far behind its voxels
+        >>> out = find_incomplete(ins, vox, ren, torch.ones(1, 1, 8, 8))
+        >>> out.instance.tolist(), out.flagged.tolist(), out.depth_ratio.tolist()
+        ([5, 6], [False, True], [1.0, 1.399999976158142])
+    """
+    cfg = config or IncompleteConfig()
+    dims = check_shape(instances, "instances", ("B", "H", "W"))
+    for name, t in (
+        ("voxel_depth", voxel_depth),
+        ("rendered_depth", rendered_depth),
+        ("rendered_alpha", rendered_alpha),
+    ):
+        check_shape(t, name, ("B", 1, "H", "W"), dims)
+    if (voxel_labels is None) != (voxel_index is None):
+        raise ValueError("voxel_index and voxel_labels: give both or neither")
+    if voxel_index is not None:
+        check_shape(voxel_index, "voxel_index", ("B", "H", "W"), dims)
+    with torch.no_grad():
+        b = dims["B"]
+        ins = instances.reshape(b, -1)
+        keep = ~torch.isin(ins, torch.tensor(cfg.ignore_ids, device=ins.device, dtype=ins.dtype))
+        # one segment per (view, instance) pair present
+        view_of = torch.arange(b, device=ins.device)[:, None].expand_as(ins)
+        max_id = int(ins.max()) + 1 if ins.numel() else 1
+        key_all = view_of * max_id + ins
+        keys, seg = torch.unique(key_all[keep], return_inverse=True)
+        r = keys.numel()
+        pixels = torch.bincount(seg, minlength=r)
+        alpha = rendered_alpha.reshape(b, -1)[keep]
+        vd = voxel_depth.reshape(b, -1)[keep]
+        rd = rendered_depth.reshape(b, -1)[keep]
+        low = torch.bincount(seg, weights=(alpha < cfg.alpha_threshold).double(), minlength=r) / pixels.clamp(
+            min=1
+        )
+        has_vox = vd > 0
+        voxel_pixels = torch.bincount(seg[has_vox], minlength=r)
+        absent = (alpha < cfg.min_alpha_for_depth) | (rd <= 0)
+        ratio = torch.where(absent, torch.full_like(rd, float("inf")), rd / vd.clamp(min=1e-12))
+        med = _segment_median(ratio[has_vox].double(), seg[has_vox], r)
+        foreign = torch.full((r,), float("nan"), dtype=torch.float64, device=ins.device)
+        if voxel_labels is not None:
+            vi = voxel_index.reshape(b, -1)[keep]  # type: ignore[union-attr]
+            covered = vi >= 0
+            lab = voxel_labels.to(ins.device)[vi[covered]]
+            other = (lab != ins[keep][covered]).double()
+            cnt = torch.bincount(seg[covered], minlength=r)
+            foreign = torch.where(
+                cnt > 0, torch.bincount(seg[covered], weights=other, minlength=r) / cnt.clamp(min=1), foreign
+            )
+        flagged = (med > cfg.depth_ratio) | (low > cfg.low_alpha_fraction)
+        if cfg.foreign_fraction is not None and voxel_labels is not None:
+            flagged |= foreign > cfg.foreign_fraction
+        big = pixels >= cfg.min_pixels
+        flagged &= big
+        sel = big
+        return IncompleteInstances(
+            view=(keys // max_id)[sel],
+            instance=(keys % max_id)[sel],
+            flagged=flagged[sel],
+            depth_ratio=med.to(rendered_depth.dtype)[sel],
+            low_alpha=low.to(rendered_depth.dtype)[sel],
+            foreign=foreign.to(rendered_depth.dtype)[sel],
+            pixels=pixels[sel],
+            voxel_pixels=voxel_pixels[sel],
+        )
+
+
+def voxel_labels(point_to_voxel: torch.Tensor, point_labels: torch.Tensor, num_voxels: int) -> torch.Tensor:
+    """Majority label of each voxel's points (e.g. LiDAR instance ids); ties go to the smaller id.
+
+    Args:
+        point_to_voxel: ``(N,)`` voxel of each point (``VoxelGrid.point_to_voxel``; ``-1`` ignored).
+        point_labels: ``(N,)`` int64 label of each point.
+        num_voxels: ``M``.
+
+    Returns:
+        ``(M,)`` int64 labels, ``0`` for voxels without points.
+
+    Example:
+        >>> voxel_labels(torch.tensor([0, 0, 0, 1]), torch.tensor([7, 3, 7, 2]), 3).tolist()
+        [7, 2, 0]
+    """
+    check_shape(point_to_voxel, "point_to_voxel", ("N",))
+    check_shape(point_labels, "point_labels", ("N",), {"N": point_to_voxel.shape[0]})
+    ok = point_to_voxel >= 0
+    v, lab = point_to_voxel[ok], point_labels[ok].long()
+    out = torch.zeros(num_voxels, dtype=torch.int64, device=point_to_voxel.device)
+    if v.numel() == 0:
+        return out
+    pairs, counts = torch.unique(v * (int(lab.max()) + 1) + lab, return_counts=True)
+    pv, pl = pairs // (int(lab.max()) + 1), pairs % (int(lab.max()) + 1)
+    # order by (voxel, count desc, label asc) and take the first row of each voxel
+    order = torch.argsort(pl, stable=True)
+    order = order[torch.argsort(-counts[order], stable=True)]
+    order = order[torch.argsort(pv[order], stable=True)]
+    first = torch.ones_like(order, dtype=torch.bool)
+    first[1:] = pv[order][1:] != pv[order][:-1]
+    out[pv[order][first]] = pl[order][first]
+    return out
