@@ -29,7 +29,7 @@ def project_naive(
     out = []
     for i in range(means.shape[0]):
         p = W @ means[i] + t
-        if not near < float(p[2]) < far:
+        if not near < float(p[2].detach()) < far:
             out.append(None)
             continue
         R = quat_to_rot(quats[i])
@@ -55,7 +55,7 @@ def project_naive(
         if antialiased:
             opac = opac * torch.sqrt(torch.clamp_min(det_raw / torch.linalg.det(cov), 0.0))
         n = W @ R[:, int(torch.argmin(scales[i]))]
-        if float(n @ p) > 0:
+        if float((n @ p).detach()) > 0:
             n = -n
         mean2d = torch.stack([fx * x / z + cx, fy * y / z + cy])
         out.append({"mean2d": mean2d, "conic": torch.linalg.inv(cov), "z": z, "opac": opac, "normal": n})

@@ -463,7 +463,7 @@ def composite_gaussians(
     params = torch.cat(
         [means2d.reshape(b * n, 2), conics.reshape(b * n, 3), torch.log(opacities.reshape(b * n, 1))], dim=-1
     )
-    feats = features.reshape(b * n, -1)
+    feats = features.reshape(b * n, features.shape[-1])
     s = _make_setup(bins, b, image_size, params.detach(), alpha_max, alpha_min, transmittance_min, chunk_size)
     if backward == "manual":
         ab = None if absgrad is None else absgrad.view(b * n, 2)

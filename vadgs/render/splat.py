@@ -300,8 +300,8 @@ def rasterize_gaussians(
     depth = comp.features[:, d : d + 1] / torch.clamp_min(alpha, 1e-10)
     normals = F.normalize(comp.features[:, d + 1 :], dim=1)
     ids = comp.median_ids
-    median = torch.gather(proj.depths, 1, ids.clamp_min(0).reshape(b, -1)).reshape(b, 1, h, w)
-    median = torch.where(ids[:, None] >= 0, median, torch.zeros_like(median))
+    # Index -1 (no median) picks the zero padded in front of the depths.
+    median = torch.gather(F.pad(proj.depths, (1, 0)), 1, (ids + 1).reshape(b, h * w)).reshape(b, 1, h, w)
     visible = (proj.radii > 0).all(-1)
     return RenderOutput(
         color, alpha, depth, median, normals, ids, means2d, absgrad, proj.radii, visible, proj.depths
