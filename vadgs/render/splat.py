@@ -276,11 +276,21 @@ def rasterize_gaussians(
         means2d.retain_grad()
     absgrad = torch.zeros_like(means2d.detach()) if cfg.absgrad else None
 
-    bins = bin_gaussians(means2d.detach(), proj.radii, proj.depths.detach(), (h, w), cfg.tile_size)
+    opac = torch.clamp_min(proj.opacities, torch.finfo(means.dtype).tiny)
+    bins = bin_gaussians(
+        means2d.detach(),
+        proj.radii,
+        proj.depths.detach(),
+        (h, w),
+        cfg.tile_size,
+        conics=proj.conics.detach(),
+        opacities=opac.detach(),
+        alpha_min=cfg.alpha_min,
+    )
     comp = composite_gaussians(
         means2d,
         proj.conics,
-        torch.clamp_min(proj.opacities, torch.finfo(means.dtype).tiny),
+        opac,
         features,
         bins,
         (h, w),

