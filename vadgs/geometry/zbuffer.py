@@ -7,10 +7,14 @@ is a dense depth map and a pixel → voxel index map per view (paper, Fig. 3c): 
 behind foreground geometry are excluded, and since a surface point inside a voxel lies at most
 one voxel diagonal behind the box's entry point, the depth error is bounded by the voxel size.
 
-The z-test is done with one ``scatter_reduce(amin)`` on packed 64-bit keys
-``(float32 depth bits << 32) | voxel id``: positive float32 values order like their bit patterns,
-so the minimum key carries the nearest depth and, for exact ties, the smallest voxel id. Pure
-torch, no compiled code, batched over views and chunked over (voxel, pixel) pairs to bound memory.
+The ray tests work in inverse depth, where every box face is an affine function of the pixel
+(see ``_raster_one``): boxes are bucketed by the size of their projected pixel rectangle and
+each bucket is evaluated as one padded ``(n, ph, pw)`` block by broadcasting a row term against a
+column term per face, with no per-pixel gathers. The z-test is one ``scatter_reduce(amin)`` per
+block on packed 64-bit keys ``(float32 depth bits << 32) | voxel id``: positive float32 values
+order like their bit patterns, so the minimum key carries the nearest depth and, for exact ties,
+the smallest voxel id. Pure torch, no compiled code, chunked over (voxel, pixel) pairs to bound
+memory, with a Hi-Z test between chunks.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from vadgs.geometry.voxel import VoxelGrid
 
 __all__ = ["VoxelRaster", "VoxelRasterizer", "ZBufferConfig", "rasterize_voxels"]
 
-_EMPTY = torch.iinfo(torch.int64).max
+_EMPTY = 0x7F800000 << 32  # the key of depth +inf: misses (+inf | voxel id) never beat it
 
 
 class VoxelRaster(NamedTuple):
@@ -63,7 +67,7 @@ class ZBufferConfig:
             boxes on roads and walls. Voxels without a plane use the z-depth of their mean
             point, clamped into the box. Needs a :class:`VoxelGrid`.
         plane_tolerance: slack of the ``"plane"`` test, in voxel sizes.
-        max_pairs: bound on the (voxel, pixel) pairs processed at once (memory ~ 60 B each).
+        max_pairs: bound on the padded (voxel, pixel) pairs processed per chunk (memory ~ 40 B each).
     """
 
     near: float = 0.1
@@ -76,7 +80,7 @@ class ZBufferConfig:
 
 def _boxes_in_view(
     centers: torch.Tensor, half: float, K: torch.Tensor, w2c: torch.Tensor, size: tuple[int, int], cfg
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, ...]:
     """Cull boxes against one view; return ids and the integer pixel rectangles they may cover."""
     h, w = size
     corners = torch.tensor(
@@ -89,6 +93,13 @@ def _boxes_in_view(
     cam = centers @ rot.T + t  # (M, 3)
     zr = half * rot[2].abs().sum()
     keep = (cam[:, 2] - zr > cfg.near) & (cam[:, 2] - zr < cfg.far)
+    # conservative frustum test of the bounding spheres before projecting any corner: the sphere
+    # meets the half-space x >= a z iff (x - a z) / sqrt(1 + a^2) >= -radius
+    radius = half * 3**0.5
+    for axis, extent in ((0, w), (1, h)):
+        f, c0 = K[axis, axis], K[axis, 2]
+        for a, sign in (((-0.5 - c0) / f, 1.0), ((extent - 0.5 - c0) / f, -1.0)):
+            keep &= sign * (cam[:, axis] - a * cam[:, 2]) >= -radius * torch.sqrt(1 + a * a)
     ids = keep.nonzero().squeeze(1)
     cam = cam[ids]
     zmin = cam[:, 2] - zr
@@ -105,8 +116,7 @@ def _boxes_in_view(
 def _hiz_pyramid(keys: torch.Tensor, size: tuple[int, int]) -> list[torch.Tensor]:
     """Max-depth pyramid of the current z-buffer: level k holds the max over 2^k × 2^k tiles."""
     h, w = size
-    d = torch.where(keys == _EMPTY, torch.full_like(keys, 0x7F800000 << 32), keys)  # empty -> +inf
-    depth = (d >> 32).to(torch.int32).view(torch.float32).reshape(1, 1, h, w)
+    depth = (keys >> 32).to(torch.int32).view(torch.float32).reshape(1, 1, h, w)
     levels = [depth[0, 0]]
     while max(levels[-1].shape) > 1:
         depth = torch.nn.functional.max_pool2d(depth, 2, ceil_mode=True)
@@ -131,6 +141,34 @@ def _occluded(
     return out
 
 
+def _bucket_table(limit: int) -> list[int]:
+    """Block sizes 1, 2, 3, 4, 6, 8, 12, 16, 24, ...: at most 1.5x padding per dimension."""
+    out, p = [1, 2, 3], 4
+    while out[-1] < limit:
+        out += [p, 3 * p // 2]
+        p *= 2
+    return out
+
+
+def _slab_offsets(
+    c: torch.Tensor, half: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Signed offsets ``(n, 3)`` of each box's entry and exit planes from the camera, per world axis.
+
+    Returns ``(enter, exit1, exit2, inside)``: for an axis whose slab does not contain the camera
+    the ray enters through the near plane and leaves through the far one (``exit1 == exit2``);
+    where the slab contains the camera (``inside``) there is no entry plane and the ray leaves
+    through either plane depending on its direction (``exit1``, ``exit2``).
+    """
+    tiny = 1e-12
+    lo, hi = c - half, c + half
+    lo = torch.where(lo == 0, torch.full_like(lo, -tiny), lo)
+    hi = torch.where(hi == 0, torch.full_like(hi, tiny), hi)
+    below, above = lo > 0, hi < 0
+    inside = ~(below | above)
+    return torch.where(below, lo, hi), torch.where(above, lo, hi), torch.where(below, hi, lo), inside
+
+
 def _raster_one(
     centers: torch.Tensor,
     half: float,
@@ -141,7 +179,16 @@ def _raster_one(
     cfg: ZBufferConfig,
     planes: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
-    """Packed z-buffer keys ``(H * W,)`` for one view."""
+    r"""Packed z-buffer keys ``(H * W,)`` for one view.
+
+    Works in inverse depth, where every plane is affine in the pixel: the ray
+    :math:`o + t\,M (u, v, 1)^\top` (:math:`M = R^\top K^{-1}`, :math:`t` the z-depth) meets the
+    world plane :math:`x_k = e` at :math:`1 / t = M_k (u, v, 1)^\top / (e - o_k)`. The ray hits a
+    box iff its largest entry depth is at most its smallest exit depth (slab method), i.e. the
+    smallest entry inverse depth is positive and at least the largest exit inverse depth. Each
+    box's pixel rectangle is padded to a bucket size so that boxes of one bucket are evaluated as
+    one ``(n, ph, pw)`` block by broadcasting a row term against a column term per plane.
+    """
     h, w = size
     dev, dt = centers.device, centers.dtype
     keys = torch.full((h * w,), _EMPTY, dtype=torch.int64, device=dev)
@@ -149,91 +196,92 @@ def _raster_one(
     ids, u0, v0, bw, bh, zmin = _boxes_in_view(cen, half, K, w2c, size, cfg)
     if ids.numel() == 0:
         return keys
-
-    def ids_global_of(local_ids: torch.Tensor) -> torch.Tensor:
-        return local_ids if candidates is None else candidates[local_ids]
-
-    # rays in world: o + t * D with D = R^T K^-1 (u, v, 1): t is the z-depth
+    ids_g = ids if candidates is None else candidates[ids]
     rot_t = w2c[:3, :3].T
     origin = -(rot_t @ w2c[:3, 3])
-    kinv = torch.linalg.inv(K)
-    ys, xs = torch.meshgrid(
-        torch.arange(h, device=dev, dtype=dt), torch.arange(w, device=dev, dtype=dt), indexing="ij"
-    )
-    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1).reshape(-1, 3)
-    dirs = pix @ (rot_t @ kinv).T  # (H*W, 3)
-    inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-    slack = cfg.plane_tolerance * 2 * half if planes is not None else 0.0
-    # front to back: nearest boxes first, so that the Hi-Z pyramid culls what they hide
-    order = torch.argsort(zmin)
-    ids, u0, v0, bw, bh, zmin = ids[order], u0[order], v0[order], bw[order], bh[order], zmin[order] - slack
-    budget = min(cfg.max_pairs, 1 << 16)
+    M = rot_t @ torch.linalg.inv(K)
+    # per-box affine coefficients (n, P, 3) of the planes' inverse depth: rows 0-2 entry planes
+    # (+inf where the slab contains the camera), 3-5 and 6-8 exit candidates, 9 the fitted plane
+    enter, exit1, exit2, inside = _slab_offsets(cen[ids] - origin, half)
+    coef = M.repeat(3, 1) / torch.cat([enter, exit1, exit2], 1)[:, :, None]
+    no_entry = torch.tensor([0.0, 0.0, float("inf")], dtype=dt, device=dev)
+    coef[:, :3] = torch.where(inside[:, :, None], no_entry, coef[:, :3])
+    extra = None
+    slack = 0.0
+    if planes is not None:
+        means, normals = planes[0][ids_g] - origin, planes[1][ids_g]
+        coef = torch.cat([coef, (normals @ M)[:, None]], 1)
+        has_normal = (normals.abs().sum(1) > 0).to(dt)
+        extra = torch.stack([(means * normals).sum(1), means @ w2c[2, :3], has_normal], 1)
+        slack = cfg.plane_tolerance * 2 * half
+    # padded blocks: each rectangle rounded up to a bucket size and shifted to stay in the image
+    table = torch.tensor(_bucket_table(max(h, w)), device=dev)
+    ih, iw = torch.searchsorted(table, bh), torch.searchsorted(table, bw)
+    ph, pw = table[ih].clamp(max=h), table[iw].clamp(max=w)
+    u0, v0 = torch.minimum(u0, w - pw), torch.minimum(v0, h - ph)
+    bucket = (ih * len(table) + iw) * 2 + inside.any(1).long()
+    # front to back in chunks of at most max_pairs pairs; between chunks the Hi-Z pyramid of
+    # what is drawn so far culls the boxes it hides
+    zmin = zmin - slack
+    todo = torch.argsort(zmin)
     first = True
-    while ids.numel():
+    while todo.numel():
         if not first:
-            vis = ~_occluded(_hiz_pyramid(keys, size), u0, v0, bw, bh, zmin)
-            ids, u0, v0, bw, bh, zmin = ids[vis], u0[vis], v0[vis], bw[vis], bh[vis], zmin[vis]
-            if ids.numel() == 0:
+            levels = _hiz_pyramid(keys, size)
+            todo = todo[~_occluded(levels, u0[todo], v0[todo], pw[todo], ph[todo], zmin[todo])]
+            if todo.numel() == 0:
                 break
         first = False
-        area = bw * bh
-        end = max(int(torch.searchsorted(area.cumsum(0), budget, right=True)), 1)
-        _raster_chunk(
-            keys,
-            cen[ids[:end]],
-            ids_global_of(ids[:end]),
-            u0[:end],
-            v0[:end],
-            bw[:end],
-            bh[:end],
-            half,
-            origin,
-            dirs,
-            inv,
-            w,
-            w2c,
-            cfg,
-            planes,
-            slack,
-        )
-        ids, u0, v0, bw, bh, zmin = ids[end:], u0[end:], v0[end:], bw[end:], bh[end:], zmin[end:]
-        budget = min(budget * 2, cfg.max_pairs)
+        end = max(int(torch.searchsorted((ph[todo] * pw[todo]).cumsum(0), cfg.max_pairs, right=True)), 1)
+        chunk, todo = todo[:end], todo[end:]
+        chunk = chunk[torch.argsort(bucket[chunk], stable=True)]
+        _, counts = torch.unique_consecutive(bucket[chunk], return_counts=True)
+        for sel in torch.split(chunk, counts.tolist()):
+            i0 = int(sel[0])
+            _raster_block(
+                keys, coef[sel], None if extra is None else extra[sel], ids_g[sel], u0[sel], v0[sel],
+                int(ph[i0]), int(pw[i0]), bool(bucket[i0] & 1), w, cfg.near, slack,
+            )  # fmt: skip
     return keys
 
 
-def _raster_chunk(keys, box_c, vox_ids, u0, v0, bw, bh, half, origin, dirs, inv, w, w2c, cfg, planes, slack):
-    """Exact ray-box tests for a chunk of boxes over their pixel rectangles; z-test into ``keys``."""
-    dev = box_c.device
-    a = bw * bh
-    box = torch.repeat_interleave(torch.arange(a.numel(), device=dev), a)
-    local = torch.arange(box.numel(), device=dev) - torch.repeat_interleave(a.cumsum(0) - a, a)
-    bwb = bw[box]
-    px = u0[box] + local % bwb
-    py = v0[box] + local // bwb
-    pid = py * w + px
-    inv_p = inv[pid]
-    c = box_c[box] - origin
-    lo = (c - half) * inv_p
-    hi = (c + half) * inv_p
-    t_in = torch.minimum(lo, hi).amax(1)
-    t_out = torch.maximum(lo, hi).amin(1)
-    hit = t_in <= t_out
-    if planes is not None:
-        means, normals = planes
-        vg = vox_ids[box]
-        n, p0 = normals[vg], means[vg]
-        d = dirs[pid]
-        nd = (n * d).sum(1)
-        t_plane = (n * (p0 - origin)).sum(1) / torch.where(nd.abs() < 1e-9, torch.ones_like(nd), nd)
-        t_mid = p0 @ w2c[2, :3] + w2c[2, 3]
-        has_plane = (n.abs().sum(1) > 0) & (nd.abs() >= 1e-9)
-        inside = (t_plane >= t_in - slack) & (t_plane <= t_out + slack)
-        hit &= inside | ~has_plane
-        t_in = torch.where(has_plane, t_plane, t_mid).clamp(min=t_in - slack).clamp(min=cfg.near)
-        t_in = torch.minimum(t_in, t_out + slack)
-    pid, t_in, vox = pid[hit], t_in[hit].float(), vox_ids[box[hit]]
-    key = (t_in.view(torch.int32).long() << 32) | vox
-    keys.scatter_reduce_(0, pid, key, reduce="amin")
+def _raster_block(keys, coef, extra, vox_ids, u0, v0, ph, pw, any_inside, w, near, slack) -> None:
+    """Ray-box tests (and plane depths) of ``n`` boxes over ``(ph, pw)`` blocks; z-test into ``keys``."""
+    dev, dt = coef.device, coef.dtype
+    us = u0[:, None] + torch.arange(pw, device=dev)  # (n, pw) pixel columns
+    vs = v0[:, None] + torch.arange(ph, device=dev)  # (n, ph) pixel rows
+    cols = coef[:, :, 0:1] * us[:, None, :].to(dt)  # (n, P, pw)
+    rows = coef[:, :, 1:2] * vs[:, None, :].to(dt) + coef[:, :, 2:3]  # (n, P, ph)
+
+    def plane(k: int) -> torch.Tensor:
+        return rows[:, k, :, None] + cols[:, k, None, :]  # (n, ph, pw)
+
+    w_in = plane(0)
+    torch.minimum(w_in, plane(1), out=w_in)
+    torch.minimum(w_in, plane(2), out=w_in)
+    w_out = plane(3)
+    for k in (4, 5, 6, 7, 8) if any_inside else (4, 5):
+        torch.maximum(w_out, plane(k), out=w_out)
+    w_out.clamp_(min=1e-30)  # a hit needs a positive entry inverse depth
+    hit = w_in >= w_out
+    if extra is None:
+        t = w_in.reciprocal_()
+    else:  # the fitted plane, kept where it crosses the box (with slack); else fall through
+        t_in, t_out = w_in.reciprocal_(), w_out.reciprocal_()
+        nd = plane(9)
+        num, t_mid, has_normal = (extra[:, j, None, None] for j in range(3))
+        flat = nd.abs() >= 1e-9
+        has_plane = flat & (has_normal > 0)
+        t_plane = num / torch.where(flat, nd, torch.ones_like(nd))
+        hit &= ((t_plane >= t_in - slack) & (t_plane <= t_out + slack)) | ~has_plane
+        t = torch.where(has_plane, t_plane, t_mid).clamp(min=t_in - slack).clamp(min=near)
+        t = torch.minimum(t, t_out + slack)
+    t = torch.where(hit, t.float(), float("inf"))
+    key = t.view(torch.int32).long()
+    key <<= 32
+    key |= vox_ids[:, None, None]
+    pid = (vs * w)[:, :, None] + us[:, None, :]
+    keys.scatter_reduce_(0, pid.reshape(-1), key.reshape(-1), reduce="amin")
 
 
 def rasterize_voxels(
@@ -293,19 +341,24 @@ def rasterize_voxels(
     K = cameras.K.to(centers)
     w2c = cameras.world_to_cam.to(centers)
     with torch.no_grad():
+        if cfg.only_observed:
+            vis_voxels, vis_views = grid.vis_voxels, grid.vis_views  # type: ignore[union-attr]
         depth = torch.zeros(b, 1, h, w, dtype=centers.dtype, device=centers.device)
         index = torch.full((b, h, w), -1, dtype=torch.int64, device=centers.device)
         visible = []
         for i in range(b):
             cand = None
             if cfg.only_observed:
-                cand = grid.seen_by(int(view_ids[i])).nonzero().squeeze(1)  # type: ignore[union-attr]
+                cand = vis_voxels[vis_views == int(view_ids[i])].unique()  # type: ignore[index]
             keys = _raster_one(centers, size / 2, K[i], w2c[i], (h, w), cand, cfg, planes)
-            filled = keys != _EMPTY
-            d = (keys >> 32).to(torch.int32).view(torch.float32)
-            depth[i, 0].view(-1)[filled] = d[filled].to(depth.dtype)
-            index[i].view(-1)[filled] = keys[filled] & 0xFFFFFFFF
-            visible.append(torch.unique(index[i][index[i] >= 0]))
+            filled = keys < _EMPTY
+            d = (keys >> 32).to(torch.int32).view(torch.float32).to(depth.dtype)
+            depth[i, 0] = torch.where(filled, d, 0).view(h, w)
+            ids = torch.where(filled, keys & 0xFFFFFFFF, -1)
+            index[i] = ids.view(h, w)
+            seen = torch.zeros(centers.shape[0] + 1, dtype=torch.bool, device=centers.device)
+            seen[ids] = True  # -1 (empty) lands in the extra last slot
+            visible.append(seen[:-1].nonzero().squeeze(1))
     return VoxelRaster(depth, index, visible)
 
 
