@@ -7,6 +7,7 @@ spherical harmonics, tile binning, compositing and 3DGS PLY input/output.
 """
 
 from vadgs.render.composite import CompositeOutput, composite_gaussians
+from vadgs.render.ply import GaussianPly, load_ply, save_ply
 from vadgs.render.projection import ProjectedGaussians, project_gaussians, quaternion_to_rotation
 from vadgs.render.sh import SH_C0, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, sh_to_rgb
 from vadgs.render.splat import GaussianRasterizer, RasterConfig, RenderOutput, rasterize_gaussians
@@ -15,6 +16,7 @@ from vadgs.render.tiles import TileBins, bin_gaussians
 __all__ = [
     "SH_C0",
     "CompositeOutput",
+    "GaussianPly",
     "GaussianRasterizer",
     "ProjectedGaussians",
     "RasterConfig",
@@ -23,11 +25,13 @@ __all__ = [
     "bin_gaussians",
     "composite_gaussians",
     "eval_sh",
+    "load_ply",
     "num_sh_bases",
     "project_gaussians",
     "quaternion_to_rotation",
     "rasterize_gaussians",
     "rgb_to_sh",
+    "save_ply",
     "sh_basis",
     "sh_to_rgb",
 ]
