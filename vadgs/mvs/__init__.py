@@ -1,3 +1,48 @@
-"""Batched PatchMatch multi-view stereo, consistency checks and fusion."""
+"""Batched PatchMatch multi-view stereo, consistency checks and fusion.
 
-__all__: list[str] = []
+See ``docs/mvs.md`` for a worked example and ``vadgs/mvs/design.md`` for the design.
+"""
+
+from vadgs.geometry import cameras_in_object_frame
+from vadgs.mvs.consistency import ConsistencyResult, geometric_consistency, reproject_depth
+from vadgs.mvs.cost import (
+    MAX_COST,
+    ReferencePatchStats,
+    bilateral_ncc,
+    bilateral_weights,
+    ncc_cost_from_stats,
+    patch_offsets,
+    reference_patch_stats,
+    reference_patches,
+)
+from vadgs.mvs.fusion import FusedPoints, FusionConfig, fuse_depth_maps
+from vadgs.mvs.patchmatch import (
+    PatchMatch,
+    PatchMatchConfig,
+    PatchMatchResult,
+    patchmatch,
+    propagation_regions,
+)
+
+__all__ = [
+    "MAX_COST",
+    "ConsistencyResult",
+    "FusedPoints",
+    "FusionConfig",
+    "PatchMatch",
+    "PatchMatchConfig",
+    "PatchMatchResult",
+    "ReferencePatchStats",
+    "bilateral_ncc",
+    "bilateral_weights",
+    "cameras_in_object_frame",
+    "fuse_depth_maps",
+    "geometric_consistency",
+    "ncc_cost_from_stats",
+    "patch_offsets",
+    "patchmatch",
+    "propagation_regions",
+    "reference_patch_stats",
+    "reference_patches",
+    "reproject_depth",
+]

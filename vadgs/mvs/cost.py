@@ -1,0 +1,264 @@
+r"""Bilateral-weighted normalised cross-correlation, the photometric cost of PatchMatch MVS.
+
+A reference patch :math:`r_s` and a source patch :math:`s_s` (the reference window warped into
+a source view through a plane homography) are compared by their weighted correlation
+
+.. math::
+
+    \mathrm{NCC} = \frac{\sum_s w_s (r_s - \bar r)(s_s - \bar s)}
+                        {\sqrt{\sum_s w_s (r_s - \bar r)^2 \; \sum_s w_s (s_s - \bar s)^2}},
+    \qquad \bar r = \sum_s w_s r_s, \quad \sum_s w_s = 1,
+
+with COLMAP's bilateral weights, computed on the reference patch only,
+
+.. math::
+
+    w_s \propto \exp\left(-\frac{\lVert \mathbf{o}_s \rVert^2}{2\sigma_\mathrm{spatial}^2}
+                          -\frac{(r_s - r_0)^2}{2\sigma_\mathrm{colour}^2}\right),
+
+where :math:`\mathbf{o}_s` is the sample's offset from the centre and :math:`r_0` the centre
+intensity. The cost is :math:`1 - \mathrm{NCC}` in :math:`[0, 2]`; a patch whose weighted variance
+is below ``min_variance`` (textureless, sky, saturated) gets the worst cost 2.
+
+Windows are sampled every ``step`` pixels (ACMP samples a radius-5 window every other pixel:
+36 samples instead of 121), offsets are ``(x, y)`` as everywhere in vadgs.
+
+The reference-side quantities (weights, mean, standard deviation) do not depend on the plane
+hypothesis, so PatchMatch computes them once with :func:`reference_patch_stats`;
+:func:`bilateral_ncc` is the plain, self-contained form of the same cost.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from vadgs.checks import check_shape
+
+__all__ = [
+    "MAX_COST",
+    "ReferencePatchStats",
+    "bilateral_ncc",
+    "bilateral_weights",
+    "ncc_cost_from_stats",
+    "patch_offsets",
+    "reference_patch_stats",
+    "reference_patches",
+]
+
+#: The worst photometric cost (``1 - NCC`` for perfectly anti-correlated patches).
+MAX_COST = 2.0
+
+
+def patch_offsets(
+    radius: int, step: int = 1, device: torch.device | None = None, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """Sample offsets ``(x, y)`` of a square window, row by row.
+
+    Offsets run from ``-radius`` to ``radius``; with ``step > 1`` they are symmetric about the
+    centre (``radius=5, step=2`` gives ``-5, -3, -1, 1, 3, 5`` per axis, as ACMP).
+
+    Args:
+        radius: half-size of the window in pixels (>= 0).
+        step: sampling step in pixels (>= 1).
+        device: device of the result.
+        dtype: dtype of the result (default float32).
+
+    Returns:
+        ``(S, 2)`` offsets.
+
+    Example:
+        >>> patch_offsets(1).shape, patch_offsets(5, 2)[:3, 0]
+        (torch.Size([9, 2]), tensor([-5., -3., -1.]))
+    """
+    if radius < 0 or step < 1:
+        raise ValueError(f"patch_offsets: expected radius >= 0 and step >= 1, got {radius=}, {step=}")
+    n = radius * 2 // step + 1
+    span = (n - 1) * step
+    axis = torch.arange(n, device=device, dtype=dtype or torch.float32) * step - span / 2
+    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+    return torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)
+
+
+def reference_patches(gray: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """Gather the window of every pixel of single-channel images (borders replicated).
+
+    Args:
+        gray: ``(B, 1, H, W)`` images.
+        offsets: ``(S, 2)`` offsets ``(x, y)``; they are rounded to whole pixels.
+
+    Returns:
+        ``(B, S, H * W)`` patch samples, sample-major (pixels in row-major order on the last axis).
+
+    Example:
+        >>> img = torch.arange(9.0).reshape(1, 1, 3, 3)
+        >>> reference_patches(img, torch.tensor([[0.0, 0.0], [1.0, 0.0]]))[0, :, 4]
+        tensor([4., 5.])
+    """
+    dims = check_shape(gray, "gray", ("B", 1, "H", "W"))
+    check_shape(offsets, "offsets", ("S", 2))
+    off = offsets.round().long()
+    pad = int(off.abs().max()) if off.numel() else 0
+    padded = F.pad(gray, (pad, pad, pad, pad), mode="replicate")[:, 0]
+    h, w = dims["H"], dims["W"]
+    out = [padded[:, pad + dy : pad + dy + h, pad + dx : pad + dx + w] for dx, dy in off.tolist()]
+    return torch.stack(out, dim=1).reshape(dims["B"], -1, h * w)
+
+
+def bilateral_weights(
+    ref_patches: torch.Tensor,
+    offsets: torch.Tensor,
+    sigma_spatial: float,
+    sigma_color: float,
+    center_index: int | None = None,
+    dim: int = -1,
+) -> torch.Tensor:
+    """COLMAP's bilateral weights of reference patches, normalised to sum to one.
+
+    Args:
+        ref_patches: ``(*, S)`` reference patch samples.
+        offsets: ``(S, 2)`` their offsets from the patch centre.
+        sigma_spatial: spatial standard deviation in pixels (COLMAP: the window radius).
+        sigma_color: intensity standard deviation (COLMAP: 0.2 on [0, 1] intensities).
+        center_index: index of the sample holding the centre intensity :math:`r_0`; default the
+            sample nearest to offset ``(0, 0)``. When the window has no centre sample (even
+            number of samples per axis) the mean of the samples nearest the centre is used.
+        dim: the sample axis of ``ref_patches`` (``-2`` for the sample-major ``(B, S, P)``).
+
+    Returns:
+        Non-negative weights shaped as ``ref_patches``, summing to one along ``dim``.
+
+    Example:
+        >>> off = patch_offsets(1)
+        >>> w = bilateral_weights(torch.zeros(1, 9), off, 1.0, 0.2)
+        >>> float(w.sum()), bool(w[0, 4] > w[0, 0])
+        (1.0, True)
+    """
+    check_shape(offsets, "offsets", ("S", 2))
+    x = ref_patches.movedim(dim, -1)
+    check_shape(x, "ref_patches (sample axis last)", ("*", offsets.shape[0]))
+    off = offsets.to(ref_patches)
+    dist2 = (off**2).sum(-1)
+    if center_index is None:
+        nearest = torch.nonzero(dist2 <= dist2.min() + 1e-6).flatten()
+        center = x[..., nearest].mean(-1, keepdim=True)
+    else:
+        center = x[..., center_index : center_index + 1]
+    logw = -dist2 / (2 * sigma_spatial**2) - (x - center) ** 2 / (2 * sigma_color**2)
+    return torch.softmax(logw, dim=-1).movedim(-1, dim)
+
+
+def bilateral_ncc(
+    ref_patches: torch.Tensor,
+    src_patches: torch.Tensor,
+    weights: torch.Tensor,
+    min_variance: float = 1e-5,
+) -> torch.Tensor:
+    """Photometric cost ``1 - NCC`` of weighted patch pairs, in ``[0, 2]``.
+
+    Not differentiable where the cost is clipped or a variance falls below ``min_variance``;
+    PatchMatch uses it under ``torch.no_grad()``.
+
+    Args:
+        ref_patches: ``(*, S)`` reference patch samples.
+        src_patches: ``(*, S)`` source patch samples (broadcast against ``ref_patches``).
+        weights: ``(*, S)`` weights summing to one (see :func:`bilateral_weights`).
+        min_variance: a patch (reference or source) with a smaller weighted variance gets the
+            worst cost 2.
+
+    Returns:
+        ``(*)`` costs.
+
+    Example:
+        >>> r = torch.tensor([0.1, 0.5, 0.3, 0.9])
+        >>> w = torch.full((4,), 0.25)
+        >>> bilateral_ncc(r, r, w), bilateral_ncc(r, 2 * r + 0.1, w), bilateral_ncc(r, 1 - r, w)
+        (tensor(0.), tensor(0.), tensor(2.))
+        >>> bilateral_ncc(r, torch.full((4,), 0.5), w)  # a flat source patch
+        tensor(2.)
+    """
+    r_mean = (weights * ref_patches).sum(-1, keepdim=True)
+    s_mean = (weights * src_patches).sum(-1, keepdim=True)
+    rc, sc = ref_patches - r_mean, src_patches - s_mean
+    var_r = (weights * rc * rc).sum(-1)
+    var_s = (weights * sc * sc).sum(-1)
+    cov = (weights * rc * sc).sum(-1)
+    ok = (var_r >= min_variance) & (var_s >= min_variance)
+    ncc = cov / torch.sqrt((var_r * var_s).clamp_min(min_variance**2))
+    cost = (1 - ncc).clamp(0, MAX_COST)
+    return torch.where(ok, cost, torch.full_like(cost, MAX_COST))
+
+
+class ReferencePatchStats(NamedTuple):
+    r"""Hypothesis-independent reference-side terms of the bilateral NCC, sample-major.
+
+    The layout is ``(B, S, P)`` (samples first) so that a run of pixels is a slice of the last
+    axis: PatchMatch scores pixels in cache-sized chunks.
+
+    Attributes:
+        weights: ``(B, S, P)`` bilateral weights summing to one over ``S``.
+        normalized: ``(B, S, P)`` :math:`w_s (r_s - \bar r) / \sigma_r` (zero where the
+            reference patch is flat).
+        valid: ``(B, P)`` bool, the reference patch variance reaches ``min_variance``.
+    """
+
+    weights: torch.Tensor
+    normalized: torch.Tensor
+    valid: torch.Tensor
+
+
+def reference_patch_stats(
+    ref_patches: torch.Tensor, weights: torch.Tensor, min_variance: float = 1e-5
+) -> ReferencePatchStats:
+    """Precompute the reference half of :func:`bilateral_ncc`.
+
+    Args:
+        ref_patches: ``(B, S, P)`` reference samples (as :func:`reference_patches` returns).
+        weights: ``(B, S, P)`` bilateral weights summing to one over ``S``.
+        min_variance: threshold below which the reference patch is flat.
+
+    Returns:
+        A :class:`ReferencePatchStats`.
+
+    Example:
+        >>> r = torch.tensor([[[0.1], [0.5], [0.3], [0.9]]])  # B = 1, S = 4, P = 1
+        >>> st = reference_patch_stats(r, torch.full_like(r, 0.25))
+        >>> ncc_cost_from_stats(r[:, None], st)
+        tensor([[[0.]]])
+    """
+    dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
+    check_shape(weights, "weights", ("B", "S", "P"), dims)
+    mean = (weights * ref_patches).sum(1, keepdim=True)
+    centered = ref_patches - mean
+    var = (weights * centered * centered).sum(1, keepdim=True)
+    valid = var[:, 0] >= min_variance
+    normalized = weights * centered * torch.rsqrt(var.clamp_min(min_variance))
+    normalized = torch.where(valid[:, None], normalized, torch.zeros_like(normalized))
+    return ReferencePatchStats(weights, normalized, valid)
+
+
+def ncc_cost_from_stats(
+    src_patches: torch.Tensor, stats: ReferencePatchStats, min_variance: float = 1e-5
+) -> torch.Tensor:
+    """``1 - NCC`` of source patches against precomputed reference statistics (the hot path).
+
+    Equal to :func:`bilateral_ncc` up to rounding (``tests/mvs`` checks it against a loop).
+
+    Args:
+        src_patches: ``(B, V, S, P)`` source samples of ``V`` views, sample-major.
+        stats: reference statistics from :func:`reference_patch_stats`, ``(B, S, P)``.
+        min_variance: threshold below which the source patch is flat (cost 2).
+
+    Returns:
+        ``(B, V, P)`` costs in ``[0, 2]``.
+    """
+    w = stats.weights[:, None]
+    mean = (src_patches * w).sum(2)
+    cov = (src_patches * stats.normalized[:, None]).sum(2)
+    sq = (src_patches * src_patches * w).sum(2)
+    var = sq - mean * mean
+    ok = (var >= min_variance) & stats.valid[:, None]
+    cost = (1 - cov * torch.rsqrt(var.clamp_min(min_variance))).clamp(0, MAX_COST)
+    return torch.where(ok, cost, torch.full_like(cost, MAX_COST))
