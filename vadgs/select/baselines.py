@@ -37,11 +37,10 @@ def _check_ref(ref: int, num_views: int) -> int:
 
 def _ref_rays(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """For every non-zero (view v, voxel m) with m seen by ``ref``: ``v``, ``m`` and the angle (deg)."""
-    idx = covis.incidence.indices()
-    seen = torch.zeros(covis.num_voxels, dtype=torch.bool, device=idx.device)
-    seen[idx[1, idx[0] == ref]] = True
-    sel = seen[idx[1]] & (idx[0] != ref)
-    view, voxel = idx[0, sel], idx[1, sel]
+    seen = covis.voxels_of(ref)
+    view, pos = covis.entries_of(seen)
+    keep = view != ref
+    view, voxel = view[keep], seen[pos[keep]]
     centers = camera_centers(covis.world_to_cam)
     p = covis.voxel_centers[voxel]
     to_ref = torch.nn.functional.normalize(centers[ref] - p, dim=-1)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import scipy.sparse
 import torch
@@ -223,31 +224,106 @@ class Covisibility:
         """``M``, the number of voxels."""
         return self.voxel_centers.shape[0]
 
-    def restrict(self, voxel_mask: torch.Tensor) -> Covisibility:
-        """Keep only the voxels in ``voxel_mask`` (e.g. one instance's voxels); views are kept.
+    @cached_property
+    def _csr(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Row pointers by view, and the entries in voxel-major order with their row pointers."""
+        rows, cols = self.incidence.indices()
+        device = rows.device
+        view_ptr = torch.searchsorted(rows, torch.arange(self.num_views + 1, device=device))
+        order = torch.argsort(cols, stable=True)
+        voxel_ptr = torch.searchsorted(cols[order], torch.arange(self.num_voxels + 1, device=device))
+        return view_ptr, order, voxel_ptr
+
+    def voxels_of(self, view: int) -> torch.Tensor:
+        """Sorted ids of the voxels view ``view`` sees."""
+        view_ptr = self._csr[0]
+        return self.incidence.indices()[1, view_ptr[view] : view_ptr[view + 1]]
+
+    def seen_by(self, view: int) -> torch.Tensor:
+        """``(M,)`` bool: the voxels view ``view`` sees."""
+        mask = torch.zeros(self.num_voxels, dtype=torch.bool, device=self.voxel_centers.device)
+        mask[self.voxels_of(view)] = True
+        return mask
+
+    def entries_of(self, voxels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The (view, position in ``voxels``) pairs of the incidence entries of some voxels.
+
+        Costs ``O(entries of those voxels)``, not ``O(all entries)``: this is what keeps a
+        per-reference selection cheap on a scene-sized grid.
 
         Args:
-            voxel_mask: ``(M,)`` bool, or a 1-D tensor of voxel ids.
+            voxels: 1-D voxel ids.
 
         Returns:
-            A :class:`Covisibility` over the kept voxels, renumbered ``0..M'-1`` in order.
+            ``(views, positions)``, two int64 tensors with one item per entry.
         """
-        if voxel_mask.dtype == torch.bool:
+        _, order, voxel_ptr = self._csr
+        starts, lens = voxel_ptr[voxels], voxel_ptr[voxels + 1] - voxel_ptr[voxels]
+        total = int(lens.sum())
+        offsets = torch.arange(total, device=lens.device) - torch.repeat_interleave(
+            lens.cumsum(0) - lens, lens
+        )
+        entries = order[torch.repeat_interleave(starts, lens) + offsets]
+        positions = torch.repeat_interleave(torch.arange(len(voxels), device=lens.device), lens)
+        return self.incidence.indices()[0, entries], positions
+
+    def restrict(
+        self, voxel_mask: torch.Tensor | None = None, views: torch.Tensor | None = None
+    ) -> Covisibility:
+        """Keep only some voxels (e.g. one instance's) and optionally some views.
+
+        Args:
+            voxel_mask: ``(M,)`` bool, or 1-D increasing voxel ids; ``None`` keeps all voxels.
+            views: optional 1-D increasing view ids to keep.
+
+        Returns:
+            A :class:`Covisibility` over the kept voxels and views, both renumbered from ``0`` in
+            order.
+
+        Example:
+            >>> visible = [torch.tensor([0, 1]), torch.tensor([1, 2])]
+            >>> covis = Covisibility.from_visible(visible, torch.rand(3, 3), torch.eye(4).repeat(2, 1, 1))
+            >>> covis.restrict(torch.tensor([False, True, True])).incidence.to_dense()
+            tensor([[1., 0.],
+                    [1., 1.]])
+        """
+        device = self.voxel_centers.device
+        if voxel_mask is None:
+            ids = torch.arange(self.num_voxels, device=device)
+        elif voxel_mask.dtype == torch.bool:
             check_shape(voxel_mask, "voxel_mask", (self.num_voxels,))
-            keep = voxel_mask.to(self.voxel_centers.device)
+            ids = torch.nonzero(voxel_mask.to(device)).squeeze(1)
         else:
-            keep = torch.zeros(self.num_voxels, dtype=torch.bool, device=self.voxel_centers.device)
-            keep[voxel_mask.long().to(keep.device)] = True
-        new_id = torch.cumsum(keep.long(), 0) - 1
-        idx = self.incidence.indices()
-        sel = keep[idx[1]]
+            ids = voxel_mask.long().to(device)
+            if ids.dim() != 1 or (len(ids) > 1 and not bool((ids[1:] > ids[:-1]).all())):
+                raise ValueError("voxel_mask: expected a bool mask or increasing 1-D voxel ids")
+        rows, cols = self.entries_of(ids)
+        num_views = self.num_views
+        w2c, cams, frames = self.world_to_cam, self.camera_ids, self.frame_ids
+        if views is not None:
+            views = views.long().to(device)
+            if views.dim() != 1 or (len(views) > 1 and not bool((views[1:] > views[:-1]).all())):
+                raise ValueError("views: expected increasing 1-D view ids")
+            new_view = torch.full((self.num_views,), -1, dtype=torch.long, device=device)
+            new_view[views] = torch.arange(len(views), device=device)
+            rows = new_view[rows]
+            keep = rows >= 0
+            rows, cols = rows[keep], cols[keep]
+            num_views = len(views)
+            w2c = w2c[views]
+            cams = None if cams is None else cams[views]
+            frames = None if frames is None else frames[views]
+        # entries come sorted by (voxel, view): a stable sort by view makes them (view, voxel)
+        order = torch.argsort(rows, stable=True)
+        values = torch.ones(len(rows), dtype=self.incidence.dtype, device=device)
         inc = torch.sparse_coo_tensor(
-            torch.stack([idx[0, sel], new_id[idx[1, sel]]]),
-            self.incidence.values()[sel],
-            (self.num_views, int(keep.sum())),
+            torch.stack([rows[order], cols[order]]),
+            values,
+            (num_views, len(ids)),
+            is_coalesced=True,
             check_invariants=False,
-        ).coalesce()
-        return Covisibility(self.voxel_centers[keep], inc, self.world_to_cam, self.camera_ids, self.frame_ids)
+        )
+        return Covisibility(self.voxel_centers[ids], inc, w2c, cams, frames)
 
     def visible_counts(self) -> torch.Tensor:
         """``(V,)`` the number of voxels each view sees."""

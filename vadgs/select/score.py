@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 
 from vadgs.checks import check_shape
-from vadgs.geometry.camera import camera_centers, relative_pose
+from vadgs.geometry.camera import camera_centers
 from vadgs.select.covisibility import Covisibility, sparse_gram
 
 __all__ = ["DiversityScores", "diversity_score", "diversity_scores", "pose_terms", "shared_voxel_stats"]
@@ -107,11 +107,13 @@ def pose_terms(
     """
     check_shape(world_to_ref, "world_to_ref", ("*", 4, 4))
     check_shape(world_to_src, "world_to_src", ("*", 4, 4))
-    ref_from_src = relative_pose(world_to_src, world_to_ref)
-    t = ref_from_src[..., :3, 3]
+    # t = R_ref C_src + t_ref with C_src = -R_src^T t_src (no 4x4 inverses: cheap on (V, V) grids)
+    rot_ref, rot_src = world_to_ref[..., :3, :3], world_to_src[..., :3, :3]
+    center_src = -(rot_src.transpose(-1, -2) @ world_to_src[..., :3, 3:])
+    t = (rot_ref @ center_src + world_to_ref[..., :3, 3:]).squeeze(-1)
     ratio = t[..., :2].norm(dim=-1) / (t[..., 2].abs() + eps)
     # sin θ = |vee(R - R^T)| / 2 for θ in [0, π]: accurate for small angles, unlike sqrt(1 - cos²)
-    rot = ref_from_src[..., :3, :3]
+    rot = rot_ref @ rot_src.transpose(-1, -2)
     skew = torch.stack(
         [rot[..., 2, 1] - rot[..., 1, 2], rot[..., 0, 2] - rot[..., 2, 0], rot[..., 1, 0] - rot[..., 0, 1]],
         -1,

@@ -3,12 +3,15 @@ r"""Select the supporting views of a reference view: diversity-aware (max-weight
 For a reference view ``R`` and a set of voxels (one instance's, or everything ``R`` sees), the
 diversity-aware selection (paper, "Diversity-Aware View Selection"; supplement, "View Selection")
 
-1. scores every pair of views (:func:`vadgs.select.diversity_scores`);
-2. takes as candidates the views sharing at least ``min_shared`` voxels with ``R`` and a positive
-   score ``s_iR`` (across all cameras and timestamps), keeping the ``max_candidates`` best by
-   ``s_iR`` when there are more;
-3. joins two candidates by an edge when they co-observe at least ``min_shared`` voxels;
-4. draws ``ξ ~ N(1, noise_std²)`` (seeded) and solves, exactly,
+1. keeps the voxels ``R`` sees and, as candidates, the views sharing at least ``min_shared`` of
+   them (the union of their visibility sets, across all cameras and timestamps);
+2. scores every pair among ``R`` and the candidates on those voxels
+   (:func:`vadgs.select.diversity_scores`) and drops candidates with ``s_iR = 0`` (no baseline or
+   no rotation);
+3. joins two candidates by an edge when they co-observe at least ``min_shared`` of those voxels;
+4. draws ``ξ ~ N(1, noise_std²)`` (seeded), keeps at most ``max_candidates`` candidates (those
+   with the largest optimistic share ``s_iR ξ_iR + ½ top_{k-1}(λ s_ij ξ_ij)`` of the objective)
+   and solves, exactly,
 
 .. math::
 
@@ -18,8 +21,9 @@ diversity-aware selection (paper, "Diversity-Aware View Selection"; supplement, 
 over the k-cliques of that graph (:func:`vadgs.select.max_weight_clique`), with ``s_ij`` the
 symmetrised pair score ``(s[i, j] + s[j, i]) / 2``.
 
-Exactness is over the candidate set after the cap; the cap keeps the clique search bounded
-(``C(24, 4) = 10626`` subsets at most) and drops only the views least diverse w.r.t. ``R``.
+The solver is exact over the candidates after the cap. The cap bounds the search
+(``C(24, 4) = 10626`` subsets at most); on street_a it returns the uncapped optimum for most
+references (``docs/select.md`` has the measured agreement).
 
 Nothing here raises on a hard case: no voxel, no candidate, fewer candidates than ``k`` or a
 graph without a k-clique all return a :class:`ViewSelection` with fewer views (or none) and the
@@ -36,7 +40,7 @@ from vadgs.checks import check_shape
 from vadgs.select.baselines import colmap_scores, consecutive_views, mvsnet_scores, top_k_views
 from vadgs.select.clique import max_weight_clique
 from vadgs.select.covisibility import Covisibility
-from vadgs.select.score import DiversityScores, diversity_scores
+from vadgs.select.score import diversity_scores
 
 __all__ = ["METHODS", "ViewSelection", "ViewSelectionConfig", "ViewSelector", "select_views"]
 
@@ -146,35 +150,46 @@ def _select_baseline(
     return ViewSelection(views, score, "ok", cand)
 
 
+def _cap(node: torch.Tensor, edge: torch.Tensor, adjacency: torch.Tensor, k: int, cap: int) -> torch.Tensor:
+    """Indices (sorted) of the ``cap`` candidates with the largest optimistic contribution.
+
+    A candidate's share of the objective of any k-clique containing it is at most its node weight
+    plus half its ``k - 1`` largest edge weights to neighbours: ``u_i = w_i + ½ top_{k-1}(W_ij)``.
+    """
+    half = torch.where(adjacency, edge / 2, torch.zeros_like(edge))
+    u = node + torch.topk(half, min(k - 1, len(node)), dim=1).values.sum(1)
+    return torch.sort(torch.topk(u, cap).indices).values
+
+
 def select_views(
     ref: int,
     covis: Covisibility,
     config: ViewSelectionConfig | None = None,
     generator: torch.Generator | None = None,
-    scores: DiversityScores | None = None,
     allowed: torch.Tensor | None = None,
 ) -> ViewSelection:
     """Choose the supporting views of reference view ``ref`` (see the module docstring).
 
-    Runs under ``torch.no_grad()``; nothing is differentiable.
+    The diversity scores are computed on the voxels of ``covis`` that ``ref`` sees (``N``,
+    ``d_R``, ``d_S`` of every pair, candidates among themselves included, count only those), for
+    ``ref`` and the views sharing at least ``min_shared`` of them. Runs under ``torch.no_grad()``;
+    nothing is differentiable.
 
     Args:
         ref: the reference view, an index into ``covis``'s views.
         covis: the views, voxels and visibility; restrict it to an instance's voxels
             (:meth:`Covisibility.restrict`) to select for that instance, in the object's frame for
-            a moving one.
+            a moving one. Unrestricted, the selection is for the whole reference view.
         config: settings (defaults: :class:`ViewSelectionConfig`).
         generator: draws ``ξ`` (``None``: torch's global generator). Seed it for reproducible picks.
-        scores: the output of :func:`vadgs.select.diversity_scores` for ``covis`` with the same
-            ``eps`` / ``count_exponent``, to score all pairs once for many references.
         allowed: optional ``(V,)`` bool, the views that may be chosen (e.g. training views).
 
     Returns:
         A :class:`ViewSelection`; fewer than ``k`` views (or none) only with a reason.
 
     Raises:
-        ValueError: if ``ref`` is out of range, ``allowed`` or ``scores`` has the wrong shape, or a
-            baseline lacks the ids it needs.
+        ValueError: if ``ref`` is out of range, ``allowed`` has the wrong shape, or a baseline
+            lacks the ids it needs.
 
     Example:
         >>> import math
@@ -200,49 +215,59 @@ def select_views(
     with torch.no_grad():
         if config.method != "diversity":
             return _select_baseline(ref, covis, config, ok)
-        if scores is None:
-            scores = diversity_scores(covis, config.eps, config.count_exponent)
-        check_shape(scores.score, "scores.score", (num, num))
-        check_shape(scores.shared, "scores.shared", (num, num))
-        if scores.shared[ref, ref] <= 0:
+        seen = covis.voxels_of(ref)
+        if len(seen) == 0:
             return ViewSelection(_empty(device), 0.0, "no_voxels: the reference sees none of the voxels")
-        s_ref = scores.score[ref]
-        mask = (scores.shared[ref] >= config.min_shared) & (s_ref > 0) & ok
+        entry_views, _ = covis.entries_of(seen)
+        shared_ref = torch.bincount(entry_views, minlength=num)
+        mask = (shared_ref >= config.min_shared) & ok
         mask[ref] = False
-        cand = torch.nonzero(mask).squeeze(1)
-        total = len(cand)
+        views = torch.nonzero(mask | (torch.arange(num, device=device) == ref)).squeeze(1)
+        local_ref = int(torch.nonzero(views == ref))
+        scores = diversity_scores(covis.restrict(seen, views), config.eps, config.count_exponent)
+        s_ref = scores.score[local_ref]
+        local = torch.nonzero(s_ref > 0).squeeze(1)  # excludes ref (0 on the diagonal)
+        cand = views[local]
+        total = len(local)
         if total == 0:
             reason = f"no_candidates: no view shares >= {config.min_shared} voxels and a baseline with it"
             return ViewSelection(_empty(device), 0.0, reason, cand)
-        capped = ""
-        if total > config.max_candidates:
-            cand = cand[torch.topk(s_ref[cand], config.max_candidates).indices]
-            cand = torch.sort(cand).values
-            capped = f"; capped to {config.max_candidates} of {total} candidates by s_iR"
-        c = len(cand)
-        node = s_ref[cand]
-        pair = scores.score[cand][:, cand]
+        node = s_ref[local]
+        pair = scores.score[local][:, local]
         pair = (pair + pair.T) / 2
         if config.noise_std > 0:
             gdev = generator.device if generator is not None else torch.device("cpu")
-            xi_node = torch.randn(c, generator=generator, device=gdev, dtype=node.dtype)
-            xi_pair = torch.randn(c, c, generator=generator, device=gdev, dtype=node.dtype).triu(1)
+            xi_node = torch.randn(total, generator=generator, device=gdev, dtype=node.dtype)
+            xi_pair = torch.randn(total, total, generator=generator, device=gdev, dtype=node.dtype).triu(1)
             xi_pair = xi_pair + xi_pair.T
             node = node * (1 + config.noise_std * xi_node.to(device))
             pair = pair * (1 + config.noise_std * xi_pair.to(device))
-        adjacency = scores.shared[cand][:, cand] >= config.min_shared
-        clique = max_weight_clique(node, config.lam * pair, config.k, adjacency)
-        views = cand[clique.nodes]
-        if len(views) == config.k:
+        edge = config.lam * pair
+        adjacency = scores.shared[local][:, local] >= config.min_shared
+        adjacency.fill_diagonal_(False)
+        capped = ""
+        if total > config.max_candidates:
+            keep = _cap(node, edge, adjacency, config.k, config.max_candidates)
+            node, edge, adjacency, cand = (
+                node[keep],
+                edge[keep][:, keep],
+                adjacency[keep][:, keep],
+                cand[keep],
+            )
+            capped = f"; capped to {config.max_candidates} of {total} candidates"
+        clique = max_weight_clique(node, edge, config.k, adjacency)
+        chosen = cand[clique.nodes]
+        c = len(cand)
+        if len(chosen) == config.k:
             reason = "ok" + capped
         elif c < config.k:
             reason = f"few_candidates: {c} candidates < k={config.k}" + capped
         else:
             reason = (
                 f"no_k_clique: the largest group of {c} candidates that pairwise co-observe "
-                f">= {config.min_shared} voxels has {len(views)} views" + capped
+                f">= {config.min_shared} voxels has {len(chosen)} views" + capped
             )
-        return ViewSelection(views, clique.weight, reason, cand)
+        return ViewSelection(chosen, clique.weight, reason, cand)
 
 
 class ViewSelector:
@@ -267,19 +292,14 @@ class ViewSelector:
         self.seed = seed
         self.generator = torch.Generator().manual_seed(seed)
 
-    def scores(self, covis: Covisibility) -> DiversityScores:
-        """All pairwise diversity scores of ``covis`` with this config's ``eps`` / ``count_exponent``."""
-        return diversity_scores(covis, self.config.eps, self.config.count_exponent)
-
     def __call__(
         self,
         ref: int,
         covis: Covisibility,
-        scores: DiversityScores | None = None,
         allowed: torch.Tensor | None = None,
     ) -> ViewSelection:
         """Select for one reference view (see :func:`select_views`)."""
-        return select_views(ref, covis, self.config, self.generator, scores, allowed)
+        return select_views(ref, covis, self.config, self.generator, allowed)
 
     def select_all(
         self,
@@ -287,10 +307,9 @@ class ViewSelector:
         refs: list[int] | torch.Tensor | None = None,
         allowed: torch.Tensor | None = None,
     ) -> list[ViewSelection]:
-        """Select for every view in ``refs`` (default: all views), scoring the pairs once."""
+        """Select for every view in ``refs`` (default: all views), in order."""
         refs = range(covis.num_views) if refs is None else [int(r) for r in refs]
-        scores = self.scores(covis) if self.config.method == "diversity" else None
-        return [self(r, covis, scores, allowed) for r in refs]
+        return [self(r, covis, allowed) for r in refs]
 
     def __repr__(self) -> str:
         return f"ViewSelector({self.config!r}, seed={self.seed})"
