@@ -245,7 +245,15 @@ def _voxel_normals(
     s2 = torch.zeros(m, 3, 3, dtype=torch.float64, device=points.device).index_add_(
         0, p2v, d[:, :, None] * d[:, None, :]
     )
+    # each voxel's raw sums, once: sum p = s1 + n mu, sum p p^T = s2 + mu s1^T + s1 mu^T + n mu mu^T
     mu = means.double()
+    raw1 = s1 + cnt[:, None] * mu
+    raw2 = (
+        s2
+        + mu[:, :, None] * s1[:, None, :]
+        + s1[:, :, None] * mu[:, None, :]
+        + cnt[:, None, None] * mu[:, :, None] * mu[:, None, :]
+    )
     n_tot = torch.zeros_like(cnt)
     p_tot = torch.zeros(m, 3, dtype=torch.float64, device=points.device)
     pp_tot = torch.zeros(m, 3, 3, dtype=torch.float64, device=points.device)
@@ -257,18 +265,11 @@ def _voxel_normals(
         inside = ((c >= 0) & (c < ext)).all(1)
         key = (c[:, 0] * ext[1] + c[:, 1]) * ext[2] + c[:, 2]
         pos = torch.searchsorted(keys, key).clamp(max=m - 1)
-        nb = inside & (keys[pos] == key)
-        j = pos[nb]
-        # neighbour's raw sums: sum p = s1 + n mu, sum p p^T = s2 + mu s1^T + s1 mu^T + n mu mu^T
-        mj, s1j, nj = mu[j], s1[j], cnt[j]
-        n_tot[nb] += nj
-        p_tot[nb] += s1j + nj[:, None] * mj
-        pp_tot[nb] += (
-            s2[j]
-            + mj[:, :, None] * s1j[:, None, :]
-            + s1j[:, :, None] * mj[:, None, :]
-            + nj[:, None, None] * mj[:, :, None] * mj[:, None, :]
-        )
+        i = (inside & (keys[pos] == key)).nonzero().squeeze(1)  # voxels whose neighbour exists
+        j = pos[i]
+        n_tot.index_add_(0, i, cnt[j])
+        p_tot.index_add_(0, i, raw1[j])
+        pp_tot.index_add_(0, i, raw2[j])
     mean = p_tot / n_tot.clamp(min=1)[:, None]
     cov = pp_tot / n_tot.clamp(min=1)[:, None, None] - mean[:, :, None] * mean[:, None, :]
     evals, evecs = torch.linalg.eigh(cov)
