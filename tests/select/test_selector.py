@@ -37,9 +37,9 @@ def _ring(num_views=8, num_voxels=30, step_deg=12.0, radius=10.0, seed=0):
     return Covisibility.from_visible([torch.arange(num_voxels)] * num_views, centers, w2c)
 
 
-def _ref_scores(covis, ref):
+def _ref_scores(covis, ref, count_exponent=ViewSelectionConfig.count_exponent):
     """Pair scores on the voxels the reference sees (what select_views optimises)."""
-    return diversity_scores(covis.restrict(covis.seen_by(ref)))
+    return diversity_scores(covis.restrict(covis.seen_by(ref)), count_exponent=count_exponent)
 
 
 def _objective(covis, ref, views, lam, scores=None):

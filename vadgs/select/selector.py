@@ -56,8 +56,9 @@ class ViewSelectionConfig:
         lam: ``λ``, weight of the pairwise diversity among the supporting views.
         noise_std: standard deviation of ``ξ ~ N(1, noise_std²)``; ``0`` is deterministic.
         eps: ``ε`` of the diversity score, metres (see :func:`vadgs.select.pose_terms`).
-        count_exponent: ``1`` is the paper's equation as printed; ``2`` makes the score grow with
-            the number of shared voxels (see :mod:`vadgs.select.score`).
+        count_exponent: ``2`` (default) makes the score grow with the number of shared voxels, as
+            the paper's text says it should; ``1`` is its equation as printed, where ``N`` cancels
+            against ``d_R^T d_S`` (see :mod:`vadgs.select.score`).
         min_shared: voxels a candidate must share with the reference, and two candidates with
             each other to be joined in the graph.
         max_candidates: cap on the candidates entering the clique search (best ``s_iR`` kept).
@@ -69,7 +70,7 @@ class ViewSelectionConfig:
     lam: float = 0.5
     noise_std: float = 0.05
     eps: float = 0.1
-    count_exponent: float = 1.0
+    count_exponent: float = 2.0
     min_shared: int = 8
     max_candidates: int = 24
     method: str = "diversity"
