@@ -1,0 +1,213 @@
+"""Tests of pinhole cameras and poses (vadgs.geometry.camera)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from vadgs.geometry import (
+    Cameras,
+    backproject_depth,
+    camera_centers,
+    cameras_in_object_frame,
+    invert_rigid,
+    pixel_grid,
+    project_points,
+    relative_pose,
+    scale_intrinsics,
+)
+
+
+def random_rigid(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=dtype))
+    q = q * torch.linalg.det(q)[:, None, None].sign()  # proper rotations
+    T = torch.eye(4, dtype=dtype).repeat(n, 1, 1)
+    T[:, :3, :3] = q
+    T[:, :3, 3] = torch.randn(n, 3, generator=g, dtype=dtype)
+    return T
+
+
+def intrinsics(n: int = 1, f=(50.0, 55.0), c=(15.5, 11.5), dtype=torch.float64) -> torch.Tensor:
+    K = torch.tensor([[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1]], dtype=dtype)
+    return K.expand(n, 3, 3).clone()
+
+
+class TestInvertRigid:
+    def test_feature(self):
+        T = random_rigid(5)
+        eye = torch.eye(4, dtype=torch.float64).expand(5, 4, 4)
+        torch.testing.assert_close(T @ invert_rigid(T), eye)
+        torch.testing.assert_close(invert_rigid(T), torch.linalg.inv(T))
+
+    def test_cardinality(self):
+        assert invert_rigid(random_rigid(6).reshape(2, 3, 4, 4)).shape == (2, 3, 4, 4)
+
+    def test_gradcheck(self):
+        T = random_rigid(2).requires_grad_()
+        assert gradcheck(invert_rigid, (T,))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="transform"):
+            invert_rigid(torch.eye(3))
+
+
+class TestRelativePose:
+    def test_maps_ref_camera_points_to_src(self):
+        w2r, w2s = random_rigid(3, 1), random_rigid(3, 2)
+        p_world = torch.randn(3, 4, 1, dtype=torch.float64)
+        p_world = torch.cat([p_world.expand(3, 4, 5).transpose(1, 2)[..., :3], torch.ones(3, 5, 1)], -1)
+        p_ref = p_world @ w2r.transpose(1, 2)
+        p_src = p_world @ w2s.transpose(1, 2)
+        torch.testing.assert_close(p_ref @ relative_pose(w2r, w2s).transpose(1, 2), p_src)
+
+    def test_identity(self):
+        T = random_rigid(2)
+        torch.testing.assert_close(relative_pose(T, T), torch.eye(4, dtype=torch.float64).expand(2, 4, 4))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="world_to_src"):
+            relative_pose(random_rigid(1), torch.eye(3))
+
+
+class TestProjectBackproject:
+    def test_smoke(self):
+        uv, z = project_points(torch.tensor([[[0.0, 0.0, 2.0]]]), intrinsics(dtype=torch.float32))
+        assert uv.tolist() == [[[15.5, 11.5]]] and z.tolist() == [[2.0]]
+
+    def test_round_trip(self):
+        """backproject(depth) then project lands on the pixel centres with the same depth."""
+        g = torch.Generator().manual_seed(3)
+        depth = 1.0 + 5 * torch.rand(2, 1, 24, 32, generator=g, dtype=torch.float64)
+        K = intrinsics(2)
+        c2w = random_rigid(2, 4)
+        pts = backproject_depth(depth, K, c2w)  # (B, 3, H, W) world
+        assert pts.shape == (2, 3, 24, 32)
+        uv, z = project_points(pts.flatten(2).transpose(1, 2), K, invert_rigid(c2w))
+        grid = pixel_grid((24, 32), dtype=torch.float64).reshape(1, -1, 2).expand(2, -1, -1)
+        torch.testing.assert_close(uv, grid)
+        torch.testing.assert_close(z, depth.flatten(1))
+
+    def test_camera_frame_without_pose(self):
+        depth = torch.full((1, 1, 4, 6), 3.0, dtype=torch.float64)
+        pts = backproject_depth(depth, intrinsics())
+        torch.testing.assert_close(pts[:, 2], depth[:, 0])
+        torch.testing.assert_close(
+            pts[0, :, 2, 3],
+            torch.tensor([(3 - 15.5) * 3 / 50, (2 - 11.5) * 3 / 55, 3.0], dtype=torch.float64),
+        )
+
+    def test_pixel_grid(self):
+        grid = pixel_grid((2, 3))
+        assert grid.shape == (2, 3, 2) and grid[1, 2].tolist() == [2.0, 1.0]
+
+    def test_camera_centers(self):
+        T = random_rigid(3, 5)
+        c = camera_centers(T)
+        torch.testing.assert_close(c, invert_rigid(T)[:, :3, 3])
+        _, z = project_points(c[:, None], intrinsics(3), T)
+        torch.testing.assert_close(z, torch.zeros(3, 1, dtype=torch.float64))
+
+    def test_gradcheck(self):
+        pts = (torch.randn(1, 4, 3, dtype=torch.float64) + torch.tensor([0, 0, 5.0])).requires_grad_()
+        K = intrinsics().requires_grad_()
+        T = random_rigid(1, 6)
+        T[:, :3, 3] = torch.tensor([0.1, 0.2, 0.3])
+        T.requires_grad_()
+        assert gradcheck(lambda p, k, t: project_points(p, k, t), (pts, K, T))
+        depth = (1 + torch.rand(1, 1, 3, 4, dtype=torch.float64)).requires_grad_()
+        assert gradcheck(lambda d, k, t: backproject_depth(d, k, t), (depth, K, T))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="points"):
+            project_points(torch.zeros(1, 4, 2), intrinsics())
+        with pytest.raises(ValueError, match="K"):
+            project_points(torch.zeros(2, 4, 3), intrinsics(1))
+        with pytest.raises(ValueError, match="world_to_cam"):
+            project_points(torch.zeros(1, 4, 3), intrinsics(1), torch.eye(4))
+        with pytest.raises(ValueError, match="depth"):
+            backproject_depth(torch.zeros(1, 4, 4), intrinsics())
+        with pytest.raises(ValueError, match="cam_to_world"):
+            backproject_depth(torch.zeros(1, 1, 4, 4), intrinsics(), torch.eye(4)[None, :3])
+
+
+class TestScaleIntrinsics:
+    def test_pixel_centre_convention(self):
+        """A 3D point's pixel x maps to s (x + 0.5) - 0.5 under a resize by s."""
+        K = intrinsics()
+        p = torch.tensor([[[0.3, -0.2, 2.0], [-1.0, 0.5, 4.0]]], dtype=torch.float64)
+        uv, _ = project_points(p, K)
+        for s in (0.5, 2.0, 0.25):
+            uv_s, _ = project_points(p, scale_intrinsics(K, s))
+            torch.testing.assert_close(uv_s, s * (uv + 0.5) - 0.5)
+
+    def test_image_centre_stays_centre(self):
+        h, w = 288, 480
+        K = intrinsics(c=((w - 1) / 2, (h - 1) / 2))
+        Ks = scale_intrinsics(K, 0.5)
+        assert Ks[0, 0, 2].item() == (w / 2 - 1) / 2 and Ks[0, 1, 2].item() == (h / 2 - 1) / 2
+        assert Ks[0, 0, 0].item() == 25.0 and Ks[0, 2].tolist() == [0.0, 0.0, 1.0]
+
+    def test_unbatched(self):
+        assert scale_intrinsics(intrinsics()[0], 2.0).shape == (3, 3)
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="K"):
+            scale_intrinsics(torch.eye(4), 2.0)
+
+
+class TestCamerasInObjectFrame:
+    def test_feature(self):
+        """A point fixed in the object frame has the same camera coordinates either way."""
+        w2c, o2w = random_rigid(4, 7), random_rigid(4, 8)
+        p_obj = torch.tensor([0.3, -1.0, 2.0, 1.0], dtype=torch.float64)
+        p_world = o2w @ p_obj
+        torch.testing.assert_close(
+            cameras_in_object_frame(w2c, o2w) @ p_obj, (w2c @ p_world[..., None])[..., 0]
+        )
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="object_to_world"):
+            cameras_in_object_frame(random_rigid(2), random_rigid(3))
+
+
+class TestCameras:
+    def test_smoke(self):
+        cams = Cameras(intrinsics(2), random_rigid(2), (24, 32))
+        assert len(cams) == 2 and cams.image_size == (24, 32)
+        assert cams.device == torch.device("cpu")
+
+    def test_properties_and_indexing(self):
+        T = random_rigid(3, 9)
+        cams = Cameras(intrinsics(3), T, [24, 32])
+        assert cams.image_size == (24, 32)
+        torch.testing.assert_close(cams.cam_to_world, torch.linalg.inv(T))
+        torch.testing.assert_close(cams.centers, camera_centers(T))
+        assert len(cams[1]) == 1 and len(cams[[0, 2]]) == 2 and len(cams[torch.tensor([1])]) == 1
+        torch.testing.assert_close(cams[2].world_to_cam[0], T[2])
+        back = Cameras.from_cam_to_world(intrinsics(3), cams.cam_to_world, (24, 32))
+        torch.testing.assert_close(back.world_to_cam, T)
+        half = cams.rescale(0.5)
+        assert half.image_size == (12, 16)
+        torch.testing.assert_close(half.K, scale_intrinsics(cams.K, 0.5))
+        assert cams.to(dtype=torch.float32).K.dtype == torch.float32
+        o2w = random_rigid(3, 10)
+        torch.testing.assert_close(cams.in_object_frame(o2w).world_to_cam, T @ o2w)
+
+    def test_exception(self):
+        T = random_rigid(2)
+        bad = T.clone()
+        bad[0, 0, 3] = float("nan")
+        with pytest.raises(ValueError, match="world_to_cam: expected finite"):
+            Cameras(intrinsics(2), bad, (4, 4))
+        badK = intrinsics(2)
+        badK[1, 0, 0] = float("inf")
+        with pytest.raises(ValueError, match="K: expected finite"):
+            Cameras(badK, T, (4, 4))
+        with pytest.raises(ValueError, match="world_to_cam"):
+            Cameras(intrinsics(3), T, (4, 4))
+        with pytest.raises(ValueError, match="image_size"):
+            Cameras(intrinsics(2), T, (0, 4))
+        with pytest.raises(ValueError, match="image_size"):
+            Cameras(intrinsics(2), T, "big")
