@@ -140,7 +140,9 @@ def test_case2_forward_backward(benchmark, case2, backward):
     benchmark.extra_info.update(
         threads=torch.get_num_threads(), peak_rss_mib=round(peak), peak_above_scene_mib=round(peak - base)
     )
-    benchmark.pedantic(_forward_backward, args=(case2, RasterConfig(backward=backward)), rounds=3, warmup_rounds=1)
+    benchmark.pedantic(
+        _forward_backward, args=(case2, RasterConfig(backward=backward)), rounds=3, warmup_rounds=1
+    )
 
 
 def test_case2_forward(benchmark, case2):
