@@ -5,6 +5,11 @@ Run (the numbers in docs/benchmarks_render.md come from exactly this):
     pytest benchmarks/bench_render.py --benchmark-enable -p no:cacheprovider \
         --benchmark-columns=min,median,max,rounds --benchmark-sort=name
 
+and, for the CPU work without the wait for a loaded machine's cores (one thread, CPU time):
+
+    VADGS_BENCH_THREADS=1 pytest benchmarks/bench_render.py --benchmark-enable -p no:cacheprovider \
+        --benchmark-columns=min,median,max,rounds --benchmark-sort=name --benchmark-timer=time.process_time
+
 Case 1: 20k random Gaussians at 256x256 (forward; forward+backward).
 Case 2: 150k Gaussians initialised from street_a LiDAR (3DGS init: isotropic scales from the
 mean distance to the 3 nearest neighbours, opacity 0.1) seen by the front camera at 480x288,
@@ -30,6 +35,9 @@ import pytest
 import torch
 
 from vadgs.render import RasterConfig, rasterize_gaussians
+
+if os.environ.get("VADGS_BENCH_THREADS"):  # e.g. 1 on a loaded shared machine, see the docs
+    torch.set_num_threads(int(os.environ["VADGS_BENCH_THREADS"]))
 
 SHARED = Path(os.environ.get("VADGS_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared"))
 STREET = SHARED / "data" / "street_a"
@@ -109,7 +117,7 @@ def test_case1_forward_backward(benchmark, case1, name):
 
 
 _PEAK_SCRIPT = r"""
-import resource, sys, torch
+import os, resource, sys, torch
 sys.path.insert(0, {bench_dir!r})
 from bench_render import street_scene, _forward_backward, RasterConfig
 scene = street_scene()
