@@ -1,0 +1,422 @@
+r"""Reconstruct one flagged instance by multi-view stereo (paper, Fig. 2 and 4).
+
+:class:`VisibilityIndex` gathers what the visibility-aware densification needs about a scene:
+the static voxel grid (world frame) and one grid per moving object (its own frame), each voxel's
+instance label and visibility set, and the cameras of every view, as
+:class:`~vadgs.select.Covisibility` objects for view selection.
+
+:func:`reconstruct_instance` then, for a reference view and an instance flagged by
+:func:`~vadgs.train.incomplete.find_incomplete`:
+
+1. takes the instance's voxels (their visibility sets are the candidate views) — or, when the
+   instance has almost no voxels of its own (the LiDAR missed it), the voxels the z-buffer sees
+   *through* it in the reference view, whose observers also look at the missing surface;
+2. selects ``k`` supporting views with the diversity-aware k-clique
+   (:func:`~vadgs.select.select_views`), in the object's frame for a moving object;
+3. runs PatchMatch on the whole group (each member as reference against the others), on crops
+   around the instance, matching only inside the instance's masks (static instances only
+   against static pixels, a moving object only against itself), initialised from rendered depth
+   and normals when given;
+4. keeps the pixels whose depth at least ``min_consistent_views`` other members confirm
+   (forward–backward reprojection, relative depth) and fuses them into points with normals and
+   colours, in the instance's frame (world, or the object's own frame).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+
+from vadgs.data.lidar import accumulate_lidar
+from vadgs.data.scene import Scene
+from vadgs.geometry.camera import Cameras, backproject_depth, invert_rigid
+from vadgs.geometry.voxel import VoxelGrid, voxelize
+from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
+from vadgs.mvs.consistency import geometric_consistency
+from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
+from vadgs.select.covisibility import Covisibility
+from vadgs.select.selector import ViewSelectionConfig, select_views
+from vadgs.train.incomplete import voxel_labels
+
+__all__ = [
+    "InstanceReconstruction",
+    "ReconstructConfig",
+    "VisibilityIndex",
+    "build_visibility_index",
+    "reconstruct_instance",
+]
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Settings of :func:`reconstruct_instance`.
+
+    Attributes:
+        selection: view selection (``k = 4`` supporting views by default; ``method="consecutive"``
+            is the paper's "w/o view selection" ablation).
+        patchmatch: PatchMatch settings.
+        margin: pixels added around each instance's bounding box for the crops.
+        max_crop: crops are limited to this many pixels per side (larger instances are
+            reconstructed in their central part only; keeps the cost bounded).
+        max_reproj_error: forward–backward reprojection threshold (px) of the consistency check.
+        max_rel_depth: relative depth threshold of the consistency check.
+        min_consistent_views: other group members that must confirm a pixel.
+        min_instance_voxels: below this many own voxels, the voxels seen through the instance
+            in the reference view stand in for its candidates.
+        min_pixels: members whose instance mask has fewer pixels are used as sources only.
+        max_points: cap on the points returned (random subset, seeded).
+    """
+
+    selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
+    patchmatch: PatchMatchConfig = field(default_factory=lambda: PatchMatchConfig(iterations=3))
+    margin: int = 6
+    max_crop: int = 160
+    max_reproj_error: float = 2.0
+    max_rel_depth: float = 0.01
+    min_consistent_views: int = 1
+    min_instance_voxels: int = 8
+    min_pixels: int = 16
+    max_points: int = 20000
+
+
+class InstanceReconstruction(NamedTuple):
+    """Result of :func:`reconstruct_instance`.
+
+    Attributes:
+        points: ``(P, 3)`` in the instance's frame (world, or the track's object frame).
+        normals: ``(P, 3)`` unit normals in that frame.
+        colors: ``(P, 3)`` RGB in [0, 1].
+        spacing: ``(P,)`` pixel footprint of each point (metres per pixel at its depth).
+        track: the track id when the instance moves (points in its frame), else None.
+        views: the group: the reference first, then the supporting views.
+        depth: per group member, ``(1, H, W)`` consistent MVS depth in its full image (0 elsewhere),
+            usable as a depth prior.
+        normal: per group member, ``(3, H, W)`` MVS normals (camera frame), zeros elsewhere.
+        reason: ``"ok"`` or why nothing (or little) was reconstructed.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    colors: torch.Tensor
+    spacing: torch.Tensor
+    track: int | None
+    views: list[int]
+    depth: list[torch.Tensor]
+    normal: list[torch.Tensor]
+    reason: str
+
+
+@dataclass
+class VisibilityIndex:
+    """Voxel grids, labels and covisibility of a scene, built once by :func:`build_visibility_index`.
+
+    Attributes:
+        scene: the scene.
+        cameras: all views' cameras (world frame).
+        grid: static voxel grid (world frame).
+        labels: ``(M,)`` instance label of each static voxel.
+        covis: view selection input over the static voxels.
+        track_grids: track id → voxel grid in the object's frame.
+        track_covis: track id → view selection input in the object's frame.
+        allowed: ``(V,)`` bool, views that may support (the training views).
+        zbuffer: settings of the z-buffer.
+    """
+
+    scene: Scene
+    cameras: Cameras
+    grid: VoxelGrid
+    labels: torch.Tensor
+    covis: Covisibility
+    track_grids: dict[int, VoxelGrid]
+    track_covis: dict[int, Covisibility]
+    allowed: torch.Tensor
+    zbuffer: ZBufferConfig = field(default_factory=ZBufferConfig)
+    _rasters: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
+    _images: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
+    _instances: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
+
+    def image(self, view: int) -> torch.Tensor:
+        """``(3, H, W)`` image of a view (cached)."""
+        if view not in self._images:
+            self._images[view] = self.scene.load_images([view])[0]
+        return self._images[view]
+
+    def instances(self, view: int) -> torch.Tensor:
+        """``(H, W)`` instance map of a view (cached)."""
+        if view not in self._instances:
+            self._instances[view] = self.scene.load_instances([view])[0]
+        return self._instances[view]
+
+    def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
+        if view not in self._rasters:
+            r = rasterize_voxels(self.grid, self.cameras[view], [view], self.zbuffer)
+            self._rasters[view] = (r.depth[0], r.index[0])
+        return self._rasters[view]
+
+    def object_cameras(self, track: int) -> torch.Tensor:
+        """``(V, 4, 4)`` object-to-camera transforms of every view for a track."""
+        t = self.scene.tracks[track]
+        pos = torch.tensor([self.scene._frame_pos(v.frame) for v in self.scene.views])
+        return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
+
+
+def _covis(grid: VoxelGrid, world_to_cam: torch.Tensor, scene: Scene) -> Covisibility:
+    cam_ids = torch.tensor([scene.camera_names.index(v.camera) for v in scene.views])
+    frame_ids = torch.tensor([v.frame for v in scene.views])
+    return Covisibility.from_csr(
+        grid.vis_indptr, grid.vis_views, grid.centers, world_to_cam, cam_ids, frame_ids
+    )
+
+
+def build_visibility_index(
+    scene: Scene,
+    voxel_size: float = 0.2,
+    frames: Sequence[int] | None = None,
+    zbuffer: ZBufferConfig | None = None,
+) -> VisibilityIndex:
+    """Voxelise the scene's LiDAR (static in world, each track in its frame) with visibility sets.
+
+    Args:
+        scene: a scene with LiDAR.
+        voxel_size: voxel edge (m).
+        frames: frames whose LiDAR is used (default: the training frames).
+        zbuffer: z-buffer settings for the per-view voxel depth.
+
+    Returns:
+        The :class:`VisibilityIndex`.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> index = build_visibility_index(load_scene(sample_scene_path()))
+        >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.scene.tracks)
+        (True, True)
+    """
+    acc = accumulate_lidar(scene, frames)
+    if acc.points.shape[0] == 0:
+        raise ValueError(f"scene {scene.name!r}: no static LiDAR points in frames {frames}")
+    grid = voxelize(acc.points, voxel_size, acc.point_views, scene.num_views)
+    labels = voxel_labels(grid.point_to_voxel, acc.instance, len(grid))
+    cameras = scene.cameras()
+    allowed = torch.zeros(scene.num_views, dtype=torch.bool)
+    allowed[scene.train_views] = True
+    index = VisibilityIndex(
+        scene,
+        cameras,
+        grid,
+        labels,
+        _covis(grid, cameras.world_to_cam, scene),
+        {},
+        {},
+        allowed,
+        zbuffer or ZBufferConfig(),
+    )
+    for tid in scene.tracks:
+        tacc = accumulate_lidar(scene, frames, track_id=tid)
+        if tacc.points.shape[0] < 3:
+            continue
+        tgrid = voxelize(tacc.points, voxel_size, tacc.point_views, scene.num_views)
+        index.track_grids[tid] = tgrid
+        index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), scene)
+    return index
+
+
+def _crops(
+    masks: Sequence[torch.Tensor], margin: int, size: tuple[int, int], max_crop: int
+) -> tuple[list[tuple[int, int]], int, int]:
+    """One crop size for all masks and each crop's top-left corner.
+
+    The size is the largest bounding box plus margin (capped); each crop is centred on its mask's
+    box and clipped to the image.
+    """
+    hh, ww = size
+    centres, hs, ws = [], [], []
+    for m in masks:
+        ys, xs = m.nonzero(as_tuple=True)
+        centres.append(((int(ys.min()) + int(ys.max())) // 2, (int(xs.min()) + int(xs.max())) // 2))
+        hs.append(int(ys.max()) - int(ys.min()) + 1 + 2 * margin)
+        ws.append(int(xs.max()) - int(xs.min()) + 1 + 2 * margin)
+    ch, cw = min(max(hs), max_crop, hh), min(max(ws), max_crop, ww)
+    corners = [(min(max(cy - ch // 2, 0), hh - ch), min(max(cx - cw // 2, 0), ww - cw)) for cy, cx in centres]
+    return corners, ch, cw
+
+
+def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
+    K = K.clone()
+    K[..., 0, 2] -= x0
+    K[..., 1, 2] -= y0
+    return K
+
+
+@torch.no_grad()
+def reconstruct_instance(
+    index: VisibilityIndex,
+    ref: int,
+    instance: int,
+    config: ReconstructConfig | None = None,
+    generator: torch.Generator | None = None,
+    render_prior: Callable[[int], tuple[torch.Tensor, torch.Tensor]] | None = None,
+) -> InstanceReconstruction:
+    """Reconstruct an instance seen in view ``ref`` from selected supporting views by PatchMatch.
+
+    Not differentiable (a search). See the module docstring for the steps.
+
+    Args:
+        index: the scene's :class:`VisibilityIndex`.
+        ref: the reference view.
+        instance: the instance id (a track id for a moving object: matched in its own frame).
+        config: :class:`ReconstructConfig`.
+        generator: seeds the selection noise ``ξ``.
+        render_prior: optional ``view -> (depth (1, H, W), normal (3, H, W))`` rendered by the
+            Gaussians (camera frame normals, in the instance's frame of reference), the
+            PatchMatch initialisation; ``0`` where unknown.
+
+    Returns:
+        :class:`InstanceReconstruction` (possibly empty, with the reason).
+    """
+    cfg = config or ReconstructConfig()
+    scene = index.scene
+    if not 0 <= ref < scene.num_views:
+        raise ValueError(f"ref: expected a view in [0, {scene.num_views}), got {ref}")
+    track = instance if instance in scene.tracks else None
+    h, w = index.cameras.image_size
+    empty3 = torch.zeros(0, 3)
+
+    def nothing(reason: str, views: list[int] | None = None) -> InstanceReconstruction:
+        return InstanceReconstruction(
+            empty3, empty3, empty3, torch.zeros(0), track, views or [ref], [], [], reason
+        )
+
+    ref_mask = index.instances(ref) == instance
+    if int(ref_mask.sum()) < cfg.min_pixels:
+        return nothing("instance_too_small_in_reference")
+
+    # 1. the instance's voxels and frame
+    if track is not None:
+        if track not in index.track_covis:
+            return nothing("no_lidar_on_track")
+        covis = index.track_covis[track]
+        voxels = torch.ones(covis.num_voxels, dtype=torch.bool)
+        world_to_cam = index.object_cameras(track)
+        valid_frames = scene.tracks[track].valid
+        allowed = index.allowed & torch.tensor(
+            [bool(valid_frames[scene._frame_pos(v.frame)]) for v in scene.views]
+        )
+    else:
+        covis = index.covis
+        voxels = index.labels == instance
+        if int(voxels.sum()) < cfg.min_instance_voxels:
+            # the LiDAR missed it: the voxels seen through its pixels have observers that look at it
+            _, vidx = index.voxel_raster(ref)
+            through = torch.unique(vidx[ref_mask & (vidx >= 0)])
+            voxels = voxels.clone()
+            voxels[through] = True
+        world_to_cam = index.cameras.world_to_cam
+        allowed = index.allowed
+    if int(voxels.sum()) == 0:
+        return nothing("no_voxels")
+
+    # 2. supporting views
+    sel = select_views(ref, covis.restrict(voxels), cfg.selection, generator, allowed)
+    group = [ref, *sel.views.tolist()]
+    if len(group) < 2:
+        return nothing(f"selection:{sel.reason}")
+
+    # 3. PatchMatch on the group, each member against the others, on crops around the instance
+    def region(v: int) -> torch.Tensor:
+        ins = index.instances(v)
+        if track is not None:
+            return ins == instance
+        return ~torch.isin(ins, torch.tensor(sorted(scene.tracks), dtype=ins.dtype))
+
+    masks = [index.instances(v) == instance for v in group]
+    members = [i for i, m in enumerate(masks) if int(m.sum()) >= cfg.min_pixels]
+    if len(members) < 2:
+        return nothing("instance_seen_in_fewer_than_two_group_views", group)
+    boxes, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
+    imgs = torch.stack([index.image(v) for v in group])
+    regions = torch.stack([region(v) for v in group])[:, None]
+    K_all = index.cameras.K[group]
+    w2c_all = world_to_cam[group]
+    ref_imgs, ref_masks, ref_K, init_d, init_n = [], [], [], [], []
+    for i, (y0, x0) in zip(members, boxes):
+        ref_imgs.append(imgs[i, :, y0 : y0 + ch, x0 : x0 + cw])
+        ref_masks.append(masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
+        ref_K.append(_shift_K(K_all[i], x0, y0))
+        if render_prior is not None:
+            d, n = render_prior(group[i])
+            init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
+            init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
+    others = [[j for j in range(len(group)) if j != i] for i in members]
+    src_imgs = torch.stack([imgs[o] for o in others])
+    src_masks = torch.stack([regions[o] for o in others])
+    src_K = torch.stack([K_all[o] for o in others])
+    src_w2c = torch.stack([w2c_all[o] for o in others])
+    # depth range from the instance's voxels as seen by the reference
+    cen = covis.voxel_centers[voxels]
+    z = cen @ w2c_all[0, 2, :3] + w2c_all[0, 2, 3]
+    z = z[z > 0.1]
+    lo, hi = (float(z.min()) * 0.5, float(z.max()) * 2.0) if z.numel() else (0.5, 150.0)
+    res = patchmatch(
+        torch.stack(ref_imgs),
+        src_imgs,
+        torch.stack(ref_K),
+        src_K,
+        w2c_all[members],
+        src_w2c,
+        (max(lo, 0.2), max(hi, lo * 4, 1.0)),
+        cfg.patchmatch,
+        init_depth=torch.stack(init_d) if init_d else None,
+        init_normal=torch.stack(init_n) if init_n else None,
+        mask=torch.stack(ref_masks),
+        src_masks=src_masks,
+    )
+
+    # 4. consistency among the members that have depth, then fusion
+    depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
+    b = len(members)
+    cons_src = [[j for j in range(b) if j != i] for i in range(b)]
+    cons = geometric_consistency(
+        depth,
+        torch.stack(ref_K),
+        w2c_all[members],
+        torch.stack([depth[o] for o in cons_src]),
+        torch.stack([torch.stack(ref_K)[o] for o in cons_src]),
+        torch.stack([w2c_all[members][o] for o in cons_src]),
+        cfg.max_reproj_error,
+        cfg.max_rel_depth,
+        min(cfg.min_consistent_views, b - 1),
+    )
+    keep = cons.mask & res.mask
+    pts_cam = backproject_depth(depth, torch.stack(ref_K))  # (b, 3, ch, cw) camera frame
+    c2w = invert_rigid(w2c_all[members])
+    full_depth, full_normal, pts, nrm, col, spc = [], [], [], [], [], []
+    for k in range(b):
+        m = keep[k, 0]
+        y0, x0 = boxes[k]
+        fd = torch.zeros(1, h, w)
+        fn = torch.zeros(3, h, w)
+        fd[:, y0 : y0 + ch, x0 : x0 + cw] = torch.where(keep[k], depth[k], torch.zeros_like(depth[k]))
+        fn[:, y0 : y0 + ch, x0 : x0 + cw] = torch.where(
+            keep[k], res.normal[k], torch.zeros_like(res.normal[k])
+        )
+        full_depth.append(fd)
+        full_normal.append(fn)
+        p = pts_cam[k][:, m].T
+        pts.append(p @ c2w[k, :3, :3].T + c2w[k, :3, 3])
+        nrm.append(res.normal[k][:, m].T @ c2w[k, :3, :3].T)
+        col.append(ref_imgs[k][:, m].T)
+        spc.append(depth[k, 0][m] / ref_K[k][0, 0])
+    points, normals, colors, spacing = (torch.cat(x) for x in (pts, nrm, col, spc))
+    if points.shape[0] > cfg.max_points:
+        g = generator or torch.Generator().manual_seed(0)
+        sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points]
+        points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
+    views = [group[i] for i in members]
+    reason = "ok" if points.shape[0] else "no_consistent_pixels"
+    return InstanceReconstruction(
+        points, normals, colors, spacing, track, views, full_depth, full_normal, reason
+    )
