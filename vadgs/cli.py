@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["COMMANDS", "main", "visibility"]
+__all__ = ["COMMANDS", "demo", "eval_run", "main", "render_run", "train", "visibility"]
 
 
 def _scene_arg(value: str | None) -> Path:
@@ -86,7 +86,285 @@ def _visibility_args(p: argparse.ArgumentParser) -> None:
 
 visibility.add_arguments = _visibility_args  # type: ignore[attr-defined]
 
-COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {"visibility": visibility}
+
+# ---------------------------------------------------------------------------------------------------
+# training
+
+
+def _deep_update(base: dict, upd: dict, where: str = "config") -> dict:
+    for k, v in upd.items():
+        if k not in base:
+            raise ValueError(f"{where}: unknown key {k!r}")
+        if isinstance(base[k], dict) and isinstance(v, dict):
+            _deep_update(base[k], v, f"{where}.{k}")
+        else:
+            base[k] = v
+    return base
+
+
+def _train_config(args: argparse.Namespace) -> object:
+    from vadgs.train.trainer import TrainConfig
+
+    d = TrainConfig().to_dict()
+    if args.config:
+        _deep_update(d, json.loads(Path(args.config).read_text()))
+    for item in args.set or []:
+        if "=" not in item:
+            raise ValueError(f"--set: expected KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        try:
+            val = json.loads(value)
+        except json.JSONDecodeError:
+            val = value
+        parts = key.split(".")
+        _deep_update(d, _nest(parts, val), "--set")
+    for flag, key in (("iterations", "iterations"), ("seed", "seed"), ("max_minutes", "max_minutes")):
+        if getattr(args, flag, None) is not None:
+            d[key] = getattr(args, flag)
+    if getattr(args, "max_gaussians", None) is not None:
+        d["strategy"]["max_gaussians"] = args.max_gaussians
+    return TrainConfig.from_dict(d)
+
+
+def _nest(parts: list[str], val: object) -> dict:
+    return {parts[0]: val} if len(parts) == 1 else {parts[0]: _nest(parts[1:], val)}
+
+
+def _scene_ref(args: argparse.Namespace) -> dict:
+    path = str(_scene_arg(args.scene))
+    if args.dgp:
+        ref = {"kind": "dgp", "path": path, "scale": args.scale, "test_frames": args.test_frames or []}
+        if args.cameras:
+            ref["cameras"] = args.cameras.split(",")
+        return ref
+    return {"kind": "benchmark", "path": path, "scale": args.scale}
+
+
+def _finish_run(trainer: object, out: Path, result: object, progress: bool) -> dict:
+    from vadgs.train.evaluate import evaluate
+    from vadgs.train.export import export_model
+
+    scene = trainer.scene
+    metrics: dict = {
+        "scene": scene.name,
+        "steps": result.step,
+        "completed": result.completed,
+        "train_s": round(result.train_s, 1),
+        "s_per_step": round(result.train_s / max(result.step, 1), 3),
+        "peak_rss_mb": round(result.peak_rss_mb, 1),
+        "num_gaussians": result.num_gaussians,
+        "gaussians_per_node": trainer.model.node_counts(),
+        "threads": torch.get_num_threads(),
+    }
+    if scene.test_views:
+        metrics["test"] = evaluate(
+            trainer.model, scene, config=trainer.config.raster, progress=progress
+        ).to_dict()
+    export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
+
+
+def _summary(metrics: dict) -> str:
+    t = metrics.get("test")
+    parts = [
+        f"{metrics['steps']} steps in {metrics['train_s']:.0f} s",
+        f"{metrics['num_gaussians']} Gaussians",
+    ]
+    if t:
+        parts.append(f"test PSNR {t['psnr']:.2f} dB, PSNR* {t['psnr_star']}, SSIM {t['ssim']:.3f}")
+        if "all" in t["depth"]:
+            parts.append(
+                f"depth AbsRel {t['depth']['all']['absrel']:.3f}, "
+                f"d<1.05 {t['depth']['all']['delta_1.05']:.3f}"
+            )
+    return "; ".join(parts)
+
+
+def train(args: argparse.Namespace) -> int:
+    """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
+    from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, open_scene
+
+    torch.set_num_threads(args.threads or 2)
+    out = Path(args.out)
+    progress = not args.no_progress
+    if args.resume:
+        if not (out / CHECKPOINT_NAME).is_file():
+            raise FileNotFoundError(f"--resume: no checkpoint in {out}")
+        trainer = Trainer.from_checkpoint(out, progress=progress)
+        print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations}")
+    else:
+        if args.scene is None and not args.sample:
+            raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
+        config = _train_config(args)
+        ref = _scene_ref(args)
+        scene = open_scene(ref)
+        colmap = None
+        if args.colmap:
+            from vadgs.data import load_colmap
+
+            colmap = load_colmap(args.colmap, scale=args.scale).points
+        trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, colmap_points=colmap, progress=progress)
+        print(
+            f"{scene}: {len(scene.train_views)} training views, "
+            f"{trainer.model.num_gaussians} initial Gaussians"
+        )
+    result = trainer.train()
+    if not result.completed:
+        print(f"stopped ({result.reason}) at step {result.step}; checkpoint {out / CHECKPOINT_NAME}; "
+              f"continue with: vadgs train --out {out} --resume")  # fmt: skip
+        return 130 if result.reason == "interrupted" else 0
+    metrics = _finish_run(trainer, out, result, progress)
+    print(_summary(metrics))
+    print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
+    return 0
+
+
+def _train_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", help="scene folder (benchmark format, or DGP with --dgp)")
+    p.add_argument("--sample", action="store_true", help="use the bundled sample scene")
+    p.add_argument("--out", required=True, help="run folder (checkpoints, metrics, PLY)")
+    p.add_argument("--config", help="JSON file with (part of) a TrainConfig")
+    p.add_argument("--set", action="append", help="override a config field, e.g. --set init.max_points=50000")
+    p.add_argument("--iterations", type=int)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--max-minutes", type=float, help="stop and checkpoint after this much training time")
+    p.add_argument("--max-gaussians", type=int)
+    p.add_argument(
+        "--scale", type=float, default=0.5, help="image resolution factor (0.5 = 240x144 for the benchmark)"
+    )
+    p.add_argument("--dgp", action="store_true", help="SCENE is a DGP scene folder")
+    p.add_argument("--cameras", help="DGP: comma-separated camera names")
+    p.add_argument("--test-frames", type=int, nargs="*", help="DGP: held-out frames (samples)")
+    p.add_argument("--colmap", help="COLMAP sparse folder whose points are added to the initialisation")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--no-progress", action="store_true")
+
+
+train.add_arguments = _train_args  # type: ignore[attr-defined]
+
+
+def _load_run(run: str) -> tuple:
+    from vadgs.train.model import GaussianModel
+    from vadgs.train.trainer import TrainConfig, load_checkpoint, open_scene
+
+    ckpt = load_checkpoint(run)
+    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
+    return model, open_scene(ckpt["scene_ref"]), TrainConfig.from_dict(ckpt["config"]), ckpt
+
+
+def eval_run(args: argparse.Namespace) -> int:
+    """Evaluate a run's checkpoint on the test split (PSNR, PSNR*, SSIM, depth, #Gaussians)."""
+    from vadgs.train.evaluate import evaluate
+
+    torch.set_num_threads(args.threads or 2)
+    model, scene, config, ckpt = _load_run(args.run)
+    m = evaluate(model, scene, config=config.raster, progress=not args.no_progress).to_dict()
+    m["step"] = int(ckpt["step"])
+    path = Path(args.run) / "eval.json"
+    path.write_text(json.dumps(m, indent=2))
+    print(json.dumps({k: v for k, v in m.items() if k != "per_view"}, indent=2))
+    if m["lpips_note"]:
+        print(m["lpips_note"])
+    print(f"wrote {path}")
+    return 0
+
+
+def _eval_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run folder (or its checkpoint.pt)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+eval_run.add_arguments = _eval_args  # type: ignore[attr-defined]
+
+
+def render_run(args: argparse.Namespace) -> int:
+    """Render a run's test views as PNG panels (image, GT, error, depth, GT depth, normals)."""
+    from vadgs.train.evaluate import save_test_panels
+
+    torch.set_num_threads(args.threads or 2)
+    model, scene, config, _ = _load_run(args.run)
+    views = args.views if args.views else None
+    out = Path(args.out) if args.out else Path(args.run) / "renders"
+    paths = save_test_panels(model, scene, out, views, config.raster, progress=not args.no_progress)
+    print(f"wrote {len(paths)} panels to {out}")
+    return 0
+
+
+def _render_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run folder (or its checkpoint.pt)")
+    p.add_argument("--out", help="output folder (default RUN/renders)")
+    p.add_argument("--views", type=int, nargs="*", help="view indices (default: the test views)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+render_run.add_arguments = _render_args  # type: ignore[attr-defined]
+
+
+def demo(args: argparse.Namespace) -> int:
+    """Train briefly on the bundled sample scene; write metrics.json and a PNG panel."""
+    from vadgs.data import load_scene
+    from vadgs.train.evaluate import render_test_view
+    from vadgs.train.trainer import TrainConfig, Trainer
+    from vadgs.viz import colorize_depth, image_to_uint8, save_panel
+
+    torch.set_num_threads(args.threads or 2)
+    out = Path(args.out)
+    ref = {"kind": "benchmark", "path": str(_scene_arg(None)), "scale": 1.0}
+    scene = load_scene(ref["path"])
+    config = TrainConfig.from_dict(_deep_update(TrainConfig().to_dict(), DEMO_CONFIG))
+    if args.iterations is not None:
+        config = config.replace(iterations=args.iterations)
+    t0 = time.perf_counter()
+    trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not args.no_progress)
+    result = trainer.train()
+    metrics = _finish_run(trainer, out, result, not args.no_progress)
+    metrics["wall_s"] = round(time.perf_counter() - t0, 1)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    view = scene.test_views[len(scene.test_views) // 2]
+    r = render_test_view(trainer.model, scene, view, config.raster)
+    gtd = scene.load_depths([view])[0, 0]
+    vmax = float(gtd[gtd > 0].quantile(0.98))
+    pv = next(p for p in metrics["test"]["per_view"] if p["view"] == view)
+    png = save_panel(
+        [image_to_uint8(r.color[0]), image_to_uint8(scene.load_images([view])[0]),
+         colorize_depth(r.raster.depth[0, 0], None, vmax), colorize_depth(gtd, None, vmax)],
+        [f"test render ({pv['psnr']:.2f} dB)", "ground truth", "rendered depth", "ground-truth depth"],
+        out / "demo_panel.png",
+        columns=2,
+    )  # fmt: skip
+    print(_summary(metrics))
+    print(f"wrote {out / 'metrics.json'} and {png}")
+    return 0
+
+
+#: The demo's configuration (merged into the TrainConfig defaults): a few minutes on 2 CPU cores.
+DEMO_CONFIG: dict = {
+    "iterations": 600,
+    "init": {"voxel_size": 0.12, "max_points": 40_000, "sh_degree": 1},
+    "strategy": {"refine_start_iter": 150, "refine_every": 75, "refine_stop_iter": 500, "reset_every": 0,
+                 "max_gaussians": 60_000},
+    "sh_degree_interval": 300,
+    "checkpoint_every": 0,
+    "log_every": 25,
+}  # fmt: skip
+
+
+def _demo_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", default="outputs/demo", help="output folder")
+    p.add_argument("--iterations", type=int, help="override the demo's iteration count")
+    p.add_argument("--no-progress", action="store_true")
+
+
+demo.add_arguments = _demo_args  # type: ignore[attr-defined]
+
+COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "visibility": visibility,
+    "train": train,
+    "eval": eval_run,
+    "render": render_run,
+    "demo": demo,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -107,6 +385,9 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"vadgs {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except FloatingPointError as e:
+        print(f"vadgs {args.command}: error: {e}", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

@@ -1,3 +1,54 @@
-"""Gaussian model, losses, densification strategies, trainer and evaluation."""
+"""Gaussian model, losses, densification strategies, trainer and evaluation (see ``docs/train.md``)."""
 
-__all__: list[str] = []
+from vadgs.train.evaluate import EvalMetrics, evaluate, save_test_panels
+from vadgs.train.export import export_model, read_ply, write_ply
+from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.losses import (
+    color_loss,
+    depth_loss,
+    depth_loss_hard,
+    depth_loss_soft,
+    geometric_weights,
+    normal_loss,
+)
+from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_at
+from vadgs.train.ops import add_gaussians, duplicate, make_optimizer, remove_gaussians, reset_opacity, split
+from vadgs.train.sampler import ViewSampler
+from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
+from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, TrainConfig, Trainer, TrainResult
+
+__all__ = [
+    "DefaultStrategy",
+    "DefaultStrategyConfig",
+    "EvalMetrics",
+    "GaussianModel",
+    "Gaussians",
+    "GeometryTargets",
+    "InitConfig",
+    "ModelRender",
+    "NonFiniteLossError",
+    "Strategy",
+    "TrainConfig",
+    "TrainResult",
+    "Trainer",
+    "ViewSampler",
+    "add_gaussians",
+    "color_loss",
+    "depth_loss",
+    "depth_loss_hard",
+    "depth_loss_soft",
+    "duplicate",
+    "evaluate",
+    "export_model",
+    "gaussians_at",
+    "geometric_weights",
+    "init_gaussians",
+    "make_optimizer",
+    "normal_loss",
+    "read_ply",
+    "remove_gaussians",
+    "reset_opacity",
+    "save_test_panels",
+    "split",
+    "write_ply",
+]

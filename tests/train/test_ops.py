@@ -1,0 +1,148 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from vadgs.train import ops
+from vadgs.train.model import PER_GAUSSIAN, GaussianModel
+
+
+def _setup(n=6, tracks=1):
+    torch.manual_seed(0)
+    nodes = torch.tensor([-1, -1, -1, 0, 0, -1][:n])
+    m = GaussianModel(
+        torch.randn(n, 3),
+        torch.rand(n, 3),
+        torch.randn(n, 3) * 0.1 - 2,
+        nodes,
+        torch.eye(4).repeat(tracks, 2, 1, 1),
+        torch.ones(tracks, 2, dtype=torch.bool),
+        list(range(tracks)),
+        sh_degree=1,
+    )
+    opt = ops.make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-2))
+    # one step so that the moments are non-zero and distinct per row
+    loss = sum(
+        (p * torch.arange(1, p.shape[0] + 1).reshape(-1, *[1] * (p.dim() - 1))).square().sum()
+        for p in m.params.values()
+    )
+    loss.backward()
+    opt.step()
+    opt.zero_grad()
+    state = {"grad2d": torch.arange(n, dtype=torch.float32), "count": torch.ones(n), "scene_scale": 1.0}
+    return m, opt, state
+
+
+def _moments(m, opt, name):
+    st = opt.state[m.params[name]]
+    return st["exp_avg"], st["exp_avg_sq"]
+
+
+def _consistent(m, opt):
+    for g in opt.param_groups:
+        if g["name"] in PER_GAUSSIAN:
+            p = g["params"][0]
+            assert p is m.params[g["name"]]
+            if p in opt.state:
+                assert opt.state[p]["exp_avg"].shape == p.shape
+                assert opt.state[p]["exp_avg_sq"].shape == p.shape
+    assert m.node_ids.shape[0] == m.num_gaussians
+
+
+def _step_ok(m, opt):
+    sum(p.sum() for p in m.params.values()).backward()
+    opt.step()
+    opt.zero_grad()
+
+
+class TestRemove:
+    def test_naive(self):
+        m, opt, st = _setup()
+        old = {
+            k: (v.detach().clone(), *[x.clone() for x in _moments(m, opt, k)]) for k, v in m.params.items()
+        }
+        mask = torch.tensor([False, True, False, True, False, False])
+        ops.remove_gaussians(m, opt, st, mask)
+        keep = [0, 2, 4, 5]
+        for k in PER_GAUSSIAN:
+            p, ea, eas = old[k]
+            assert torch.equal(m.params[k].data, p[keep])
+            a, b = _moments(m, opt, k)
+            assert torch.equal(a, ea[keep]) and torch.equal(b, eas[keep])
+        assert st["grad2d"].tolist() == [0.0, 2.0, 4.0, 5.0] and m.node_ids.tolist() == [-1, -1, 0, -1]
+        _consistent(m, opt)
+        _step_ok(m, opt)
+
+    def test_bad_mask(self):
+        m, opt, st = _setup()
+        with pytest.raises(ValueError, match="mask"):
+            ops.remove_gaussians(m, opt, st, torch.zeros(3, dtype=torch.bool))
+
+
+class TestDuplicate:
+    def test_naive(self):
+        m, opt, st = _setup()
+        old_means = m.params["means"].detach().clone()
+        old_m = _moments(m, opt, "means")[0].clone()
+        mask = torch.tensor([False, False, False, True, False, True])
+        ops.duplicate(m, opt, st, mask)
+        assert m.num_gaussians == 8
+        assert torch.equal(m.params["means"].data, torch.cat([old_means, old_means[[3, 5]]]))
+        ea = _moments(m, opt, "means")[0]
+        assert torch.equal(ea[:6], old_m) and bool((ea[6:] == 0).all())
+        assert m.node_ids[6:].tolist() == [0, -1] and st["grad2d"][6:].tolist() == [0.0, 0.0]
+        _consistent(m, opt)
+        _step_ok(m, opt)
+
+
+class TestSplit:
+    def test_children(self):
+        m, opt, st = _setup()
+        p0 = {k: v.detach().clone() for k, v in m.params.items()}
+        mask = torch.tensor([True, False, False, True, False, False])
+        ops.split(m, opt, st, mask, torch.Generator().manual_seed(0))
+        assert m.num_gaussians == 8
+        assert torch.equal(m.params["means"].data[:4], p0["means"][[1, 2, 4, 5]])
+        children = m.params["log_scales"].data[4:]
+        parents = p0["log_scales"][[0, 3]].repeat(2, 1)
+        assert torch.allclose(children, parents - torch.log(torch.tensor(1.6)))
+        assert m.node_ids.tolist() == [-1, -1, 0, -1, -1, 0, -1, 0]
+        assert bool((_moments(m, opt, "quats")[1][4:] == 0).all())
+        # children stay within a few sigma of their parents
+        d = (m.params["means"].data[4:] - p0["means"][[0, 3]].repeat(2, 1)).norm(dim=-1)
+        assert bool((d < 5 * p0["log_scales"][[0, 3]].exp().amax(-1).repeat(2)).all())
+        _consistent(m, opt)
+        _step_ok(m, opt)
+
+
+class TestAdd:
+    def test_add_to_track_node(self):
+        m, opt, st = _setup()
+        new = {k: torch.ones(2, *v.shape[1:]) for k, v in m.params.items()}
+        ops.add_gaussians(m, opt, st, new, torch.tensor([0, 0]))
+        assert m.num_gaussians == 8 and m.node_ids[-2:].tolist() == [0, 0]
+        assert bool((m.params["means"].data[-2:] == 1).all())
+        assert bool((_moments(m, opt, "sh_dc")[0][-2:] == 0).all()) and st["count"][-2:].tolist() == [
+            0.0,
+            0.0,
+        ]
+        _consistent(m, opt)
+        _step_ok(m, opt)
+
+    def test_bad_input(self):
+        m, opt, st = _setup()
+        new = {k: torch.ones(2, *v.shape[1:]) for k, v in m.params.items()}
+        with pytest.raises(ValueError, match="node_ids"):
+            ops.add_gaussians(m, opt, st, new, torch.tensor([0, 5]))
+        new["means"] = torch.ones(2, 2)
+        with pytest.raises(ValueError, match="means"):
+            ops.add_gaussians(m, opt, st, new, torch.tensor([0, 0]))
+
+
+class TestResetOpacity:
+    def test_reset(self):
+        m, opt, _ = _setup()
+        ops.reset_opacity(m, opt, 0.01)
+        assert bool((torch.sigmoid(m.params["opacity_logits"]) <= 0.0100001).all())
+        assert bool((_moments(m, opt, "opacity_logits")[0] == 0).all())
+        _consistent(m, opt)

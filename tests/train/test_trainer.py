@@ -1,0 +1,177 @@
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from vadgs.data.colmap import ColmapPoints
+from vadgs.data.scene import Track
+from vadgs.train.trainer import CHECKPOINT_NAME, NonFiniteLossError, TrainConfig, Trainer, load_checkpoint
+
+
+def _params(trainer):
+    return {k: v.detach().clone() for k, v in trainer.model.params.items()}
+
+
+class TestTrainer:
+    def test_loss_decreases(self, tiny_scene, tiny_config):
+        cfg = dataclasses.replace(
+            tiny_config,
+            iterations=36,
+            strategy=dataclasses.replace(tiny_config.strategy, refine_start_iter=1000),
+        )
+        tr = Trainer(tiny_scene, cfg, progress=False)
+        views = tr.train_views[:6]
+
+        def loss():
+            with torch.no_grad():
+                return sum(float(tr.compute_losses(0, v, tr.render_view(v))["color"]) for v in views)
+
+        before = loss()
+        tr.train()
+        assert loss() < 0.85 * before
+
+    def test_densification_during_training(self, tiny_scene, tiny_config):
+        tr = Trainer(tiny_scene, tiny_config, progress=False)
+        n0 = tr.model.num_gaussians
+        changes = []
+        tr.callback = lambda t, s: changes.append(dict(t.state["last_refine"]))
+        tr.train()
+        assert any(c.get("cloned", 0) + c.get("split", 0) > 0 for c in changes), changes
+        assert tr.model.num_gaussians != n0
+        for g in tr.optimizer.param_groups[:-1]:
+            p = g["params"][0]
+            assert p is tr.model.params[g["name"]]
+            if p in tr.optimizer.state:
+                assert tr.optimizer.state[p]["exp_avg"].shape == p.shape
+        assert tr.state["grad2d"].shape[0] == tr.model.num_gaussians
+
+    def test_resume_after_interruption_is_exact(self, tiny_scene, tiny_config, tmp_path):
+        full = Trainer(tiny_scene, tiny_config, progress=False)
+        full.train()
+        ref = _params(full)
+
+        def stop_at_5(trainer, step):
+            if step == 5:
+                trainer.request_stop()
+
+        part = Trainer(tiny_scene, tiny_config, out_dir=tmp_path, progress=False, callback=stop_at_5)
+        res = part.train()
+        assert (res.step, res.completed, res.reason) == (5, False, "interrupted")
+        assert (tmp_path / CHECKPOINT_NAME).is_file()
+        resumed = Trainer.from_checkpoint(tmp_path, scene=tiny_scene, progress=False)
+        assert resumed.step == 5
+        res = resumed.train()
+        assert res.completed and res.step == tiny_config.iterations
+        got = _params(resumed)
+        assert ref.keys() == got.keys()
+        for k in ref:
+            assert ref[k].shape == got[k].shape, k
+            assert torch.equal(ref[k], got[k]), k
+
+    def test_nan_loss_detected_with_step(self, tiny_scene, tiny_config):
+        def nan_at_3(step, render, view):
+            return {"bad": render.color.sum() * (float("nan") if step == 3 else 0.0)}
+
+        tr = Trainer(tiny_scene, tiny_config, extra_losses=nan_at_3, progress=False)
+        with pytest.raises(NonFiniteLossError, match="step 3") as e:
+            tr.train()
+        assert e.value.step == 3 and tr.step == 3
+
+    def test_corrupt_checkpoint(self, tmp_path):
+        bad = tmp_path / CHECKPOINT_NAME
+        bad.write_bytes(b"not a checkpoint at all")
+        with pytest.raises(ValueError, match="corrupt"):
+            load_checkpoint(tmp_path)
+        with pytest.raises(ValueError, match="corrupt"):
+            Trainer.from_checkpoint(tmp_path)
+        torch.save({"hello": 1}, bad)
+        with pytest.raises(ValueError, match="not a vadgs"):
+            load_checkpoint(bad)
+        with pytest.raises(FileNotFoundError):
+            load_checkpoint(tmp_path / "missing.pt")
+
+    def test_scene_without_lidar_colmap_only(self, tiny_scene, tiny_config):
+        lid = [tiny_scene.lidar(f) for f in tiny_scene.train_frames]
+        pts = torch.cat([x.points for x in lid])[::50]
+        colmap = ColmapPoints(
+            pts,
+            torch.full_like(pts, 0.5),
+            torch.zeros(len(pts)),
+            torch.arange(len(pts)),
+            torch.zeros(0, dtype=torch.long),
+            torch.zeros(0, dtype=torch.long),
+            torch.zeros(0, 2),
+        )
+        scene = dataclasses.replace(tiny_scene, lidar_loader=None)
+        cfg = dataclasses.replace(tiny_config, iterations=3)
+        with pytest.raises(ValueError, match="no LiDAR"):
+            Trainer(scene, cfg, progress=False)
+        tr = Trainer(scene, cfg, colmap_points=colmap, progress=False)
+        assert tr.model.node_counts()[f"track_{tr.model.track_ids[0]}"] == 0
+        assert tr.train().completed
+
+    def test_frames_without_tracks(self, tiny_scene, tiny_config):
+        tid = sorted(tiny_scene.tracks)[0]
+        t = tiny_scene.tracks[tid]
+        valid = t.valid.clone()
+        valid[: len(valid) // 2] = False
+        tracks = dict(tiny_scene.tracks)
+        tracks[tid] = Track(t.id, t.class_name, t.size_lwh, t.object_to_world, valid, t.mesh)
+        scene = dataclasses.replace(tiny_scene, tracks=tracks)
+        tr = Trainer(scene, dataclasses.replace(tiny_config, iterations=4), progress=False)
+        k = tr.model.track_ids.index(tid)
+        assert not bool(
+            torch.isin(tr.model.gaussians_at(0).ids, torch.nonzero(tr.model.node_ids == k)[:, 0]).any()
+        )
+        assert tr.train().completed
+
+    def test_moving_car_stays_attached(self, tiny_scene, tiny_config):
+        tr = Trainer(tiny_scene, dataclasses.replace(tiny_config, iterations=6), progress=False)
+        tr.train()
+        model = tr.model
+        tid = max(model.track_ids, key=lambda t: model.node_counts()[f"track_{t}"])
+        k = model.track_ids.index(tid)
+        frames = [f.index for f in tiny_scene.frames]
+        centres = []
+        for fi in (0, len(frames) - 1):
+            g = model.gaussians_at(fi)
+            sel = model.node_ids[g.ids] == k
+            o2w = model.object_to_world[k, fi]
+            local = model.params["means"][model.node_ids == k]
+            assert torch.allclose(g.means[sel], local @ o2w[:3, :3].T + o2w[:3, 3], atol=1e-5)
+            centres.append(g.means[sel].detach().mean(0))
+            # the node, rendered alone, covers the car's pixels in a view where the car is visible
+            views = [v for v in tiny_scene.frames[fi].view_ids]
+            inst = tiny_scene.load_instances(views)
+            v = views[int((inst == tid).flatten(1).sum(1).argmax())]
+            car = tiny_scene.load_instances([v])[0] == tid
+            assert int(car.sum()) > 5
+            cams = tiny_scene.cameras([v])
+            from vadgs.render import rasterize_gaussians
+
+            with torch.no_grad():
+                r = rasterize_gaussians(
+                    g.means[sel],
+                    g.quats[sel],
+                    g.scales[sel],
+                    g.opacities[sel] * 0 + 0.9,
+                    torch.ones(int(sel.sum()), 3),
+                    cams.world_to_cam,
+                    cams.K,
+                    cams.image_size,
+                )
+            covered = r.alpha[0, 0] > 0.5
+            assert float((covered & car).sum() / car.sum()) > 0.5
+        track = tiny_scene.tracks[tid]
+        moved = (track.object_to_world[-1, :3, 3] - track.object_to_world[0, :3, 3]).norm()
+        assert float((centres[1] - centres[0]).norm()) == pytest.approx(float(moved), rel=0.05, abs=0.05)
+
+    def test_config_roundtrip_and_errors(self):
+        c = TrainConfig().replace(**{"init.max_points": 7, "iterations": 5})
+        assert c.init.max_points == 7 and TrainConfig.from_dict(c.to_dict()) == c
+        with pytest.raises(ValueError, match="unknown"):
+            TrainConfig.from_dict({"bogus": 1})
+        with pytest.raises(ValueError, match="unknown"):
+            TrainConfig().replace(**{"init.bogus": 1})

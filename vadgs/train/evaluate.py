@@ -1,0 +1,252 @@
+r"""Evaluation on the test split: image metrics, moving-object PSNR*, depth against ground truth.
+
+- **PSNR**: mean over test images of the per-image PSNR of the full image (moving cars included),
+  images clamped to ``[0, 1]`` (kornia ``psnr``); ``psnr_pooled`` is the PSNR of the MSE pooled
+  over all test pixels.
+- **PSNR\***: PSNR of the MSE pooled over the pixels of moving objects (instance ids of
+  ``scene.tracks``, from the instance maps).
+- **SSIM**: kornia's, 11×11 Gaussian window, mean over images.
+- **Depth** (where the scene has ground-truth depth): AbsRel :math:`|d - d^*| / d^*` and
+  :math:`\delta < 1.05` (fraction of pixels with :math:`\max(d/d^*, d^*/d) < 1.05`) of the
+  rendered expected depth, on every pixel with ground truth (``all``), on the traffic sign
+  (instances of class ``sign``) and on the upper facades (class ``building``, world height
+  :math:`z > 5` m). A pixel where nothing is rendered counts as wrong.
+- **LPIPS**: only when the ``lpips`` package and its weights are available locally; otherwise
+  the result says why it was skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from kornia.metrics import psnr as kpsnr
+from kornia.metrics import ssim as kssim
+
+from vadgs.data.scene import Scene
+from vadgs.geometry.camera import backproject_depth, invert_rigid
+from vadgs.render import RasterConfig
+from vadgs.train.model import GaussianModel, ModelRender
+
+__all__ = ["EvalMetrics", "evaluate", "lpips_available", "render_test_view", "save_test_panels"]
+
+
+@dataclass(frozen=True)
+class EvalMetrics:
+    """Test metrics of a model (see the module docstring for the definitions).
+
+    Attributes:
+        psnr, psnr_pooled, psnr_star, ssim: image metrics (``psnr_star`` None without moving-object pixels).
+        lpips: None when skipped; ``lpips_note`` says why.
+        num_gaussians: the model's size; ``num_views``: test views evaluated.
+        depth: ``{region: {"absrel", "delta_1.05", "pixels"}}`` for ``all``, ``sign``,
+            ``upper_facade`` (regions without pixels are left out); empty without ground truth.
+        per_view: ``[{"view", "psnr", "ssim"}]``.
+    """
+
+    psnr: float
+    psnr_pooled: float
+    psnr_star: float | None
+    ssim: float
+    lpips: float | None
+    lpips_note: str
+    num_gaussians: int
+    num_views: int
+    depth: dict[str, dict[str, float]] = field(default_factory=dict)
+    per_view: list[dict[str, float]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict for JSON."""
+        return asdict(self)
+
+
+def lpips_available() -> tuple[bool, str]:
+    """Whether LPIPS can run offline, and why not."""
+    try:
+        import lpips  # noqa: F401
+    except ImportError:
+        return False, "LPIPS skipped: the 'lpips' package is not installed (no local weights)"
+    return True, ""
+
+
+def render_test_view(
+    model: GaussianModel, scene: Scene, view: int, config: RasterConfig | None = None
+) -> ModelRender:
+    """Render one view of the scene at its frame (no gradient)."""
+    cams = scene.cameras([view])
+    frame = [f.index for f in scene.frames].index(scene.views[view].frame)
+    with torch.no_grad():
+        return model.render(cams.world_to_cam, cams.K, cams.image_size, frame, config)
+
+
+def _psnr(mse: float) -> float:
+    return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
+
+
+@torch.no_grad()
+def evaluate(
+    model: GaussianModel,
+    scene: Scene,
+    views: Sequence[int] | None = None,
+    config: RasterConfig | None = None,
+    progress: bool = False,
+    with_lpips: bool = True,
+) -> EvalMetrics:
+    """Evaluate a model on test views.
+
+    Args:
+        model: the trained model.
+        scene: its scene.
+        views: views to evaluate (default ``scene.test_views``).
+        config: rasterizer settings.
+        progress: tqdm bar.
+        with_lpips: compute LPIPS when available.
+
+    Returns:
+        :class:`EvalMetrics`.
+
+    Raises:
+        ValueError: when there is no view to evaluate.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> from vadgs.train.init import InitConfig, init_gaussians
+        >>> scene = load_scene(sample_scene_path(), scale=0.25)
+        >>> model = init_gaussians(scene, InitConfig(voxel_size=1.0, max_points=500, sh_degree=0))
+        >>> m = evaluate(model, scene)
+        >>> m.num_views, sorted(m.depth)
+        (6, ['all', 'sign', 'upper_facade'])
+    """
+    from tqdm import tqdm
+
+    views = list(scene.test_views if views is None else views)
+    if not views:
+        raise ValueError(f"scene {scene.name!r}: no test views to evaluate")
+    dynamic_ids = torch.tensor(sorted(scene.tracks), dtype=torch.long)
+    sign_ids = torch.tensor(scene.instance_ids("sign"), dtype=torch.long)
+    building_ids = torch.tensor(scene.instance_ids("building"), dtype=torch.long)
+    ok_lpips, note = lpips_available() if with_lpips else (False, "LPIPS not requested")
+    lpips_fn = None
+    if ok_lpips:
+        try:
+            import lpips
+
+            lpips_fn = lpips.LPIPS(net="alex", verbose=False)
+        except Exception as e:
+            ok_lpips, note = False, f"LPIPS skipped: could not load its weights locally ({type(e).__name__})"
+    psnrs, ssims, lp, per_view = [], [], [], []
+    se_all = n_all = se_dyn = n_dyn = 0.0
+    depth_acc: dict[str, list[float]] = {}
+    for v in tqdm(views, disable=not progress, desc="eval"):
+        out = render_test_view(model, scene, v, config)
+        pred = out.color.clamp(0, 1)
+        gt = scene.load_images([v])
+        p = float(kpsnr(pred, gt, 1.0))
+        s = float(kssim(pred, gt, 11).mean())
+        psnrs.append(p)
+        ssims.append(s)
+        per_view.append({"view": v, "psnr": round(p, 4), "ssim": round(s, 4)})
+        err = (pred - gt) ** 2
+        se_all += float(err.sum())
+        n_all += err.numel()
+        vi = scene.views[v]
+        inst = scene.load_instances([v]) if vi.instances is not None else None
+        if inst is not None and dynamic_ids.numel():
+            dyn = torch.isin(inst, dynamic_ids)[:, None].expand_as(err)
+            se_dyn += float(err[dyn].sum())
+            n_dyn += float(dyn.sum())
+        if lpips_fn is not None:
+            lp.append(float(lpips_fn(pred * 2 - 1, gt * 2 - 1).mean()))
+        if vi.depth is not None:
+            gtd = scene.load_depths([v])
+            d = out.raster.depth
+            valid = gtd > 0
+            regions = {"all": valid}
+            if inst is not None:
+                if sign_ids.numel():
+                    regions["sign"] = valid & torch.isin(inst, sign_ids)[:, None]
+                if building_ids.numel():
+                    cams = scene.cameras([v])
+                    world = backproject_depth(gtd, cams.K, invert_rigid(cams.world_to_cam))
+                    regions["upper_facade"] = (
+                        valid & torch.isin(inst, building_ids)[:, None] & (world[:, 2:3] > 5.0)
+                    )
+            for name, mask in regions.items():
+                if not bool(mask.any()):
+                    continue
+                dd, gg = d[mask], gtd[mask]
+                ratio = torch.maximum(dd / gg, gg / dd.clamp(min=1e-9))
+                acc = depth_acc.setdefault(name, [0.0, 0.0, 0.0])
+                acc[0] += float(((dd - gg).abs() / gg).sum())
+                acc[1] += float((ratio < 1.05).sum())
+                acc[2] += float(mask.sum())
+    depth = {
+        k: {"absrel": round(a[0] / a[2], 5), "delta_1.05": round(a[1] / a[2], 5), "pixels": int(a[2])}
+        for k, a in depth_acc.items()
+    }
+    return EvalMetrics(
+        psnr=round(sum(psnrs) / len(psnrs), 4),
+        psnr_pooled=round(_psnr(se_all / n_all), 4),
+        psnr_star=round(_psnr(se_dyn / n_dyn), 4) if n_dyn else None,
+        ssim=round(sum(ssims) / len(ssims), 4),
+        lpips=round(sum(lp) / len(lp), 4) if lp else None,
+        lpips_note="" if lp else note,
+        num_gaussians=model.num_gaussians,
+        num_views=len(views),
+        depth=depth,
+        per_view=per_view,
+    )
+
+
+@torch.no_grad()
+def save_test_panels(
+    model: GaussianModel,
+    scene: Scene,
+    out_dir: str | Path,
+    views: Sequence[int] | None = None,
+    config: RasterConfig | None = None,
+    progress: bool = False,
+) -> list[Path]:
+    """Write one PNG per view: render, ground truth, error, depth (and GT depth), normals.
+
+    Returns:
+        The written paths.
+    """
+    from tqdm import tqdm
+
+    from vadgs.viz import colorize_depth, image_to_uint8, save_panel
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    views = list(scene.test_views if views is None else views)
+    paths = []
+    for v in tqdm(views, disable=not progress, desc="render"):
+        out = render_test_view(model, scene, v, config)
+        pred = out.color.clamp(0, 1)[0]
+        gt = scene.load_images([v])[0]
+        err = (pred - gt).abs().mean(0, keepdim=True).clamp(max=0.25) * 4
+        p = float(kpsnr(pred[None], gt[None], 1.0))
+        normals = (-out.raster.normals[0] * 0.5 + 0.5) * (out.raster.normals[0].abs().sum(0) > 0)
+        gtd = scene.load_depths([v])[0, 0] if scene.views[v].depth is not None else None
+        vmax = float(gtd[gtd > 0].quantile(0.98)) if gtd is not None and bool((gtd > 0).any()) else None
+        images = [image_to_uint8(pred), image_to_uint8(gt), image_to_uint8(err.expand(3, -1, -1)),
+                  colorize_depth(out.raster.depth[0, 0], None, vmax), image_to_uint8(normals)]  # fmt: skip
+        titles = [
+            f"render ({p:.2f} dB)",
+            "ground truth",
+            "|error| (x4)",
+            "rendered depth",
+            "rendered normals",
+        ]
+        if gtd is not None:
+            images.insert(4, colorize_depth(gtd, None, vmax))
+            titles.insert(4, "ground-truth depth")
+        vi = scene.views[v]
+        paths.append(
+            save_panel(images, titles, out_dir / f"view{v:03d}_{vi.camera}_{vi.frame:03d}.png", columns=3)
+        )
+    return paths

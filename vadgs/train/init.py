@@ -1,0 +1,274 @@
+"""Initialise a :class:`~vadgs.train.model.GaussianModel` from LiDAR (and optionally SfM points).
+
+Static points are the training frames' LiDAR without the moving objects (world frame); the points
+of each moving object are moved into its object frame by instance id and pose
+(:func:`vadgs.data.lidar.accumulate_lidar`). Each point takes the colour of the first training
+image of its own frame that sees it (grey when none does). Points are averaged per voxel, capped
+in number, and each Gaussian starts isotropic with the root-mean-square distance to its ``k``
+nearest neighbours as scale (3DGS).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from vadgs.data.colmap import ColmapPoints
+from vadgs.data.lidar import accumulate_lidar
+from vadgs.data.scene import Scene
+from vadgs.geometry.camera import project_points
+from vadgs.train.model import GaussianModel
+
+__all__ = ["InitConfig", "init_gaussians", "knn_scales", "voxel_downsample"]
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    """Settings of :func:`init_gaussians`.
+
+    Attributes:
+        use_lidar: initialise from the scene's LiDAR when it has some.
+        voxel_size: static points are averaged per voxel of this size (metres).
+        object_voxel_size: the same for the points of moving objects (object frame).
+        max_points: cap on static Gaussians after voxelisation (random subset, seeded).
+        max_object_points: cap per moving object.
+        knn: neighbours for the initial scale.
+        min_scale / max_scale: clamp of the initial scale (metres).
+        init_opacity: initial opacity.
+        sh_degree: SH degree of the Gaussians (0–3).
+        sky_degree: SH degree of the sky model (0 = one background colour).
+        seed: for the random subsets.
+    """
+
+    use_lidar: bool = True
+    voxel_size: float = 0.1
+    object_voxel_size: float = 0.05
+    max_points: int = 150_000
+    max_object_points: int = 20_000
+    knn: int = 3
+    min_scale: float = 0.005
+    max_scale: float = 1.0
+    init_opacity: float = 0.1
+    sh_degree: int = 3
+    sky_degree: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.voxel_size < 0 or self.object_voxel_size < 0:
+            raise ValueError(
+                "voxel_size, object_voxel_size: expected >= 0, "
+                f"got {self.voxel_size}, {self.object_voxel_size}"
+            )
+        if self.max_points < 1 or self.max_object_points < 0 or self.knn < 1:
+            raise ValueError("max_points >= 1, max_object_points >= 0, knn >= 1 expected")
+        if not 0 < self.init_opacity < 1:
+            raise ValueError(f"init_opacity: expected in (0, 1), got {self.init_opacity}")
+        if not (0 <= self.sh_degree <= 3 and 0 <= self.sky_degree <= 3):
+            raise ValueError(f"sh_degree, sky_degree: expected 0..3, got {self.sh_degree}, {self.sky_degree}")
+
+
+def voxel_downsample(
+    points: torch.Tensor, colors: torch.Tensor, voxel_size: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Average points and colours per voxel.
+
+    Args:
+        points: ``(N, 3)``.
+        colors: ``(N, C)``.
+        voxel_size: edge length; ``0`` keeps every point.
+
+    Returns:
+        ``(M, 3)`` points and ``(M, C)`` colours, ``M <= N``.
+
+    Example:
+        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        >>> voxel_downsample(p, torch.ones(3, 1), 0.1)[0][:, 0].tolist()
+        [0.019999999552965164, 1.0]
+    """
+    if voxel_size <= 0 or points.shape[0] == 0:
+        return points, colors
+    keys = torch.floor(points / voxel_size).long()
+    _, inv = torch.unique(keys, dim=0, return_inverse=True)
+    m = int(inv.max()) + 1
+    cnt = torch.zeros(m, dtype=points.dtype, device=points.device).index_add_(
+        0, inv, torch.ones_like(points[:, 0])
+    )
+    p = torch.zeros(m, 3, dtype=points.dtype, device=points.device).index_add_(0, inv, points) / cnt[:, None]
+    c = torch.zeros(m, colors.shape[1], dtype=colors.dtype, device=colors.device).index_add_(0, inv, colors)
+    return p, c / cnt[:, None].to(colors.dtype)
+
+
+def knn_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """Root-mean-square distance of every point to its ``k`` nearest neighbours (3DGS's initial scale).
+
+    Uses SciPy's ``cKDTree``. Not differentiable.
+
+    Args:
+        points: ``(N, 3)``.
+        k: neighbours.
+
+    Returns:
+        ``(N,)`` distances (``1.0`` for a lone point).
+
+    Example:
+        >>> knn_scales(torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]]), k=1).tolist()
+        [1.0, 1.0, 2.0]
+    """
+    n = points.shape[0]
+    if n < 2:
+        return torch.ones(n, dtype=points.dtype, device=points.device)
+    from scipy.spatial import cKDTree
+
+    pts = points.detach().cpu().double().numpy()
+    kk = min(k, n - 1)
+    d, _ = cKDTree(pts).query(pts, k=kk + 1)
+    rms = np.sqrt((d[:, 1:] ** 2).mean(1))
+    return torch.from_numpy(rms).to(points)
+
+
+def _point_colors(
+    scene: Scene,
+    world_points: torch.Tensor,
+    point_idx: torch.Tensor,
+    view_idx: torch.Tensor,
+    allowed_views: set[int],
+    cache: dict[int, torch.Tensor],
+) -> torch.Tensor:
+    """Colour of each point from the first allowed view that sees it (grey otherwise)."""
+    n = world_points.shape[0]
+    colors = torch.full((n, 3), 0.5)
+    if n == 0 or point_idx.numel() == 0:
+        return colors
+    ok = torch.tensor([int(v) in allowed_views for v in view_idx.tolist()], dtype=torch.bool)
+    pi, vi = point_idx[ok], view_idx[ok]
+    if pi.numel() == 0:
+        return colors
+    # first pair of each point (pairs are sorted by point)
+    first = torch.ones_like(pi, dtype=torch.bool)
+    first[1:] = pi[1:] != pi[:-1]
+    pi, vi = pi[first], vi[first]
+    for v in vi.unique().tolist():
+        sel = pi[vi == v]
+        if v not in cache:
+            cache[v] = scene.load_images([v])[0]
+        img = cache[v]
+        cams = scene.cameras([v])
+        uv, _ = project_points(world_points[sel][None], cams.K, cams.world_to_cam)
+        h, w = img.shape[-2:]
+        grid = torch.stack([uv[0, :, 0] / (w - 1) * 2 - 1, uv[0, :, 1] / (h - 1) * 2 - 1], -1)
+        col = F.grid_sample(
+            img[None], grid[None, None], mode="bilinear", align_corners=True, padding_mode="border"
+        )
+        colors[sel] = col[0, :, 0].T
+    return colors
+
+
+def _subsample(
+    points: torch.Tensor, colors: torch.Tensor, cap: int, gen: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    if points.shape[0] <= cap:
+        return points, colors
+    idx = torch.randperm(points.shape[0], generator=gen)[:cap].sort().values
+    return points[idx], colors[idx]
+
+
+def init_gaussians(
+    scene: Scene, config: InitConfig | None = None, colmap_points: ColmapPoints | None = None
+) -> GaussianModel:
+    """Build the initial model of a scene from its training frames' LiDAR and optional SfM points.
+
+    Args:
+        scene: the scene (its ``train_frames`` / ``train_views`` are used).
+        config: :class:`InitConfig`.
+        colmap_points: SfM points (world frame, with colours) added to the static node.
+
+    Returns:
+        A :class:`~vadgs.train.model.GaussianModel` with one node per track of the scene (a track
+        without LiDAR points gets an empty node).
+
+    Raises:
+        ValueError: when there is nothing to initialise from (no LiDAR and no SfM points).
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path(), scale=0.5)
+        >>> model = init_gaussians(scene, InitConfig(voxel_size=0.5, max_points=2000, max_object_points=200))
+        >>> model.num_gaussians <= 2000 + 200 * len(scene.tracks), len(model.track_ids) == len(scene.tracks)
+        (True, True)
+    """
+    config = config or InitConfig()
+    gen = torch.Generator().manual_seed(config.seed)
+    train_frames = scene.train_frames or [f.index for f in scene.frames]
+    train_views = set(scene.train_views or range(scene.num_views))
+    cache: dict[int, torch.Tensor] = {}
+    has_lidar = config.use_lidar and scene.lidar_loader is not None
+    static_p, static_c = [], []
+    if has_lidar:
+        acc = accumulate_lidar(scene, train_frames, exclude_dynamic=True)
+        static_p.append(acc.points)
+        static_c.append(_point_colors(scene, acc.points, *acc.point_views, train_views, cache))
+    if colmap_points is not None and colmap_points.points.shape[0]:
+        static_p.append(colmap_points.points.float())
+        static_c.append(colmap_points.colors.float().clamp(0, 1))
+    if not static_p:
+        raise ValueError(
+            f"scene {scene.name!r}: nothing to initialise from: no LiDAR"
+            + (" (use_lidar=False)" if scene.lidar_loader is not None else "")
+            + " and no colmap_points given"
+        )
+    p = torch.cat(static_p)
+    c = torch.cat(static_c)
+    p, c = voxel_downsample(p, c, config.voxel_size)
+    p, c = _subsample(p, c, config.max_points, gen)
+    means, colors, nodes = [p], [c], [torch.full((p.shape[0],), -1, dtype=torch.long)]
+
+    track_ids = sorted(scene.tracks)
+    num_frames = len(scene.frames)
+    o2w = (
+        torch.stack([scene.tracks[t].object_to_world for t in track_ids])
+        if track_ids
+        else torch.zeros(0, num_frames, 4, 4)
+    )
+    valid = (
+        torch.stack([scene.tracks[t].valid for t in track_ids])
+        if track_ids
+        else torch.zeros(0, num_frames, dtype=torch.bool)
+    )
+    for k, tid in enumerate(track_ids):
+        if not has_lidar or config.max_object_points == 0:
+            continue
+        acc = accumulate_lidar(scene, train_frames, track_id=tid)
+        if acc.points.shape[0] == 0:
+            continue
+        fpos = torch.tensor([scene._frame_pos(int(f)) for f in acc.frame.tolist()], dtype=torch.long)
+        pose = scene.tracks[tid].object_to_world[fpos]
+        world = (pose[:, :3, :3] @ acc.points[:, :, None]).squeeze(-1) + pose[:, :3, 3]
+        col = _point_colors(scene, world, *acc.point_views, train_views, cache)
+        op, oc = voxel_downsample(acc.points, col, config.object_voxel_size)
+        op, oc = _subsample(op, oc, config.max_object_points, gen)
+        means.append(op)
+        colors.append(oc)
+        nodes.append(torch.full((op.shape[0],), k, dtype=torch.long))
+
+    node_ids = torch.cat(nodes)
+    means_t = torch.cat(means)
+    scales = torch.empty(means_t.shape[0])
+    for k in node_ids.unique().tolist():
+        sel = node_ids == k
+        scales[sel] = knn_scales(means_t[sel], config.knn)
+    scales = scales.clamp(config.min_scale, config.max_scale)
+    return GaussianModel(
+        means_t,
+        torch.cat(colors),
+        scales.log()[:, None].expand(-1, 3).contiguous(),
+        node_ids,
+        o2w,
+        valid,
+        track_ids,
+        sh_degree=config.sh_degree,
+        sky_degree=config.sky_degree,
+        init_opacity=config.init_opacity,
+    )

@@ -1,0 +1,199 @@
+r"""Training losses: the colour loss and the paper's geometric losses (Eq. "Loss Function").
+
+.. math::
+
+    \mathcal{L} = \mathcal{L}_\text{color} + \lambda_\text{normal}\mathcal{L}_\text{normal}
+        + \lambda_\text{hard}\mathcal{L}_\text{hard} + \lambda_\text{soft}\mathcal{L}_\text{soft}
+
+with :math:`\lambda_\text{normal} = 0.02`, :math:`\lambda_\text{hard} = \lambda_\text{soft} = 0.1`
+and :math:`\lambda_\text{hard}` switched off after 80 % of the iterations (paper, "Implementation
+Details"; :func:`geometric_weights`).
+
+Our reading of the paper (it gives no formulas): both depth losses compare a rendered z-depth with
+a target depth (voxel-rasterised / MVS depth in VAD-GS, projected LiDAR in the baseline) by the
+relative L1 error on the target's valid pixels. They differ in the opacities the depth is rendered
+with:
+
+- *soft*: the ordinary expected depth, rendered with the learned opacities; its gradient also
+  moves opacities.
+- *hard*: the depth rendered with every opacity *fixed* to a constant (1 by default, no gradient
+  to the opacity logits), so that each Gaussian counts as a solid surface and a semi-transparent
+  floater in front of the true surface is pulled onto it (or out of the way) instead of being
+  faded out. That constraint is too strong once the geometry has settled (thin and transparent
+  structures), hence the switch-off after 80 %.
+
+All losses are pure functions of tensors, differentiable w.r.t. the rendered inputs.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.metrics import ssim
+
+from vadgs.checks import check_shape
+
+__all__ = [
+    "color_loss",
+    "depth_loss",
+    "depth_loss_hard",
+    "depth_loss_soft",
+    "geometric_weights",
+    "normal_loss",
+]
+
+
+def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    if mask is None:
+        return x.mean()
+    m = mask.to(x.dtype).expand_as(x)
+    return (x * m).sum() / m.sum().clamp(min=1.0)
+
+
+def color_loss(
+    pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2, mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    r"""3DGS colour loss :math:`(1 - \lambda)\,L_1 + \lambda\,(1 - \mathrm{SSIM})`, :math:`\lambda = 0.2`.
+
+    SSIM is kornia's (11×11 Gaussian window). With a mask, both terms are averaged over the
+    masked pixels only (the SSIM map is computed on the full image). Differentiable w.r.t. ``pred``.
+
+    Args:
+        pred: ``(B, 3, H, W)`` rendered colours.
+        target: ``(B, 3, H, W)`` observed colours in ``[0, 1]``.
+        ssim_weight: :math:`\lambda`.
+        mask: optional ``(B, 1, H, W)`` bool, pixels that count.
+
+    Returns:
+        Scalar loss.
+
+    Example:
+        >>> x = torch.rand(1, 3, 16, 16)
+        >>> color_loss(x, x).item()
+        0.0
+    """
+    dims = check_shape(pred, "pred", ("B", 3, "H", "W"))
+    check_shape(target, "target", ("B", 3, "H", "W"), dims)
+    l1 = _masked_mean((pred - target).abs(), mask)
+    dssim = _masked_mean(1.0 - ssim(pred, target, 11), mask)
+    return (1.0 - ssim_weight) * l1 + ssim_weight * dssim
+
+
+def normal_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    r"""Angular deviation :math:`\frac{1}{|M|}\sum_{p\in M} (1 - \mathbf{n}_p^\top \hat{\mathbf{n}}_p)`.
+
+    Compares rendered normals with target normals (MVS in VAD-GS) on pixels where both are
+    non-zero (and ``mask``). Differentiable w.r.t. ``pred``.
+
+    Args:
+        pred: ``(B, 3, H, W)`` rendered camera-frame normals (zeros where nothing is rendered).
+        target: ``(B, 3, H, W)`` unit target normals, zeros where invalid.
+        mask: optional ``(B, 1, H, W)`` bool.
+
+    Returns:
+        Scalar loss in ``[0, 2]``.
+
+    Example:
+        >>> n = torch.zeros(1, 3, 2, 2); n[:, 2] = -1.0
+        >>> normal_loss(n, n).item(), normal_loss(n, -n).item()
+        (0.0, 2.0)
+    """
+    dims = check_shape(pred, "pred", ("B", 3, "H", "W"))
+    check_shape(target, "target", ("B", 3, "H", "W"), dims)
+    valid = (target.abs().sum(1, keepdim=True) > 0) & (pred.detach().abs().sum(1, keepdim=True) > 0)
+    if mask is not None:
+        valid = valid & mask
+    cos = (F.normalize(pred, dim=1) * F.normalize(target, dim=1)).sum(1, keepdim=True)
+    return _masked_mean(1.0 - cos, valid)
+
+
+def depth_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    r"""Relative L1 depth error on the pixels with a target.
+
+    .. math::
+
+        \frac{1}{|M|}\sum_{p\in M} |d_p - \hat d_p| / \hat d_p
+
+
+    Pixels where the target is 0 (no value) are ignored; a rendered depth of 0 (nothing rendered)
+    counts as a full error of 1. Differentiable w.r.t. ``pred``.
+
+    Args:
+        pred: ``(B, 1, H, W)`` rendered z-depth.
+        target: ``(B, 1, H, W)`` target z-depth, 0 where unknown.
+        mask: optional ``(B, 1, H, W)`` bool.
+
+    Returns:
+        Scalar loss (0 when no pixel has a target).
+
+    Example:
+        >>> t = torch.full((1, 1, 2, 2), 10.0); t[0, 0, 0, 0] = 0
+        >>> depth_loss(torch.full((1, 1, 2, 2), 11.0), t).item()
+        0.10000000149011612
+    """
+    dims = check_shape(pred, "pred", ("B", 1, "H", "W"))
+    check_shape(target, "target", ("B", 1, "H", "W"), dims)
+    valid = target > 0
+    if mask is not None:
+        valid = valid & mask
+    err = (pred - target).abs() / target.clamp(min=1e-6)
+    return _masked_mean(err, valid)
+
+
+def depth_loss_soft(
+    depth: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    r"""Soft depth loss: :func:`depth_loss` of the depth rendered with the *learned* opacities.
+
+    Args:
+        depth: ``(B, 1, H, W)`` expected depth of the ordinary render (``RenderOutput.depth``).
+        target: ``(B, 1, H, W)`` target depth, 0 where unknown.
+        mask: optional ``(B, 1, H, W)`` bool.
+
+    Example:
+        >>> t = torch.full((1, 1, 2, 2), 4.0)
+        >>> depth_loss_soft(t, t).item()
+        0.0
+    """
+    return depth_loss(depth, target, mask)
+
+
+def depth_loss_hard(
+    depth_hard: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    r"""Hard depth loss: :func:`depth_loss` of the depth rendered with *fixed* opacities.
+
+    ``depth_hard`` is the expected depth of a render in which every Gaussian has the same fixed
+    opacity (1 by default) and no gradient flows to the opacities
+    (``GaussianModel.render(..., opacity_override=1.0)``): only positions, scales and rotations
+    move, so floaters cannot escape the loss by becoming transparent.
+
+    Args:
+        depth_hard: ``(B, 1, H, W)``.
+        target: ``(B, 1, H, W)`` target depth, 0 where unknown.
+        mask: optional ``(B, 1, H, W)`` bool.
+
+    Example:
+        >>> t = torch.full((1, 1, 2, 2), 4.0)
+        >>> depth_loss_hard(t * 0.5, t).item()
+        0.5
+    """
+    return depth_loss(depth_hard, target, mask)
+
+
+def geometric_weights(
+    step: int,
+    total_steps: int,
+    lambda_normal: float = 0.02,
+    lambda_hard: float = 0.1,
+    lambda_soft: float = 0.1,
+    hard_until: float = 0.8,
+) -> dict[str, float]:
+    """The weights of the geometric losses at a step: ``λ_hard`` is 0 from ``hard_until · total_steps`` on.
+
+    Example:
+        >>> geometric_weights(799, 1000)["hard"], geometric_weights(800, 1000)["hard"]
+        (0.1, 0.0)
+    """
+    hard = lambda_hard if step < hard_until * total_steps else 0.0
+    return {"normal": lambda_normal, "hard": hard, "soft": lambda_soft}

@@ -1,0 +1,426 @@
+"""The scene model: static Gaussians in the world, one node per moving object, and a sky.
+
+:class:`GaussianModel` stores every Gaussian *raw* (means, ``wxyz`` quaternions, log-scales,
+opacity logits, SH coefficients) in one flat :class:`~torch.nn.ParameterDict`, with an integer
+``node_ids`` buffer saying where each Gaussian lives: ``-1`` for the static background (world
+frame), ``k >= 0`` for the ``k``-th track node (its object frame, posed per frame by
+``object_to_world``). Keeping one flat set of parameters lets the densification helpers of
+:mod:`vadgs.train.ops` add or remove Gaussians of any node with one optimizer; a node is just an
+index set.
+
+:func:`gaussians_at` composes the activated Gaussians of a frame in the world;
+:meth:`GaussianModel.render` renders them (colours from SH evaluated with the viewing direction
+in each Gaussian's own frame, so a turning car keeps its view-dependent colour) over a learned
+sky: a low-degree spherical-harmonics function of the world ray direction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vadgs.checks import check_shape
+from vadgs.geometry.camera import invert_rigid, pixel_grid
+from vadgs.render import RasterConfig, RenderOutput, eval_sh, num_sh_bases, rasterize_gaussians, rgb_to_sh
+
+__all__ = [
+    "PER_GAUSSIAN",
+    "GaussianModel",
+    "Gaussians",
+    "ModelRender",
+    "gaussians_at",
+    "quat_multiply",
+    "rotation_to_quat",
+]
+
+#: Names of the per-Gaussian parameters, in storage order.
+PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+
+def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``q1 ⊗ q2`` of ``wxyz`` quaternions (rotation ``q2`` first, then ``q1``).
+
+    Differentiable w.r.t. both.
+
+    Shape:
+        ``(*, 4)`` and ``(*, 4)`` (broadcast) → ``(*, 4)``.
+
+    Example:
+        >>> q = torch.tensor([0.0, 1.0, 0.0, 0.0])  # 180° about x
+        >>> quat_multiply(q, q)
+        tensor([-1.,  0.,  0.,  0.])
+    """
+    w1, x1, y1, z1 = q1.unbind(-1)
+    w2, x2, y2, z2 = q2.unbind(-1)
+    return torch.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        -1,
+    )
+
+
+def rotation_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Unit ``wxyz`` quaternion of rotation matrices (Shepperd's method, branch-free).
+
+    Not meant to be differentiated (poses are fixed).
+
+    Shape:
+        ``(*, 3, 3)`` → ``(*, 4)``.
+
+    Example:
+        >>> rotation_to_quat(torch.eye(3))
+        tensor([1., 0., 0., 0.])
+    """
+    m = R
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cands = torch.stack(
+        [
+            torch.stack(
+                [
+                    1 + tr,
+                    m[..., 2, 1] - m[..., 1, 2],
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 1, 0] - m[..., 0, 1],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[..., 2, 1] - m[..., 1, 2],
+                    1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    m[..., 0, 2] + m[..., 2, 0],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+                    m[..., 1, 2] + m[..., 2, 1],
+                ],
+                -1,
+            ),
+            torch.stack(
+                [
+                    m[..., 1, 0] - m[..., 0, 1],
+                    m[..., 0, 2] + m[..., 2, 0],
+                    m[..., 1, 2] + m[..., 2, 1],
+                    1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+                ],
+                -1,
+            ),
+        ],
+        -2,
+    )  # (*, 4, 4): row i is 4 q_i q (unnormalised), best conditioned where q_i is largest
+    diag = torch.diagonal(cands, dim1=-2, dim2=-1)
+    best = diag.argmax(-1)
+    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = F.normalize(q, dim=-1)
+    return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+class Gaussians(NamedTuple):
+    """Activated Gaussians of one frame, in the world frame.
+
+    Attributes:
+        means: ``(M, 3)`` world positions.
+        quats: ``(M, 4)`` ``wxyz`` world orientations (not normalised).
+        scales: ``(M, 3)`` positive.
+        opacities: ``(M,)`` in ``(0, 1)``.
+        sh: ``(M, K, 3)`` SH coefficients (in each Gaussian's own frame).
+        ids: ``(M,)`` int64 index of each row in the model (rows of absent nodes are left out).
+        object_to_world_rot: ``(M, 3, 3)`` rotation of each Gaussian's frame (identity for static).
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    ids: torch.Tensor
+    object_to_world_rot: torch.Tensor
+
+
+class ModelRender(NamedTuple):
+    """What :meth:`GaussianModel.render` returns.
+
+    Attributes:
+        color: ``(1, 3, H, W)`` Gaussians composited over the sky.
+        raster: the renderer's :class:`~vadgs.render.RenderOutput` (black background); its
+            ``means2d`` rows follow ``ids``.
+        sky: ``(1, 3, H, W)`` the sky colour of every pixel.
+        ids: ``(M,)`` model rows that were rendered (see :attr:`Gaussians.ids`).
+    """
+
+    color: torch.Tensor
+    raster: RenderOutput
+    sky: torch.Tensor
+    ids: torch.Tensor
+
+
+def gaussians_at(
+    params: dict[str, torch.Tensor],
+    node_ids: torch.Tensor,
+    object_to_world: torch.Tensor,
+    track_valid: torch.Tensor,
+    frame: int,
+) -> Gaussians:
+    r"""Compose static and moving Gaussians of one frame in the world.
+
+    A Gaussian of node ``k`` at ``(\mu, q)`` in its object frame is placed at
+    ``R_k \mu + t_k`` with orientation ``q(R_k) ⊗ q``, ``[R_k | t_k] = object_to_world[k, frame]``.
+    Nodes whose pose is not valid at ``frame`` are left out. Scales are ``exp(log_scales)``,
+    opacities ``sigmoid(opacity_logits)``. Differentiable w.r.t. every parameter; the poses are
+    constants.
+
+    Args:
+        params: raw parameters, keys :data:`PER_GAUSSIAN` (``sh_dc (N, 1, 3)``, ``sh_rest (N, K-1, 3)``).
+        node_ids: ``(N,)`` int64, ``-1`` static, ``k`` track node.
+        object_to_world: ``(T, F, 4, 4)`` poses of the track nodes.
+        track_valid: ``(T, F)`` bool.
+        frame: frame position (index into ``Scene.frames`` and ``Track.object_to_world``).
+
+    Returns:
+        :class:`Gaussians`.
+
+    Example:
+        >>> p = {"means": torch.zeros(2, 3), "quats": torch.tensor([[1.0, 0, 0, 0]] * 2),
+        ...      "log_scales": torch.zeros(2, 3), "opacity_logits": torch.zeros(2),
+        ...      "sh_dc": torch.zeros(2, 1, 3), "sh_rest": torch.zeros(2, 0, 3)}
+        >>> o2w = torch.eye(4).repeat(1, 1, 1, 1); o2w[0, 0, 0, 3] = 5.0
+        >>> g = gaussians_at(p, torch.tensor([-1, 0]), o2w, torch.ones(1, 1, dtype=torch.bool), 0)
+        >>> g.means[:, 0].tolist(), g.ids.tolist()
+        ([0.0, 5.0], [0, 1])
+    """
+    means, quats = params["means"], params["quats"]
+    n = means.shape[0]
+    num_tracks = object_to_world.shape[0]
+    present = node_ids < 0
+    if num_tracks:
+        node_valid = track_valid[:, frame]
+        present = present | ((node_ids >= 0) & node_valid[node_ids.clamp(min=0)])
+    ids = torch.nonzero(present).squeeze(1) if n else torch.zeros(0, dtype=torch.long, device=means.device)
+    nid = node_ids[ids]
+    m, q = means[ids], quats[ids]
+    eye = torch.eye(3, device=means.device, dtype=means.dtype)
+    rot = eye.expand(ids.shape[0], 3, 3)
+    if num_tracks and bool((nid >= 0).any()):
+        o2w = object_to_world[:, frame].to(means.dtype)  # (T, 4, 4)
+        node_rot = torch.cat([eye[None], o2w[:, :3, :3]])  # slot 0 = static
+        node_t = torch.cat([torch.zeros(1, 3, device=means.device, dtype=means.dtype), o2w[:, :3, 3]])
+        node_q = rotation_to_quat(node_rot)
+        slot = nid + 1
+        rot = node_rot[slot]
+        m = (rot @ m[:, :, None]).squeeze(-1) + node_t[slot]
+        q = quat_multiply(node_q[slot], q)
+    sh = torch.cat([params["sh_dc"][ids], params["sh_rest"][ids]], 1)
+    return Gaussians(
+        m, q, params["log_scales"][ids].exp(), torch.sigmoid(params["opacity_logits"][ids]), sh, ids, rot
+    )
+
+
+class GaussianModel(nn.Module):
+    """Static background Gaussians, one node per rigidly moving track, and a learned sky.
+
+    See :func:`gaussians_at` for the composition. Parameters are stored raw in
+    :attr:`params` (keys :data:`PER_GAUSSIAN`); :attr:`sky` holds the sky's SH coefficients
+    ``(num_sh_bases(sky_degree), 3)`` over world ray directions (degree 0 = a single learned
+    background colour).
+
+    Args:
+        means: ``(N, 3)`` positions (world for static, object frame for track nodes).
+        colors: ``(N, 3)`` initial RGB in ``[0, 1]``.
+        log_scales: ``(N, 3)``.
+        node_ids: ``(N,)`` int64 (``-1`` static, ``k`` the ``k``-th of ``track_ids``).
+        object_to_world: ``(T, F, 4, 4)`` track poses; ``(0, F, 4, 4)`` without tracks.
+        track_valid: ``(T, F)`` bool.
+        track_ids: the instance id of each track node.
+        sh_degree: maximum SH degree of the Gaussians (0–3).
+        sky_degree: SH degree of the sky (0–3).
+        init_opacity: initial opacity.
+        quats: ``(N, 4)`` initial ``wxyz`` (identity when None).
+
+    Example:
+        >>> model = GaussianModel(torch.randn(10, 3), torch.rand(10, 3), torch.full((10, 3), -2.0),
+        ...                       torch.full((10,), -1), torch.zeros(0, 1, 4, 4),
+        ...                       torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=1)
+        >>> model.num_gaussians, tuple(model.params["sh_rest"].shape)
+        (10, (10, 3, 3))
+    """
+
+    def __init__(
+        self,
+        means: torch.Tensor,
+        colors: torch.Tensor,
+        log_scales: torch.Tensor,
+        node_ids: torch.Tensor,
+        object_to_world: torch.Tensor,
+        track_valid: torch.Tensor,
+        track_ids: Sequence[int],
+        sh_degree: int = 3,
+        sky_degree: int = 2,
+        init_opacity: float = 0.1,
+        quats: torch.Tensor | None = None,
+    ) -> None:
+        super().__init__()
+        dims = check_shape(means, "means", ("N", 3))
+        check_shape(colors, "colors", ("N", 3), dims)
+        check_shape(log_scales, "log_scales", ("N", 3), dims)
+        check_shape(node_ids, "node_ids", ("N",), dims)
+        check_shape(object_to_world, "object_to_world", ("T", "F", 4, 4), dims)
+        check_shape(track_valid, "track_valid", ("T", "F"), dims)
+        if len(track_ids) != dims["T"]:
+            raise ValueError(f"track_ids: expected {dims['T']} ids, got {len(track_ids)}")
+        if node_ids.numel() and int(node_ids.max()) >= dims["T"]:
+            raise ValueError(f"node_ids: expected values in [-1, {dims['T']}), got max {int(node_ids.max())}")
+        n = dims["N"]
+        k = num_sh_bases(sh_degree)
+        num_sh_bases(sky_degree)
+        if quats is None:
+            quats = torch.zeros(n, 4, dtype=means.dtype, device=means.device)
+            quats[:, 0] = 1.0
+        logit = torch.logit(torch.tensor(init_opacity, dtype=means.dtype))
+        self.params = nn.ParameterDict(
+            {
+                "means": nn.Parameter(means.clone()),
+                "quats": nn.Parameter(quats.clone()),
+                "log_scales": nn.Parameter(log_scales.clone()),
+                "opacity_logits": nn.Parameter(
+                    torch.full((n,), float(logit), dtype=means.dtype, device=means.device)
+                ),
+                "sh_dc": nn.Parameter(rgb_to_sh(colors.clamp(0, 1))[:, None, :].clone()),
+                "sh_rest": nn.Parameter(torch.zeros(n, k - 1, 3, dtype=means.dtype, device=means.device)),
+            }
+        )
+        sky = torch.zeros(num_sh_bases(sky_degree), 3, dtype=means.dtype, device=means.device)
+        sky[0] = rgb_to_sh(torch.full((3,), 0.7, dtype=means.dtype))
+        self.sky = nn.Parameter(sky)
+        self.register_buffer("node_ids", node_ids.long().clone())
+        self.register_buffer("object_to_world", object_to_world.clone())
+        self.register_buffer("track_valid", track_valid.bool().clone())
+        self.track_ids = [int(t) for t in track_ids]
+        self.sh_degree = sh_degree
+        self.sky_degree = sky_degree
+        self.active_sh_degree = 0
+
+    # -- sizes ----------------------------------------------------------------------------------------
+
+    @property
+    def num_gaussians(self) -> int:
+        """Number of Gaussians (all nodes)."""
+        return self.params["means"].shape[0]
+
+    def node_counts(self) -> dict[str, int]:
+        """Gaussians per node: ``{"static": n, "track_<id>": n, ...}``."""
+        out = {"static": int((self.node_ids < 0).sum())}
+        for k, tid in enumerate(self.track_ids):
+            out[f"track_{tid}"] = int((self.node_ids == k).sum())
+        return out
+
+    # -- composition and rendering --------------------------------------------------------------------
+
+    def gaussians_at(self, frame: int) -> Gaussians:
+        """Activated Gaussians of a frame in the world; see :func:`gaussians_at`."""
+        return gaussians_at(dict(self.params), self.node_ids, self.object_to_world, self.track_valid, frame)
+
+    def sky_color(
+        self, world_to_cam: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
+    ) -> torch.Tensor:
+        """Sky colour ``(B, 3, H, W)``: ``max(0, 0.5 + Σ Y_k(d) s_k)`` over each pixel's world ray ``d``.
+
+        Differentiable w.r.t. :attr:`sky`.
+        """
+        h, w = image_size
+        pix = pixel_grid(image_size, device=K.device, dtype=K.dtype).reshape(-1, 2)
+        ones = torch.ones_like(pix[:, :1])
+        rays = torch.cat([pix, ones], -1) @ torch.linalg.inv(K).transpose(-1, -2)  # (B, HW, 3) camera
+        cam_to_world = invert_rigid(world_to_cam)
+        dirs = F.normalize(rays @ cam_to_world[:, :3, :3].transpose(-1, -2), dim=-1)
+        b = world_to_cam.shape[0]
+        coeffs = self.sky[None].expand(h * w, -1, -1)
+        col = eval_sh(coeffs, dirs.reshape(b, h * w, 3), self.sky_degree).clamp(max=1.0)
+        return col.reshape(b, h, w, 3).permute(0, 3, 1, 2)
+
+    def render(
+        self,
+        world_to_cam: torch.Tensor,
+        K: torch.Tensor,
+        image_size: tuple[int, int],
+        frame: int,
+        config: RasterConfig | None = None,
+        opacity_override: float | None = None,
+    ) -> ModelRender:
+        """Render one view of a frame: the frame's Gaussians over the sky.
+
+        Colours are the SH evaluated at the active degree with the viewing direction rotated into
+        each Gaussian's own frame. Differentiable w.r.t. every parameter and the sky.
+
+        Args:
+            world_to_cam: ``(1, 4, 4)``.
+            K: ``(1, 3, 3)``.
+            image_size: ``(H, W)``.
+            frame: frame position.
+            config: rasterizer settings.
+            opacity_override: when given, every Gaussian is rendered with this *fixed* opacity
+                (no gradient to the opacity logits), e.g. ``1.0`` for the "hard" depth of
+                :func:`vadgs.train.losses.depth_loss_hard`.
+
+        Returns:
+            :class:`ModelRender`.
+        """
+        check_shape(world_to_cam, "world_to_cam", (1, 4, 4))
+        check_shape(K, "K", (1, 3, 3))
+        g = self.gaussians_at(frame)
+        center = invert_rigid(world_to_cam)[0, :3, 3]
+        dirs = F.normalize(g.means.detach() - center, dim=-1)
+        dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)
+        colors = eval_sh(g.sh, dirs_local, self.active_sh_degree)
+        opac = g.opacities
+        if opacity_override is not None:
+            opac = torch.full_like(opac.detach(), float(opacity_override))
+        raster = rasterize_gaussians(
+            g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config
+        )
+        sky = self.sky_color(world_to_cam, K, image_size)
+        color = raster.color + (1.0 - raster.alpha) * sky
+        return ModelRender(color, raster, sky, g.ids)
+
+    # -- (de)serialisation ----------------------------------------------------------------------------
+
+    def extra_state(self) -> dict:
+        """Non-tensor state for checkpoints."""
+        return {
+            "track_ids": list(self.track_ids),
+            "sh_degree": self.sh_degree,
+            "sky_degree": self.sky_degree,
+            "active_sh_degree": self.active_sh_degree,
+        }
+
+    @classmethod
+    def from_state(cls, state_dict: dict[str, torch.Tensor], extra: dict) -> GaussianModel:
+        """Rebuild a model of the stored size from :meth:`state_dict` and :meth:`extra_state`."""
+        n = state_dict["params.means"].shape[0]
+        model = cls(
+            torch.zeros(n, 3),
+            torch.zeros(n, 3),
+            torch.zeros(n, 3),
+            state_dict["node_ids"],
+            state_dict["object_to_world"],
+            state_dict["track_valid"],
+            extra["track_ids"],
+            sh_degree=int(extra["sh_degree"]),
+            sky_degree=int(extra["sky_degree"]),
+        )
+        model.load_state_dict(state_dict)
+        model.active_sh_degree = int(extra["active_sh_degree"])
+        return model
