@@ -174,7 +174,7 @@ def save_figure(path, image, gt, depth, filtered) -> None:
         a.imshow(img) if img.ndim == 3 else a.imshow(img, vmin=0, vmax=0.5)
         a.set_title(title)
         a.axis("off")
-    ax[1, 0].set_title(f"PatchMatch inverse depth (raw), {np.nanmean(rel < 0.05):.0%} within 5 %")
+    ax[1, 0].set_title(f"PatchMatch inverse depth (raw), {np.mean(rel[gt > 0] < 0.05):.0%} within 5 %")
     fig.tight_layout()
     fig.savefig(path, dpi=55)
 
