@@ -85,7 +85,7 @@ def render_naive(
     gs = project_naive(
         means, quats, scales, opacities, world_to_cam, K, image_size, near, far, eps2d, antialiased
     )
-    order = sorted((i for i, g in enumerate(gs) if g is not None), key=lambda i: float(gs[i]["z"]))
+    order = sorted((i for i, g in enumerate(gs) if g is not None), key=lambda i: float(gs[i]["z"].detach()))
     d = colors.shape[1]
     pix_color, pix_alpha, pix_depth, pix_median, pix_normal = [], [], [], [], []
     zero = means.new_zeros(())
