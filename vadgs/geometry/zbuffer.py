@@ -253,22 +253,23 @@ def _raster_block(keys, coef, extra, vox_ids, u0, v0, ph, pw, any_inside, w, nea
     cols = coef[:, :, 0:1] * us[:, None, :].to(dt)  # (n, P, pw)
     rows = coef[:, :, 1:2] * vs[:, None, :].to(dt) + coef[:, :, 2:3]  # (n, P, ph)
 
-    def plane(k: int) -> torch.Tensor:
-        return rows[:, k, :, None] + cols[:, k, None, :]  # (n, ph, pw)
+    def plane(k: int, out: torch.Tensor | None = None) -> torch.Tensor:
+        return torch.add(rows[:, k, :, None], cols[:, k, None, :], out=out)  # (n, ph, pw)
 
     w_in = plane(0)
-    torch.minimum(w_in, plane(1), out=w_in)
-    torch.minimum(w_in, plane(2), out=w_in)
+    tmp = torch.empty_like(w_in)  # one scratch block: fewer large allocations (page faults)
+    torch.minimum(w_in, plane(1, tmp), out=w_in)
+    torch.minimum(w_in, plane(2, tmp), out=w_in)
     w_out = plane(3)
     for k in (4, 5, 6, 7, 8) if any_inside else (4, 5):
-        torch.maximum(w_out, plane(k), out=w_out)
+        torch.maximum(w_out, plane(k, tmp), out=w_out)
     w_out.clamp_(min=1e-30)  # a hit needs a positive entry inverse depth
     hit = w_in >= w_out
     if extra is None:
         t = w_in.reciprocal_()
     else:  # the fitted plane, kept where it crosses the box (with slack); else fall through
         t_in, t_out = w_in.reciprocal_(), w_out.reciprocal_()
-        nd = plane(9)
+        nd = plane(9, tmp)
         num, t_mid, has_normal = (extra[:, j, None, None] for j in range(3))
         flat = nd.abs() >= 1e-9
         has_plane = flat & (has_normal > 0)
