@@ -101,16 +101,16 @@ def render_naive(
                 dx = torch.stack([g["mean2d"][0] - u, g["mean2d"][1] - v])
                 sigma = 0.5 * dx @ g["conic"] @ dx
                 alpha = torch.clamp_max(g["opac"] * torch.exp(-sigma), alpha_max)
-                if float(sigma) < 0 or float(alpha) < alpha_min:
+                if float(sigma.detach()) < 0 or float(alpha.detach()) < alpha_min:
                     continue
                 next_T = T * (1 - alpha)
-                if float(next_T) <= t_min:
+                if float(next_T.detach()) <= t_min:
                     break
                 wgt = alpha * T
                 c = c + wgt * colors[i]
                 dep = dep + wgt * g["z"]
                 nrm = nrm + wgt * g["normal"]
-                if float(T) > 0.5 >= float(next_T):
+                if float(T.detach()) > 0.5 >= float(next_T.detach()):
                     median = g["z"]
                 T = next_T
             acc = 1 - T
@@ -118,10 +118,10 @@ def render_naive(
                 c = c + T * background
             pix_color.append(c)
             pix_alpha.append(acc)
-            pix_depth.append(dep / acc if float(acc) > 0 else zero)
+            pix_depth.append(dep / acc if float(acc.detach()) > 0 else zero)
             pix_median.append(median)
             nn_ = nrm.norm()
-            pix_normal.append(nrm / nn_ if float(nn_) > 0 else nrm)
+            pix_normal.append(nrm / nn_ if float(nn_.detach()) > 0 else nrm)
     color = torch.stack(pix_color, -1).reshape(d, h, w)
     alpha = torch.stack(pix_alpha).reshape(1, h, w)
     depth = torch.stack(pix_depth).reshape(1, h, w)
