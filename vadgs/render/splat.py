@@ -49,7 +49,7 @@ class RasterConfig:
         chunk_size: Gaussians per tile processed per step of the compositing loop.
         absgrad: also accumulate gsplat's ``absgrad`` (sum over pixels of the absolute
             per-pixel gradient of the 2D means) in :attr:`RenderOutput.means2d_absgrad` during
-            backward; costs about 20 % more backward time.
+            backward; its cost was within the timing noise on benchmark case 1.
         backward: ``"manual"`` (hand-written backward, default) or ``"autograd"`` (the same loop
             differentiated by autograd; slower, more memory, for cross-checks).
     """
