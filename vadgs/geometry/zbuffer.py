@@ -268,15 +268,16 @@ def _raster_block(keys, coef, extra, vox_ids, u0, v0, ph, pw, any_inside, w, nea
     if extra is None:
         t = w_in.reciprocal_()
     else:  # the fitted plane, kept where it crosses the box (with slack); else fall through
-        t_in, t_out = w_in.reciprocal_(), w_out.reciprocal_()
+        lo = w_in.reciprocal_().sub_(slack)  # entry depth minus the slack
+        hi = w_out.reciprocal_().add_(slack)  # exit depth plus the slack
         nd = plane(9, tmp)
         num, t_mid, has_normal = (extra[:, j, None, None] for j in range(3))
         flat = nd.abs() >= 1e-9
         has_plane = flat & (has_normal > 0)
-        t_plane = num / torch.where(flat, nd, torch.ones_like(nd))
-        hit &= ((t_plane >= t_in - slack) & (t_plane <= t_out + slack)) | ~has_plane
-        t = torch.where(has_plane, t_plane, t_mid).clamp(min=t_in - slack).clamp(min=near)
-        t = torch.minimum(t, t_out + slack)
+        t_plane = num / torch.where(flat, nd, 1.0)
+        hit &= ((t_plane >= lo) & (t_plane <= hi)) | ~has_plane
+        t = torch.maximum(torch.where(has_plane, t_plane, t_mid), lo).clamp_(min=near)
+        torch.minimum(t, hi, out=t)
     t = torch.where(hit, t.float(), float("inf"))
     key = t.view(torch.int32).long()
     key <<= 32
