@@ -90,6 +90,7 @@ class TestVoxelize:
             assert (row.diff() > 0).all()  # sorted and unique
         assert torch.equal(grid.vis_voxels, torch.repeat_interleave(torch.arange(len(grid)), ptr.diff()))
 
+    @pytest.mark.filterwarnings("ignore:Sparse invariant checks")
     def test_seen_by_candidate_views_incidence(self):
         pts, (pi, vi) = _random_table(n_views=6, seed=2)
         grid = voxelize(pts, 0.3, (pi, vi), num_views=6)
