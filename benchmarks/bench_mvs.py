@@ -4,7 +4,7 @@
         --benchmark-columns=min,median,max,rounds -s
 
 Accuracy numbers go to ``benchmark.extra_info`` and to the JSON file ``$VADGS_BENCH_MVS_OUT``
-(default ``/tmp/bench_mvs.json``); ``docs/benchmarks_mvs.md`` reports them. Seeded
+(default ``/tmp/bench_mvs.json``); ``docs/benchmarks.md`` reports them. Seeded
 (``PatchMatchConfig.seed``). Needs ``../shared`` for everything but Middlebury.
 ``VADGS_BENCH_THREADS=1`` sets ``torch.set_num_threads(1)``: on a loaded 2-core machine the
 small ops of PatchMatch run far faster on one intra-op thread.

@@ -1,6 +1,6 @@
 """Benchmarks of vadgs.render (pytest-benchmark; not part of the default test run).
 
-Run (the numbers in docs/benchmarks_render.md come from exactly this):
+Run (the numbers in docs/benchmarks.md come from exactly this):
 
     pytest benchmarks/bench_render.py --benchmark-enable -p no:cacheprovider \
         --benchmark-columns=min,median,max,rounds --benchmark-sort=name

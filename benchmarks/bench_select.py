@@ -4,7 +4,7 @@
 
 ``VADGS_BENCH_THREADS=1`` sets ``torch.set_num_threads(1)`` first (selection is a chain of small
 ops: on a loaded 2-core machine intra-op threads mostly wait on each other).
-Results and ratios: ``docs/benchmarks_select.md``.
+Results and ratios: ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
