@@ -1,0 +1,30 @@
+from __future__ import annotations
+
+import json
+
+from vadgs.cli import main
+
+
+class TestCli:
+    def test_train_eval_render_resume(self, tmp_path, capsys):
+        out = tmp_path / "run"
+        args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "3"]
+        args += ["--no-progress", "--set", "init.max_points=400", "--set", "init.voxel_size=1.0"]
+        args += ["--set", "init.sh_degree=0"]
+        assert main(args) == 0
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["steps"] == 3 and metrics["test"]["num_views"] == 6
+        assert (out / "ply" / "static.ply").is_file() and (out / "ply" / "poses.json").is_file()
+        assert main(["eval", str(out), "--no-progress"]) == 0
+        assert "psnr" in json.loads((out / "eval.json").read_text())
+        assert main(["render", str(out), "--views", "2", "--no-progress"]) == 0
+        assert len(list((out / "renders").glob("*.png"))) == 1
+        assert main(["train", "--out", str(out), "--resume", "--no-progress"]) == 0  # already complete
+        assert "resuming" in capsys.readouterr().out
+
+    def test_bad_inputs(self, tmp_path, capsys):
+        (tmp_path / "checkpoint.pt").write_bytes(b"garbage")
+        assert main(["eval", str(tmp_path)]) == 2
+        assert "corrupt" in capsys.readouterr().err
+        assert main(["train", "--out", str(tmp_path / "none"), "--resume"]) == 2
+        assert main(["train", "--sample", "--out", str(tmp_path / "x"), "--set", "bogus=1"]) == 2
