@@ -111,9 +111,10 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
     the normal.
 
     Example:
-        >>> q = normals_to_quats(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]))
-        >>> q[0].tolist()
-        [1.0, 0.0, 0.0, 0.0]
+        >>> from vadgs.render import quaternion_to_rotation
+        >>> n = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
+        >>> torch.allclose(quaternion_to_rotation(normals_to_quats(n))[:, :, 2], n, atol=1e-6)
+        True
     """
     n = torch.nn.functional.normalize(normals, dim=-1)
     helper = torch.where(
