@@ -101,17 +101,23 @@ def table(results: dict[str, dict]) -> str:
     for name, m in results.items():
         dep = m.get("depth", {})
         c = m.get("completeness", {})
-
-        def g(region, key):
-            return dep.get(region, {}).get(key)
-
-        rows.append(
-            f"| {name} | {_fmt(m['psnr'], 2)} | {_fmt(m['psnr_star'], 2)} | {_fmt(m['ssim'])} | {m['num_gaussians']} "
-            f"| {_fmt(g('all', 'absrel'))} | {_fmt(g('all', 'delta_1.05'))} | {_fmt(g('sign', 'absrel'))} "
-            f"| {_fmt(g('sign', 'delta_1.05'))} | {_fmt(g('upper_facade', 'absrel'))} "
-            f"| {_fmt(g('upper_facade', 'delta_1.05'))} | {_fmt(c.get('sign'))} | {_fmt(c.get('sign_board'))} "
-            f"| {m['train_s']:.0f} | {_fmt(m.get('vad_s'), 0)} ({_fmt(m.get('vad_share'), 2)}) |"
-        )
+        cells = [
+            name,
+            _fmt(m["psnr"], 2),
+            _fmt(m["psnr_star"], 2),
+            _fmt(m["ssim"]),
+            str(m["num_gaussians"]),
+            *(
+                _fmt(dep.get(region, {}).get(key))
+                for region in ("all", "sign", "upper_facade")
+                for key in ("absrel", "delta_1.05")
+            ),
+            _fmt(c.get("sign")),
+            _fmt(c.get("sign_board")),
+            f"{m['train_s']:.0f}",
+            f"{_fmt(m.get('vad_s'), 0)} ({_fmt(m.get('vad_share'), 2)})",
+        ]
+        rows.append("| " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
 
