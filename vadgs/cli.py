@@ -191,7 +191,9 @@ def train(args: argparse.Namespace) -> int:
     if args.resume:
         if not (out / CHECKPOINT_NAME).is_file():
             raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-        trainer = Trainer.from_checkpoint(out, progress=progress)
+        trainer = Trainer.from_checkpoint(
+            out, progress=progress, strategy=_vad_strategy(args, out, resume=True)
+        )
         print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations}")
     else:
         if args.scene is None and not args.sample:
@@ -204,7 +206,16 @@ def train(args: argparse.Namespace) -> int:
             from vadgs.data import load_colmap
 
             colmap = load_colmap(args.colmap, scale=args.scale).points
-        trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, colmap_points=colmap, progress=progress)
+        strategy = _vad_strategy(args, out)
+        trainer = Trainer(
+            scene,
+            config,
+            out_dir=out,
+            scene_ref=ref,
+            colmap_points=colmap,
+            progress=progress,
+            strategy=strategy,
+        )
         print(
             f"{scene}: {len(scene.train_views)} training views, "
             f"{trainer.model.num_gaussians} initial Gaussians"
@@ -215,9 +226,36 @@ def train(args: argparse.Namespace) -> int:
               f"continue with: vadgs train --out {out} --resume")  # fmt: skip
         return 130 if result.reason == "interrupted" else 0
     metrics = _finish_run(trainer, out, result, progress)
+    if "vad_events" in trainer.state:
+        metrics["vad_events"] = trainer.state["vad_events"]
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
     return 0
+
+
+def _vad_strategy(args: argparse.Namespace, out: Path, resume: bool = False):
+    """The VAD-GS strategy asked for by ``--vad`` (recorded in ``out/strategy.json`` for ``--resume``)."""
+    path = out / "strategy.json"
+    if resume:
+        flags = json.loads(path.read_text()) if path.is_file() else {"vad": False}
+    else:
+        flags = {
+            "vad": bool(args.vad),
+            "view_selection": not args.no_view_selection,
+            "geometric_losses": not args.no_geometric_losses,
+        }
+        out.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(flags))
+    if not flags["vad"]:
+        return None
+    from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig
+
+    return VisibilityAwareDensification(
+        VisibilityDensifyConfig(
+            view_selection=flags["view_selection"], geometric_losses=flags["geometric_losses"]
+        )
+    )
 
 
 def _train_args(p: argparse.ArgumentParser) -> None:
@@ -238,6 +276,13 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-frames", type=int, nargs="*", help="DGP: held-out frames (samples)")
     p.add_argument("--colmap", help="COLMAP sparse folder whose points are added to the initialisation")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--vad", action="store_true", help="VAD-GS visibility-aware densification (the paper)")
+    p.add_argument(
+        "--no-view-selection", action="store_true", help="ablation: consecutive frames (with --vad)"
+    )
+    p.add_argument(
+        "--no-geometric-losses", action="store_true", help="ablation: no normal/depth losses (with --vad)"
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -316,7 +361,17 @@ def demo(args: argparse.Namespace) -> int:
     if args.iterations is not None:
         config = config.replace(iterations=args.iterations)
     t0 = time.perf_counter()
-    trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not args.no_progress)
+    strategy = None
+    if not args.baseline:
+        from vadgs.train.reconstruct import ReconstructConfig
+        from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig
+
+        strategy = VisibilityAwareDensification(
+            VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
+        )
+    trainer = Trainer(
+        scene, config, out_dir=out, scene_ref=ref, strategy=strategy, progress=not args.no_progress
+    )
     result = trainer.train()
     metrics = _finish_run(trainer, out, result, not args.no_progress)
     metrics["wall_s"] = round(time.perf_counter() - t0, 1)
@@ -333,9 +388,45 @@ def demo(args: argparse.Namespace) -> int:
         out / "demo_panel.png",
         columns=2,
     )  # fmt: skip
+    if strategy is not None:
+        metrics["vad_events"] = [
+            {k: v for k, v in e.items() if k != "instances"} | {"instances": e["instances"]}
+            for e in trainer.state["vad_events"]
+        ]
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+        if strategy.snapshots:
+            _completion_panel(trainer, strategy.snapshots, out / "demo_completion.png", vmax)
+            print(f"wrote {out / 'demo_completion.png'}")
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'} and {png}")
     return 0
+
+
+def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path:
+    """The instance that got the most new Gaussians: its reference view before and after."""
+    from vadgs.viz import colorize_depth, image_to_uint8, save_panel
+
+    snap = max(snapshots, key=lambda s: s["added"])
+    scene, view = trainer.scene, snap["view"]
+    after = trainer.render_view(view)
+    mask = (scene.load_instances([view])[0] == snap["instance"]).float()
+    image = scene.load_images([view])[0]
+    name = scene.instances.get(snap["instance"])
+    label = name.name if name else str(snap["instance"])
+    gt = scene.load_depths([view])[0, 0]
+    images = [
+        image_to_uint8(image * (0.35 + 0.65 * mask)),
+        colorize_depth(gt, None, vmax),
+        colorize_depth(snap["depth"], None, vmax),
+        colorize_depth(after.raster.depth[0, 0].detach(), None, vmax),
+    ]
+    titles = [
+        f"flagged: {label} (view {view})",
+        "ground-truth depth",
+        f"rendered depth at step {snap['step']}",
+        f"after: +{snap['added']} MVS Gaussians",
+    ]
+    return save_panel(images, titles, path, columns=2)
 
 
 #: The demo's configuration (merged into the TrainConfig defaults): the bundled sample at 120x72,
@@ -355,6 +446,7 @@ DEMO_CONFIG: dict = {
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="outputs/demo", help="output folder")
     p.add_argument("--iterations", type=int, help="override the demo's iteration count")
+    p.add_argument("--baseline", action="store_true", help="standard densification only (no VAD-GS)")
     p.add_argument("--no-progress", action="store_true")
 
 

@@ -76,7 +76,9 @@ def save_panel(
     cols = columns or n
     rows = (n + cols - 1) // cols
     h, w = images[0].shape[:2]
-    fig, axes = plt.subplots(rows, cols, figsize=(cols * w / 100 * 1.05, rows * (h / 100 + 0.3)), dpi=100)
+    panel_w = max(w / 100, 3.2)  # small images are enlarged so that titles stay readable
+    panel_h = panel_w * h / w
+    fig, axes = plt.subplots(rows, cols, figsize=(cols * panel_w * 1.05, rows * (panel_h + 0.35)), dpi=100)
     axes = np.atleast_1d(axes).ravel()
     for ax in axes:
         ax.axis("off")

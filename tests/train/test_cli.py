@@ -28,3 +28,14 @@ class TestCli:
         assert "corrupt" in capsys.readouterr().err
         assert main(["train", "--out", str(tmp_path / "none"), "--resume"]) == 2
         assert main(["train", "--sample", "--out", str(tmp_path / "x"), "--set", "bogus=1"]) == 2
+
+    def test_train_with_vad_strategy(self, tmp_path):
+        out = tmp_path / "vad"
+        # 18 training views: the first visibility-aware event runs after 5 cycles (step 89)
+        args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "92", "--vad"]
+        args += ["--no-progress", "--set", "init.max_points=2000", "--set", "init.sh_degree=0"]
+        assert main(args) == 0
+        assert json.loads((out / "strategy.json").read_text())["vad"] is True
+        events = json.loads((out / "metrics.json").read_text())["vad_events"]
+        assert len(events) == 1 and events[0]["step"] == 89 and events[0]["tested"] > 0
+        assert main(["train", "--out", str(out), "--resume", "--no-progress"]) == 0

@@ -178,6 +178,9 @@ class VisibilityAwareDensification:
         self.config = config or VisibilityDensifyConfig()
         self.base = base or DefaultStrategy()
         self.index = index
+        #: per reconstructed instance, the reference render just before new Gaussians were added:
+        #: ``{"instance", "view", "step", "added", "depth", "alpha"}`` (for figures; not checkpointed)
+        self.snapshots: list[dict[str, Any]] = []
         if not self.config.view_selection:
             sel = replace(self.config.reconstruct.selection, method="consecutive")
             self.config = replace(self.config, reconstruct=replace(self.config.reconstruct, selection=sel))
@@ -270,11 +273,16 @@ class VisibilityAwareDensification:
             t_mvs += time.perf_counter() - ta
             n_new = 0
             if rec.points.shape[0]:
-                keep = self._unexplained(trainer, rec, ref)
+                keep, before = self._unexplained(trainer, rec, ref)
                 n_new = int(keep.sum())
                 if n_new:
                     self._add(model, optimizer, state, rec, keep)
                     added += n_new
+                    raster = before.raster
+                    self.snapshots.append(
+                        {"instance": inst, "view": ref, "step": step, "added": n_new,
+                         "depth": raster.depth[0, 0].detach(), "alpha": raster.alpha[0, 0].detach()}
+                    )  # fmt: skip
             if cfg.geometric_losses:
                 for v, d, n in zip(rec.views, rec.depth, rec.normal):
                     old = state["vad_priors"].get(v)
@@ -310,8 +318,11 @@ class VisibilityAwareDensification:
         return entry
 
     @torch.no_grad()
-    def _unexplained(self, trainer, rec, ref: int) -> torch.Tensor:
-        """Points that no opaque rendered surface covers (in front or within tolerance) in ``ref``."""
+    def _unexplained(self, trainer, rec, ref: int):
+        """Points that no opaque rendered surface covers (in front or within tolerance) in ``ref``.
+
+        Returns the mask and the reference render it was computed on.
+        """
         out = trainer.render_view(ref)
         scene = trainer.scene
         cams = scene.cameras([ref])
@@ -334,7 +345,7 @@ class VisibilityAwareDensification:
             depth <= z[inside] * (1 + self.config.explained_tolerance)
         )
         keep[inside] = ~explained
-        return keep
+        return keep, out
 
     def _add(self, model: GaussianModel, optimizer, state, rec, keep: torch.Tensor) -> None:
         cfg = self.config
