@@ -2,8 +2,9 @@
 
 For the traffic sign (its board gets no LiDAR) and the overtaken moving car (matched in its own
 frame), selects 4 supporting views with the diversity-aware k-clique or, for comparison, the
-consecutive frames of the reference camera, reconstructs the instance and prints, per group view,
-the share of consistent MVS pixels within 1% and 5% of the ground-truth depth.
+consecutive frames of the reference camera or the MVSNet score (top-k), reconstructs the instance
+and prints, per group view, the share of consistent MVS pixels within 1% and 5% of the
+ground-truth depth.
 
     python examples/vad_reconstruct.py [--scene ../shared/data/street_a] [--scale 0.5]
 """
@@ -36,7 +37,7 @@ def main() -> None:
     ref = scene.view_id(args.frame, args.camera)
     instances = scene.instance_ids("sign")[:1] + sorted(scene.tracks)[:1]
     for inst in instances:
-        for method in ("diversity", "consecutive"):
+        for method in ("diversity", "consecutive", "mvsnet"):
             cfg = ReconstructConfig(selection=ViewSelectionConfig(min_shared=2, method=method))
             t = time.perf_counter()
             rec = reconstruct_instance(index, ref, inst, cfg, torch.Generator().manual_seed(0))
