@@ -13,12 +13,12 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.geometry import ZBufferConfig, rasterize_voxels, voxelize
+from vadgs.viz import colorize_depth, colorize_index, image_to_uint8, save_panel
 
 
 def main() -> None:
@@ -50,30 +50,12 @@ def main() -> None:
     print(f"covered {covered.sum() / (gt > 0).sum():.1%} of the GT pixels; "
           f"{(err <= args.voxel).float().mean():.1%} of them within {args.voxel} m")  # fmt: skip
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    img = scene.load_images([view])[0].permute(1, 2, 0).numpy()
-    index = out.index[0].numpy()
-    lut = np.random.default_rng(0).uniform(0.15, 1.0, size=(len(grid) + 1, 3))
-    ids = lut[index + 1]
-    ids[index < 0] = 0.0
     vmax = float(torch.quantile(gt[gt > 0], 0.95))
-    fig, ax = plt.subplots(1, 4, figsize=(16, 2.9))
-    panels = [
-        (img, "image", {}),
-        (np.ma.masked_equal(depth.numpy(), 0), f"voxel depth ({args.mode})", {"vmin": 0, "vmax": vmax}),
-        (ids, "pixel → voxel index", {}),
-        (np.ma.masked_equal(gt.numpy(), 0), "ground-truth depth", {"vmin": 0, "vmax": vmax}),
-    ]
-    for a, (x, title, kw) in zip(ax, panels):
-        a.imshow(x, cmap="turbo", **kw)
-        a.set_title(title, fontsize=10)
-        a.axis("off")
-    fig.tight_layout()
-    fig.savefig(args.out, dpi=80)
+    image = scene.load_images([view])[0]
+    panels = [image_to_uint8(image), colorize_depth(depth, vmax=vmax), colorize_index(out.index[0]),
+              colorize_depth(gt, vmax=vmax)]  # fmt: skip
+    titles = ["image", f"voxel depth ({args.mode})", "pixel → voxel index", "ground-truth depth"]
+    save_panel(panels, titles, args.out, columns=4)
     print(f"wrote {args.out}")
 
 
