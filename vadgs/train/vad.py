@@ -79,6 +79,8 @@ class VisibilityDensifyConfig:
         hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
             every ``hard_every``-th step only, to bound its CPU cost.
         voxel_depth_prior: use the voxel depth where no MVS depth exists.
+        last_event_fraction: no event after this fraction of the iterations (Gaussians added at
+            the very end would not be trained).
     """
 
     visibility: bool = True
@@ -96,6 +98,7 @@ class VisibilityDensifyConfig:
     flatness: float = 0.2
     hard_every: int = 4
     voxel_depth_prior: bool = True
+    last_event_fraction: float = 0.9
 
     def __post_init__(self) -> None:
         if self.every_cycles < 1:
@@ -205,7 +208,8 @@ class VisibilityAwareDensification:
         cycle = trainer.sampler.cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
-            if cycle > 0 and cycle % self.config.every_cycles == 0:
+            late = step >= self.config.last_event_fraction * trainer.config.iterations
+            if cycle > 0 and cycle % self.config.every_cycles == 0 and not late:
                 self.densify(trainer, model, optimizer, state, step)
 
     # -- the event ---------------------------------------------------------------------------------------
