@@ -31,8 +31,9 @@ class TestCli:
 
     def test_train_with_vad_strategy(self, tmp_path):
         out = tmp_path / "vad"
-        # 18 training views: the first visibility-aware event runs after 5 cycles (step 89)
-        args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "92", "--vad"]
+        # 18 training views: the first visibility-aware event runs after 5 cycles (step 89), before
+        # the last 10% of the iterations (last_event_fraction)
+        args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "100", "--vad"]
         args += ["--no-progress", "--set", "init.max_points=2000", "--set", "init.sh_degree=0"]
         assert main(args) == 0
         assert json.loads((out / "strategy.json").read_text())["vad"] is True
