@@ -35,7 +35,7 @@ from typing import Any
 
 import torch
 
-from vadgs.geometry.camera import Cameras
+from vadgs.geometry.camera import Cameras, project_points
 from vadgs.geometry.zbuffer import rasterize_voxels
 from vadgs.train import losses as L
 from vadgs.train.incomplete import IncompleteConfig, find_incomplete
@@ -334,14 +334,12 @@ class VisibilityAwareDensification:
         if rec.track is not None:
             fpos = scene._frame_pos(scene.views[ref].frame)
             w2c = w2c @ scene.tracks[rec.track].object_to_world[fpos]
-        p = rec.points @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2].clamp(min=1e-6)
-        K = cams.K[0]
-        u = (p[:, 0] / z * K[0, 0] + K[0, 2]).round().long()
-        v = (p[:, 1] / z * K[1, 1] + K[1, 2]).round().long()
+        uv, z = project_points(rec.points[None], cams.K, w2c[None])
+        uv, z = uv[0], z[0]
+        u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
         h, w = cams.image_size
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (p[:, 2] > 0)
-        keep = torch.ones(p.shape[0], dtype=torch.bool)
+        inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        keep = torch.ones(z.shape[0], dtype=torch.bool)
         uu, vv = u[inside], v[inside]
         alpha = out.raster.alpha[0, 0, vv, uu]
         depth = out.raster.depth[0, 0, vv, uu]
