@@ -9,7 +9,12 @@ from vadgs.geometry import backproject_depth, project_points
 from vadgs.train.model import GaussianModel
 from vadgs.train.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
 from vadgs.train.trainer import TrainConfig, Trainer
-from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig, normals_to_quats
+from vadgs.train.vad import (
+    VisibilityAwareDensification,
+    VisibilityDensifyConfig,
+    normals_to_quats,
+    rank_instances,
+)
 
 BUILDING = 9  # a large facade of the sample scene with LiDAR on its lower part
 CAR = 65  # the overtaken moving car
@@ -185,3 +190,25 @@ class TestNormalsToQuats:
         n = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
         R = quaternion_to_rotation(normals_to_quats(n))
         assert torch.allclose(R[:, :, 2], n, atol=1e-5)
+
+
+class TestRankInstances:
+    def test_small_sign_is_not_starved_by_facades(self):
+        # the street_a situation: many large flagged facades and one small sign
+        px = {10 + i: 20_000 - 1000 * i for i in range(10)} | {61: 466}
+        cls = {i: "building" for i in px} | {61: "sign"}
+        assert 61 not in rank_instances(px, cls, "pixels")[:6]
+        ranked = rank_instances(px, cls)
+        assert ranked[:2] == [10, 61]
+        assert sorted(ranked) == sorted(px)  # a permutation: nothing dropped or repeated
+
+    def test_within_a_class_largest_first(self):
+        px = {1: 5, 2: 50, 3: 500, 4: 7}
+        cls = {1: "tree", 2: "tree", 3: "tree", 4: "sign"}
+        assert rank_instances(px, cls) == [3, 4, 2, 1]
+
+    def test_bad_ranking_names_the_argument(self):
+        with pytest.raises(ValueError, match="ranking"):
+            rank_instances({1: 3}, {}, "random")
+        with pytest.raises(ValueError, match="ranking"):
+            VisibilityDensifyConfig(ranking="random")

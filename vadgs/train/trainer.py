@@ -349,6 +349,8 @@ class Trainer:
         self.scene = scene
         self.config = config or TrainConfig()
         self.out_dir = Path(out_dir) if out_dir is not None else None
+        if scene_ref is None and scene.root is not None and (Path(scene.root) / "scene.json").is_file():
+            scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
         self.scene_ref = scene_ref or {}
         self.strategy = strategy or DefaultStrategy(self.config.strategy)
         self.geometry_targets = geometry_targets
@@ -387,12 +389,18 @@ class Trainer:
             **kwargs: further :class:`Trainer` arguments (``out_dir`` defaults to the checkpoint's folder).
 
         Raises:
-            ValueError: on a corrupt checkpoint.
+            ValueError: on a corrupt checkpoint, or without ``scene`` when the checkpoint stores no
+                scene reference.
         """
         path = Path(path)
         ckpt = load_checkpoint(path)
         config = TrainConfig.from_dict(ckpt["config"])
         if scene is None:
+            if not ckpt["scene_ref"].get("path"):
+                raise ValueError(
+                    f"checkpoint {path}: no scene reference stored (trained from an in-memory scene); "
+                    "pass scene="
+                )
             scene = open_scene(ckpt["scene_ref"])
         model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
         kwargs.setdefault("out_dir", path if path.is_dir() else path.parent)

@@ -49,7 +49,13 @@ from vadgs.train.reconstruct import (
 )
 from vadgs.train.strategy import DefaultStrategy, Strategy
 
-__all__ = ["VisibilityAwareDensification", "VisibilityDensifyConfig", "normals_to_quats", "voxel_depth_map"]
+__all__ = [
+    "VisibilityAwareDensification",
+    "VisibilityDensifyConfig",
+    "normals_to_quats",
+    "rank_instances",
+    "voxel_depth_map",
+]
 
 _C0 = 0.28209479177387814
 
@@ -68,7 +74,10 @@ class VisibilityDensifyConfig:
         voxel_size: voxel edge (m) of the visibility grids.
         incomplete: thresholds of the incompleteness test.
         reconstruct: view selection / PatchMatch / consistency settings.
-        max_instances: instances reconstructed per event (largest flagged first).
+        max_instances: instances reconstructed per event, in the order of ``ranking``.
+        ranking: ``"class_round_robin"`` (default): one instance per class in turn, the largest
+            (most pixels in its best flagged view) first within a class, so that small structures
+            such as signs are not starved by large facades; ``"pixels"``: largest first overall.
         cooldown_events: an instance reconstructed at an event is skipped for this many events.
         skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
         explained_tolerance: a point is "explained" when the reference render has opacity above
@@ -91,6 +100,7 @@ class VisibilityDensifyConfig:
     incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
     max_instances: int = 6
+    ranking: str = "class_round_robin"
     cooldown_events: int = 1
     skip_classes: tuple[str, ...] = ("road",)
     explained_tolerance: float = 0.05
@@ -105,6 +115,46 @@ class VisibilityDensifyConfig:
             raise ValueError(f"every_cycles: expected >= 1, got {self.every_cycles}")
         if not 0 < self.new_opacity < 1:
             raise ValueError(f"new_opacity: expected in (0, 1), got {self.new_opacity}")
+        if self.ranking not in RANKINGS:
+            raise ValueError(f"ranking: expected one of {RANKINGS}, got {self.ranking!r}")
+
+
+RANKINGS = ("class_round_robin", "pixels")
+
+
+def rank_instances(
+    pixels: dict[int, int], classes: dict[int, str], ranking: str = "class_round_robin"
+) -> list[int]:
+    """Order flagged instances for reconstruction.
+
+    Args:
+        pixels: instance id → its size (pixels in its best flagged view).
+        classes: instance id → class name (missing ids form one class ``""``).
+        ranking: ``"pixels"`` (largest first) or ``"class_round_robin"`` (the largest of each class
+            in turn; classes ordered by their largest instance).
+
+    Example:
+        >>> px = {1: 900, 2: 800, 3: 700, 7: 50, 9: 300}
+        >>> cls = {1: "building", 2: "building", 3: "building", 7: "sign", 9: "tree"}
+        >>> rank_instances(px, cls, "pixels")
+        [1, 2, 3, 9, 7]
+        >>> rank_instances(px, cls)
+        [1, 9, 7, 2, 3]
+    """
+    if ranking not in RANKINGS:
+        raise ValueError(f"ranking: expected one of {RANKINGS}, got {ranking!r}")
+    order = sorted(pixels, key=lambda i: (-pixels[i], i))
+    if ranking == "pixels":
+        return order
+    queues: dict[str, list[int]] = {}
+    for i in order:  # classes in the order of their largest instance
+        queues.setdefault(classes.get(i, ""), []).append(i)
+    out: list[int] = []
+    while any(queues.values()):
+        for q in queues.values():
+            if q:
+                out.append(q.pop(0))
+    return out
 
 
 def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
@@ -262,7 +312,8 @@ class VisibilityAwareDensification:
                 continue
             if inst not in best or px > best[inst][1]:
                 best[inst] = (views[int(rows.view[k])], px)
-        todo = sorted(best.items(), key=lambda kv: -kv[1][1])[: cfg.max_instances]
+        ranked = rank_instances({i: px for i, (_, px) in best.items()}, classes, cfg.ranking)
+        todo = [(i, best[i]) for i in ranked[: cfg.max_instances]]
         added, log = 0, []
         t_mvs = 0.0
         gen = trainer.generator if hasattr(trainer, "generator") else None
@@ -312,6 +363,8 @@ class VisibilityAwareDensification:
             "cycle": state["vad_cycle"],
             "flagged": int(rows.flagged.sum()),
             "tested": int(rows.flagged.numel()),
+            "flagged_instances": int(rows.instance[rows.flagged].unique().numel()),
+            "candidates": len(best),
             "instances": log,
             "added": added,
             "detect_s": t1 - t0,
