@@ -131,6 +131,30 @@ class TestPatchMatch:
         n = res.normal[0, :, 6:-6, 6:-6].reshape(3, -1)[:, m]
         assert (n.T @ slanted_scene.normal).median() > 0.98
 
+    @pytest.mark.parametrize("levels", [1, 2, 3])
+    def test_slanted_subpixel_at_every_pyramid_depth(self, slanted_scene, levels):
+        cfg = PatchMatchConfig(iterations=4, pyramid_levels=levels, seed=1)
+        err = disparity_error(slanted_scene, run(slanted_scene, cfg).raw_depth)
+        assert err.median() < 0.1
+        assert (err < 0.5).float().mean() > 0.85
+
+    def test_pyramid_keeps_a_full_resolution_init(self, slanted_scene):
+        """The fine level scores the caller's init against the upsampled coarse planes."""
+        sc = slanted_scene
+        n = sc.normal.reshape(1, 3, 1, 1).expand(1, 3, *sc.depth.shape[-2:])
+        cfg = PatchMatchConfig(iterations=1, pyramid_levels=2, num_refine=0)
+        exact = run(sc, cfg, init_depth=sc.depth, init_normal=n)
+        coarse_only = run(sc, cfg)
+        err = disparity_error(sc, exact.raw_depth).median()
+        assert err < 0.03
+        assert err < disparity_error(sc, coarse_only.raw_depth).median()
+
+    def test_bad_pyramid_settings(self):
+        with pytest.raises(ValueError, match="pyramid_levels"):
+            PatchMatchConfig(pyramid_levels=0)
+        with pytest.raises(ValueError, match="fine_propagation"):
+            PatchMatchConfig(fine_propagation="diagonal")
+
     def test_multi_view_beats_two_view(self):
         """More sources constrain better (and batching B > 1 works)."""
         sc = plane_scene(normal=(0.2, 0.1, -1.0), seed=3)

@@ -40,7 +40,7 @@ Everything runs under :func:`torch.no_grad` and on the device of its inputs.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -91,6 +91,14 @@ class PatchMatchConfig:
         seed: seed of the random hypotheses (``None``: torch's global generator).
         chunk_size: pixel-views scored at once; ``None``: 4096 on CPU (temporaries stay in
             cache, about 3x faster than one pass), everything at once on other devices.
+        pyramid_levels: coarse-to-fine levels (ACMM-style; default 2). ``1``: a single scale. ``L > 1``: the
+            ``iterations`` run on images downsampled ``2^(L-1)`` times, then at each finer level
+            the upsampled hypotheses are refined by ``fine_iterations`` more sweeps (with the
+            perturbation spread continuing to shrink). Most of the search happens on a quarter
+            (or less) of the pixels, and the larger effective window helps on weak texture.
+        fine_iterations: sweeps at each level finer than the coarsest (``pyramid_levels > 1``).
+        fine_propagation: propagation pattern of the finer levels (``None``: ``propagation``);
+            ``"cross"`` halves their cost once the coarse level has spread good planes.
     """
 
     iterations: int = 3
@@ -111,16 +119,26 @@ class PatchMatchConfig:
     max_cost: float = 0.6
     seed: int | None = 0
     chunk_size: int | None = None
+    pyramid_levels: int = 2
+    fine_iterations: int = 1
+    fine_propagation: str | None = None
 
     def __post_init__(self) -> None:
+        if self.pyramid_levels < 1 or self.fine_iterations < 0:
+            raise ValueError(
+                f"pyramid_levels, fine_iterations: expected >= 1 and >= 0, got {self.pyramid_levels}, "
+                f"{self.fine_iterations}"
+            )
         if self.iterations < 0:
             raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
         if self.window_radius < 1 or self.window_step < 1:
             raise ValueError(
                 f"window_radius, window_step: expected >= 1, got {self.window_radius}, {self.window_step}"
             )
-        if self.propagation not in ("acmh", "cross"):
-            raise ValueError(f"propagation: expected 'acmh' or 'cross', got {self.propagation!r}")
+        for name in ("propagation", "fine_propagation"):
+            value = getattr(self, name)
+            if value not in ("acmh", "cross") and not (name == "fine_propagation" and value is None):
+                raise ValueError(f"{name}: expected 'acmh' or 'cross', got {value!r}")
         if self.view_selection not in ("acmh", "topk", "mean"):
             raise ValueError(
                 f"view_selection: expected 'acmh', 'topk' or 'mean', got {self.view_selection!r}"
@@ -144,6 +162,7 @@ class PatchMatchResult(NamedTuple):
             cost below ``max_cost``).
         raw_depth: ``(B, 1, H, W)`` the final hypotheses' depth everywhere (before masking), for
             callers that fill or filter differently.
+        raw_normal: ``(B, 3, H, W)`` the final hypotheses' normals everywhere.
     """
 
     depth: torch.Tensor
@@ -152,6 +171,7 @@ class PatchMatchResult(NamedTuple):
     view_costs: torch.Tensor
     mask: torch.Tensor
     raw_depth: torch.Tensor
+    raw_normal: torch.Tensor
 
 
 def propagation_regions(kind: str = "acmh") -> list[list[tuple[int, int]]]:
@@ -220,7 +240,7 @@ class _Sources(NamedTuple):
     b: torch.Tensor  # (B, V, 3) N K_s t
     Kinv: torch.Tensor  # (B, 3, 3)
     usable: torch.Tensor  # (B, V) bool: non-degenerate baseline
-    offsets_h: torch.Tensor  # (S, 3) (ox, oy, 1)
+    axis: torch.Tensor  # (n,) window offsets along x and along y (the window is an n x n grid)
 
 
 def _pixel_homographies(
@@ -263,20 +283,31 @@ def _view_costs(
     """
     C, ok = _pixel_homographies(src, col, depth, normal)
     b, v, _, p, _ = C.shape
-    s = src.offsets_h.shape[0]
+    n = src.axis.shape[0]
+    ax = src.axis.view(1, n, 1)
     out = []
     for p0 in range(0, p, chunk):
-        cc = C[:, :, :, p0 : p0 + chunk].reshape(b * v, 3, -1)
-        pc = cc.shape[-1] // 3
-        xyz = (src.offsets_h @ cc).view(b * v, s, pc, 3)
-        grid = xyz[..., :2] / xyz[..., 2:].clamp_min(1e-9)  # behind the camera: far outside
+        cc = C[:, :, :, p0 : p0 + chunk].reshape(b * v, 3, -1, 3)
+        pc = cc.shape[2]
+        # The window is a grid: sample (ix, iy) maps to o_x[ix] C1 + o_y[iy] C2 + C0, a broadcast
+        # add of a per-column and a per-row term, one contiguous plane per coordinate.
+        planes = []
+        for k in range(3):
+            c1, c2, c0 = (cc[:, j, None, :, k] for j in range(3))  # (BV, 1, pc)
+            row = torch.addcmul(c0, ax, c2)  # (BV, n_y, pc)
+            planes.append(row[:, :, None] + ax[:, None] * c1[:, None])  # (BV, n_y, n_x, pc)
+        inv_z = planes[2].clamp_min_(1e-9).reciprocal_()  # behind the camera: far outside
+        grid = torch.empty(b * v, n, n, pc, 2, device=inv_z.device, dtype=inv_z.dtype)
+        torch.mul(planes[0], inv_z, out=grid[..., 0])
+        torch.mul(planes[1], inv_z, out=grid[..., 1])
+        grid = grid.view(b * v, n * n, pc, 2)
         samples = F.grid_sample(src.gray, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
         stats = ReferencePatchStats(
             col.stats.weights[..., p0 : p0 + chunk],
             col.stats.normalized[..., p0 : p0 + chunk],
             col.stats.valid[..., p0 : p0 + chunk],
         )
-        out.append(ncc_cost_from_stats(samples.view(b, v, s, pc), stats, min_variance))
+        out.append(ncc_cost_from_stats(samples.view(b, v, n * n, pc), stats, min_variance))
     cost = torch.cat(out, dim=-1) if len(out) > 1 else out[0]
     # The window centre must land in front of the source camera, inside its image (and mask).
     c0 = C[:, :, 2]  # (B, V, P, 3)
@@ -328,6 +359,23 @@ def _perturb_normals(n, rays, scale, gen):
     noise = (torch.rand(n.shape, generator=gen, device=n.device, dtype=n.dtype) * 2 - 1) * scale
     m = F.normalize(n + noise, dim=-1)
     return torch.where(((m * rays).sum(-1, keepdim=True) < -1e-3), m, n)
+
+
+def _apply_init(depth, normal, init_depth, init_normal, rays, lo, hi):
+    """Hypotheses ``(B, P)``, ``(B, P, 3)`` overridden by the known pixels of init maps."""
+    bsz, p = depth.shape
+    if init_depth is not None:
+        d0 = init_depth.reshape(bsz, p)
+        known = torch.isfinite(d0) & (d0 > 0)
+        depth = torch.where(known, d0.clamp(lo, hi), depth)
+    if init_normal is not None:
+        n0 = init_normal.reshape(bsz, 3, p).transpose(1, 2)
+        nn_ = n0.norm(dim=-1, keepdim=True)
+        known = torch.isfinite(nn_) & (nn_ > 1e-6)
+        n0 = _face_camera(n0 / nn_.clamp_min(1e-6), rays)
+        ok = known & ((n0 * rays).sum(-1, keepdim=True) < -1e-3)
+        normal = torch.where(ok, n0, normal)
+    return depth, normal
 
 
 def _check_inputs(
@@ -423,10 +471,83 @@ def patchmatch(
         (True, True)
     """
     cfg = config or PatchMatchConfig()
-    dims, lo, hi = _check_inputs(
+    _, lo, hi = _check_inputs(
         image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range,
         (init_depth, init_normal), mask, src_masks,
     )  # fmt: skip
+    return _pyramid(
+        image, src_images, K, src_K, world_to_cam, src_world_to_cam, (lo, hi), cfg,
+        init_depth, init_normal, mask, src_masks, cfg.pyramid_levels,
+    )  # fmt: skip
+
+
+def _downsample(x: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tensor:
+    lead = x.shape[:-3]
+    flat = x.reshape(-1, *x.shape[-3:])
+    if mode == "area":
+        out = F.interpolate(flat, size=size, mode="bilinear", antialias=True, align_corners=False)
+    else:
+        out = F.interpolate(flat.float(), size=size, mode="nearest").to(x.dtype)
+    return out.reshape(*lead, *out.shape[-3:])
+
+
+def _scale_K(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """Intrinsics after resizing by ``(sx, sy)`` with pixel centres at integers."""
+    out = K.clone()
+    out[..., 0, :] = K[..., 0, :] * sx
+    out[..., 1, :] = K[..., 1, :] * sy
+    out[..., 0, 2] += 0.5 * sx - 0.5
+    out[..., 1, 2] += 0.5 * sy - 0.5
+    return out
+
+
+def _pyramid(
+    image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg, init_depth,
+    init_normal, mask, src_masks, levels: int, start_iteration: int = 0,
+) -> PatchMatchResult:  # fmt: skip
+    """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at this one."""
+    h, w = image.shape[-2:]
+    hs, ws = src_images.shape[-2:]
+    if levels <= 1 or cfg.iterations == 0 or min(h, w, hs, ws) < 8:
+        return _patchmatch_level(
+            image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg,
+            init_depth, init_normal, mask, src_masks, start_iteration, cfg.iterations,
+        )  # fmt: skip
+    hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
+    coarse = _pyramid(
+        _downsample(image, (hc, wc), "area"),
+        _downsample(src_images, (hsc, wsc), "area"),
+        _scale_K(K, wc / w, hc / h),
+        _scale_K(src_K, wsc / ws, hsc / hs),
+        world_to_cam,
+        src_world_to_cam,
+        depth_range,
+        cfg,
+        None if init_depth is None else _downsample(init_depth, (hc, wc), "nearest"),
+        None if init_normal is None else _downsample(init_normal, (hc, wc), "nearest"),
+        None if mask is None else _downsample(mask, (hc, wc), "nearest"),
+        None if src_masks is None else _downsample(src_masks, (hsc, wsc), "nearest"),
+        levels - 1,
+    )
+    up_depth = _downsample(coarse.raw_depth, (h, w), "nearest")
+    up_normal = _downsample(coarse.raw_normal, (h, w), "nearest")
+    done = cfg.iterations + (levels - 2) * cfg.fine_iterations
+    fine = cfg if cfg.fine_propagation is None else replace(cfg, propagation=cfg.fine_propagation)
+    return _patchmatch_level(
+        image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, fine,
+        up_depth, up_normal, mask, src_masks, done, cfg.fine_iterations,
+        None if init_depth is None and init_normal is None else (init_depth, init_normal),
+    )  # fmt: skip
+
+
+def _patchmatch_level(
+    image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg, init_depth,
+    init_normal, mask, src_masks, start_iteration: int, iterations: int, alt_init=None,
+) -> PatchMatchResult:  # fmt: skip
+    """PatchMatch at one resolution (inputs already checked)."""
+    lo, hi = depth_range
+    dims = {"B": image.shape[0], "V": src_images.shape[1], "H": image.shape[-2], "W": image.shape[-1]}
+    dims["Hs"], dims["Ws"] = src_images.shape[-2:]
     bsz, nv, h, w = dims["B"], dims["V"], dims["H"], dims["W"]
     hs, ws = dims["Hs"], dims["Ws"]
     dev, dt = image.device, image.dtype
@@ -452,10 +573,11 @@ def patchmatch(
     A = norm @ src_K @ src_from_ref[..., :3, :3] @ Kinv[:, None]
     bvec = (norm @ src_K @ src_from_ref[..., :3, 3:]).squeeze(-1)
     offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=dev, dtype=dt)
-    offsets_h = torch.cat([offsets, torch.ones_like(offsets[:, :1])], dim=-1)
+    n_axis = math.isqrt(offsets.shape[0])
+    axis = offsets[:n_axis, 0]  # row-major grid: the first row holds the x offsets (= the y offsets)
     src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws))
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
-    src = _Sources(src_gray, smasks, A, bvec, Kinv, usable, offsets_h)
+    src = _Sources(src_gray, smasks, A, bvec, Kinv, usable, axis)
     chunk = _chunk_size(cfg.chunk_size, dev, nv)
 
     # Reference: windows, bilateral weights (zero outside the region), statistics per colour.
@@ -502,29 +624,31 @@ def patchmatch(
         )
     del patches, weights
 
-    # Initial hypotheses.
+    # Initial hypotheses: random, overridden where an init is given; with an alternative
+    # (coarse-to-fine: the caller's full-resolution init), the better-scoring of the two.
     depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
     normal = _random_normals(rays_all, gen)
-    if init_depth is not None:
-        d0 = init_depth.reshape(bsz, h * w)
-        known = torch.isfinite(d0) & (d0 > 0)
-        depth = torch.where(known, d0.clamp(lo, hi), depth)
-    if init_normal is not None:
-        n0 = init_normal.reshape(bsz, 3, h * w).transpose(1, 2)
-        nn_ = n0.norm(dim=-1, keepdim=True)
-        known = torch.isfinite(nn_) & (nn_ > 1e-6)
-        n0 = _face_camera(n0 / nn_.clamp_min(1e-6), rays_all)
-        ok = known & ((n0 * rays_all).sum(-1, keepdim=True) < -1e-3)
-        normal = torch.where(ok, n0, normal)
+    depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
     view_cost = torch.empty(bsz, nv, h * w, device=dev, dtype=dt)
     agg = torch.empty(bsz, h * w, device=dev, dtype=dt)
     for col in colours:
         vc = _view_costs(src, col, depth[:, col.idx], normal[:, col.idx], cfg.min_variance, chunk)
         view_cost[:, :, col.idx] = vc
         agg[:, col.idx] = _aggregate(vc[None], None, cfg)[0]
+    if alt_init is not None:
+        alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
+        for col in colours:
+            vc = _view_costs(src, col, alt_d[:, col.idx], alt_n[:, col.idx], cfg.min_variance, chunk)
+            a = _aggregate(vc[None], None, cfg)[0]
+            better = a < agg[:, col.idx]
+            idx = col.idx
+            depth[:, idx] = torch.where(better, alt_d[:, idx], depth[:, idx])
+            normal[:, idx] = torch.where(better[..., None], alt_n[:, idx], normal[:, idx])
+            view_cost[:, :, idx] = torch.where(better[:, None], vc, view_cost[:, :, idx])
+            agg[:, idx] = torch.where(better, a, agg[:, idx])
 
     refine_kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
-    for it in range(cfg.iterations):
+    for it in range(start_iteration, start_iteration + iterations):
         dscale = cfg.depth_perturbation * 0.5**it
         nscale = cfg.normal_perturbation * 0.5**it
         for col in colours:
@@ -604,6 +728,7 @@ def patchmatch(
         view_costs=view_cost.reshape(bsz, nv, h, w),
         mask=valid,
         raw_depth=raw,
+        raw_normal=normal_map,
     )
 
 
