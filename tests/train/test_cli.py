@@ -39,4 +39,8 @@ class TestCli:
         assert json.loads((out / "strategy.json").read_text())["vad"] is True
         events = json.loads((out / "metrics.json").read_text())["vad_events"]
         assert len(events) == 1 and events[0]["step"] == 89 and events[0]["tested"] > 0
+        logged = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+        logged = [e for e in logged if "event" in e]  # written as it happens, not only at the end
+        assert [e["step"] for e in logged] == [90]  # the line of the step that ran the event
+        assert logged[0]["event"]["added"] == events[0]["added"]
         assert main(["train", "--out", str(out), "--resume", "--no-progress"]) == 0

@@ -36,7 +36,12 @@ __all__ = ["DefaultStrategy", "DefaultStrategyConfig", "Strategy"]
 
 @runtime_checkable
 class Strategy(Protocol):
-    """The interface every densification strategy implements."""
+    """The interface every densification strategy implements.
+
+    A strategy may append JSON-serialisable dicts to ``state["pending_log"]``: the trainer writes
+    each as an ``{"step": ..., "event": ...}`` line of ``log.jsonl`` right after the step and
+    removes them from the state.
+    """
 
     def initialize_state(self, model: GaussianModel, scene_scale: float) -> dict[str, Any]:
         """A fresh state dict (per-Gaussian tensors have the model's row count as first dim)."""

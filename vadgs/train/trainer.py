@@ -593,6 +593,12 @@ class Trainer:
                 res = self.train_step()
                 self.train_s += time.perf_counter() - t0
                 bar.update(1)
+                for event in self.state.pop("pending_log", None) or []:
+                    if log is not None:
+                        log.write(json.dumps({"step": self.step, "event": event}, default=str) + "\n")
+                        log.flush()
+                    if self.progress and "summary" in event:
+                        bar.write(f"step {self.step}: {event['summary']}")
                 if self.step % cfg.log_every == 0 or self.step == 1:
                     bar.set_postfix(
                         loss=f"{res['total']:.4f}", psnr=f"{res['psnr']:.2f}", n=self.model.num_gaussians

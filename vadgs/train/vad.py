@@ -372,6 +372,14 @@ class VisibilityAwareDensification:
             "total_s": t2 - t0,
         }
         state["vad_events"].append(entry)
+        names = ", ".join(f"{e['class']} {e['instance']} (+{e['added']})" for e in log) or "none"
+        summary = (
+            f"visibility-aware densification: {entry['flagged_instances']} instances flagged, "
+            f"reconstructed {names} in {entry['total_s']:.0f} s"
+        )
+        state.setdefault("pending_log", []).append(
+            {"kind": "visibility_densification", "summary": summary, **entry}
+        )
         return entry
 
     @torch.no_grad()
