@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
+from scipy.spatial import cKDTree
 
 from vadgs.data import load_scene
 from vadgs.train.evaluate import evaluate
@@ -55,9 +55,8 @@ def sign_completeness(model, scene, radius: float = 0.1, samples: int = 20000) -
     centres = model.gaussians_at(0).means.detach()
     static = model.node_ids[model.gaussians_at(0).ids] == -1
     centres = centres[static]
-    d = torch.full((pts.shape[0],), float("inf"))
-    for chunk in torch.split(centres, 200_000):
-        d = torch.minimum(d, torch.cdist(pts, chunk).min(1).values)
+    # nearest centre of every sample by a k-d tree (a dense cdist would need samples x centres floats)
+    d = torch.from_numpy(cKDTree(centres.numpy()).query(pts.numpy(), k=1)[0]).float()
     board = pts[:, 2] > 4.5
     return {
         "sign": float((d < radius).float().mean()),
@@ -69,10 +68,15 @@ def run_variant(scene, name: str, config: TrainConfig, out: Path) -> dict:
     """Train and evaluate one variant; returns its metrics."""
     vad = VARIANTS[name]
     strategy = VisibilityAwareDensification(vad) if vad is not None else None
-    trainer = Trainer(scene, config, out_dir=out / name, strategy=strategy, progress=False)
-    t0 = time.perf_counter()
+    ckpt = out / name / "checkpoint.pt"
+    if ckpt.is_file():  # finished or interrupted earlier: continue (or just evaluate)
+        trainer = Trainer.from_checkpoint(ckpt, scene=scene, strategy=strategy, progress=False)
+        if trainer.config.to_dict() != config.to_dict():
+            raise ValueError(f"{ckpt}: trained with another config; remove it or use another --out")
+    else:
+        trainer = Trainer(scene, config, out_dir=out / name, strategy=strategy, progress=False)
     result = trainer.train()
-    train_s = time.perf_counter() - t0
+    train_s = trainer.train_s
     metrics = evaluate(trainer.model, scene, with_lpips=False).to_dict()
     metrics.pop("per_view", None)
     metrics["completeness"] = sign_completeness(trainer.model, scene)

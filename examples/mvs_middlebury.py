@@ -7,8 +7,8 @@ origin, the right one 193.001 mm to its right with its principal point ``doffs``
 (Middlebury convention: ``Z = b f / (d + doffs)``, hence ``cx_right = cx_left + doffs``). Both
 directions run in one batch (left → right, right → left); a left–right check
 (:func:`vadgs.mvs.geometric_consistency`, 1 px) removes occluded and mismatched pixels, which are
-then filled scanline-wise with the farther of the nearest valid neighbours (the classic
-PatchMatch-stereo / SGM post-processing). Prints EPE and bad-1 / bad-2 over all pixels with finite
+then filled scanline-wise with the farther of the nearest valid neighbours
+(:func:`vadgs.mvs.fill_holes_scanline`, the classic PatchMatch-stereo / SGM post-processing). Prints EPE and bad-1 / bad-2 over all pixels with finite
 ground truth (pixels without an estimate count as bad) next to OpenCV's StereoSGBM.
 """
 
@@ -20,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from vadgs.mvs import PatchMatchConfig, geometric_consistency, patchmatch
+from vadgs.mvs import PatchMatchConfig, fill_holes_scanline, geometric_consistency, patchmatch
 
 F_PX, CX, CY, DOFFS, BASELINE = 994.978, 311.193, 254.877, 31.086, 0.193001  # metres
 CONFIG = PatchMatchConfig(iterations=3, sigma_color=0.1)
@@ -47,19 +47,6 @@ def depth_to_disparity(depth: np.ndarray) -> np.ndarray:
     return np.where(depth > 0, BASELINE * F_PX / np.maximum(depth, 1e-12) - DOFFS, np.nan)
 
 
-def fill_background(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill invalid pixels with the farther of the nearest valid pixels left and right."""
-    h, w = depth.shape
-    cols = np.arange(w)[None]
-    left = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    right = np.minimum.accumulate(np.where(valid, cols, w)[:, ::-1], axis=1)[:, ::-1]
-    rows = np.arange(h)[:, None]
-    z = np.where(valid, depth, 0.0)
-    zl = np.where(left >= 0, z[rows, left.clip(0, w - 1)], 0.0)
-    zr = np.where(right < w, z[rows, right.clip(0, w - 1)], 0.0)
-    return np.where(valid, depth, np.maximum(zl, zr))
-
-
 def patchmatch_stereo(left: np.ndarray, right: np.ndarray, config: PatchMatchConfig = CONFIG):
     """Disparity of the left view (filled) and the left–right-checked mask."""
     imgs = torch.from_numpy(np.stack([left, right])).permute(0, 3, 1, 2).float() / 255
@@ -71,9 +58,9 @@ def patchmatch_stereo(left: np.ndarray, right: np.ndarray, config: PatchMatchCon
         res.raw_depth, K, w2c, res.raw_depth.flip(0)[:, None], K.flip(0)[:, None], w2c.flip(0)[:, None],
         max_reproj_error=1.0, max_rel_depth=0.05, min_views=1,
     )  # fmt: skip
-    z = res.raw_depth[0, 0].numpy()
+    filled = fill_holes_scanline(res.raw_depth[:1], cons.mask[:1], keep="far")
     ok = cons.mask[0, 0].numpy()
-    return depth_to_disparity(fill_background(z, ok)), ok, depth_to_disparity(z)
+    return depth_to_disparity(filled[0, 0].numpy()), ok, depth_to_disparity(res.raw_depth[0, 0].numpy())
 
 
 def sgbm(left: np.ndarray, right: np.ndarray) -> np.ndarray:

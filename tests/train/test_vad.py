@@ -13,6 +13,7 @@ from vadgs.train.vad import (
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
     normals_to_quats,
+    pick_references,
     rank_instances,
 )
 
@@ -212,3 +213,16 @@ class TestRankInstances:
             rank_instances({1: 3}, {}, "random")
         with pytest.raises(ValueError, match="ranking"):
             VisibilityDensifyConfig(ranking="random")
+
+
+class TestPickReferences:
+    def test_largest_first_then_another_camera_or_far_frame(self, scene):
+        front = [v.index for v in scene.views if v.camera == "front"]
+        left = [v.index for v in scene.views if v.camera == "front_left"]
+        cands = [(front[0], 500), (front[1], 450), (left[0], 100), (front[4], 90)]
+        assert pick_references(cands, scene, 1) == [front[0]]
+        # front[1] is one frame after front[0] on the same camera: skipped for the other camera
+        assert pick_references(cands, scene, 2) == [front[0], left[0]]
+        assert pick_references(cands, scene, 3) == [front[0], left[0], front[4]]
+        assert pick_references(cands, scene, 3, min_frame_gap=1) == [front[0], front[1], left[0]]
+        assert pick_references([], scene, 2) == []

@@ -15,6 +15,7 @@ from vadgs.mvs.cost import (
     reference_patch_stats,
     reference_patches,
 )
+from vadgs.mvs.fill import fill_holes_scanline
 from vadgs.mvs.fusion import FusedPoints, FusionConfig, fuse_depth_maps
 from vadgs.mvs.patchmatch import (
     PatchMatch,
@@ -36,6 +37,7 @@ __all__ = [
     "bilateral_ncc",
     "bilateral_weights",
     "cameras_in_object_frame",
+    "fill_holes_scanline",
     "fuse_depth_maps",
     "geometric_consistency",
     "ncc_cost_from_stats",

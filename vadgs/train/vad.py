@@ -53,6 +53,7 @@ __all__ = [
     "VisibilityAwareDensification",
     "VisibilityDensifyConfig",
     "normals_to_quats",
+    "pick_references",
     "rank_instances",
     "voxel_depth_map",
 ]
@@ -74,7 +75,12 @@ class VisibilityDensifyConfig:
         voxel_size: voxel edge (m) of the visibility grids.
         incomplete: thresholds of the incompleteness test.
         reconstruct: view selection / PatchMatch / consistency settings.
-        max_instances: instances reconstructed per event, in the order of ``ranking``.
+        max_instances: instances reconstructed per event, in the order of ``ranking`` (an instance
+            whose reconstruction yields no point does not count; at most twice as many are tried).
+        references: reference views per instance: its flagged view with the most pixels, then
+            the next largest ones from another camera or at least ``min_frame_gap`` frames away
+            from those already chosen (another side of the object, e.g. the back of a sign).
+        min_frame_gap: see ``references``.
         ranking: ``"class_round_robin"`` (default): one instance per class in turn, the largest
             (most pixels in its best flagged view) first within a class, so that small structures
             such as signs are not starved by large facades; ``"pixels"``: largest first overall.
@@ -99,7 +105,9 @@ class VisibilityDensifyConfig:
     voxel_size: float = 0.2
     incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
-    max_instances: int = 6
+    max_instances: int = 8
+    references: int = 2
+    min_frame_gap: int = 3
     ranking: str = "class_round_robin"
     cooldown_events: int = 1
     skip_classes: tuple[str, ...] = ("road",)
@@ -117,9 +125,50 @@ class VisibilityDensifyConfig:
             raise ValueError(f"new_opacity: expected in (0, 1), got {self.new_opacity}")
         if self.ranking not in RANKINGS:
             raise ValueError(f"ranking: expected one of {RANKINGS}, got {self.ranking!r}")
+        if self.references < 1 or self.max_instances < 0:
+            raise ValueError(
+                f"references, max_instances: expected >= 1 and >= 0, got {self.references}, "
+                f"{self.max_instances}"
+            )
 
 
 RANKINGS = ("class_round_robin", "pixels")
+
+
+def pick_references(
+    candidates: list[tuple[int, int]], scene, count: int, min_frame_gap: int = 3
+) -> list[int]:
+    """Reference views of one instance: the largest first, then diverse ones.
+
+    Args:
+        candidates: ``(view, pixels)`` of the views where the instance was flagged.
+        scene: the :class:`~vadgs.data.Scene` (for each view's camera and frame).
+        count: how many references at most.
+        min_frame_gap: a further reference must come from a camera not chosen yet, or be at
+            least this many frames from every chosen view of its camera.
+
+    Returns:
+        View indices, largest first.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> sc = load_scene(sample_scene_path())
+        >>> [(sc.views[v].camera, sc.views[v].frame) for v in (0, 1, 3)]
+        [('front', 16), ('front_left', 16), ('front', 17)]
+        >>> pick_references([(0, 500), (3, 450), (1, 100)], sc, 2)  # view 3: same camera, 1 frame on
+        [0, 1]
+    """
+    chosen: list[int] = []
+    for view, _px in sorted(candidates, key=lambda vp: (-vp[1], vp[0])):
+        if len(chosen) >= count:
+            break
+        info = scene.views[view]
+        if all(
+            scene.views[c].camera != info.camera or abs(scene.views[c].frame - info.frame) >= min_frame_gap
+            for c in chosen
+        ):
+            chosen.append(view)
+    return chosen
 
 
 def rank_instances(
@@ -302,18 +351,17 @@ class VisibilityAwareDensification:
         t1 = time.perf_counter()
         classes = scene.classes()
         event = len(state["vad_events"])
-        # the best reference of each flagged instance: the view where it has the most pixels
-        best: dict[int, tuple[int, int]] = {}
+        # the flagged views of each candidate instance, with its pixel count there
+        flagged: dict[int, list[tuple[int, int]]] = {}
         for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
             inst, px = int(rows.instance[k]), int(rows.pixels[k])
             if classes.get(inst, "") in cfg.skip_classes:
                 continue
             if event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
                 continue
-            if inst not in best or px > best[inst][1]:
-                best[inst] = (views[int(rows.view[k])], px)
-        ranked = rank_instances({i: px for i, (_, px) in best.items()}, classes, cfg.ranking)
-        todo = [(i, best[i]) for i in ranked[: cfg.max_instances]]
+            flagged.setdefault(inst, []).append((views[int(rows.view[k])], px))
+        best = {i: max(c, key=lambda vp: vp[1])[1] for i, c in flagged.items()}
+        ranked = rank_instances(best, classes, cfg.ranking)
         added, log = 0, []
         t_mvs = 0.0
         gen = trainer.generator if hasattr(trainer, "generator") else None
@@ -322,39 +370,53 @@ class VisibilityAwareDensification:
             out = trainer.render_view(v)
             return out.raster.depth[0].detach(), out.raster.normals[0].detach()
 
-        for inst, (ref, _px) in todo:
-            ta = time.perf_counter()
-            rec = reconstruct_instance(self._index(trainer), ref, inst, cfg.reconstruct, gen, prior)
-            t_mvs += time.perf_counter() - ta
-            n_new = 0
-            if rec.points.shape[0]:
-                keep, before = self._unexplained(trainer, rec, ref)
-                n_new = int(keep.sum())
-                if n_new:
-                    self._add(model, optimizer, state, rec, keep)
-                    added += n_new
-                    raster = before.raster
-                    self.snapshots.append(
-                        {"instance": inst, "view": ref, "step": step, "added": n_new,
-                         "depth": raster.depth[0, 0].detach(), "alpha": raster.alpha[0, 0].detach()}
-                    )  # fmt: skip
-            if cfg.geometric_losses:
-                for v, d, n in zip(rec.views, rec.depth, rec.normal):
-                    old = state["vad_priors"].get(v)
-                    if old is not None:
-                        d = torch.where(d > 0, d, old[0])
-                        n = torch.where(d > 0, n, old[1])
-                    state["vad_priors"][v] = (d, n)
+        done = 0
+        # instances whose reconstruction yields nothing (e.g. no supporting views) do not use up
+        # a slot; at most twice max_instances are attempted
+        for inst in ranked[: 2 * cfg.max_instances]:
+            if done >= cfg.max_instances:
+                break
+            refs = pick_references(flagged[inst], scene, cfg.references, cfg.min_frame_gap)
+            entry_views, points, n_new_total, reasons = [], 0, 0, []
+            for ref in refs:
+                ta = time.perf_counter()
+                rec = reconstruct_instance(self._index(trainer), ref, inst, cfg.reconstruct, gen, prior)
+                t_mvs += time.perf_counter() - ta
+                n_new = 0
+                if rec.points.shape[0]:
+                    keep, before = self._unexplained(trainer, rec, ref)
+                    n_new = int(keep.sum())
+                    if n_new:
+                        self._add(model, optimizer, state, rec, keep)
+                        raster = before.raster
+                        self.snapshots.append(
+                            {"instance": inst, "view": ref, "step": step, "added": n_new,
+                             "depth": raster.depth[0, 0].detach(), "alpha": raster.alpha[0, 0].detach()}
+                        )  # fmt: skip
+                if cfg.geometric_losses:
+                    for v, d, n in zip(rec.views, rec.depth, rec.normal):
+                        old = state["vad_priors"].get(v)
+                        if old is not None:
+                            has = d > 0
+                            d = torch.where(has, d, old[0])
+                            n = torch.where(has, n, old[1])
+                        state["vad_priors"][v] = (d, n)
+                entry_views.append(rec.views)
+                points += int(rec.points.shape[0])
+                n_new_total += n_new
+                reasons.append(rec.reason)
+            added += n_new_total
+            done += points > 0
             state["vad_last_done"][inst] = event
             log.append(
                 {
                     "instance": inst,
                     "class": classes.get(inst, "?"),
-                    "reference": ref,
-                    "views": rec.views,
-                    "points": int(rec.points.shape[0]),
-                    "added": n_new,
-                    "reason": rec.reason,
+                    "references": refs,
+                    "views": entry_views,
+                    "points": points,
+                    "added": n_new_total,
+                    "reason": "; ".join(dict.fromkeys(reasons)),
                 }
             )
         t2 = time.perf_counter()
