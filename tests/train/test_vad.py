@@ -226,3 +226,35 @@ class TestPickReferences:
         assert pick_references(cands, scene, 3) == [front[0], left[0], front[4]]
         assert pick_references(cands, scene, 3, min_frame_gap=1) == [front[0], front[1], left[0]]
         assert pick_references([], scene, 2) == []
+
+
+class TestDerivedInstances:
+    """Scenes without instance maps (DGP): cells of the voxel grid plus projected track boxes."""
+
+    def test_track_boxes_cover_the_true_car_masks(self, scene, index):
+        from vadgs.train.reconstruct import derive_instance_map
+
+        ious = []
+        for v in scene.train_views[:6]:
+            true = index.instances(v) == CAR
+            if true.sum() < 50:
+                continue
+            derived = derive_instance_map(index, v) == CAR
+            ious.append(float((true & derived).sum() / (true | derived).sum()))
+            assert (true & derived).sum() >= 0.9 * true.sum()  # the box hull contains the car
+        assert ious and min(ious) > 0.5
+
+    def test_static_pixels_get_cells_and_sky_stays_empty(self, scene, index):
+        from vadgs.train.reconstruct import derive_instance_map
+
+        v = scene.train_views[0]
+        derived = derive_instance_map(index, v)
+        true = index.instances(v)
+        _, vox = index.voxel_raster(v)
+        static_cells = set(index.cell_ids().unique().tolist())
+        on_voxels = derived[vox >= 0]
+        assert set(on_voxels.unique().tolist()) <= static_cells | set(scene.tracks)
+        sky = true == 0
+        assert (derived[sky] == 0).float().mean() > 0.9  # beyond `grow` pixels from any voxel
+        assert min(static_cells) > max(scene.classes())  # no clash with real instance ids
+        assert not index.derives_instances  # the sample has maps: index.instances uses them

@@ -24,8 +24,10 @@ instance label and visibility set, and the cameras of every view, as
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import NamedTuple
 
 import torch
@@ -137,6 +139,9 @@ class VisibilityIndex:
     _rasters: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
     _images: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
     _instances: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
+    cell_size: float = 10.0
+    grow: int = 6
+    _cells: torch.Tensor | None = field(default=None, repr=False)
 
     def image(self, view: int) -> torch.Tensor:
         """``(3, H, W)`` image of a view (cached)."""
@@ -144,11 +149,39 @@ class VisibilityIndex:
             self._images[view] = self.scene.load_images([view])[0]
         return self._images[view]
 
+    @property
+    def derives_instances(self) -> bool:
+        """True when the scene has no instance maps and :meth:`instances` derives them."""
+        return any(v.instances is None for v in self.scene.views)
+
     def instances(self, view: int) -> torch.Tensor:
-        """``(H, W)`` instance map of a view (cached)."""
+        """``(H, W)`` instance map of a view (cached).
+
+        The scene's own map when it has one; otherwise :func:`derive_instance_map` (static
+        voxel cells plus projected track boxes), which stands in for a segmentation network.
+        """
         if view not in self._instances:
-            self._instances[view] = self.scene.load_instances([view])[0]
+            if self.scene.views[view].instances is not None:
+                self._instances[view] = self.scene.load_instances([view])[0]
+            else:
+                self._instances[view] = derive_instance_map(self, view)
         return self._instances[view]
+
+    def classes(self) -> dict[int, str]:
+        """Instance id → class name, including derived static cells (``"static"``)."""
+        out = dict(self.scene.classes())
+        if self.derives_instances:
+            out.update(dict.fromkeys(self.cell_ids().unique().tolist(), "static"))
+        return out
+
+    def cell_ids(self) -> torch.Tensor:
+        """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell."""
+        if self._cells is None:
+            xy = torch.floor(self.grid.centers[:, :2] / self.cell_size).long()
+            _, cell = torch.unique(xy, dim=0, return_inverse=True)
+            first = max([0, *self.scene.tracks, *self.scene.classes()]) + 1
+            self._cells = cell + first
+        return self._cells
 
     def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
@@ -170,6 +203,78 @@ def _covis(grid: VoxelGrid, world_to_cam: torch.Tensor, scene: Scene) -> Covisib
     return Covisibility.from_csr(
         grid.vis_indptr, grid.vis_views, grid.centers, world_to_cam, cam_ids, frame_ids
     )
+
+
+def _box_corners(track) -> torch.Tensor:
+    """``(8, 3)`` box corners of a track in its object frame.
+
+    The mesh's bounds when the track has a mesh (street scenes put the origin on the ground), else
+    ``size_lwh`` about the origin (DGP boxes).
+    """
+    if track.mesh is not None and Path(track.mesh).is_file():
+        import trimesh
+
+        lo, hi = (
+            torch.tensor(b, dtype=torch.float32) for b in trimesh.load(track.mesh, process=False).bounds
+        )
+    else:
+        hi = track.size_lwh.float() / 2
+        lo = -hi
+    pick = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.bool)
+    return torch.where(pick, hi, lo)
+
+
+def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
+    """An instance map for a scene without one, from the voxel index map and the tracks.
+
+    Static pixels take the id of their voxel's ground cell (``index.cell_size`` metres square,
+    :meth:`VisibilityIndex.cell_ids`); pixels without a voxel take the nearest labelled pixel's id
+    within ``index.grow`` pixels (so MVS can extend a little beyond the LiDAR's reach), else 0.
+    Tracks with a pose at the view's frame paint their projected 3D box (convex hull of its
+    corners, far boxes first). Unlike a segmentation network, this cannot label structures far
+    from any LiDAR point (a sign above the LiDAR's field of view): the strategy then only repairs
+    geometry near what the LiDAR saw.
+
+    Returns:
+        ``(H, W)`` int64 instance ids (0 = none).
+    """
+    import numpy as np
+    from scipy import ndimage
+    from scipy.spatial import ConvexHull, QhullError
+    from skimage.draw import polygon
+
+    scene = index.scene
+    _, vox = index.voxel_raster(view)
+    cells = index.cell_ids()
+    lab = torch.where(vox >= 0, cells[vox.clamp_min(0)], torch.zeros_like(vox)).numpy()
+    if index.grow > 0 and (lab > 0).any():
+        dist, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+        lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
+    h, w = lab.shape
+    info = scene.views[view]
+    pos = scene._frame_pos(info.frame)
+    cam = index.cameras[view]
+    boxes = []
+    for tid, t in scene.tracks.items():
+        if not bool(t.valid[pos]):
+            continue
+        corners = _box_corners(t)
+        o2w = t.object_to_world[pos].float()
+        world = corners @ o2w[:3, :3].T + o2w[:3, 3]
+        cam_pts = world @ cam.world_to_cam[0, :3, :3].T + cam.world_to_cam[0, :3, 3]
+        if bool((cam_pts[:, 2] < 0.1).any()):
+            continue
+        uv = cam_pts @ cam.K[0].T
+        uv = (uv[:, :2] / uv[:, 2:]).numpy()
+        boxes.append((float(cam_pts[:, 2].mean()), tid, uv))
+    for _, tid, uv in sorted(boxes, reverse=True):  # far first: near boxes paint over them
+        try:
+            hull = uv[ConvexHull(uv).vertices]
+        except QhullError:
+            continue
+        rr, cc = polygon(hull[:, 1], hull[:, 0], shape=(h, w))
+        lab[rr, cc] = tid
+    return torch.from_numpy(np.ascontiguousarray(lab)).long()
 
 
 def build_visibility_index(

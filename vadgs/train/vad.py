@@ -349,7 +349,7 @@ class VisibilityAwareDensification:
         t0 = time.perf_counter()
         rows, views = self.detect(trainer)
         t1 = time.perf_counter()
-        classes = scene.classes()
+        classes = self._index(trainer).classes()  # incl. derived instances (scenes without maps)
         event = len(state["vad_events"])
         # the flagged views of each candidate instance, with its pixel count there
         flagged: dict[int, list[tuple[int, int]]] = {}
