@@ -8,8 +8,9 @@ origin, the right one 193.001 mm to its right with its principal point ``doffs``
 directions run in one batch (left → right, right → left); a left–right check
 (:func:`vadgs.mvs.geometric_consistency`, 1 px) removes occluded and mismatched pixels, which are
 then filled scanline-wise with the farther of the nearest valid neighbours
-(:func:`vadgs.mvs.fill_holes_scanline`, the classic PatchMatch-stereo / SGM post-processing). Prints EPE and bad-1 / bad-2 over all pixels with finite
-ground truth (pixels without an estimate count as bad) next to OpenCV's StereoSGBM.
+(:func:`vadgs.mvs.fill_holes_scanline`, the classic PatchMatch-stereo / SGM post-processing).
+Prints EPE and bad-1 / bad-2 over all pixels with finite ground truth (pixels without an estimate
+count as bad) next to OpenCV's StereoSGBM.
 """
 
 from __future__ import annotations

@@ -7,7 +7,6 @@ import importlib.util
 import numpy as np
 import pytest
 import torch
-from geometry_reference import box_mesh, embree_zbuffer, naive_zbuffer, slab_entry
 
 from vadgs.geometry import (
     Cameras,
@@ -19,6 +18,8 @@ from vadgs.geometry import (
     rasterize_voxels,
     voxelize,
 )
+
+from .geometry_reference import box_mesh, embree_zbuffer, naive_zbuffer, slab_entry
 
 BOX = ZBufferConfig(depth_mode="box")
 PLANE = ZBufferConfig(depth_mode="plane")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from mvs_scenes import PlaneScene, plane_scene
+
+from .mvs_scenes import PlaneScene, plane_scene
 
 
 @pytest.fixture

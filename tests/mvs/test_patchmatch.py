@@ -3,7 +3,6 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
-from mvs_scenes import plane_scene, texture
 
 from vadgs.geometry import (
     apply_homography,
@@ -24,6 +23,8 @@ from vadgs.mvs import (
     reference_patches,
 )
 from vadgs.mvs.patchmatch import _Colour, _pixel_homographies, _Sources
+
+from .mvs_scenes import plane_scene, texture
 
 FAST = PatchMatchConfig(iterations=3)
 

@@ -4,10 +4,11 @@ import math
 
 import pytest
 import torch
-from naive import random_scene, render_naive
 
 from vadgs.geometry.camera import Cameras, camera_centers
 from vadgs.render import GaussianRasterizer, RasterConfig, eval_sh, rasterize_gaussians
+
+from .naive import random_scene, render_naive
 
 NAMES = ("color", "alpha", "depth", "median_depth", "normals")
 # Documented tolerances against the naive per-pixel reference: float64 agrees to ~1e-12,

@@ -5,9 +5,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from select_helpers import random_scene
 
 from vadgs.select import Covisibility, colmap_scores, consecutive_views, mvsnet_scores, top_k_views
+
+from .select_helpers import random_scene
 
 
 def _angles(covis, visible, ref, src):

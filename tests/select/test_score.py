@@ -6,7 +6,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from select_helpers import random_scene, yaw_pose
 
 from vadgs.select import (
     Covisibility,
@@ -16,6 +15,8 @@ from vadgs.select import (
     shared_voxel_stats,
     view_voxel_incidence,
 )
+
+from .select_helpers import random_scene, yaw_pose
 
 
 def _naive_scores(centers, visible, w2c, eps, count_exponent=1.0):

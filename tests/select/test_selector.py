@@ -5,7 +5,6 @@ import math
 
 import pytest
 import torch
-from select_helpers import random_scene, yaw_pose
 
 from vadgs.select import (
     Covisibility,
@@ -15,6 +14,8 @@ from vadgs.select import (
     diversity_scores,
     select_views,
 )
+
+from .select_helpers import random_scene, yaw_pose
 
 
 def _ring(num_views=8, num_voxels=30, step_deg=12.0, radius=10.0, seed=0):

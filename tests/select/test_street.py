@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-from select_helpers import SHARED, load_example
 
 from vadgs.select import ViewSelectionConfig, ViewSelector
+
+from .select_helpers import SHARED, load_example
 
 pytestmark = [
     pytest.mark.shared,

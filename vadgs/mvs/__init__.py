@@ -24,6 +24,7 @@ from vadgs.mvs.patchmatch import (
     patchmatch,
     propagation_regions,
 )
+from vadgs.mvs.planar import PlanarCompletionConfig, PlaneFit, complete_planar, fit_plane_ransac
 
 __all__ = [
     "MAX_COST",
@@ -33,11 +34,15 @@ __all__ = [
     "PatchMatch",
     "PatchMatchConfig",
     "PatchMatchResult",
+    "PlanarCompletionConfig",
+    "PlaneFit",
     "ReferencePatchStats",
     "bilateral_ncc",
     "bilateral_weights",
     "cameras_in_object_frame",
+    "complete_planar",
     "fill_holes_scanline",
+    "fit_plane_ransac",
     "fuse_depth_maps",
     "geometric_consistency",
     "ncc_cost_from_stats",

@@ -39,6 +39,7 @@ from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
+from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelectionConfig, select_views
 from vadgs.train.incomplete import voxel_labels
@@ -70,6 +71,8 @@ class ReconstructConfig:
             in the reference view stand in for its candidates.
         min_pixels: members whose instance mask has fewer pixels are used as sources only.
         max_points: cap on the points returned (random subset, seeded).
+        planar: planar completion of the textureless parts of planar instances
+            (:func:`vadgs.mvs.complete_planar`); ``None`` turns it off.
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
@@ -82,6 +85,7 @@ class ReconstructConfig:
     min_instance_voxels: int = 8
     min_pixels: int = 16
     max_points: int = 20000
+    planar: PlanarCompletionConfig | None = field(default_factory=PlanarCompletionConfig)
 
 
 class InstanceReconstruction(NamedTuple):
@@ -496,8 +500,20 @@ def reconstruct_instance(
         min(cfg.min_consistent_views, b - 1),
     )
     keep = cons.mask & res.mask
-    pts_cam = backproject_depth(depth, torch.stack(ref_K))  # (b, 3, ch, cw) camera frame
     c2w = invert_rigid(w2c_all[members])
+    res_normal = res.normal
+    if cfg.planar is not None:  # textureless parts of a planar instance (e.g. a sign board)
+        res_normal = res.normal.clone()
+        for k in range(b):
+            o = [j for j in range(len(group)) if j != members[k]]
+            d_k, n_k, add = complete_planar(
+                depth[k], keep[k], ref_masks[k], ref_imgs[k], ref_K[k], c2w[k], imgs[o],
+                torch.stack([masks[j] for j in o])[:, None], K_all[o], w2c_all[o], cfg.planar, generator,
+            )  # fmt: skip
+            depth[k] = d_k
+            keep[k] |= add
+            res_normal[k] = torch.where(add, n_k[:, None, None].expand_as(res_normal[k]), res_normal[k])
+    pts_cam = backproject_depth(depth, torch.stack(ref_K))  # (b, 3, ch, cw) camera frame
     full_depth, full_normal, pts, nrm, col, spc = [], [], [], [], [], []
     for k in range(b):
         m = keep[k, 0]
@@ -506,13 +522,13 @@ def reconstruct_instance(
         fn = torch.zeros(3, h, w)
         fd[:, y0 : y0 + ch, x0 : x0 + cw] = torch.where(keep[k], depth[k], torch.zeros_like(depth[k]))
         fn[:, y0 : y0 + ch, x0 : x0 + cw] = torch.where(
-            keep[k], res.normal[k], torch.zeros_like(res.normal[k])
+            keep[k], res_normal[k], torch.zeros_like(res_normal[k])
         )
         full_depth.append(fd)
         full_normal.append(fn)
         p = pts_cam[k][:, m].T
         pts.append(p @ c2w[k, :3, :3].T + c2w[k, :3, 3])
-        nrm.append(res.normal[k][:, m].T @ c2w[k, :3, :3].T)
+        nrm.append(res_normal[k][:, m].T @ c2w[k, :3, :3].T)
         col.append(ref_imgs[k][:, m].T)
         spc.append(depth[k, 0][m] / ref_K[k][0, 0])
     points, normals, colors, spacing = (torch.cat(x) for x in (pts, nrm, col, spc))

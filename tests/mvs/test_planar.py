@@ -1,0 +1,87 @@
+"""Planar completion: RANSAC plane fit and the filling of a textureless hole in a flat region."""
+
+import pytest
+import torch
+
+from vadgs.mvs import PlanarCompletionConfig, complete_planar, fit_plane_ransac
+
+F, Z, B = 50.0, 2.0, 0.2  # focal, plane depth, baseline: disparity F * B / Z = 5 px
+
+
+def _scene(hole_colour=(0.2, 0.4, 0.9)):
+    g = torch.Generator().manual_seed(0)
+    h, w = 40, 64
+    K = torch.tensor([[F, 0, 31.5], [0, F, 19.5], [0, 0, 1]])
+    image = torch.rand(3, h, w, generator=g)
+    hole = torch.zeros(1, h, w, dtype=torch.bool)
+    hole[:, 12:28, 20:40] = True
+    image = torch.where(hole, torch.tensor(hole_colour)[:, None, None], image)  # textureless board
+    src = torch.roll(image, shifts=-5, dims=-1)[None]  # camera moved by +B along x
+    src_w2c = torch.eye(4)[None].clone()
+    src_w2c[0, 0, 3] = -B
+    depth = torch.full((1, h, w), Z)
+    return image, K, hole, src, src_w2c, depth
+
+
+def test_fit_plane_ransac_ignores_outliers():
+    g = torch.Generator().manual_seed(1)
+    xy = torch.rand(300, 2, generator=g) * 4 - 2
+    pts = torch.cat([xy, (0.3 * xy[:, :1] - 0.2 * xy[:, 1:] + 5)], dim=1)
+    pts[:90] += torch.randn(90, 3, generator=g)  # 30 % outliers
+    fit = fit_plane_ransac(pts, 0.01, generator=g)
+    n = fit.normal / -fit.normal[2]
+    assert torch.allclose(n[:2], torch.tensor([0.3, -0.2]), atol=1e-4)
+    assert fit.inliers[90:].all() and fit.inliers[:90].float().mean() < 0.1
+    assert fit_plane_ransac(pts[:2], 0.01) is None
+
+
+def test_fills_a_textureless_hole_of_a_plane_with_the_true_depth():
+    image, K, hole, src, src_w2c, depth = _scene()
+    region = torch.ones_like(hole)
+    region[:, :, :6] = False  # the source does not see the left border
+    valid = region & ~hole  # PatchMatch left the flat board empty
+    out, normal, added = complete_planar(
+        torch.where(valid, depth, 0), valid, region, image, K, torch.eye(4),
+        src, torch.ones_like(src[:, :1], dtype=torch.bool), K[None], src_w2c,
+    )  # fmt: skip
+    inner = hole.clone()
+    inner[:, :, 20:26] = False  # the source sees the hole's left part on texture (x - 5)
+    assert added[inner].float().mean() > 0.95
+    assert torch.allclose(out[added], torch.full_like(out[added], Z), rtol=1e-3)
+    assert torch.allclose(normal, torch.tensor([0.0, 0.0, -1.0]), atol=1e-3)  # faces the camera
+    assert not added[~region].any()
+
+
+def test_a_colour_mismatch_in_every_view_blocks_the_fill():
+    image, K, hole, src, src_w2c, depth = _scene()
+    src = src.clone()
+    src[:, :, 12:28] = 1 - src[:, :, 12:28]  # an occluder of another colour in the source
+    region = torch.ones_like(hole)
+    valid = ~hole
+    _, _, added = complete_planar(
+        torch.where(valid, depth, 0), valid, region, image, K, torch.eye(4),
+        src, torch.ones_like(src[:, :1], dtype=torch.bool), K[None], src_w2c,
+    )  # fmt: skip
+    assert not added.any()
+
+
+def test_a_non_planar_region_is_left_alone():
+    image, K, hole, src, src_w2c, depth = _scene()
+    g = torch.Generator().manual_seed(2)
+    bumpy = depth * (1 + 0.3 * torch.rand(depth.shape, generator=g))
+    valid = ~hole
+    _, normal, added = complete_planar(
+        torch.where(valid, bumpy, 0), valid, torch.ones_like(hole), image, K, torch.eye(4),
+        src, torch.ones_like(src[:, :1], dtype=torch.bool), K[None], src_w2c,
+        PlanarCompletionConfig(min_inlier_ratio=0.6),
+    )  # fmt: skip
+    assert not added.any() and (normal == 0).all()
+
+
+def test_bad_shapes_name_the_argument():
+    image, K, hole, src, src_w2c, depth = _scene()
+    with pytest.raises(ValueError, match="src_regions"):
+        complete_planar(
+            depth, ~hole, ~hole, image, K, torch.eye(4), src, torch.ones(2, 1, 3, 3, dtype=torch.bool),
+            K[None], src_w2c,
+        )  # fmt: skip

@@ -1,0 +1,217 @@
+r"""Planar completion of textureless parts of a region (an ACMP-style planar prior).
+
+Photometric PatchMatch cannot match a window without texture (a uniformly painted sign board, a
+plain wall): those pixels stay empty after the consistency check even when the rest of the same
+flat surface is reconstructed. When the consistent pixels of a region are well explained by one
+plane, that plane is the natural hypothesis for the region's empty pixels (ACMP triangulates
+credible points into planar priors for the same reason). :func:`complete_planar`
+
+1. fits a plane :math:`\mathbf{n}^\top \mathbf{X} + d = 0` to the region's consistent pixels
+   (camera frame) with RANSAC (:func:`fit_plane_ransac`) and gives up unless at least
+   ``min_inlier_ratio`` of them are inliers;
+2. intersects the rays of the region's empty pixels within ``max_gap`` pixels of an inlier with
+   that plane;
+3. keeps a candidate only where its colour agrees (mean absolute RGB difference below
+   ``color_tolerance``) with the colour its 3D point projects to in at least ``min_views`` other
+   views, inside their regions — a colour test that, unlike NCC, works on flat patches.
+
+Not differentiable (a search with boolean outputs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from vadgs.checks import check_shape
+from vadgs.geometry import backproject_depth, project_points
+
+__all__ = ["PlanarCompletionConfig", "PlaneFit", "complete_planar", "fit_plane_ransac"]
+
+
+class PlaneFit(NamedTuple):
+    """A plane ``n . X + d = 0`` and its inliers.
+
+    Attributes:
+        normal: ``(3,)`` unit normal.
+        offset: ``()`` the plane's ``d``.
+        inliers: ``(N,)`` bool.
+    """
+
+    normal: torch.Tensor
+    offset: torch.Tensor
+    inliers: torch.Tensor
+
+
+def fit_plane_ransac(
+    points: torch.Tensor,
+    threshold: float | torch.Tensor,
+    iterations: int = 200,
+    generator: torch.Generator | None = None,
+) -> PlaneFit | None:
+    """Dominant plane of a point set by RANSAC, refined by least squares on its inliers.
+
+    Args:
+        points: ``(N, 3)`` points.
+        threshold: inlier distance, a number or ``(N,)`` per point (e.g. relative to depth).
+        iterations: random triples tried (all at once, vectorised).
+        generator: seeds the triples.
+
+    Returns:
+        A :class:`PlaneFit`, or None with fewer than 3 points or only degenerate triples.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> xy = torch.rand(200, 2, generator=g)
+        >>> pts = torch.cat([xy, 0.5 * xy[:, :1] + 2], dim=1)  # the plane z = 0.5 x + 2
+        >>> fit = fit_plane_ransac(pts, 0.01, generator=g)
+        >>> bool(fit.inliers.all()), round(float(fit.normal[2] / fit.normal[0]), 3)
+        (True, -2.0)
+    """
+    check_shape(points, "points", ("N", 3))
+    n = points.shape[0]
+    if n < 3:
+        return None
+    idx = torch.randint(0, n, (iterations, 3), generator=generator, device=points.device)
+    a, b, c = points[idx[:, 0]], points[idx[:, 1]], points[idx[:, 2]]
+    normals = torch.cross(b - a, c - a, dim=-1)
+    norm = normals.norm(dim=-1)
+    ok = norm > 1e-9
+    if not bool(ok.any()):
+        return None
+    normals = normals[ok] / norm[ok, None]
+    offsets = -(normals * a[ok]).sum(-1)
+    dist = (points @ normals.T + offsets).abs()  # (N, T)
+    thr = torch.as_tensor(threshold, dtype=points.dtype, device=points.device)
+    thr = thr[:, None] if thr.ndim == 1 else thr
+    best = int((dist <= thr).sum(0).argmax())
+    inliers = dist[:, best] <= thr.squeeze(-1) if thr.ndim else dist[:, best] <= thr
+    # least-squares refinement on the inliers (smallest singular vector of the centred points)
+    p = points[inliers]
+    if p.shape[0] >= 3:
+        centre = p.mean(0)
+        normal = torch.linalg.svd(p - centre, full_matrices=False).Vh[-1]
+        offset = -(normal * centre).sum()
+        dist = (points @ normal + offset).abs()
+        inliers = dist <= (thr.squeeze(-1) if thr.ndim else thr)
+    else:
+        normal, offset = normals[best], offsets[best]
+    return PlaneFit(normal, offset, inliers)
+
+
+@dataclass(frozen=True)
+class PlanarCompletionConfig:
+    """Settings of :func:`complete_planar`.
+
+    Attributes:
+        min_pixels: consistent pixels a region needs before a plane is fitted.
+        min_inlier_ratio: share of them the plane must explain.
+        rel_threshold: inlier distance relative to the point's depth.
+        max_gap: empty pixels farther than this (pixels) from an inlier are not filled.
+        color_tolerance: mean absolute RGB difference (on [0, 1]) of an agreeing view.
+        min_views: other views that must agree.
+        iterations: RANSAC triples.
+    """
+
+    min_pixels: int = 30
+    min_inlier_ratio: float = 0.6
+    rel_threshold: float = 0.02
+    max_gap: float = 8.0
+    color_tolerance: float = 0.06
+    min_views: int = 1
+    iterations: int = 200
+
+
+def complete_planar(
+    depth: torch.Tensor,
+    valid: torch.Tensor,
+    region: torch.Tensor,
+    image: torch.Tensor,
+    K: torch.Tensor,
+    cam_to_world: torch.Tensor,
+    src_images: torch.Tensor,
+    src_regions: torch.Tensor,
+    src_K: torch.Tensor,
+    src_world_to_cam: torch.Tensor,
+    config: PlanarCompletionConfig | None = None,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Fill the empty pixels of a planar region of one view from the plane of its valid pixels.
+
+    Args:
+        depth: ``(1, H, W)`` depth of the view (valid where ``valid``).
+        valid: ``(1, H, W)`` bool, consistent pixels.
+        region: ``(1, H, W)`` bool, the region (an instance's mask).
+        image: ``(3, H, W)`` the view's colours.
+        K: ``(3, 3)`` its intrinsics.
+        cam_to_world: ``(4, 4)`` its pose.
+        src_images: ``(V, 3, Hs, Ws)`` other views.
+        src_regions: ``(V, 1, Hs, Ws)`` bool, the region in them (a colour match outside does
+            not count: occluders).
+        src_K: ``(V, 3, 3)`` their intrinsics.
+        src_world_to_cam: ``(V, 4, 4)`` their poses.
+        config: :class:`PlanarCompletionConfig`.
+        generator: seeds RANSAC.
+
+    Returns:
+        ``(depth, normal, added)``: the completed depth ``(1, H, W)``, the plane's camera-frame
+        normal ``(3,)`` facing the camera (zeros when no plane was accepted), and ``(1, H, W)``
+        bool, the pixels filled.
+    """
+    cfg = config or PlanarCompletionConfig()
+    dims = check_shape(depth, "depth", (1, "H", "W"))
+    check_shape(valid, "valid", (1, "H", "W"), dims)
+    check_shape(region, "region", (1, "H", "W"), dims)
+    check_shape(image, "image", (3, "H", "W"), dims)
+    sd = check_shape(src_images, "src_images", ("V", 3, "Hs", "Ws"))
+    check_shape(src_regions, "src_regions", ("V", 1, "Hs", "Ws"), sd)
+    none = torch.zeros_like(valid)
+    zero_n = torch.zeros(3, dtype=depth.dtype, device=depth.device)
+    good = valid & region & (depth > 0)
+    if int(good.sum()) < cfg.min_pixels or sd["V"] == 0:
+        return depth, zero_n, none
+    pts = backproject_depth(depth[None], K[None])[0]  # (3, H, W) camera frame
+    p = pts[:, good[0]].T
+    fit = fit_plane_ransac(p, cfg.rel_threshold * p[:, 2], cfg.iterations, generator)
+    if fit is None or float(fit.inliers.float().mean()) < cfg.min_inlier_ratio:
+        return depth, zero_n, none
+    normal, offset = fit.normal, fit.offset
+    if float(offset) < 0:  # the camera (origin) on the positive side: the normal faces it
+        normal, offset = -normal, -offset
+    # candidates: empty region pixels near an inlier
+    from scipy import ndimage
+
+    inl = torch.zeros_like(good)
+    inl[good] = fit.inliers
+    gap = torch.from_numpy(ndimage.distance_transform_edt(~inl[0].cpu().numpy())).to(depth)
+    cand = region & ~good & (gap[None] <= cfg.max_gap)
+    if not bool(cand.any()):
+        return depth, normal, none
+    ys, xs = torch.nonzero(cand[0], as_tuple=True)
+    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1).to(depth)
+    rays = pix @ torch.linalg.inv(K).T
+    den = rays @ normal
+    z = -offset / torch.where(den.abs() > 1e-9, den, torch.full_like(den, 1e-9))
+    zref = p[fit.inliers, 2]
+    ok = (z > 0.5 * float(zref.min())) & (z < 2.0 * float(zref.max()))
+    cam = rays * z[:, None]
+    world = cam @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+    colour = image[:, ys, xs].T  # (P, 3)
+    agree = torch.zeros_like(z, dtype=torch.long)
+    v = sd["V"]
+    uv, zs = project_points(world[None].expand(v, -1, -1), src_K, src_world_to_cam)
+    qx, qy = uv[..., 0].round().long(), uv[..., 1].round().long()
+    inside = (zs > 0) & (qx >= 0) & (qx < sd["Ws"]) & (qy >= 0) & (qy < sd["Hs"])
+    qx, qy = qx.clamp(0, sd["Ws"] - 1), qy.clamp(0, sd["Hs"] - 1)
+    for j in range(v):
+        sc = src_images[j][:, qy[j], qx[j]].T
+        match = (sc - colour).abs().mean(-1) <= cfg.color_tolerance
+        agree += (inside[j] & src_regions[j, 0, qy[j], qx[j]] & match).long()
+    keep = ok & (agree >= cfg.min_views)
+    out = depth.clone()
+    added = torch.zeros_like(valid)
+    out[0, ys[keep], xs[keep]] = z[keep]
+    added[0, ys[keep], xs[keep]] = True
+    return out, normal, added
