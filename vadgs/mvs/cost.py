@@ -254,10 +254,10 @@ def ncc_cost_from_stats(
     Returns:
         ``(B, V, P)`` costs in ``[0, 2]``.
     """
-    w = stats.weights[:, None]
-    mean = (src_patches * w).sum(2)
+    weighted = src_patches * stats.weights[:, None]
+    mean = weighted.sum(2)
+    sq = (weighted * src_patches).sum(2)
     cov = (src_patches * stats.normalized[:, None]).sum(2)
-    sq = (src_patches * src_patches * w).sum(2)
     var = sq - mean * mean
     ok = (var >= min_variance) & stats.valid[:, None]
     cost = (1 - cov * torch.rsqrt(var.clamp_min(min_variance))).clamp(0, MAX_COST)

@@ -228,8 +228,8 @@ class _Colour(NamedTuple):
     pix: torch.Tensor  # (P, 3) homogeneous pixel coordinates
     rays: torch.Tensor  # (B, P, 3) K^-1 p
     stats: ReferencePatchStats  # (B, P, S)
-    nbr: torch.Tensor  # (N, P) flat neighbour indices (clamped)
-    nbr_ok: torch.Tensor  # (N, P) neighbour inside the image
+    nbr: torch.Tensor  # (P, N) flat neighbour indices (clamped), a pixel's neighbours contiguous
+    nbr_ok: torch.Tensor  # (P, N) neighbour inside the image
     region_sizes: list[int]
 
 
@@ -617,8 +617,8 @@ def _patchmatch_level(
                 pix_all[idx],
                 rays_all[:, idx],
                 st,
-                torch.stack(nbr),
-                torch.stack(nbr_ok),
+                torch.stack(nbr, dim=1),
+                torch.stack(nbr_ok, dim=1),
                 [len(r) for r in regions],
             )
         )
@@ -655,14 +655,16 @@ def _patchmatch_level(
             idx, rays = col.idx, col.rays
             cur_d, cur_n = depth[:, idx], normal[:, idx]
             # Propagation: best-cost neighbour of each region, its plane re-intersected.
-            nb_cost = agg[:, col.nbr]  # (B, N, P)
+            nbr_t = col.nbr  # (P, N): the regions' neighbours of a pixel are contiguous
+            nb_cost = agg[:, nbr_t]  # (B, P, N)
             nb_cost = torch.where(col.nbr_ok, nb_cost, torch.full_like(nb_cost, float("inf")))
             cands_d, cands_n = [], []
             start = 0
             for size in col.region_sizes:
-                sub = nb_cost[:, start : start + size]
-                best = sub.argmin(1)  # (B, P)
-                q = torch.gather(col.nbr[start : start + size].expand(bsz, -1, -1), 1, best[:, None])[:, 0]
+                best = nb_cost[..., start : start + size].argmin(-1)  # (B, P)
+                q = torch.gather(nbr_t[:, start : start + size].expand(bsz, -1, -1), 2, best[..., None])[
+                    ..., 0
+                ]
                 start += size
                 zq = torch.gather(depth, 1, q)
                 nq = torch.gather(normal, 1, q[..., None].expand(-1, -1, 3))
