@@ -72,7 +72,9 @@ class ReconstructConfig:
         min_pixels: members whose instance mask has fewer pixels are used as sources only.
         max_points: cap on the points returned (random subset, seeded).
         planar: planar completion of the textureless parts of planar instances
-            (:func:`vadgs.mvs.complete_planar`); ``None`` turns it off.
+            (:func:`vadgs.mvs.complete_planar`, e.g. ``PlanarCompletionConfig()``); off (``None``)
+            by default: on street_a it doubled the sign's MVS pixels but, inside training, left
+            its completeness unchanged and worsened its depth (a tilted plane; docs/results.md).
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
@@ -85,7 +87,7 @@ class ReconstructConfig:
     min_instance_voxels: int = 8
     min_pixels: int = 16
     max_points: int = 20000
-    planar: PlanarCompletionConfig | None = field(default_factory=PlanarCompletionConfig)
+    planar: PlanarCompletionConfig | None = None
 
 
 class InstanceReconstruction(NamedTuple):
