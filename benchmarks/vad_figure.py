@@ -140,7 +140,7 @@ def main() -> None:
     )
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=110)
+    fig.savefig(args.out, dpi=80)
     print(args.out)
 
 
