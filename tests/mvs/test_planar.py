@@ -85,3 +85,13 @@ def test_bad_shapes_name_the_argument():
             depth, ~hole, ~hole, image, K, torch.eye(4), src, torch.ones(2, 1, 3, 3, dtype=torch.bool),
             K[None], src_w2c,
         )  # fmt: skip
+
+
+def test_normals_veto_inliers_that_disagree():
+    g = torch.Generator().manual_seed(3)
+    xy = torch.rand(100, 2, generator=g)
+    pts = torch.cat([xy, torch.full((100, 1), 2.0)], dim=1)  # the plane z = 2
+    up = torch.tensor([[0.0, 0.0, 1.0]]).expand(100, 3)
+    side = torch.tensor([[1.0, 0.0, 0.0]]).expand(100, 3)
+    assert fit_plane_ransac(pts, 0.01, generator=g, normals=up).inliers.all()
+    assert not fit_plane_ransac(pts, 0.01, generator=g, normals=side, max_angle=30.0).inliers.any()

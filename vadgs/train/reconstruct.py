@@ -511,6 +511,7 @@ def reconstruct_instance(
             d_k, n_k, add = complete_planar(
                 depth[k], keep[k], ref_masks[k], ref_imgs[k], ref_K[k], c2w[k], imgs[o],
                 torch.stack([masks[j] for j in o])[:, None], K_all[o], w2c_all[o], cfg.planar, generator,
+                res.normal[k],
             )  # fmt: skip
             depth[k] = d_k
             keep[k] |= add
