@@ -28,7 +28,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from vadgs.data import load_scene
+from vadgs.mvs import PlanarCompletionConfig
 from vadgs.train.evaluate import evaluate
+from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.trainer import TrainConfig, Trainer
 from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig
 
@@ -37,6 +39,11 @@ VARIANTS = {
     "vadgs": VisibilityDensifyConfig(),
     "no_view_selection": VisibilityDensifyConfig(view_selection=False),
     "no_geometric_losses": VisibilityDensifyConfig(geometric_losses=False),
+    # strategy variants (not paper ablations): redo instances still flagged, planar completion
+    "cooldown0": VisibilityDensifyConfig(cooldown_events=0),
+    "planar_cooldown0": VisibilityDensifyConfig(
+        cooldown_events=0, reconstruct=ReconstructConfig(planar=PlanarCompletionConfig())
+    ),
 }
 
 
