@@ -139,7 +139,8 @@ def main() -> None:
     ap.add_argument("--config", help="TrainConfig JSON (same for every variant)")
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--out", default="runs/ablation")
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    paper = ["baseline", "vadgs", "no_view_selection", "no_geometric_losses"]
+    ap.add_argument("--variants", nargs="+", default=paper, choices=list(VARIANTS))
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
