@@ -34,7 +34,7 @@ import torch
 
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
-from vadgs.geometry.camera import Cameras, backproject_depth, invert_rigid
+from vadgs.geometry.camera import Cameras, backproject_depth, invert_rigid, project_points
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.mvs.consistency import geometric_consistency
@@ -267,12 +267,10 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
         corners = _box_corners(t)
         o2w = t.object_to_world[pos].float()
         world = corners @ o2w[:3, :3].T + o2w[:3, 3]
-        cam_pts = world @ cam.world_to_cam[0, :3, :3].T + cam.world_to_cam[0, :3, 3]
-        if bool((cam_pts[:, 2] < 0.1).any()):
+        uv, z = project_points(world[None], cam.K, cam.world_to_cam)
+        if bool((z < 0.1).any()):  # a box across the image plane: skip rather than mis-project
             continue
-        uv = cam_pts @ cam.K[0].T
-        uv = (uv[:, :2] / uv[:, 2:]).numpy()
-        boxes.append((float(cam_pts[:, 2].mean()), tid, uv))
+        boxes.append((float(z.mean()), tid, uv[0].numpy()))
     for _, tid, uv in sorted(boxes, reverse=True):  # far first: near boxes paint over them
         try:
             hull = uv[ConvexHull(uv).vertices]
