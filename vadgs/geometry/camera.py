@@ -162,22 +162,28 @@ def backproject_depth(
     return pts.permute(0, 3, 1, 2)
 
 
-def scale_intrinsics(K: torch.Tensor, scale: float) -> torch.Tensor:
+def scale_intrinsics(K: torch.Tensor, scale: float | tuple[float, float]) -> torch.Tensor:
     """Intrinsics for an image resized by ``scale``, keeping pixel centres at integers.
 
     With pixel centres at integers a resize by ``s`` maps ``x -> s (x + 0.5) - 0.5``, so
-    ``f' = s f`` and ``c' = s (c + 0.5) - 0.5``.
+    ``f' = s f`` and ``c' = s (c + 0.5) - 0.5``. ``scale`` may be ``(sx, sy)`` for a resize with
+    different factors along x and y (e.g. to ``ceil(W / 2) x ceil(H / 2)``).
 
     Example:
         >>> K = torch.tensor([[384.0, 0, 239.5], [0, 384.0, 143.5], [0, 0, 1]])
         >>> scale_intrinsics(K, 0.5)[:2]
         tensor([[192.0000,   0.0000, 119.5000],
                 [  0.0000, 192.0000,  71.5000]])
+        >>> scale_intrinsics(K, (0.5, 0.25))[1]
+        tensor([ 0.0000, 96.0000, 35.5000])
     """
     check_shape(K, "K", ("*", 3, 3))
+    sx, sy = (scale, scale) if isinstance(scale, (int, float)) else scale
     out = K.clone()
-    out[..., :2, :2] = K[..., :2, :2] * scale
-    out[..., :2, 2] = (K[..., :2, 2] + 0.5) * scale - 0.5
+    out[..., 0, :] = K[..., 0, :] * sx
+    out[..., 1, :] = K[..., 1, :] * sy
+    out[..., 0, 2] += 0.5 * sx - 0.5
+    out[..., 1, 2] += 0.5 * sy - 0.5
     return out
 
 

@@ -49,7 +49,7 @@ from kornia.color import rgb_to_grayscale
 from torch import nn
 
 from vadgs.checks import check_finite, check_shape
-from vadgs.geometry import relative_pose
+from vadgs.geometry import relative_pose, scale_intrinsics
 from vadgs.mvs.cost import (
     MAX_COST,
     ReferencePatchStats,
@@ -491,16 +491,6 @@ def _downsample(x: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tens
     return out.reshape(*lead, *out.shape[-3:])
 
 
-def _scale_K(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
-    """Intrinsics after resizing by ``(sx, sy)`` with pixel centres at integers."""
-    out = K.clone()
-    out[..., 0, :] = K[..., 0, :] * sx
-    out[..., 1, :] = K[..., 1, :] * sy
-    out[..., 0, 2] += 0.5 * sx - 0.5
-    out[..., 1, 2] += 0.5 * sy - 0.5
-    return out
-
-
 def _pyramid(
     image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg, init_depth,
     init_normal, mask, src_masks, levels: int, start_iteration: int = 0,
@@ -517,8 +507,8 @@ def _pyramid(
     coarse = _pyramid(
         _downsample(image, (hc, wc), "area"),
         _downsample(src_images, (hsc, wsc), "area"),
-        _scale_K(K, wc / w, hc / h),
-        _scale_K(src_K, wsc / ws, hsc / hs),
+        scale_intrinsics(K, (wc / w, hc / h)),
+        scale_intrinsics(src_K, (wsc / ws, hsc / hs)),
         world_to_cam,
         src_world_to_cam,
         depth_range,
