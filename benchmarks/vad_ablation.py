@@ -47,18 +47,25 @@ VARIANTS = {
 }
 
 
-def sign_completeness(model, scene, radius: float = 0.1, samples: int = 20000) -> dict[str, float]:
-    """Share of the sign's true surface (and its board above 4.5 m) within ``radius`` of a centre."""
+def sign_surface(scene, samples: int = 20000) -> np.ndarray | None:
+    """``(samples, 3)`` points on the signs' true surface (``gt/static.ply``), seeded; None without."""
     root = scene.root
     mesh_path, face_path = root / "gt" / "static.ply", root / "gt" / "static_face_instance.npy"
     signs = scene.instance_ids("sign")
     if not (mesh_path.is_file() and face_path.is_file() and signs):
-        return {}
+        return None
     mesh = trimesh.load(mesh_path, process=False)
     faces = np.isin(np.load(face_path), signs)
     sub = mesh.submesh([np.nonzero(faces)[0]], append=True)
-    pts, _ = trimesh.sample.sample_surface(sub, samples, seed=0)
-    pts = torch.from_numpy(np.asarray(pts, dtype=np.float32))
+    return np.asarray(trimesh.sample.sample_surface(sub, samples, seed=0)[0], dtype=np.float32)
+
+
+def sign_completeness(model, scene, radius: float = 0.1, samples: int = 20000) -> dict[str, float]:
+    """Share of the sign's true surface (and its board above 4.5 m) within ``radius`` of a centre."""
+    surface = sign_surface(scene, samples)
+    if surface is None:
+        return {}
+    pts = torch.from_numpy(surface)
     centres = model.gaussians_at(0).means.detach()
     static = model.node_ids[model.gaussians_at(0).ids] == -1
     centres = centres[static]

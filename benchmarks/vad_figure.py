@@ -19,9 +19,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
 import torch
-import trimesh
+from vad_ablation import sign_surface  # this folder: run as a script
 
 from vadgs.data import load_scene
 from vadgs.geometry import backproject_depth
@@ -42,13 +41,6 @@ def _sign_view(scene, sign: int, board_z: float = 4.5) -> tuple[int, tuple[int, 
     k = int(counts.argmax())
     ys, xs = torch.nonzero(ins[k] == sign, as_tuple=True)
     return scene.test_views[k], (int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max()))
-
-
-def _gt_sign_points(scene, sign: int, n: int = 4000) -> np.ndarray:
-    mesh = trimesh.load(scene.root / "gt" / "static.ply", process=False)
-    faces = np.load(scene.root / "gt" / "static_face_instance.npy") == sign
-    sub = mesh.submesh([np.nonzero(faces)[0]], append=True)
-    return np.asarray(trimesh.sample.sample_surface(sub, n, seed=0)[0])
 
 
 def main() -> None:
@@ -111,7 +103,7 @@ def main() -> None:
         return o.raster.depth[0], o.raster.normals[0]
 
     rec = reconstruct_instance(index, ref, sign, VisibilityDensifyConfig().reconstruct, None, prior)
-    gt = _gt_sign_points(scene, sign)
+    gt = sign_surface(scene, 4000)
     lo, hi = gt.min(0) - 0.5, gt.max(0) + 0.5
     ax = fig.add_subplot(grid[2, 0:2])
     ax.scatter(gt[:, 1], gt[:, 2], s=1, c="0.75", label="ground-truth sign surface")
