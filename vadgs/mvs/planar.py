@@ -93,27 +93,27 @@ def fit_plane_ransac(
         return None
     normals = normals[ok] / norm[ok, None]
     offsets = -(normals * a[ok]).sum(-1)
-    dist = (points @ normals.T + offsets).abs()  # (N, T)
     thr = torch.as_tensor(threshold, dtype=points.dtype, device=points.device)
     thr = thr[:, None] if thr.ndim == 1 else thr
     cos_min = math.cos(math.radians(max_angle))
-    agree = (
-        (dist <= thr) if normals_in is None else (dist <= thr) & ((normals_in @ normals.T).abs() >= cos_min)
-    )
+
+    def inliers_of(plane_normals: torch.Tensor, plane_offsets: torch.Tensor) -> torch.Tensor:
+        """``(N, T)`` inlier masks of ``T`` planes ``(T, 3)``, ``(T,)``."""
+        inl = (points @ plane_normals.T + plane_offsets).abs() <= thr
+        if normals_in is not None:
+            inl &= (normals_in @ plane_normals.T).abs() >= cos_min
+        return inl
+
+    agree = inliers_of(normals, offsets)
     best = int(agree.sum(0).argmax())
-    inliers = agree[:, best]
+    normal, offset, inliers = normals[best], offsets[best], agree[:, best]
     # least-squares refinement on the inliers (smallest singular vector of the centred points)
     p = points[inliers]
     if p.shape[0] >= 3:
         centre = p.mean(0)
         normal = torch.linalg.svd(p - centre, full_matrices=False).Vh[-1]
         offset = -(normal * centre).sum()
-        dist = (points @ normal + offset).abs()
-        inliers = dist <= (thr.squeeze(-1) if thr.ndim else thr)
-        if normals_in is not None:
-            inliers &= (normals_in @ normal).abs() >= cos_min
-    else:
-        normal, offset = normals[best], offsets[best]
+        inliers = inliers_of(normal[None], offset[None])[:, 0]
     return PlaneFit(normal, offset, inliers)
 
 
@@ -197,10 +197,10 @@ def complete_planar(
         return depth, zero_n, none
     pts = backproject_depth(depth[None], K[None])[0]  # (3, H, W) camera frame
     p = pts[:, good[0]].T
-    nrm, angle = None, 90.0
+    nrm = None
     if normal is not None and cfg.max_normal_angle is not None:
         nrm = torch.nn.functional.normalize(normal[:, good[0]].T, dim=-1)
-        angle = cfg.max_normal_angle
+    angle = cfg.max_normal_angle if nrm is not None else 90.0  # unused without normals
     fit = fit_plane_ransac(p, cfg.rel_threshold * p[:, 2], cfg.iterations, generator, nrm, angle)
     if fit is None or float(fit.inliers.float().mean()) < cfg.min_inlier_ratio:
         return depth, zero_n, none
