@@ -148,6 +148,7 @@ class VisibilityIndex:
     cell_size: float = 10.0
     grow: int = 6
     _cells: torch.Tensor | None = field(default=None, repr=False)
+    _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
 
     def image(self, view: int) -> torch.Tensor:
         """``(3, H, W)`` image of a view (cached)."""
@@ -179,6 +180,12 @@ class VisibilityIndex:
         if self.derives_instances:
             out.update(dict.fromkeys(self.cell_ids().unique().tolist(), "static"))
         return out
+
+    def box_corners(self, track: int) -> torch.Tensor:
+        """``(8, 3)`` box corners of a track in its object frame (cached: a mesh is read once)."""
+        if track not in self._corners:
+            self._corners[track] = _box_corners(self.scene.tracks[track])
+        return self._corners[track]
 
     def cell_ids(self) -> torch.Tensor:
         """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell."""
@@ -264,7 +271,7 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
     for tid, t in scene.tracks.items():
         if not bool(t.valid[pos]):
             continue
-        corners = _box_corners(t)
+        corners = index.box_corners(tid)
         o2w = t.object_to_world[pos].float()
         world = corners @ o2w[:3, :3].T + o2w[:3, 3]
         uv, z = project_points(world[None], cam.K, cam.world_to_cam)
