@@ -258,3 +258,27 @@ class TestDerivedInstances:
         assert (derived[sky] == 0).float().mean() > 0.9  # beyond `grow` pixels from any voxel
         assert min(static_cells) > max(scene.classes())  # no clash with real instance ids
         assert not index.derives_instances  # the sample has maps: index.instances uses them
+
+
+class TestBaseStrategy:
+    def test_extends_the_trainers_standard_strategy(self, scene, index):
+        from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
+
+        adc = DefaultStrategyConfig(refine_start_iter=7, refine_every=3, max_gaussians=1234)
+        trainer = Trainer(
+            scene,
+            TrainConfig(iterations=10, checkpoint_every=10**6, strategy=adc),
+            strategy=VisibilityAwareDensification(index=index),
+            progress=False,
+        )
+        assert isinstance(trainer.strategy.base, DefaultStrategy)
+        assert trainer.strategy.base.config == adc
+        # an explicit base is kept
+        mine = DefaultStrategy(DefaultStrategyConfig(refine_every=11))
+        trainer = Trainer(
+            scene,
+            TrainConfig(iterations=10, checkpoint_every=10**6, strategy=adc),
+            strategy=VisibilityAwareDensification(base=mine, index=index),
+            progress=False,
+        )
+        assert trainer.strategy.base is mine

@@ -314,7 +314,9 @@ class Trainer:
         out_dir: run folder (checkpoints, ``log.jsonl``, ``config.json``); None = no files.
         scene_ref: how to reload the scene (stored in checkpoints; see :func:`open_scene`).
         strategy: densification strategy (default :class:`~vadgs.train.strategy.DefaultStrategy`
-            with ``config.strategy``).
+            with ``config.strategy``). A strategy with a ``base`` attribute left ``None`` (e.g.
+            :class:`~vadgs.train.vad.VisibilityAwareDensification` by default) gets that one as its
+            base, so ``config.strategy`` applies to it too.
         geometry_targets: ``view -> GeometryTargets | None``, enables the paper's normal / hard /
             soft depth losses.
         extra_losses: ``(step, render, view) -> {name: scalar}`` added to the loss as given.
@@ -353,6 +355,10 @@ class Trainer:
             scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
         self.scene_ref = scene_ref or {}
         self.strategy = strategy or DefaultStrategy(self.config.strategy)
+        if getattr(self.strategy, "base", 0) is None:
+            # a strategy that extends the standard one and left it open (e.g. the visibility-aware
+            # one): it extends this trainer's, with ``config.strategy``
+            self.strategy.base = DefaultStrategy(self.config.strategy)
         self.geometry_targets = geometry_targets
         self.extra_losses = extra_losses
         self.progress = progress

@@ -265,8 +265,10 @@ class VisibilityAwareDensification:
 
     Args:
         config: :class:`VisibilityDensifyConfig`.
-        base: the strategy it extends (default :class:`~vadgs.train.strategy.DefaultStrategy`),
-            whose clone/split/prune keeps running.
+        base: the strategy it extends, whose clone/split/prune keeps running. ``None`` (default):
+            the trainer's standard :class:`~vadgs.train.strategy.DefaultStrategy` with its
+            ``TrainConfig.strategy`` (set by :class:`~vadgs.train.trainer.Trainer`; a plain
+            ``DefaultStrategy()`` outside a trainer).
         index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` (built from the
             trainer's scene at the first event otherwise).
     """
@@ -278,7 +280,7 @@ class VisibilityAwareDensification:
         index: VisibilityIndex | None = None,
     ) -> None:
         self.config = config or VisibilityDensifyConfig()
-        self.base = base or DefaultStrategy()
+        self.base = base
         self.index = index
         #: per reconstructed instance, the reference render just before new Gaussians were added:
         #: ``{"instance", "view", "step", "added", "depth", "alpha"}`` (for figures; not checkpointed)
@@ -291,6 +293,8 @@ class VisibilityAwareDensification:
 
     def initialize_state(self, model: GaussianModel, scene_scale: float) -> dict[str, Any]:
         """Base state plus the event log, the priors and the cycle counter."""
+        if self.base is None:
+            self.base = DefaultStrategy()
         state = self.base.initialize_state(model, scene_scale)
         state.update(vad_events=[], vad_priors={}, vad_cycle=0, vad_last_done={})
         return state
