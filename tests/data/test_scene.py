@@ -82,6 +82,14 @@ class TestLoadSceneSample:
         assert half.load_depths([0]).shape == (1, 1, 72, 120)
         assert half.load_instances([0]).shape == (1, 72, 120)
 
+    def test_load_images_at_another_size(self):
+        half = load_scene(sample_scene_path(), scale=0.5)
+        full = load_scene(sample_scene_path())
+        # the files' own resolution from a half-resolution scene: the same pixels as a full load
+        torch.testing.assert_close(half.load_images([3], size=(144, 240)), full.load_images([3]))
+        with pytest.raises(ValueError, match="size"):
+            half.load_images([3], size=(144.0, 240))
+
     def test_lazy_loading_shapes(self, sample):
         imgs = sample.load_images([0, 5])
         assert imgs.shape == (2, 3, 144, 240) and imgs.dtype == torch.float32

@@ -184,6 +184,63 @@ class TestMovingObject:
         assert torch.allclose(g.means[g.ids >= 1].detach(), expect, atol=1e-4)
 
 
+SIGN = 61  # the sample's traffic sign: about 100 pixels at half resolution
+
+
+class TestFinerMatchingOfSmallInstances:
+    @pytest.fixture(scope="class")
+    def half(self):
+        scene = load_scene(sample_scene_path(), scale=0.5)
+        return scene, build_visibility_index(scene)
+
+    @staticmethod
+    def _rel_error(rec, full):
+        """Relative depth error of the points against the true depth of the files' resolution."""
+        ref = rec.views[0]
+        cams = full.cameras([ref])
+        uv, z = project_points(rec.points[None], cams.K, cams.world_to_cam)
+        gt = full.load_depths([ref])[0, 0]
+        u, v = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+        ok = (u >= 0) & (u < gt.shape[1]) & (v >= 0) & (v < gt.shape[0])
+        g, zz = gt[v[ok], u[ok]], z[0][ok]
+        return ((zz - g).abs() / g)[g > 0]
+
+    def test_sign_gets_more_and_better_points(self, half, scene):
+        half_scene, index = half
+        ref = max(half_scene.train_views, key=lambda v: int((index.instances(v) == SIGN).sum()))
+        recs = {
+            up: reconstruct_instance(
+                index, ref, SIGN, ReconstructConfig(max_upsample=up), torch.Generator().manual_seed(1)
+            )
+            for up in (1, 2)
+        }
+        n1, n2 = recs[1].points.shape[0], recs[2].points.shape[0]
+        e1, e2 = self._rel_error(recs[1], scene), self._rel_error(recs[2], scene)
+        assert n2 > 4 * max(n1, 1)
+        assert float(e2.median()) < 0.01
+        assert float(e2.median()) < 0.5 * float(e1.median())
+        # depth priors stay at the scene's resolution, with depth where points came from
+        assert recs[2].depth[0].shape == (1, *half_scene.image_size(ref))
+        assert int((recs[2].depth[0] > 0).sum()) > 0
+        assert recs[2].normal[0].shape == (3, *half_scene.image_size(ref))
+
+    def test_large_instance_is_unchanged(self, half):
+        half_scene, index = half
+        ref = max(half_scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+        a, b = (
+            reconstruct_instance(
+                index, ref, BUILDING, ReconstructConfig(max_upsample=up), torch.Generator().manual_seed(1)
+            )
+            for up in (1, 2)
+        )
+        assert a.points.shape[0] > 100
+        torch.testing.assert_close(a.points, b.points)
+
+    def test_bad_factor_names_the_argument(self):
+        with pytest.raises(ValueError, match="max_upsample"):
+            ReconstructConfig(max_upsample=0)
+
+
 class TestNormalsToQuats:
     def test_third_axis_is_the_normal(self):
         from vadgs.render import quaternion_to_rotation

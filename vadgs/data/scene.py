@@ -238,9 +238,23 @@ class Scene:
         """``(H, W)`` of a view at the scene's resolution."""
         return self.cameras_info[self.views[view_id].camera].image_size
 
-    def load_images(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
-        """Colour images ``(B, 3, H, W)`` float in [0, 1]."""
+    def load_images(
+        self, view_ids: Sequence[int] | None = None, size: tuple[int, int] | None = None
+    ) -> torch.Tensor:
+        """Colour images ``(B, 3, H, W)`` float in [0, 1].
+
+        Args:
+            view_ids: the views (default all).
+            size: ``(H, W)`` to resize to instead of the scene's resolution, e.g. a finer one up to
+                the files' own (``image_size / scale``) for multi-view stereo on small structures
+                (the intrinsics are then :func:`~vadgs.geometry.scale_intrinsics` of ``K``).
+
+        Raises:
+            ValueError: if ``size`` is not two positive integers.
+        """
         ids = self._ids(view_ids)
+        if size is not None and not (len(size) == 2 and all(isinstance(n, int) and n > 0 for n in size)):
+            raise ValueError(f"size: expected (H, W) positive integers, got {size!r}")
         out = []
         for i in ids:
             v = self.views[i]
@@ -250,7 +264,7 @@ class Scene:
                 if v.image is None:
                     raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no image")
                 img = torch.from_numpy(_read_png(v.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
-            out.append(self._resize(img[None], i, "area")[0])
+            out.append(self._resize(img[None], i, "area", size)[0])
         return torch.stack(out)
 
     def load_depths(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
@@ -284,11 +298,17 @@ class Scene:
             out.append(self._resize(ins[None, None].double(), i, "nearest")[0, 0].long())
         return torch.stack(out)
 
-    def _resize(self, x: torch.Tensor, view_id: int, mode: str) -> torch.Tensor:
-        h, w = self.image_size(view_id)
+    def _resize(
+        self, x: torch.Tensor, view_id: int, mode: str, size: tuple[int, int] | None = None
+    ) -> torch.Tensor:
+        h, w = size or self.image_size(view_id)
         if x.shape[-2:] == (h, w):
             return x
-        return F.interpolate(x, size=(h, w), mode=mode)
+        if mode == "area" and (h > x.shape[-2] or w > x.shape[-1]):
+            mode = "bilinear"  # enlarging (finer than the file): area would replicate pixels
+        return F.interpolate(
+            x, size=(h, w), mode=mode, **({"align_corners": False} if mode == "bilinear" else {})
+        )
 
     # -- LiDAR ----------------------------------------------------------------------------------------
 

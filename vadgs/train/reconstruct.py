@@ -14,7 +14,8 @@ instance label and visibility set, and the cameras of every view, as
 2. selects ``k`` supporting views with the diversity-aware k-clique
    (:func:`~vadgs.select.select_views`), in the object's frame for a moving object;
 3. runs PatchMatch on the whole group (each member as reference against the others), on crops
-   around the instance, matching only inside the instance's masks (static instances only
+   around the instance (small instances at up to ``max_upsample`` times the resolution),
+   matching only inside the instance's masks (static instances only
    against static pixels, a moving object only against itself), initialised from rendered depth
    and normals when given;
 4. keeps the pixels whose depth at least ``min_consistent_views`` other members confirm
@@ -31,10 +32,17 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
-from vadgs.geometry.camera import Cameras, backproject_depth, invert_rigid, project_points
+from vadgs.geometry.camera import (
+    Cameras,
+    backproject_depth,
+    invert_rigid,
+    project_points,
+    scale_intrinsics,
+)
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.mvs.consistency import geometric_consistency
@@ -71,6 +79,12 @@ class ReconstructConfig:
             in the reference view stand in for its candidates.
         min_pixels: members whose instance mask has fewer pixels are used as sources only.
         max_points: cap on the points returned (random subset, seeded).
+        max_upsample: small instances, whose crop is at most ``max_crop / f`` pixels, are matched
+            at ``f`` times the scene's resolution, ``f`` up to this integer and never finer than
+            the image files (``1 / scene.scale``): a sign 40 px tall at half resolution gets four
+            times the pixels and half the depth error (on street_a: its MVS points within 5 cm of
+            the true surface 35 % → 64 %, its surface covered 51 % → 69 %), while the crop stays
+            within ``max_crop`` so the cost stays bounded. ``1``: always the scene's resolution.
         planar: planar completion of the textureless parts of planar instances
             (:func:`vadgs.mvs.complete_planar`, e.g. ``PlanarCompletionConfig()``); off (``None``)
             by default: on street_a it doubled the sign's MVS pixels but, inside training, left
@@ -87,7 +101,14 @@ class ReconstructConfig:
     min_instance_voxels: int = 8
     min_pixels: int = 16
     max_points: int = 20000
+    max_upsample: int = 2
     planar: PlanarCompletionConfig | None = None
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.max_upsample, int) and self.max_upsample >= 1):
+            raise ValueError(f"max_upsample: expected an integer >= 1, got {self.max_upsample!r}")
+        if self.max_crop < 8:
+            raise ValueError(f"max_crop: expected >= 8 pixels, got {self.max_crop}")
 
 
 class InstanceReconstruction(NamedTuple):
@@ -150,8 +171,11 @@ class VisibilityIndex:
     _cells: torch.Tensor | None = field(default=None, repr=False)
     _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
 
-    def image(self, view: int) -> torch.Tensor:
-        """``(3, H, W)`` image of a view (cached)."""
+    def image(self, view: int, factor: int = 1) -> torch.Tensor:
+        """``(3, H, W)`` image of a view (cached), or ``factor`` times finer (re-read, not cached)."""
+        if factor != 1:
+            h, w = self.cameras.image_size
+            return self.scene.load_images([view], size=(h * factor, w * factor))[0]
         if view not in self._images:
             self._images[view] = self.scene.load_images([view])[0]
         return self._images[view]
@@ -360,6 +384,33 @@ def _crops(
     return corners, ch, cw
 
 
+def _upsample_factor(scene: Scene, ch: int, cw: int, cfg: ReconstructConfig) -> int:
+    """The integer factor a crop of ``ch x cw`` pixels is matched at (see ``max_upsample``)."""
+    native = int(1.0 / float(getattr(scene, "scale", 1.0)) + 1e-6)  # files' resolution
+    return max(1, min(cfg.max_upsample, native, cfg.max_crop // max(ch, cw, 1)))
+
+
+def _repeat(x: torch.Tensor, f: int) -> torch.Tensor:
+    """Nearest upsampling of the last two dims by ``f`` (pixel (y, x) -> block (fy.., fx..))."""
+    return x if f == 1 else x.repeat_interleave(f, -2).repeat_interleave(f, -1)
+
+
+def _pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False) -> torch.Tensor:
+    """``(C, H, W)`` → ``(C, H/f, W/f)``: the mean of the valid pixels of each ``f x f`` block.
+
+    Zero where fewer than half are valid (``unit``: renormalised, for normals); at ``f = 1``, ``x``
+    with zeros outside ``valid``.
+    """
+    if f == 1:
+        return torch.where(valid, x, torch.zeros_like(x))
+    v = valid.to(x.dtype)
+    cnt = F.avg_pool2d(v[None], f)[0]
+    out = F.avg_pool2d((x * v)[None], f)[0] / cnt.clamp(min=1e-6)
+    if unit:
+        out = F.normalize(out, dim=0)
+    return torch.where(cnt >= 0.5, out, torch.zeros_like(out))
+
+
 def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
     K = K.clone()
     K[..., 0, 2] -= x0
@@ -453,10 +504,18 @@ def reconstruct_instance(
     if len(members) < 2:
         return nothing("instance_seen_in_fewer_than_two_group_views", group)
     boxes, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
-    imgs = torch.stack([index.image(v) for v in group])
     regions = torch.stack([region(v) for v in group])[:, None]
     K_all = index.cameras.K[group]
     w2c_all = world_to_cam[group]
+    # small instances are matched at a finer resolution (their crop stays within max_crop)
+    f = _upsample_factor(scene, ch, cw, cfg)
+    crops_lo = (boxes, ch, cw)  # the crops at the scene's resolution, for the returned depth maps
+    if f > 1:
+        masks = [_repeat(m, f) for m in masks]
+        regions = _repeat(regions, f)
+        boxes, ch, cw = [(y0 * f, x0 * f) for y0, x0 in boxes], ch * f, cw * f
+        K_all = scale_intrinsics(K_all, f)
+    imgs = torch.stack([index.image(v, f) for v in group])
     ref_imgs, ref_masks, ref_K, init_d, init_n = [], [], [], [], []
     for i, (y0, x0) in zip(members, boxes):
         ref_imgs.append(imgs[i, :, y0 : y0 + ch, x0 : x0 + cw])
@@ -464,6 +523,7 @@ def reconstruct_instance(
         ref_K.append(_shift_K(K_all[i], x0, y0))
         if render_prior is not None:
             d, n = render_prior(group[i])
+            d, n = _repeat(d, f), _repeat(n, f)
             init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
             init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
     others = [[j for j in range(len(group)) if j != i] for i in members]
@@ -525,13 +585,11 @@ def reconstruct_instance(
     full_depth, full_normal, pts, nrm, col, spc = [], [], [], [], [], []
     for k in range(b):
         m = keep[k, 0]
-        y0, x0 = boxes[k]
+        (y0, x0), ch0, cw0 = crops_lo[0][k], crops_lo[1], crops_lo[2]
         fd = torch.zeros(1, h, w)
         fn = torch.zeros(3, h, w)
-        fd[:, y0 : y0 + ch, x0 : x0 + cw] = torch.where(keep[k], depth[k], torch.zeros_like(depth[k]))
-        fn[:, y0 : y0 + ch, x0 : x0 + cw] = torch.where(
-            keep[k], res_normal[k], torch.zeros_like(res_normal[k])
-        )
+        fd[:, y0 : y0 + ch0, x0 : x0 + cw0] = _pool_valid(depth[k], keep[k], f)
+        fn[:, y0 : y0 + ch0, x0 : x0 + cw0] = _pool_valid(res_normal[k], keep[k], f, unit=True)
         full_depth.append(fd)
         full_normal.append(fn)
         p = pts_cam[k][:, m].T
