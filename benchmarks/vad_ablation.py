@@ -39,11 +39,14 @@ VARIANTS = {
     "vadgs": VisibilityDensifyConfig(),
     "no_view_selection": VisibilityDensifyConfig(view_selection=False),
     "no_geometric_losses": VisibilityDensifyConfig(geometric_losses=False),
-    # strategy variants (not paper ablations): redo instances still flagged, planar completion
+    # strategy variants (not paper ablations): redo instances still flagged, planar completion,
+    # finer matching of small instances
     "cooldown0": VisibilityDensifyConfig(cooldown_events=0),
     "planar_cooldown0": VisibilityDensifyConfig(
         cooldown_events=0, reconstruct=ReconstructConfig(planar=PlanarCompletionConfig())
     ),
+    "no_planar": VisibilityDensifyConfig(reconstruct=ReconstructConfig(planar=None)),
+    "no_upsample": VisibilityDensifyConfig(reconstruct=ReconstructConfig(max_upsample=1)),
 }
 
 
