@@ -187,12 +187,14 @@ class TestMovingObject:
 SIGN = 61  # the sample's traffic sign: about 100 pixels at half resolution
 
 
-class TestFinerMatchingOfSmallInstances:
-    @pytest.fixture(scope="class")
-    def half(self):
-        scene = load_scene(sample_scene_path(), scale=0.5)
-        return scene, build_visibility_index(scene)
+@pytest.fixture(scope="module")
+def half():
+    """The sample at half resolution (120×72) and its index: finer matching can go to 240×144."""
+    scene = load_scene(sample_scene_path(), scale=0.5)
+    return scene, build_visibility_index(scene)
 
+
+class TestFinerMatchingOfSmallInstances:
     @staticmethod
     def _rel_error(rec, full):
         """Relative depth error of the points against the true depth of the files' resolution."""
