@@ -1,0 +1,108 @@
+"""Trace the traffic sign's completeness through a VAD-GS training run.
+
+Trains street_a (or another scene with a sign and ``gt/static.ply``) with the visibility-aware
+strategy and, every ``--every`` steps and right after each event, prints one JSON line: the
+Gaussian count, the sign's completeness (share of its true surface within 10 cm of a static
+Gaussian centre; "board": above 4.5 m), the Gaussians within 10 cm of the sign and their mean
+opacity, and how many of those were added by events (a per-Gaussian tag that follows clone,
+split and prune). It tells whether a low completeness comes from the reconstruction at the event
+or from the added Gaussians not surviving training. Writes ``trace.json`` next to the run.
+
+Run (from the repository root; ../shared present; ~25 min on one CPU thread):
+
+    python benchmarks/sign_trace.py ../shared/data/street_a --config benchmarks/street_config.json \
+        --out runs/trace_street_a
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+from scipy.spatial import cKDTree
+from vad_ablation import sign_surface
+
+from vadgs.data import load_scene
+from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.vad import VisibilityAwareDensification
+
+
+class TracedStrategy(VisibilityAwareDensification):
+    """The strategy, plus a per-Gaussian ``trace_tag`` (event number that added it, 0: not)."""
+
+    def __init__(self, surface, every: int, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.surface, self.every = surface, every
+        self.board = surface[:, 2] > 4.5
+        self.tree = cKDTree(surface)
+        self.trace: list[dict] = []
+
+    def initialize_state(self, model, scene_scale):
+        state = super().initialize_state(model, scene_scale)
+        state["trace_tag"] = torch.zeros(model.num_gaussians, dtype=torch.int64)
+        return state
+
+    def _add(self, model, optimizer, state, rec, keep) -> None:
+        n = model.num_gaussians
+        super()._add(model, optimizer, state, rec, keep)
+        state["trace_tag"][n:] = len(state["vad_events"]) + 1
+
+    def step_post_backward(self, model, optimizer, state, step, info) -> None:
+        events = len(state["vad_events"])
+        super().step_post_backward(model, optimizer, state, step, info)
+        event = len(state["vad_events"]) > events
+        if step % self.every and not event:
+            return
+        g = model.gaussians_at(0)
+        static = model.node_ids[g.ids] == -1
+        centres = g.means.detach()[static].numpy()
+        opacity = g.opacities.detach()[static]
+        tag = state["trace_tag"][g.ids][static]
+        d = cKDTree(centres).query(self.surface)[0]
+        near = torch.from_numpy(self.tree.query(centres)[0] < 0.1)
+        row = {
+            "step": step,
+            "event": event,
+            "gaussians": model.num_gaussians,
+            "completeness": round(float((d < 0.1).mean()), 4),
+            "board": round(float((d[self.board] < 0.1).mean()), 4),
+            "near_sign": int(near.sum()),
+            "near_sign_opacity": round(float(opacity[near].mean()), 3) if near.any() else None,
+            "near_sign_added": int((near & (tag > 0)).sum()),
+        }
+        if event:
+            e = state["vad_events"][-1]
+            signs = [i for i in e["instances"] if i["class"] == "sign"]
+            row["sign_reconstructed"] = [{"instance": i["instance"], "added": i["added"]} for i in signs]
+        self.trace.append(row)
+        print(json.dumps(row), flush=True)
+
+
+def main() -> None:
+    """Command line."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene")
+    ap.add_argument("--config", help="TrainConfig JSON")
+    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--out", default="runs/sign_trace")
+    ap.add_argument("--every", type=int, default=50)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    scene = load_scene(args.scene, scale=args.scale)
+    surface = sign_surface(scene)
+    if surface is None:
+        raise SystemExit(f"{args.scene}: no sign or no gt/static.ply")
+    config = TrainConfig()
+    if args.config:
+        config = TrainConfig.from_dict(json.loads(Path(args.config).read_text()))
+    strategy = TracedStrategy(surface, args.every)
+    trainer = Trainer(scene, config, out_dir=args.out, strategy=strategy, progress=False)
+    trainer.train()
+    (Path(args.out) / "trace.json").write_text(json.dumps(strategy.trace, indent=1))
+
+
+if __name__ == "__main__":
+    main()
