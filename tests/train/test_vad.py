@@ -6,6 +6,7 @@ import torch
 
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth, project_points
+from vadgs.mvs import PlanarCompletionConfig
 from vadgs.train.model import GaussianModel
 from vadgs.train.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
 from vadgs.train.trainer import TrainConfig, Trainer
@@ -153,6 +154,17 @@ class TestMovingObject:
             hits.append(float((index.instances(v)[vv[ok], u[ok]] == CAR).float().mean()))
         assert len(hits) >= 2
         assert min(hits) > 0.7
+
+    def test_moving_object_gets_no_planar_completion(self, scene, index):
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
+        a, b = (
+            reconstruct_instance(
+                index, ref, CAR, ReconstructConfig(max_crop=64, planar=p), torch.Generator().manual_seed(1)
+            )
+            for p in (None, PlanarCompletionConfig(min_pixels=4, min_inlier_ratio=0.0))
+        )
+        assert a.points.shape[0] > 0
+        torch.testing.assert_close(a.points, b.points)
 
     def test_new_gaussians_join_the_track_node(self, scene, index):
         ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
