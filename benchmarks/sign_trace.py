@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 from scipy.spatial import cKDTree
-from vad_ablation import sign_surface
+from vad_ablation import sign_surface, surface_completeness
 
 from vadgs.data import load_scene
 from vadgs.train.trainer import TrainConfig, Trainer
@@ -35,7 +35,6 @@ class TracedStrategy(VisibilityAwareDensification):
     def __init__(self, surface, every: int, **kwargs) -> None:
         super().__init__(**kwargs)
         self.surface, self.every = surface, every
-        self.board = surface[:, 2] > 4.5
         self.tree = cKDTree(surface)
         self.trace: list[dict] = []
 
@@ -60,14 +59,14 @@ class TracedStrategy(VisibilityAwareDensification):
         centres = g.means.detach()[static].numpy()
         opacity = g.opacities.detach()[static]
         tag = state["trace_tag"][g.ids][static]
-        d = cKDTree(centres).query(self.surface)[0]
+        c = surface_completeness(centres, self.surface)
         near = torch.from_numpy(self.tree.query(centres)[0] < 0.1)
         row = {
             "step": step,
             "event": event,
             "gaussians": model.num_gaussians,
-            "completeness": round(float((d < 0.1).mean()), 4),
-            "board": round(float((d[self.board] < 0.1).mean()), 4),
+            "completeness": round(c["sign"], 4),
+            "board": round(c["sign_board"], 4),
             "near_sign": int(near.sum()),
             "near_sign_opacity": round(float(opacity[near].mean()), 3) if near.any() else None,
             "near_sign_added": int((near & (tag > 0)).sum()),

@@ -67,22 +67,25 @@ def sign_surface(scene, samples: int = 20000) -> np.ndarray | None:
     return np.asarray(trimesh.sample.sample_surface(sub, samples, seed=0)[0], dtype=np.float32)
 
 
+def surface_completeness(centres: np.ndarray, surface: np.ndarray, radius: float = 0.1) -> dict[str, float]:
+    """Share of ``surface`` samples (and of the board's, above 4.5 m) within ``radius`` of a centre."""
+    # nearest centre of every sample by a k-d tree (a dense cdist would need samples x centres floats)
+    d = cKDTree(centres).query(surface, k=1)[0]
+    board = surface[:, 2] > 4.5
+    return {
+        "sign": float((d < radius).mean()),
+        "sign_board": float((d[board] < radius).mean()) if board.any() else float("nan"),
+    }
+
+
 def sign_completeness(model, scene, radius: float = 0.1, samples: int = 20000) -> dict[str, float]:
     """Share of the sign's true surface (and its board above 4.5 m) within ``radius`` of a centre."""
     surface = sign_surface(scene, samples)
     if surface is None:
         return {}
-    pts = torch.from_numpy(surface)
-    centres = model.gaussians_at(0).means.detach()
-    static = model.node_ids[model.gaussians_at(0).ids] == -1
-    centres = centres[static]
-    # nearest centre of every sample by a k-d tree (a dense cdist would need samples x centres floats)
-    d = torch.from_numpy(cKDTree(centres.numpy()).query(pts.numpy(), k=1)[0]).float()
-    board = pts[:, 2] > 4.5
-    return {
-        "sign": float((d < radius).float().mean()),
-        "sign_board": float((d[board] < radius).float().mean()) if board.any() else float("nan"),
-    }
+    g = model.gaussians_at(0)
+    centres = g.means.detach()[model.node_ids[g.ids] == -1].numpy()  # static Gaussians
+    return surface_completeness(centres, surface, radius)
 
 
 def sign_lidar_depth(model, scene, raster, radius: float = 0.25) -> dict[str, dict[str, float]]:
