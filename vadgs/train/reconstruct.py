@@ -389,7 +389,7 @@ def _crops(
 
 def _upsample_factor(scene: Scene, ch: int, cw: int, cfg: ReconstructConfig) -> int:
     """The integer factor a crop of ``ch x cw`` pixels is matched at (see ``max_upsample``)."""
-    native = int(1.0 / float(getattr(scene, "scale", 1.0)) + 1e-6)  # files' resolution
+    native = int(1.0 / scene.scale + 1e-6)  # the files' resolution
     return max(1, min(cfg.max_upsample, native, cfg.max_crop // max(ch, cw, 1)))
 
 
