@@ -11,7 +11,10 @@ or from the added Gaussians not surviving training. Writes ``trace.json`` next t
 Run (from the repository root; ../shared present; ~25 min on one CPU thread):
 
     python benchmarks/sign_trace.py ../shared/data/street_a --config benchmarks/street_config.json \
-        --out runs/trace_street_a
+        --out runs/trace_street_a [--variant no_upsample_no_planar]
+
+The run folder holds a checkpoint: ``vad_ablation.py --out <parent> --variants <variant>`` with the
+folder named after the variant evaluates it like its own runs.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from pathlib import Path
 
 import torch
 from scipy.spatial import cKDTree
-from vad_ablation import sign_surface, surface_completeness
+from vad_ablation import VARIANTS, sign_surface, surface_completeness
 
 from vadgs.data import load_scene
 from vadgs.train.trainer import TrainConfig, Trainer
@@ -88,6 +91,8 @@ def main() -> None:
     ap.add_argument("--out", default="runs/sign_trace")
     ap.add_argument("--every", type=int, default=50)
     ap.add_argument("--threads", type=int, default=1)
+    vad = [k for k, v in VARIANTS.items() if v is not None]
+    ap.add_argument("--variant", default="vadgs", choices=vad, help="strategy settings (vad_ablation's)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     scene = load_scene(args.scene, scale=args.scale)
@@ -97,7 +102,7 @@ def main() -> None:
     config = TrainConfig()
     if args.config:
         config = TrainConfig.from_dict(json.loads(Path(args.config).read_text()))
-    strategy = TracedStrategy(surface, args.every)
+    strategy = TracedStrategy(surface, args.every, config=VARIANTS[args.variant])
     trainer = Trainer(scene, config, out_dir=args.out, strategy=strategy, progress=False)
     trainer.train()
     (Path(args.out) / "trace.json").write_text(json.dumps(strategy.trace, indent=1))

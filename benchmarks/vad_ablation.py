@@ -92,10 +92,10 @@ def sign_lidar_depth(model, scene, raster, radius: float = 0.25) -> dict[str, di
     """Depth AbsRel / δ<1.05 on the sign's pixels whose true surface LiDAR missed, and the rest.
 
     A test pixel of a ``sign`` instance is "missed" when its ground-truth 3D point is farther than
-    ``radius`` from every LiDAR point of the scene (all frames): on street_a that is the board,
-    above the LiDAR's reach (its highest return on the sign is at 3.8 m); "seen" are the others
-    (there, the pole). Returns ``{"sign_lidar_missed": {...}, "sign_lidar_seen": {...}}`` (a key
-    is absent when it has no pixel).
+    ``radius`` from every LiDAR point of the scene (all frames); "seen" are the others. Each part
+    also reports the height range (world z, m) of its pixels' true points: on street_a the missed
+    part is the board, above the LiDAR's reach, and the seen part the pole's lower part. Returns
+    ``{"sign_lidar_missed": {...}, "sign_lidar_seen": {...}}`` (a key is absent without pixels).
     """
     signs = scene.instance_ids("sign")
     if not signs:
@@ -114,17 +114,18 @@ def sign_lidar_depth(model, scene, raster, radius: float = 0.25) -> dict[str, di
         missed = torch.from_numpy(tree.query(pts.numpy())[0] > radius)
         d = render_test_view(model, scene, v, raster).raster.depth[0, 0][m]
         g = gtd[0, 0][m]
-        r = torch.stack([(d - g).abs() / g, torch.maximum(d / g, g / d.clamp(min=1e-6))])
+        r = torch.stack([(d - g).abs() / g, torch.maximum(d / g, g / d.clamp(min=1e-6)), pts[:, 2]])
         for key in (True, False):
             rel[key].append(r[:, missed == key])
     out = {}
     for key, name in ((True, "sign_lidar_missed"), (False, "sign_lidar_seen")):
-        r = torch.cat(rel[key], 1) if rel[key] else torch.zeros(2, 0)
+        r = torch.cat(rel[key], 1) if rel[key] else torch.zeros(3, 0)
         if r.shape[1]:
             out[name] = {
                 "absrel": float(r[0].mean()),
                 "delta_1.05": float((r[1] < 1.05).float().mean()),
                 "pixels": int(r.shape[1]),
+                "height_m": [round(float(r[2].min()), 2), round(float(r[2].max()), 2)],
             }
     return out
 

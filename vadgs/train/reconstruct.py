@@ -87,11 +87,11 @@ class ReconstructConfig:
             within ``max_crop`` so the cost stays bounded. ``1``: always the scene's resolution.
         planar: planar completion of the textureless parts of static instances
             (:func:`vadgs.mvs.complete_planar`); ``None`` turns it off. Never applied to moving
-            objects: a car is not planar (on street_a's overtaken car it doubled the pixels but
-            dropped those within 5 % of the true depth from ~88 % to ~56 %). On by default since small
-            instances are matched at a finer resolution (``max_upsample``): on street_a it took
-            the sign's completeness in training from 76 % to 84 % at +0.3 dB (docs/results.md).
-            (At the training resolution alone it had tilted the sign's board.)
+            objects: a car is not planar, and one plane fitted to it fills many of its pixels off
+            its surface. On by default since small instances are matched at a finer resolution
+            (``max_upsample``): on street_a it took the sign's completeness in training from 76 %
+            to 84 % at +0.3 dB (docs/results.md). (At the training resolution alone it had tilted
+            the sign's board.)
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
