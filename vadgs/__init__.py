@@ -10,6 +10,8 @@ Subpackages, imported one way (geometry → render / mvs / select → train):
 - :mod:`vadgs.data`: scene loaders (the benchmark scene format, COLMAP, DGP).
 """
 
+from vadgs.checks import checking, checks_enabled, set_checks_enabled
+
 __version__ = "0.1.0.dev0"
 
-__all__ = ["__version__"]
+__all__ = ["__version__", "checking", "checks_enabled", "set_checks_enabled"]

@@ -4,6 +4,14 @@ Public functions validate their inputs at the boundary with these helpers, so th
 fails with a :class:`ValueError` that names the argument, the expected and the actual shape,
 instead of a crash deep inside a kernel (kornia's ``KORNIA_CHECK_SHAPE`` in spirit).
 
+Two kinds of check: *shape* checks (:func:`check_shape`, :func:`check_size`) read only
+metadata and always run; *value* checks (:func:`check_finite` and the range checks of the
+components, guarded by :func:`checks_enabled`) read tensor values, which on a GPU costs a host
+synchronisation each. Value checks can be switched off for speed in a trusted training loop: set
+the environment variable ``VADGS_CHECKS=0`` before importing vadgs, call
+:func:`set_checks_enabled`, or use the :func:`checking` context manager (kornia's
+``KORNIA_CHECKS`` in spirit).
+
 Shape specs are sequences whose items are an ``int`` (that exact size), a ``str`` (a named
 dimension: every use of the same name within one call must agree) or ``"*"`` (any number of
 leading dimensions, only as the first item) or ``"_"`` (any size).
@@ -21,11 +29,53 @@ Example:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import os
+from collections.abc import Iterator, Sequence
 
 import torch
 
-__all__ = ["check_finite", "check_same_device", "check_shape", "check_size"]
+__all__ = [
+    "check_finite",
+    "check_same_device",
+    "check_shape",
+    "check_size",
+    "checking",
+    "checks_enabled",
+    "set_checks_enabled",
+]
+
+_OFF = {"0", "false", "off", "no"}
+_enabled: bool = os.environ.get("VADGS_CHECKS", "1").strip().lower() not in _OFF
+
+
+def checks_enabled() -> bool:
+    """Whether value checks run (``VADGS_CHECKS``, :func:`set_checks_enabled`, :func:`checking`)."""
+    return _enabled
+
+
+def set_checks_enabled(enabled: bool) -> bool:
+    """Switch value checks on or off for the whole process; returns the previous setting."""
+    global _enabled
+    previous, _enabled = _enabled, bool(enabled)
+    return previous
+
+
+@contextlib.contextmanager
+def checking(enabled: bool) -> Iterator[None]:
+    """Run a block with value checks on or off, restoring the previous setting afterwards.
+
+    Example:
+        >>> with checking(False):
+        ...     check_finite(torch.tensor([float("nan")]), "x")  # not checked: no error
+        >>> checks_enabled()
+        True
+    """
+    previous = set_checks_enabled(enabled)
+    try:
+        yield
+    finally:
+        set_checks_enabled(previous)
 
 
 def _fmt(spec: Sequence[int | str]) -> str:
@@ -87,7 +137,7 @@ def check_shape(
 
 
 def check_finite(x: torch.Tensor, name: str) -> None:
-    """Raise a :class:`ValueError` if ``x`` has a NaN or infinite entry.
+    """Raise a :class:`ValueError` if ``x`` has a NaN or infinite entry (a value check).
 
     Example:
         >>> check_finite(torch.tensor([1.0, float("nan")]), "points")
@@ -95,7 +145,7 @@ def check_finite(x: torch.Tensor, name: str) -> None:
         ...
         ValueError: points: expected finite values, got 1 non-finite of 2
     """
-    if x.is_floating_point():
+    if _enabled and x.is_floating_point():
         bad = ~torch.isfinite(x)
         if bool(bad.any()):
             raise ValueError(

@@ -141,7 +141,7 @@ class TestMovingObject:
         for v in scene.train_views:
             if scene.views[v].camera != scene.views[ref].camera or v == ref:
                 continue
-            fpos = scene._frame_pos(scene.views[v].frame)
+            fpos = scene.frame_position(scene.views[v].frame)
             o2w = track.object_to_world[fpos]
             world = rec.points @ o2w[:3, :3].T + o2w[:3, 3]
             cams = scene.cameras([v])

@@ -71,7 +71,7 @@ def accumulate_lidar(
         lid = scene.lidar(f)
         p, i = lid.points, lid.instance
         if track_id is not None:
-            fpos = scene._frame_pos(f)
+            fpos = scene.frame_position(f)
             track = scene.tracks[track_id]
             keep = i == track_id
             if not bool(track.valid[fpos]):
@@ -81,13 +81,13 @@ def accumulate_lidar(
         else:
             keep = torch.ones_like(i, dtype=torch.bool)
         p, i = p[keep], i[keep]
-        view_ids = list(scene.frames[scene._frame_pos(f)].view_ids)
+        view_ids = list(scene.frames[scene.frame_position(f)].view_ids)
         if p.shape[0] and view_ids:
             pi, vi = observing_views(p, scene.cameras(view_ids), view_ids)
             pv_p.append(pi + offset)
             pv_v.append(vi)
         if track_id is not None and p.shape[0]:
-            o2w = scene.tracks[track_id].object_to_world[scene._frame_pos(f)]
+            o2w = scene.tracks[track_id].object_to_world[scene.frame_position(f)]
             w2o = invert_rigid(o2w)
             p = p @ w2o[:3, :3].T + w2o[:3, 3]
         pts.append(p)

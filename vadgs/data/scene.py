@@ -168,6 +168,13 @@ class Scene:
     scale: float = 1.0
     lidar_loader: Callable[[int], LidarFrame] | None = None
     image_loader: Callable[[ViewInfo], torch.Tensor] | None = None
+    _frame_positions: dict[int, int] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self._frame_positions = {f.index: i for i, f in enumerate(self.frames)}
+        if len(self._frame_positions) != len(self.frames):
+            dup = sorted({f.index for f in self.frames if [g.index for g in self.frames].count(f.index) > 1})
+            raise ValueError(f"frames: expected unique frame indices, got duplicates {dup[:5]}")
 
     # -- indexing -------------------------------------------------------------------------------------
 
@@ -195,16 +202,31 @@ class Scene:
 
     def view_id(self, frame: int, camera: str) -> int:
         """The index of the view of ``camera`` at ``frame``."""
-        for v in self.frames[self._frame_pos(frame)].view_ids:
+        for v in self.frames[self.frame_position(frame)].view_ids:
             if self.views[v].camera == camera:
                 return v
         raise KeyError(f"no view of camera {camera!r} at frame {frame}")
 
-    def _frame_pos(self, frame: int) -> int:
-        for i, f in enumerate(self.frames):
-            if f.index == frame:
-                return i
-        raise KeyError(f"no frame {frame} in scene {self.name!r}")
+    def frame_position(self, frame: int) -> int:
+        """Position of a frame index in :attr:`frames` (and in ``Track.object_to_world``); O(1).
+
+        Raises:
+            KeyError: if the scene has no such frame.
+
+        Example:
+            >>> from vadgs.data import load_scene, sample_scene_path
+            >>> scene = load_scene(sample_scene_path())
+            >>> scene.frames[0].index, scene.frame_position(scene.frames[0].index)
+            (16, 0)
+        """
+        try:
+            return self._frame_positions[int(frame)]
+        except KeyError:
+            raise KeyError(f"no frame {frame} in scene {self.name!r}") from None
+
+    def view_frame_position(self, view: int) -> int:
+        """Position in :attr:`frames` of a view's frame (the ``frame`` argument of the model's render)."""
+        return self._frame_positions[self.views[view].frame]
 
     def _ids(self, view_ids: Sequence[int] | None) -> list[int]:
         if view_ids is None:

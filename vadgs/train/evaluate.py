@@ -78,7 +78,7 @@ def render_test_view(
 ) -> ModelRender:
     """Render one view of the scene at its frame (no gradient)."""
     cams = scene.cameras([view])
-    frame = [f.index for f in scene.frames].index(scene.views[view].frame)
+    frame = scene.view_frame_position(view)
     with torch.no_grad():
         return model.render(cams.world_to_cam, cams.K, cams.image_size, frame, config)
 

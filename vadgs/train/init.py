@@ -243,7 +243,7 @@ def init_gaussians(
         acc = accumulate_lidar(scene, train_frames, track_id=tid)
         if acc.points.shape[0] == 0:
             continue
-        fpos = torch.tensor([scene._frame_pos(int(f)) for f in acc.frame.tolist()], dtype=torch.long)
+        fpos = torch.tensor([scene.frame_position(int(f)) for f in acc.frame.tolist()], dtype=torch.long)
         pose = scene.tracks[tid].object_to_world[fpos]
         world = (pose[:, :3, :3] @ acc.points[:, :, None]).squeeze(-1) + pose[:, :3, 3]
         col = _point_colors(scene, world, *acc.point_views, train_views, cache)

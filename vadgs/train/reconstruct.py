@@ -233,7 +233,7 @@ class VisibilityIndex:
     def object_cameras(self, track: int) -> torch.Tensor:
         """``(V, 4, 4)`` object-to-camera transforms of every view for a track."""
         t = self.scene.tracks[track]
-        pos = torch.tensor([self.scene._frame_pos(v.frame) for v in self.scene.views])
+        pos = torch.tensor([self.scene.frame_position(v.frame) for v in self.scene.views])
         return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
 
 
@@ -292,7 +292,7 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
         lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
     h, w = lab.shape
     info = scene.views[view]
-    pos = scene._frame_pos(info.frame)
+    pos = scene.frame_position(info.frame)
     cam = index.cameras[view]
     boxes = []
     for tid, t in scene.tracks.items():
@@ -473,7 +473,7 @@ def reconstruct_instance(
         world_to_cam = index.object_cameras(track)
         valid_frames = scene.tracks[track].valid
         allowed = index.allowed & torch.tensor(
-            [bool(valid_frames[scene._frame_pos(v.frame)]) for v in scene.views]
+            [bool(valid_frames[scene.frame_position(v.frame)]) for v in scene.views]
         )
     else:
         covis = index.covis

@@ -245,7 +245,7 @@ def voxel_depth_map(index: VisibilityIndex, view: int) -> tuple[torch.Tensor, to
     label = torch.where(vidx >= 0, index.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
     depth = depth.clone()
     scene = index.scene
-    fpos = scene._frame_pos(scene.views[view].frame)
+    fpos = scene.frame_position(scene.views[view].frame)
     cams = index.cameras[view]
     for tid, grid in index.track_grids.items():
         track = scene.tracks[tid]
@@ -459,7 +459,7 @@ class VisibilityAwareDensification:
         cams = scene.cameras([ref])
         w2c = cams.world_to_cam[0]
         if rec.track is not None:
-            fpos = scene._frame_pos(scene.views[ref].frame)
+            fpos = scene.frame_position(scene.views[ref].frame)
             w2c = w2c @ scene.tracks[rec.track].object_to_world[fpos]
         uv, z = project_points(rec.points[None], cams.K, w2c[None])
         uv, z = uv[0], z[0]
