@@ -19,6 +19,7 @@ Run (from the repository root; ../shared present):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -33,7 +34,7 @@ from vadgs.mvs import PlanarCompletionConfig
 from vadgs.train.evaluate import evaluate, render_test_view
 from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.trainer import TrainConfig, Trainer
-from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig
+from vadgs.train.vad import VisibilityDensifyConfig
 
 VARIANTS = {
     "baseline": None,
@@ -133,14 +134,14 @@ def sign_lidar_depth(model, scene, raster, radius: float = 0.25) -> dict[str, di
 def run_variant(scene, name: str, config: TrainConfig, out: Path) -> dict:
     """Train and evaluate one variant; returns its metrics."""
     vad = VARIANTS[name]
-    strategy = VisibilityAwareDensification(vad) if vad is not None else None
+    config = dataclasses.replace(config, vad=vad)  # the strategy is part of the run's config
     ckpt = out / name / "checkpoint.pt"
     if ckpt.is_file():  # finished or interrupted earlier: continue (or just evaluate)
-        trainer = Trainer.from_checkpoint(ckpt, scene=scene, strategy=strategy, progress=False)
+        trainer = Trainer.from_checkpoint(ckpt, scene=scene, progress=False)
         if trainer.config.to_dict() != config.to_dict():
             raise ValueError(f"{ckpt}: trained with another config; remove it or use another --out")
     else:
-        trainer = Trainer(scene, config, out_dir=out / name, strategy=strategy, progress=False)
+        trainer = Trainer(scene, config, out_dir=out / name, progress=False)
     result = trainer.train()
     train_s = trainer.train_s
     metrics = evaluate(trainer.model, scene, with_lpips=False).to_dict()

@@ -7,6 +7,7 @@ with an ``add_arguments(parser)`` attribute. ``vadgs --help`` lists them.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -118,12 +119,29 @@ def _train_config(args: argparse.Namespace) -> object:
             val = value
         parts = key.split(".")
         _deep_update(d, _nest(parts, val), "--set")
-    for flag, key in (("iterations", "iterations"), ("seed", "seed"), ("max_minutes", "max_minutes")):
+    for flag, key in (
+        ("iterations", "iterations"),
+        ("seed", "seed"),
+        ("max_minutes", "max_minutes"),
+        ("device", "device"),
+    ):
         if getattr(args, flag, None) is not None:
             d[key] = getattr(args, flag)
     if getattr(args, "max_gaussians", None) is not None:
         d["strategy"]["max_gaussians"] = args.max_gaussians
+    vad = _vad_config(args)
+    if vad is not None:
+        d["vad"] = {**(d.get("vad") or {}), **vad}
     return TrainConfig.from_dict(d)
+
+
+def _vad_config(args: argparse.Namespace) -> dict | None:
+    """The ``vad`` part of the config asked for by ``--vad`` and its ablation flags (None: not asked)."""
+    if not getattr(args, "vad", False):
+        if getattr(args, "no_view_selection", False) or getattr(args, "no_geometric_losses", False):
+            raise ValueError("--no-view-selection / --no-geometric-losses: only with --vad")
+        return None
+    return {"view_selection": not args.no_view_selection, "geometric_losses": not args.no_geometric_losses}
 
 
 def _nest(parts: list[str], val: object) -> dict:
@@ -191,10 +209,9 @@ def train(args: argparse.Namespace) -> int:
     if args.resume:
         if not (out / CHECKPOINT_NAME).is_file():
             raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-        trainer = Trainer.from_checkpoint(
-            out, progress=progress, strategy=_vad_strategy(args, out, resume=True)
-        )
-        print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations}")
+        trainer = Trainer.from_checkpoint(out, progress=progress)
+        kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
+        print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
     else:
         if args.scene is None and not args.sample:
             raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
@@ -206,16 +223,7 @@ def train(args: argparse.Namespace) -> int:
             from vadgs.data import load_colmap
 
             colmap = load_colmap(args.colmap, scale=args.scale).points
-        strategy = _vad_strategy(args, out)
-        trainer = Trainer(
-            scene,
-            config,
-            out_dir=out,
-            scene_ref=ref,
-            colmap_points=colmap,
-            progress=progress,
-            strategy=strategy,
-        )
+        trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, colmap_points=colmap, progress=progress)
         print(
             f"{scene}: {len(scene.train_views)} training views, "
             f"{trainer.model.num_gaussians} initial Gaussians"
@@ -232,30 +240,6 @@ def train(args: argparse.Namespace) -> int:
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
     return 0
-
-
-def _vad_strategy(args: argparse.Namespace, out: Path, resume: bool = False):
-    """The VAD-GS strategy asked for by ``--vad`` (recorded in ``out/strategy.json`` for ``--resume``)."""
-    path = out / "strategy.json"
-    if resume:
-        flags = json.loads(path.read_text()) if path.is_file() else {"vad": False}
-    else:
-        flags = {
-            "vad": bool(args.vad),
-            "view_selection": not args.no_view_selection,
-            "geometric_losses": not args.no_geometric_losses,
-        }
-        out.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(flags))
-    if not flags["vad"]:
-        return None
-    from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig
-
-    return VisibilityAwareDensification(
-        VisibilityDensifyConfig(
-            view_selection=flags["view_selection"], geometric_losses=flags["geometric_losses"]
-        )
-    )
 
 
 def _train_args(p: argparse.ArgumentParser) -> None:
@@ -276,6 +260,7 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-frames", type=int, nargs="*", help="DGP: held-out frames (samples)")
     p.add_argument("--colmap", help="COLMAP sparse folder whose points are added to the initialisation")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--device", help="torch device for the model and losses (cpu, cuda, cuda:1; default cpu)")
     p.add_argument("--vad", action="store_true", help="VAD-GS visibility-aware densification (the paper)")
     p.add_argument(
         "--no-view-selection", action="store_true", help="ablation: consecutive frames (with --vad)"
@@ -360,18 +345,15 @@ def demo(args: argparse.Namespace) -> int:
     config = TrainConfig.from_dict(_deep_update(TrainConfig().to_dict(), DEMO_CONFIG))
     if args.iterations is not None:
         config = config.replace(iterations=args.iterations)
-    t0 = time.perf_counter()
-    strategy = None
     if not args.baseline:
         from vadgs.train.reconstruct import ReconstructConfig
-        from vadgs.train.vad import VisibilityAwareDensification, VisibilityDensifyConfig
+        from vadgs.train.vad import VisibilityDensifyConfig
 
-        strategy = VisibilityAwareDensification(
-            VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
-        )
-    trainer = Trainer(
-        scene, config, out_dir=out, scene_ref=ref, strategy=strategy, progress=not args.no_progress
-    )
+        vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
+        config = dataclasses.replace(config, vad=vad)
+    t0 = time.perf_counter()
+    trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not args.no_progress)
+    strategy = trainer.strategy if config.vad is not None else None
     result = trainer.train()
     metrics = _finish_run(trainer, out, result, not args.no_progress)
     metrics["wall_s"] = round(time.perf_counter() - t0, 1)

@@ -36,7 +36,8 @@ class TestCli:
         args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "100", "--vad"]
         args += ["--no-progress", "--set", "init.max_points=2000", "--set", "init.sh_degree=0"]
         assert main(args) == 0
-        assert json.loads((out / "strategy.json").read_text())["vad"] is True
+        ckpt_cfg = json.loads((out / "config.json").read_text())["config"]
+        assert ckpt_cfg["vad"]["view_selection"] is True  # the strategy is part of the run's config
         events = json.loads((out / "metrics.json").read_text())["vad_events"]
         assert len(events) == 1 and events[0]["step"] == 89 and events[0]["tested"] > 0
         logged = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]

@@ -59,7 +59,7 @@ class TestRemove:
     def test_naive(self):
         m, opt, st = _setup()
         old = {
-            k: (v.detach().clone(), *[x.clone() for x in _moments(m, opt, k)]) for k, v in m.params.items()
+            k: (m.params[k].detach().clone(), *[x.clone() for x in _moments(m, opt, k)]) for k in PER_GAUSSIAN
         }
         mask = torch.tensor([False, True, False, True, False, False])
         ops.remove_gaussians(m, opt, st, mask)

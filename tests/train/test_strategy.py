@@ -62,10 +62,10 @@ class TestDefaultStrategy:
         s = DefaultStrategy(
             DefaultStrategyConfig(refine_start_iter=0, refine_every=2, grow_scale3d=0.1, reset_every=0)
         )
-        state = s.initialize_state(m, scene_scale=1.0)
-        s.step_post_backward(m, opt, state, 1, _fake_info(6, [0, 1]))
+        state = s.initialize_state(scene_scale=1.0)
+        s.step_post_backward(m.params, opt, state, 1, _fake_info(6, [0, 1]))
         assert state["count"].tolist() == [1.0] * 6 and state["grad2d"][0] == 10.0
-        s.step_post_backward(m, opt, state, 2, _fake_info(6, [0, 1]))
+        s.step_post_backward(m.params, opt, state, 2, _fake_info(6, [0, 1]))
         # 0 cloned (+1), 1 split (+1), 5 pruned (-1)
         assert state["last_refine"] == {"cloned": 1, "split": 1, "pruned": 1, "total": 7}
         assert m.num_gaussians == 7 and state["grad2d"].shape == (7,) and float(state["grad2d"].sum()) == 0.0
@@ -80,16 +80,16 @@ class TestDefaultStrategy:
         s = DefaultStrategy(
             DefaultStrategyConfig(refine_start_iter=0, refine_every=1, max_gaussians=7, prune_opa=0.0)
         )
-        state = s.initialize_state(m, 1.0)
-        s.step_post_backward(m, opt, state, 1, _fake_info(6, [0, 2, 3, 4]))
+        state = s.initialize_state(1.0)
+        s.step_post_backward(m.params, opt, state, 1, _fake_info(6, [0, 2, 3, 4]))
         assert m.num_gaussians == 7
 
     def test_reset(self):
         m = _model()
         opt = ops.make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
         s = DefaultStrategy(DefaultStrategyConfig(refine_start_iter=100, reset_every=3))
-        state = s.initialize_state(m, 1.0)
-        s.step_post_backward(m, opt, state, 3, _fake_info(6, []))
+        state = s.initialize_state(1.0)
+        s.step_post_backward(m.params, opt, state, 3, _fake_info(6, []))
         assert (
             state["num_resets"] == 1
             and float(torch.sigmoid(m.params["opacity_logits"].detach()).max()) <= 0.0101

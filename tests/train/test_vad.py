@@ -11,6 +11,7 @@ from vadgs.train.model import GaussianModel
 from vadgs.train.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
 from vadgs.train.trainer import TrainConfig, Trainer
 from vadgs.train.vad import (
+    StrategyContext,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
     normals_to_quats,
@@ -68,14 +69,14 @@ def _model(scene, points, colors, spacing):
 
 
 def _trainer(scene, model, index, **cfg):
-    strategy = VisibilityAwareDensification(VisibilityDensifyConfig(**cfg), index=index)
-    return Trainer(
+    trainer = Trainer(
         scene,
-        TrainConfig(iterations=100, checkpoint_every=10**6),
+        TrainConfig(iterations=100, checkpoint_every=10**6, vad=VisibilityDensifyConfig(**cfg)),
         model=model,
-        strategy=strategy,
         progress=False,
     )
+    trainer.strategy.index = index  # share the module's prebuilt index
+    return trainer
 
 
 def _flagged(rows, instance):
@@ -87,7 +88,7 @@ class TestIncompleteOnSample:
     def test_complete_geometry_is_not_flagged(self, scene, index, gt_points):
         pts, col, _, spc = gt_points
         trainer = _trainer(scene, _model(scene, pts, col, spc), index)
-        rows, _ = trainer.strategy.detect(trainer)
+        rows, _ = trainer.strategy.detect()
         flagged, pixels = _flagged(rows, BUILDING)
         big = pixels >= 500
         assert int(big.sum()) >= 3
@@ -105,11 +106,11 @@ class TestIncompleteOnSample:
             skip_classes=("road", "sidewalk", "tree", "car", "sign"),
             reconstruct=ReconstructConfig(max_crop=96),
         )
-        rows, _ = trainer.strategy.detect(trainer)
+        rows, _ = trainer.strategy.detect()
         flagged, pixels = _flagged(rows, BUILDING)
         assert bool(flagged[pixels >= 500].all())
         n0 = trainer.model.num_gaussians
-        event = trainer.strategy.densify(trainer, trainer.model, trainer.optimizer, trainer.state, 0)
+        event = trainer.strategy.densify(trainer.model.params, trainer.optimizer, trainer.state, 0)
         done = {e["instance"]: e for e in event["instances"]}
         assert BUILDING in done and done[BUILDING]["added"] > 200
         new = trainer.model.params["means"][n0:].detach()
@@ -183,8 +184,9 @@ class TestMovingObject:
             [CAR],
             sh_degree=0,
         )
-        VisibilityAwareDensification()._add(
-            model, None, None, rec, torch.ones(rec.points.shape[0], dtype=torch.bool)
+        ctx = StrategyContext(lambda v: None, total_steps=1, steps_per_cycle=1, track_nodes={CAR: 0})
+        VisibilityAwareDensification(scene, ctx)._add(
+            model.params, None, None, rec, torch.ones(rec.points.shape[0], dtype=torch.bool)
         )
         assert model.num_gaussians == 1 + rec.points.shape[0]
         assert (model.node_ids[1:] == 0).all()
@@ -336,20 +338,51 @@ class TestBaseStrategy:
         from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
 
         adc = DefaultStrategyConfig(refine_start_iter=7, refine_every=3, max_gaussians=1234)
-        trainer = Trainer(
-            scene,
-            TrainConfig(iterations=10, checkpoint_every=10**6, strategy=adc),
-            strategy=VisibilityAwareDensification(index=index),
-            progress=False,
-        )
+        cfg = TrainConfig(iterations=10, checkpoint_every=10**6, strategy=adc, vad=VisibilityDensifyConfig())
+        trainer = Trainer(scene, cfg, progress=False)
+        assert isinstance(trainer.strategy, VisibilityAwareDensification)
         assert isinstance(trainer.strategy.base, DefaultStrategy)
         assert trainer.strategy.base.config == adc
-        # an explicit base is kept
+        # a given strategy is used as it is, with its own base
         mine = DefaultStrategy(DefaultStrategyConfig(refine_every=11))
-        trainer = Trainer(
-            scene,
-            TrainConfig(iterations=10, checkpoint_every=10**6, strategy=adc),
-            strategy=VisibilityAwareDensification(base=mine, index=index),
-            progress=False,
+        vad = VisibilityAwareDensification(scene, trainer.strategy_context(), base=mine, index=index)
+        trainer = Trainer(scene, cfg, strategy=vad, progress=False)
+        assert trainer.strategy is vad and vad.base is mine
+
+
+class TestResumeWithVad:
+    """The strategy and its config live in TrainConfig and the checkpoint: a resumed run is VAD-GS."""
+
+    def test_interrupted_and_resumed_equals_uninterrupted(self, tiny_scene, tiny_config, tmp_path):
+        import dataclasses
+
+        from vadgs.train.trainer import CHECKPOINT_NAME
+
+        vad = VisibilityDensifyConfig(
+            every_cycles=1, max_instances=2, reconstruct=ReconstructConfig(max_crop=48)
         )
-        assert trainer.strategy.base is mine
+        # 18 training views: events after steps 17 and 35; interrupted in between
+        config = dataclasses.replace(tiny_config, iterations=40, vad=vad)
+        full = Trainer(tiny_scene, config, progress=False)
+        full.train()
+        assert [e["step"] for e in full.state["vad_events"]] == [17, 35]
+        assert sum(e["added"] for e in full.state["vad_events"]) > 0
+
+        def stop_at_20(trainer, step):
+            if step == 20:
+                trainer.request_stop()
+
+        part = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False, callback=stop_at_20)
+        assert part.train().step == 20
+        resumed = Trainer.from_checkpoint(tmp_path / CHECKPOINT_NAME, scene=tiny_scene, progress=False)
+        assert isinstance(resumed.strategy, VisibilityAwareDensification)  # not plain ADC
+        assert resumed.config.vad == vad
+        resumed.train()
+        assert [e["step"] for e in resumed.state["vad_events"]] == [17, 35]
+        assert [e["added"] for e in resumed.state["vad_events"]] == [
+            e["added"] for e in full.state["vad_events"]
+        ]
+        assert resumed.model.num_gaussians == full.model.num_gaussians
+        for k, v in full.model.params.items():
+            assert torch.equal(v.detach(), resumed.model.params[k].detach()), k
+        assert sorted(resumed.state["vad_priors"]) == sorted(full.state["vad_priors"])

@@ -23,9 +23,14 @@ with:
   structures), hence the switch-off after 80 %.
 
 All losses are pure functions of tensors, differentiable w.r.t. the rendered inputs.
+:func:`geometric_losses` is the one path from priors (:class:`GeometryTargets`, e.g. those of
+:meth:`vadgs.train.vad.VisibilityAwareDensification.geometry_targets`) to weighted loss terms, used
+by vadgs's trainer and by any other loop (``examples/gsplat_loop_vad.py``).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -34,13 +39,33 @@ from kornia.metrics import ssim
 from vadgs.checks import check_shape
 
 __all__ = [
+    "GeometryTargets",
     "color_loss",
     "depth_loss",
     "depth_loss_hard",
     "depth_loss_soft",
+    "geometric_losses",
     "geometric_weights",
     "normal_loss",
 ]
+
+
+class GeometryTargets(NamedTuple):
+    """Targets of the geometric losses for one view (any may be None).
+
+    Attributes:
+        depth: ``(1, 1, H, W)`` target z-depth, 0 where unknown (voxel / MVS depth).
+        normal: ``(1, 3, H, W)`` target camera-frame normals, zeros where unknown.
+        mask: ``(1, 1, H, W)`` bool, pixels the losses apply to (None: every pixel with a target).
+    """
+
+    depth: torch.Tensor | None = None
+    normal: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+
+    def to(self, device: torch.device | str) -> GeometryTargets:
+        """The same targets on ``device``."""
+        return GeometryTargets(*(None if t is None else t.to(device) for t in self))
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -197,3 +222,46 @@ def geometric_weights(
     """
     hard = lambda_hard if step < hard_until * total_steps else 0.0
     return {"normal": lambda_normal, "hard": hard, "soft": lambda_soft}
+
+
+def geometric_losses(
+    targets: GeometryTargets,
+    depth: torch.Tensor,
+    normals: torch.Tensor,
+    weights: dict[str, float],
+    hard_depth: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    r"""The paper's geometric loss terms of one view, already weighted: ``soft``, ``hard``, ``normal``.
+
+    ``soft``: :func:`depth_loss_soft` of the rendered ``depth``; ``hard``: :func:`depth_loss_hard` of
+    ``hard_depth`` (the depth rendered with opacities fixed to 1; no term when None, so a loop can
+    render it only every few steps); ``normal``: :func:`normal_loss` where the target normals are
+    non-zero. A term is left out when its weight is 0 or its target is None. Differentiable w.r.t.
+    ``depth``, ``normals`` and ``hard_depth``. No host synchronisation.
+
+    Args:
+        targets: :class:`GeometryTargets` on the device of the renders.
+        depth: ``(1, 1, H, W)`` rendered expected depth.
+        normals: ``(1, 3, H, W)`` rendered camera-frame normals.
+        weights: ``{"normal", "hard", "soft"}`` (:func:`geometric_weights`).
+        hard_depth: ``(1, 1, H, W)`` or None.
+
+    Returns:
+        ``{name: scalar}``.
+
+    Example:
+        >>> t = GeometryTargets(depth=torch.full((1, 1, 2, 2), 4.0))
+        >>> terms = geometric_losses(t, torch.full((1, 1, 2, 2), 5.0), torch.zeros(1, 3, 2, 2),
+        ...                          geometric_weights(0, 10), hard_depth=torch.full((1, 1, 2, 2), 2.0))
+        >>> {k: round(v.item(), 4) for k, v in terms.items()}
+        {'soft': 0.025, 'hard': 0.05}
+    """
+    terms: dict[str, torch.Tensor] = {}
+    if targets.depth is not None:
+        if weights["soft"] > 0:
+            terms["soft"] = weights["soft"] * depth_loss_soft(depth, targets.depth, targets.mask)
+        if hard_depth is not None and weights["hard"] > 0:
+            terms["hard"] = weights["hard"] * depth_loss_hard(hard_depth, targets.depth, targets.mask)
+    if targets.normal is not None and weights["normal"] > 0:
+        terms["normal"] = weights["normal"] * normal_loss(normals, targets.normal, targets.mask)
+    return terms

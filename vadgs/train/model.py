@@ -2,11 +2,12 @@
 
 :class:`GaussianModel` stores every Gaussian *raw* (means, ``wxyz`` quaternions, log-scales,
 opacity logits, SH coefficients) in one flat :class:`~torch.nn.ParameterDict`, with an integer
-``node_ids`` buffer saying where each Gaussian lives: ``-1`` for the static background (world
-frame), ``k >= 0`` for the ``k``-th track node (its object frame, posed per frame by
-``object_to_world``). Keeping one flat set of parameters lets the densification helpers of
-:mod:`vadgs.train.ops` add or remove Gaussians of any node with one optimizer; a node is just an
-index set.
+``node_ids`` entry (not trainable) saying where each Gaussian lives: ``-1`` for the static
+background (world frame), ``k >= 0`` for the ``k``-th track node (its object frame, posed per frame
+by ``object_to_world``). Every entry of ``params`` is per Gaussian (gsplat's convention), so the
+densification helpers of :mod:`vadgs.train.ops` add or remove Gaussians of any node with one
+optimizer, and a strategy written for gsplat's params dict sees the same structure; a node is just
+an index set.
 
 :func:`gaussians_at` composes the activated Gaussians of a frame in the world;
 :meth:`GaussianModel.render` renders them (colours from SH evaluated with the viewing direction
@@ -304,8 +305,8 @@ class GaussianModel(nn.Module):
         )
         sky = torch.zeros(num_sh_bases(sky_degree), 3, dtype=means.dtype, device=means.device)
         sky[0] = rgb_to_sh(torch.full((3,), 0.7, dtype=means.dtype))
+        self.params["node_ids"] = nn.Parameter(node_ids.long().clone(), requires_grad=False)
         self.sky = nn.Parameter(sky)
-        self.register_buffer("node_ids", node_ids.long().clone())
         self.register_buffer("object_to_world", object_to_world.clone())
         self.register_buffer("track_valid", track_valid.bool().clone())
         self.track_ids = [int(t) for t in track_ids]
@@ -314,6 +315,21 @@ class GaussianModel(nn.Module):
         self.active_sh_degree = 0
 
     # -- sizes ----------------------------------------------------------------------------------------
+
+    @property
+    def node_ids(self) -> torch.Tensor:
+        """``(N,)`` int64 node of each Gaussian (``-1`` static, ``k`` the ``k``-th track), ``params["node_ids"]``."""
+        return self.params["node_ids"]
+
+    @node_ids.setter
+    def node_ids(self, value: torch.Tensor) -> None:
+        self.params["node_ids"] = nn.Parameter(value.long(), requires_grad=False)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D102
+        # checkpoints before 0.1.0.dev0's portable strategies kept node_ids as a buffer
+        if prefix + "node_ids" in state_dict and prefix + "params.node_ids" not in state_dict:
+            state_dict[prefix + "params.node_ids"] = state_dict.pop(prefix + "node_ids")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def num_gaussians(self) -> int:
@@ -414,7 +430,7 @@ class GaussianModel(nn.Module):
             torch.zeros(n, 3),
             torch.zeros(n, 3),
             torch.zeros(n, 3),
-            state_dict["node_ids"],
+            state_dict["params.node_ids"] if "params.node_ids" in state_dict else state_dict["node_ids"],
             state_dict["object_to_world"],
             state_dict["track_valid"],
             extra["track_ids"],

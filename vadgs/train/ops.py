@@ -1,19 +1,28 @@
 """Add and remove Gaussians together with their optimizer state (gsplat ``strategy/ops.py``).
 
-Every function here changes the per-Gaussian parameters of a
-:class:`~vadgs.train.model.GaussianModel` *and*, consistently, (1) the Adam moments
-``exp_avg`` / ``exp_avg_sq`` of those parameters in the optimizer, (2) the model's per-Gaussian
-buffers (``node_ids``) and (3) every per-Gaussian tensor of a strategy ``state`` dict (a tensor
-whose first dimension is the number of Gaussians, e.g. accumulated gradients). New rows start with
-zero moments and zero statistics; kept rows keep theirs.
+Every function here works on a **params mapping** in gsplat's sense — a
+:class:`~torch.nn.ParameterDict` (or dict) of per-Gaussian tensors that all have the number of
+Gaussians ``N`` as first dimension — and keeps consistent with it (1) the Adam moments
+``exp_avg`` / ``exp_avg_sq`` of those parameters and (2) every per-Gaussian tensor of a strategy
+``state`` dict (a tensor whose first dimension is ``N``, e.g. accumulated gradients). New rows start
+with zero moments and zero statistics; kept rows keep theirs. Entries without an optimizer (such as
+vadgs's integer ``node_ids``) follow the rows without moments, as in gsplat.
 
-The optimizer must have one param group per per-Gaussian parameter, with the parameter's name in
-the group's ``"name"`` (:func:`make_optimizer` builds one).
+Two parameter layouts are recognised by their names (:func:`param_names`):
+
+- vadgs's :class:`~vadgs.train.model.GaussianModel` (``model.params``): ``means``, ``quats``,
+  ``log_scales``, ``opacity_logits``, ``sh_dc``, ``sh_rest`` and ``node_ids``;
+- gsplat's: ``means``, ``quats``, ``scales`` (log), ``opacities`` (logits), ``sh0``, ``shN``.
+
+``optimizers`` is either one optimizer with a named param group per parameter (vadgs's
+:func:`make_optimizer`) or gsplat's dict ``{name: optimizer}``. A :class:`GaussianModel` may be
+passed wherever a params mapping is expected.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, MutableMapping
+from typing import Any, NamedTuple, Union
 
 import torch
 from torch import nn
@@ -22,14 +31,64 @@ from vadgs.render import quaternion_to_rotation
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel
 
 __all__ = [
+    "GSPLAT_NAMES",
+    "VADGS_NAMES",
+    "ParamNames",
     "add_gaussians",
     "duplicate",
     "make_optimizer",
+    "param_names",
     "remove_gaussians",
     "reset_opacity",
     "split",
     "update_params",
 ]
+
+#: ``torch.optim.Optimizer`` with named groups, or gsplat's ``{name: optimizer}``.
+Optimizers = Union[torch.optim.Optimizer, Mapping[str, torch.optim.Optimizer], None]
+
+
+class ParamNames(NamedTuple):
+    """The names of the six Gaussian parameters in a params mapping (all stored raw)."""
+
+    means: str
+    quats: str
+    log_scales: str
+    opacity_logits: str
+    sh_dc: str
+    sh_rest: str
+
+
+VADGS_NAMES = ParamNames("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+GSPLAT_NAMES = ParamNames("means", "quats", "scales", "opacities", "sh0", "shN")
+
+
+def _params(params: Any) -> MutableMapping[str, torch.Tensor]:
+    return params.params if isinstance(params, GaussianModel) else params
+
+
+def param_names(params: Mapping[str, torch.Tensor] | GaussianModel) -> ParamNames:
+    """The layout of a params mapping: :data:`VADGS_NAMES` or :data:`GSPLAT_NAMES`.
+
+    Raises:
+        ValueError: if the keys match neither layout.
+
+    Example:
+        >>> param_names({k: None for k in ("means", "quats", "scales", "opacities", "sh0", "shN")}).sh_dc
+        'sh0'
+    """
+    keys = set(_params(params).keys())
+    for names in (VADGS_NAMES, GSPLAT_NAMES):
+        if set(names) <= keys:
+            return names
+    raise ValueError(
+        f"params: expected vadgs names {list(VADGS_NAMES)} or gsplat names {list(GSPLAT_NAMES)}, "
+        f"got {sorted(keys)}"
+    )
+
+
+def _num_rows(params: Mapping[str, torch.Tensor]) -> int:
+    return int(params["means"].shape[0])
 
 
 def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
@@ -56,63 +115,78 @@ def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-
     return torch.optim.Adam(groups, eps=eps)
 
 
-def _group(optimizer: torch.optim.Optimizer, name: str) -> dict:
-    for g in optimizer.param_groups:
+def _group(optimizers: Optimizers, name: str) -> tuple[torch.optim.Optimizer, dict] | None:
+    """The optimizer and param group that hold parameter ``name`` (None: not optimised)."""
+    if optimizers is None:
+        return None
+    if isinstance(optimizers, Mapping):
+        opt = optimizers.get(name)
+        return (opt, opt.param_groups[0]) if opt is not None else None
+    for g in optimizers.param_groups:
         if g.get("name") == name:
-            return g
-    raise ValueError(f"optimizer: no param group named {name!r}")
+            return optimizers, g
+    return None
 
 
 @torch.no_grad()
 def update_params(
-    model: GaussianModel,
-    optimizer: torch.optim.Optimizer | None,
+    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    optimizers: Optimizers,
     state: dict | None,
     param_fn: Callable[[str, torch.Tensor], torch.Tensor],
     moment_fn: Callable[[str, torch.Tensor], torch.Tensor],
     row_fn: Callable[[torch.Tensor], torch.Tensor],
-    names: tuple[str, ...] = PER_GAUSSIAN,
+    names: tuple[str, ...] | None = None,
 ) -> None:
     """The primitive all ops are built on: replace parameters, their moments and per-row tensors.
 
     Args:
-        model: updated in place (new :class:`~torch.nn.Parameter` objects).
-        optimizer: its groups get the new parameters, with moments ``moment_fn(name, moment)``.
+        params: params mapping (or a :class:`GaussianModel`), updated in place (new
+            :class:`~torch.nn.Parameter` objects).
+        optimizers: their groups get the new parameters, with moments ``moment_fn(name, moment)``.
         state: strategy state; each tensor with first dimension ``N`` becomes ``row_fn(tensor)``.
-        param_fn: ``(name, old) -> new`` parameter data.
+        param_fn: ``(name, old) -> new`` data of every entry in ``names``.
         moment_fn: ``(name, old_moment) -> new_moment``.
-        row_fn: applied to ``node_ids`` and to the per-Gaussian tensors of ``state``.
-        names: the parameters to update (the row count changes only when all are updated).
+        row_fn: applied to the per-Gaussian tensors of ``state``.
+        names: the entries to update (default all: the row count changes only when all are).
     """
-    n_old = model.num_gaussians
-    for name in names:
-        old = model.params[name]
+    params = _params(params)
+    n_old = _num_rows(params)
+    every = names is None or set(names) >= set(params.keys())
+    for name in list(params.keys()) if names is None else names:
+        old = params[name]
         new = nn.Parameter(param_fn(name, old.data), requires_grad=old.requires_grad)
-        if optimizer is not None:
-            group = _group(optimizer, name)
-            st = optimizer.state.pop(old, None)
+        found = _group(optimizers, name)
+        if found is not None:
+            opt, group = found
+            st = opt.state.pop(old, None)
             group["params"][0] = new
             if st:
-                optimizer.state[new] = {
+                opt.state[new] = {
                     k: (moment_fn(name, v) if k in ("exp_avg", "exp_avg_sq") else v) for k, v in st.items()
                 }
-        model.params[name] = new
-    if set(names) == set(PER_GAUSSIAN):
-        model.node_ids = row_fn(model.node_ids)
-        if state is not None:
-            for k, v in state.items():
-                if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == n_old:
-                    state[k] = row_fn(v)
+        params[name] = new
+    if every and state is not None:
+        for k, v in state.items():
+            if isinstance(v, torch.Tensor) and v.dim() > 0 and v.shape[0] == n_old:
+                state[k] = row_fn(v)
+
+
+def _zero_rows(t: torch.Tensor, m: int) -> torch.Tensor:
+    return torch.zeros((m, *t.shape[1:]), dtype=t.dtype, device=t.device)
 
 
 def remove_gaussians(
-    model: GaussianModel, optimizer: torch.optim.Optimizer | None, state: dict | None, mask: torch.Tensor
+    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    optimizers: Optimizers,
+    state: dict | None,
+    mask: torch.Tensor,
 ) -> None:
     """Remove the Gaussians where ``mask`` is True (parameters, moments, node ids, state rows).
 
     Args:
-        model: updated in place.
-        optimizer: its moments follow (None: parameters only).
+        params: params mapping or model, updated in place.
+        optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
         mask: ``(N,)`` bool.
 
@@ -123,23 +197,26 @@ def remove_gaussians(
         >>> m.num_gaussians
         3
     """
-    _check_mask(model, mask)
+    _check_mask(params, mask)
     keep = ~mask
-    update_params(model, optimizer, state, lambda _, p: p[keep], lambda _, v: v[keep], lambda t: t[keep])
+    update_params(params, optimizers, state, lambda _, p: p[keep], lambda _, v: v[keep], lambda t: t[keep])
 
 
 def duplicate(
-    model: GaussianModel, optimizer: torch.optim.Optimizer | None, state: dict | None, mask: torch.Tensor
+    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    optimizers: Optimizers,
+    state: dict | None,
+    mask: torch.Tensor,
 ) -> None:
     """Clone the Gaussians where ``mask`` is True (3DGS "clone"); copies are appended at the end.
 
     The copies have the same parameters and node; their moments and state rows start at zero.
     """
-    _check_mask(model, mask)
+    _check_mask(params, mask)
     sel = torch.nonzero(mask).squeeze(1)
     update_params(
-        model,
-        optimizer,
+        params,
+        optimizers,
         state,
         lambda _, p: torch.cat([p, p[sel]]),
         lambda _, v: torch.cat([v, torch.zeros_like(v[sel])]),
@@ -150,8 +227,8 @@ def duplicate(
 
 
 def split(
-    model: GaussianModel,
-    optimizer: torch.optim.Optimizer | None,
+    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    optimizers: Optimizers,
     state: dict | None,
     mask: torch.Tensor,
     generator: torch.Generator | None = None,
@@ -164,28 +241,31 @@ def split(
     Children's moments and state rows start at zero.
 
     Args:
-        model: updated in place.
-        optimizer: its moments follow (None: parameters only).
+        params: params mapping or model, updated in place.
+        optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
         mask: ``(N,)`` bool, the parents.
-        generator: for the samples (keep it in the checkpoint for exact resume).
+        generator: for the samples (keep it in the checkpoint for exact resume); a CPU generator
+            (the samples are drawn on the CPU and moved to the parameters' device).
         factor: scale divisor (3DGS: 1.6).
     """
-    _check_mask(model, mask)
+    _check_mask(params, mask)
+    names = param_names(params)
+    p = _params(params)
     sel = torch.nonzero(mask).squeeze(1)
     keep = ~mask
-    p = model.params
-    scales = p["log_scales"].data[sel].exp()
-    rot = quaternion_to_rotation(torch.nn.functional.normalize(p["quats"].data[sel], dim=-1))
+    scales = p[names.log_scales].data[sel].exp()
+    rot = quaternion_to_rotation(torch.nn.functional.normalize(p[names.quats].data[sel], dim=-1))
     noise = torch.randn((2, sel.numel(), 3), generator=generator, dtype=scales.dtype).to(scales.device)
     offsets = (rot[None] @ (noise * scales[None])[..., None]).squeeze(-1)  # (2, S, 3)
-    new_means = (p["means"].data[sel][None] + offsets).reshape(-1, 3)
+    new_means = (p[names.means].data[sel][None] + offsets).reshape(-1, 3)
+    log_factor = torch.log(torch.tensor(factor, dtype=scales.dtype, device=scales.device))
 
     def param_fn(name: str, old: torch.Tensor) -> torch.Tensor:
-        if name == "means":
+        if name == names.means:
             child = new_means
-        elif name == "log_scales":
-            child = (old[sel] - torch.log(torch.tensor(factor, dtype=old.dtype))).repeat(2, 1)
+        elif name == names.log_scales:
+            child = (old[sel] - log_factor).repeat(2, 1)
         else:
             child = old[sel].repeat(2, *([1] * (old.dim() - 1)))
         return torch.cat([old[keep], child])
@@ -197,8 +277,8 @@ def split(
         return torch.cat([t[keep], child])
 
     update_params(
-        model,
-        optimizer,
+        params,
+        optimizers,
         state,
         param_fn,
         lambda _, v: torch.cat([v[keep], torch.zeros_like(v[sel]).repeat(2, *([1] * (v.dim() - 1)))]),
@@ -207,77 +287,83 @@ def split(
 
 
 def add_gaussians(
-    model: GaussianModel,
-    optimizer: torch.optim.Optimizer | None,
+    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    optimizers: Optimizers,
     state: dict | None,
-    params: dict[str, torch.Tensor],
-    node_ids: torch.Tensor,
+    new: dict[str, torch.Tensor],
+    node_ids: torch.Tensor | None = None,
 ) -> None:
-    """Append new Gaussians (e.g. from MVS points) to a node, with zero moments and state rows.
+    """Append new Gaussians (e.g. from MVS points), with zero moments and zero state rows.
 
     Args:
-        model: updated in place.
-        optimizer: its moments follow (None: parameters only).
+        params: params mapping or model, updated in place.
+        optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
-        params: raw parameters of the new Gaussians, every key of
-            :data:`~vadgs.train.model.PER_GAUSSIAN` with the model's trailing shapes; ``means``
-            in the world for static Gaussians, in the object frame for a track node.
-        node_ids: ``(M,)`` int64, ``-1`` static or a track node index.
+        new: raw parameters of the new Gaussians, every key of ``params`` (``node_ids`` may be
+            left out), with the same trailing shapes (moved to each parameter's device and dtype);
+            ``means`` in the world for static Gaussians, in the object frame for a track node.
+        node_ids: ``(M,)`` int64, ``-1`` static or a track node index, when ``params`` has
+            ``node_ids`` (overrides ``new["node_ids"]``; default: static).
+
+    Raises:
+        ValueError: on a missing key, a wrong shape, or a node id that is not a track of the model.
 
     Example:
         >>> m = GaussianModel(torch.randn(2, 3), torch.rand(2, 3), torch.zeros(2, 3), torch.full((2,), -1),
         ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=0)
-        >>> new = {k: torch.zeros(3, *v.shape[1:]) for k, v in m.params.items()}
-        >>> add_gaussians(m, None, None, new, torch.full((3,), -1))
-        >>> m.num_gaussians
-        5
+        >>> add_gaussians(m, None, None, {k: torch.zeros(3, *m.params[k].shape[1:]) for k in PER_GAUSSIAN})
+        >>> m.num_gaussians, m.node_ids.tolist()
+        (5, [-1, -1, -1, -1, -1])
     """
-    missing = [k for k in PER_GAUSSIAN if k not in params]
+    p = _params(params)
+    first = next(iter(new.values()), None)
+    m = int(first.shape[0]) if first is not None else 0
+    new = dict(new)
+    if node_ids is not None:
+        new["node_ids"] = node_ids
+    elif "node_ids" in p and "node_ids" not in new:
+        new["node_ids"] = torch.full((m,), -1, dtype=torch.int64, device=p["node_ids"].device)
+    missing = [k for k in p.keys() if k not in new]
     if missing:
-        raise ValueError(f"params: missing {missing}")
-    m = node_ids.shape[0]
-    for k in PER_GAUSSIAN:
-        want = (m, *model.params[k].shape[1:])
-        if tuple(params[k].shape) != want:
-            raise ValueError(f"params[{k!r}]: expected shape {want}, got {tuple(params[k].shape)}")
-    num_tracks = model.object_to_world.shape[0]
-    if m and (int(node_ids.min()) < -1 or int(node_ids.max()) >= num_tracks):
-        raise ValueError(
-            f"node_ids: expected values in [-1, {num_tracks}), "
-            f"got [{int(node_ids.min())}, {int(node_ids.max())}]"
-        )
-
-    def row_fn(t: torch.Tensor) -> torch.Tensor:
-        if t is model.node_ids:
-            return torch.cat([t, node_ids.to(t)])
-        return torch.cat([t, torch.zeros((m, *t.shape[1:]), dtype=t.dtype, device=t.device)])
-
+        raise ValueError(f"new: missing {missing}")
+    for k in p.keys():
+        want = (m, *p[k].shape[1:])
+        if tuple(new[k].shape) != want:
+            raise ValueError(f"new[{k!r}]: expected shape {want}, got {tuple(new[k].shape)}")
+    if isinstance(params, GaussianModel) and m:
+        num_tracks = params.object_to_world.shape[0]
+        nid = new["node_ids"]
+        lo, hi = int(nid.min()), int(nid.max())
+        if lo < -1 or hi >= num_tracks:
+            raise ValueError(f"node_ids: expected values in [-1, {num_tracks}), got [{lo}, {hi}]")
     update_params(
-        model,
-        optimizer,
+        params,
+        optimizers,
         state,
-        lambda name, p: torch.cat([p, params[name].to(p)]),
-        lambda _, v: torch.cat([v, torch.zeros((m, *v.shape[1:]), dtype=v.dtype, device=v.device)]),
-        row_fn,
+        lambda name, old: torch.cat([old, new[name].to(old)]),
+        lambda _, v: torch.cat([v, _zero_rows(v, m)]),
+        lambda t: torch.cat([t, _zero_rows(t, m)]),
     )
 
 
-def reset_opacity(model: GaussianModel, optimizer: torch.optim.Optimizer | None, value: float) -> None:
+def reset_opacity(
+    params: MutableMapping[str, torch.Tensor] | GaussianModel, optimizers: Optimizers, value: float
+) -> None:
     """Clamp every opacity to at most ``value`` (3DGS opacity reset) and zero its moments."""
+    name = param_names(params).opacity_logits
     logit = float(torch.logit(torch.tensor(value)))
     update_params(
-        model,
-        optimizer,
+        params,
+        optimizers,
         None,
         lambda _, p: p.clamp(max=logit),
         lambda _, v: torch.zeros_like(v),
         lambda t: t,
-        names=("opacity_logits",),
+        names=(name,),
     )
 
 
-def _check_mask(model: GaussianModel, mask: torch.Tensor) -> None:
-    if mask.dtype != torch.bool or tuple(mask.shape) != (model.num_gaussians,):
-        raise ValueError(
-            f"mask: expected bool ({model.num_gaussians},), got {mask.dtype} {tuple(mask.shape)}"
-        )
+def _check_mask(params: Any, mask: torch.Tensor) -> None:
+    n = _num_rows(_params(params))
+    if mask.dtype != torch.bool or tuple(mask.shape) != (n,):
+        raise ValueError(f"mask: expected bool ({n},), got {mask.dtype} {tuple(mask.shape)}")

@@ -173,6 +173,7 @@ class VisibilityIndex:
     grow: int = 6
     _cells: torch.Tensor | None = field(default=None, repr=False)
     _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
+    _voxel_depths: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
 
     def image(self, view: int, factor: int = 1) -> torch.Tensor:
         """``(3, H, W)`` image of a view (cached), or ``factor`` times finer (re-read, not cached)."""
@@ -229,6 +230,36 @@ class VisibilityIndex:
             r = rasterize_voxels(self.grid, self.cameras[view], [view], self.zbuffer)
             self._rasters[view] = (r.depth[0], r.index[0])
         return self._rasters[view]
+
+    def voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
+
+        Moving objects are rasterised in their own frame at the view's timestamp; the nearest
+        voxel surface wins. Cached per view.
+
+        Returns:
+            ``(depth, label)``: the nearest voxel surface (0 where empty) and the instance label of
+            its voxel (``(H, W)`` int64, 0 where empty; a track's id on its voxels).
+        """
+        if view in self._voxel_depths:
+            return self._voxel_depths[view]
+        depth, vidx = self.voxel_raster(view)
+        label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
+        depth = depth.clone()
+        fpos = self.scene.view_frame_position(view)
+        cams = self.cameras[view]
+        for tid, grid in self.track_grids.items():
+            track = self.scene.tracks[tid]
+            if not bool(track.valid[fpos]):
+                continue
+            o2w = track.object_to_world[fpos].to(cams.world_to_cam)
+            obj_cams = Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size)
+            r = rasterize_voxels(grid, obj_cams, config=self.zbuffer)
+            closer = (r.depth[0] > 0) & ((depth == 0) | (r.depth[0] < depth))
+            depth = torch.where(closer, r.depth[0], depth)
+            label = torch.where(closer[0], torch.full_like(label, tid), label)
+        self._voxel_depths[view] = (depth, label)
+        return depth, label
 
     def object_cameras(self, track: int) -> torch.Tensor:
         """``(V, 4, 4)`` object-to-camera transforms of every view for a track."""

@@ -1,56 +1,63 @@
 """Densification strategies: the interface and the standard adaptive density control (3DGS / gsplat).
 
-A strategy is an object with settings and *no hidden state*: its state lives in a dict that the
-trainer owns, checkpoints and passes back (gsplat's ``Strategy``). The trainer calls
+A strategy follows gsplat's ``Strategy``: an object with settings and *no hidden state*; its state
+lives in a dict that the training loop owns, checkpoints and passes back. Any loop calls
 
 .. code-block:: python
 
-    state = strategy.initialize_state(model, scene_scale)
+    state = strategy.initialize_state(scene_scale)
     for step in ...:
-        out = model.render(...)
-        info = {"raster": out.raster, "ids": out.ids, "image_size": (H, W), "view": v, "frame": f, ...}
-        strategy.step_pre_backward(model, optimizer, state, step, info)
+        out = render(params, view)                 # info: what the rasterizer reports
+        strategy.step_pre_backward(params, optimizers, state, step, info)
         loss.backward()
-        optimizer.step()
-        strategy.step_post_backward(model, optimizer, state, step, info)  # may add / remove rows
+        for opt in optimizers.values(): opt.step()  # or one optimizer with named groups
+        strategy.step_post_backward(params, optimizers, state, step, info)  # may add / remove rows
 
-Strategies change the set of Gaussians only through :mod:`vadgs.train.ops`, which keeps the
-optimizer's moments, the model's node ids and every per-Gaussian tensor of ``state`` consistent.
-A strategy may also contribute losses: the trainer adds the dict returned by
-``strategy.extra_losses(model, state, step, info)`` when the strategy defines it (the next issue's
-visibility-aware densification uses it for its normal and depth losses).
+``params`` is gsplat's mapping of per-Gaussian tensors (``means``, ``quats``, ``scales``,
+``opacities``, ``sh0``, ``shN``) or vadgs's ``GaussianModel.params`` (``log_scales``,
+``opacity_logits``, ``sh_dc``, ``sh_rest`` and the integer ``node_ids``); ``optimizers`` is gsplat's
+``{name: optimizer}`` or one optimizer with a named group per parameter
+(:func:`vadgs.train.ops.make_optimizer`). Strategies change the set of Gaussians only through
+:mod:`vadgs.train.ops`, which keeps the optimizer moments and every per-Gaussian tensor of
+``state`` consistent. A strategy never sees the training loop: what else it needs is given to it
+explicitly (e.g. :class:`~vadgs.train.vad.StrategyContext` for the visibility-aware one).
+
+``info`` is either vadgs's (``raster``: the :class:`~vadgs.render.RenderOutput`, ``ids``: the model
+rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with its gradient,
+``radii``, ``width``, ``height``, ``n_cameras``; :func:`gsplat.rasterization`'s ``meta``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import torch
 
 from vadgs.train import ops
-from vadgs.train.model import GaussianModel
+from vadgs.train.losses import GeometryTargets
 
-__all__ = ["DefaultStrategy", "DefaultStrategyConfig", "Strategy"]
+__all__ = ["DefaultStrategy", "DefaultStrategyConfig", "GeometryPriors", "Strategy"]
 
 
 @runtime_checkable
 class Strategy(Protocol):
-    """The interface every densification strategy implements.
+    """The interface every densification strategy implements (gsplat's ``Strategy``).
 
-    A strategy may append JSON-serialisable dicts to ``state["pending_log"]``: the trainer writes
-    each as an ``{"step": ..., "event": ...}`` line of ``log.jsonl`` right after the step and
-    removes them from the state.
+    A strategy may append JSON-serialisable dicts to ``state["pending_log"]``: vadgs's trainer
+    writes each as an ``{"step": ..., "event": ...}`` line of ``log.jsonl`` right after the step
+    and removes them from the state.
     """
 
-    def initialize_state(self, model: GaussianModel, scene_scale: float) -> dict[str, Any]:
-        """A fresh state dict (per-Gaussian tensors have the model's row count as first dim)."""
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        """A fresh state dict (per-Gaussian tensors are allocated lazily, at their first use)."""
         ...
 
     def step_pre_backward(
         self,
-        model: GaussianModel,
-        optimizer: torch.optim.Optimizer,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
@@ -60,13 +67,26 @@ class Strategy(Protocol):
 
     def step_post_backward(
         self,
-        model: GaussianModel,
-        optimizer: torch.optim.Optimizer,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
     ) -> None:
-        """Called after ``loss.backward()`` and ``optimizer.step()``; may add or remove Gaussians."""
+        """Called after ``loss.backward()`` and the optimizer step; may add or remove Gaussians."""
+        ...
+
+
+@runtime_checkable
+class GeometryPriors(Protocol):
+    """A strategy that also provides geometric priors (VAD-GS's MVS and voxel depth, normals).
+
+    A training loop turns them into loss terms with :func:`vadgs.train.losses.geometric_losses`;
+    vadgs's trainer does so for every strategy that implements this protocol.
+    """
+
+    def geometry_targets(self, state: dict[str, Any], view: int) -> GeometryTargets | None:
+        """The priors of a view (None: no geometric loss for it)."""
         ...
 
 
@@ -124,13 +144,11 @@ class DefaultStrategy:
     def __init__(self, config: DefaultStrategyConfig | None = None) -> None:
         self.config = config or DefaultStrategyConfig()
 
-    def initialize_state(self, model: GaussianModel, scene_scale: float) -> dict[str, Any]:
-        """Zero statistics for the model's Gaussians."""
-        n = model.num_gaussians
-        dev = model.params["means"].device
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        """Statistics allocated at the first update; the scene scale for the size thresholds."""
         return {
-            "grad2d": torch.zeros(n, device=dev),
-            "count": torch.zeros(n, device=dev),
+            "grad2d": None,
+            "count": None,
             "scene_scale": float(scene_scale),
             "num_resets": 0,
             "last_refine": {},
@@ -138,21 +156,21 @@ class DefaultStrategy:
 
     def step_pre_backward(
         self,
-        model: GaussianModel,
-        optimizer: torch.optim.Optimizer,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
     ) -> None:
-        """Nothing to do: the renderer already retains the gradient of ``means2d``."""
-        raster = info["raster"]
-        if raster.means2d.requires_grad and not raster.means2d.is_leaf:
-            raster.means2d.retain_grad()
+        """Retain the gradient of the projected means (the rasterizer's ``means2d``)."""
+        means2d = info["raster"].means2d if "raster" in info else info["means2d"]
+        if means2d.requires_grad and not means2d.is_leaf:
+            means2d.retain_grad()
 
     def step_post_backward(
         self,
-        model: GaussianModel,
-        optimizer: torch.optim.Optimizer,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
@@ -161,33 +179,50 @@ class DefaultStrategy:
         cfg = self.config
         if step >= cfg.refine_stop_iter:
             return
-        self._update_state(state, info)
+        self._update_state(params, state, info)
         if step > cfg.refine_start_iter and step % cfg.refine_every == 0:
-            state["last_refine"] = self.refine(model, optimizer, state, step, info.get("generator"))
+            state["last_refine"] = self.refine(params, optimizers, state, step, info.get("generator"))
         if cfg.reset_every and step > 0 and step % cfg.reset_every == 0:
-            ops.reset_opacity(model, optimizer, cfg.reset_value)
+            ops.reset_opacity(params, optimizers, cfg.reset_value)
             state["num_resets"] += 1
 
     @torch.no_grad()
-    def _update_state(self, state: dict[str, Any], info: dict[str, Any]) -> None:
-        raster = info["raster"]
-        grad = raster.means2d_absgrad if self.config.absgrad else raster.means2d.grad
+    def _update_state(
+        self, params: Mapping[str, torch.Tensor], state: dict[str, Any], info: dict[str, Any]
+    ) -> None:
+        params = getattr(params, "params", params)
+        if "raster" in info:  # vadgs: one camera, rows ``ids`` of the model
+            raster = info["raster"]
+            means2d, (h, w), cams = raster.means2d, info["image_size"], 1
+            vis = raster.visible
+        else:  # gsplat: (C, N, 2) means2d, radii (C, N) or (C, N, 2)
+            means2d, h, w, cams = info["means2d"], info["height"], info["width"], info.get("n_cameras", 1)
+            radii = info["radii"]
+            vis = (radii > 0).all(-1) if radii.dim() == 3 else radii > 0
+        grad = getattr(means2d, "absgrad", None) if self.config.absgrad else means2d.grad
         if grad is None:
             return
-        h, w = info["image_size"]
-        g = grad[0].clone()
-        g[:, 0] *= w / 2.0
-        g[:, 1] *= h / 2.0
-        vis = raster.visible[0]
-        ids = info["ids"][vis]
-        state["grad2d"].index_add_(0, ids, g[vis].norm(dim=-1).to(state["grad2d"].dtype))
-        state["count"].index_add_(0, ids, torch.ones_like(ids, dtype=state["count"].dtype))
+        n = params["means"].shape[0]
+        dev = params["means"].device
+        if state["grad2d"] is None:
+            state["grad2d"] = torch.zeros(n, device=dev)
+            state["count"] = torch.zeros(n, device=dev)
+        g = grad.clone()
+        g[..., 0] *= w / 2.0 * cams
+        g[..., 1] *= h / 2.0 * cams
+        ids = info.get("ids")
+        for c in range(g.shape[0]):
+            rows = torch.nonzero(vis[c]).squeeze(1)
+            gid = rows if ids is None else ids[rows]
+            norms = g[c, rows].norm(dim=-1).to(state["grad2d"].dtype)
+            state["grad2d"].index_add_(0, gid, norms)
+            state["count"].index_add_(0, gid, torch.ones_like(norms))
 
     @torch.no_grad()
     def refine(
         self,
-        model: GaussianModel,
-        optimizer: torch.optim.Optimizer,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
         state: dict[str, Any],
         step: int,
         generator: torch.Generator | None = None,
@@ -198,30 +233,36 @@ class DefaultStrategy:
             ``{"cloned": .., "split": .., "pruned": .., "total": ..}``.
         """
         cfg = self.config
+        names = ops.param_names(params)
+        p = getattr(params, "params", params)
+        n = p[names.means].shape[0]
+        if state["grad2d"] is None:  # no statistics yet
+            state["grad2d"] = torch.zeros(n, device=p[names.means].device)
+            state["count"] = torch.zeros_like(state["grad2d"])
         scale = state["scene_scale"]
         avg = state["grad2d"] / state["count"].clamp(min=1)
         cand = avg > cfg.grow_grad2d
-        budget = max(cfg.max_gaussians - model.num_gaussians, 0)
+        budget = max(cfg.max_gaussians - n, 0)
         if int(cand.sum()) > budget:
             top = torch.topk(torch.where(cand, avg, torch.zeros_like(avg)), budget).indices
             cand = torch.zeros_like(cand)
             cand[top] = True
-        big = model.params["log_scales"].exp().amax(-1) > cfg.grow_scale3d * scale
+        big = p[names.log_scales].exp().amax(-1) > cfg.grow_scale3d * scale
         is_dupli = cand & ~big
         is_split = cand & big
         n_dupli, n_split = int(is_dupli.sum()), int(is_split.sum())
         if n_dupli:
-            ops.duplicate(model, optimizer, state, is_dupli)
+            ops.duplicate(params, optimizers, state, is_dupli)
             is_split = torch.cat([is_split, torch.zeros(n_dupli, dtype=torch.bool, device=is_split.device)])
         if n_split:
-            ops.split(model, optimizer, state, is_split, generator, cfg.split_factor)
-        opac = torch.sigmoid(model.params["opacity_logits"])
+            ops.split(params, optimizers, state, is_split, generator, cfg.split_factor)
+        opac = torch.sigmoid(p[names.opacity_logits])
         prune = opac < cfg.prune_opa
         if state["num_resets"] > 0:
-            prune |= model.params["log_scales"].exp().amax(-1) > cfg.prune_scale3d * scale
+            prune |= p[names.log_scales].exp().amax(-1) > cfg.prune_scale3d * scale
         n_prune = int(prune.sum())
         if n_prune:
-            ops.remove_gaussians(model, optimizer, state, prune)
+            ops.remove_gaussians(params, optimizers, state, prune)
         state["grad2d"].zero_()
         state["count"].zero_()
-        return {"cloned": n_dupli, "split": n_split, "pruned": n_prune, "total": model.num_gaussians}
+        return {"cloned": n_dupli, "split": n_split, "pruned": n_prune, "total": p[names.means].shape[0]}

@@ -2,9 +2,13 @@
 
 :class:`Trainer` fits a :class:`~vadgs.train.model.GaussianModel` to a scene's training views,
 sampled without replacement (:class:`~vadgs.train.sampler.ViewSampler`), with the colour loss,
-an optional sparse LiDAR depth term, the paper's geometric losses when a target provider is given,
-extra losses from a hook or from the strategy, and a densification
-:class:`~vadgs.train.strategy.Strategy`.
+an optional sparse LiDAR depth term, the paper's geometric losses on priors
+(:class:`~vadgs.train.losses.GeometryTargets` from a provider or from a strategy that implements
+:class:`~vadgs.train.strategy.GeometryPriors`, through :func:`~vadgs.train.losses.geometric_losses`),
+extra losses from a hook, and a densification :class:`~vadgs.train.strategy.Strategy`: the standard
+one, VAD-GS's when ``TrainConfig.vad`` is set, or any given one. The trainer hands strategies
+gsplat's arguments (``model.params``, the optimizer, the state, the step, the render's ``info``) and,
+for VAD-GS, a :class:`~vadgs.train.vad.StrategyContext`; strategies never see the trainer.
 
 Checkpoints (``checkpoint.pt`` in the run folder) hold the step, the configuration, the scene
 reference, the model, Adam's state, the strategy state, the sampler and every random generator, so
@@ -19,6 +23,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import types
+import typing
 import math
 import os
 import random
@@ -33,14 +39,17 @@ from typing import Any, NamedTuple
 
 import torch
 
+from vadgs.checks import checks_enabled
 from vadgs.data.scene import Scene
 from vadgs.render import RasterConfig
 from vadgs.train import losses as L
 from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
 from vadgs.train.ops import make_optimizer
 from vadgs.train.sampler import ViewSampler
-from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
+from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, GeometryPriors, Strategy
+from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityDensifyConfig
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -103,7 +112,14 @@ class TrainConfig:
         lambda_lidar: weight of the relative L1 between the rendered depth and the view's own
             LiDAR sweep projected into it (0 disables; the baseline's only geometric term).
         lambda_normal, lambda_hard, lambda_soft, hard_until: the paper's geometric loss weights
-            (applied when a :class:`GeometryTargets` provider is given).
+            (applied to priors: VAD-GS's, or a :class:`GeometryTargets` provider's).
+        hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
+            every ``hard_every``-th step only, to bound its cost (1: the paper's schedule).
+        vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
+            visibility-aware densification (extending ``strategy``); None: standard ADC only.
+            Stored in checkpoints: a resumed run continues with the same strategy.
+        device: where the model, images and losses live (``"cpu"``, ``"cuda"``, ``"cuda:1"``);
+            the scene and its visibility index stay on the CPU.
         checkpoint_every: steps between checkpoints (0 = only at the end / on interruption).
         log_every: steps between log lines in ``log.jsonl``.
         max_minutes: stop (and checkpoint) after this much training time (0 = no limit).
@@ -123,6 +139,9 @@ class TrainConfig:
     lambda_hard: float = 0.1
     lambda_soft: float = 0.1
     hard_until: float = 0.8
+    hard_every: int = 4
+    vad: VisibilityDensifyConfig | None = None
+    device: str = "cpu"
     checkpoint_every: int = 500
     log_every: int = 50
     max_minutes: float = 0.0
@@ -131,8 +150,17 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.iterations < 0:
             raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
-        if self.sh_degree_interval < 1 or self.log_every < 1:
-            raise ValueError("sh_degree_interval and log_every: expected >= 1")
+        if self.sh_degree_interval < 1 or self.log_every < 1 or self.hard_every < 1:
+            raise ValueError(
+                "sh_degree_interval, log_every, hard_every: expected >= 1, got "
+                f"{self.sh_degree_interval}, {self.log_every}, {self.hard_every}"
+            )
+        try:
+            torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(
+                f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r}"
+            ) from None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON-serialisable)."""
@@ -147,28 +175,7 @@ class TrainConfig:
             >>> TrainConfig.from_dict(c.to_dict()) == c
             True
         """
-        sub = {
-            "init": InitConfig,
-            "strategy": DefaultStrategyConfig,
-            "raster": RasterConfig,
-            "lr": LearningRates,
-        }
-        known = {f.name for f in dataclasses.fields(cls)}
-        bad = set(d) - known
-        if bad:
-            raise ValueError(f"config: unknown keys {sorted(bad)}")
-        kw: dict[str, Any] = {}
-        for k, v in d.items():
-            if k in sub:
-                sk = {f.name for f in dataclasses.fields(sub[k])}
-                if not isinstance(v, dict) or set(v) - sk:
-                    raise ValueError(
-                        f"config.{k}: unknown keys {sorted(set(v) - sk) if isinstance(v, dict) else v}"
-                    )
-                kw[k] = sub[k](**v)
-            else:
-                kw[k] = v
-        return cls(**kw)
+        return _from_dict(cls, d, "config")
 
     def replace(self, **changes: Any) -> TrainConfig:
         """A copy with changes; nested fields as ``"init.max_points"``."""
@@ -184,18 +191,39 @@ class TrainConfig:
         return TrainConfig.from_dict(flat)
 
 
-class GeometryTargets(NamedTuple):
-    """Targets of the geometric losses for one view (any may be None).
+def _from_dict(cls: type, d: Any, where: str) -> Any:
+    """Build a (nested) frozen config dataclass from a plain dict, naming bad or unknown keys."""
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: expected an object with keys of {cls.__name__}, got {d!r}")
+    known = {f.name for f in dataclasses.fields(cls)}
+    bad = set(d) - known
+    if bad:
+        raise ValueError(f"{where}: unknown keys {sorted(bad)}")
+    hints = typing.get_type_hints(cls)
+    kw: dict[str, Any] = {}
+    for k, v in d.items():
+        kw[k] = _from_value(hints[k], v, f"{where}.{k}")
+    try:
+        return cls(**kw)
+    except TypeError as e:
+        raise ValueError(f"{where}: {e}") from None
 
-    Attributes:
-        depth: ``(1, 1, H, W)`` target z-depth, 0 where unknown (voxel / MVS depth).
-        normal: ``(1, 3, H, W)`` target camera-frame normals, zeros where unknown.
-        mask: ``(1, 1, H, W)`` bool, pixels the losses apply to.
-    """
 
-    depth: torch.Tensor | None = None
-    normal: torch.Tensor | None = None
-    mask: torch.Tensor | None = None
+def _from_value(tp: Any, v: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if v is None:
+            return None
+        return _from_value(args[0], v, where) if len(args) == 1 else v
+    if dataclasses.is_dataclass(tp):
+        return v if isinstance(v, tp) else _from_dict(tp, v, where)
+    if origin is tuple and isinstance(v, (list, tuple)):
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_from_value(args[0], x, where) for x in v)
+        return tuple(_from_value(a, x, where) for a, x in zip(args, v))
+    return v
 
 
 class TrainResult(NamedTuple):
@@ -313,12 +341,14 @@ class Trainer:
         config: :class:`TrainConfig`.
         out_dir: run folder (checkpoints, ``log.jsonl``, ``config.json``); None = no files.
         scene_ref: how to reload the scene (stored in checkpoints; see :func:`open_scene`).
-        strategy: densification strategy (default :class:`~vadgs.train.strategy.DefaultStrategy`
-            with ``config.strategy``). A strategy with a ``base`` attribute left ``None`` (e.g.
-            :class:`~vadgs.train.vad.VisibilityAwareDensification` by default) gets that one as its
-            base, so ``config.strategy`` applies to it too.
-        geometry_targets: ``view -> GeometryTargets | None``, enables the paper's normal / hard /
-            soft depth losses.
+        strategy: a densification strategy to use instead of the configured one (default:
+            :class:`~vadgs.train.vad.VisibilityAwareDensification` with ``config.vad`` when set,
+            extending :class:`~vadgs.train.strategy.DefaultStrategy` with ``config.strategy``;
+            else that standard strategy alone). Given strategies are not stored in checkpoints:
+            pass them again to :meth:`from_checkpoint`.
+        geometry_targets: ``view -> GeometryTargets | None``: priors for the paper's normal / hard /
+            soft depth losses (default: the strategy's, when it implements
+            :class:`~vadgs.train.strategy.GeometryPriors`, as VAD-GS does).
         extra_losses: ``(step, render, view) -> {name: scalar}`` added to the loss as given.
         colmap_points: SfM points for the initialisation.
         model: start from this model instead of :func:`~vadgs.train.init.init_gaussians`.
@@ -354,11 +384,9 @@ class Trainer:
         if scene_ref is None and scene.root is not None and (Path(scene.root) / "scene.json").is_file():
             scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
         self.scene_ref = scene_ref or {}
-        self.strategy = strategy or DefaultStrategy(self.config.strategy)
-        if getattr(self.strategy, "base", 0) is None:
-            # a strategy that extends the standard one and left it open (e.g. the visibility-aware
-            # one): it extends this trainer's, with ``config.strategy``
-            self.strategy.base = DefaultStrategy(self.config.strategy)
+        self.device = torch.device(self.config.device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device: {self.config.device!r} requested but CUDA is not available")
         self.geometry_targets = geometry_targets
         self.extra_losses = extra_losses
         self.progress = progress
@@ -368,20 +396,37 @@ class Trainer:
         self.train_views = list(scene.train_views)
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
-        self.frame_pos = {f.index: i for i, f in enumerate(scene.frames)}
         torch.manual_seed(self.config.seed)
         random.seed(self.config.seed)
         self.generator = torch.Generator().manual_seed(self.config.seed + 1)
         self.sampler = ViewSampler(self.train_views, seed=self.config.seed)
-        self.model = model if model is not None else init_gaussians(scene, self.config.init, colmap_points)
+        model = model if model is not None else init_gaussians(scene, self.config.init, colmap_points)
+        self.model = model.to(self.device)
         self.scene_scale = _scene_scale(scene, self.train_views)
         self.optimizer = make_optimizer(self.model, self._lrs(0))
-        self.state = self.strategy.initialize_state(self.model, self.scene_scale)
+        self.strategy = strategy if strategy is not None else self._configured_strategy()
+        self.state = self.strategy.initialize_state(self.scene_scale)
         self.step = 0
         self.train_s = 0.0
         self._images: dict[int, torch.Tensor] = {}
-        self._lidar: dict[int, torch.Tensor] = {}
+        self._lidar: dict[int, tuple[torch.Tensor, bool]] = {}
         self._stop = False
+
+    def _configured_strategy(self) -> Strategy:
+        base = DefaultStrategy(self.config.strategy)
+        if self.config.vad is None:
+            return base
+        return VisibilityAwareDensification(self.scene, self.strategy_context(), self.config.vad, base=base)
+
+    def strategy_context(self) -> StrategyContext:
+        """What a strategy may know of this loop: render a view, step counts, the generator, nodes."""
+        return StrategyContext(
+            render=self.render_geometry,
+            total_steps=self.config.iterations,
+            steps_per_cycle=len(self.sampler),
+            generator=self.generator,
+            track_nodes={t: k for k, t in enumerate(self.model.track_ids)},
+        )
 
     # -- resume ---------------------------------------------------------------------------------------
 
@@ -473,27 +518,40 @@ class Trainer:
     def image(self, view: int) -> torch.Tensor:
         """Training image ``(1, 3, H, W)`` (cached)."""
         if view not in self._images:
-            self._images[view] = self.scene.load_images([view])
+            self._images[view] = self.scene.load_images([view]).to(self.device)
         return self._images[view]
 
     def lidar_depth(self, view: int) -> torch.Tensor | None:
-        """Sparse LiDAR depth of a view (cached), None when the scene has no LiDAR."""
+        """Sparse LiDAR depth of a view on the trainer's device (cached), None without LiDAR there."""
         if self.scene.lidar_loader is None:
             return None
         if view not in self._lidar:
             try:
-                self._lidar[view] = lidar_depth_map(self.scene, view)
+                d = lidar_depth_map(self.scene, view)
             except FileNotFoundError:
-                self._lidar[view] = torch.zeros(1, 1, *self.scene.image_size(view))
-        return self._lidar[view]
+                d = torch.zeros(1, 1, *self.scene.image_size(view))
+            self._lidar[view] = (d.to(self.device), bool((d > 0).any()))  # decided once, not per step
+        depth, any_point = self._lidar[view]
+        return depth if any_point else None
 
     def render_view(self, view: int, **kwargs: Any) -> ModelRender:
-        """Render a scene view with the current model."""
+        """Render a scene view with the current model (on the trainer's device)."""
         cams = self.scene.cameras([view])
-        frame = self.frame_pos[self.scene.views[view].frame]
+        frame = self.scene.view_frame_position(view)
         return self.model.render(
-            cams.world_to_cam, cams.K, cams.image_size, frame, self.config.raster, **kwargs
+            cams.world_to_cam.to(self.device),
+            cams.K.to(self.device),
+            cams.image_size,
+            frame,
+            self.config.raster,
+            **kwargs,
         )
+
+    @torch.no_grad()
+    def render_geometry(self, view: int) -> ViewRender:
+        """Depth, opacity and normals of a view, without gradient (a strategy's ``render``)."""
+        r = self.render_view(view).raster
+        return ViewRender(r.depth[0], r.alpha[0], r.normals[0])
 
     def compute_losses(self, step: int, view: int, out: ModelRender) -> dict[str, torch.Tensor]:
         """Every loss term of a step (already weighted), by name."""
@@ -502,28 +560,24 @@ class Trainer:
         terms = {"color": L.color_loss(out.color, gt, cfg.ssim_weight)}
         if cfg.lambda_lidar > 0:
             lid = self.lidar_depth(view)
-            if lid is not None and bool((lid > 0).any()):
+            if lid is not None:
                 terms["lidar"] = cfg.lambda_lidar * L.depth_loss(out.raster.depth, lid)
+        targets = None
         if self.geometry_targets is not None:
-            tg = self.geometry_targets(view)
-            if tg is not None:
-                w = L.geometric_weights(
-                    step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
-                )
-                if tg.normal is not None and w["normal"] > 0:
-                    terms["normal"] = w["normal"] * L.normal_loss(out.raster.normals, tg.normal, tg.mask)
-                if tg.depth is not None and w["soft"] > 0:
-                    terms["soft"] = w["soft"] * L.depth_loss_soft(out.raster.depth, tg.depth, tg.mask)
-                if tg.depth is not None and w["hard"] > 0:
-                    hard = self.render_view(view, opacity_override=1.0)
-                    terms["hard"] = w["hard"] * L.depth_loss_hard(hard.raster.depth, tg.depth, tg.mask)
+            targets = self.geometry_targets(view)
+        elif isinstance(self.strategy, GeometryPriors):
+            targets = self.strategy.geometry_targets(self.state, view)
+        if targets is not None:
+            targets = targets.to(self.device)
+            w = L.geometric_weights(
+                step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
+            )
+            hard = None
+            if w["hard"] > 0 and targets.depth is not None and step % cfg.hard_every == 0:
+                hard = self.render_view(view, opacity_override=1.0).raster.depth
+            terms.update(L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard))
         if self.extra_losses is not None:
             terms.update(self.extra_losses(step, out, view))
-        strategy_losses = getattr(self.strategy, "extra_losses", None)
-        if strategy_losses is not None:
-            terms.update(
-                strategy_losses(self.model, self.state, step, {"render": out, "view": view, "trainer": self})
-            )
         return terms
 
     def train_step(self) -> dict[str, float]:
@@ -534,36 +588,40 @@ class Trainer:
             g["lr"] = self._lrs(step)[g["name"]]
         self.model.active_sh_degree = min(step // cfg.sh_degree_interval, self.model.sh_degree)
         view = self.sampler.next()
-        frame = self.frame_pos[self.scene.views[view].frame]
         out = self.render_view(view)
         info = {
             "raster": out.raster,
             "ids": out.ids,
             "image_size": tuple(out.color.shape[-2:]),
             "view": view,
-            "frame": frame,
+            "frame": self.scene.view_frame_position(view),
             "generator": self.generator,
-            "trainer": self,
         }
-        self.strategy.step_pre_backward(self.model, self.optimizer, self.state, step, info)
+        params = self.model.params
+        self.strategy.step_pre_backward(params, self.optimizer, self.state, step, info)
         terms = self.compute_losses(step, view, out)
         total = torch.stack([t.reshape(()) for t in terms.values()]).sum()
-        if not bool(torch.isfinite(total)):
+        if checks_enabled() and not bool(torch.isfinite(total)):
             bad = {k: float(v.detach()) for k, v in terms.items()}
             raise NonFiniteLossError(step, f"loss terms {bad} (view {view})")
         total.backward()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        self.strategy.step_post_backward(self.model, self.optimizer, self.state, step, info)
-        for k in ("means", "log_scales", "opacity_logits", "sh_dc"):
-            if not bool(torch.isfinite(self.model.params[k]).all()):
-                raise NonFiniteLossError(step, f"parameter {k!r} after the optimizer step")
+        self.strategy.step_post_backward(params, self.optimizer, self.state, step, info)
+        if checks_enabled():
+            for k in ("means", "log_scales", "opacity_logits", "sh_dc"):
+                if not bool(torch.isfinite(self.model.params[k]).all()):
+                    raise NonFiniteLossError(step, f"parameter {k!r} after the optimizer step")
         self.step = step + 1
         with torch.no_grad():
             mse = torch.mean((out.color.detach().clamp(0, 1) - self.image(view)) ** 2)
         res = {k: float(v.detach()) for k, v in terms.items()}
         res["total"] = float(total.detach())
         res["psnr"] = float(-10 * torch.log10(mse.clamp(min=1e-10)))
+        if not math.isfinite(res["total"]):  # the floats above are read anyway: no extra sync
+            raise NonFiniteLossError(
+                step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"
+            )
         return res
 
     def train(self) -> TrainResult:

@@ -1,25 +1,33 @@
 r"""VAD-GS: the visibility-aware densification strategy (paper, Sec. "Methodology").
 
-:class:`VisibilityAwareDensification` wraps a standard strategy (adaptive density control) and,
-every ``every_cycles`` complete sampling cycles of the training views:
+:class:`VisibilityAwareDensification` is a gsplat-style strategy
+(``initialize_state`` / ``step_pre_backward`` / ``step_post_backward`` on ``params``,
+``optimizers``, ``state``, ``step``, ``info``) that wraps a standard one (adaptive density control)
+and never sees the training loop: it gets the scene at construction and, in a frozen
+:class:`StrategyContext`, the three things of the loop it needs — a function that renders a view's
+depth, opacity and normals with the current Gaussians, the total number of steps and the number
+of steps of a sampling cycle — plus the generator of its selection noise. Every ``every_cycles``
+complete sampling cycles of the training views it runs one event, a one-way flow:
 
-1. **detects** incomplete instances: for every training view it renders depth and accumulated
-   opacity, rasterises the voxels (static grid in world, each moving object's grid in its own
-   frame) and flags, per instance of the view's instance map, the instances whose rendered depth
-   is absent or more than 1.1× the voxel depth, or with more than 25% of pixels below 0.7 opacity
+1. **visibility index** (built once): voxel grids of the initial points with per-voxel view
+   visibility (:func:`~vadgs.train.reconstruct.build_visibility_index`: LiDAR, or COLMAP tracks);
+2. **incompleteness test**: for every training view, the rendered depth and opacity against the
+   voxel depth of the z-buffer (static grid in world, each moving object's grid in its own frame);
+   per instance, flag when the rendered depth is absent or more than 1.1× the voxel depth, or when
+   more than 25 % of its pixels are below 0.7 opacity
    (:func:`~vadgs.train.incomplete.find_incomplete`);
-2. **reconstructs** each flagged instance from its best reference view: diversity-aware k-clique
-   view selection, PatchMatch initialised from the rendered depth and normals and restricted to
-   the instance (a moving object in its own frame), consistency, fusion
-   (:func:`~vadgs.train.reconstruct.reconstruct_instance`);
-3. **densifies**: the fused points that the current Gaussians do not already explain (no opaque
-   surface within ``explained_tolerance`` in front of them in the reference view) become new
-   flat Gaussians oriented by the MVS normals — in the world for static instances, in the
-   object's frame for moving ones;
-4. keeps the MVS depth and normals of the group views as **geometric priors**: the normal loss
-   (:math:`\lambda_\text{normal} = 0.02`) and the hard and soft depth losses (0.1 each, hard off
-   after 80% of the iterations) against MVS depth, falling back to the voxel depth where no MVS
-   depth exists (:meth:`VisibilityAwareDensification.extra_losses`).
+3. **selection and MVS**: each flagged instance (:func:`rank_instances`, :func:`pick_references`) is
+   reconstructed from its reference views: diversity-aware k-clique view selection, PatchMatch
+   initialised from the rendered depth and normals and restricted to the instance (a moving object
+   in its own frame), consistency and fusion (:func:`~vadgs.train.reconstruct.reconstruct_instance`);
+4. **new Gaussians**: the fused points that the current Gaussians do not already explain (no opaque
+   surface within ``explained_tolerance`` in front of them in the reference view) become flat
+   Gaussians oriented by the MVS normals — static, or in the object's frame for moving ones — added
+   with :func:`~vadgs.train.ops.add_gaussians` (optimizer moments and state rows follow);
+5. **priors**: the MVS depth and normals of the group views are kept in ``state`` and returned by
+   :meth:`VisibilityAwareDensification.geometry_targets` (voxel depth where no MVS depth exists),
+   which the loop turns into the normal and hard/soft depth losses with
+   :func:`vadgs.train.losses.geometric_losses` — one loss path, in vadgs's trainer or any loop.
 
 Ablation switches (:class:`VisibilityDensifyConfig`): ``visibility=False`` disables the whole
 strategy (plain ADC), ``view_selection=False`` uses consecutive frames of the reference camera,
@@ -30,18 +38,20 @@ strategy (plain ADC), ``view_selection=False`` uses consecutive frames of the re
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
-from vadgs.geometry.camera import Cameras, project_points
-from vadgs.geometry.zbuffer import rasterize_voxels
-from vadgs.train import losses as L
+from vadgs.data.scene import Scene
+from vadgs.geometry.camera import project_points
+from vadgs.train import ops
 from vadgs.train.incomplete import IncompleteConfig, find_incomplete
-from vadgs.train.model import PER_GAUSSIAN, GaussianModel, rotation_to_quat
-from vadgs.train.ops import add_gaussians
+from vadgs.train.losses import GeometryTargets
+from vadgs.train.model import rotation_to_quat
 from vadgs.train.reconstruct import (
+    InstanceReconstruction,
     ReconstructConfig,
     VisibilityIndex,
     build_visibility_index,
@@ -50,6 +60,8 @@ from vadgs.train.reconstruct import (
 from vadgs.train.strategy import DefaultStrategy, Strategy
 
 __all__ = [
+    "StrategyContext",
+    "ViewRender",
     "VisibilityAwareDensification",
     "VisibilityDensifyConfig",
     "normals_to_quats",
@@ -91,8 +103,6 @@ class VisibilityDensifyConfig:
             of) the point.
         new_opacity: opacity of the new Gaussians.
         flatness: thickness of the new Gaussians along their normal, relative to their width.
-        hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
-            every ``hard_every``-th step only, to bound its CPU cost.
         voxel_depth_prior: use the voxel depth where no MVS depth exists.
         last_event_fraction: no event after this fraction of the iterations (Gaussians added at
             the very end would not be trained).
@@ -114,7 +124,6 @@ class VisibilityDensifyConfig:
     explained_tolerance: float = 0.05
     new_opacity: float = 0.5
     flatness: float = 0.2
-    hard_every: int = 4
     voxel_depth_prior: bool = True
     last_event_fraction: float = 0.9
 
@@ -210,7 +219,7 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
     """``wxyz`` quaternions of rotations whose third axis is the given unit normal ``(N, 3)``.
 
     A Gaussian with scales ``(s, s, t)``, ``t << s``, and this rotation is a disc in the plane of
-    the normal.
+    the normal. On the device and in the dtype of ``normals``.
 
     Example:
         >>> from vadgs.render import quaternion_to_rotation
@@ -221,8 +230,8 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
     n = torch.nn.functional.normalize(normals, dim=-1)
     helper = torch.where(
         n[:, 2:3].abs() < 0.9,
-        torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype).expand_as(n),
-        torch.tensor([1.0, 0.0, 0.0], dtype=n.dtype).expand_as(n),
+        n.new_tensor([0.0, 0.0, 1.0]).expand_as(n),
+        n.new_tensor([1.0, 0.0, 0.0]).expand_as(n),
     )
     a = torch.nn.functional.normalize(torch.cross(helper, n, dim=-1), dim=-1)
     b = torch.cross(n, a, dim=-1)
@@ -231,59 +240,112 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
 
 
 def voxel_depth_map(index: VisibilityIndex, view: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
+    """Voxel depth ``(1, H, W)`` and instance label ``(H, W)`` of a view; see
+    :meth:`~vadgs.train.reconstruct.VisibilityIndex.voxel_depth`."""
+    return index.voxel_depth(view)
 
-    Returns:
-        ``(depth, label)``: the nearest voxel surface and the instance label of its voxel
-        (``(H, W)`` int64, 0 where empty). Moving objects are rasterised in their own frame at the
-        view's timestamp.
+
+class ViewRender(NamedTuple):
+    """What a strategy needs of a rendered view (no gradient; camera-frame normals).
+
+    Attributes:
+        depth: ``(1, H, W)`` expected z-depth.
+        alpha: ``(1, H, W)`` accumulated opacity.
+        normals: ``(3, H, W)`` camera-frame normals (zeros where nothing is rendered).
     """
-    cache = index.__dict__.setdefault("_combined", {})
-    if view in cache:
-        return cache[view]
-    depth, vidx = index.voxel_raster(view)
-    label = torch.where(vidx >= 0, index.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
-    depth = depth.clone()
-    scene = index.scene
-    fpos = scene.frame_position(scene.views[view].frame)
-    cams = index.cameras[view]
-    for tid, grid in index.track_grids.items():
-        track = scene.tracks[tid]
-        if not bool(track.valid[fpos]):
-            continue
-        obj_cams = Cameras(cams.K, cams.world_to_cam @ track.object_to_world[fpos][None], cams.image_size)
-        r = rasterize_voxels(grid, obj_cams, config=index.zbuffer)
-        closer = (r.depth[0] > 0) & ((depth == 0) | (r.depth[0] < depth))
-        depth = torch.where(closer, r.depth[0], depth)
-        label = torch.where(closer[0], torch.full_like(label, tid), label)
-    cache[view] = (depth, label)
-    return depth, label
+
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    normals: torch.Tensor
+
+
+@dataclass(frozen=True)
+class StrategyContext:
+    """What :class:`VisibilityAwareDensification` needs of the training loop, given explicitly.
+
+    Attributes:
+        render: ``view -> ViewRender``: renders a view of the scene (index into ``scene.views``)
+            with the current Gaussians, at the view's frame, without gradient.
+        total_steps: the run's number of steps (events stop after ``last_event_fraction`` of it).
+        steps_per_cycle: steps of one sampling cycle (vadgs's trainer: one view per step, so the
+            number of training views); cycle ``c`` ends after step ``c * steps_per_cycle - 1``.
+        generator: seeds the view-selection noise ``ξ`` and point subsampling (checkpoint it for
+            exact resume; vadgs's trainer passes its own).
+        track_nodes: track id → node index of ``params["node_ids"]`` (default: the scene's tracks
+            in sorted order, as :func:`~vadgs.train.init.init_gaussians` numbers them). Without
+            ``node_ids`` in ``params`` (a static gsplat model) moving objects are not densified.
+
+    Example:
+        >>> ctx = StrategyContext(render=lambda v: None, total_steps=3000, steps_per_cycle=40)
+        >>> ctx.steps_per_cycle
+        40
+    """
+
+    render: Callable[[int], ViewRender]
+    total_steps: int
+    steps_per_cycle: int
+    generator: torch.Generator | None = None
+    track_nodes: Mapping[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.total_steps < 0 or self.steps_per_cycle < 1:
+            raise ValueError(
+                f"total_steps, steps_per_cycle: expected >= 0 and >= 1, got {self.total_steps}, "
+                f"{self.steps_per_cycle}"
+            )
+
+
+class _Renders:
+    """Renders of one event, each made at most once until the Gaussians change."""
+
+    def __init__(self, render: Callable[[int], ViewRender]) -> None:
+        self.render, self.cache = render, {}
+
+    def __call__(self, view: int) -> ViewRender:
+        if view not in self.cache:
+            self.cache[view] = self.render(view)
+        return self.cache[view]
+
+    def invalidate(self) -> None:
+        self.cache.clear()
 
 
 class VisibilityAwareDensification:
-    """The VAD-GS densification strategy. See the module docstring.
+    """The VAD-GS densification strategy (gsplat ``Strategy`` interface). See the module docstring.
 
     Args:
+        scene: the scene (training views = ``scene.train_views``; LiDAR or COLMAP tracks for the
+            visibility index; instance maps, or instances derived from the voxels).
+        context: :class:`StrategyContext`: the loop's render function, step counts and generator.
         config: :class:`VisibilityDensifyConfig`.
-        base: the strategy it extends, whose clone/split/prune keeps running. ``None`` (default):
-            the trainer's standard :class:`~vadgs.train.strategy.DefaultStrategy` with its
-            ``TrainConfig.strategy`` (set by :class:`~vadgs.train.trainer.Trainer`; a plain
-            ``DefaultStrategy()`` outside a trainer).
-        index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` (built from the
-            trainer's scene at the first event otherwise).
+        base: the strategy it extends, whose clone/split/prune keeps running
+            (default :class:`~vadgs.train.strategy.DefaultStrategy` with its defaults; vadgs's
+            trainer passes its ``TrainConfig.strategy``). gsplat's ``DefaultStrategy`` works too.
+        index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` (built from
+            ``scene`` at the first event otherwise).
+
+    Attributes:
+        snapshots: per instance that got new Gaussians, its reference render just before:
+            ``{"instance", "view", "step", "added", "depth", "alpha"}`` (for figures; not in the state).
     """
 
     def __init__(
         self,
+        scene: Scene,
+        context: StrategyContext,
         config: VisibilityDensifyConfig | None = None,
         base: Strategy | None = None,
         index: VisibilityIndex | None = None,
     ) -> None:
+        if not isinstance(scene, Scene):
+            raise ValueError(f"scene: expected a vadgs.data.Scene, got {type(scene).__name__}")
+        if not isinstance(context, StrategyContext):
+            raise ValueError(f"context: expected a StrategyContext, got {type(context).__name__}")
+        self.scene = scene
+        self.context = context
         self.config = config or VisibilityDensifyConfig()
-        self.base = base
+        self.base = base if base is not None else DefaultStrategy()
         self.index = index
-        #: per reconstructed instance, the reference render just before new Gaussians were added:
-        #: ``{"instance", "view", "step", "added", "depth", "alpha"}`` (for figures; not checkpointed)
         self.snapshots: list[dict[str, Any]] = []
         if not self.config.view_selection:
             sel = replace(self.config.reconstruct.selection, method="consecutive")
@@ -291,50 +353,66 @@ class VisibilityAwareDensification:
 
     # -- Strategy interface ----------------------------------------------------------------------------
 
-    def initialize_state(self, model: GaussianModel, scene_scale: float) -> dict[str, Any]:
-        """Base state plus the event log, the priors and the cycle counter."""
-        if self.base is None:
-            self.base = DefaultStrategy()
-        state = self.base.initialize_state(model, scene_scale)
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        """The base strategy's state plus the event log, the priors and the cycle counter."""
+        state = self.base.initialize_state(scene_scale)
         state.update(vad_events=[], vad_priors={}, vad_cycle=0, vad_last_done={})
         return state
 
-    def step_pre_backward(self, model, optimizer, state, step, info) -> None:  # noqa: D102
-        self.base.step_pre_backward(model, optimizer, state, step, info)
+    def step_pre_backward(self, params, optimizers, state, step, info) -> None:  # noqa: D102
+        self.base.step_pre_backward(params, optimizers, state, step, info)
 
-    def step_post_backward(self, model, optimizer, state, step, info) -> None:
+    def step_post_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+    ) -> None:
         """Base densification, then a visibility-aware event after every ``every_cycles`` cycles."""
-        self.base.step_post_backward(model, optimizer, state, step, info)
-        trainer = info.get("trainer")
-        if not self.config.visibility or trainer is None:
+        self.base.step_post_backward(params, optimizers, state, step, info)
+        if not self.config.visibility:
             return
-        cycle = trainer.sampler.cycle
+        cycle = (step + 1) // self.context.steps_per_cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
-            late = step >= self.config.last_event_fraction * trainer.config.iterations
+            late = step >= self.config.last_event_fraction * self.context.total_steps
             if cycle > 0 and cycle % self.config.every_cycles == 0 and not late:
-                self.densify(trainer, model, optimizer, state, step)
+                self.densify(params, optimizers, state, step)
 
     # -- the event ---------------------------------------------------------------------------------------
 
-    def _index(self, trainer) -> VisibilityIndex:
+    def visibility_index(self) -> VisibilityIndex:
+        """The scene's :class:`~vadgs.train.reconstruct.VisibilityIndex` (built at the first use)."""
         if self.index is None:
-            self.index = build_visibility_index(trainer.scene, self.config.voxel_size)
+            self.index = build_visibility_index(self.scene, self.config.voxel_size)
         return self.index
 
     @torch.no_grad()
-    def detect(self, trainer, views: list[int] | None = None):
-        """Run the incompleteness test on training views; returns the rows and the renders."""
-        index = self._index(trainer)
-        views = views if views is not None else list(trainer.train_views)
+    def detect(self, views: list[int] | None = None, renders: Callable[[int], ViewRender] | None = None):
+        """Run the incompleteness test on training views (default all of them).
+
+        Args:
+            views: view indices.
+            renders: the render function (default the context's).
+
+        Returns:
+            ``(rows, views)``: :class:`~vadgs.train.incomplete.IncompleteInstances` (``rows.view``
+            indexes ``views``) and the views tested.
+        """
+        index = self.visibility_index()
+        render = renders or self.context.render
+        views = views if views is not None else list(self.scene.train_views)
         ins, vdepth, rdepth, ralpha = [], [], [], []
         for v in views:
-            out = trainer.render_view(v)
-            d, _ = voxel_depth_map(index, v)
-            ins.append(index.instances(v))
-            vdepth.append(d)
-            rdepth.append(out.raster.depth[0])
-            ralpha.append(out.raster.alpha[0])
+            out = render(v)
+            dev = out.depth.device
+            d, _ = index.voxel_depth(v)
+            ins.append(index.instances(v).to(dev))
+            vdepth.append(d.to(dev))
+            rdepth.append(out.depth)
+            ralpha.append(out.alpha)
         rows = find_incomplete(
             torch.stack(ins),
             torch.stack(vdepth),
@@ -345,22 +423,31 @@ class VisibilityAwareDensification:
         return rows, views
 
     def densify(
-        self, trainer, model: GaussianModel, optimizer, state: dict[str, Any], step: int
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
     ) -> dict[str, Any]:
         """One visibility-aware densification event (detect, reconstruct, add); returns its log."""
         cfg = self.config
-        scene = trainer.scene
+        scene = self.scene
+        index = self.visibility_index()
+        renders = _Renders(self.context.render)
         t0 = time.perf_counter()
-        rows, views = self.detect(trainer)
+        rows, views = self.detect(renders=renders)
         t1 = time.perf_counter()
-        classes = self._index(trainer).classes()  # incl. derived instances (scenes without maps)
+        classes = index.classes()  # incl. derived instances (scenes without maps)
         event = len(state["vad_events"])
+        has_nodes = "node_ids" in getattr(params, "params", params)
         # the flagged views of each candidate instance, with its pixel count there
         flagged: dict[int, list[tuple[int, int]]] = {}
         for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
             inst, px = int(rows.instance[k]), int(rows.pixels[k])
             if classes.get(inst, "") in cfg.skip_classes:
                 continue
+            if inst in scene.tracks and not has_nodes:
+                continue  # a static model (no node_ids) cannot hold a moving object
             if event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
                 continue
             flagged.setdefault(inst, []).append((views[int(rows.view[k])], px))
@@ -368,11 +455,11 @@ class VisibilityAwareDensification:
         ranked = rank_instances(best, classes, cfg.ranking)
         added, log = 0, []
         t_mvs = 0.0
-        gen = trainer.generator if hasattr(trainer, "generator") else None
+        idx_dev = index.cameras.K.device
 
         def prior(v: int) -> tuple[torch.Tensor, torch.Tensor]:
-            out = trainer.render_view(v)
-            return out.raster.depth[0].detach(), out.raster.normals[0].detach()
+            out = renders(v)
+            return out.depth.to(idx_dev), out.normals.to(idx_dev)
 
         done = 0
         # instances whose reconstruction yields nothing (e.g. no supporting views) do not use up
@@ -384,18 +471,19 @@ class VisibilityAwareDensification:
             entry_views, points, n_new_total, reasons = [], 0, 0, []
             for ref in refs:
                 ta = time.perf_counter()
-                rec = reconstruct_instance(self._index(trainer), ref, inst, cfg.reconstruct, gen, prior)
+                rec = reconstruct_instance(index, ref, inst, cfg.reconstruct, self.context.generator, prior)
                 t_mvs += time.perf_counter() - ta
                 n_new = 0
                 if rec.points.shape[0]:
-                    keep, before = self._unexplained(trainer, rec, ref)
+                    before = renders(ref)
+                    keep = self._unexplained(rec, ref, before)
                     n_new = int(keep.sum())
                     if n_new:
-                        self._add(model, optimizer, state, rec, keep)
-                        raster = before.raster
+                        self._add(params, optimizers, state, rec, keep)
+                        renders.invalidate()  # the Gaussians changed
                         self.snapshots.append(
                             {"instance": inst, "view": ref, "step": step, "added": n_new,
-                             "depth": raster.depth[0, 0].detach(), "alpha": raster.alpha[0, 0].detach()}
+                             "depth": before.depth[0], "alpha": before.alpha[0]}
                         )  # fmt: skip
                 if cfg.geometric_losses:
                     for v, d, n in zip(rec.views, rec.depth, rec.normal):
@@ -449,92 +537,96 @@ class VisibilityAwareDensification:
         return entry
 
     @torch.no_grad()
-    def _unexplained(self, trainer, rec, ref: int):
+    def _unexplained(self, rec: InstanceReconstruction, ref: int, out: ViewRender) -> torch.Tensor:
         """Points that no opaque rendered surface covers (in front or within tolerance) in ``ref``.
 
-        Returns the mask and the reference render it was computed on.
+        On the device of the render.
         """
-        out = trainer.render_view(ref)
-        scene = trainer.scene
+        scene = self.scene
+        dev = out.depth.device
         cams = scene.cameras([ref])
         w2c = cams.world_to_cam[0]
         if rec.track is not None:
-            fpos = scene.frame_position(scene.views[ref].frame)
-            w2c = w2c @ scene.tracks[rec.track].object_to_world[fpos]
-        uv, z = project_points(rec.points[None], cams.K, w2c[None])
+            w2c = w2c @ scene.tracks[rec.track].object_to_world[scene.view_frame_position(ref)]
+        uv, z = project_points(rec.points[None].to(dev), cams.K.to(dev), w2c[None].to(dev))
         uv, z = uv[0], z[0]
         u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
         h, w = cams.image_size
         inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        keep = torch.ones(z.shape[0], dtype=torch.bool)
+        keep = torch.ones(z.shape[0], dtype=torch.bool, device=dev)
         uu, vv = u[inside], v[inside]
-        alpha = out.raster.alpha[0, 0, vv, uu]
-        depth = out.raster.depth[0, 0, vv, uu]
+        alpha = out.alpha[0, vv, uu]
+        depth = out.depth[0, vv, uu]
         explained = (alpha >= self.config.incomplete.alpha_threshold) & (
             depth <= z[inside] * (1 + self.config.explained_tolerance)
         )
         keep[inside] = ~explained
-        return keep, out
+        return keep
 
-    def _add(self, model: GaussianModel, optimizer, state, rec, keep: torch.Tensor) -> None:
+    def _add(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any] | None,
+        rec: InstanceReconstruction,
+        keep: torch.Tensor,
+    ) -> None:
+        """New flat Gaussians from the kept points, in ``params``' layout, device and dtype."""
         cfg = self.config
-        pts, nrm, col, spc = rec.points[keep], rec.normals[keep], rec.colors[keep], rec.spacing[keep]
+        names = ops.param_names(params)
+        p = getattr(params, "params", params)
+        ref = p[names.means]
+        dev, dt = ref.device, ref.dtype
+        keep = keep.to(rec.points.device)
+        pts, nrm, col, spc = (x[keep].to(dev, dt) for x in (rec.points, rec.normals, rec.colors, rec.spacing))
         m = pts.shape[0]
-        dev, dt = model.params["means"].device, model.params["means"].dtype
         width = spc.clamp(min=1e-4)
-        log_scales = torch.log(torch.stack([width, width, width * cfg.flatness], -1))
-        opacity = torch.full((m,), cfg.new_opacity)
-        params = {
-            "means": pts,
-            "quats": normals_to_quats(nrm),
-            "log_scales": log_scales,
-            "opacity_logits": torch.log(opacity / (1 - opacity)),
-            "sh_dc": ((col[:, :3] - 0.5) / _C0)[:, None, :],
-            "sh_rest": torch.zeros(m, *model.params["sh_rest"].shape[1:]),
+        opacity = torch.full((m,), cfg.new_opacity, device=dev, dtype=dt)
+        new = {
+            names.means: pts,
+            names.quats: normals_to_quats(nrm),
+            names.log_scales: torch.log(torch.stack([width, width, width * cfg.flatness], -1)),
+            names.opacity_logits: torch.log(opacity / (1 - opacity)),
+            names.sh_dc: ((col[:, :3] - 0.5) / _C0)[:, None, :],
+            names.sh_rest: torch.zeros(m, *p[names.sh_rest].shape[1:], device=dev, dtype=dt),
         }
-        params = {k: params[k].to(dev, dt) for k in PER_GAUSSIAN}
-        node = -1 if rec.track is None else model.track_ids.index(rec.track)
-        add_gaussians(model, optimizer, state, params, torch.full((m,), node, dtype=torch.int64, device=dev))
+        node_ids = None
+        if "node_ids" in p:
+            node = -1 if rec.track is None else self._track_nodes()[rec.track]
+            node_ids = torch.full((m,), node, dtype=torch.int64, device=p["node_ids"].device)
+        extra = [k for k in p.keys() if k not in new and k != "node_ids"]
+        if extra:
+            raise ValueError(f"params: cannot initialise extra per-Gaussian entries {extra} of new Gaussians")
+        ops.add_gaussians(params, optimizers, state, new, node_ids)
 
-    # -- geometric losses ----------------------------------------------------------------------------------
+    def _track_nodes(self) -> Mapping[int, int]:
+        if self.context.track_nodes is not None:
+            return self.context.track_nodes
+        return {t: k for k, t in enumerate(sorted(self.scene.tracks))}
 
-    def extra_losses(
-        self, model: GaussianModel, state: dict[str, Any], step: int, info: dict[str, Any]
-    ) -> dict:
-        """Normal and hard/soft depth losses on the MVS priors (voxel depth where no MVS depth)."""
+    # -- geometric priors ------------------------------------------------------------------------------
+
+    def geometry_targets(self, state: dict[str, Any], view: int) -> GeometryTargets | None:
+        """The priors of a view for :func:`vadgs.train.losses.geometric_losses`.
+
+        MVS depth and normals of the events so far; where no MVS depth exists, the voxel depth —
+        only where the voxel belongs to the pixel's own instance (elsewhere the z-buffer sees
+        through missing geometry, e.g. the facade behind a sign, and would pull it backwards).
+        ``None`` when the strategy or its losses are off, or the view has no prior. Tensors
+        ``(1, 1, H, W)`` / ``(1, 3, H, W)`` on the visibility index's device (the CPU for
+        LiDAR-built indices): move them to the render's device.
+        """
         cfg = self.config
-        trainer = info.get("trainer")
-        if not (cfg.visibility and cfg.geometric_losses) or trainer is None:
-            return {}
-        view, out = info["view"], info["render"]
-        tc = trainer.config
-        w = L.geometric_weights(
-            step, tc.iterations, tc.lambda_normal, tc.lambda_hard, tc.lambda_soft, tc.hard_until
-        )
+        if not (cfg.visibility and cfg.geometric_losses):
+            return None
         depth, normal = None, None
         if view in state["vad_priors"]:
             depth, normal = state["vad_priors"][view]
         if cfg.voxel_depth_prior:
-            # only where the voxel belongs to the pixel's own instance: elsewhere the z-buffer sees
-            # through missing geometry (the facade behind a sign) and would pull it backwards
-            index = self._index(trainer)
-            vd, vlabel = voxel_depth_map(index, view)
+            index = self.visibility_index()
+            vd, vlabel = index.voxel_depth(view)
             vd = torch.where((vlabel == index.instances(view))[None], vd, torch.zeros_like(vd))
             depth = vd if depth is None else torch.where(depth > 0, depth, vd)
         if depth is None:
-            return {}
-        dev = out.raster.depth.device
-        depth = depth[None].to(dev)
-        mask = depth > 0
-        terms = {}
-        if w["soft"] > 0:
-            terms["soft"] = w["soft"] * L.depth_loss_soft(out.raster.depth, depth, mask)
-        if w["hard"] > 0 and step % cfg.hard_every == 0:
-            hard = trainer.render_view(view, opacity_override=1.0)
-            terms["hard"] = w["hard"] * L.depth_loss_hard(hard.raster.depth, depth, mask)
-        if normal is not None and w["normal"] > 0:
-            normal = normal[None].to(dev)
-            nmask = normal.abs().sum(1, keepdim=True) > 0
-            if bool(nmask.any()):
-                terms["normal"] = w["normal"] * L.normal_loss(out.raster.normals, normal, nmask)
-        return terms
+            return None
+        return GeometryTargets(depth=depth[None], normal=None if normal is None else normal[None])
