@@ -1,4 +1,4 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions and TRI's DGP format.
+"""Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
 
 Every loader returns a :class:`~vadgs.data.scene.Scene`; per-view images, depth and instance
 maps are read lazily.
@@ -8,6 +8,7 @@ from pathlib import Path
 
 from vadgs.data.colmap import ColmapPoints, ColmapScene, load_colmap
 from vadgs.data.dgp import load_dgp
+from vadgs.data.nuscenes import load_nuscenes
 from vadgs.data.scene import (
     CameraInfo,
     FrameInfo,
@@ -31,6 +32,7 @@ __all__ = [
     "ViewInfo",
     "load_colmap",
     "load_dgp",
+    "load_nuscenes",
     "load_scene",
     "sample_scene_path",
 ]
