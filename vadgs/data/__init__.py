@@ -19,6 +19,7 @@ from vadgs.data.scene import (
     ViewInfo,
     load_scene,
 )
+from vadgs.data.waymo import load_waymo
 
 __all__ = [
     "CameraInfo",
@@ -34,6 +35,7 @@ __all__ = [
     "load_dgp",
     "load_nuscenes",
     "load_scene",
+    "load_waymo",
     "sample_scene_path",
 ]
 

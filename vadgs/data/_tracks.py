@@ -21,6 +21,7 @@ from vadgs.data.scene import InstanceInfo, Track
 
 __all__ = [
     "BoxObservation",
+    "as_tensor",
     "build_instances",
     "every_fourth_test_frames",
     "label_points",
