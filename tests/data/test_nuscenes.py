@@ -396,3 +396,39 @@ class TestLoadNuscenes:
         path.write_text(json.dumps(anns))
         with pytest.raises(ValueError, match=r"token 'nope' not in instance\.json"):
             load_nuscenes(root, "scene-0061")
+
+
+class TestConvertNuscenes:
+    def test_export_round_trip(self, nus, tmp_path):
+        from vadgs.data import export_scene, load_scene
+
+        root, syn = nus
+        scene = load_nuscenes(root, "scene-0061", scale=0.5)
+        again = load_scene(export_scene(scene, tmp_path / "out"))
+        assert again.camera_names == scene.camera_names and again.num_views == scene.num_views
+        assert again.test_frames == [2, 6] and again.train_frames == [0, 1, 3, 4, 5]
+        for a, b in zip(scene.views, again.views):
+            torch.testing.assert_close(a.cam_to_world, b.cam_to_world)
+        torch.testing.assert_close(again.cameras_info["CAM_BACK"].K, scene.cameras_info["CAM_BACK"].K)
+        torch.testing.assert_close(again.load_images([3]), scene.load_images([3]), atol=1 / 255, rtol=0)
+        frame, _ = syn["lid"]
+        torch.testing.assert_close(again.lidar(frame).points, scene.lidar(frame).points)
+        assert again.lidar(3).instance.tolist() == [0, 2, 1]
+        assert sorted(again.tracks) == [2] and again.instances[3].class_name == "pedestrian_adult"
+        torch.testing.assert_close(again.tracks[2].object_to_world, scene.tracks[2].object_to_world)
+
+    def test_cli(self, nus, tmp_path, capsys):
+        from vadgs.cli import main
+        from vadgs.data import load_scene
+
+        root, _ = nus
+        out = tmp_path / "conv"
+        argv = ["convert", "nuscenes", str(root), "--scene", "scene-0061", "--out", str(out)]
+        assert main([*argv, "--cameras", "CAM_FRONT", "--frames", "1:5", "--scale", "0.5"]) == 0
+        scene = load_scene(out)
+        assert (
+            scene.camera_names == ["CAM_FRONT"] and len(scene.frames) == 4 and scene.image_size(0) == (12, 16)
+        )
+        assert scene.test_frames == [2]
+        assert main([*argv[:3], "--scene", "scene-9999", "--out", str(out)]) == 2
+        assert "unknown scene 'scene-9999'" in capsys.readouterr().err

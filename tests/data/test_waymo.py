@@ -373,3 +373,25 @@ class TestLoadWaymo:
         monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)
         with pytest.raises(ImportError, match=r"pip install 'vadgs\[waymo\]'"):
             load_waymo(wod, SEG)
+
+
+class TestConvertWaymo:
+    def test_export_round_trip(self, wod, tmp_path):
+        from vadgs.data import export_scene, load_scene
+
+        scene = load_waymo(wod, SEG, frames=range(0, 4))
+        again = load_scene(export_scene(scene, tmp_path / "out"))
+        assert again.camera_names == ["FRONT", "SIDE_LEFT"] and again.num_views == 8
+        assert again.image_size(again.view_id(1, "SIDE_LEFT")) == (16, 32)
+        torch.testing.assert_close(again.load_images([2]), scene.load_images([2]), atol=1 / 255, rtol=0)
+        torch.testing.assert_close(again.lidar(3).points, scene.lidar(3).points)
+        assert again.lidar(3).instance.tolist() == [1] and sorted(again.tracks) == [1]
+        assert again.test_frames == [2]
+
+    def test_cli(self, wod, tmp_path):
+        from vadgs.cli import main
+        from vadgs.data import load_scene
+
+        out = tmp_path / "conv"
+        assert main(["convert", "waymo", str(wod), "--scene", SEG, "--out", str(out), "--frames", "0:3"]) == 0
+        assert load_scene(out).num_views == 6

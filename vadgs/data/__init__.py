@@ -8,6 +8,7 @@ from pathlib import Path
 
 from vadgs.data.colmap import ColmapPoints, ColmapScene, load_colmap
 from vadgs.data.dgp import load_dgp
+from vadgs.data.export import export_scene
 from vadgs.data.nuscenes import load_nuscenes
 from vadgs.data.scene import (
     CameraInfo,
@@ -31,6 +32,7 @@ __all__ = [
     "Scene",
     "Track",
     "ViewInfo",
+    "export_scene",
     "load_colmap",
     "load_dgp",
     "load_nuscenes",
