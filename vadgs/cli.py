@@ -434,12 +434,48 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
 
 demo.add_arguments = _demo_args  # type: ignore[attr-defined]
 
+
+def convert(args: argparse.Namespace) -> int:
+    """Convert a nuScenes scene or a Waymo v2 segment into the benchmark format (``scene.json``)."""
+    from vadgs.data import export_scene, load_nuscenes, load_waymo
+
+    cameras = args.cameras.split(",") if args.cameras else None
+    frames = None
+    if args.frames:
+        start, _, stop = args.frames.partition(":")
+        frames = range(int(start or 0), int(stop)) if stop else [int(start)]
+    if args.dataset == "nuscenes":
+        scene = load_nuscenes(
+            args.src, args.scene, version=args.version, cameras=cameras, scale=args.scale, frames=frames
+        )
+    else:
+        scene = load_waymo(args.src, args.scene, cameras=cameras, scale=args.scale, frames=frames)
+    path = export_scene(scene, args.out, lidar=not args.no_lidar)
+    print(f"{scene!r} -> {path}")
+    return 0
+
+
+def _convert_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", choices=["nuscenes", "waymo"])
+    p.add_argument("src", help="nuScenes dataroot, or the Waymo v2 split folder holding the components")
+    p.add_argument("--scene", required=True, help="nuScenes scene name (scene-0061) or Waymo segment name")
+    p.add_argument("--out", required=True, help="output folder for scene.json, images/, lidar/")
+    p.add_argument("--version", default="v1.0-mini", help="nuScenes table folder (v1.0-mini, v1.0-trainval)")
+    p.add_argument("--cameras", help="comma-separated camera names (default all)")
+    p.add_argument("--scale", type=float, default=1.0, help="image resolution factor")
+    p.add_argument("--frames", help="frame positions START:STOP (keyframes for nuScenes), default all")
+    p.add_argument("--no-lidar", action="store_true", help="do not write LiDAR")
+
+
+convert.add_arguments = _convert_args  # type: ignore[attr-defined]
+
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "visibility": visibility,
     "train": train,
     "eval": eval_run,
     "render": render_run,
     "demo": demo,
+    "convert": convert,
 }
 
 

@@ -1,4 +1,4 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions and TRI's DGP format.
+"""Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
 
 Every loader returns a :class:`~vadgs.data.scene.Scene`; per-view images, depth and instance
 maps are read lazily.
@@ -8,6 +8,8 @@ from pathlib import Path
 
 from vadgs.data.colmap import ColmapPoints, ColmapScene, load_colmap
 from vadgs.data.dgp import load_dgp
+from vadgs.data.export import export_scene
+from vadgs.data.nuscenes import load_nuscenes
 from vadgs.data.scene import (
     CameraInfo,
     FrameInfo,
@@ -18,6 +20,7 @@ from vadgs.data.scene import (
     ViewInfo,
     load_scene,
 )
+from vadgs.data.waymo import load_waymo
 
 __all__ = [
     "CameraInfo",
@@ -29,9 +32,12 @@ __all__ = [
     "Scene",
     "Track",
     "ViewInfo",
+    "export_scene",
     "load_colmap",
     "load_dgp",
+    "load_nuscenes",
     "load_scene",
+    "load_waymo",
     "sample_scene_path",
 ]
 

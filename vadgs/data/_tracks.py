@@ -1,0 +1,147 @@
+"""Helpers shared by the nuScenes and Waymo readers: 3D boxes → instances, tracks, LiDAR labels.
+
+Both datasets annotate each keyframe with 3D boxes that carry a persistent object identifier (a
+nuScenes instance token, a Waymo ``laser_object_id``). The readers collect them as
+``{id: {frame position: BoxObservation}}`` and call :func:`build_instances` to get the instance
+table and the :class:`~vadgs.data.scene.Track` of each moving rigid object.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from vadgs.checks import check_finite
+from vadgs.data.dgp import points_in_boxes
+from vadgs.data.scene import InstanceInfo, Track
+
+__all__ = [
+    "BoxObservation",
+    "as_tensor",
+    "build_instances",
+    "every_fourth_test_frames",
+    "label_points",
+    "quat_wxyz_to_matrix",
+]
+
+
+class BoxObservation(NamedTuple):
+    """One annotated 3D box at one frame.
+
+    Attributes:
+        object_to_world: ``(4, 4)`` float64 box pose in the (recentred) world: centre, x along the
+            length, y along the width, z up.
+        size_lwh: ``(3,)`` length, width, height in metres.
+        class_name: vadgs class name (e.g. ``"car"``).
+    """
+
+    object_to_world: np.ndarray
+    size_lwh: np.ndarray
+    class_name: str
+
+
+def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """A ``(w, x, y, z)`` quaternion as a 3×3 rotation matrix (normalised first).
+
+    Raises:
+        ValueError: if ``q`` is not four finite numbers with a non-zero norm.
+
+    Example:
+        >>> quat_wxyz_to_matrix([0.0, 0.0, 0.0, 1.0]).round(6).tolist()
+        [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    try:
+        w, x, y, z = (float(v) for v in q)
+    except (TypeError, ValueError):
+        raise ValueError(f"quaternion: expected four numbers (w, x, y, z), got {q!r}") from None
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not (math.isfinite(n) and n > 0):
+        raise ValueError(f"quaternion: expected a finite non-zero (w, x, y, z), got {q!r}")
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def every_fourth_test_frames(num_frames: int) -> list[int]:
+    """The benchmark's test split: frames 2, 6, 10, ... (every fourth, from the third).
+
+    Example:
+        >>> every_fourth_test_frames(11)
+        [2, 6, 10]
+    """
+    return list(range(2, num_frames, 4))
+
+
+def as_tensor(m: np.ndarray, what: str) -> torch.Tensor:
+    """A float64 numpy array as a finite float32 tensor (the message names ``what`` otherwise)."""
+    t = torch.from_numpy(np.asarray(m, dtype=np.float64))
+    check_finite(t, what)
+    return t.float()
+
+
+def build_instances(
+    boxes: dict[int, dict[int, BoxObservation]],
+    names: dict[int, str],
+    num_frames: int,
+    rigid: Callable[[str], bool],
+    min_motion_m: float | None,
+) -> tuple[dict[int, InstanceInfo], dict[int, Track]]:
+    """The instance table of every box id and the tracks of the moving rigid ones.
+
+    An instance is ``dynamic`` when its box centre moves more than ``min_motion_m`` (0.5 m when
+    None) in the world over the frames it is annotated in. It becomes a :class:`Track` when its
+    class is rigid and it is dynamic, or, with ``min_motion_m=None``, whenever its class is rigid.
+
+    Args:
+        boxes: id → frame position → :class:`BoxObservation`.
+        names: id → the dataset's own identifier (instance token, laser object id).
+        num_frames: number of frames of the scene.
+        rigid: whether a class name is a rigid object (vehicles).
+        min_motion_m: motion threshold, or None for every rigid instance.
+
+    Returns:
+        ``(instances, tracks)`` keyed by id.
+    """
+    instances: dict[int, InstanceInfo] = {}
+    tracks: dict[int, Track] = {}
+    for iid in sorted(boxes):
+        per_frame = boxes[iid]
+        cls = next(iter(per_frame.values())).class_name
+        poses = torch.eye(4).repeat(num_frames, 1, 1)
+        valid = torch.zeros(num_frames, dtype=torch.bool)
+        for fi, obs in per_frame.items():
+            poses[fi] = as_tensor(obs.object_to_world, f"box {names[iid]} at frame {fi}")
+            valid[fi] = True
+        centres = poses[valid, :3, 3]
+        motion = float((centres - centres[:1]).norm(dim=-1).max())
+        dynamic = motion > (0.5 if min_motion_m is None else min_motion_m)
+        instances[iid] = InstanceInfo(iid, names[iid], cls, dynamic)
+        if rigid(cls) and (dynamic or min_motion_m is None):
+            size = np.median([obs.size_lwh for obs in per_frame.values()], axis=0)
+            tracks[iid] = Track(iid, cls, torch.tensor(size, dtype=torch.float32), poses, valid)
+    return instances, tracks
+
+
+def label_points(points: torch.Tensor, frame_boxes: dict[int, BoxObservation]) -> torch.Tensor:
+    """The id of the box each world point lies in (0 outside every box), ``(N,)`` int64."""
+    instance = torch.zeros(len(points), dtype=torch.int64)
+    if not frame_boxes:
+        return instance
+    ids = sorted(frame_boxes)
+    inside = points_in_boxes(
+        points,
+        torch.stack([as_tensor(frame_boxes[i].object_to_world, f"box {i}") for i in ids]),
+        torch.stack([as_tensor(frame_boxes[i].size_lwh, f"box {i}") for i in ids]),
+    )
+    hit = inside.any(0)
+    instance[hit] = torch.tensor(ids)[inside[:, hit].float().argmax(0)]
+    return instance

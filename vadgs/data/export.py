@@ -1,0 +1,114 @@
+"""Write any :class:`~vadgs.data.scene.Scene` in the benchmark scene format (``scene.json``).
+
+Used to convert a nuScenes scene or a Waymo segment once, so that ``vadgs train DIR`` and every
+tool that reads :func:`~vadgs.data.load_scene` work on it (``vadgs convert`` on the command line).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from vadgs.data.scene import Scene
+
+__all__ = ["export_scene"]
+
+
+def _list(t) -> list:
+    return [[float(v) for v in row] for row in t.double().tolist()]
+
+
+def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
+    """Write a scene as ``scene.json`` + ``images/<camera>/<frame>.png`` + ``lidar/<frame>.npz``.
+
+    Images are written as 8-bit PNG at the scene's resolution (``image_size``, i.e. after the
+    ``scale`` it was loaded with), with ``K`` to match; loading the result with
+    :func:`~vadgs.data.load_scene` (``scale=1``) gives the same cameras, poses, LiDAR (world
+    points, instance ids, origin), instances, tracks (the valid frames of each) and split.
+    Depth and instance maps are not written (a converted real scene has none).
+
+    Args:
+        scene: the scene (e.g. from :func:`~vadgs.data.load_nuscenes`).
+        out_dir: the folder to write (created; existing files are overwritten).
+        lidar: also write each frame's LiDAR (if the scene has any).
+
+    Returns:
+        The path of the written ``scene.json``.
+
+    Example:
+        >>> import tempfile
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     again = load_scene(export_scene(scene, d, lidar=False))
+        ...     again.num_views, again.image_size(0), sorted(again.tracks) == sorted(scene.tracks)
+        (24, (144, 240), True)
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cameras = {
+        name: {
+            "width": c.image_size[1],
+            "height": c.image_size[0],
+            "K": _list(c.K),
+            **({"cam_to_ego": _list(c.cam_to_ego)} if c.cam_to_ego is not None else {}),
+        }
+        for name, c in scene.cameras_info.items()
+    }
+    frames = []
+    for f in scene.frames:
+        views = []
+        for vid in f.view_ids:
+            v = scene.views[vid]
+            rel = f"images/{v.camera}/{f.index:06d}.png"
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            img = scene.load_images([vid])[0]
+            arr = (img.clamp(0, 1) * 255).round().byte()
+            Image.fromarray(arr.permute(1, 2, 0).numpy()).save(out / rel)
+            views.append({"camera": v.camera, "image": rel, "cam_to_world": _list(v.cam_to_world)})
+        fm: dict = {"index": f.index, "timestamp": f.timestamp, "views": views}
+        if f.ego_to_world is not None:
+            fm["ego_to_world"] = _list(f.ego_to_world)
+        if lidar and scene.lidar_loader is not None:
+            lf = scene.lidar(f.index)
+            rel = f"lidar/{f.index:06d}.npz"
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            np.savez(
+                out / rel,
+                points=lf.points.float().numpy(),
+                instance=lf.instance.numpy().astype(np.int32),
+                origin=lf.origin.float().numpy(),
+            )
+            fm["lidar"] = rel
+        frames.append(fm)
+    meta = {
+        "name": scene.name,
+        "conventions": "world z up, metres; OpenCV cameras; cam_to_world; pixel centres at integers",
+        "cameras": cameras,
+        "frames": frames,
+        "instances": [
+            {"id": i.id, "name": i.name, "class": i.class_name, "dynamic": i.dynamic}
+            for i in scene.instances.values()
+        ],
+        "tracks": [
+            {
+                "id": t.id,
+                "class": t.class_name,
+                "size_lwh": [float(v) for v in t.size_lwh.tolist()],
+                "object_to_world": {
+                    str(scene.frames[p].index): _list(t.object_to_world[p])
+                    for p in range(len(scene.frames))
+                    if bool(t.valid[p])
+                },
+                **({"mesh": str(t.mesh)} if t.mesh is not None else {}),
+            }
+            for t in scene.tracks.values()
+        ],
+        "split": {"train_frames": list(scene.train_frames), "test_frames": list(scene.test_frames)},
+    }
+    path = out / "scene.json"
+    path.write_text(json.dumps(meta))
+    return path
