@@ -318,14 +318,14 @@ class GaussianModel(nn.Module):
 
     @property
     def node_ids(self) -> torch.Tensor:
-        """``(N,)`` int64 node of each Gaussian (``-1`` static, ``k`` the ``k``-th track), ``params["node_ids"]``."""
+        """``(N,)`` int64 node of each Gaussian (``-1``: static, ``k``: ``k``-th track)."""
         return self.params["node_ids"]
 
     @node_ids.setter
     def node_ids(self, value: torch.Tensor) -> None:
         self.params["node_ids"] = nn.Parameter(value.long(), requires_grad=False)
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D102
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints before 0.1.0.dev0's portable strategies kept node_ids as a buffer
         if prefix + "node_ids" in state_dict and prefix + "params.node_ids" not in state_dict:
             state_dict[prefix + "params.node_ids"] = state_dict.pop(prefix + "node_ids")

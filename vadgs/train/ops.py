@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 #: ``torch.optim.Optimizer`` with named groups, or gsplat's ``{name: optimizer}``.
-Optimizers = Union[torch.optim.Optimizer, Mapping[str, torch.optim.Optimizer], None]
+Optimizers = Union[torch.optim.Optimizer, Mapping[str, torch.optim.Optimizer], None]  # noqa: UP007
 
 
 class ParamNames(NamedTuple):

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import types
-import typing
 import math
 import os
 import random
@@ -32,6 +30,8 @@ import resource
 import signal
 import threading
 import time
+import types
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path

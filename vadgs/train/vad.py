@@ -240,8 +240,10 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
 
 
 def voxel_depth_map(index: VisibilityIndex, view: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Voxel depth ``(1, H, W)`` and instance label ``(H, W)`` of a view; see
-    :meth:`~vadgs.train.reconstruct.VisibilityIndex.voxel_depth`."""
+    """Voxel depth ``(1, H, W)`` and instance label ``(H, W)`` of a view.
+
+    See :meth:`~vadgs.train.reconstruct.VisibilityIndex.voxel_depth`.
+    """
     return index.voxel_depth(view)
 
 
