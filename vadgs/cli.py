@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["COMMANDS", "demo", "eval_run", "main", "render_run", "train", "visibility"]
+__all__ = ["COMMANDS", "batch", "demo", "eval_run", "main", "render_run", "train", "visibility"]
 
 
 def _scene_arg(value: str | None) -> Path:
@@ -469,6 +469,51 @@ def _convert_args(p: argparse.ArgumentParser) -> None:
 
 convert.add_arguments = _convert_args  # type: ignore[attr-defined]
 
+
+def batch(args: argparse.Namespace) -> int:
+    """Train many scenes on Ray, one task each, retried and resumed on failure (needs vadgs[ray])."""
+    import shlex
+
+    from vadgs.batch import BatchConfig, run_batch
+
+    config = BatchConfig(
+        address=args.address,
+        cpus_per_scene=args.cpus_per_scene,
+        gpus_per_scene=args.gpus_per_scene,
+        threads=args.threads or 0,
+        max_retries=args.max_retries,
+        train_args=tuple(shlex.split(args.train_args)),
+        progress=not args.no_progress,
+    )
+    try:
+        summary = run_batch(args.scenes, args.out, config)
+    except ImportError as e:
+        print(f"vadgs batch: error: {e}", file=sys.stderr)
+        return 2
+    print(summary.to_markdown())
+    print(f"wrote {Path(summary.out_dir) / 'summary.json'}, {Path(summary.out_dir) / 'summary.md'}")
+    return 1 if summary.failed else 0
+
+
+def _batch_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene folders (one run folder each)")
+    p.add_argument("--out", required=True, help="batch folder: run folders, summary.json, summary.md")
+    p.add_argument(
+        "--address", help="Ray cluster: auto, ray://HEAD:10001 or HOST:6379 (default: start a local Ray)"
+    )
+    p.add_argument("--cpus-per-scene", type=float, default=1.0, help="Ray CPUs per task (default 1)")
+    p.add_argument("--gpus-per-scene", type=float, default=0.0, help="Ray GPUs per task (default 0)")
+    p.add_argument("--max-retries", type=int, default=3, help="retries of a task whose worker/node died")
+    p.add_argument(
+        "--train-args",
+        default="",
+        help='arguments of each vadgs train, e.g. --train-args="--vad --iterations 3000" (with "=")',
+    )
+    p.add_argument("--no-progress", action="store_true", help="no line per finished run")
+
+
+batch.add_arguments = _batch_args  # type: ignore[attr-defined]
+
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "visibility": visibility,
     "train": train,
@@ -476,6 +521,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "render": render_run,
     "demo": demo,
     "convert": convert,
+    "batch": batch,
 }
 
 
