@@ -480,7 +480,7 @@ def run_batch(
 
     write_summary(summary())
     total, ended = len(results), 0
-    for i, r in enumerate(results):
+    for r in results:
         if r.status == "skipped":
             ended += 1
             if config.progress:
