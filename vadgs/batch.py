@@ -491,7 +491,10 @@ def run_batch(
 
     started = False
     if not ray.is_initialized():
-        ray.init(address=config.address, runtime_env=config.runtime_env)
+        local = config.address is None and not os.environ.get("RAY_ADDRESS")
+        # a local Ray for this batch only: no dashboard (a process and a port fewer)
+        extra = {"include_dashboard": False} if local else {}
+        ray.init(address=config.address, runtime_env=config.runtime_env, **extra)
         started = True
     try:
         task = ray.remote(run_scene).options(
