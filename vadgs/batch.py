@@ -451,6 +451,14 @@ def run_batch(
     Raises:
         ImportError: if Ray is not installed.
         ValueError: if a scene is listed twice.
+
+    Example:
+        >>> summary = run_batch(  # doctest: +SKIP
+        ...     ["data/seg-0001", "data/seg-0002"], "runs",
+        ...     BatchConfig(cpus_per_scene=4, train_args=("--vad", "--iterations", "3000")),
+        ... )
+        >>> [(r.name, r.status, r.psnr, r.retries) for r in summary.results]  # doctest: +SKIP
+        [('seg-0001', 'done', 27.1, 0), ('seg-0002', 'done', 26.4, 1)]
     """
     try:
         import ray
@@ -522,7 +530,7 @@ def run_batch(
                         results[i],
                         status="failed",
                         retries=config.max_retries,
-                        error=_one_line(f"{type(e).__name__}: {str(e).strip().splitlines()[0]}"),
+                        error=_one_line(f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0]}"),
                     )
                 ended += 1
                 write_summary(summary())
