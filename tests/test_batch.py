@@ -152,14 +152,14 @@ def _last_step(run: Path) -> int:
     return json.loads(lines[-1])["step"] if lines else 0
 
 
-def _kill_after_first_checkpoint(run: Path, killed: dict) -> None:
-    """SIGKILL the worker training ``run`` a few steps after its first checkpoint (a dead worker)."""
+def _kill_after_first_checkpoint(run: Path, killed: dict, sig: int = signal.SIGKILL) -> None:
+    """Send ``sig`` to the worker training ``run`` a few steps after its first checkpoint."""
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         if (run / "checkpoint.pt").is_file() and _last_step(run) >= TINY["checkpoint_every"] + 3:
             task = json.loads((run / "batch_task.json").read_text())
             killed["done"] = (run / "metrics.json").exists()
-            os.kill(task["pid"], signal.SIGKILL)
+            os.kill(task["pid"], sig)
             killed["pid"] = task["pid"]
             return
         time.sleep(0.005)
@@ -245,3 +245,22 @@ class TestRunBatch:
         summary = json.loads((out / "summary.json").read_text())
         assert [s["status"] for s in summary["scenes"]] == ["skipped", "skipped", "failed"]
         assert summary["scenes"][0]["psnr"] == _row(batch[0], "seg_a").psnr
+
+    def test_sigterm_checkpoints_and_is_retried(self, batch, scenes, tmp_path):
+        root, train_args = scenes
+        killed: dict = {}
+        args = (tmp_path / "seg_a", killed, signal.SIGTERM)
+        killer = threading.Thread(target=_kill_after_first_checkpoint, args=args)
+        killer.start()
+        summary = run_batch([root / "seg_a"], tmp_path, BatchConfig(train_args=train_args, progress=False))
+        killer.join()
+        assert "pid" in killed and not killed["done"]
+        # the trainer checkpointed at the signal, the task raised RunInterrupted, Ray retried it
+        (r,) = summary.results
+        assert (r.status, r.retries) == ("done", 1)
+        steps = [
+            json.loads(line)["step"] for line in (tmp_path / "seg_a" / "log.jsonl").read_text().splitlines()
+        ]
+        assert steps == list(range(1, TINY["iterations"] + 1))  # nothing redone
+        b = _row(batch[0], "seg_b")  # the uninterrupted run
+        assert (r.psnr, r.ssim, r.num_gaussians) == (b.psnr, b.ssim, b.num_gaussians)
