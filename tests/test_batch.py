@@ -244,6 +244,7 @@ class TestRunBatch:
         assert after == before
         summary = json.loads((out / "summary.json").read_text())
         assert [s["status"] for s in summary["scenes"]] == ["skipped", "skipped", "failed"]
+        assert [s["retries"] for s in summary["scenes"]] == [1, 0, 0]  # those of the finishing submission
         assert summary["scenes"][0]["psnr"] == _row(batch[0], "seg_a").psnr
 
     def test_sigterm_checkpoints_and_is_retried(self, batch, scenes, tmp_path):

@@ -116,7 +116,8 @@ class SceneResult:
         num_gaussians: Gaussians at the end.
         train_s: training time in seconds (of the steps kept: the part a killed attempt did after
             its last checkpoint is not counted).
-        retries: attempts of this submission after the first (Ray retries after a worker died).
+        retries: attempts of this submission after the first (Ray retries after a worker died);
+            for a skipped run, those of the submission that finished it.
         error: one line, for a failed run.
     """
 
@@ -277,6 +278,12 @@ def _finished(run: Path) -> dict[str, Any] | None:
     return metrics if metrics is not None and metrics.get("completed") is True else None
 
 
+def _skipped(base: SceneResult, run: Path, metrics: dict[str, Any]) -> SceneResult:
+    """A finished run, with the retries of the submission that finished it."""
+    attempts = int((_read_json(run / TASK_FILE) or {}).get("attempts", 1))
+    return _from_metrics(base, metrics, status="skipped", retries=max(attempts - 1, 0))
+
+
 def _from_metrics(base: SceneResult, metrics: dict[str, Any], **changes: Any) -> SceneResult:
     test = metrics.get("test") or {}
     depth = (test.get("depth") or {}).get("all") or {}
@@ -358,7 +365,7 @@ def run_scene(
     base = SceneResult(scene=str(scene), name=run.name, run=str(run))
     metrics = _finished(run)
     if metrics is not None:
-        return _from_metrics(base, metrics, status="skipped")
+        return _skipped(base, run, metrics)
     run.mkdir(parents=True, exist_ok=True)
     task = _read_json(run / TASK_FILE) or {}
     attempt = int(task.get("attempts", 0)) + 1 if task.get("submission") == submission else 1
@@ -481,7 +488,7 @@ def run_batch(
             _atomic_write(run / SCENE_FILE, json.dumps({"scene": p}))
         base = SceneResult(scene=p, name=name, run=str(run))
         metrics = _finished(run)
-        results.append(base if metrics is None else _from_metrics(base, metrics, status="skipped"))
+        results.append(base if metrics is None else _skipped(base, run, metrics))
 
     def summary() -> BatchSummary:
         return BatchSummary(str(out), tuple(results), time.perf_counter() - t0)
