@@ -4,6 +4,7 @@ import json
 import os
 import shutil
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -265,3 +266,12 @@ class TestRunBatch:
         assert steps == list(range(1, TINY["iterations"] + 1))  # nothing redone
         b = _row(batch[0], "seg_b")  # the uninterrupted run
         assert (r.psnr, r.ssim, r.num_gaussians) == (b.psnr, b.ssim, b.num_gaussians)
+
+
+class TestWithoutRay:
+    def test_says_how_to_install(self, tmp_path, monkeypatch, capsys):
+        monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails
+        with pytest.raises(ImportError, match=r"pip install 'vadgs\[ray\]'"):
+            run_batch([tmp_path / "a"], tmp_path / "out")
+        assert main(["batch", str(tmp_path / "a"), "--out", str(tmp_path / "out")]) == 2
+        assert "pip install 'vadgs[ray]'" in capsys.readouterr().err
