@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["COMMANDS", "demo", "eval_run", "main", "render_run", "train", "visibility"]
+__all__ = ["COMMANDS", "demo", "eval_run", "export_run", "main", "render_run", "train", "visibility"]
 
 
 def _scene_arg(value: str | None) -> Path:
@@ -409,6 +409,41 @@ def _render_args(p: argparse.ArgumentParser) -> None:
 render_run.add_arguments = _render_args  # type: ignore[attr-defined]
 
 
+def export_run(args: argparse.Namespace) -> int:
+    """Export the world at one frame as one viewer-ready 3DGS PLY (cars posed, SH rotated) and the sky map.
+
+    Writes ``OUT/world_frame<F>.ply`` (or with ``--inria`` the INRIA model layout
+    ``OUT/point_cloud/iteration_<step>/point_cloud.ply``, ``cameras.json``, ``cfg_args``) and
+    ``OUT/sky.png`` / ``sky.json``; see :func:`vadgs.train.export.export_world`.
+    """
+    from vadgs.train.export import export_world
+
+    torch.set_num_threads(args.threads or 2)
+    model, scene, _, ckpt = _load_run(args.run)
+    frame = scene.frames[0].index if args.frame is None else args.frame
+    indices = [f.index for f in scene.frames]
+    if frame not in indices:
+        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {frame}")
+    out = Path(args.out) if args.out else _run_dir(args.run) / "export" / f"frame{frame:03d}"
+    res = export_world(model, scene, frame, out, inria=args.inria, iteration=int(ckpt["step"]))
+    print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
+    return 0
+
+
+def _export_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run folder (or its checkpoint.pt)")
+    p.add_argument("--frame", type=int, help="the scene's frame index (default: its first frame)")
+    p.add_argument("--out", help="output folder (default RUN/export/frame<F>)")
+    p.add_argument(
+        "--inria",
+        action="store_true",
+        help="INRIA model layout (point_cloud/iteration_N/, cameras.json, cfg_args)",
+    )
+
+
+export_run.add_arguments = _export_args  # type: ignore[attr-defined]
+
+
 def demo(args: argparse.Namespace) -> int:
     """Train briefly on the bundled sample scene; write metrics.json and a PNG panel."""
     from vadgs.data import load_scene
@@ -520,6 +555,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "train": train,
     "eval": eval_run,
     "render": render_run,
+    "export": export_run,
     "demo": demo,
 }
 

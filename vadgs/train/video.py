@@ -279,8 +279,17 @@ def render_video(
 
     Returns:
         :class:`VideoInfo`.
+
+    Raises:
+        ImportError: without imageio and imageio-ffmpeg (the ``video`` extra).
     """
-    import imageio.v2 as imageio
+    try:
+        import imageio.v2 as imageio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise ImportError(
+            "render_video needs imageio and imageio-ffmpeg: pip install 'vadgs[video]'"
+        ) from None
     from tqdm import tqdm
 
     if trajectory is None:
