@@ -65,7 +65,7 @@ class TestCliNovel:
         assert main([*args, "--camera", "front_left", "--fps", "4", "--no-progress"]) == 0
         with imageio.get_reader(video, format="FFMPEG") as reader:
             frames = [f for f in reader]
-        assert len(frames) == 15 and frames[0].shape == (36, 180, 3)
+        assert len(frames) == 15 and frames[0].shape == (36 + 4, 180, 3)  # + the timeline bar
         assert main(["render", str(run), "--video", str(video), "--trajectory", "orbit"]) == 2
 
     def test_export(self, run, tmp_path):

@@ -8,6 +8,7 @@ import torch
 from vadgs.render import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.video import (
+    TIMELINE_ROWS,
     ego_trajectory,
     interpolate_rigid,
     model_at_time,
@@ -115,9 +116,13 @@ class TestRenderVideo:
         traj = ego_trajectory(tiny_scene, "front", (0, -2, 0), frames_between=1)
         info = render_video(tiny_model, tiny_scene, tmp_path / "v.mp4", traj, fps=5, progress=False)
         h, w = tiny_scene.cameras_info["front"].image_size
-        assert info.num_frames == 15 and info.size == (h + h % 2, 3 * w + w % 2)
+        rows = h + TIMELINE_ROWS
+        assert info.num_frames == 15 and info.size == (rows + rows % 2, 3 * w + w % 2)
         with imageio.get_reader(info.path, format="FFMPEG") as reader:
             frames = [f for f in reader]  # not list(reader): its len() is inf
         assert len(frames) == 15 and frames[0].shape == (*info.size, 3)
         assert frames[0].std() > 5  # not blank
         assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]  # no temporary left behind
+        # the timeline bar: white up to the frame's position (video compression blurs its edge)
+        bar_first, bar_last = frames[0][h + 1, :, 0].astype(int), frames[-1][h + 1, :, 0].astype(int)
+        assert bar_first[-20:].mean() < 120 and bar_last[-20:].mean() > 200

@@ -17,7 +17,9 @@ frame positions (``t = 2.5`` is half-way between ``scene.frames[2]`` and ``scene
 Without ``ego_to_world`` or ``cam_to_ego`` (e.g. a COLMAP scene) the camera's own poses are
 interpolated instead and only ``shift_ego_m = (0, 0, 0)`` is accepted.
 
-Videos are written with imageio's ffmpeg plugin (the ``imageio-ffmpeg`` wheel bundles ffmpeg):
+Every video frame (:func:`video_frame`) is colour | depth | normals over a thin timeline bar
+(:data:`TIMELINE_ROWS` rows: white up to the frame's position in the video). Videos are written
+with imageio's ffmpeg plugin (the ``imageio-ffmpeg`` wheel bundles ffmpeg):
 H.264 in ``yuv420p``, the frame padded with black to even sizes, written to a temporary file
 and renamed, so a partial video never takes the output's name.
 """
@@ -39,6 +41,7 @@ from vadgs.render import RasterConfig, quaternion_to_rotation
 from vadgs.train.model import GaussianModel, ModelRender, rotation_to_quat
 
 __all__ = [
+    "TIMELINE_ROWS",
     "Trajectory",
     "VideoInfo",
     "ego_trajectory",
@@ -49,6 +52,10 @@ __all__ = [
     "render_video",
     "video_frame",
 ]
+
+
+#: Height in pixels of the timeline bar under each video frame.
+TIMELINE_ROWS = 4
 
 
 def interpolate_rigid(a: torch.Tensor, b: torch.Tensor, t: float) -> torch.Tensor:
@@ -226,19 +233,24 @@ def ego_trajectory(
     return Trajectory(torch.stack(poses), torch.tensor(times, dtype=torch.float64), camera)
 
 
-def video_frame(render: ModelRender, depth_range: tuple[float, float] | None = None) -> np.ndarray:
+def video_frame(
+    render: ModelRender, depth_range: tuple[float, float] | None = None, progress: float | None = None
+) -> np.ndarray:
     """One video frame ``(H, 3W, 3)`` uint8: colour | depth (inverse, turbo) | normals.
 
     Args:
         render: a :meth:`GaussianModel.render` output.
         depth_range: ``(near, far)`` metres of the depth colour map (default: this frame's 2nd and
-            98th percentiles); keep it fixed over a video so that colours do not flicker.
+            98th percentiles); keep it fixed over a video so that colours do not flicker
+            (:func:`render_video` takes the first frame's, on pixels of alpha > 0.5).
+        progress: position in the video in ``[0, 1]``: adds a timeline bar of
+            :data:`TIMELINE_ROWS` rows below (``(H + TIMELINE_ROWS, 3W, 3)``).
     """
     from vadgs.viz import colorize_depth, colorize_normals, image_to_uint8
 
     depth = render.raster.depth[0, 0]
     near, far = depth_range if depth_range is not None else (None, None)
-    return np.concatenate(
+    frame = np.concatenate(
         [
             image_to_uint8(render.color[0]),
             colorize_depth(depth, near, far),
@@ -246,6 +258,11 @@ def video_frame(render: ModelRender, depth_range: tuple[float, float] | None = N
         ],
         axis=1,
     )
+    if progress is None:
+        return frame
+    bar = np.full((TIMELINE_ROWS, frame.shape[1], 3), 64, dtype=np.uint8)
+    bar[:, : round(float(np.clip(progress, 0.0, 1.0)) * frame.shape[1])] = 255
+    return np.concatenate([frame, bar], axis=0)
 
 
 class VideoInfo(NamedTuple):
@@ -266,7 +283,7 @@ def render_video(
     config: RasterConfig | None = None,
     progress: bool = True,
 ) -> VideoInfo:
-    """Render a trajectory and write it as an MP4: colour | depth | normals per frame.
+    """Render a trajectory and write it as an MP4: colour | depth | normals per frame, a timeline bar below.
 
     Args:
         model: the trained model.
@@ -307,17 +324,23 @@ def render_video(
         tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p", macro_block_size=1
     )
     try:
-        for c2w, t in tqdm(
-            list(zip(trajectory.cam_to_world, trajectory.time.tolist())), disable=not progress, desc="video"
+        last = max(len(trajectory.time) - 1, 1)
+        for i, (c2w, t) in enumerate(
+            tqdm(
+                list(zip(trajectory.cam_to_world, trajectory.time.tolist())),
+                disable=not progress,
+                desc="video",
+            )
         ):
             w2c = invert_rigid(c2w[None].to(K.dtype))
             out = model_at_time(model, t).render(w2c, K, info.image_size, 0, config)
             if depth_range is None:
-                d = out.raster.depth[out.raster.depth > 0]
+                # the opaque pixels only: a faint Gaussian at the camera would squash the range
+                d = out.raster.depth[(out.raster.depth > 0) & (out.raster.alpha > 0.5)]
                 depth_range = (
                     (float(d.quantile(0.02)), float(d.quantile(0.98))) if d.numel() else (1.0, 100.0)
                 )
-            frame = video_frame(out, depth_range)
+            frame = video_frame(out, depth_range, i / last)
             h, w = frame.shape[:2]
             frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)))  # yuv420p needs even sizes
             size = frame.shape[:2]
