@@ -267,6 +267,23 @@ class TestNovelViews:
         assert [f.view_ids for f in scene.frames] == [f.view_ids for f in base.frames]
         assert scene.load_images(scene.novel_views).shape == (1, 3, 144, 240)
 
+    def test_invisible_to_lidar_and_view_selection(self, tmp_path):
+        from vadgs.data.lidar import accumulate_lidar
+        from vadgs.train.reconstruct import build_visibility_index
+
+        def add(meta):
+            meta["novel_views"] = [
+                dict(v, frame=f["index"], shift_ego_m=[0, 2, 0]) for f in meta["frames"] for v in f["views"]
+            ]
+
+        base = load_scene(sample_scene_path())
+        scene = load_scene(_broken_copy(tmp_path, add))
+        a, b = accumulate_lidar(base), accumulate_lidar(scene)
+        assert all(torch.equal(x, y) for x, y in zip(a.point_views, b.point_views))
+        index = build_visibility_index(scene)
+        assert not bool(index.allowed[scene.novel_views].any())  # never a source view of MVS
+        assert torch.equal(index.allowed[: base.num_views], build_visibility_index(base).allowed)
+
     @pytest.mark.parametrize(
         ("edit", "match"),
         [
