@@ -16,7 +16,18 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["COMMANDS", "batch", "demo", "eval_run", "main", "render_run", "train", "visibility"]
+__all__ = [
+    "COMMANDS",
+    "batch",
+    "convert",
+    "demo",
+    "eval_run",
+    "export_run",
+    "main",
+    "render_run",
+    "train",
+    "visibility",
+]
 
 
 def _scene_arg(value: str | None) -> Path:
@@ -283,25 +294,56 @@ def _load_run(run: str) -> tuple:
     return model, open_scene(ckpt["scene_ref"]), TrainConfig.from_dict(ckpt["config"]), ckpt
 
 
+def _run_dir(run: str) -> Path:
+    p = Path(run)
+    return p.parent if p.suffix == ".pt" else p
+
+
 def eval_run(args: argparse.Namespace) -> int:
-    """Evaluate a run's checkpoint on the test split (PSNR, PSNR*, SSIM, depth, #Gaussians)."""
-    from vadgs.train.evaluate import evaluate
+    """Evaluate a run's checkpoint on the test split or the novel views (PSNR, PSNR*, SSIM, depth, #G).
+
+    ``--split test`` writes ``RUN/eval.json`` (one :class:`~vadgs.train.evaluate.EvalMetrics`);
+    ``--split novel`` writes ``RUN/eval_novel.json``: ``{"split", "step", "groups": {group: metrics}}``.
+    """
+    from vadgs.train.evaluate import evaluate_split
 
     torch.set_num_threads(args.threads or 2)
     model, scene, config, ckpt = _load_run(args.run)
-    m = evaluate(model, scene, config=config.raster, progress=not args.no_progress).to_dict()
-    m["step"] = int(ckpt["step"])
-    path = Path(args.run) / "eval.json"
-    path.write_text(json.dumps(m, indent=2))
-    print(json.dumps({k: v for k, v in m.items() if k != "per_view"}, indent=2))
-    if m["lpips_note"]:
-        print(m["lpips_note"])
+    groups = evaluate_split(model, scene, args.split, config=config.raster, progress=not args.no_progress)
+    step = int(ckpt["step"])
+    if args.split == "test":
+        m = groups["test"].to_dict()
+        m["step"] = step
+        path = _run_dir(args.run) / "eval.json"
+        shown = {k: v for k, v in m.items() if k != "per_view"}
+        note = m["lpips_note"]
+    else:
+        m = {"split": args.split, "step": step, "groups": {k: g.to_dict() for k, g in groups.items()}}
+        path = _run_dir(args.run) / f"eval_{args.split}.json"
+        shown = {k: {kk: vv for kk, vv in g.items() if kk != "per_view"} for k, g in m["groups"].items()}
+        note = next(iter(m["groups"].values()))["lpips_note"]
+    _write_atomic(path, json.dumps(m, indent=2))
+    print(json.dumps(shown, indent=2))
+    if note:
+        print(note)
     print(f"wrote {path}")
     return 0
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def _eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="run folder (or its checkpoint.pt)")
+    p.add_argument(
+        "--split",
+        choices=("test", "novel"),
+        default="test",
+        help="test views (eval.json) or the novel views by group, e.g. shifted ±2 m (eval_novel.json)",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -309,13 +351,31 @@ eval_run.add_arguments = _eval_args  # type: ignore[attr-defined]
 
 
 def render_run(args: argparse.Namespace) -> int:
-    """Render a run's test views as PNG panels (image, GT, error, depth, GT depth, normals)."""
-    from vadgs.train.evaluate import save_test_panels
+    """Render a run's test views as PNG panels, or a video along the ego path (``--video``).
 
+    Panels: image, GT, error, depth, GT depth, normals per view. ``--video OUT.mp4``: one rig
+    camera along the ego path (``--trajectory ego``) or shifted in the ego frame
+    (``shift:METRES``, + = left; ``shift:X,Y,Z``), colour | depth | normals side by side, moving
+    cars at their poses (interpolated between frames with ``--frames-between``).
+    """
     torch.set_num_threads(args.threads or 2)
     model, scene, config, _ = _load_run(args.run)
+    if args.video:
+        from vadgs.train.video import ego_trajectory, parse_trajectory, render_video
+
+        camera = args.camera or ("front" if "front" in scene.cameras_info else scene.camera_names[0])
+        traj = ego_trajectory(scene, camera, parse_trajectory(args.trajectory), args.frames_between)
+        info = render_video(
+            model, scene, args.video, traj, fps=args.fps, config=config.raster, progress=not args.no_progress
+        )
+        print(
+            f"wrote {info.path}: {info.num_frames} frames of {info.size[1]}x{info.size[0]} at {args.fps} fps"
+        )
+        return 0
+    from vadgs.train.evaluate import save_test_panels
+
     views = args.views if args.views else None
-    out = Path(args.out) if args.out else Path(args.run) / "renders"
+    out = Path(args.out) if args.out else _run_dir(args.run) / "renders"
     paths = save_test_panels(model, scene, out, views, config.raster, progress=not args.no_progress)
     print(f"wrote {len(paths)} panels to {out}")
     return 0
@@ -323,12 +383,61 @@ def render_run(args: argparse.Namespace) -> int:
 
 def _render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="run folder (or its checkpoint.pt)")
-    p.add_argument("--out", help="output folder (default RUN/renders)")
+    p.add_argument("--out", help="output folder of the panels (default RUN/renders)")
     p.add_argument("--views", type=int, nargs="*", help="view indices (default: the test views)")
+    p.add_argument("--video", help="write a video (.mp4) along --trajectory instead of panels")
+    p.add_argument(
+        "--trajectory",
+        default="ego",
+        help="ego (the rig's path), shift:METRES (sideways in the ego frame, + = left) or shift:X,Y,Z",
+    )
+    p.add_argument("--camera", help="rig camera of the video (default front)")
+    p.add_argument("--fps", type=float, default=10.0)
+    p.add_argument(
+        "--frames-between",
+        type=int,
+        default=0,
+        help="poses interpolated between consecutive frames (slerp / linear; cars likewise)",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
 render_run.add_arguments = _render_args  # type: ignore[attr-defined]
+
+
+def export_run(args: argparse.Namespace) -> int:
+    """Export the world at one frame as one viewer-ready 3DGS PLY (cars posed, SH rotated) and the sky map.
+
+    Writes ``OUT/world_frame<F>.ply`` (or with ``--inria`` the INRIA model layout
+    ``OUT/point_cloud/iteration_<step>/point_cloud.ply``, ``cameras.json``, ``cfg_args``) and
+    ``OUT/sky.png`` / ``sky.json``; see :func:`vadgs.train.export.export_world`.
+    """
+    from vadgs.train.export import export_world
+
+    torch.set_num_threads(args.threads or 2)
+    model, scene, _, ckpt = _load_run(args.run)
+    frame = scene.frames[0].index if args.frame is None else args.frame
+    indices = [f.index for f in scene.frames]
+    if frame not in indices:
+        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {frame}")
+    out = Path(args.out) if args.out else _run_dir(args.run) / "export" / f"frame{frame:03d}"
+    res = export_world(model, scene, frame, out, inria=args.inria, iteration=int(ckpt["step"]))
+    print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
+    return 0
+
+
+def _export_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run folder (or its checkpoint.pt)")
+    p.add_argument("--frame", type=int, help="the scene's frame index (default: its first frame)")
+    p.add_argument("--out", help="output folder (default RUN/export/frame<F>)")
+    p.add_argument(
+        "--inria",
+        action="store_true",
+        help="INRIA model layout (point_cloud/iteration_N/, cameras.json, cfg_args)",
+    )
+
+
+export_run.add_arguments = _export_args  # type: ignore[attr-defined]
 
 
 def demo(args: argparse.Namespace) -> int:
@@ -519,6 +628,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "train": train,
     "eval": eval_run,
     "render": render_run,
+    "export": export_run,
     "demo": demo,
     "convert": convert,
     "batch": batch,

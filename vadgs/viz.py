@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["colorize_depth", "colorize_index", "image_to_uint8", "save_panel"]
+__all__ = ["colorize_depth", "colorize_index", "colorize_normals", "image_to_uint8", "save_panel"]
 
 
 def image_to_uint8(image: torch.Tensor) -> np.ndarray:
@@ -44,6 +44,17 @@ def colorize_depth(
     rgb = matplotlib.colormaps[cmap](x)[..., :3]
     out[valid] = (rgb[valid] * 255).astype(np.uint8)
     return out
+
+
+def colorize_normals(normals: torch.Tensor) -> np.ndarray:
+    """Colour camera-frame normals ``(3, H, W)`` as ``0.5 - n / 2`` (facing the camera: blue); zero: black.
+
+    Example:
+        >>> colorize_normals(torch.tensor([0.0, 0.0, -1.0]).reshape(3, 1, 1))[0, 0].tolist()
+        [128, 128, 255]
+    """
+    rendered = normals.abs().sum(0) > 0
+    return image_to_uint8((-normals * 0.5 + 0.5) * rendered)
 
 
 def colorize_index(index: torch.Tensor, seed: int = 0) -> np.ndarray:

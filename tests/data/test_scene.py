@@ -228,7 +228,8 @@ class TestLoadSceneStreetA:
     @pytest.mark.parametrize(("scale", "size"), [(1.0, (288, 480)), (0.5, (144, 240))])
     def test_full_and_half(self, scale, size):
         scene = load_scene(STREET_A, scale=scale)
-        assert len(scene.frames) == 40 and scene.num_views == 120
+        assert len(scene.frames) == 40 and scene.num_views == 120 + 60  # + the novel views
+        assert len(scene.train_views) + len(scene.test_views) == 120
         assert scene.image_size(0) == size
         assert scene.test_frames == list(range(2, 40, 4))
         assert len(scene.test_views) == 30
@@ -245,3 +246,83 @@ class TestLoadSceneStreetA:
             half.views[half.view_id(20, "front")].cam_to_world,
             sample.views[sample.view_id(20, "front")].cam_to_world,
         )
+
+
+class TestNovelViews:
+    def test_sample_has_none(self, sample):
+        assert sample.novel_views == [] and sample.novel_groups() == {}
+        assert all(v.group is None for v in sample.views)
+
+    def test_parsed_and_kept_out_of_the_split(self, tmp_path):
+        def add(meta):
+            v = meta["frames"][1]["views"][0]
+            meta["novel_views"] = [dict(v, frame=meta["frames"][1]["index"], shift_ego_m=[0, 2, 0])]
+
+        base = load_scene(sample_scene_path())
+        scene = load_scene(_broken_copy(tmp_path, add))
+        assert scene.num_views == base.num_views + 1
+        assert scene.novel_views == [base.num_views]
+        assert scene.novel_groups() == {"shift+2.0": [base.num_views]}
+        assert scene.train_views == base.train_views and scene.test_views == base.test_views
+        assert [f.view_ids for f in scene.frames] == [f.view_ids for f in base.frames]
+        assert scene.load_images(scene.novel_views).shape == (1, 3, 144, 240)
+
+    def test_invisible_to_lidar_and_view_selection(self, tmp_path):
+        from vadgs.data.lidar import accumulate_lidar
+        from vadgs.train.reconstruct import build_visibility_index
+
+        def add(meta):
+            meta["novel_views"] = [
+                dict(v, frame=f["index"], shift_ego_m=[0, 2, 0]) for f in meta["frames"] for v in f["views"]
+            ]
+
+        base = load_scene(sample_scene_path())
+        scene = load_scene(_broken_copy(tmp_path, add))
+        a, b = accumulate_lidar(base), accumulate_lidar(scene)
+        assert all(torch.equal(x, y) for x, y in zip(a.point_views, b.point_views))
+        index = build_visibility_index(scene)
+        assert not bool(index.allowed[scene.novel_views].any())  # never a source view of MVS
+        assert torch.equal(index.allowed[: base.num_views], build_visibility_index(base).allowed)
+
+    @pytest.mark.parametrize(
+        ("edit", "match"),
+        [
+            (lambda m: m.update(novel_views={}), "novel_views: expected a list"),
+            (lambda m: m.update(novel_views=[{"frame": 999}]), r"novel_views\[0\]\.frame"),
+            (
+                lambda m: m.update(
+                    novel_views=[dict(m["frames"][0]["views"][0], frame=m["frames"][0]["index"])]
+                ),
+                "shift_ego_m",
+            ),
+        ],
+    )
+    def test_malformed(self, tmp_path, edit, match):
+        with pytest.raises(ValueError, match=match):
+            load_scene(_broken_copy(tmp_path, edit))
+
+    @needs_street_a
+    def test_street_a(self):
+        scene = load_scene(STREET_A, scale=0.5)
+        groups = scene.novel_groups()
+        assert sorted(groups) == ["shift+2.0", "shift-2.0"] and len(scene.novel_views) == 60
+        assert all(len(g) == 30 for g in groups.values())
+        assert set(scene.novel_views).isdisjoint(scene.train_views + scene.test_views)
+        for name, ids in groups.items():
+            shift = torch.eye(4)
+            shift[1, 3] = float(name.removeprefix("shift"))
+            assert {(scene.views[v].frame, scene.views[v].camera) for v in ids} == {
+                (scene.views[v].frame, scene.views[v].camera) for v in scene.test_views
+            }
+            for v in ids[:6]:
+                info = scene.views[v]
+                frame = scene.frames[scene.frame_position(info.frame)]
+                expect = frame.ego_to_world @ shift @ scene.cameras_info[info.camera].cam_to_ego
+                torch.testing.assert_close(info.cam_to_world, expect, atol=1e-5, rtol=0)
+                test_view = scene.views[scene.view_id(info.frame, info.camera)]
+                moved = info.cam_to_world[:3, 3] - test_view.cam_to_world[:3, 3]
+                assert abs(float(moved.norm()) - 2.0) < 1e-4
+        v = groups["shift-2.0"][0]
+        assert scene.load_images([v]).shape == (1, 3, 144, 240)
+        assert scene.load_depths([v]).shape == (1, 1, 144, 240)
+        assert scene.load_instances([v]).shape == (1, 144, 240)

@@ -35,6 +35,7 @@ __all__ = [
     "Track",
     "ViewInfo",
     "load_scene",
+    "novel_view_group",
 ]
 
 
@@ -68,6 +69,10 @@ class ViewInfo:
         image: path of the colour image, or None when it lives in memory.
         depth: path of the ground-truth depth ``.npz``, or None.
         instances: path of the instance-id PNG, or None.
+        group: None for the recorded views; for an extrapolated *novel* view (rendered from a pose
+            the rig never had, e.g. shifted 2 m sideways) its group, e.g. ``"shift+2.0"``.
+            Novel views are in :attr:`Scene.views` but in no frame's ``view_ids`` and in neither
+            :attr:`Scene.train_views` nor :attr:`Scene.test_views`.
     """
 
     index: int
@@ -78,6 +83,7 @@ class ViewInfo:
     image: Path | None = None
     depth: Path | None = None
     instances: Path | None = None
+    group: str | None = None
 
 
 @dataclass(frozen=True)
@@ -149,7 +155,8 @@ class Scene:
         root: the folder it was loaded from (or None).
         cameras_info: camera name → :class:`CameraInfo`.
         frames: the frames in order.
-        views: all views, frame-major in camera order (``views[i].index == i``).
+        views: all views, frame-major in camera order (``views[i].index == i``), then the novel
+            views (``group`` set; see :attr:`novel_views`).
         instances: instance id → :class:`InstanceInfo`.
         tracks: instance id → :class:`Track` for the rigidly moving objects.
         train_frames / test_frames: the split by frame index.
@@ -190,15 +197,34 @@ class Scene:
 
     @property
     def train_views(self) -> list[int]:
-        """Indices of the views of the training frames."""
+        """Indices of the recorded views of the training frames."""
         frames = set(self.train_frames)
-        return [v.index for v in self.views if v.frame in frames]
+        return [v.index for v in self.views if v.frame in frames and v.group is None]
 
     @property
     def test_views(self) -> list[int]:
-        """Indices of the views of the test frames."""
+        """Indices of the recorded views of the test frames."""
         frames = set(self.test_frames)
-        return [v.index for v in self.views if v.frame in frames]
+        return [v.index for v in self.views if v.frame in frames and v.group is None]
+
+    @property
+    def novel_views(self) -> list[int]:
+        """Indices of the novel (extrapolated) views, every group; empty for most scenes.
+
+        Example:
+            >>> from vadgs.data import load_scene, sample_scene_path
+            >>> load_scene(sample_scene_path()).novel_views
+            []
+        """
+        return [v.index for v in self.views if v.group is not None]
+
+    def novel_groups(self) -> dict[str, list[int]]:
+        """Novel view indices by group (e.g. ``{"shift+2.0": [...], "shift-2.0": [...]}``), in file order."""
+        out: dict[str, list[int]] = {}
+        for v in self.views:
+            if v.group is not None:
+                out.setdefault(v.group, []).append(v.index)
+        return out
 
     def view_id(self, frame: int, camera: str) -> int:
         """The index of the view of ``camera`` at ``frame``."""
@@ -389,6 +415,52 @@ def _get(d: dict, key: str, what: str) -> object:
     return d[key]
 
 
+def novel_view_group(shift_ego_m: Sequence[float]) -> str:
+    """Group name of a novel view from its ego-frame shift: ``"shift+2.0"`` for a lateral ``(0, 2, 0)``.
+
+    Any other shift is named by its three components, ``"shift+1.0,+0.0,+0.5"``.
+
+    Example:
+        >>> novel_view_group([0.0, -2.0, 0.0]), novel_view_group([1, 0, 0.5])
+        ('shift-2.0', 'shift+1.0,+0.0,+0.5')
+    """
+    x, y, z = (float(c) for c in shift_ego_m)
+    if x == 0.0 and z == 0.0:
+        return f"shift{y:+.1f}"
+    return f"shift{x:+.1f},{y:+.1f},{z:+.1f}"
+
+
+def _novel_views(
+    meta: dict, root: Path, cameras: dict[str, CameraInfo], frames: dict[int, FrameInfo], start: int
+) -> list[ViewInfo]:
+    """The ``novel_views`` entries of ``scene.json`` as :class:`ViewInfo` (indices from ``start``)."""
+    entries = meta.get("novel_views", [])
+    if not isinstance(entries, list):
+        raise ValueError("scene.json: novel_views: expected a list")
+    views = []
+    for ni, nm in enumerate(entries):
+        what = f"novel_views[{ni}]"
+        frame = int(_get(nm, "frame", what))
+        if frame not in frames:
+            raise ValueError(f"scene.json: {what}.frame: no frame {frame} in the scene")
+        cam = str(_get(nm, "camera", what))
+        if cam not in cameras:
+            raise ValueError(f"scene.json: {what}.camera: unknown camera {cam!r}, have {list(cameras)}")
+        c2w = _matrix(_get(nm, "cam_to_world", what), (4, 4), f"{what}.cam_to_world")
+        if "group" in nm:
+            group = str(nm["group"])
+        else:
+            shift = _get(nm, "shift_ego_m", what)
+            if not (isinstance(shift, list) and len(shift) == 3):
+                raise ValueError(f"scene.json: {what}.shift_ego_m: expected 3 numbers, got {shift!r}")
+            group = novel_view_group(shift)
+        files = {k: (root / nm[k]) if nm.get(k) else None for k in ("image", "depth", "instances")}
+        if files["image"] is None:
+            raise ValueError(f"scene.json: {what}: missing key 'image'")
+        views.append(ViewInfo(start + ni, frame, cam, frames[frame].timestamp, c2w, **files, group=group))
+    return views
+
+
 def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -> Scene:
     """Load a scene in the benchmark format (``scene.json`` and its files).
 
@@ -399,7 +471,8 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
         check_files: verify that every referenced file exists before returning.
 
     Returns:
-        The :class:`Scene`, with per-view data loaded lazily.
+        The :class:`Scene`, with per-view data loaded lazily. ``novel_views`` entries of
+        ``scene.json`` become views after the recorded ones (:attr:`Scene.novel_views`).
 
     Raises:
         FileNotFoundError: if ``scene.json`` or a referenced file is missing.
@@ -467,6 +540,8 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
             ids.append(len(views) - 1)
         lidar = root / fm["lidar"] if fm.get("lidar") else None
         frames.append(FrameInfo(index, ts, e2w, tuple(ids), lidar))
+
+    views += _novel_views(meta, root, cameras, {f.index: f for f in frames}, len(views))
 
     instances = {}
     for im in meta.get("instances", []):

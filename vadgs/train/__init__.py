@@ -1,7 +1,7 @@
 """Gaussian model, losses, densification strategies, trainer and evaluation (see ``docs/train.md``)."""
 
-from vadgs.train.evaluate import EvalMetrics, evaluate, save_test_panels
-from vadgs.train.export import export_model, read_ply, write_ply
+from vadgs.train.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
+from vadgs.train.export import export_model, export_world, read_ply, rotate_sh, write_ply
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.losses import (
     color_loss,
@@ -16,6 +16,7 @@ from vadgs.train.ops import add_gaussians, duplicate, make_optimizer, remove_gau
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
 from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, TrainConfig, Trainer, TrainResult
+from vadgs.train.video import ego_trajectory, render_video
 
 __all__ = [
     "DefaultStrategy",
@@ -38,8 +39,11 @@ __all__ = [
     "depth_loss_hard",
     "depth_loss_soft",
     "duplicate",
+    "ego_trajectory",
     "evaluate",
+    "evaluate_split",
     "export_model",
+    "export_world",
     "gaussians_at",
     "geometric_weights",
     "init_gaussians",
@@ -47,7 +51,9 @@ __all__ = [
     "normal_loss",
     "read_ply",
     "remove_gaussians",
+    "render_video",
     "reset_opacity",
+    "rotate_sh",
     "save_test_panels",
     "split",
     "write_ply",

@@ -13,6 +13,11 @@ r"""Evaluation on the test split: image metrics, moving-object PSNR*, depth agai
   :math:`z > 5` m). A pixel where nothing is rendered counts as wrong.
 - **LPIPS**: only when the ``lpips`` package and its weights are available locally; otherwise
   the result says why it was skipped.
+
+Novel views (:attr:`~vadgs.data.Scene.novel_views`, e.g. the test frames seen again from the rig
+shifted 2 m sideways) are evaluated the same way, one :class:`EvalMetrics` per group, by
+:func:`evaluate_split` with ``split="novel"``; each view is rendered at its own pose with the
+moving objects at their poses of the view's frame.
 """
 
 from __future__ import annotations
@@ -32,7 +37,19 @@ from vadgs.geometry.camera import backproject_depth, invert_rigid
 from vadgs.render import RasterConfig
 from vadgs.train.model import GaussianModel, ModelRender
 
-__all__ = ["EvalMetrics", "evaluate", "lpips_available", "render_test_view", "save_test_panels"]
+__all__ = [
+    "SPLITS",
+    "EvalMetrics",
+    "evaluate",
+    "evaluate_split",
+    "lpips_available",
+    "render_test_view",
+    "save_test_panels",
+    "split_views",
+]
+
+#: The splits :func:`evaluate_split` knows: the test views, and the novel (extrapolated) views by group.
+SPLITS = ("test", "novel")
 
 
 @dataclass(frozen=True)
@@ -200,6 +217,64 @@ def evaluate(
         depth=depth,
         per_view=per_view,
     )
+
+
+def split_views(scene: Scene, split: str) -> dict[str, list[int]]:
+    """The views of a split, by group: ``{"test": [...]}`` or ``{"shift+2.0": [...], ...}``.
+
+    Raises:
+        ValueError: for an unknown split, or one the scene has no views of.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> {k: len(v) for k, v in split_views(load_scene(sample_scene_path()), "test").items()}
+        {'test': 6}
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split: expected one of {SPLITS}, got {split!r}")
+    groups = {"test": scene.test_views} if split == "test" else scene.novel_groups()
+    if not any(groups.values()):
+        raise ValueError(f"scene {scene.name!r}: no {split} views (scene.json has no {split} views)")
+    return groups
+
+
+def evaluate_split(
+    model: GaussianModel,
+    scene: Scene,
+    split: str = "test",
+    config: RasterConfig | None = None,
+    progress: bool = False,
+    with_lpips: bool = True,
+) -> dict[str, EvalMetrics]:
+    """Evaluate a model on a split, one :class:`EvalMetrics` per group of :func:`split_views`.
+
+    Args:
+        model: the trained model.
+        scene: its scene.
+        split: ``"test"`` (one group, ``"test"``) or ``"novel"`` (one group per novel-view group,
+            e.g. ``"shift+2.0"`` and ``"shift-2.0"``).
+        config: rasterizer settings.
+        progress: tqdm bar.
+        with_lpips: compute LPIPS when available.
+
+    Returns:
+        Group name → :class:`EvalMetrics` (see :func:`evaluate`).
+
+    Raises:
+        ValueError: for an unknown split or one without views.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> from vadgs.train.init import InitConfig, init_gaussians
+        >>> scene = load_scene(sample_scene_path(), scale=0.25)
+        >>> model = init_gaussians(scene, InitConfig(voxel_size=1.0, max_points=500, sh_degree=0))
+        >>> {k: m.num_views for k, m in evaluate_split(model, scene, "test").items()}
+        {'test': 6}
+    """
+    return {
+        name: evaluate(model, scene, views, config, progress, with_lpips)
+        for name, views in split_views(scene, split).items()
+    }
 
 
 @torch.no_grad()

@@ -1,4 +1,4 @@
-"""Export a trained model as standard 3DGS PLY files (static and per object) plus the object poses.
+"""Export a trained model as standard 3DGS PLY files: per node with poses, or the whole world at a frame.
 
 The PLY layout is the one of the original 3DGS code (and gsplat, SuperSplat, ...): binary little
 endian, one ``vertex`` element with ``x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity
@@ -6,19 +6,51 @@ scale_0..2 rot_0..3``, raw values (opacity logits, log-scales, ``wxyz`` quaterni
 ``f_rest`` channel-major. ``static.ply`` is in world coordinates; ``object_<id>.ply`` in the
 object's frame, placed per frame by ``poses.json`` (``object_to_world`` per frame index, only
 where the track is valid).
+
+**The world at one frame** (:func:`export_world`, ``vadgs export RUN --frame F``) is what a viewer
+(SuperSplat, the INRIA SIBR viewer, gsplat's, nerfstudio's) opens as is: one PLY with the static
+Gaussians and every track valid at ``F`` posed into the world, means ``R μ + t`` and quaternions
+``q(R) ⊗ q``, and their SH coefficients *rotated into the world* (:func:`rotate_sh`), since a
+viewer evaluates every Gaussian's SH at the world viewing direction while the model evaluates a car's
+at the direction in the car's frame. Only the SH degrees the model renders with
+(``active_sh_degree``) are written. Optionally the INRIA model layout
+(``point_cloud/iteration_N/point_cloud.ply``, ``cameras.json``, ``cfg_args``).
+
+**The sky** is written beside it as an equirectangular environment map ``sky.png``
+(:func:`sky_equirect`, 256×128 by default, 8-bit, the model's sky colour, linear values as the
+model renders them) and ``sky.json`` (its SH coefficients and the mapping). Pixel ``(u, v)`` (column,
+row, centres at ``+ 0.5``) of a ``W × H`` map looks along world azimuth ``φ = π - 2π (u + 0.5) / W``
+(from the world ``+x`` axis towards ``+y``; the image's centre column looks along ``+x``, its left
+edge along ``-x`` turning through ``+y``) and elevation ``θ = π/2 - π (v + 0.5) / H`` (top row: up,
+``+z``), i.e. the direction ``(cos θ cos φ, cos θ sin φ, sin θ)`` (world z up).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from vadgs.data.scene import Scene
+from vadgs.render import eval_sh, num_sh_bases, save_ply, sh_basis
 from vadgs.train.model import GaussianModel
 
-__all__ = ["export_model", "read_ply", "write_ply"]
+__all__ = [
+    "WorldExport",
+    "equirect_directions",
+    "export_model",
+    "export_world",
+    "read_ply",
+    "rotate_sh",
+    "sh_rotation",
+    "sky_equirect",
+    "world_gaussians",
+    "write_ply",
+]
 
 
 def write_ply(path: str | Path, params: dict[str, torch.Tensor]) -> Path:
@@ -118,3 +150,249 @@ def export_model(
     pj.write_text(json.dumps({"object_to_world": poses, "sh_degree": model.sh_degree}, indent=1))
     paths.append(pj)
     return paths
+
+
+# ---------------------------------------------------------------------------------------------------
+# the world at one frame
+
+
+def _sphere_directions(n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(n, 3)`` unit directions on a Fibonacci sphere (well spread, deterministic)."""
+    i = torch.arange(n, dtype=dtype) + 0.5
+    z = 1 - 2 * i / n
+    r = torch.sqrt(1 - z * z)
+    phi = math.pi * (3 - math.sqrt(5)) * i
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+
+
+def sh_rotation(R: torch.Tensor, degree: int) -> torch.Tensor:
+    r"""The ``(K, K)`` matrix ``M`` that rotates SH coefficients by ``R``: ``f' = M f``.
+
+    ``f'`` evaluated at ``d`` equals ``f`` evaluated at ``R^\top d`` (an object's SH moved into the
+    world by its rotation ``R``). The SH of degree ≤ 3 span a rotation-invariant space, so ``M`` is
+    exactly the least-squares solution of :math:`B(D)\,M = B(D R)` on 64 directions ``D``
+    (``B`` = :func:`~vadgs.render.sh_basis`), computed in float64: block diagonal by degree, the
+    Wigner-D matrices in the real basis of 3DGS. Not differentiable (poses are fixed).
+
+    Args:
+        R: ``(3, 3)`` rotation.
+        degree: 0 to 3.
+
+    Returns:
+        ``(K, K)`` float64, ``K = (degree + 1)^2``.
+
+    Example:
+        >>> Rz = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # 90° about z
+        >>> sh_rotation(Rz, 1).round(decimals=6).abs().tolist()[1:]  # basis y, z, x: y -> x, x -> y
+        [[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0]]
+    """
+    if R.shape != (3, 3):
+        raise ValueError(f"R: expected shape (3, 3), got {tuple(R.shape)}")
+    dirs = _sphere_directions(64)
+    B = sh_basis(dirs, degree)
+    B_rot = sh_basis(dirs @ R.double(), degree)  # rows (R^T d)^T = d^T R
+    return torch.linalg.lstsq(B, B_rot).solution
+
+
+def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """SH coefficients ``(N, K, C)`` rotated by ``(3, 3)`` ``R`` (see :func:`sh_rotation`).
+
+    Differentiable w.r.t. ``sh``; keeps its dtype and device.
+
+    Example:
+        >>> sh = torch.randn(5, 9, 3); R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+        >>> d = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+        >>> bool(torch.allclose(eval_sh(rotate_sh(sh, R), d), eval_sh(sh, d @ R), atol=1e-5))
+        True
+    """
+    k = sh.shape[-2]
+    degree = math.isqrt(k) - 1
+    if (degree + 1) ** 2 != k or k > 16 or sh.dim() != 3:
+        raise ValueError(f"sh: expected (N, K, C) with K in (1, 4, 9, 16), got {tuple(sh.shape)}")
+    M = sh_rotation(R.detach().cpu(), degree).to(device=sh.device, dtype=sh.dtype)
+    return torch.einsum("kj,njc->nkc", M, sh)
+
+
+def equirect_directions(height: int, width: int) -> torch.Tensor:
+    """``(H, W, 3)`` world directions of an equirectangular map (the mapping of the module docstring).
+
+    Example:
+        >>> d = equirect_directions(2, 4)
+        >>> [round(v, 4) for v in d[0, 1].tolist()]  # top half, second column: azimuth 45°, elevation 45°
+        [0.5, 0.5, 0.7071]
+    """
+    u = torch.arange(width, dtype=torch.float64) + 0.5
+    v = torch.arange(height, dtype=torch.float64) + 0.5
+    phi = math.pi - 2 * math.pi * u / width
+    theta = math.pi / 2 - math.pi * v / height
+    th, ph = torch.meshgrid(theta, phi, indexing="ij")
+    return torch.stack([th.cos() * ph.cos(), th.cos() * ph.sin(), th.sin()], -1)
+
+
+@torch.no_grad()
+def sky_equirect(model: GaussianModel, height: int = 128, width: int = 256) -> torch.Tensor:
+    """The model's sky as an equirectangular image ``(3, H, W)`` in ``[0, 1]`` (see the module docstring).
+
+    Each pixel is :meth:`GaussianModel.sky_color`'s value for its direction.
+
+    Example:
+        >>> from vadgs.train.model import GaussianModel
+        >>> m = GaussianModel(torch.zeros(1, 3), torch.zeros(1, 3), torch.zeros(1, 3), torch.full((1,), -1),
+        ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sky_degree=1)
+        >>> sky_equirect(m, 4, 8).shape, round(float(sky_equirect(m, 4, 8).mean()), 3)  # 0.7 grey at start
+        (torch.Size([3, 4, 8]), 0.7)
+    """
+    dirs = equirect_directions(height, width).reshape(-1, 3).to(model.sky)
+    coeffs = model.sky[None].expand(dirs.shape[0], -1, -1)
+    col = eval_sh(coeffs, dirs, model.sky_degree).clamp(0.0, 1.0)
+    return col.T.reshape(3, height, width)
+
+
+class WorldExport(NamedTuple):
+    """The files :func:`export_world` wrote (``None`` where not asked for).
+
+    Attributes:
+        ply: the world's 3DGS PLY.
+        sky_png: the sky's equirectangular map; ``sky_json``: its SH and mapping.
+        cameras_json, cfg_args: the INRIA layout's camera list and arguments.
+        num_gaussians: Gaussians in the PLY.
+    """
+
+    ply: Path
+    sky_png: Path
+    sky_json: Path
+    cameras_json: Path | None
+    cfg_args: Path | None
+    num_gaussians: int
+
+
+def _replace_atomic(path: Path, write) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        write(tmp)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+@torch.no_grad()
+def world_gaussians(model: GaussianModel, frame: int) -> dict[str, torch.Tensor]:
+    """Activated Gaussians of a frame position in the world, SH rotated into the world.
+
+    Returns:
+        ``{"means", "quats", "scales", "opacities", "sh", "ids"}`` (``sh`` truncated to the active
+        degree), the arguments of :func:`~vadgs.render.save_ply` plus the model rows.
+    """
+    g = model.gaussians_at(frame)
+    k = num_sh_bases(model.active_sh_degree)
+    sh = g.sh[:, :k].clone()
+    nodes = model.node_ids[g.ids]
+    for node in torch.unique(nodes[nodes >= 0]).tolist():
+        sel = nodes == node
+        R = model.object_to_world[node, frame, :3, :3]
+        sh[sel] = rotate_sh(sh[sel], R)
+    return {"means": g.means, "quats": g.quats, "scales": g.scales, "opacities": g.opacities, "sh": sh,
+            "ids": g.ids}  # fmt: skip
+
+
+@torch.no_grad()
+def export_world(
+    model: GaussianModel,
+    scene: Scene,
+    frame: int,
+    out_dir: str | Path,
+    inria: bool = False,
+    iteration: int = 0,
+    sky_size: tuple[int, int] = (128, 256),
+) -> WorldExport:
+    """Write the world at one frame as one standard 3DGS PLY, and the sky as an environment map.
+
+    See the module docstring for what is written and the sky's mapping. Every file is written to a
+    temporary name and renamed.
+
+    Args:
+        model: the trained model.
+        scene: its scene (frame indices; the cameras of ``cameras.json``).
+        frame: the scene's frame index (``scene.frames[i].index``).
+        out_dir: output folder.
+        inria: the INRIA layout: ``point_cloud/iteration_<iteration>/point_cloud.ply``,
+            ``cameras.json`` (the rig's views of ``frame``: ``position`` = camera centre,
+            ``rotation`` = camera-to-world rotation rows, OpenCV axes as in 3DGS) and ``cfg_args``;
+            otherwise ``world_frame<frame>.ply``.
+        iteration: the ``iteration_N`` of the INRIA layout (e.g. the checkpoint's step).
+        sky_size: ``(H, W)`` of ``sky.png``.
+
+    Returns:
+        :class:`WorldExport`.
+
+    Raises:
+        KeyError: if the scene has no such frame.
+
+    Example:
+        >>> import tempfile
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> from vadgs.train.init import InitConfig, init_gaussians
+        >>> scene = load_scene(sample_scene_path(), scale=0.25)
+        >>> model = init_gaussians(scene, InitConfig(voxel_size=1.0, max_points=300, sh_degree=0))
+        >>> out = export_world(model, scene, 18, tempfile.mkdtemp())
+        >>> out.ply.name, out.num_gaussians == len(model.gaussians_at(scene.frame_position(18)).ids)
+        ('world_frame018.ply', True)
+    """
+    from PIL import Image
+
+    from vadgs.viz import image_to_uint8
+
+    out_dir = Path(out_dir)
+    fpos = scene.frame_position(frame)
+    w = world_gaussians(model, fpos)
+    ply = (
+        out_dir / "point_cloud" / f"iteration_{int(iteration)}" / "point_cloud.ply"
+        if inria
+        else out_dir / f"world_frame{frame:03d}.ply"
+    )
+    _replace_atomic(ply, lambda p: save_ply(p, w["means"], w["quats"], w["scales"], w["opacities"], w["sh"]))
+    sky = image_to_uint8(sky_equirect(model, *sky_size))
+    sky_png = _replace_atomic(out_dir / "sky.png", lambda p: Image.fromarray(sky).save(p, format="PNG"))
+    sky_meta = {
+        "image": "sky.png",
+        "projection": "equirectangular",
+        "size_hw": list(sky_size),
+        "mapping": "pixel (u, v) centre -> azimuth phi = pi - 2 pi (u + 0.5) / W from world +x towards +y, "
+        "elevation theta = pi/2 - pi (v + 0.5) / H; direction (cos theta cos phi, cos theta sin phi, "
+        "sin theta), world z up",
+        "colour": "max(0, 0.5 + sum_k Y_k(d) c_k) clamped to 1, SH basis of vadgs.render.sh_basis",
+        "sh_degree": model.sky_degree,
+        "sh_coefficients": model.sky.detach().cpu().tolist(),
+    }
+    sky_json = _replace_atomic(out_dir / "sky.json", lambda p: p.write_text(json.dumps(sky_meta, indent=1)))
+    cameras_json = cfg_args = None
+    if inria:
+        cams = []
+        for vid in scene.frames[fpos].view_ids:
+            v = scene.views[vid]
+            info = scene.cameras_info[v.camera]
+            c2w = v.cam_to_world.double()
+            cams.append(
+                {
+                    "id": len(cams),
+                    "img_name": f"{v.camera}_{v.frame:03d}",
+                    "width": info.image_size[1],
+                    "height": info.image_size[0],
+                    "position": c2w[:3, 3].tolist(),
+                    "rotation": c2w[:3, :3].tolist(),
+                    "fy": float(info.K[1, 1]),
+                    "fx": float(info.K[0, 0]),
+                }
+            )
+        cameras_json = _replace_atomic(
+            out_dir / "cameras.json", lambda p: p.write_text(json.dumps(cams, indent=1))
+        )
+        args = (
+            f"Namespace(data_device='cuda', eval=True, images='images', model_path={str(out_dir)!r}, "
+            f"resolution=-1, sh_degree={model.active_sh_degree}, "
+            f"source_path={str(scene.root or '')!r}, white_background=False)"
+        )
+        cfg_args = _replace_atomic(out_dir / "cfg_args", lambda p: p.write_text(args))
+    return WorldExport(ply, sky_png, sky_json, cameras_json, cfg_args, int(w["means"].shape[0]))

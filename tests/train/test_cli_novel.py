@@ -1,0 +1,82 @@
+from __future__ import annotations
+
+import json
+import shutil
+
+import imageio.v2 as imageio
+import pytest
+from plyfile import PlyData
+
+from vadgs.cli import main
+from vadgs.data import load_scene, sample_scene_path
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 3-step run on a copy of the sample whose test views are repeated as novel views."""
+    root = tmp_path_factory.mktemp("scene") / "sample"
+    shutil.copytree(sample_scene_path(), root)
+    meta = json.loads((root / "scene.json").read_text())
+    test = set(meta["split"]["test_frames"])
+    meta["novel_views"] = [
+        dict(v, frame=f["index"], shift_ego_m=[0.0, 0.0, 0.0]) for f in meta["frames"] if f["index"] in test
+        for v in f["views"]
+    ]  # fmt: skip
+    (root / "scene.json").write_text(json.dumps(meta))
+    out = tmp_path_factory.mktemp("run") / "run"
+    args = ["train", str(root), "--scale", "0.25", "--out", str(out), "--iterations", "3", "--no-progress"]
+    args += ["--set", "init.max_points=400", "--set", "init.voxel_size=1.0", "--set", "init.sh_degree=1"]
+    assert main(args) == 0
+    return out
+
+
+class TestCliNovel:
+    def test_eval_novel(self, run):
+        assert main(["eval", str(run), "--split", "novel", "--no-progress"]) == 0
+        novel = json.loads((run / "eval_novel.json").read_text())
+        assert novel["split"] == "novel" and list(novel["groups"]) == ["shift+0.0"]
+        assert main(["eval", str(run / "checkpoint.pt"), "--no-progress"]) == 0
+        test = json.loads((run / "eval.json").read_text())
+        # the "novel" views are the test views again: the same numbers
+        assert novel["groups"]["shift+0.0"]["psnr"] == test["psnr"]
+        assert novel["groups"]["shift+0.0"]["depth"] == test["depth"]
+
+    def test_eval_novel_without_novel_views(self, tmp_path, capsys):
+        out = tmp_path / "r"
+        args = [
+            "train",
+            "--sample",
+            "--scale",
+            "0.25",
+            "--out",
+            str(out),
+            "--iterations",
+            "1",
+            "--no-progress",
+        ]
+        args += ["--set", "init.max_points=200", "--set", "init.voxel_size=1.0", "--set", "init.sh_degree=0"]
+        assert main(args) == 0
+        assert main(["eval", str(out), "--split", "novel", "--no-progress"]) == 2
+        assert "no novel views" in capsys.readouterr().err
+
+    def test_render_video(self, run, tmp_path):
+        video = tmp_path / "v.mp4"
+        args = ["render", str(run), "--video", str(video), "--trajectory", "shift:2", "--frames-between", "1"]
+        assert main([*args, "--camera", "front_left", "--fps", "4", "--no-progress"]) == 0
+        with imageio.get_reader(video, format="FFMPEG") as reader:
+            frames = [f for f in reader]
+        assert len(frames) == 15 and frames[0].shape == (36 + 4, 180, 3)  # + the timeline bar
+        assert main(["render", str(run), "--video", str(video), "--trajectory", "orbit"]) == 2
+
+    def test_export(self, run, tmp_path):
+        scene = load_scene(sample_scene_path(), scale=0.25)
+        frame = scene.frames[3].index
+        assert main(["export", str(run), "--frame", str(frame), "--out", str(tmp_path), "--inria"]) == 0
+        ply = tmp_path / "point_cloud" / "iteration_3" / "point_cloud.ply"
+        assert PlyData.read(str(ply))["vertex"].count > 0
+        assert (tmp_path / "cameras.json").is_file() and (tmp_path / "cfg_args").is_file()
+        assert (tmp_path / "sky.png").is_file()
+        assert main(["export", str(run)]) == 0  # the first frame, into RUN/export/frame<F>
+        first = scene.frames[0].index
+        assert (run / "export" / f"frame{first:03d}" / f"world_frame{first:03d}.ply").is_file()
+        assert main(["export", str(run), "--frame", "999"]) == 2
