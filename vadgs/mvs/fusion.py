@@ -16,6 +16,11 @@ of :math:`X` in view :math:`j`. A pixel with at least ``min_views`` agreeing vie
 point: the mean of the agreeing points, normals (re-normalised) and colours; the agreeing
 pixels of the other views are claimed and do not produce duplicates later. The points are ready
 to become new Gaussians (position, normal for the orientation, colour for the DC term).
+
+With ``deduplicate=False`` (and ``min_views=0``) the cross-view test is skipped: every valid pixel
+of every view becomes one point — for depth maps already filtered by
+:func:`~vadgs.mvs.geometric_consistency`, when every observation should seed a Gaussian (the VAD-GS
+pipeline, :func:`vadgs.train.reconstruct.reconstruct_instance`).
 """
 
 from __future__ import annotations
@@ -43,16 +48,21 @@ class FusionConfig:
         min_views: other views that must agree for a pixel to become a point (``0``: every
             valid pixel becomes a point, e.g. for a single view already filtered by
             :func:`~vadgs.mvs.geometric_consistency`).
+        deduplicate: merge the agreeing pixels of other views into one point (False: no cross-view
+            test at all, one point per valid pixel; needs ``min_views=0``).
     """
 
     max_reproj_error: float = 2.0
     max_rel_depth: float = 0.01
     max_normal_angle: float = 30.0
     min_views: int = 2
+    deduplicate: bool = True
 
     def __post_init__(self) -> None:
         if self.min_views < 0:
             raise ValueError(f"min_views: expected >= 0, got {self.min_views}")
+        if not self.deduplicate and self.min_views != 0:
+            raise ValueError(f"min_views: expected 0 with deduplicate=False, got {self.min_views}")
 
 
 class FusedPoints(NamedTuple):
@@ -150,7 +160,7 @@ def fuse_depth_maps(
         count = torch.ones(sel.shape[0], dtype=torch.long, device=dev)
         hits = []
         for j in range(b):
-            if j == i:
+            if j == i or not cfg.deduplicate:
                 continue
             xc = world_to_cam[j, :3, :3] @ x + world_to_cam[j, :3, 3:]
             zj = xc[2]

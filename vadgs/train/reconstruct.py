@@ -19,8 +19,15 @@ instance label and visibility set, and the cameras of every view, as
    against static pixels, a moving object only against itself), initialised from rendered depth
    and normals when given;
 4. keeps the pixels whose depth at least ``min_consistent_views`` other members confirm
-   (forward–backward reprojection, relative depth) and fuses them into points with normals and
-   colours, in the instance's frame (world, or the object's own frame).
+   (forward–backward reprojection, relative depth), completes the textureless parts of static
+   planar instances, and
+5. fuses them into points with normals and colours, in the instance's frame (world, or the
+   object's own frame), with :func:`vadgs.mvs.fuse_depth_maps` (one point per consistent pixel);
+6. returns each member's consistent depth and normals at the scene's resolution as priors.
+
+Each step is a small function (``_instance_frame``, :func:`~vadgs.select.select_views`,
+``_crop_group`` and ``_match``, ``_consistent``, fusion, ``_depth_priors``) on the device of the
+index.
 """
 
 from __future__ import annotations
@@ -36,16 +43,11 @@ import torch.nn.functional as F
 
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
-from vadgs.geometry.camera import (
-    Cameras,
-    backproject_depth,
-    invert_rigid,
-    project_points,
-    scale_intrinsics,
-)
+from vadgs.geometry.camera import Cameras, invert_rigid, project_points, scale_intrinsics
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.mvs.consistency import geometric_consistency
+from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
 from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
 from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
 from vadgs.select.covisibility import Covisibility
@@ -375,7 +377,7 @@ def build_visibility_index(
     grid = voxelize(acc.points, voxel_size, acc.point_views, scene.num_views)
     labels = voxel_labels(grid.point_to_voxel, acc.instance, len(grid))
     cameras = scene.cameras()
-    allowed = torch.zeros(scene.num_views, dtype=torch.bool)
+    allowed = torch.zeros(scene.num_views, dtype=torch.bool, device=cameras.K.device)
     allowed[scene.train_views] = True
     index = VisibilityIndex(
         scene,
@@ -452,6 +454,206 @@ def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
     return K
 
 
+class _InstanceFrame(NamedTuple):
+    """Step 1's result: where the instance is matched and which voxels stand for it."""
+
+    covis: Covisibility
+    voxels: torch.Tensor  # (M,) bool
+    world_to_cam: torch.Tensor  # (V, 4, 4): world (static) or object frame (track) to each view
+    allowed: torch.Tensor  # (V,) bool: views that may support
+
+
+class _Crops(NamedTuple):
+    """Step 3's input: the group's images and masks cropped around the instance, at factor ``f``."""
+
+    members: list[int]  # group positions whose instance mask is large enough to be a reference
+    images: torch.Tensor  # (G, 3, H*f, W*f) full images of the group
+    masks: list[torch.Tensor]  # per group view (H*f, W*f): the instance
+    regions: torch.Tensor  # (G, 1, H*f, W*f): where sources may match (static or the object)
+    K: torch.Tensor  # (G, 3, 3) at factor f
+    corners: list[tuple[int, int]]  # per member: top-left of its crop, at factor f
+    size: tuple[int, int]  # crop (ch, cw) at factor f
+    corners_lo: list[tuple[int, int]]  # the same at the scene's resolution
+    size_lo: tuple[int, int]
+    factor: int
+
+
+def _instance_frame(
+    index: VisibilityIndex, ref: int, instance: int, track: int | None, cfg: ReconstructConfig
+) -> _InstanceFrame | str:
+    """Step 1: the instance's voxels (their visibility sets are the candidate views) and its frame.
+
+    A moving object: all voxels of its own grid, in its frame, views where its pose is known. A
+    static instance with almost no voxels of its own (the LiDAR missed it): the voxels the z-buffer
+    sees *through* it in the reference view, whose observers also look at the missing surface.
+    Returns the reason as a string when there is nothing to match.
+    """
+    scene = index.scene
+    dev = index.cameras.K.device
+    if track is not None:
+        if track not in index.track_covis:
+            return "no_lidar_on_track"
+        covis = index.track_covis[track]
+        valid = scene.tracks[track].valid.to(dev)
+        pos = torch.tensor([scene.frame_position(v.frame) for v in scene.views], device=dev)
+        return _InstanceFrame(
+            covis,
+            torch.ones(covis.num_voxels, dtype=torch.bool, device=dev),
+            index.object_cameras(track),
+            index.allowed & valid[pos],
+        )
+    voxels = index.labels == instance
+    if int(voxels.sum()) < cfg.min_instance_voxels:
+        _, vidx = index.voxel_raster(ref)
+        through = torch.unique(vidx[(index.instances(ref) == instance) & (vidx >= 0)])
+        voxels = voxels.clone()
+        voxels[through] = True
+    if int(voxels.sum()) == 0:
+        return "no_voxels"
+    return _InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
+
+
+def _crop_group(
+    index: VisibilityIndex, group: list[int], instance: int, track: int | None, cfg: ReconstructConfig
+) -> _Crops | str:
+    """Step 3a: crops around the instance in each group view, small instances at a finer resolution.
+
+    Sources match only inside their region: static pixels for a static instance, the object's own
+    pixels for a moving one.
+    """
+    scene = index.scene
+    h, w = index.cameras.image_size
+    masks = [index.instances(v) == instance for v in group]
+    members = [i for i, m in enumerate(masks) if int(m.sum()) >= cfg.min_pixels]
+    if len(members) < 2:
+        return "instance_seen_in_fewer_than_two_group_views"
+    corners, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
+
+    def region(v: int) -> torch.Tensor:
+        ins = index.instances(v)
+        if track is not None:
+            return ins == instance
+        return ~torch.isin(ins, torch.tensor(sorted(scene.tracks), dtype=ins.dtype, device=ins.device))
+
+    regions = torch.stack([region(v) for v in group])[:, None]
+    K = index.cameras.K[group]
+    f = _upsample_factor(scene, ch, cw, cfg)
+    corners_lo, size_lo = corners, (ch, cw)
+    if f > 1:
+        masks = [_repeat(m, f) for m in masks]
+        regions = _repeat(regions, f)
+        corners, ch, cw = [(y0 * f, x0 * f) for y0, x0 in corners], ch * f, cw * f
+        K = scale_intrinsics(K, f)
+    images = torch.stack([index.image(v, f) for v in group])
+    return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, f)
+
+
+def _match(
+    crops: _Crops,
+    group: list[int],
+    world_to_cam: torch.Tensor,
+    depth_range: tuple[float, float],
+    cfg: ReconstructConfig,
+    render_prior: Callable[[int], tuple[torch.Tensor, torch.Tensor]] | None,
+):
+    """Step 3b: PatchMatch on the group, each member's crop as reference against all other views."""
+    ch, cw = crops.size
+    f = crops.factor
+    ref_imgs, ref_masks, ref_K, init_d, init_n = [], [], [], [], []
+    for i, (y0, x0) in zip(crops.members, crops.corners):
+        ref_imgs.append(crops.images[i, :, y0 : y0 + ch, x0 : x0 + cw])
+        ref_masks.append(crops.masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
+        ref_K.append(_shift_K(crops.K[i], x0, y0))
+        if render_prior is not None:
+            d, n = render_prior(group[i])
+            d, n = _repeat(d, f), _repeat(n, f)
+            init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
+            init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
+    others = [[j for j in range(len(group)) if j != i] for i in crops.members]
+    res = patchmatch(
+        torch.stack(ref_imgs),
+        torch.stack([crops.images[o] for o in others]),
+        torch.stack(ref_K),
+        torch.stack([crops.K[o] for o in others]),
+        world_to_cam[crops.members],
+        torch.stack([world_to_cam[o] for o in others]),
+        depth_range,
+        cfg.patchmatch,
+        init_depth=torch.stack(init_d) if init_d else None,
+        init_normal=torch.stack(init_n) if init_n else None,
+        mask=torch.stack(ref_masks),
+        src_masks=torch.stack([crops.regions[o] for o in others]),
+    )
+    return res, torch.stack(ref_imgs), torch.stack(ref_masks), torch.stack(ref_K)
+
+
+def _consistent(
+    res,
+    crops: _Crops,
+    group: list[int],
+    world_to_cam: torch.Tensor,
+    ref_imgs: torch.Tensor,
+    ref_masks: torch.Tensor,
+    ref_K: torch.Tensor,
+    planar: bool,
+    cfg: ReconstructConfig,
+    generator: torch.Generator | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Step 4: keep the pixels that other members confirm; planar completion of static instances.
+
+    Returns ``(depth, normal, keep)``: ``(b, 1, ch, cw)``, ``(b, 3, ch, cw)`` camera frame, bool.
+    """
+    members = crops.members
+    w2c = world_to_cam[members]
+    depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
+    b = len(members)
+    src = [[j for j in range(b) if j != i] for i in range(b)]
+    cons = geometric_consistency(
+        depth,
+        ref_K,
+        w2c,
+        torch.stack([depth[o] for o in src]),
+        torch.stack([ref_K[o] for o in src]),
+        torch.stack([w2c[o] for o in src]),
+        cfg.max_reproj_error,
+        cfg.max_rel_depth,
+        min(cfg.min_consistent_views, b - 1),
+    )
+    keep = cons.mask & res.mask
+    normal = res.normal
+    if planar:
+        normal = res.normal.clone()
+        c2w = invert_rigid(w2c)
+        for k in range(b):
+            o = [j for j in range(len(group)) if j != members[k]]
+            d_k, n_k, add = complete_planar(
+                depth[k], keep[k], ref_masks[k], ref_imgs[k], ref_K[k], c2w[k], crops.images[o],
+                torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o], world_to_cam[o], cfg.planar,
+                generator, res.normal[k],
+            )  # fmt: skip
+            depth[k] = d_k
+            keep[k] |= add
+            normal[k] = torch.where(add, n_k[:, None, None].expand_as(normal[k]), normal[k])
+    return depth, normal, keep
+
+
+def _depth_priors(
+    depth: torch.Tensor, normal: torch.Tensor, keep: torch.Tensor, crops: _Crops, size: tuple[int, int]
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Step 6: each member's consistent depth and normals in its full image at the scene's resolution."""
+    h, w = size
+    ch, cw = crops.size_lo
+    full_depth, full_normal = [], []
+    for k, (y0, x0) in enumerate(crops.corners_lo):
+        fd = depth.new_zeros(1, h, w)
+        fn = normal.new_zeros(3, h, w)
+        fd[:, y0 : y0 + ch, x0 : x0 + cw] = _pool_valid(depth[k], keep[k], crops.factor)
+        fn[:, y0 : y0 + ch, x0 : x0 + cw] = _pool_valid(normal[k], keep[k], crops.factor, unit=True)
+        full_depth.append(fd)
+        full_normal.append(fn)
+    return full_depth, full_normal
+
+
 @torch.no_grad()
 def reconstruct_instance(
     index: VisibilityIndex,
@@ -463,14 +665,19 @@ def reconstruct_instance(
 ) -> InstanceReconstruction:
     """Reconstruct an instance seen in view ``ref`` from selected supporting views by PatchMatch.
 
-    Not differentiable (a search). See the module docstring for the steps.
+    Not differentiable (a search). The steps (see the module docstring): the instance's voxels and
+    frame, view selection (:func:`~vadgs.select.select_views`), crops, PatchMatch
+    (:func:`~vadgs.mvs.patchmatch`), consistency (:func:`~vadgs.mvs.geometric_consistency`) and
+    planar completion (:func:`~vadgs.mvs.complete_planar`), fusion
+    (:func:`~vadgs.mvs.fuse_depth_maps`, one point per consistent pixel), depth priors. On the
+    device of ``index``.
 
     Args:
         index: the scene's :class:`VisibilityIndex`.
         ref: the reference view.
         instance: the instance id (a track id for a moving object: matched in its own frame).
         config: :class:`ReconstructConfig`.
-        generator: seeds the selection noise ``ξ``.
+        generator: seeds the selection noise ``ξ`` (a CPU generator).
         render_prior: optional ``view -> (depth (1, H, W), normal (3, H, W))`` rendered by the
             Gaussians (camera frame normals, in the instance's frame of reference), the
             PatchMatch initialisation; ``0`` where unknown.
@@ -483,160 +690,52 @@ def reconstruct_instance(
     if not 0 <= ref < scene.num_views:
         raise ValueError(f"ref: expected a view in [0, {scene.num_views}), got {ref}")
     track = instance if instance in scene.tracks else None
-    h, w = index.cameras.image_size
-    empty3 = torch.zeros(0, 3)
+    dev = index.cameras.K.device
+    empty3 = torch.zeros(0, 3, device=dev)
 
     def nothing(reason: str, views: list[int] | None = None) -> InstanceReconstruction:
         return InstanceReconstruction(
-            empty3, empty3, empty3, torch.zeros(0), track, views or [ref], [], [], reason
+            empty3, empty3, empty3, torch.zeros(0, device=dev), track, views or [ref], [], [], reason
         )
 
-    ref_mask = index.instances(ref) == instance
-    if int(ref_mask.sum()) < cfg.min_pixels:
+    if int((index.instances(ref) == instance).sum()) < cfg.min_pixels:
         return nothing("instance_too_small_in_reference")
-
-    # 1. the instance's voxels and frame
-    if track is not None:
-        if track not in index.track_covis:
-            return nothing("no_lidar_on_track")
-        covis = index.track_covis[track]
-        voxels = torch.ones(covis.num_voxels, dtype=torch.bool)
-        world_to_cam = index.object_cameras(track)
-        valid_frames = scene.tracks[track].valid
-        allowed = index.allowed & torch.tensor(
-            [bool(valid_frames[scene.frame_position(v.frame)]) for v in scene.views]
-        )
-    else:
-        covis = index.covis
-        voxels = index.labels == instance
-        if int(voxels.sum()) < cfg.min_instance_voxels:
-            # the LiDAR missed it: the voxels seen through its pixels have observers that look at it
-            _, vidx = index.voxel_raster(ref)
-            through = torch.unique(vidx[ref_mask & (vidx >= 0)])
-            voxels = voxels.clone()
-            voxels[through] = True
-        world_to_cam = index.cameras.world_to_cam
-        allowed = index.allowed
-    if int(voxels.sum()) == 0:
-        return nothing("no_voxels")
-
-    # 2. supporting views
-    sel = select_views(ref, covis.restrict(voxels), cfg.selection, generator, allowed)
+    frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
+    if isinstance(frame, str):
+        return nothing(frame)
+    sel = select_views(ref, frame.covis.restrict(frame.voxels), cfg.selection, generator, frame.allowed)  # 2.
     group = [ref, *sel.views.tolist()]
     if len(group) < 2:
         return nothing(f"selection:{sel.reason}")
-
-    # 3. PatchMatch on the group, each member against the others, on crops around the instance
-    def region(v: int) -> torch.Tensor:
-        ins = index.instances(v)
-        if track is not None:
-            return ins == instance
-        return ~torch.isin(ins, torch.tensor(sorted(scene.tracks), dtype=ins.dtype))
-
-    masks = [index.instances(v) == instance for v in group]
-    members = [i for i, m in enumerate(masks) if int(m.sum()) >= cfg.min_pixels]
-    if len(members) < 2:
-        return nothing("instance_seen_in_fewer_than_two_group_views", group)
-    boxes, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
-    regions = torch.stack([region(v) for v in group])[:, None]
-    K_all = index.cameras.K[group]
-    w2c_all = world_to_cam[group]
-    # small instances are matched at a finer resolution (their crop stays within max_crop)
-    f = _upsample_factor(scene, ch, cw, cfg)
-    crops_lo = (boxes, ch, cw)  # the crops at the scene's resolution, for the returned depth maps
-    if f > 1:
-        masks = [_repeat(m, f) for m in masks]
-        regions = _repeat(regions, f)
-        boxes, ch, cw = [(y0 * f, x0 * f) for y0, x0 in boxes], ch * f, cw * f
-        K_all = scale_intrinsics(K_all, f)
-    imgs = torch.stack([index.image(v, f) for v in group])
-    ref_imgs, ref_masks, ref_K, init_d, init_n = [], [], [], [], []
-    for i, (y0, x0) in zip(members, boxes):
-        ref_imgs.append(imgs[i, :, y0 : y0 + ch, x0 : x0 + cw])
-        ref_masks.append(masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
-        ref_K.append(_shift_K(K_all[i], x0, y0))
-        if render_prior is not None:
-            d, n = render_prior(group[i])
-            d, n = _repeat(d, f), _repeat(n, f)
-            init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
-            init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
-    others = [[j for j in range(len(group)) if j != i] for i in members]
-    src_imgs = torch.stack([imgs[o] for o in others])
-    src_masks = torch.stack([regions[o] for o in others])
-    src_K = torch.stack([K_all[o] for o in others])
-    src_w2c = torch.stack([w2c_all[o] for o in others])
+    crops = _crop_group(index, group, instance, track, cfg)  # 3. crops and PatchMatch
+    if isinstance(crops, str):
+        return nothing(crops, group)
+    w2c = frame.world_to_cam[group]
     # depth range from the instance's voxels as seen by the reference
-    cen = covis.voxel_centers[voxels]
-    z = cen @ w2c_all[0, 2, :3] + w2c_all[0, 2, 3]
+    cen = frame.covis.voxel_centers[frame.voxels]
+    z = cen @ w2c[0, 2, :3] + w2c[0, 2, 3]
     z = z[z > 0.1]
     lo, hi = (float(z.min()) * 0.5, float(z.max()) * 2.0) if z.numel() else (0.5, 150.0)
-    res = patchmatch(
-        torch.stack(ref_imgs),
-        src_imgs,
-        torch.stack(ref_K),
-        src_K,
-        w2c_all[members],
-        src_w2c,
-        (max(lo, 0.2), max(hi, lo * 4, 1.0)),
-        cfg.patchmatch,
-        init_depth=torch.stack(init_d) if init_d else None,
-        init_normal=torch.stack(init_n) if init_n else None,
-        mask=torch.stack(ref_masks),
-        src_masks=src_masks,
+    res, ref_imgs, ref_masks, ref_K = _match(
+        crops, group, w2c, (max(lo, 0.2), max(hi, lo * 4, 1.0)), cfg, render_prior
     )
-
-    # 4. consistency among the members that have depth, then fusion
-    depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
-    b = len(members)
-    cons_src = [[j for j in range(b) if j != i] for i in range(b)]
-    cons = geometric_consistency(
-        depth,
-        torch.stack(ref_K),
-        w2c_all[members],
-        torch.stack([depth[o] for o in cons_src]),
-        torch.stack([torch.stack(ref_K)[o] for o in cons_src]),
-        torch.stack([w2c_all[members][o] for o in cons_src]),
-        cfg.max_reproj_error,
-        cfg.max_rel_depth,
-        min(cfg.min_consistent_views, b - 1),
+    planar = cfg.planar is not None and track is None  # a car is not planar
+    depth, normal, keep = _consistent(
+        res, crops, group, w2c, ref_imgs, ref_masks, ref_K, planar, cfg, generator
+    )  # 4.
+    members_w2c = w2c[crops.members]
+    fused = fuse_depth_maps(  # 5. one point per consistent pixel, in the instance's frame
+        depth, ref_imgs, ref_K, members_w2c, normal, keep, FusionConfig(min_views=0, deduplicate=False)
     )
-    keep = cons.mask & res.mask
-    c2w = invert_rigid(w2c_all[members])
-    res_normal = res.normal
-    if cfg.planar is not None and track is None:  # textureless parts of a static planar instance
-        res_normal = res.normal.clone()
-        for k in range(b):
-            o = [j for j in range(len(group)) if j != members[k]]
-            d_k, n_k, add = complete_planar(
-                depth[k], keep[k], ref_masks[k], ref_imgs[k], ref_K[k], c2w[k], imgs[o],
-                torch.stack([masks[j] for j in o])[:, None], K_all[o], w2c_all[o], cfg.planar, generator,
-                res.normal[k],
-            )  # fmt: skip
-            depth[k] = d_k
-            keep[k] |= add
-            res_normal[k] = torch.where(add, n_k[:, None, None].expand_as(res_normal[k]), res_normal[k])
-    pts_cam = backproject_depth(depth, torch.stack(ref_K))  # (b, 3, ch, cw) camera frame
-    full_depth, full_normal, pts, nrm, col, spc = [], [], [], [], [], []
-    for k in range(b):
-        m = keep[k, 0]
-        (y0, x0), ch0, cw0 = crops_lo[0][k], crops_lo[1], crops_lo[2]
-        fd = torch.zeros(1, h, w)
-        fn = torch.zeros(3, h, w)
-        fd[:, y0 : y0 + ch0, x0 : x0 + cw0] = _pool_valid(depth[k], keep[k], f)
-        fn[:, y0 : y0 + ch0, x0 : x0 + cw0] = _pool_valid(res_normal[k], keep[k], f, unit=True)
-        full_depth.append(fd)
-        full_normal.append(fn)
-        p = pts_cam[k][:, m].T
-        pts.append(p @ c2w[k, :3, :3].T + c2w[k, :3, 3])
-        nrm.append(res_normal[k][:, m].T @ c2w[k, :3, :3].T)
-        col.append(ref_imgs[k][:, m].T)
-        spc.append(depth[k, 0][m] / ref_K[k][0, 0])
-    points, normals, colors, spacing = (torch.cat(x) for x in (pts, nrm, col, spc))
+    seed_w2c, seed_K = members_w2c[fused.view_index], ref_K[fused.view_index]
+    z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
+    points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)
-        sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points]
+        sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].to(dev)
         points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
-    views = [group[i] for i in members]
+    full_depth, full_normal = _depth_priors(depth, normal, keep, crops, index.cameras.image_size)  # 6.
+    views = [group[i] for i in crops.members]
     reason = "ok" if points.shape[0] else "no_consistent_pixels"
     return InstanceReconstruction(
         points, normals, colors, spacing, track, views, full_depth, full_normal, reason
