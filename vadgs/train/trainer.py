@@ -140,35 +140,20 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``.
+        """Inverse of :meth:`to_dict`, type-checked (:func:`vadgs.config.config_from_dict`).
+
+        Raises:
+            ValueError: on an unknown key or a value of the wrong type, naming the field's path
+                (``config.strategy.refine_every: expected int, got str 'abc'``).
 
         Example:
             >>> c = TrainConfig(iterations=10)
             >>> TrainConfig.from_dict(c.to_dict()) == c
             True
         """
-        sub = {
-            "init": InitConfig,
-            "strategy": DefaultStrategyConfig,
-            "raster": RasterConfig,
-            "lr": LearningRates,
-        }
-        known = {f.name for f in dataclasses.fields(cls)}
-        bad = set(d) - known
-        if bad:
-            raise ValueError(f"config: unknown keys {sorted(bad)}")
-        kw: dict[str, Any] = {}
-        for k, v in d.items():
-            if k in sub:
-                sk = {f.name for f in dataclasses.fields(sub[k])}
-                if not isinstance(v, dict) or set(v) - sk:
-                    raise ValueError(
-                        f"config.{k}: unknown keys {sorted(set(v) - sk) if isinstance(v, dict) else v}"
-                    )
-                kw[k] = sub[k](**v)
-            else:
-                kw[k] = v
-        return cls(**kw)
+        from vadgs.config import config_from_dict
+
+        return config_from_dict(cls, d)
 
     def replace(self, **changes: Any) -> TrainConfig:
         """A copy with changes; nested fields as ``"init.max_points"``."""
