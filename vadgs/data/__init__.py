@@ -18,6 +18,7 @@ from vadgs.data.scene import (
     ViewInfo,
     load_scene,
 )
+from vadgs.data.validate import ValidationReport, ValidationRow, validate_scene
 
 __all__ = [
     "CameraInfo",
@@ -28,11 +29,14 @@ __all__ = [
     "LidarFrame",
     "Scene",
     "Track",
+    "ValidationReport",
+    "ValidationRow",
     "ViewInfo",
     "load_colmap",
     "load_dgp",
     "load_scene",
     "sample_scene_path",
+    "validate_scene",
 ]
 
 
