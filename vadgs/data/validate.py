@@ -211,6 +211,8 @@ class _Collector:
             text = str(e)
             if file is not None and text.startswith(f"{file}: "):
                 text = text[len(f"{file}: ") :]
+            if text.startswith(f"{item}: "):
+                text = text[len(f"{item}: ") :]
             self.rows.append(ValidationRow(item, str(file or ""), "error", text))
             return False
         if msg is not None:
