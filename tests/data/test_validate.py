@@ -216,7 +216,7 @@ class TestMetadata:
     @pytest.mark.parametrize(
         ("change", "match"),
         [
-            (lambda T: T[:3, :3] * 1.05, r"max \|R\^T R - I\| = 0.102"),  # scaled
+            (lambda T: T[:3, :3] * 1.05, r"max \|R\^T R - I\| = 0.10"),  # scaled
             (lambda T: T[:3, :3] @ np.array([[1, 0.2, 0], [0, 1, 0], [0, 0, 1]]), r"max \|R\^T R - I\|"),
             (lambda T: T[:3, :3] @ np.diag([1, 1, -1]), r"det \+1, got det -1"),  # reflection
         ],
