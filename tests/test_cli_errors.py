@@ -91,6 +91,11 @@ class TestArguments:
     def test_out_cannot_be_created(self, tmp_path, capsys):
         f = tmp_path / "file.txt"
         f.write_text("x")
+        assert main(["train", "--sample", "--out", str(f / "a" / "b"), *TINY]) == 2
+        assert (
+            _error_line(capsys)
+            == f"vadgs train: error: --out {f / 'a' / 'b'}: cannot create the folder ({f} is a file)"
+        )
         assert main(["demo", "--out", str(f / "sub"), "--iterations", "1"]) == 2
         assert f"--out {f / 'sub'}: cannot create the folder" in _error_line(capsys)
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -58,8 +59,14 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _check_out_dir(path: str | Path, flag: str = "--out") -> Path:
-    """Create the output folder ``path`` (and parents) and check it is writable, before any work.
+def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -> Path:
+    """Check, before any work, that the output folder ``path`` can be written (and create it).
+
+    Args:
+        path: the folder.
+        flag: the argument's name, for the message.
+        create: create the folder (and parents); when False only check that it could be
+            created (its nearest existing ancestor is a writable folder), leaving the disk as it is.
 
     Raises:
         ValueError: if ``path`` is an existing file, cannot be created, or is not writable; the
@@ -68,6 +75,15 @@ def _check_out_dir(path: str | Path, flag: str = "--out") -> Path:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{flag} {path}: expected a folder, got an existing file")
+    if not path.exists() and not create:
+        parent = path.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is a file)")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is not writable)")
+        return path
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -275,7 +291,7 @@ def train(args: argparse.Namespace) -> int:
     from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, open_scene
 
     torch.set_num_threads(args.threads or 2)
-    out = _check_out_dir(args.out)
+    out = _check_out_dir(args.out, create=False)
     progress = not args.no_progress
     if args.resume:
         if not (out / CHECKPOINT_NAME).is_file():
