@@ -9,8 +9,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
+import tempfile
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,6 +22,7 @@ import torch
 __all__ = [
     "COMMANDS",
     "batch",
+    "check",
     "convert",
     "demo",
     "eval_run",
@@ -28,6 +32,87 @@ __all__ = [
     "train",
     "visibility",
 ]
+
+
+# ---------------------------------------------------------------------------------------------------
+# argument validation
+
+
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"integer >= {minimum}"
+    return parse
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not (value >= 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 (0 = no limit), got {text}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (0 < value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -> Path:
+    """Check, before any work, that the output folder ``path`` can be written (and create it).
+
+    Args:
+        path: the folder.
+        flag: the argument's name, for the message.
+        create: create the folder (and parents); when False only check that it could be
+            created (its nearest existing ancestor is a writable folder), leaving the disk as it is.
+
+    Raises:
+        ValueError: if ``path`` is an existing file, cannot be created, or is not writable; the
+            message names ``flag`` and the path.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {path}: expected a folder, got an existing file")
+    if not path.exists() and not create:
+        parent = path.parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is a file)")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is not writable)")
+        return path
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path}: cannot create the folder ({e.strerror or e})") from None
+    try:
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".vadgs-write-test-"):
+            pass
+    except OSError as e:
+        raise ValueError(f"{flag} {path}: folder is not writable ({e.strerror or e})") from None
+    return path
+
+
+def _run_dir(run: str | Path) -> Path:
+    """The run folder of ``RUN`` given as the folder or as its checkpoint file."""
+    run = Path(run)
+    return run.parent if run.is_file() else run
 
 
 def _scene_arg(value: str | None) -> Path:
@@ -43,9 +128,8 @@ def visibility(args: argparse.Namespace) -> int:
     from vadgs.geometry import ZBufferConfig, rasterize_voxels, voxelize
     from vadgs.viz import colorize_depth, colorize_index, image_to_uint8, save_panel
 
+    out = _check_out_dir(args.out)
     scene = load_scene(_scene_arg(args.scene), scale=args.scale)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     acc = accumulate_lidar(scene)
     grid = voxelize(acc.points, args.voxel_size, acc.point_views, scene.num_views)
@@ -90,9 +174,11 @@ def visibility(args: argparse.Namespace) -> int:
 def _visibility_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", help="scene folder (default: the bundled sample)")
     p.add_argument("--out", default="outputs/visibility", help="output folder")
-    p.add_argument("--view", type=int, default=None, help="view index (default: a middle training view)")
-    p.add_argument("--voxel-size", type=float, default=0.2)
-    p.add_argument("--scale", type=float, default=1.0, help="image resolution factor")
+    p.add_argument(
+        "--view", type=_int_at_least(0), default=None, help="view index (default: a middle training view)"
+    )
+    p.add_argument("--voxel-size", type=_positive_float, default=0.2)
+    p.add_argument("--scale", type=_positive_float, default=1.0, help="image resolution factor")
     p.add_argument("--only-observed", action="store_true", help="rasterise only voxels observed by the view")
 
 
@@ -119,7 +205,7 @@ def _train_config(args: argparse.Namespace) -> object:
 
     d = TrainConfig().to_dict()
     if args.config:
-        _deep_update(d, json.loads(Path(args.config).read_text()))
+        _deep_update(d, _read_config_file(args.config))
     for item in args.set or []:
         if "=" not in item:
             raise ValueError(f"--set: expected KEY=VALUE, got {item!r}")
@@ -143,7 +229,27 @@ def _train_config(args: argparse.Namespace) -> object:
     vad = _vad_config(args)
     if vad is not None:
         d["vad"] = {**(d.get("vad") or {}), **vad}
-    return TrainConfig.from_dict(d)
+    config = TrainConfig.from_dict(d)
+    for key in ("max_minutes", "threads", "checkpoint_every"):
+        if getattr(config, key) < 0:
+            raise ValueError(f"config.{key}: expected >= 0 (0 = off), got {getattr(config, key)}")
+    return config
+
+
+def _read_config_file(path: str) -> dict:
+    """A ``--config`` JSON file, type-checked against :class:`TrainConfig` on its own."""
+    from vadgs.config import config_from_dict
+    from vadgs.train.trainer import TrainConfig
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"--config {p}: no such file")
+    try:
+        data = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"--config {p}: not valid JSON ({e})") from None
+    config_from_dict(TrainConfig, data, where=f"--config {p}")
+    return data
 
 
 def _vad_config(args: argparse.Namespace) -> dict | None:
@@ -215,7 +321,7 @@ def train(args: argparse.Namespace) -> int:
     from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, open_scene
 
     torch.set_num_threads(args.threads or 2)
-    out = Path(args.out)
+    out = _check_out_dir(args.out, create=False)
     progress = not args.no_progress
     if args.resume:
         if not (out / CHECKPOINT_NAME).is_file():
@@ -259,12 +365,19 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="run folder (checkpoints, metrics, PLY)")
     p.add_argument("--config", help="JSON file with (part of) a TrainConfig")
     p.add_argument("--set", action="append", help="override a config field, e.g. --set init.max_points=50000")
-    p.add_argument("--iterations", type=int)
+    p.add_argument("--iterations", type=_int_at_least(0))
     p.add_argument("--seed", type=int)
-    p.add_argument("--max-minutes", type=float, help="stop and checkpoint after this much training time")
-    p.add_argument("--max-gaussians", type=int)
     p.add_argument(
-        "--scale", type=float, default=0.5, help="image resolution factor (0.5 = 240x144 for the benchmark)"
+        "--max-minutes",
+        type=_non_negative_float,
+        help="stop and checkpoint after this much training time (0 = no limit)",
+    )
+    p.add_argument("--max-gaussians", type=_int_at_least(1))
+    p.add_argument(
+        "--scale",
+        type=_positive_float,
+        default=0.5,
+        help="image resolution factor (0.5 = 240x144 for the benchmark)",
     )
     p.add_argument("--dgp", action="store_true", help="SCENE is a DGP scene folder")
     p.add_argument("--cameras", help="DGP: comma-separated camera names")
@@ -292,11 +405,6 @@ def _load_run(run: str) -> tuple:
     ckpt = load_checkpoint(run)
     model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
     return model, open_scene(ckpt["scene_ref"]), TrainConfig.from_dict(ckpt["config"]), ckpt
-
-
-def _run_dir(run: str) -> Path:
-    p = Path(run)
-    return p.parent if p.suffix == ".pt" else p
 
 
 def eval_run(args: argparse.Namespace) -> int:
@@ -375,7 +483,7 @@ def render_run(args: argparse.Namespace) -> int:
     from vadgs.train.evaluate import save_test_panels
 
     views = args.views if args.views else None
-    out = Path(args.out) if args.out else _run_dir(args.run) / "renders"
+    out = _check_out_dir(args.out if args.out else _run_dir(args.run) / "renders")
     paths = save_test_panels(model, scene, out, views, config.raster, progress=not args.no_progress)
     print(f"wrote {len(paths)} panels to {out}")
     return 0
@@ -448,7 +556,7 @@ def demo(args: argparse.Namespace) -> int:
     from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
     torch.set_num_threads(args.threads or 2)
-    out = Path(args.out)
+    out = _check_out_dir(args.out)
     ref = {"kind": "benchmark", "path": str(_scene_arg(None)), "scale": DEMO_SCALE}
     scene = load_scene(ref["path"], scale=DEMO_SCALE)
     config = TrainConfig.from_dict(_deep_update(TrainConfig().to_dict(), DEMO_CONFIG))
@@ -536,7 +644,7 @@ DEMO_CONFIG: dict = {
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="outputs/demo", help="output folder")
-    p.add_argument("--iterations", type=int, help="override the demo's iteration count")
+    p.add_argument("--iterations", type=_int_at_least(0), help="override the demo's iteration count")
     p.add_argument("--baseline", action="store_true", help="standard densification only (no VAD-GS)")
     p.add_argument("--no-progress", action="store_true")
 
@@ -623,7 +731,38 @@ def _batch_args(p: argparse.ArgumentParser) -> None:
 
 batch.add_arguments = _batch_args  # type: ignore[attr-defined]
 
+
+def check(args: argparse.Namespace) -> int:
+    """Validate a scene's metadata and files; print a table (exit 1 when a check fails)."""
+    from vadgs.data import load_dgp, validate_scene
+
+    if args.dgp:
+        try:
+            scene = load_dgp(_scene_arg(args.scene), scale=args.scale, validate="none")
+        except (ValueError, FileNotFoundError) as e:
+            print(f"error  {args.scene}: {e}")
+            return 1
+        report = validate_scene(scene, full=args.full)
+    else:
+        report = validate_scene(_scene_arg(args.scene), full=args.full, scale=args.scale)
+    print(report.format_table())
+    level = "every file decoded" if args.full else "headers only; --full decodes every file"
+    n = len(report.errors)
+    print(f"{report.scene}: {'ok' if report.ok else f'{n} error(s)'} ({len(report.rows)} checks, {level})")
+    return 0 if report.ok else 1
+
+
+def _check_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", help="scene folder (default: the bundled sample)")
+    p.add_argument("--full", action="store_true", help="decode every image, depth map, instance map, sweep")
+    p.add_argument("--scale", type=_positive_float, default=1.0, help="resolution factor to check against")
+    p.add_argument("--dgp", action="store_true", help="SCENE is a DGP scene folder")
+
+
+check.add_arguments = _check_args  # type: ignore[attr-defined]
+
 COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "check": check,
     "visibility": visibility,
     "train": train,
     "eval": eval_run,
@@ -640,7 +779,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="vadgs", description="VAD-GS: visibility-aware densification for 3DGS"
     )
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--threads", type=_int_at_least(1), default=None, help="torch CPU threads (>= 1)")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, fn in COMMANDS.items():
         p = sub.add_parser(name, help=(fn.__doc__ or "").strip().splitlines()[0])
@@ -650,12 +790,26 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     try:
         return COMMANDS[args.command](args)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"vadgs {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except FloatingPointError as e:
-        print(f"vadgs {args.command}: error: {e}", file=sys.stderr)
-        return 3
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print(f"vadgs {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        if args.debug:
+            traceback.print_exc()
+        print(f"vadgs {args.command}: error: {_one_line(e)}", file=sys.stderr)
+        return 3 if isinstance(e, FloatingPointError) else 2
+
+
+def _one_line(e: BaseException) -> str:
+    """An exception as one line; unexpected kinds keep their type name and point to ``--debug``."""
+    text = " ".join(str(e).split()) or repr(e)
+    if isinstance(e, (ValueError, FileNotFoundError, FloatingPointError)):
+        return text
+    if isinstance(e, OSError) and e.filename is not None:
+        return f"{e.filename}: {e.strerror or text}"
+    return f"{type(e).__name__}: {text} (--debug shows the traceback)"
 
 
 if __name__ == "__main__":

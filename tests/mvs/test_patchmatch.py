@@ -317,3 +317,41 @@ def test_gray_conversion_of_two_channels(fronto_scene):
         PatchMatchConfig(iterations=2),
     )
     assert res.depth.shape[1] == 1
+
+
+class TestPatchMatchRejectsWhatItCannotHandle:
+    """Reliability trial (issue 17): uint8, tiny and NaN images are named errors."""
+
+    def _run(self, image, src):
+        K = torch.tensor([[[8.0, 0, 4.0], [0, 8.0, 4.0], [0, 0, 1]]])
+        s2c = torch.eye(4)[None, None].clone()
+        s2c[0, 0, 0, 3] = -0.2
+        return patchmatch(image, src, K, K[:, None], torch.eye(4)[None], s2c, (1.0, 10.0), FAST)
+
+    def test_uint8(self):
+        img = torch.zeros(1, 1, 16, 16, dtype=torch.uint8)
+        with pytest.raises(ValueError, match=r"image: expected a floating dtype .*got torch.uint8"):
+            self._run(img, img.float()[:, None])
+        with pytest.raises(ValueError, match=r"src_images: expected a floating dtype"):
+            self._run(img.float(), img[:, None])
+
+    @pytest.mark.parametrize("size", [(0, 0), (1, 1), (5, 40)])
+    def test_too_small(self, size):
+        img = torch.rand(1, 1, *size)
+        big = torch.rand(1, 1, 1, 16, 16)
+        with pytest.raises(
+            ValueError, match=rf"image: expected \(H, W\) of at least \(6, 6\) .*got \({size[0]}, {size[1]}\)"
+        ):
+            self._run(img, big)
+        with pytest.raises(ValueError, match=r"src_images: expected \(H, W\) of at least \(6, 6\)"):
+            self._run(big[:, 0], img[:, None])
+
+    def test_nan(self):
+        img = torch.rand(1, 1, 16, 16)
+        img[0, 0, 3, 3] = float("nan")
+        with pytest.raises(ValueError, match=r"image: expected finite values, got 1 non-finite of 256"):
+            self._run(img, torch.rand(1, 1, 1, 16, 16))
+        from vadgs.checks import checking
+
+        with checking(False):  # a value check: off in a trusted loop
+            self._run(img, torch.rand(1, 1, 1, 16, 16))

@@ -72,3 +72,56 @@ class TestPly:
         save_ply(tmp_path / "e.ply", z, torch.zeros(0, 4), z, torch.zeros(0), z)
         g = load_ply(tmp_path / "e.ply")
         assert g.means.shape == (0, 3) and g.sh.shape == (0, 1, 3)
+
+
+class TestPlyFaults:
+    """Reliability trial (issue 17): one PLY reader/writer with validated headers, atomic writes."""
+
+    def _file(self, tmp_path, n=4, k=4):
+        means, quats, scales, opac, sh = _gaussians(n=n, k=k)
+        save_ply(tmp_path / "g.ply", means, quats, scales, opac, sh)
+        return tmp_path / "g.ply"
+
+    def test_truncated(self, tmp_path):
+        p = self._file(tmp_path)
+        p.write_bytes(p.read_bytes()[:-10])
+        with pytest.raises(ValueError, match=r"g\.ply: corrupt PLY .*early end-of-file"):
+            load_ply(p)
+
+    def test_vertex_count_larger_than_data(self, tmp_path):
+        p = self._file(tmp_path)
+        p.write_bytes(p.read_bytes().replace(b"element vertex 4", b"element vertex 9"))
+        with pytest.raises(ValueError, match=r"g\.ply: corrupt PLY"):
+            load_ply(p)
+
+    def test_missing_property_and_bad_sh(self, tmp_path):
+        p = self._file(tmp_path)
+        p.write_bytes(p.read_bytes().replace(b"property float opacity", b"property float opaque"))
+        with pytest.raises(ValueError, match=r"missing vertex properties \['opacity'\]"):
+            load_ply(p)
+        p = self._file(tmp_path)
+        p.write_bytes(p.read_bytes().replace(b"property float f_rest_8", b"property float extra"))
+        with pytest.raises(ValueError, match="f_rest properties do not make a full SH degree"):
+            load_ply(p)
+
+    def test_empty_and_missing_file(self, tmp_path):
+        (tmp_path / "e.ply").write_bytes(b"")
+        with pytest.raises(ValueError, match="not a PLY file"):
+            load_ply(tmp_path / "e.ply")
+        with pytest.raises(FileNotFoundError, match="no PLY file"):
+            load_ply(tmp_path / "none.ply")
+
+    def test_atomic_write_leaves_no_temporary(self, tmp_path):
+        self._file(tmp_path)
+        assert [p.name for p in tmp_path.iterdir()] == ["g.ply"]
+
+    def test_export_and_render_share_one_implementation(self, tmp_path):
+        from vadgs.render import read_raw_ply
+        from vadgs.train.export import read_ply, write_ply
+
+        p = self._file(tmp_path, k=9)
+        raw = read_ply(p)
+        for key, value in read_raw_ply(p).items():
+            torch.testing.assert_close(raw[key], value)
+        write_ply(tmp_path / "h.ply", raw)
+        assert (tmp_path / "h.ply").read_bytes() == p.read_bytes()

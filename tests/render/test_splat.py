@@ -251,3 +251,30 @@ class TestRasterizeGaussians:
         gpu = rasterize_gaussians(*(t.cuda() for t in sc), (24, 32))
         for k in NAMES:
             torch.testing.assert_close(getattr(gpu, k).cpu(), getattr(cpu, k), atol=1e-4, rtol=0)
+
+
+class TestRasterizeRejectsDegenerateInputs:
+    """Reliability trial (issue 17): a NaN image for huge scales, a finite one for K = 0."""
+
+    def _args(self, scale=0.1, K=None):
+        K = torch.tensor([[[50.0, 0, 16.0], [0, 50.0, 12.0], [0, 0, 1]]]) if K is None else K
+        means, quats = torch.tensor([[0.0, 0.0, 4.0]]), torch.tensor([[1.0, 0, 0, 0]])
+        scales, opac, rgb = torch.full((1, 3), scale), torch.tensor([0.5]), torch.tensor([[1.0, 0.5, 0.0]])
+        return means, quats, scales, opac, rgb, torch.eye(4)[None], K, (24, 32)
+
+    @pytest.mark.parametrize(
+        "K",
+        [torch.zeros(1, 3, 3), torch.tensor([[[-50.0, 0, 16.0], [0, 50.0, 12.0], [0, 0, 1]]])],
+        ids=["zero", "negative-fx"],
+    )
+    def test_singular_K(self, K):
+        with pytest.raises(ValueError, match=r"K: expected positive focal lengths .* for camera b=0"):
+            rasterize_gaussians(*self._args(K=K))
+
+    def test_overflowing_scales(self):
+        with pytest.raises(ValueError, match=r"scales: expected < .* overflows the torch.float32 covariance"):
+            rasterize_gaussians(*self._args(scale=1e20))
+
+    def test_large_but_finite_scales_render(self):
+        out = rasterize_gaussians(*self._args(scale=1e6))
+        assert torch.isfinite(out.color).all()

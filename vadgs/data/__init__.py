@@ -20,6 +20,7 @@ from vadgs.data.scene import (
     ViewInfo,
     load_scene,
 )
+from vadgs.data.validate import ValidationReport, ValidationRow, validate_scene
 from vadgs.data.waymo import load_waymo
 
 __all__ = [
@@ -31,6 +32,8 @@ __all__ = [
     "LidarFrame",
     "Scene",
     "Track",
+    "ValidationReport",
+    "ValidationRow",
     "ViewInfo",
     "export_scene",
     "load_colmap",
@@ -39,6 +42,7 @@ __all__ = [
     "load_scene",
     "load_waymo",
     "sample_scene_path",
+    "validate_scene",
 ]
 
 

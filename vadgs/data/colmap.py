@@ -35,6 +35,7 @@ import torch
 
 from vadgs.checks import check_finite
 from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
+from vadgs.data.validate import validate_scene
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 
 __all__ = ["COLMAP_PIXEL_OFFSET", "ColmapPoints", "ColmapScene", "colmap_camera_to_K", "load_colmap"]
@@ -155,6 +156,7 @@ def load_colmap(
     images_dir: str | Path | None = None,
     scale: float = 1.0,
     check_files: bool = True,
+    validate: str = "headers",
 ) -> ColmapScene:
     """Load a COLMAP sparse reconstruction as a :class:`Scene` and its points with their tracks.
 
@@ -170,6 +172,9 @@ def load_colmap(
         scale: resolution factor: images are resized on load, intrinsics and the observations
             ``uv`` are rescaled (points stay in world units).
         check_files: when an images folder is known, verify that every registered image exists.
+        validate: content checks (:func:`~vadgs.data.validate_scene`): ``"headers"`` (default:
+            ``K``, rigid poses, image sizes from the file headers), ``"full"`` (decode
+            every file) or ``"none"``; a failure raises a :class:`ValueError` naming the file.
 
     Returns:
         A :class:`ColmapScene` ``(scene, points)``. The scene has every registered image as a
@@ -203,6 +208,8 @@ def load_colmap(
     sparse_dir = Path(sparse_dir)
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
+    if validate not in ("none", "headers", "full"):
+        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
     if not any((sparse_dir / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
         raise FileNotFoundError(f"sparse_dir: no COLMAP model (cameras.bin or cameras.txt) in {sparse_dir}")
     try:
@@ -312,6 +319,8 @@ def load_colmap(
         test_frames=[],
         scale=float(scale),
     )
+    if check_files and validate != "none":
+        validate_scene(scene, full=validate == "full").raise_if_errors()
     return ColmapScene(scene, points)
 
 

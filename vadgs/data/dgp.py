@@ -43,6 +43,7 @@ import torch
 
 from vadgs.checks import check_finite
 from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, LidarFrame, Scene, Track, ViewInfo
+from vadgs.data.validate import validate_scene
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["dgp_pose_to_matrix", "load_dgp", "points_in_boxes"]
@@ -174,6 +175,7 @@ def load_dgp(
     test_frames: Sequence[int] = (),
     recenter: bool = True,
     check_files: bool = True,
+    validate: str = "headers",
 ) -> Scene:
     """Load one DGP scene (cameras, LiDAR, 3D boxes) as a :class:`Scene`.
 
@@ -207,6 +209,10 @@ def load_dgp(
         test_frames: frame indices (sample positions) to hold out.
         recenter: translate the world so that the vehicle at frame 0 sits at the origin.
         check_files: verify that every referenced image and point cloud exists.
+        validate: content checks (:func:`~vadgs.data.validate_scene`): ``"headers"`` (default:
+            ``K``, rigid poses, image sizes from the file headers, point-cloud array headers),
+            ``"full"`` (decode every file) or ``"none"``; a failure raises a :class:`ValueError`
+            naming the file.
 
     Returns:
         The :class:`Scene`.
@@ -228,6 +234,8 @@ def load_dgp(
     scene_dir, scene_json = _find_scene_json(Path(scene_dir))
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
+    if validate not in ("none", "headers", "full"):
+        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
     meta = _read_json(scene_json, "scene")
     samples = _key(meta, "samples", scene_json.name)
     data = _key(meta, "data", scene_json.name)
@@ -443,7 +451,7 @@ def load_dgp(
             instance[hit] = torch.tensor(ids)[inside[:, hit].float().argmax(0)]
         return LidarFrame(pts, instance, torch.from_numpy(sensor_to_world[:3, 3]).float())
 
-    return Scene(
+    scene = Scene(
         name=scene_dir.name,
         root=scene_dir,
         cameras_info=cams,
@@ -456,3 +464,6 @@ def load_dgp(
         scale=float(scale),
         lidar_loader=lidar_loader if lidar is not None else None,
     )
+    if check_files and validate != "none":
+        validate_scene(scene, full=validate == "full").raise_if_errors()
+    return scene

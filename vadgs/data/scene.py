@@ -24,6 +24,14 @@ import torch.nn.functional as F
 from PIL import Image
 
 from vadgs.checks import check_finite
+from vadgs.data.validate import (
+    check_intrinsics,
+    check_rigid,
+    check_split,
+    npz_headers,
+    read_depth,
+    validate_scene,
+)
 from vadgs.geometry.camera import Cameras, invert_rigid, scale_intrinsics
 
 __all__ = [
@@ -326,8 +334,7 @@ class Scene:
             v = self.views[i]
             if v.depth is None:
                 raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no ground-truth depth")
-            with np.load(v.depth) as z:
-                d = torch.from_numpy(z["depth"].astype(np.float32))
+            d = torch.from_numpy(read_depth(v.depth).astype(np.float32))
             out.append(self._resize(d[None, None], i, "nearest")[0])
         return torch.stack(out)
 
@@ -392,10 +399,96 @@ class Scene:
 def _read_png(path: Path, expect_rgb: bool = False) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"missing file {path}")
-    with Image.open(path) as im:
-        if expect_rgb:
-            im = im.convert("RGB")
-        return np.asarray(im).copy()
+    try:
+        with Image.open(path) as im:
+            if expect_rgb:
+                im = im.convert("RGB")
+            return np.asarray(im).copy()
+    except (OSError, SyntaxError, ValueError) as e:
+        raise ValueError(f"{path}: not a decodable image ({type(e).__name__}: {e})") from None
+
+
+def _read_lidar(path: Path) -> LidarFrame:
+    """A benchmark LiDAR ``.npz``, checked: (N, 3) finite points, (N,) ids, (3,) origin."""
+    npz_headers(path)  # a clear error for a file that is not an .npz (0 bytes, truncated)
+    try:
+        with np.load(path) as z:
+            if "points" not in z:
+                raise ValueError(f"{path}: expected key 'points', got keys {sorted(z.keys())}")
+            pts = np.asarray(z["points"])
+            ins = np.asarray(z["instance"]) if "instance" in z else None
+            origin = np.asarray(z["origin"]) if "origin" in z else np.zeros(3)
+    except ValueError:
+        raise
+    except Exception as e:  # zlib.error, BadZipFile, EOFError on a corrupt member
+        raise ValueError(f"{path}: corrupt LiDAR archive ({type(e).__name__}: {e})") from None
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.dtype.kind != "f":
+        raise ValueError(f"{path}: points: expected (N, 3) floating, got shape {pts.shape} dtype {pts.dtype}")
+    bad = ~np.isfinite(pts).all(-1)
+    if bad.any():
+        raise ValueError(
+            f"{path}: points: expected finite values, got {int(bad.sum())} non-finite points of {len(pts)}"
+        )
+    if ins is None:
+        ins = np.zeros(len(pts), dtype=np.int64)
+    if ins.shape != (len(pts),) or ins.dtype.kind not in "iu":
+        raise ValueError(
+            f"{path}: instance: expected ({len(pts)},) integers, got shape {ins.shape} dtype {ins.dtype}"
+        )
+    if origin.shape != (3,) or not np.isfinite(origin).all():
+        raise ValueError(f"{path}: origin: expected 3 finite numbers, got {origin!r}")
+    return LidarFrame(
+        torch.from_numpy(pts.astype(np.float32)),
+        torch.from_numpy(ins.astype(np.int64)),
+        torch.from_numpy(origin.astype(np.float32)),
+    )
+
+
+def _int(value: object, what: str) -> int:
+    """An integer field of scene.json (an int, or a float / string holding one)."""
+    if isinstance(value, bool):
+        raise ValueError(f"scene.json: {what}: expected an integer, got {value!r}")
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, str):
+        try:
+            return int(value)
+        except ValueError:
+            pass
+    raise ValueError(f"scene.json: {what}: expected an integer, got {value!r}")
+
+
+def _float(value: object, what: str) -> float:
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value):
+        return float(value)
+    raise ValueError(f"scene.json: {what}: expected a finite number, got {value!r}")
+
+
+def _str(value: object, what: str) -> str:
+    if isinstance(value, str) and value:
+        return value
+    raise ValueError(f"scene.json: {what}: expected a non-empty string, got {value!r}")
+
+
+def _bool(value: object, what: str) -> bool:
+    if isinstance(value, bool):
+        return value
+    raise ValueError(f"scene.json: {what}: expected true or false, got {value!r}")
+
+
+def _pose(value: object, what: str) -> torch.Tensor:
+    """A rigid 4x4 transform of scene.json (see :func:`~vadgs.data.validate.check_rigid`)."""
+    t = _matrix(value, (4, 4), what)
+    check_rigid(t, f"scene.json: {what}")
+    return t
+
+
+def _frame_list(value: object, what: str) -> list[int]:
+    if not isinstance(value, list):
+        raise ValueError(f"scene.json: {what}: expected a list of frame indices, got {value!r}")
+    return [_int(f, f"{what}[{i}]") for i, f in enumerate(value)]
 
 
 def _matrix(value: object, shape: tuple[int, ...], what: str) -> torch.Tensor:
@@ -461,7 +554,9 @@ def _novel_views(
     return views
 
 
-def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -> Scene:
+def load_scene(
+    path: str | Path, scale: float = 1.0, check_files: bool = True, validate: str = "headers"
+) -> Scene:
     """Load a scene in the benchmark format (``scene.json`` and its files).
 
     Args:
@@ -469,6 +564,11 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
         scale: resolution factor; images are resized on load and intrinsics rescaled
             (e.g. ``0.5`` for 240×144 from 480×288).
         check_files: verify that every referenced file exists before returning.
+        validate: content checks of the files (:func:`~vadgs.data.validate_scene`):
+            ``"headers"`` (default: image sizes and decodable headers, ``.npz`` keys, shapes and
+            dtypes, a non-empty LiDAR total, the test views' depth decoded), ``"full"`` (decode
+            and check every file, as ``vadgs check --full``) or ``"none"``. The metadata
+            (field types, ``K``, rigid poses, the split) is always checked.
 
     Returns:
         The :class:`Scene`, with per-view data loaded lazily. ``novel_views`` entries of
@@ -476,7 +576,10 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
 
     Raises:
         FileNotFoundError: if ``scene.json`` or a referenced file is missing.
-        ValueError: if ``scene.json`` is malformed (the message names the entry).
+        ValueError: if ``scene.json`` is malformed (the message names the entry: a field of the
+            wrong type, a singular ``K``, a pose that is not rigid, a duplicate or unknown split
+            frame) or a file's content is wrong (the message names the file, the expected and
+            the actual: an image of another size, a corrupt PNG or ``.npz``, no LiDAR points).
 
     Example:
         >>> from vadgs.data import sample_scene_path
@@ -499,18 +602,24 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
         raise ValueError(f"{meta_path}: expected a JSON object at the top level")
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
+    if validate not in ("none", "headers", "full"):
+        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
 
     cams_meta = _get(meta, "cameras", "top level")
     if not isinstance(cams_meta, dict) or not cams_meta:
         raise ValueError("scene.json: cameras: expected a non-empty object")
     cameras: dict[str, CameraInfo] = {}
     for name, c in cams_meta.items():
-        w, h = int(_get(c, "width", f"cameras.{name}")), int(_get(c, "height", f"cameras.{name}"))
+        w = _int(_get(c, "width", f"cameras.{name}"), f"cameras.{name}.width")
+        h = _int(_get(c, "height", f"cameras.{name}"), f"cameras.{name}.height")
+        if w <= 0 or h <= 0:
+            raise ValueError(f"scene.json: cameras.{name}: expected positive width and height, got {w}x{h}")
         K = _matrix(_get(c, "K", f"cameras.{name}"), (3, 3), f"cameras.{name}.K")
+        check_intrinsics(K, f"scene.json: cameras.{name}.K")
         size = (round(h * scale), round(w * scale))
         if scale != 1.0:
             K = scale_intrinsics(K, size[1] / w)
-        c2e = _matrix(c["cam_to_ego"], (4, 4), f"cameras.{name}.cam_to_ego") if "cam_to_ego" in c else None
+        c2e = _pose(c["cam_to_ego"], f"cameras.{name}.cam_to_ego") if "cam_to_ego" in c else None
         cameras[name] = CameraInfo(name, K, size, c2e)
 
     frames: list[FrameInfo] = []
@@ -520,62 +629,84 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
         raise ValueError("scene.json: frames: expected a non-empty list")
     for fi, fm in enumerate(frames_meta):
         what = f"frames[{fi}]"
-        index = int(_get(fm, "index", what))
-        ts = float(fm.get("timestamp", index))
-        e2w = _matrix(fm["ego_to_world"], (4, 4), f"{what}.ego_to_world") if "ego_to_world" in fm else None
+        index = _int(_get(fm, "index", what), f"{what}.index")
+        ts = _float(fm.get("timestamp", index), f"{what}.timestamp")
+        e2w = _pose(fm["ego_to_world"], f"{what}.ego_to_world") if "ego_to_world" in fm else None
         ids = []
         vms = _get(fm, "views", what)
         if not isinstance(vms, list):
             raise ValueError(f"scene.json: {what}.views: expected a list")
         for vi, vm in enumerate(vms):
             vwhat = f"{what}.views[{vi}]"
-            cam = str(_get(vm, "camera", vwhat))
+            cam = _str(_get(vm, "camera", vwhat), f"{vwhat}.camera")
             if cam not in cameras:
                 raise ValueError(f"scene.json: {vwhat}.camera: unknown camera {cam!r}, have {list(cameras)}")
-            c2w = _matrix(_get(vm, "cam_to_world", vwhat), (4, 4), f"{vwhat}.cam_to_world")
-            files = {k: (root / vm[k]) if vm.get(k) else None for k in ("image", "depth", "instances")}
+            c2w = _pose(_get(vm, "cam_to_world", vwhat), f"{vwhat}.cam_to_world")
+            files = {
+                k: (root / _str(vm[k], f"{vwhat}.{k}")) if vm.get(k) else None
+                for k in ("image", "depth", "instances")
+            }
             if files["image"] is None:
                 raise ValueError(f"scene.json: {vwhat}: missing key 'image'")
             views.append(ViewInfo(len(views), index, cam, ts, c2w, **files))
             ids.append(len(views) - 1)
-        lidar = root / fm["lidar"] if fm.get("lidar") else None
+        lidar = root / _str(fm["lidar"], f"{what}.lidar") if fm.get("lidar") else None
         frames.append(FrameInfo(index, ts, e2w, tuple(ids), lidar))
 
     views += _novel_views(meta, root, cameras, {f.index: f for f in frames}, len(views))
 
     instances = {}
-    for im in meta.get("instances", []):
-        iid = int(_get(im, "id", "instances[]"))
+    inst_meta = meta.get("instances", [])
+    if not isinstance(inst_meta, list):
+        raise ValueError(f"scene.json: instances: expected a list, got {type(inst_meta).__name__}")
+    for ii, im in enumerate(inst_meta):
+        iid = _int(_get(im, "id", f"instances[{ii}]"), f"instances[{ii}].id")
         instances[iid] = InstanceInfo(
-            iid, str(im.get("name", iid)), str(im.get("class", "unknown")), bool(im.get("dynamic", False))
+            iid,
+            str(im.get("name", iid)),
+            _str(im.get("class", "unknown"), f"instances[{ii}].class"),
+            _bool(im.get("dynamic", False), f"instances[{ii}].dynamic"),
         )
 
     frame_pos = {f.index: i for i, f in enumerate(frames)}
     tracks = {}
     for ti, tm in enumerate(meta.get("tracks", [])):
         what = f"tracks[{ti}]"
-        tid = int(_get(tm, "id", what))
+        tid = _int(_get(tm, "id", what), f"{what}.id")
         poses = torch.eye(4).repeat(len(frames), 1, 1)
         valid = torch.zeros(len(frames), dtype=torch.bool)
-        for key, mat in _get(tm, "object_to_world", what).items():
-            if int(key) in frame_pos:
-                poses[frame_pos[int(key)]] = _matrix(mat, (4, 4), f"{what}.object_to_world[{key}]")
-                valid[frame_pos[int(key)]] = True
+        o2w = _get(tm, "object_to_world", what)
+        if not isinstance(o2w, dict):
+            raise ValueError(
+                f"scene.json: {what}.object_to_world: expected an object (frame -> 4x4), got {o2w!r}"
+            )
+        for key, mat in o2w.items():
+            fk = _int(key, f"{what}.object_to_world key")
+            if fk in frame_pos:
+                poses[frame_pos[fk]] = _pose(mat, f"{what}.object_to_world[{key}]")
+                valid[frame_pos[fk]] = True
+        lwh = _matrix(tm.get("size_lwh", [0.0, 0.0, 0.0]), (3,), f"{what}.size_lwh")
         tracks[tid] = Track(
             tid,
             str(tm.get("class", "car")),
-            torch.tensor(tm.get("size_lwh", [0.0, 0.0, 0.0]), dtype=torch.float32),
+            lwh,
             poses,
             valid,
             root / tm["mesh"] if tm.get("mesh") else None,
         )
 
     split = meta.get("split", {})
+    if not isinstance(split, dict):
+        raise ValueError(f"scene.json: split: expected an object, got {split!r}")
     all_frames = [f.index for f in frames]
-    test_frames = [int(f) for f in split.get("test_frames", [])]
-    train_frames = [
-        int(f) for f in split.get("train_frames", [f for f in all_frames if f not in test_frames])
-    ]
+    if len(set(all_frames)) != len(all_frames):
+        check_split(all_frames, all_frames, "scene.json: frames[].index")
+    test_frames = _frame_list(split.get("test_frames", []), "split.test_frames")
+    train_frames = _frame_list(
+        split.get("train_frames", [f for f in all_frames if f not in test_frames]), "split.train_frames"
+    )
+    check_split(test_frames, all_frames, "scene.json: split.test_frames")
+    check_split(train_frames, all_frames, "scene.json: split.train_frames")
 
     if check_files:
         missing = [
@@ -590,18 +721,17 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
     lidar_paths = {f.index: f.lidar for f in frames}
 
     def lidar_loader(frame: int) -> LidarFrame:
+        if frame not in frame_pos:
+            raise FileNotFoundError(
+                f"scene {root}: no LiDAR for frame {frame}: the scene has no such frame "
+                f"(frames {min(all_frames)}..{max(all_frames)})"
+            )
         p = lidar_paths.get(frame)
         if p is None:
             raise FileNotFoundError(f"scene {root}: no LiDAR for frame {frame}")
-        with np.load(p) as z:
-            pts = torch.from_numpy(z["points"].astype(np.float32))
-            ins = torch.from_numpy(z["instance"].astype(np.int64)) if "instance" in z else None
-            origin = torch.from_numpy(z["origin"].astype(np.float32)) if "origin" in z else torch.zeros(3)
-        if ins is None:
-            ins = torch.zeros(len(pts), dtype=torch.int64)
-        return LidarFrame(pts, ins, origin)
+        return _read_lidar(p)
 
-    return Scene(
+    scene = Scene(
         name=str(meta.get("name", root.name)),
         root=root,
         cameras_info=cameras,
@@ -614,3 +744,6 @@ def load_scene(path: str | Path, scale: float = 1.0, check_files: bool = True) -
         scale=float(scale),
         lidar_loader=lidar_loader if any(lidar_paths.values()) else None,
     )
+    if check_files and validate != "none":
+        validate_scene(scene, full=validate == "full").raise_if_errors()
+    return scene

@@ -409,6 +409,25 @@ def _check_inputs(
     return dims, lo, hi
 
 
+def _check_images(image: torch.Tensor, src_images: torch.Tensor, cfg: PatchMatchConfig) -> None:
+    """Float images at least ``window_radius + 1`` pixels per side, finite (a value check)."""
+    for name, t in (("image", image), ("src_images", src_images)):
+        if not t.is_floating_point():
+            raise ValueError(
+                f"{name}: expected a floating dtype (intensities in [0, 1]), got {t.dtype}; "
+                "convert with x.float() / 255"
+            )
+    need = cfg.window_radius + 1
+    for name, size in (("image", tuple(image.shape[-2:])), ("src_images", tuple(src_images.shape[-2:]))):
+        if min(size) < need:
+            raise ValueError(
+                f"{name}: expected (H, W) of at least ({need}, {need}) pixels (window_radius + 1, so "
+                f"that every matching window holds image pixels), got {size}"
+            )
+    check_finite(image, "image")
+    check_finite(src_images, "src_images")
+
+
 @torch.no_grad()
 def patchmatch(
     image: torch.Tensor,
@@ -451,7 +470,9 @@ def patchmatch(
         A :class:`PatchMatchResult`.
 
     Raises:
-        ValueError: on bad shapes, fewer than one source view, a bad depth range, or when every
+        ValueError: on bad shapes, non-floating images, images smaller than
+            ``window_radius + 1`` pixels per side, non-finite images (a value check, see
+            :mod:`vadgs.checks`), fewer than one source view, a bad depth range, or when every
             source of a reference coincides with it (zero baseline: depth is unobservable).
             Individual sources with a zero baseline are ignored (worst cost).
 
@@ -475,6 +496,7 @@ def patchmatch(
         image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range,
         (init_depth, init_normal), mask, src_masks,
     )  # fmt: skip
+    _check_images(image, src_images, cfg)
     return _pyramid(
         image, src_images, K, src_K, world_to_cam, src_world_to_cam, (lo, hi), cfg,
         init_depth, init_normal, mask, src_masks, cfg.pyramid_levels,

@@ -7,7 +7,7 @@ spherical harmonics, tile binning, compositing and 3DGS PLY input/output.
 """
 
 from vadgs.render.composite import CompositeOutput, composite_gaussians
-from vadgs.render.ply import GaussianPly, load_ply, save_ply
+from vadgs.render.ply import GaussianPly, load_ply, read_raw_ply, save_ply, write_raw_ply
 from vadgs.render.projection import ProjectedGaussians, project_gaussians, quaternion_to_rotation
 from vadgs.render.sh import SH_C0, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, sh_to_rgb
 from vadgs.render.splat import GaussianRasterizer, RasterConfig, RenderOutput, rasterize_gaussians
@@ -30,8 +30,10 @@ __all__ = [
     "project_gaussians",
     "quaternion_to_rotation",
     "rasterize_gaussians",
+    "read_raw_ply",
     "rgb_to_sh",
     "save_ply",
     "sh_basis",
     "sh_to_rgb",
+    "write_raw_ply",
 ]

@@ -15,6 +15,7 @@ stops before its transmittance would reach ``1e-4``, opacity-aware 3σ screen bo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -170,6 +171,15 @@ def _check_inputs(
         raise ValueError(f"means: expected a floating dtype, got {means.dtype}")
     for name, t in named:
         check_finite(t, name)
+    if checks_enabled():
+        f = K.detach()[:, [0, 1], [0, 1]]
+        bad = ~(f > 0).all(-1)
+        if bool(bad.any()):
+            b = int(bad.nonzero()[0, 0])
+            raise ValueError(
+                f"K: expected positive focal lengths fx = K[b, 0, 0], fy = K[b, 1, 1] (an invertible "
+                f"pinhole K), got fx={float(f[b, 0]):.4g}, fy={float(f[b, 1]):.4g} for camera b={b}"
+            )
     if dims["N"] and checks_enabled():
         qn = quats.detach().norm(dim=-1)
         if bool((qn < 1e-12).any()):
@@ -181,6 +191,13 @@ def _check_inputs(
         if bool(((opacities < 0) | (opacities > 1)).any()):
             raise ValueError(
                 "opacities: expected activated opacities in [0, 1], got values outside; pass sigmoid(logits)"
+            )
+        limit = math.sqrt(torch.finfo(scales.dtype).max) / 1e3
+        smax = float(scales.detach().max())
+        if smax >= limit:
+            raise ValueError(
+                f"scales: expected < {limit:.3g} (larger overflows the {scales.dtype} covariance), "
+                f"got max {smax:.3g}; pass exp(log_scales) of a sane model"
             )
     return dims
 
@@ -225,7 +242,9 @@ def rasterize_gaussians(
 
     Raises:
         ValueError: on mismatched shapes, devices or dtypes, non-finite values, zero
-            quaternions, negative scales or opacities outside ``[0, 1]``.
+            quaternions, negative scales or opacities outside ``[0, 1]``, a ``K`` without
+            positive focal lengths, or scales so large that the covariance overflows (the
+            value checks; see :mod:`vadgs.checks` to switch them off).
 
     Shape:
         - means ``(N, 3)``, quats ``(N, 4)``, scales ``(N, 3)``, opacities ``(N,)``
@@ -261,6 +280,16 @@ def rasterize_gaussians(
         antialiased=cfg.antialiased,
         alpha_min=cfg.alpha_min,
     )
+    if checks_enabled() and n:
+        shown = proj.radii.detach().amax(-1) > 0
+        bad = shown & ~(
+            torch.isfinite(proj.conics.detach()).all(-1) & torch.isfinite(proj.means2d.detach()).all(-1)
+        )
+        if bool(bad.any()):
+            raise ValueError(
+                f"scales: {int(bad.sum())} Gaussian(s) project to a non-finite screen covariance "
+                f"(overflow in {means.dtype}); e.g. index {int(bad.nonzero()[0, 1])}"
+            )
     if colors.dim() == 3:
         dirs = F.normalize(means[None] - camera_centers(world_to_cam)[:, None], dim=-1)
         rgb = eval_sh(colors, dirs, sh_degree)

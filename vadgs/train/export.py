@@ -1,6 +1,7 @@
 """Export a trained model as standard 3DGS PLY files: per node with poses, or the whole world at a frame.
 
-The PLY layout is the one of the original 3DGS code (and gsplat, SuperSplat, ...): binary little
+The PLY reader and writer are :mod:`vadgs.render.ply`'s (atomic writes, validated headers). The
+layout is the one of the original 3DGS code (and gsplat, SuperSplat, ...): binary little
 endian, one ``vertex`` element with ``x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity
 scale_0..2 rot_0..3``, raw values (opacity logits, log-scales, ``wxyz`` quaternions) and
 ``f_rest`` channel-major. ``static.ply`` is in world coordinates; ``object_<id>.ply`` in the
@@ -32,11 +33,11 @@ import math
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from vadgs.data.scene import Scene
 from vadgs.render import eval_sh, num_sh_bases, save_ply, sh_basis
+from vadgs.render.ply import read_raw_ply, write_raw_ply
 from vadgs.train.model import GaussianModel
 
 __all__ = [
@@ -54,7 +55,7 @@ __all__ = [
 
 
 def write_ply(path: str | Path, params: dict[str, torch.Tensor]) -> Path:
-    """Write raw Gaussian parameters (keys of :data:`~vadgs.train.model.PER_GAUSSIAN`) as a 3DGS PLY.
+    """Write raw Gaussian parameters as a 3DGS PLY: :func:`vadgs.render.ply.write_raw_ply`.
 
     Example:
         >>> import tempfile, os
@@ -65,56 +66,12 @@ def write_ply(path: str | Path, params: dict[str, torch.Tensor]) -> Path:
         >>> {k: tuple(v.shape) for k, v in read_ply(path).items()}["sh_rest"]
         (2, 3, 3)
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    n = params["means"].shape[0]
-    rest = params["sh_rest"].detach().cpu().float()
-    k1 = rest.shape[1]
-    cols = [
-        params["means"].detach().cpu().float(),
-        torch.zeros(n, 3),
-        params["sh_dc"].detach().cpu().float().reshape(n, 3),
-        rest.transpose(1, 2).reshape(n, 3 * k1),
-        params["opacity_logits"].detach().cpu().float().reshape(n, 1),
-        params["log_scales"].detach().cpu().float(),
-        params["quats"].detach().cpu().float(),
-    ]
-    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-             + [f"f_rest_{i}" for i in range(3 * k1)] + ["opacity", "scale_0", "scale_1", "scale_2"]
-             + [f"rot_{i}" for i in range(4)])  # fmt: skip
-    data = torch.cat(cols, 1).numpy().astype("<f4")
-    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
-    header += "".join(f"property float {nm}\n" for nm in names) + "end_header\n"
-    with path.open("wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(data.tobytes())
-    return path
+    return write_raw_ply(path, params)
 
 
 def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
-    """Read a 3DGS PLY written by :func:`write_ply` (or the original 3DGS code) into raw parameters."""
-    raw = Path(path).read_bytes()
-    end = raw.index(b"end_header\n") + len(b"end_header\n")
-    header = raw[:end].decode("ascii").splitlines()
-    n = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    names = [line.split()[2] for line in header if line.startswith("property float")]
-    data = torch.from_numpy(
-        np.frombuffer(raw[end:], dtype="<f4", count=n * len(names)).reshape(n, len(names)).copy()
-    )
-    col = {nm: i for i, nm in enumerate(names)}
-
-    def get(prefix: str, count: int) -> torch.Tensor:
-        return data[:, [col[f"{prefix}{i}"] for i in range(count)]]
-
-    k1 = sum(nm.startswith("f_rest_") for nm in names) // 3
-    return {
-        "means": data[:, [col["x"], col["y"], col["z"]]],
-        "quats": get("rot_", 4),
-        "log_scales": get("scale_", 3),
-        "opacity_logits": data[:, col["opacity"]],
-        "sh_dc": get("f_dc_", 3)[:, None],
-        "sh_rest": get("f_rest_", 3 * k1).reshape(n, 3, k1).transpose(1, 2).contiguous(),
-    }
+    """Read a 3DGS PLY into raw parameters: :func:`vadgs.render.ply.read_raw_ply`."""
+    return read_raw_ply(path)
 
 
 def export_model(

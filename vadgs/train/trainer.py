@@ -168,14 +168,20 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``.
+        """Inverse of :meth:`to_dict`, type-checked (:func:`vadgs.config.config_from_dict`).
+
+        Raises:
+            ValueError: on an unknown key or a value of the wrong type, naming the field's path
+                (``config.strategy.refine_every: expected int, got str 'abc'``).
 
         Example:
             >>> c = TrainConfig(iterations=10)
             >>> TrainConfig.from_dict(c.to_dict()) == c
             True
         """
-        return _from_dict(cls, d, "config")
+        from vadgs.config import config_from_dict
+
+        return config_from_dict(cls, d)
 
     def replace(self, **changes: Any) -> TrainConfig:
         """A copy with changes; nested fields as ``"init.max_points"``."""

@@ -1,0 +1,184 @@
+"""The CLI's error contract: one line naming the argument or file, exit code != 0, no traceback.
+
+One test per CLI row of the reliability trial (issue 17), plus ``vadgs check``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import pytest
+
+from vadgs import cli
+from vadgs.cli import main
+from vadgs.data import sample_scene_path
+
+TINY = ["--scale", "0.25", "--no-progress", "--set", "init.max_points=300", "--set", "init.voxel_size=1.0"]
+TINY += ["--set", "init.sh_degree=0"]
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+class TestCheckCommand:
+    def test_clean_scene(self, capsys):
+        assert main(["check"]) == 0
+        out = capsys.readouterr().out
+        assert out.splitlines()[0].split() == ["status", "check", "file", "message"]
+        assert "ok (10 checks" in out
+
+    def test_full_with_errors(self, tmp_path, capsys):
+        root = tmp_path / "scene"
+        shutil.copytree(sample_scene_path(), root)
+        (root / "images/front/019.png").write_bytes(b"")
+        p = root / "images/front/020.png"
+        p.write_bytes(p.read_bytes()[:400])
+        assert main(["check", str(root)]) == 1
+        out = capsys.readouterr().out
+        assert "019.png" in out and "020.png" not in out and "1 error(s)" in out
+        assert main(["check", str(root), "--full"]) == 1
+        out = capsys.readouterr().out
+        assert "020.png" in out and "2 error(s)" in out
+
+    def test_missing_scene(self, tmp_path, capsys):
+        assert main(["check", str(tmp_path)]) == 1
+        assert "no scene.json" in capsys.readouterr().out
+
+
+class TestArguments:
+    @pytest.mark.parametrize(
+        ("argv", "match"),
+        [
+            (["--threads", "-1", "check"], "argument --threads: expected an integer >= 1, got -1"),
+            (["--threads", "two", "check"], "argument --threads: expected an integer >= 1, got 'two'"),
+            (
+                ["train", "--sample", "--out", "x", "--max-minutes", "-1"],
+                "argument --max-minutes: expected a finite",
+            ),
+            (
+                ["train", "--sample", "--out", "x", "--iterations", "-5"],
+                "argument --iterations: expected an integer",
+            ),
+            (
+                ["train", "--sample", "--out", "x", "--scale", "0"],
+                "argument --scale: expected a positive number",
+            ),
+        ],
+    )
+    def test_rejected_by_the_parser(self, argv, match, capsys):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2
+        assert match in capsys.readouterr().err
+
+    def test_out_is_a_file(self, tmp_path, capsys):
+        f = tmp_path / "file.txt"
+        f.write_text("x")
+        assert main(["train", "--sample", "--out", str(f), *TINY]) == 2
+        assert (
+            _error_line(capsys) == f"vadgs train: error: --out {f}: expected a folder, got an existing file"
+        )
+        assert main(["visibility", "--out", str(f)]) == 2
+        assert "--out" in _error_line(capsys)
+
+    def test_out_cannot_be_created(self, tmp_path, capsys):
+        f = tmp_path / "file.txt"
+        f.write_text("x")
+        assert main(["train", "--sample", "--out", str(f / "a" / "b"), *TINY]) == 2
+        assert (
+            _error_line(capsys)
+            == f"vadgs train: error: --out {f / 'a' / 'b'}: cannot create the folder ({f} is a file)"
+        )
+        assert main(["demo", "--out", str(f / "sub"), "--iterations", "1"]) == 2
+        assert f"--out {f / 'sub'}: cannot create the folder" in _error_line(capsys)
+
+    @pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root can write anywhere")
+    def test_out_read_only(self, tmp_path, capsys):
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        try:
+            assert main(["train", "--sample", "--out", str(ro), *TINY]) == 2
+            assert "not writable" in _error_line(capsys)
+        finally:
+            ro.chmod(0o700)
+
+    def test_config_with_a_string_where_a_number_goes(self, tmp_path, capsys):
+        cfg = tmp_path / "c.json"
+        cfg.write_text(json.dumps({"strategy": {"refine_every": "abc"}}))
+        assert main(["train", "--sample", "--out", str(tmp_path / "r"), "--config", str(cfg), *TINY]) == 2
+        line = _error_line(capsys)
+        assert f"--config {cfg}.strategy.refine_every: expected int, got str 'abc'" in line
+
+    def test_config_missing_or_invalid(self, tmp_path, capsys):
+        assert (
+            main(["train", "--sample", "--out", str(tmp_path / "r"), "--config", str(tmp_path / "no.json")])
+            == 2
+        )
+        assert "--config" in _error_line(capsys)
+        (tmp_path / "bad.json").write_text("{")
+        assert (
+            main(["train", "--sample", "--out", str(tmp_path / "r"), "--config", str(tmp_path / "bad.json")])
+            == 2
+        )
+        assert "not valid JSON" in _error_line(capsys)
+
+    def test_set_with_a_wrong_type_or_negative_limit(self, tmp_path, capsys):
+        out = str(tmp_path / "r")
+        assert main(["train", "--sample", "--out", out, "--set", "lr.means=fast"]) == 2
+        assert "config.lr.means: expected float, got str 'fast'" in _error_line(capsys)
+        assert main(["train", "--sample", "--out", out, "--set", "max_minutes=-1"]) == 2
+        assert "config.max_minutes: expected >= 0" in _error_line(capsys)
+
+
+class TestErrorContract:
+    def _raise(self, monkeypatch, exc):
+        def boom(args):
+            """A command that fails."""
+            raise exc
+
+        boom.add_arguments = cli.check.add_arguments
+        monkeypatch.setitem(cli.COMMANDS, "check", boom)
+
+    def test_unexpected_exception_is_one_line(self, monkeypatch, capsys):
+        self._raise(monkeypatch, RuntimeError("kernel exploded\nsecond line"))
+        assert main(["check"]) == 2
+        line = _error_line(capsys)
+        assert (
+            line
+            == "vadgs check: error: RuntimeError: kernel exploded second line (--debug shows the traceback)"
+        )
+
+    def test_debug_shows_the_traceback(self, monkeypatch, capsys):
+        self._raise(monkeypatch, RuntimeError("kernel exploded"))
+        assert main(["--debug", "check"]) == 2
+        assert "Traceback" in capsys.readouterr().err
+
+    def test_os_error_names_the_file(self, monkeypatch, capsys):
+        self._raise(monkeypatch, PermissionError(13, "Permission denied", "/some/file"))
+        assert main(["check"]) == 2
+        assert _error_line(capsys) == "vadgs check: error: /some/file: Permission denied"
+
+    def test_floating_point_error_and_interrupt(self, monkeypatch, capsys):
+        self._raise(monkeypatch, FloatingPointError("loss is NaN at step 3"))
+        assert main(["check"]) == 3
+        self._raise(monkeypatch, KeyboardInterrupt())
+        assert main(["check"]) == 130
+
+
+class TestRunPaths:
+    def test_eval_and_render_of_the_checkpoint_file(self, tmp_path, capsys):
+        out = tmp_path / "run"
+        assert main(["train", "--sample", "--out", str(out), "--iterations", "1", *TINY]) == 0
+        (out / "eval.json").unlink(missing_ok=True)
+        assert main(["eval", str(out / "checkpoint.pt"), "--no-progress"]) == 0
+        assert (out / "eval.json").is_file()
+        assert main(["render", str(out / "checkpoint.pt"), "--views", "2", "--no-progress"]) == 0
+        assert len(list((out / "renders").glob("*.png"))) == 1

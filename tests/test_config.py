@@ -1,0 +1,94 @@
+"""Tests of vadgs.config.config_from_dict on the real (nested) config classes."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+
+import pytest
+
+from vadgs.config import config_from_dict
+from vadgs.mvs import PatchMatchConfig
+from vadgs.train.reconstruct import ReconstructConfig
+from vadgs.train.trainer import TrainConfig
+from vadgs.train.vad import VisibilityDensifyConfig
+
+
+@dataclass(frozen=True)
+class _Inner:
+    a: int = 1
+    b: float | None = None
+
+
+@dataclass(frozen=True)
+class _Outer:
+    names: tuple[str, ...] = ("x",)
+    size: tuple[int, int] = (2, 3)
+    inner: _Inner = field(default_factory=_Inner)
+    maybe: _Inner | None = None
+    flag: bool = False
+
+
+class TestConfigFromDict:
+    @pytest.mark.parametrize(
+        "cls", [TrainConfig, VisibilityDensifyConfig, ReconstructConfig, PatchMatchConfig]
+    )
+    def test_round_trip_through_json(self, cls):
+        c = cls()
+        assert config_from_dict(cls, json.loads(json.dumps(dataclasses.asdict(c)))) == c
+
+    def test_optional_nested_and_tuples(self):
+        c = config_from_dict(_Outer, {"names": ["a", "b"], "size": [4, 5], "maybe": {"a": 2, "b": 1}})
+        assert c.names == ("a", "b") and c.size == (4, 5) and c.maybe == _Inner(2, 1.0)
+        assert config_from_dict(_Outer, {"maybe": None}).maybe is None
+        assert config_from_dict(_Outer, {}) == _Outer()
+
+    def test_reconstruct_optional_planar(self):
+        d = dataclasses.asdict(ReconstructConfig())
+        d["planar"] = None
+        assert config_from_dict(ReconstructConfig, d).planar is None
+
+    def test_int_is_a_float_bool_is_not_an_int(self):
+        assert config_from_dict(TrainConfig, {"ssim_weight": 1}).ssim_weight == 1.0
+        with pytest.raises(ValueError, match=r"config\.iterations: expected int, got bool True"):
+            config_from_dict(TrainConfig, {"iterations": True})
+        with pytest.raises(ValueError, match=r"config\.iterations: expected int, got float 2\.5"):
+            config_from_dict(TrainConfig, {"iterations": 2.5})
+
+    @pytest.mark.parametrize(
+        ("data", "match"),
+        [
+            (
+                {"strategy": {"refine_every": "abc"}},
+                r"config.strategy.refine_every: expected int, got str 'abc'",
+            ),
+            ({"lr": {"means": "x"}}, r"config.lr.means: expected float, got str 'x'"),
+            (
+                {"strategy": 3},
+                r"config.strategy: expected an object of DefaultStrategyConfig fields, got int 3",
+            ),
+            ({"bogus": 1}, r"config: unknown key\(s\) \['bogus'\]"),
+            ({"raster": {"bogus": 1}}, r"config.raster: unknown key\(s\) \['bogus'\]"),
+            ({"raster": {"near": -1.0}}, r"config.raster: near, far: expected 0 < near < far"),
+        ],
+    )
+    def test_train_config_errors(self, data, match):
+        with pytest.raises(ValueError, match=match):
+            TrainConfig.from_dict(data)
+
+    def test_nested_vad_errors(self):
+        with pytest.raises(
+            ValueError, match=r"vad.reconstruct.patchmatch.window_radius: expected int, got str"
+        ):
+            config_from_dict(
+                VisibilityDensifyConfig, {"reconstruct": {"patchmatch": {"window_radius": "5"}}}, "vad"
+            )
+        with pytest.raises(ValueError, match=r"vad.incomplete.ignore_ids\[1\]: expected int, got str 'a'"):
+            config_from_dict(VisibilityDensifyConfig, {"incomplete": {"ignore_ids": [0, "a"]}}, "vad")
+        with pytest.raises(ValueError, match=r"c.size: expected 2 items"):
+            config_from_dict(_Outer, {"size": [1, 2, 3]}, "c")
+        with pytest.raises(ValueError, match=r"c.names\[0\]: expected str, got int 1"):
+            config_from_dict(_Outer, {"names": [1]}, "c")
+        with pytest.raises(ValueError, match=r"c.maybe.b: expected float, got str 'x'"):
+            config_from_dict(_Outer, {"maybe": {"b": "x"}}, "c")
