@@ -53,9 +53,9 @@ def main() -> None:
     sign = scene.instance_ids("sign")[0]
     surface = sign_surface(scene)
     board = surface[:, 2] > 4.5
-    strategy = VisibilityAwareDensification()
-    trainer = Trainer.from_checkpoint(args.checkpoint, scene=scene, strategy=strategy, progress=False)
-    rows, views = strategy.detect(trainer)
+    trainer = Trainer.from_checkpoint(args.checkpoint, scene=scene, progress=False)
+    strategy = VisibilityAwareDensification(scene, trainer.strategy_context())
+    rows, views = strategy.detect()
     hit = torch.nonzero(rows.flagged & (rows.instance == sign)).squeeze(1).tolist()
     flagged = [(views[int(rows.view[k])], int(rows.pixels[k])) for k in hit]
     if not flagged:
@@ -67,7 +67,7 @@ def main() -> None:
         out = trainer.render_view(v)
         return out.raster.depth[0].detach(), out.raster.normals[0].detach()
 
-    index = strategy._index(trainer)
+    index = strategy.visibility_index()
     print("| setting | groups | points | within 5 cm | within 10 cm | sign compl. | board compl. | s |")
     print("|---|---|---|---|---|---|---|---|")
     for name, cfg in SETTINGS.items():

@@ -20,6 +20,7 @@ folder named after the variant evaluates it like its own runs.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -33,27 +34,30 @@ from vadgs.train.vad import VisibilityAwareDensification
 
 
 class TracedStrategy(VisibilityAwareDensification):
-    """The strategy, plus a per-Gaussian ``trace_tag`` (event number that added it, 0: not)."""
+    """The strategy, plus a per-Gaussian ``trace_tag`` (event number that added it, 0: not).
 
-    def __init__(self, surface, every: int, **kwargs) -> None:
-        super().__init__(**kwargs)
+    A benchmark's subclass: it holds the model (``self.model``, set after the trainer is built) to
+    measure completeness; the library's strategy sees only ``params``.
+    """
+
+    def __init__(self, surface, every: int, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
         self.surface, self.every = surface, every
         self.tree = cKDTree(surface)
         self.trace: list[dict] = []
+        self.model = None
 
-    def initialize_state(self, model, scene_scale):
-        state = super().initialize_state(model, scene_scale)
-        state["trace_tag"] = torch.zeros(model.num_gaussians, dtype=torch.int64)
-        return state
-
-    def _add(self, model, optimizer, state, rec, keep) -> None:
-        n = model.num_gaussians
-        super()._add(model, optimizer, state, rec, keep)
+    def _add(self, params, optimizers, state, rec, keep) -> None:
+        n = params["means"].shape[0]
+        if "trace_tag" not in state:
+            state["trace_tag"] = torch.zeros(n, dtype=torch.int64)
+        super()._add(params, optimizers, state, rec, keep)
         state["trace_tag"][n:] = len(state["vad_events"]) + 1
 
-    def step_post_backward(self, model, optimizer, state, step, info) -> None:
+    def step_post_backward(self, params, optimizers, state, step, info) -> None:
         events = len(state["vad_events"])
-        super().step_post_backward(model, optimizer, state, step, info)
+        super().step_post_backward(params, optimizers, state, step, info)
+        model = self.model
         event = len(state["vad_events"]) > events
         if step % self.every and not event:
             return
@@ -61,7 +65,8 @@ class TracedStrategy(VisibilityAwareDensification):
         static = model.node_ids[g.ids] == -1
         centres = g.means.detach()[static].numpy()
         opacity = g.opacities.detach()[static]
-        tag = state["trace_tag"][g.ids][static]
+        tags = state.get("trace_tag", torch.zeros(model.num_gaussians, dtype=torch.int64))
+        tag = tags[g.ids][static]
         c = surface_completeness(centres, self.surface)
         near = torch.from_numpy(self.tree.query(centres)[0] < 0.1)
         row = {
@@ -102,8 +107,14 @@ def main() -> None:
     config = TrainConfig()
     if args.config:
         config = TrainConfig.from_dict(json.loads(Path(args.config).read_text()))
-    strategy = TracedStrategy(surface, args.every, config=VARIANTS[args.variant])
-    trainer = Trainer(scene, config, out_dir=args.out, strategy=strategy, progress=False)
+    config = dataclasses.replace(config, vad=VARIANTS[args.variant])
+    trainer = Trainer(scene, config, out_dir=args.out, progress=False)  # builds the context and the base
+    strategy = TracedStrategy(
+        surface, args.every, scene, trainer.strategy_context(), config.vad, base=trainer.strategy.base
+    )
+    strategy.model = trainer.model
+    trainer.strategy = strategy
+    trainer.state = strategy.initialize_state(trainer.scene_scale)
     trainer.train()
     (Path(args.out) / "trace.json").write_text(json.dumps(strategy.trace, indent=1))
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import sys
 import tempfile
@@ -52,24 +53,25 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
     return parse
 
 
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not (value >= 0 and value != float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0 (0 = no limit), got {text}")
-    return value
+def _finite_float(zero_ok: bool) -> Callable[[str], float]:
+    """An argparse type: a finite number > 0 (or >= 0 with ``zero_ok``, where 0 means "off")."""
+    want = "a finite number >= 0 (0 = no limit)" if zero_ok else "a positive number"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
+        if not (math.isfinite(value) and (value > 0 or (zero_ok and value == 0))):
+            raise argparse.ArgumentTypeError(f"expected {want}, got {text}")
+        return value
+
+    parse.__name__ = want
+    return parse
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (0 < value < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
-    return value
+_non_negative_float = _finite_float(zero_ok=True)
+_positive_float = _finite_float(zero_ok=False)
 
 
 def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -> Path:

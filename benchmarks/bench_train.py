@@ -1,0 +1,56 @@
+"""Benchmark of one training step with vadgs's input checks on and off (pytest-benchmark).
+
+Run (the numbers in docs/benchmarks.md come from exactly this; ../shared present):
+
+    VADGS_BENCH_THREADS=1 pytest benchmarks/bench_train.py --benchmark-enable -p no:cacheprovider \
+        --benchmark-columns=min,median,max,rounds --benchmark-sort=name
+
+The trainer of the street_a comparison (``benchmarks/street_config.json``: 240x144, ~55k
+Gaussians from LiDAR, SH degree 1) with its densification held off so that every round times the
+same model. "on": the default; "off": ``vadgs.checking(False)`` (what ``VADGS_CHECKS=0`` does):
+no finiteness / range checks of the renderer's inputs, no NaN test of the loss and of the
+parameters after the optimizer step (the loss's NaN test on the logged float stays). Both cases
+alternate in one session on the same trainer; the ratio of their medians is the figure.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from vadgs import checking
+from vadgs.data import load_scene
+from vadgs.train.trainer import TrainConfig, Trainer
+
+if os.environ.get("VADGS_BENCH_THREADS"):
+    torch.set_num_threads(int(os.environ["VADGS_BENCH_THREADS"]))
+
+HERE = Path(__file__).resolve().parent
+SHARED = Path(os.environ.get("VADGS_SHARED", HERE.parents[0] / ".." / "shared"))
+STREET = SHARED / "data" / "street_a"
+
+
+@pytest.fixture(scope="module")
+def trainer():
+    if not (STREET / "scene.json").is_file():
+        pytest.skip("needs ../shared/data/street_a")
+    config = TrainConfig.from_dict(json.loads((HERE / "street_config.json").read_text()))
+    config = dataclasses.replace(
+        config, strategy=dataclasses.replace(config.strategy, refine_start_iter=10**9), checkpoint_every=0
+    )
+    t = Trainer(load_scene(STREET, scale=0.5), config, progress=False)
+    for _ in range(3):  # warm the image and LiDAR caches of a few views
+        t.train_step()
+    return t
+
+
+@pytest.mark.parametrize("checks", ["on", "off"])
+def test_train_step(benchmark, trainer, checks):
+    benchmark.group = "train step, street_a 240x144"
+    with checking(checks == "on"):
+        benchmark.pedantic(trainer.train_step, rounds=20, warmup_rounds=3)
