@@ -298,7 +298,7 @@ def _finish_run(trainer: object, out: Path, result: object, progress: bool) -> d
             trainer.model, scene, config=trainer.config.raster, progress=progress
         ).to_dict()
     export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    _write_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
     return metrics
 
 
@@ -318,22 +318,89 @@ def _summary(metrics: dict) -> str:
     return "; ".join(parts)
 
 
+# train flags a resumed run cannot honour: its configuration and scene are fixed by the checkpoint
+_NOT_ON_RESUME = (
+    ("scene", "SCENE"),
+    ("sample", "--sample"),
+    ("config", "--config"),
+    ("set", "--set"),
+    ("seed", "--seed"),
+    ("max_gaussians", "--max-gaussians"),
+    ("scale", "--scale"),
+    ("dgp", "--dgp"),
+    ("cameras", "--cameras"),
+    ("test_frames", "--test-frames"),
+    ("colmap", "--colmap"),
+    ("vad", "--vad"),
+    ("no_view_selection", "--no-view-selection"),
+    ("no_geometric_losses", "--no-geometric-losses"),
+    ("overwrite", "--overwrite"),
+)
+
+
+def _resume(args: argparse.Namespace, out: Path, progress: bool) -> object:
+    """The trainer of ``--resume``: rejects flags it cannot honour, applies those it can, loudly."""
+    from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, load_checkpoint
+
+    given = [flag for key, flag in _NOT_ON_RESUME if getattr(args, key, None) not in (None, False, [])]
+    if given:
+        raise ValueError(
+            f"--resume: {', '.join(given)} cannot be honoured: a resumed run keeps the scene and "
+            "configuration of its checkpoint (only --iterations, --max-minutes and --device can "
+            "change); start a new run with --overwrite instead"
+        )
+    if not (out / CHECKPOINT_NAME).is_file():
+        raise FileNotFoundError(f"--resume: no checkpoint in {out}")
+    changes: dict = {}
+    for key in ("iterations", "max_minutes", "device"):
+        if getattr(args, key, None) is not None:
+            changes[key] = getattr(args, key)
+    if changes:
+        stored = load_checkpoint(out)
+        cfg, step = stored["config"], int(stored["step"])
+        changes = {k: v for k, v in changes.items() if cfg.get(k) != v}
+        if "iterations" in changes:
+            if changes["iterations"] < step:
+                raise ValueError(
+                    f"--resume --iterations {changes['iterations']}: the run is already at step {step}"
+                )
+            print(
+                f"NOTE: --iterations changes the run from {cfg['iterations']} to {changes['iterations']} "
+                "steps; the means' learning-rate decay and VAD-GS's event window "
+                "(last_event_fraction) follow the new total from here on, so the result differs "
+                "from a run trained with either total from the start"
+            )
+        for key in ("max_minutes", "device"):
+            if key in changes:
+                print(
+                    f"NOTE: --{key.replace('_', '-')} changes {key} from {cfg.get(key)!r} to {changes[key]!r}"
+                )
+        del stored
+    trainer = Trainer.from_checkpoint(out, progress=progress, config_changes=changes or None)
+    kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
+    print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
+    return trainer
+
+
 def train(args: argparse.Namespace) -> int:
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
-    from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, open_scene
+    from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, describe_run, open_scene
 
     torch.set_num_threads(args.threads or 2)
     out = _check_out_dir(args.out, create=False)
     progress = not args.no_progress
     if args.resume:
-        if not (out / CHECKPOINT_NAME).is_file():
-            raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-        trainer = Trainer.from_checkpoint(out, progress=progress)
-        kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
-        print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
+        trainer = _resume(args, out, progress)
     else:
         if args.scene is None and not args.sample:
             raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
+        held = describe_run(out) if out.is_dir() else None
+        if held is not None and not args.overwrite:
+            raise ValueError(
+                f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
+            )
+        if args.scale is None:
+            args.scale = 0.5
         config = _train_config(args)
         ref = _scene_ref(args)
         scene = open_scene(ref)
@@ -342,7 +409,17 @@ def train(args: argparse.Namespace) -> int:
             from vadgs.data import load_colmap
 
             colmap = load_colmap(args.colmap, scale=args.scale).points
-        trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, colmap_points=colmap, progress=progress)
+        trainer = Trainer(
+            scene,
+            config,
+            out_dir=out,
+            scene_ref=ref,
+            colmap_points=colmap,
+            progress=progress,
+            overwrite=args.overwrite,
+        )
+        if held is not None:
+            print(f"--overwrite: the previous run in {out} ({held}) is removed as training starts")
         print(
             f"{scene}: {len(scene.train_views)} training views, "
             f"{trainer.model.num_gaussians} initial Gaussians"
@@ -355,7 +432,7 @@ def train(args: argparse.Namespace) -> int:
     metrics = _finish_run(trainer, out, result, progress)
     if "vad_events" in trainer.state:
         metrics["vad_events"] = trainer.state["vad_events"]
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+        _write_atomic(out / "metrics.json", json.dumps(metrics, indent=2, default=str))
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
     return 0
@@ -378,14 +455,24 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scale",
         type=_positive_float,
-        default=0.5,
-        help="image resolution factor (0.5 = 240x144 for the benchmark)",
+        default=None,
+        help="image resolution factor (default 0.5 = 240x144 for the benchmark)",
     )
     p.add_argument("--dgp", action="store_true", help="SCENE is a DGP scene folder")
     p.add_argument("--cameras", help="DGP: comma-separated camera names")
     p.add_argument("--test-frames", type=int, nargs="*", help="DGP: held-out frames (samples)")
     p.add_argument("--colmap", help="COLMAP sparse folder whose points are added to the initialisation")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its checkpoint (only --iterations, --max-minutes, "
+        "--device may change it)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="--out may hold a previous run: its files are removed and training starts over",
+    )
     p.add_argument("--device", help="torch device for the model and losses (cpu, cuda, cuda:1; default cpu)")
     p.add_argument("--vad", action="store_true", help="VAD-GS visibility-aware densification (the paper)")
     p.add_argument(
@@ -442,8 +529,11 @@ def eval_run(args: argparse.Namespace) -> int:
 
 def _write_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _eval_args(p: argparse.ArgumentParser) -> None:
@@ -805,13 +895,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _one_line(e: BaseException) -> str:
-    """An exception as one line; unexpected kinds keep their type name and point to ``--debug``."""
+    """An exception as one line; unexpected kinds keep their type name and point to ``--debug``.
+
+    Notes added to the exception (``add_note``: e.g. the trainer's "last good checkpoint: ...")
+    follow, separated by "; ".
+    """
     text = " ".join(str(e).split()) or repr(e)
+    notes = "".join("; " + " ".join(str(n).split()) for n in getattr(e, "__notes__", None) or ())
     if isinstance(e, (ValueError, FileNotFoundError, FloatingPointError)):
-        return text
+        return text + notes
     if isinstance(e, OSError) and e.filename is not None:
-        return f"{e.filename}: {e.strerror or text}"
-    return f"{type(e).__name__}: {text} (--debug shows the traceback)"
+        return f"{e.filename}: {e.strerror or text}{notes}"
+    return f"{type(e).__name__}: {text}{notes} (--debug shows the traceback)"
 
 
 if __name__ == "__main__":

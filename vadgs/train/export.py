@@ -79,6 +79,9 @@ def export_model(
 ) -> list[Path]:
     """Write ``static.ply``, ``object_<id>.ply`` per track node and ``poses.json``.
 
+    Each file is written atomically (a temporary file, then :func:`os.replace`): an interrupted
+    export leaves the previous file or none, never a truncated one.
+
     Args:
         model: the model.
         out_dir: output folder.
@@ -103,9 +106,8 @@ def export_model(
             for f in range(nf)
             if bool(model.track_valid[k, f])
         }
-    pj = out_dir / "poses.json"
-    pj.write_text(json.dumps({"object_to_world": poses, "sh_degree": model.sh_degree}, indent=1))
-    paths.append(pj)
+    text = json.dumps({"object_to_world": poses, "sh_degree": model.sh_degree}, indent=1)
+    paths.append(_replace_atomic(out_dir / "poses.json", lambda p: p.write_text(text)))
     return paths
 
 

@@ -14,24 +14,36 @@ Checkpoints (``checkpoint.pt`` in the run folder) hold the step, the configurati
 reference, the model, Adam's state, the strategy state, the sampler and every random generator, so
 ``resume`` continues *exactly* (the same parameters as an uninterrupted run). They are written
 atomically (temporary file + rename) every ``checkpoint_every`` steps, at the end, and when the
-run is interrupted (SIGINT / SIGTERM stop the loop at the end of the current step). A non-finite
-loss or parameter raises :class:`NonFiniteLossError` naming the step; nothing is saved over the last
-good checkpoint.
+run is interrupted (SIGINT / SIGTERM stop the loop at the end of the current step), and also
+every ``checkpoint_minutes`` of wall-clock time, at the end of the first sampling cycle, and when
+an exception stops the loop (the last completed step; see :meth:`Trainer.train`). Saving never
+changes the training trajectory. Each checkpoint carries a SHA-256 of its content, verified by
+:func:`load_checkpoint`. A non-finite loss or parameter raises :class:`NonFiniteLossError`, a
+diverging model :class:`DivergenceError`, both naming the step; nothing is saved over the last
+good checkpoint then.
+
+A run folder that holds a run (a checkpoint or ``metrics.json``) is never reused by a new
+:class:`Trainer` unless ``overwrite=True`` (which clears the previous run's files when training
+starts); :meth:`Trainer.from_checkpoint` continues it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import hashlib
 import json
 import math
 import os
 import random
 import resource
+import shutil
 import signal
 import threading
 import time
 import types
 import typing
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,12 +65,17 @@ from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensific
 
 __all__ = [
     "CHECKPOINT_NAME",
+    "RESUMABLE_CHANGES",
+    "DivergenceError",
     "GeometryTargets",
     "LearningRates",
     "NonFiniteLossError",
     "TrainConfig",
     "TrainResult",
     "Trainer",
+    "checkpoint_checksum",
+    "clear_run",
+    "describe_run",
     "lidar_depth_map",
     "load_checkpoint",
     "open_scene",
@@ -74,6 +91,14 @@ class NonFiniteLossError(FloatingPointError):
 
     def __init__(self, step: int, what: str) -> None:
         super().__init__(f"non-finite value at step {step}: {what}")
+        self.step = step
+
+
+class DivergenceError(FloatingPointError):
+    """The model diverged (Gaussians flew out of the scene, or the loss exploded); ``step`` says when."""
+
+    def __init__(self, step: int, what: str) -> None:
+        super().__init__(f"training diverged at step {step}: {what}")
         self.step = step
 
 
@@ -121,9 +146,19 @@ class TrainConfig:
         device: where the model, images and losses live (``"cpu"``, ``"cuda"``, ``"cuda:1"``);
             the scene and its visibility index stay on the CPU.
         checkpoint_every: steps between checkpoints (0 = only at the end / on interruption).
+        checkpoint_minutes: also checkpoint when this much wall-clock time has passed since the
+            last checkpoint (0 = off). The end of the first sampling cycle always checkpoints.
         log_every: steps between log lines in ``log.jsonl``.
         max_minutes: stop (and checkpoint) after this much training time (0 = no limit).
         threads: ``torch.set_num_threads`` (0 = leave).
+        diverge_distance, diverge_share: at step 1, every ``log_every`` steps and at the end of
+            each sampling cycle, training stops with
+            :class:`DivergenceError` when more than ``diverge_share`` of the static Gaussians are
+            farther than ``diverge_distance`` x the scene scale from the cameras' centre
+            (``diverge_distance`` 0 = off).
+        diverge_loss_factor: training stops with :class:`DivergenceError` when the running mean of
+            the colour loss exceeds this factor x its lowest value, after the first sampling cycle
+            (0 = off).
     """
 
     iterations: int = 3000
@@ -143,9 +178,13 @@ class TrainConfig:
     vad: VisibilityDensifyConfig | None = None
     device: str = "cpu"
     checkpoint_every: int = 500
+    checkpoint_minutes: float = 5.0
     log_every: int = 50
     max_minutes: float = 0.0
     threads: int = 0
+    diverge_distance: float = 100.0
+    diverge_share: float = 0.2
+    diverge_loss_factor: float = 10.0
 
     def __post_init__(self) -> None:
         if self.iterations < 0:
@@ -303,10 +342,80 @@ def _scene_scale(scene: Scene, views: list[int]) -> float:
     return float((centres - centres.mean(0)).norm(dim=-1).max() * 1.1) or 1.0
 
 
+def _hash_into(h: Any, obj: Any) -> None:
+    """Feed a nested checkpoint structure into a hash, deterministically (tensors by their bytes)."""
+    if isinstance(obj, torch.Tensor):
+        t = obj.detach().to("cpu").contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+        if t.numel():
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    elif isinstance(obj, dict):
+        h.update(b"{")
+        for k in sorted(obj, key=repr):
+            h.update(repr(k).encode())
+            _hash_into(h, obj[k])
+        h.update(b"}")
+    elif isinstance(obj, (list, tuple)):
+        h.update(b"[")
+        for x in obj:
+            _hash_into(h, x)
+        h.update(b"]")
+    else:
+        h.update(repr(obj).encode())
+
+
+def checkpoint_checksum(ckpt: dict[str, Any]) -> str:
+    """SHA-256 of a checkpoint's content (every entry but ``checksum``; tensors by their bytes)."""
+    h = hashlib.sha256()
+    _hash_into(h, {k: v for k, v in ckpt.items() if k != "checksum"})
+    return h.hexdigest()
+
+
 def _atomic_save(obj: Any, path: Path) -> None:
+    """``torch.save`` to ``path.tmp``, fsync, rename; on failure the tmp is removed, ``path`` kept.
+
+    Raises:
+        OSError: naming ``path``, in one line (disk full: ``No space left on device``).
+    """
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if not isinstance(e, Exception):
+            raise
+        kept = "the previous file is kept" if path.is_file() else "nothing was written"
+        if isinstance(e, OSError) and e.errno is not None:
+            code, why = e.errno, e.strerror or str(e)
+        else:  # torch's zip writer reports a full disk as RuntimeError("[enforce fail at ...")
+            free = shutil.disk_usage(path.parent).free
+            code = errno.ENOSPC if free < (1 << 20) else errno.EIO
+            why = os.strerror(code) if code == errno.ENOSPC else " ".join(str(e).split())[:200]
+        raise OSError(code, f"cannot write ({why}); {kept}", str(path)) from e
+
+
+def _remove_stale_tmp(folder: Path) -> list[Path]:
+    """Remove temporary files a killed run left behind (``*.tmp`` of checkpoints and exports)."""
+    removed = []
+    for pattern in (CHECKPOINT_NAME + ".tmp", ".*.tmp", "ply/.*.tmp", "ply/.*.partial.*"):
+        for p in folder.glob(pattern):
+            if p.is_file():
+                p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -314,7 +423,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: if it does not exist.
-        ValueError: if it is corrupt, truncated or not a vadgs training checkpoint.
+        ValueError: if it is corrupt, truncated, modified (its SHA-256 checksum does not match) or
+            not a vadgs training checkpoint. A checkpoint without a checksum (older vadgs) loads
+            with a warning.
     """
     path = Path(path)
     if path.is_dir():
@@ -336,7 +447,68 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     ]
     if missing:
         raise ValueError(f"checkpoint {path}: missing entries {missing}")
+    if "checksum" not in ckpt:
+        warnings.warn(
+            f"checkpoint {path}: no checksum (written by an older vadgs); its content is not verified",
+            stacklevel=2,
+        )
+    elif checkpoint_checksum(ckpt) != ckpt["checksum"]:
+        raise ValueError(f"checkpoint {path}: checksum mismatch: the file was modified or is corrupt")
     return ckpt
+
+
+RESUMABLE_CHANGES = (
+    "iterations",
+    "max_minutes",
+    "device",
+    "threads",
+    "checkpoint_every",
+    "checkpoint_minutes",
+    "log_every",
+)
+"""The :class:`TrainConfig` fields :meth:`Trainer.from_checkpoint` can change (the others define the run)."""
+
+_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
+_RUN_DIRS = ("ply", "renders")
+
+
+def describe_run(folder: str | Path) -> str | None:
+    """What run a folder holds: ``"step S/N"`` (its checkpoint), ``"finished"``, or None.
+
+    A folder holds a run when it has a ``checkpoint.pt`` or a ``metrics.json``; a folder with only
+    the log of a run killed before its first checkpoint holds nothing that can be continued.
+    """
+    folder = Path(folder)
+    ck = folder / CHECKPOINT_NAME
+    if ck.is_file():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                c = load_checkpoint(ck)
+            return f"step {int(c['step'])}/{int(c['config'].get('iterations', 0))}"
+        except (ValueError, OSError) as e:
+            return f"an unreadable checkpoint: {e}"
+    if (folder / "metrics.json").is_file():
+        return "finished, no checkpoint"
+    return None
+
+
+def clear_run(folder: str | Path) -> list[Path]:
+    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/)."""
+    folder = Path(folder)
+    removed = []
+    for name in _RUN_FILES:
+        p = folder / name
+        if p.is_file():
+            p.unlink()
+            removed.append(p)
+    for name in _RUN_DIRS:
+        p = folder / name
+        if p.is_dir():
+            shutil.rmtree(p)
+            removed.append(p)
+    removed += _remove_stale_tmp(folder)
+    return removed
 
 
 class Trainer:
@@ -360,6 +532,10 @@ class Trainer:
         model: start from this model instead of :func:`~vadgs.train.init.init_gaussians`.
         progress: show a tqdm progress bar.
         callback: ``(trainer, step)`` called after every step (tests use it to interrupt).
+        overwrite: ``out_dir`` may hold a previous run (a checkpoint or ``metrics.json``): its
+            files (checkpoint, log, config, metrics, eval, ``ply/``, ``renders/``) are removed when
+            :meth:`train` starts. Without it such an ``out_dir`` raises ``ValueError``; continue a
+            run with :meth:`from_checkpoint` instead.
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
@@ -383,10 +559,21 @@ class Trainer:
         model: GaussianModel | None = None,
         progress: bool = True,
         callback: Callable[[Trainer, int], None] | None = None,
+        overwrite: bool = False,
+        _resuming: bool = False,
     ) -> None:
         self.scene = scene
         self.config = config or TrainConfig()
         self.out_dir = Path(out_dir) if out_dir is not None else None
+        self._clear_previous = False
+        if self.out_dir is not None and not _resuming:
+            held = describe_run(self.out_dir)
+            if held is not None and not overwrite:
+                raise ValueError(
+                    f"{self.out_dir} holds a run ({held}); continue it with Trainer.from_checkpoint "
+                    "or pass overwrite=True to start over"
+                )
+            self._clear_previous = overwrite
         if scene_ref is None and scene.root is not None and (Path(scene.root) / "scene.json").is_file():
             scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
         self.scene_ref = scene_ref or {}
@@ -417,6 +604,9 @@ class Trainer:
         self._images: dict[int, torch.Tensor] = {}
         self._lidar: dict[int, tuple[torch.Tensor, bool]] = {}
         self._stop = False
+        self._saved_step: int | None = None
+        self._color_ema: float | None = None
+        self._color_min = math.inf
 
     def _configured_strategy(self) -> Strategy:
         base = DefaultStrategy(self.config.strategy)
@@ -437,21 +627,43 @@ class Trainer:
     # -- resume ---------------------------------------------------------------------------------------
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, scene: Scene | None = None, **kwargs: Any) -> Trainer:
+    def from_checkpoint(
+        cls,
+        path: str | Path,
+        scene: Scene | None = None,
+        config_changes: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> Trainer:
         """Continue a run from its checkpoint (exactly: RNGs, sampler, optimizer, strategy state).
 
         Args:
             path: the checkpoint or its run folder.
             scene: the scene (default: reloaded from the stored reference).
+            config_changes: changes to the stored configuration that a resumed run can honour
+                (:data:`RESUMABLE_CHANGES`): ``iterations`` (>= the checkpoint's step; extending a
+                run also stretches the means' learning-rate decay and VAD-GS's event window, which
+                follow ``iterations``), ``max_minutes``, ``device``, ``threads``,
+                ``checkpoint_every``, ``checkpoint_minutes``, ``log_every``.
             **kwargs: further :class:`Trainer` arguments (``out_dir`` defaults to the checkpoint's folder).
 
         Raises:
-            ValueError: on a corrupt checkpoint, or without ``scene`` when the checkpoint stores no
-                scene reference.
+            ValueError: on a corrupt or modified checkpoint, on a change that cannot be honoured,
+                or without ``scene`` when the checkpoint stores no scene reference.
         """
         path = Path(path)
         ckpt = load_checkpoint(path)
         config = TrainConfig.from_dict(ckpt["config"])
+        if config_changes:
+            bad = sorted(set(config_changes) - set(RESUMABLE_CHANGES))
+            if bad:
+                raise ValueError(
+                    f"resume: cannot change {bad} of a run (its configuration is fixed by the "
+                    f"checkpoint); resumable changes: {list(RESUMABLE_CHANGES)}"
+                )
+            it = config_changes.get("iterations")
+            if it is not None and int(it) < int(ckpt["step"]):
+                raise ValueError(f"resume: iterations={it} is below the checkpoint's step {ckpt['step']}")
+            config = config.replace(**config_changes)
         if scene is None:
             if not ckpt["scene_ref"].get("path"):
                 raise ValueError(
@@ -462,7 +674,7 @@ class Trainer:
         model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
         kwargs.setdefault("out_dir", path if path.is_dir() else path.parent)
         kwargs.setdefault("scene_ref", ckpt["scene_ref"])
-        trainer = cls(scene, config, model=model, **kwargs)
+        trainer = cls(scene, config, model=model, _resuming=True, **kwargs)
         trainer.optimizer.load_state_dict(ckpt["optimizer"])
         trainer.state = ckpt["strategy_state"]
         trainer.sampler.load_state_dict(ckpt["sampler"])
@@ -471,6 +683,7 @@ class Trainer:
         random.setstate(_to_py_random_state(ckpt["rng"]["python"]))
         trainer.step = int(ckpt["step"])
         trainer.train_s = float(ckpt.get("train_s", 0.0))
+        trainer._saved_step = trainer.step
         return trainer
 
     def state_dict(self) -> dict[str, Any]:
@@ -494,15 +707,30 @@ class Trainer:
             "train_s": self.train_s,
         }
 
+    def checkpoint_payload(self) -> dict[str, Any]:
+        """:meth:`state_dict` with its ``checksum`` (what :meth:`save_checkpoint` writes)."""
+        ckpt = self.state_dict()
+        ckpt["checksum"] = checkpoint_checksum(ckpt)
+        return ckpt
+
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
-        """Write the checkpoint atomically (``out_dir/checkpoint.pt`` by default)."""
+        """Write the checkpoint atomically (``out_dir/checkpoint.pt`` by default), with its checksum.
+
+        Raises:
+            OSError: naming the file when it cannot be written (disk full...): the temporary file
+                is removed and the previous checkpoint is left as it was.
+        """
+        default = path is None
         if path is None:
             if self.out_dir is None:
                 raise ValueError("save_checkpoint: no path and no out_dir")
             path = self.out_dir / CHECKPOINT_NAME
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_save(self.state_dict(), path)
+        _atomic_save(self.checkpoint_payload(), path)
+        if default:
+            self._saved_step = self.step
+            self._saved_at = time.monotonic()
         return path
 
     def request_stop(self) -> None:
@@ -590,6 +818,14 @@ class Trainer:
         """One optimisation step on the next sampled view; returns the loss terms as floats."""
         step = self.step
         cfg = self.config
+        # what a step that fails before the parameters change may have consumed (restored by train())
+        self._undo = (
+            self.sampler.state_dict(),
+            torch.get_rng_state(),
+            self.generator.get_state(),
+            random.getstate(),
+        )
+        self._updating = False
         for g in self.optimizer.param_groups:
             g["lr"] = self._lrs(step)[g["name"]]
         self.model.active_sh_degree = min(step // cfg.sh_degree_interval, self.model.sh_degree)
@@ -611,6 +847,7 @@ class Trainer:
             bad = {k: float(v.detach()) for k, v in terms.items()}
             raise NonFiniteLossError(step, f"loss terms {bad} (view {view})")
         total.backward()
+        self._updating = True
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.step_post_backward(params, self.optimizer, self.state, step, info)
@@ -628,25 +865,87 @@ class Trainer:
             raise NonFiniteLossError(
                 step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"
             )
+        self._updating = False
+        self._undo = None
         return res
+
+    def check_divergence(self, res: dict[str, float]) -> None:
+        """Raise :class:`DivergenceError` if the model diverged (see :class:`TrainConfig`).
+
+        Uses the colour loss already on the host every step; at step 1, every ``log_every`` steps
+        and at the end of each cycle, one reduction over the static means (the share farther than
+        ``diverge_distance`` x the scene scale).
+        """
+        cfg = self.config
+        color = res.get("color")
+        if cfg.diverge_loss_factor > 0 and color is not None:
+            self._color_ema = color if self._color_ema is None else 0.9 * self._color_ema + 0.1 * color
+            if self.step >= len(self.sampler):
+                if self._color_ema > cfg.diverge_loss_factor * max(self._color_min, 1e-4):
+                    raise DivergenceError(
+                        self.step,
+                        f"the colour loss exploded (running mean {self._color_ema:.4g}, more than "
+                        f"{cfg.diverge_loss_factor:g} x its lowest {self._color_min:.4g})",
+                    )
+                self._color_min = min(self._color_min, self._color_ema)
+        at = self.step % cfg.log_every == 0 or self.step % len(self.sampler) == 0 or self.step == 1
+        if cfg.diverge_distance > 0 and at:
+            with torch.no_grad():
+                static = self.model.node_ids < 0
+                means = self.model.params["means"].detach()[static]
+                if means.shape[0] == 0:
+                    return
+                if not hasattr(self, "_centre"):
+                    self._centre = (
+                        torch.stack([self.scene.views[v].cam_to_world[:3, 3] for v in self.train_views])
+                        .mean(0)
+                        .to(means)
+                    )
+                far = (means - self._centre).norm(dim=-1) > cfg.diverge_distance * self.scene_scale
+                share = float(far.float().mean())
+            if share > cfg.diverge_share:
+                raise DivergenceError(
+                    self.step,
+                    f"{share:.0%} of the static Gaussians are farther than {cfg.diverge_distance:g} x "
+                    f"the scene scale ({cfg.diverge_distance * self.scene_scale:.4g}) from the cameras' "
+                    f"centre (limit {cfg.diverge_share:.0%}; a learning rate too high?)",
+                )
 
     def train(self) -> TrainResult:
         """Run to ``config.iterations`` (from the current step), checkpointing on the way.
 
         SIGINT / SIGTERM finish the current step, write the checkpoint and return with
-        ``completed=False`` (a second SIGINT raises ``KeyboardInterrupt`` at once).
+        ``completed=False`` (a second SIGINT raises ``KeyboardInterrupt`` at once). Checkpoints
+        are written every ``checkpoint_every`` steps, every ``checkpoint_minutes``, at the end of
+        the first sampling cycle and at the end; none of them changes the trajectory.
+
+        On an exception the last completed step is checkpointed (a step that failed before its
+        optimizer update is undone first) and the exception is re-raised with a note naming the
+        checkpoint (``e.__notes__``); divergence, non-finite values and failed writes keep the
+        previous checkpoint. Stale ``.tmp`` files of a killed run are removed at the start.
 
         Raises:
             NonFiniteLossError: on a NaN / infinite loss or parameter, naming the step.
+            DivergenceError: when the model diverges (see :class:`TrainConfig`), naming the step.
+            OSError: when a checkpoint cannot be written (naming the file; the previous one is kept).
         """
         from tqdm import tqdm
 
         cfg = self.config
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            (self.out_dir / "config.json").write_text(
-                json.dumps({"config": cfg.to_dict(), "scene": self.scene_ref}, indent=2)
+            if self._clear_previous:
+                clear_run(self.out_dir)
+                self._clear_previous = False
+            _remove_stale_tmp(self.out_dir)
+            if self.step == 0:  # a new run: a log left by a run killed before any checkpoint goes
+                (self.out_dir / "log.jsonl").unlink(missing_ok=True)
+            _write_text_atomic(
+                self.out_dir / "config.json",
+                json.dumps({"config": cfg.to_dict(), "scene": self.scene_ref}, indent=2),
             )
+        self._saved_at = time.monotonic()
+        first_cycle = len(self.sampler)
         handlers = self._install_signal_handlers()
         reason = "done"
         bar = tqdm(
@@ -657,6 +956,8 @@ class Trainer:
             dynamic_ncols=True,
         )
         log = (self.out_dir / "log.jsonl").open("a") if self.out_dir is not None else None
+        self._undo = None
+        self._updating = False
         try:
             while self.step < cfg.iterations:
                 t0 = time.perf_counter()
@@ -687,6 +988,9 @@ class Trainer:
                             + "\n"
                         )
                         log.flush()
+                self._updating = True  # a diverged state is not saved
+                self.check_divergence(res)
+                self._updating = False
                 if self.callback is not None:
                     self.callback(self, self.step)
                 if self._stop:
@@ -696,11 +1000,21 @@ class Trainer:
                     reason = "time limit"
                     break
                 if (
-                    cfg.checkpoint_every
-                    and self.step % cfg.checkpoint_every == 0
-                    and self.out_dir is not None
+                    self.out_dir is not None
+                    and self.step < cfg.iterations
+                    and (
+                        (cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0)
+                        or self.step == first_cycle
+                        or (
+                            cfg.checkpoint_minutes
+                            and time.monotonic() - self._saved_at > cfg.checkpoint_minutes * 60
+                        )
+                    )
                 ):
                     self.save_checkpoint()
+        except Exception as e:
+            self._save_after_failure(e)
+            raise
         finally:
             bar.close()
             if log is not None:
@@ -712,6 +1026,45 @@ class Trainer:
         return TrainResult(
             self.step, self.step >= cfg.iterations, reason, self.train_s, peak, self.model.num_gaussians
         )
+
+    def _save_after_failure(self, e: Exception) -> None:
+        """Checkpoint the last completed step when an exception stops the loop, and say so on ``e``.
+
+        A step that failed before its optimizer update is undone (the sampler and generators are
+        put back), so the saved state is exactly the previous step's; a failure during or after
+        the update, a divergence or a non-finite value keeps the previous checkpoint. A failing
+        write (disk full) keeps it too.
+        """
+        if self.out_dir is None:
+            return
+        path = self.out_dir / CHECKPOINT_NAME
+        saved = False
+        failed_write = isinstance(e, OSError) and e.filename == str(path)
+        if not self._updating and not isinstance(e, FloatingPointError) and not failed_write:
+            if self._undo is not None:
+                sampler, rng, gen, py = self._undo
+                self.sampler.load_state_dict(sampler)
+                torch.set_rng_state(rng)
+                self.generator.set_state(gen)
+                random.setstate(py)
+                self._undo = None
+            if self._saved_step != self.step:
+                try:
+                    self.save_checkpoint()
+                    saved = True
+                except OSError as se:
+                    e.add_note(f"(saving the checkpoint failed too: {se})")
+            else:
+                saved = True
+        if saved:
+            note = f"checkpoint of step {self.step} in {path}"
+        elif self._saved_step is not None:
+            note = f"last good checkpoint: step {self._saved_step} in {path}"
+        else:
+            note = f"no checkpoint was written before step {self.step}"
+            e.add_note(note)
+            return
+        e.add_note(f"{note}; continue with: vadgs train --out {self.out_dir} --resume")
 
     def _install_signal_handlers(self) -> dict[int, Any]:
         if threading.current_thread() is not threading.main_thread():
