@@ -146,3 +146,35 @@ class TestResetOpacity:
         assert bool((torch.sigmoid(m.params["opacity_logits"]) <= 0.0100001).all())
         assert bool((_moments(m, opt, "opacity_logits")[0] == 0).all())
         _consistent(m, opt)
+
+
+class TestProvenance:
+    """Clones and splits keep the event that added their parent; additions default to 0."""
+
+    def test_duplicate_split_add_follow_the_rows(self):
+        m, opt, st = _setup()
+        m.provenance = torch.tensor([0, 2, 0, 1, 0, 3])
+        ops.duplicate(m, opt, st, torch.tensor([False, True, False, True, False, False]))
+        assert m.provenance.tolist() == [0, 2, 0, 1, 0, 3, 2, 1]
+        ops.split(m, opt, st, torch.tensor([False, False, False, False, False, True, True, False]))
+        assert m.provenance.tolist() == [0, 2, 0, 1, 0, 1, 3, 2, 3, 2]
+        ops.remove_gaussians(m, opt, st, m.provenance == 2)
+        assert m.provenance.tolist() == [0, 0, 1, 0, 1, 3, 3]
+        new = {k: torch.zeros(2, *m.params[k].shape[1:]) for k in PER_GAUSSIAN}
+        ops.add_gaussians(m, opt, st, new)
+        assert m.provenance.tolist()[-2:] == [0, 0]
+        ops.add_gaussians(m, opt, st, {**new, "provenance": torch.tensor([4, 4])})
+        assert m.provenance.tolist()[-2:] == [4, 4]
+        assert not m.provenance.requires_grad and m.provenance.dtype == torch.int64
+        _consistent(m, opt)
+        _step_ok(m, opt)
+
+    def test_old_state_dict_without_provenance_loads_zeros(self):
+        m, _, _ = _setup()
+        m.provenance = torch.arange(6)
+        sd = m.state_dict()
+        del sd["params.provenance"]
+        back = GaussianModel.from_state(sd, m.extra_state())
+        assert back.provenance.tolist() == [0] * 6
+        m.load_state_dict(sd)
+        assert m.provenance.tolist() == [0] * 6

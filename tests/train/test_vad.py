@@ -386,3 +386,37 @@ class TestResumeWithVad:
         for k, v in full.model.params.items():
             assert torch.equal(v.detach(), resumed.model.params[k].detach()), k
         assert sorted(resumed.state["vad_priors"]) == sorted(full.state["vad_priors"])
+
+
+class TestProvenance:
+    """Each event's Gaussians carry its (1-based) number, through checkpoints and export."""
+
+    def test_event_gaussians_are_recorded(self, tiny_scene, tiny_config, tmp_path):
+        import dataclasses
+
+        from vadgs.train.export import export_model
+        from vadgs.train.trainer import CHECKPOINT_NAME
+
+        vad = VisibilityDensifyConfig(
+            every_cycles=1, max_instances=2, reconstruct=ReconstructConfig(max_crop=48)
+        )
+        # 18 training views: the first event after step 17; stopped right after it
+        config = dataclasses.replace(tiny_config, iterations=40, vad=vad)
+
+        def stop_at_18(trainer, step):
+            if step == 18:
+                trainer.request_stop()
+
+        trainer = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False, callback=stop_at_18)
+        trainer.train()
+        (event,) = trainer.state["vad_events"]
+        assert event["added"] > 0
+        prov = trainer.model.provenance
+        assert int((prov == 1).sum()) == event["added"]
+        assert int((prov == 0).sum()) == trainer.model.num_gaussians - event["added"]
+        resumed = Trainer.from_checkpoint(tmp_path / CHECKPOINT_NAME, scene=tiny_scene, progress=False)
+        assert torch.equal(resumed.model.provenance, prov)
+        paths = export_model(trainer.model, tmp_path / "export")
+        for path in paths:
+            if path.suffix == ".ply":
+                assert b"provenance" not in path.read_bytes()[:4000]  # only the 3DGS properties

@@ -7,7 +7,9 @@ background (world frame), ``k >= 0`` for the ``k``-th track node (its object fra
 by ``object_to_world``). Every entry of ``params`` is per Gaussian (gsplat's convention), so the
 densification helpers of :mod:`vadgs.train.ops` add or remove Gaussians of any node with one
 optimizer, and a strategy written for gsplat's params dict sees the same structure; a node is just
-an index set.
+an index set. A second integer entry, ``provenance``, records where each Gaussian came from: ``0``
+for the initial ones (and their clones and splits), ``k >= 1`` for those added by the ``k``-th
+visibility-aware densification event (:mod:`vadgs.train.vad`) and their descendants.
 
 :func:`gaussians_at` composes the activated Gaussians of a frame in the world;
 :meth:`GaussianModel.render` renders them (colours from SH evaluated with the viewing direction
@@ -306,6 +308,9 @@ class GaussianModel(nn.Module):
         sky = torch.zeros(num_sh_bases(sky_degree), 3, dtype=means.dtype, device=means.device)
         sky[0] = rgb_to_sh(torch.full((3,), 0.7, dtype=means.dtype))
         self.params["node_ids"] = nn.Parameter(node_ids.long().clone(), requires_grad=False)
+        self.params["provenance"] = nn.Parameter(
+            torch.zeros(n, dtype=torch.int64, device=means.device), requires_grad=False
+        )
         self.sky = nn.Parameter(sky)
         self.register_buffer("object_to_world", object_to_world.clone())
         self.register_buffer("track_valid", track_valid.bool().clone())
@@ -325,10 +330,28 @@ class GaussianModel(nn.Module):
     def node_ids(self, value: torch.Tensor) -> None:
         self.params["node_ids"] = nn.Parameter(value.long(), requires_grad=False)
 
+    @property
+    def provenance(self) -> torch.Tensor:
+        """``(N,)`` int64 origin of each Gaussian: ``0`` initial, ``k >= 1`` added by VAD-GS event ``k``.
+
+        Clones and splits inherit their parent's value (:mod:`vadgs.train.ops` copies integer rows).
+        """
+        return self.params["provenance"]
+
+    @provenance.setter
+    def provenance(self, value: torch.Tensor) -> None:
+        self.params["provenance"] = nn.Parameter(value.long(), requires_grad=False)
+
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints before 0.1.0.dev0's portable strategies kept node_ids as a buffer
         if prefix + "node_ids" in state_dict and prefix + "params.node_ids" not in state_dict:
             state_dict[prefix + "params.node_ids"] = state_dict.pop(prefix + "node_ids")
+        # checkpoints before provenance: every Gaussian counts as initial
+        means = state_dict.get(prefix + "params.means")
+        if means is not None and prefix + "params.provenance" not in state_dict:
+            state_dict[prefix + "params.provenance"] = torch.zeros(
+                means.shape[0], dtype=torch.int64, device=means.device
+            )
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property

@@ -11,7 +11,7 @@ vadgs's integer ``node_ids``) follow the rows without moments, as in gsplat.
 Two parameter layouts are recognised by their names (:func:`param_names`):
 
 - vadgs's :class:`~vadgs.train.model.GaussianModel` (``model.params``): ``means``, ``quats``,
-  ``log_scales``, ``opacity_logits``, ``sh_dc``, ``sh_rest`` and ``node_ids``;
+  ``log_scales``, ``opacity_logits``, ``sh_dc``, ``sh_rest``, ``node_ids`` and ``provenance``;
 - gsplat's: ``means``, ``quats``, ``scales`` (log), ``opacities`` (logits), ``sh0``, ``shN``.
 
 ``optimizers`` is either one optimizer with a named param group per parameter (vadgs's
@@ -299,8 +299,9 @@ def add_gaussians(
         params: params mapping or model, updated in place.
         optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
-        new: raw parameters of the new Gaussians, every key of ``params`` (``node_ids`` may be
-            left out), with the same trailing shapes (moved to each parameter's device and dtype);
+        new: raw parameters of the new Gaussians, every key of ``params`` (``node_ids`` and
+            ``provenance`` may be left out; ``provenance`` defaults to ``0``), with the same
+            trailing shapes (moved to each parameter's device and dtype);
             ``means`` in the world for static Gaussians, in the object frame for a track node.
         node_ids: ``(M,)`` int64, ``-1`` static or a track node index, when ``params`` has
             ``node_ids`` (overrides ``new["node_ids"]``; default: static).
@@ -323,6 +324,8 @@ def add_gaussians(
         new["node_ids"] = node_ids
     elif "node_ids" in p and "node_ids" not in new:
         new["node_ids"] = torch.full((m,), -1, dtype=torch.int64, device=p["node_ids"].device)
+    if "provenance" in p and "provenance" not in new:
+        new["provenance"] = torch.zeros((m,), dtype=torch.int64, device=p["provenance"].device)
     missing = [k for k in p.keys() if k not in new]
     if missing:
         raise ValueError(f"new: missing {missing}")

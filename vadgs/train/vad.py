@@ -481,7 +481,7 @@ class VisibilityAwareDensification:
                     keep = self._unexplained(rec, ref, before)
                     n_new = int(keep.sum())
                     if n_new:
-                        self._add(params, optimizers, state, rec, keep)
+                        self._add(params, optimizers, state, rec, keep, event + 1)
                         renders.invalidate()  # the Gaussians changed
                         self.snapshots.append(
                             {"instance": inst, "view": ref, "step": step, "added": n_new,
@@ -572,8 +572,12 @@ class VisibilityAwareDensification:
         state: dict[str, Any] | None,
         rec: InstanceReconstruction,
         keep: torch.Tensor,
+        event: int = 1,
     ) -> None:
-        """New flat Gaussians from the kept points, in ``params``' layout, device and dtype."""
+        """New flat Gaussians from the kept points, in ``params``' layout, device and dtype.
+
+        Where ``params`` has a ``provenance`` entry the new rows get ``event`` (1-based).
+        """
         cfg = self.config
         names = ops.param_names(params)
         p = getattr(params, "params", params)
@@ -596,6 +600,8 @@ class VisibilityAwareDensification:
         if "node_ids" in p:
             node = -1 if rec.track is None else self._track_nodes()[rec.track]
             node_ids = torch.full((m,), node, dtype=torch.int64, device=p["node_ids"].device)
+        if "provenance" in p:
+            new["provenance"] = torch.full((m,), event, dtype=torch.int64, device=p["provenance"].device)
         extra = [k for k in p.keys() if k not in new and k != "node_ids"]
         if extra:
             raise ValueError(f"params: cannot initialise extra per-Gaussian entries {extra} of new Gaussians")
