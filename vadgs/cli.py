@@ -640,6 +640,62 @@ def _export_args(p: argparse.ArgumentParser) -> None:
 export_run.add_arguments = _export_args  # type: ignore[attr-defined]
 
 
+def view_run(args: argparse.Namespace) -> int:
+    """Open a run in the browser (viser): Gaussians, cars at a frame slider, camera frusta, VAD-GS additions.
+
+    Serves ``http://HOST:PORT`` until Ctrl+C (or ``--timeout`` seconds); see :mod:`vadgs.viewer`.
+    """
+    try:
+        import viser
+    except ImportError:
+        raise ImportError("vadgs view needs viser: pip install 'vadgs[viewer]'") from None
+    from vadgs.viewer import build_viewer
+
+    torch.set_num_threads(args.threads or 2)
+    model, scene, _, _ = _load_run(args.run)
+    indices = [f.index for f in scene.frames]
+    frame = indices[0] if args.frame is None else args.frame
+    if frame not in indices:
+        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {frame}")
+    server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
+    try:
+        viewer = build_viewer(model, scene, server, indices.index(frame), max_gaussians=args.max_gaussians)
+        shown = sum(int(g.rows.numel()) for g in viewer.groups)
+        print(
+            f"viewing {_run_dir(args.run)}: {shown} of {model.num_gaussians} Gaussians, "
+            f"{len(model.track_ids)} moving objects, {len(indices)} frames"
+        )
+        host = "localhost" if args.host in ("0.0.0.0", "::") else args.host
+        print(f"open http://{host}:{server.get_port()} (Ctrl+C to stop)", flush=True)
+        deadline = None if args.timeout is None else time.monotonic() + args.timeout
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    return 0
+
+
+def _view_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run folder (or its checkpoint.pt)")
+    p.add_argument("--host", default="0.0.0.0", help="interface to listen on (default 0.0.0.0: all)")
+    p.add_argument(
+        "--port", type=_int_at_least(1), default=8080, help="port (default 8080; the next free one if taken)"
+    )
+    p.add_argument("--frame", type=int, help="the scene's frame index shown first (default: its first frame)")
+    p.add_argument(
+        "--max-gaussians",
+        type=_int_at_least(1),
+        default=1_000_000,
+        help="send at most this many Gaussians to the browser (a random subset; default 1,000,000)",
+    )
+    p.add_argument("--timeout", type=_positive_float, help="stop serving after this many seconds")
+
+
+view_run.add_arguments = _view_args  # type: ignore[attr-defined]
+
+
 def demo(args: argparse.Namespace) -> int:
     """Train briefly on the bundled sample scene; write metrics.json and a PNG panel."""
     from vadgs.data import load_scene
@@ -860,6 +916,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "eval": eval_run,
     "render": render_run,
     "export": export_run,
+    "view": view_run,
     "demo": demo,
     "convert": convert,
     "batch": batch,
