@@ -231,6 +231,8 @@ def _train_config(args: argparse.Namespace) -> object:
     vad = _vad_config(args)
     if vad is not None:
         d["vad"] = {**(d.get("vad") or {}), **vad}
+    if getattr(args, "appearance", False):
+        d["appearance"] = d.get("appearance") or {}
     config = TrainConfig.from_dict(d)
     for key in ("max_minutes", "threads", "checkpoint_every"):
         if getattr(config, key) < 0:
@@ -295,7 +297,11 @@ def _finish_run(trainer: object, out: Path, result: object, progress: bool) -> d
     }
     if scene.test_views:
         metrics["test"] = evaluate(
-            trainer.model, scene, config=trainer.config.raster, progress=progress
+            trainer.model,
+            scene,
+            config=trainer.config.raster,
+            progress=progress,
+            appearance=trainer.appearance,
         ).to_dict()
     export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
     _write_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
@@ -310,6 +316,11 @@ def _summary(metrics: dict) -> str:
     ]
     if t:
         parts.append(f"test PSNR {t['psnr']:.2f} dB, PSNR* {t['psnr_star']}, SSIM {t['ssim']:.3f}")
+        raw = t.get("uncorrected")
+        if raw:
+            parts.append(
+                f"uncorrected (no appearance transform) PSNR {raw['psnr']:.2f} dB, SSIM {raw['ssim']:.3f}"
+            )
         if "all" in t["depth"]:
             parts.append(
                 f"depth AbsRel {t['depth']['all']['absrel']:.3f}, "
@@ -332,6 +343,7 @@ _NOT_ON_RESUME = (
     ("test_frames", "--test-frames"),
     ("colmap", "--colmap"),
     ("vad", "--vad"),
+    ("appearance", "--appearance"),
     ("no_view_selection", "--no-view-selection"),
     ("no_geometric_losses", "--no-geometric-losses"),
     ("overwrite", "--overwrite"),
@@ -481,6 +493,12 @@ def _train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-geometric-losses", action="store_true", help="ablation: no normal/depth losses (with --vad)"
     )
+    p.add_argument(
+        "--appearance",
+        action="store_true",
+        help="learn a colour transform per camera (real rigs with differently exposed cameras); "
+        "tune with --set appearance.per_frame=true, appearance.lr=..., appearance.reg=...",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -496,6 +514,15 @@ def _load_run(run: str) -> tuple:
     return model, open_scene(ckpt["scene_ref"]), TrainConfig.from_dict(ckpt["config"]), ckpt
 
 
+def _load_appearance(ckpt: dict, config: object) -> object:
+    """The appearance model of a run's checkpoint (None when it trained without one)."""
+    from vadgs.train.appearance import AppearanceModel
+
+    if config.appearance is None or "appearance" not in ckpt:
+        return None
+    return AppearanceModel.from_state_dict(ckpt["appearance"]["model"], config.appearance.centered)
+
+
 def eval_run(args: argparse.Namespace) -> int:
     """Evaluate a run's checkpoint on the test split or the novel views (PSNR, PSNR*, SSIM, depth, #G).
 
@@ -506,7 +533,14 @@ def eval_run(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads or 2)
     model, scene, config, ckpt = _load_run(args.run)
-    groups = evaluate_split(model, scene, args.split, config=config.raster, progress=not args.no_progress)
+    groups = evaluate_split(
+        model,
+        scene,
+        args.split,
+        config=config.raster,
+        progress=not args.no_progress,
+        appearance=_load_appearance(ckpt, config),
+    )
     step = int(ckpt["step"])
     if args.split == "test":
         m = groups["test"].to_dict()
@@ -559,7 +593,7 @@ def render_run(args: argparse.Namespace) -> int:
     cars at their poses (interpolated between frames with ``--frames-between``).
     """
     torch.set_num_threads(args.threads or 2)
-    model, scene, config, _ = _load_run(args.run)
+    model, scene, config, ckpt = _load_run(args.run)
     if args.video:
         from vadgs.train.video import ego_trajectory, parse_trajectory, render_video
 
@@ -576,7 +610,9 @@ def render_run(args: argparse.Namespace) -> int:
 
     views = args.views if args.views else None
     out = _check_out_dir(args.out if args.out else _run_dir(args.run) / "renders")
-    paths = save_test_panels(model, scene, out, views, config.raster, progress=not args.no_progress)
+    paths = save_test_panels(
+        model, scene, out, views, config.raster, not args.no_progress, _load_appearance(ckpt, config)
+    )
     print(f"wrote {len(paths)} panels to {out}")
     return 0
 

@@ -1,5 +1,6 @@
 """Gaussian model, losses, densification strategies, trainer and evaluation (see ``docs/train.md``)."""
 
+from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affine
 from vadgs.train.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
 from vadgs.train.export import export_model, export_world, read_ply, rotate_sh, write_ply
 from vadgs.train.init import InitConfig, init_gaussians
@@ -19,6 +20,8 @@ from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, TrainConfig
 from vadgs.train.video import ego_trajectory, render_video
 
 __all__ = [
+    "AppearanceConfig",
+    "AppearanceModel",
     "DefaultStrategy",
     "DefaultStrategyConfig",
     "EvalMetrics",
@@ -34,6 +37,7 @@ __all__ = [
     "Trainer",
     "ViewSampler",
     "add_gaussians",
+    "apply_affine",
     "color_loss",
     "depth_loss",
     "depth_loss_hard",

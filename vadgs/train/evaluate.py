@@ -13,6 +13,11 @@ r"""Evaluation on the test split: image metrics, moving-object PSNR*, depth agai
   :math:`z > 5` m). A pixel where nothing is rendered counts as wrong.
 - **LPIPS**: only when the ``lpips`` package and its weights are available locally; otherwise
   the result says why it was skipped.
+- **Appearance**: a model trained with a per-camera colour transform
+  (:class:`~vadgs.train.appearance.AppearanceModel`, ``TrainConfig.appearance``) is evaluated on
+  its renders corrected by the transform of the view's camera; the per-frame residuals, learned
+  only on training images, are unknown for held-out frames and not used. The image metrics of
+  the uncorrected renders are kept in :attr:`EvalMetrics.uncorrected`.
 
 Novel views (:attr:`~vadgs.data.Scene.novel_views`, e.g. the test frames seen again from the rig
 shifted 2 m sideways) are evaluated the same way, one :class:`EvalMetrics` per group, by
@@ -35,6 +40,7 @@ from kornia.metrics import ssim as kssim
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import backproject_depth, invert_rigid
 from vadgs.render import RasterConfig
+from vadgs.train.appearance import AppearanceModel, correct_view
 from vadgs.train.model import GaussianModel, ModelRender
 
 __all__ = [
@@ -62,7 +68,11 @@ class EvalMetrics:
         num_gaussians: the model's size; ``num_views``: test views evaluated.
         depth: ``{region: {"absrel", "delta_1.05", "pixels"}}`` for ``all``, ``sign``,
             ``upper_facade`` (regions without pixels are left out); empty without ground truth.
-        per_view: ``[{"view", "psnr", "ssim"}]``.
+        per_view: ``[{"view", "psnr", "ssim"}]`` (and ``"psnr_uncorrected"``,
+            ``"ssim_uncorrected"`` with an appearance model).
+        uncorrected: with an appearance model, ``psnr``, ``psnr_pooled``, ``psnr_star`` and
+            ``ssim`` of the renders *without* its colour transform (the fields above are of the
+            corrected renders); empty without one.
     """
 
     psnr: float
@@ -75,6 +85,7 @@ class EvalMetrics:
     num_views: int
     depth: dict[str, dict[str, float]] = field(default_factory=dict)
     per_view: list[dict[str, float]] = field(default_factory=list)
+    uncorrected: dict[str, float | None] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON."""
@@ -104,6 +115,38 @@ def _psnr(mse: float) -> float:
     return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
 
 
+class _ImageStats:
+    """PSNR, pooled PSNR, PSNR* and SSIM accumulated over the views of one evaluation."""
+
+    def __init__(self) -> None:
+        self.psnrs: list[float] = []
+        self.ssims: list[float] = []
+        self.se_all = self.n_all = self.se_dyn = self.n_dyn = 0.0
+
+    def add(self, pred: torch.Tensor, gt: torch.Tensor, dynamic: torch.Tensor | None) -> tuple[float, float]:
+        """Add one view (``pred`` clamped, ``dynamic`` a ``(1, H, W)`` mask or None); its PSNR and SSIM."""
+        p = float(kpsnr(pred, gt, 1.0))
+        s = float(kssim(pred, gt, 11).mean())
+        self.psnrs.append(p)
+        self.ssims.append(s)
+        err = (pred - gt) ** 2
+        self.se_all += float(err.sum())
+        self.n_all += err.numel()
+        if dynamic is not None:
+            dyn = dynamic[:, None].expand_as(err)
+            self.se_dyn += float(err[dyn].sum())
+            self.n_dyn += float(dyn.sum())
+        return p, s
+
+    def summary(self) -> dict[str, float | None]:
+        return {
+            "psnr": round(sum(self.psnrs) / len(self.psnrs), 4),
+            "psnr_pooled": round(_psnr(self.se_all / self.n_all), 4),
+            "psnr_star": round(_psnr(self.se_dyn / self.n_dyn), 4) if self.n_dyn else None,
+            "ssim": round(sum(self.ssims) / len(self.ssims), 4),
+        }
+
+
 @torch.no_grad()
 def evaluate(
     model: GaussianModel,
@@ -112,6 +155,7 @@ def evaluate(
     config: RasterConfig | None = None,
     progress: bool = False,
     with_lpips: bool = True,
+    appearance: AppearanceModel | None = None,
 ) -> EvalMetrics:
     """Evaluate a model on test views.
 
@@ -122,12 +166,17 @@ def evaluate(
         config: rasterizer settings.
         progress: tqdm bar.
         with_lpips: compute LPIPS when available.
+        appearance: the run's appearance model (``Trainer.appearance``): the metrics are of the
+            renders corrected by the transform of each view's camera (without per-frame
+            residuals: the frames are held out), and :attr:`EvalMetrics.uncorrected` holds the
+            image metrics of the raw renders. LPIPS is of the corrected renders.
 
     Returns:
         :class:`EvalMetrics`.
 
     Raises:
-        ValueError: when there is no view to evaluate.
+        ValueError: when there is no view to evaluate, or ``appearance`` has another number of
+            cameras than the scene.
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
@@ -143,6 +192,11 @@ def evaluate(
     views = list(scene.test_views if views is None else views)
     if not views:
         raise ValueError(f"scene {scene.name!r}: no test views to evaluate")
+    if appearance is not None and appearance.num_cameras != len(scene.camera_names):
+        raise ValueError(
+            f"appearance: expected a model of the scene's {len(scene.camera_names)} cameras, "
+            f"got {appearance.num_cameras}"
+        )
     dynamic_ids = torch.tensor(sorted(scene.tracks), dtype=torch.long)
     sign_ids = torch.tensor(scene.instance_ids("sign"), dtype=torch.long)
     building_ids = torch.tensor(scene.instance_ids("building"), dtype=torch.long)
@@ -155,27 +209,22 @@ def evaluate(
             lpips_fn = lpips.LPIPS(net="alex", verbose=False)
         except Exception as e:
             ok_lpips, note = False, f"LPIPS skipped: could not load its weights locally ({type(e).__name__})"
-    psnrs, ssims, lp, per_view = [], [], [], []
-    se_all = n_all = se_dyn = n_dyn = 0.0
+    lp, per_view = [], []
+    stats, raw_stats = _ImageStats(), _ImageStats()
     depth_acc: dict[str, list[float]] = {}
     for v in tqdm(views, disable=not progress, desc="eval"):
         out = render_test_view(model, scene, v, config)
-        pred = out.color.clamp(0, 1)
         gt = scene.load_images([v])
-        p = float(kpsnr(pred, gt, 1.0))
-        s = float(kssim(pred, gt, 11).mean())
-        psnrs.append(p)
-        ssims.append(s)
-        per_view.append({"view": v, "psnr": round(p, 4), "ssim": round(s, 4)})
-        err = (pred - gt) ** 2
-        se_all += float(err.sum())
-        n_all += err.numel()
         vi = scene.views[v]
         inst = scene.load_instances([v]) if vi.instances is not None else None
-        if inst is not None and dynamic_ids.numel():
-            dyn = torch.isin(inst, dynamic_ids)[:, None].expand_as(err)
-            se_dyn += float(err[dyn].sum())
-            n_dyn += float(dyn.sum())
+        dynamic = torch.isin(inst, dynamic_ids) if inst is not None and dynamic_ids.numel() else None
+        color = correct_view(appearance, scene, v, out.color)
+        pred = color.clamp(0, 1)
+        p, s = stats.add(pred, gt, dynamic)
+        per_view.append({"view": v, "psnr": round(p, 4), "ssim": round(s, 4)})
+        if appearance is not None:
+            p, s = raw_stats.add(out.color.clamp(0, 1), gt, dynamic)
+            per_view[-1].update(psnr_uncorrected=round(p, 4), ssim_uncorrected=round(s, 4))
         if lpips_fn is not None:
             lp.append(float(lpips_fn(pred * 2 - 1, gt * 2 - 1).mean()))
         if vi.depth is not None:
@@ -206,16 +255,14 @@ def evaluate(
         for k, a in depth_acc.items()
     }
     return EvalMetrics(
-        psnr=round(sum(psnrs) / len(psnrs), 4),
-        psnr_pooled=round(_psnr(se_all / n_all), 4),
-        psnr_star=round(_psnr(se_dyn / n_dyn), 4) if n_dyn else None,
-        ssim=round(sum(ssims) / len(ssims), 4),
+        **stats.summary(),
         lpips=round(sum(lp) / len(lp), 4) if lp else None,
         lpips_note="" if lp else note,
         num_gaussians=model.num_gaussians,
         num_views=len(views),
         depth=depth,
         per_view=per_view,
+        uncorrected=raw_stats.summary() if appearance is not None else {},
     )
 
 
@@ -245,6 +292,7 @@ def evaluate_split(
     config: RasterConfig | None = None,
     progress: bool = False,
     with_lpips: bool = True,
+    appearance: AppearanceModel | None = None,
 ) -> dict[str, EvalMetrics]:
     """Evaluate a model on a split, one :class:`EvalMetrics` per group of :func:`split_views`.
 
@@ -256,6 +304,7 @@ def evaluate_split(
         config: rasterizer settings.
         progress: tqdm bar.
         with_lpips: compute LPIPS when available.
+        appearance: the run's appearance model, if any (see :func:`evaluate`).
 
     Returns:
         Group name → :class:`EvalMetrics` (see :func:`evaluate`).
@@ -272,7 +321,7 @@ def evaluate_split(
         {'test': 6}
     """
     return {
-        name: evaluate(model, scene, views, config, progress, with_lpips)
+        name: evaluate(model, scene, views, config, progress, with_lpips, appearance)
         for name, views in split_views(scene, split).items()
     }
 
@@ -285,8 +334,12 @@ def save_test_panels(
     views: Sequence[int] | None = None,
     config: RasterConfig | None = None,
     progress: bool = False,
+    appearance: AppearanceModel | None = None,
 ) -> list[Path]:
     """Write one PNG per view: render, ground truth, error, depth (and GT depth), normals.
+
+    With ``appearance`` (the run's :class:`~vadgs.train.appearance.AppearanceModel`), the render
+    is corrected by the transform of the view's camera, as in :func:`evaluate`.
 
     Returns:
         The written paths.
@@ -301,7 +354,8 @@ def save_test_panels(
     paths = []
     for v in tqdm(views, disable=not progress, desc="render"):
         out = render_test_view(model, scene, v, config)
-        pred = out.color.clamp(0, 1)[0]
+        color = correct_view(appearance, scene, v, out.color)
+        pred = color.clamp(0, 1)[0]
         gt = scene.load_images([v])[0]
         err = (pred - gt).abs().mean(0, keepdim=True).clamp(max=0.25) * 4
         p = float(kpsnr(pred[None], gt[None], 1.0))

@@ -55,6 +55,7 @@ from vadgs.checks import checks_enabled
 from vadgs.data.scene import Scene
 from vadgs.render import RasterConfig
 from vadgs.train import losses as L
+from vadgs.train.appearance import AppearanceConfig, AppearanceModel, correct_view, view_camera
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
@@ -143,6 +144,10 @@ class TrainConfig:
         vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
             visibility-aware densification (extending ``strategy``); None: standard ADC only.
             Stored in checkpoints: a resumed run continues with the same strategy.
+        appearance: :class:`~vadgs.train.appearance.AppearanceConfig` to learn a colour transform
+            per camera (and optionally per frame) applied to the render before the colour loss
+            (real rigs with differently exposed cameras); None (the default): no transform, no
+            extra parameters. The transforms have their own Adam and go into checkpoints.
         device: where the model, images and losses live (``"cpu"``, ``"cuda"``, ``"cuda:1"``);
             the scene and its visibility index stay on the CPU.
         checkpoint_every: steps between checkpoints (0 = only at the end / on interruption).
@@ -176,6 +181,7 @@ class TrainConfig:
     hard_until: float = 0.8
     hard_every: int = 4
     vad: VisibilityDensifyConfig | None = None
+    appearance: AppearanceConfig | None = None
     device: str = "cpu"
     checkpoint_every: int = 500
     checkpoint_minutes: float = 5.0
@@ -597,6 +603,13 @@ class Trainer:
         self.model = model.to(self.device)
         self.scene_scale = _scene_scale(scene, self.train_views)
         self.optimizer = make_optimizer(self.model, self._lrs(0))
+        self.appearance: AppearanceModel | None = None
+        self.appearance_optimizer: torch.optim.Adam | None = None
+        app = self.config.appearance
+        if app is not None:  # zeros only: the random generators are not touched
+            frames = len(scene.frames) if app.per_frame else None
+            self.appearance = AppearanceModel(len(scene.camera_names), frames, app.centered).to(self.device)
+            self.appearance_optimizer = torch.optim.Adam(self.appearance.parameters(), lr=app.lr)
         self.strategy = strategy if strategy is not None else self._configured_strategy()
         self.state = self.strategy.initialize_state(self.scene_scale)
         self.step = 0
@@ -676,6 +689,11 @@ class Trainer:
         kwargs.setdefault("scene_ref", ckpt["scene_ref"])
         trainer = cls(scene, config, model=model, _resuming=True, **kwargs)
         trainer.optimizer.load_state_dict(ckpt["optimizer"])
+        if trainer.appearance is not None:
+            if "appearance" not in ckpt:
+                raise ValueError(f"checkpoint {path}: config.appearance is set but no appearance is stored")
+            trainer.appearance.load_state_dict(ckpt["appearance"]["model"])
+            trainer.appearance_optimizer.load_state_dict(ckpt["appearance"]["optimizer"])
         trainer.state = ckpt["strategy_state"]
         trainer.sampler.load_state_dict(ckpt["sampler"])
         torch.set_rng_state(ckpt["rng"]["torch"])
@@ -687,8 +705,8 @@ class Trainer:
         return trainer
 
     def state_dict(self) -> dict[str, Any]:
-        """The checkpoint content."""
-        return {
+        """The checkpoint content (with ``"appearance"``: its model and optimizer, when on)."""
+        state = {
             "format": _FORMAT,
             "version": _VERSION,
             "step": self.step,
@@ -706,6 +724,12 @@ class Trainer:
             },
             "train_s": self.train_s,
         }
+        if self.appearance is not None:
+            state["appearance"] = {
+                "model": self.appearance.state_dict(),
+                "optimizer": self.appearance_optimizer.state_dict(),
+            }
+        return state
 
     def checkpoint_payload(self) -> dict[str, Any]:
         """:meth:`state_dict` with its ``checksum`` (what :meth:`save_checkpoint` writes)."""
@@ -787,11 +811,29 @@ class Trainer:
         r = self.render_view(view).raster
         return ViewRender(r.depth[0], r.alpha[0], r.normals[0])
 
+    def corrected_color(self, view: int, color: torch.Tensor) -> torch.Tensor:
+        """A render's colour ``(1, 3, H, W)`` after the view's appearance transform.
+
+        The transform of the view's camera and frame; ``color`` itself when ``config.appearance``
+        is None.
+        """
+        return correct_view(self.appearance, self.scene, view, color, held_out=False)
+
     def compute_losses(self, step: int, view: int, out: ModelRender) -> dict[str, torch.Tensor]:
-        """Every loss term of a step (already weighted), by name."""
+        """Every loss term of a step (already weighted), by name.
+
+        ``out`` is the raw render of ``view``; the colour loss compares its
+        :meth:`corrected_color` with the image, and with ``config.appearance`` the term
+        ``"appearance"`` regularises the view's transform. ``extra_losses`` get ``out`` as given.
+        """
         cfg = self.config
         gt = self.image(view)
-        terms = {"color": L.color_loss(out.color, gt, cfg.ssim_weight)}
+        terms = {"color": L.color_loss(self.corrected_color(view, out.color), gt, cfg.ssim_weight)}
+        if self.appearance is not None:
+            app = cfg.appearance
+            camera = view_camera(self.scene, view)
+            cam, frame = self.appearance.penalty(camera, self.scene.view_frame_position(view))
+            terms["appearance"] = app.reg * cam + app.frame_reg * frame
         if cfg.lambda_lidar > 0:
             lid = self.lidar_depth(view)
             if lid is not None:
@@ -850,14 +892,22 @@ class Trainer:
         self._updating = True
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        if self.appearance_optimizer is not None:
+            self.appearance_optimizer.step()
+            self.appearance_optimizer.zero_grad(set_to_none=True)
         self.strategy.step_post_backward(params, self.optimizer, self.state, step, info)
         if checks_enabled():
             for k in ("means", "log_scales", "opacity_logits", "sh_dc"):
                 if not bool(torch.isfinite(self.model.params[k]).all()):
                     raise NonFiniteLossError(step, f"parameter {k!r} after the optimizer step")
+            if self.appearance is not None:
+                for k, p in self.appearance.named_parameters():
+                    if not bool(torch.isfinite(p).all()):
+                        raise NonFiniteLossError(step, f"appearance parameter {k!r} after the optimizer step")
         self.step = step + 1
         with torch.no_grad():
-            mse = torch.mean((out.color.detach().clamp(0, 1) - self.image(view)) ** 2)
+            color = self.corrected_color(view, out.color.detach())
+            mse = torch.mean((color.clamp(0, 1) - self.image(view)) ** 2)
         res = {k: float(v.detach()) for k, v in terms.items()}
         res["total"] = float(total.detach())
         res["psnr"] = float(-10 * torch.log10(mse.clamp(min=1e-10)))
