@@ -451,7 +451,7 @@ def _has_model(folder: Path) -> bool:
 
 
 def find_colmap_model(path: str | Path) -> Path | None:
-    """The COLMAP sparse model a folder holds or is: ``path``, ``path/sparse/0`` or ``path/sparse``.
+    """The COLMAP sparse model a folder is or holds: ``path``, ``path/sparse/0``, ``sparse`` or ``0``.
 
     A model folder has ``cameras``, ``images`` and ``points3D`` as ``.bin`` or ``.txt``.
 
@@ -464,7 +464,7 @@ def find_colmap_model(path: str | Path) -> Path | None:
         True
     """
     path = Path(path)
-    for cand in (path, path / "sparse" / "0", path / "sparse"):
+    for cand in (path, path / "sparse" / "0", path / "sparse", path / "0"):
         if cand.is_dir() and _has_model(cand):
             return cand
     return None
@@ -640,7 +640,7 @@ def open_colmap_project(
     if model is None:
         raise FileNotFoundError(
             f"{path}: no COLMAP model (cameras, images, points3D as .bin or .txt) in it, in "
-            "sparse/0 or in sparse"
+            "sparse/0, sparse or 0"
         )
     if images_dir is None:
         images_dir = _find_images_dir(model)
