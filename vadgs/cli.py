@@ -208,6 +208,12 @@ def _train_config(args: argparse.Namespace) -> object:
     d = TrainConfig().to_dict()
     if args.config:
         _deep_update(d, _read_config_file(args.config))
+    vad = _vad_config(args)
+    if vad is not None:  # every VAD-GS field, so that --set vad.KEY=... can change any of them
+        from vadgs.train.vad import VisibilityDensifyConfig
+
+        full = dataclasses.asdict(VisibilityDensifyConfig())
+        d["vad"] = {**_deep_update(full, d.get("vad") or {}, "config.vad"), **vad}
     for item in args.set or []:
         if "=" not in item:
             raise ValueError(f"--set: expected KEY=VALUE, got {item!r}")
@@ -228,9 +234,6 @@ def _train_config(args: argparse.Namespace) -> object:
             d[key] = getattr(args, flag)
     if getattr(args, "max_gaussians", None) is not None:
         d["strategy"]["max_gaussians"] = args.max_gaussians
-    vad = _vad_config(args)
-    if vad is not None:
-        d["vad"] = {**(d.get("vad") or {}), **vad}
     if getattr(args, "appearance", False):
         d["appearance"] = d.get("appearance") or {}
     config = TrainConfig.from_dict(d)
@@ -269,6 +272,49 @@ def _nest(parts: list[str], val: object) -> dict:
     return {parts[0]: val} if len(parts) == 1 else {parts[0]: _nest(parts[1:], val)}
 
 
+def _scene_kind(args: argparse.Namespace) -> str:
+    """The kind of ``vadgs train``'s SCENE (benchmark, dgp, colmap), checking each kind's flags.
+
+    A COLMAP model or project folder (:func:`vadgs.data.find_colmap_model`) without ``scene.json``
+    is detected without ``--colmap-scene``.
+    """
+    from vadgs.data import find_colmap_model
+
+    if args.dgp and args.colmap_scene:
+        raise ValueError("--dgp, --colmap-scene: give one scene kind")
+    path = _scene_arg(args.scene)
+    if args.dgp:
+        kind = "dgp"
+    elif args.colmap_scene:
+        kind = "colmap"
+    elif args.scene is not None and not (path / "scene.json").is_file() and path.name != "scene.json":
+        if find_colmap_model(path) is None:
+            raise FileNotFoundError(
+                f"SCENE {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
+                "(cameras, images, points3D as .bin or .txt in it, in sparse/0, sparse or 0); "
+                "a DGP scene needs --dgp"
+            )
+        kind = "colmap"
+    else:
+        kind = "benchmark"
+    if kind != "colmap":
+        for key, flag in (
+            ("images", "--images"),
+            ("test_every", "--test-every"),
+            ("no_normalize", "--no-normalize"),
+        ):
+            if getattr(args, key) not in (None, False):
+                raise ValueError(
+                    f"{flag}: only for a COLMAP scene (SCENE a COLMAP model or project folder), "
+                    f"got a {kind} scene {path}"
+                )
+    elif args.colmap:
+        raise ValueError("--colmap: not with a COLMAP scene, whose own SfM points initialise it")
+    elif args.cameras or args.test_frames:
+        raise ValueError("--cameras / --test-frames: DGP only; a COLMAP scene's split is --test-every")
+    return kind
+
+
 def _scene_ref(args: argparse.Namespace) -> dict:
     path = str(_scene_arg(args.scene))
     if args.dgp:
@@ -277,6 +323,36 @@ def _scene_ref(args: argparse.Namespace) -> dict:
             ref["cameras"] = args.cameras.split(",")
         return ref
     return {"kind": "benchmark", "path": path, "scale": args.scale}
+
+
+def _open_colmap_scene(args: argparse.Namespace, out: Path) -> tuple[dict, object]:
+    """The reference and scene of a COLMAP SCENE (undistorted into ``OUT/undistorted`` if needed)."""
+    from vadgs.data import open_colmap_project
+    from vadgs.data.normalize import similarity_scale
+
+    if args.images is not None and not Path(args.images).is_dir():
+        raise FileNotFoundError(f"--images {args.images}: no such folder")
+    colmap, recipe = open_colmap_project(
+        _scene_arg(args.scene),
+        args.images,
+        scale=args.scale,
+        test_every=8 if args.test_every is None else args.test_every,
+        normalize=not args.no_normalize,
+        undistort_dir=out / "undistorted",
+    )
+    scene = colmap.scene
+    if recipe["undistorted"]:
+        print(
+            f"COLMAP cameras {recipe['undistorted']} are distorted: undistorted {scene.num_views} images "
+            f"with pycolmap into {out / 'undistorted'} (the run reads them from there)"
+        )
+    if recipe["transform"] is not None:
+        s = similarity_scale(torch.tensor(recipe["transform"]))
+        print(
+            f"normalised the COLMAP frame: cameras centred, up on +z, scale x{s:.4g} (median "
+            "camera-to-point depth 10 units); --no-normalize keeps COLMAP's"
+        )
+    return {"kind": "colmap", **recipe}, scene
 
 
 def _finish_run(trainer: object, out: Path, result: object, progress: bool) -> dict:
@@ -342,6 +418,10 @@ _NOT_ON_RESUME = (
     ("cameras", "--cameras"),
     ("test_frames", "--test-frames"),
     ("colmap", "--colmap"),
+    ("colmap_scene", "--colmap-scene"),
+    ("images", "--images"),
+    ("test_every", "--test-every"),
+    ("no_normalize", "--no-normalize"),
     ("vad", "--vad"),
     ("appearance", "--appearance"),
     ("no_view_selection", "--no-view-selection"),
@@ -411,16 +491,27 @@ def train(args: argparse.Namespace) -> int:
             raise ValueError(
                 f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
             )
+        kind = _scene_kind(args)
         if args.scale is None:
-            args.scale = 0.5
+            args.scale = 1.0 if kind == "colmap" else 0.5
         config = _train_config(args)
-        ref = _scene_ref(args)
-        scene = open_scene(ref)
+        if kind == "colmap":
+            ref, scene = _open_colmap_scene(args, out)
+        else:
+            ref = _scene_ref(args)
+            scene = open_scene(ref)
         colmap = None
         if args.colmap:
-            from vadgs.data import load_colmap
+            from vadgs.data import find_colmap_model, load_colmap, match_colmap_views
 
-            colmap = load_colmap(args.colmap, scale=args.scale).points
+            model = find_colmap_model(args.colmap)
+            if model is None:
+                raise FileNotFoundError(
+                    f"--colmap {args.colmap}: no COLMAP model (cameras, images, points3D as .bin or "
+                    ".txt in it, in sparse/0, sparse or 0)"
+                )
+            match_colmap_views(scene, model, "--colmap")
+            colmap = load_colmap(model, scale=args.scale, check_files=False).points
         trainer = Trainer(
             scene,
             config,
@@ -451,7 +542,12 @@ def train(args: argparse.Namespace) -> int:
 
 
 def _train_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", nargs="?", help="scene folder (benchmark format, or DGP with --dgp)")
+    p.add_argument(
+        "scene",
+        nargs="?",
+        help="scene folder: benchmark format (scene.json), a COLMAP model or project folder "
+        "(sparse/0; detected), or DGP with --dgp",
+    )
     p.add_argument("--sample", action="store_true", help="use the bundled sample scene")
     p.add_argument("--out", required=True, help="run folder (checkpoints, metrics, PLY)")
     p.add_argument("--config", help="JSON file with (part of) a TrainConfig")
@@ -468,12 +564,33 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         "--scale",
         type=_positive_float,
         default=None,
-        help="image resolution factor (default 0.5 = 240x144 for the benchmark)",
+        help="image resolution factor (default 0.5 = 240x144 for the benchmark; 1.0 for COLMAP)",
     )
     p.add_argument("--dgp", action="store_true", help="SCENE is a DGP scene folder")
     p.add_argument("--cameras", help="DGP: comma-separated camera names")
     p.add_argument("--test-frames", type=int, nargs="*", help="DGP: held-out frames (samples)")
-    p.add_argument("--colmap", help="COLMAP sparse folder whose points are added to the initialisation")
+    p.add_argument(
+        "--colmap-scene",
+        action="store_true",
+        help="SCENE is a COLMAP model or project folder (detected without it when there is no scene.json)",
+    )
+    p.add_argument("--images", help="COLMAP scene: the images folder (default: images/ next to the model)")
+    p.add_argument(
+        "--test-every",
+        type=_int_at_least(0),
+        help="COLMAP scene: hold out every N-th image in name order, index %% N == 0 (default 8; 0 = none)",
+    )
+    p.add_argument(
+        "--no-normalize",
+        action="store_true",
+        help="COLMAP scene: keep COLMAP's frame and scale (default: cameras centred, up +z, "
+        "median camera-to-point depth 10)",
+    )
+    p.add_argument(
+        "--colmap",
+        help="COLMAP model of this scene's views (same image names, same world frame) whose points "
+        "are added to the initialisation",
+    )
     p.add_argument(
         "--resume",
         action="store_true",

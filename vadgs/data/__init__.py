@@ -6,7 +6,14 @@ maps are read lazily.
 
 from pathlib import Path
 
-from vadgs.data.colmap import ColmapPoints, ColmapScene, load_colmap
+from vadgs.data.colmap import (
+    ColmapPoints,
+    ColmapScene,
+    find_colmap_model,
+    load_colmap,
+    match_colmap_views,
+    open_colmap_project,
+)
 from vadgs.data.dgp import load_dgp
 from vadgs.data.export import export_scene
 from vadgs.data.nuscenes import load_nuscenes
@@ -36,11 +43,14 @@ __all__ = [
     "ValidationRow",
     "ViewInfo",
     "export_scene",
+    "find_colmap_model",
     "load_colmap",
     "load_dgp",
     "load_nuscenes",
     "load_scene",
     "load_waymo",
+    "match_colmap_views",
+    "open_colmap_project",
     "sample_scene_path",
     "validate_scene",
 ]

@@ -21,11 +21,26 @@
   entry per observation, with ``view_idx`` the index in ``Scene.views``. This is what voxel
   visibility reasoning consumes (supplement, "Visibility Reasoning").
 
-There is no LiDAR, no instance table and no tracks of moving objects in a COLMAP model.
+- **Hold-out.** ``test_every=N`` puts every ``N``-th frame (position ``% N == 0`` in name order;
+  one image per frame without rigs: the 3DGS / Mip-NeRF 360 convention "every 8th image") in
+  ``test_frames``.
+- **Normalisation.** ``normalize=True`` maps the reconstruction by the similarity of
+  :func:`colmap_normalization` (cameras centred, mean camera up on ``+z``, median
+  camera-to-point depth 10 units; :mod:`vadgs.data.normalize`), so that vadgs's settings in metres
+  fit an SfM scene of arbitrary scale; a recorded ``(4, 4)`` transform re-applies it exactly.
+
+There is no LiDAR, no instance table and no tracks of moving objects in a COLMAP model; the scene
+carries the points as :attr:`Scene.sfm_points <vadgs.data.scene.Scene>` instead.
+
+Around the loader: :func:`find_colmap_model` recognises a model or project folder,
+:func:`distorted_cameras` and :func:`undistort_colmap` (pycolmap's undistorter) give a pinhole
+model, and :func:`match_colmap_views` checks that a model belongs to another scene's views.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 import warnings
 from pathlib import Path
 from typing import NamedTuple
@@ -34,11 +49,25 @@ import numpy as np
 import torch
 
 from vadgs.checks import check_finite
+from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
 from vadgs.data.validate import validate_scene
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 
-__all__ = ["COLMAP_PIXEL_OFFSET", "ColmapPoints", "ColmapScene", "colmap_camera_to_K", "load_colmap"]
+__all__ = [
+    "COLMAP_PIXEL_OFFSET",
+    "ColmapPoints",
+    "ColmapScene",
+    "colmap_camera_to_K",
+    "colmap_normalization",
+    "distorted_cameras",
+    "find_colmap_model",
+    "load_colmap",
+    "match_colmap_views",
+    "open_colmap_project",
+    "transform_colmap",
+    "undistort_colmap",
+]
 
 #: vadgs pixel coordinates = COLMAP pixel coordinates + this offset (pixel centres at integers).
 COLMAP_PIXEL_OFFSET = -0.5
@@ -157,6 +186,8 @@ def load_colmap(
     scale: float = 1.0,
     check_files: bool = True,
     validate: str = "headers",
+    test_every: int = 0,
+    normalize: bool | torch.Tensor = False,
 ) -> ColmapScene:
     """Load a COLMAP sparse reconstruction as a :class:`Scene` and its points with their tracks.
 
@@ -175,16 +206,23 @@ def load_colmap(
         validate: content checks (:func:`~vadgs.data.validate_scene`): ``"headers"`` (default:
             ``K``, rigid poses, image sizes from the file headers), ``"full"`` (decode
             every file) or ``"none"``; a failure raises a :class:`ValueError` naming the file.
+        test_every: hold out every ``test_every``-th frame (positions ``0, N, 2N, ...`` in name
+            order) as ``test_frames``; ``0`` (default): every frame trains.
+        normalize: ``False`` (default): COLMAP's own frame and scale; ``True``: apply
+            :func:`colmap_normalization` (centred, up on ``+z``, median depth 10); a ``(4, 4)``
+            similarity (tensor or nested list, e.g. the one a run recorded): apply that one.
 
     Returns:
         A :class:`ColmapScene` ``(scene, points)``. The scene has every registered image as a
-        view, no LiDAR, no instances, no tracks, and every frame in ``train_frames``.
+        view, no LiDAR, no instances, no tracks, the split of ``test_every``, and the points as
+        ``scene.sfm_points``.
 
     Raises:
         FileNotFoundError: if ``sparse_dir`` holds no COLMAP model, ``images_dir`` is given but
             missing, or (with ``check_files``) a registered image is missing.
-        ValueError: if ``scale`` is not positive, the model has no registered image, a pose is not
-            finite, or a camera model is unsupported.
+        ValueError: if ``scale`` is not positive, ``test_every`` negative, ``normalize`` not a
+            ``(4, 4)`` similarity, the model has no registered image, a pose is not finite, or a
+            camera model is unsupported.
 
     Example:
         >>> import tempfile, numpy as np, pycolmap
@@ -210,6 +248,9 @@ def load_colmap(
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
     if validate not in ("none", "headers", "full"):
         raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
+    if not (isinstance(test_every, int) and test_every >= 0):
+        raise ValueError(f"test_every: expected an integer >= 0 (0 = no test split), got {test_every!r}")
+    transform = None if isinstance(normalize, bool) else _check_similarity(normalize)
     if not any((sparse_dir / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
         raise FileNotFoundError(f"sparse_dir: no COLMAP model (cameras.bin or cameras.txt) in {sparse_dir}")
     try:
@@ -309,19 +350,24 @@ def load_colmap(
         view_idx=torch.tensor(v_idx, dtype=torch.int64),
         uv=uv_t.float(),
     )
+    test = {f.index for f in frames if test_every and f.index % test_every == 0}
     scene = Scene(
         name=_project_name(sparse_dir),
         root=sparse_dir,
         cameras_info=cameras,
         frames=frames,
         views=views,
-        train_frames=[f.index for f in frames],
-        test_frames=[],
+        train_frames=[f.index for f in frames if f.index not in test],
+        test_frames=sorted(test),
         scale=float(scale),
+        sfm_points=points,
     )
     if check_files and validate != "none":
         validate_scene(scene, full=validate == "full").raise_if_errors()
-    return ColmapScene(scene, points)
+    out = ColmapScene(scene, points)
+    if normalize is True:
+        transform = colmap_normalization(out)
+    return transform_colmap(out, transform) if transform is not None else out
 
 
 def _project_name(sparse_dir: Path) -> str:
@@ -330,3 +376,304 @@ def _project_name(sparse_dir: Path) -> str:
     while path.parent != path and (path.name.isdigit() or path.name == "sparse"):
         path = path.parent
     return path.name
+
+
+# ---------------------------------------------------------------------------------------------------
+# normalisation
+
+
+def _check_similarity(transform: object) -> torch.Tensor:
+    """A ``(4, 4)`` similarity ``[[s R, t], [0, 1]]`` as float64, or a ``ValueError`` naming ``normalize``."""
+    try:
+        T = torch.as_tensor(transform, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"normalize: expected a bool or a (4, 4) similarity, got {transform!r}") from None
+    if T.shape != (4, 4) or not bool(torch.isfinite(T).all()):
+        raise ValueError(f"normalize: expected a finite (4, 4) similarity, got shape {tuple(T.shape)}")
+    A = T[:3, :3]
+    s = float(A.det().abs() ** (1 / 3))
+    eye = torch.eye(3, dtype=torch.float64)
+    if s <= 0 or not torch.allclose(A @ A.T / s**2, eye, atol=1e-6) or float(A.det()) < 0:
+        raise ValueError(
+            "normalize: the (4, 4) matrix is not a similarity [[s R, t], [0, 1]] with a rotation R"
+        )
+    if not torch.allclose(T[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)):
+        raise ValueError(f"normalize: expected the last row (0, 0, 0, 1), got {T[3].tolist()}")
+    return T
+
+
+def colmap_normalization(colmap: ColmapScene, target_depth: float = 10.0) -> torch.Tensor:
+    """The similarity that normalises a COLMAP scene (:func:`vadgs.data.normalize.normalization_transform`).
+
+    Cameras centred on their mean, their mean up direction (``-y`` of OpenCV axes) rotated onto
+    ``+z``, and the median camera-to-point depth of the TRACK table scaled to ``target_depth``.
+
+    Args:
+        colmap: what :func:`load_colmap` returned (in COLMAP's frame).
+        target_depth: the median depth after the transform.
+
+    Returns:
+        ``(4, 4)`` float64 similarity (apply it with :func:`transform_colmap`, or pass it as
+        ``load_colmap(..., normalize=T)``).
+    """
+    c2w = torch.stack([v.cam_to_world for v in colmap.scene.views])
+    return normalization_transform(c2w, colmap.points.points, colmap.points.point_views, target_depth)
+
+
+def transform_colmap(colmap: ColmapScene, transform: torch.Tensor) -> ColmapScene:
+    """A COLMAP scene mapped by a similarity: poses and points move, intrinsics and pixels do not.
+
+    Args:
+        colmap: a :class:`ColmapScene`.
+        transform: ``(4, 4)`` similarity ``[[s R, t], [0, 1]]``.
+
+    Returns:
+        A new :class:`ColmapScene` (its scene's ``sfm_points`` are the new points).
+    """
+    T = _check_similarity(transform)
+    scene, points = colmap
+    views = [
+        dataclasses.replace(v, cam_to_world=transform_cam_to_world(T, v.cam_to_world)) for v in scene.views
+    ]
+    points = points._replace(points=transform_points(T, points.points))
+    return ColmapScene(dataclasses.replace(scene, views=views, sfm_points=points), points)
+
+
+# ---------------------------------------------------------------------------------------------------
+# finding, undistorting and matching models
+
+
+def _has_model(folder: Path) -> bool:
+    return all(
+        any((folder / f"{n}.{e}").is_file() for e in ("bin", "txt"))
+        for n in ("cameras", "images", "points3D")
+    )
+
+
+def find_colmap_model(path: str | Path) -> Path | None:
+    """The COLMAP sparse model a folder is or holds: ``path``, ``path/sparse/0``, ``sparse`` or ``0``.
+
+    A model folder has ``cameras``, ``images`` and ``points3D`` as ``.bin`` or ``.txt``.
+
+    Returns:
+        The model folder, or None when there is none.
+
+    Example:
+        >>> import tempfile
+        >>> find_colmap_model(tempfile.mkdtemp()) is None
+        True
+    """
+    path = Path(path)
+    for cand in (path, path / "sparse" / "0", path / "sparse", path / "0"):
+        if cand.is_dir() and _has_model(cand):
+            return cand
+    return None
+
+
+def _read_model(sparse_dir: Path, what: str) -> object:
+    import pycolmap
+
+    if not _has_model(sparse_dir):
+        raise FileNotFoundError(
+            f"{what} {sparse_dir}: no COLMAP model (cameras, images, points3D as .bin or .txt)"
+        )
+    try:
+        return pycolmap.Reconstruction(str(sparse_dir))
+    except Exception as e:  # pycolmap raises a bare RuntimeError / ValueError on corrupt files
+        raise ValueError(f"{what} {sparse_dir}: cannot read the COLMAP model: {e}") from None
+
+
+def distorted_cameras(sparse_dir: str | Path) -> list[str]:
+    """The cameras of a COLMAP model that are not pinhole (PINHOLE / SIMPLE_PINHOLE), as ``"id MODEL"``.
+
+    A model counts, whatever its parameters: undistorting a SIMPLE_RADIAL camera with ``k = 0``
+    only rewrites it as PINHOLE.
+
+    Raises:
+        FileNotFoundError: if ``sparse_dir`` holds no model.
+        ValueError: if the model cannot be read.
+    """
+    rec = _read_model(Path(sparse_dir), "sparse_dir")
+    return [
+        f"{cid} {cam.model.name}"
+        for cid, cam in sorted(rec.cameras.items())
+        if cam.model.name not in _PINHOLE_MODELS
+    ]
+
+
+def undistort_colmap(
+    sparse_dir: str | Path, images_dir: str | Path, out_dir: str | Path
+) -> tuple[Path, Path]:
+    """Undistort a COLMAP model and its images with :func:`pycolmap.undistort_images`.
+
+    Writes ``out_dir/sparse`` (PINHOLE cameras, the same poses and points) and ``out_dir/images``
+    (same names). ``out_dir`` must be new or the output of an earlier call (it is replaced);
+    nothing is written next to the input.
+
+    Args:
+        sparse_dir: the distorted model.
+        images_dir: its images.
+        out_dir: where to write.
+
+    Returns:
+        ``(sparse, images)`` of the undistorted model, for :func:`load_colmap`.
+
+    Raises:
+        FileNotFoundError: if the model, ``images_dir`` or a registered image is missing.
+        ValueError: if ``out_dir`` exists and is not an earlier output.
+    """
+    import pycolmap
+
+    sparse_dir, images_dir, out_dir = Path(sparse_dir), Path(images_dir), Path(out_dir)
+    rec = _read_model(sparse_dir, "sparse_dir")
+    if not images_dir.is_dir():
+        raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
+    missing = [im.name for im in rec.images.values() if im.has_pose and not (images_dir / im.name).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"images_dir {images_dir}: {len(missing)} registered image(s) missing, e.g. {sorted(missing)[:3]}"
+        )
+    if out_dir.exists():
+        if not _has_model(out_dir / "sparse"):
+            raise ValueError(
+                f"out_dir {out_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
+            )
+        shutil.rmtree(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    pycolmap.undistort_images(str(out_dir), str(sparse_dir), str(images_dir))
+    if not _has_model(out_dir / "sparse"):
+        raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
+    return out_dir / "sparse", out_dir / "images"
+
+
+def match_colmap_views(scene: Scene, sparse_dir: str | Path, what: str = "colmap") -> torch.Tensor:
+    """Which view of ``scene`` each registered image of a COLMAP model is; raises unless all match.
+
+    A COLMAP image name matches a view whose image path ends with it (``front/000.png`` matches
+    ``.../images/front/000.png``). The model must also be in the scene's world frame: the median
+    distance between matched camera centres must be below 5 % of the scene's camera extent
+    (the largest distance of a camera from the cameras' mean, at least 1e-3).
+
+    Args:
+        scene: the scene the model's points are for.
+        sparse_dir: the COLMAP model folder.
+        what: the argument's name in messages (e.g. ``"--colmap"``).
+
+    Returns:
+        ``(N,)`` int64 index into ``scene.views`` of each registered image, in name order.
+
+    Raises:
+        FileNotFoundError: if ``sparse_dir`` holds no model.
+        ValueError: naming ``what``, the expected and the found names (or the centres' distance).
+    """
+    rec = _read_model(Path(sparse_dir), what)
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    by_suffix: dict[tuple[str, ...], int] = {}
+    for v in scene.views:
+        if v.image is not None and v.group is None:
+            parts = Path(v.image).parts
+            for k in range(1, len(parts) + 1):
+                by_suffix.setdefault(parts[-k:], v.index)
+    idx = [by_suffix.get(Path(im.name).parts, -1) for im in images]
+    bad = [im.name for im, i in zip(images, idx) if i < 0]
+    if bad or not images:
+        expected = [str(Path(*Path(scene.views[v].image).parts[-2:])) for v in scene.train_views[:2]]
+        raise ValueError(
+            f"{what} {sparse_dir}: the COLMAP model's images are not the views of scene {scene.name!r}: "
+            f"{len(bad)} of {len(images)} registered image names match none (expected names like "
+            f"{expected}, found {bad[:3]})"
+        )
+    theirs = torch.stack([invert_rigid(torch.tensor(_cam_from_world(im)))[:3, 3] for im in images])
+    mine = torch.stack([scene.views[i].cam_to_world[:3, 3] for i in idx]).double()
+    allc = torch.stack([v.cam_to_world[:3, 3] for v in scene.views]).double()
+    extent = max(float((allc - allc.mean(0)).norm(dim=-1).max()), 1e-3)
+    off = float((mine - theirs).norm(dim=-1).median())
+    if off > 0.05 * extent:
+        raise ValueError(
+            f"{what} {sparse_dir}: the COLMAP model is not in the world frame of scene {scene.name!r}: "
+            f"its camera centres are a median {off:.3g} from the scene's (expected below "
+            f"{0.05 * extent:.3g}, 5 % of the cameras' extent); align it first (colmap model_aligner)"
+        )
+    return torch.tensor(idx, dtype=torch.int64)
+
+
+def open_colmap_project(
+    path: str | Path,
+    images_dir: str | Path | None = None,
+    scale: float = 1.0,
+    test_every: int = 8,
+    normalize: bool = True,
+    undistort_dir: str | Path | None = None,
+) -> tuple[ColmapScene, dict]:
+    """A COLMAP project as a training scene, and the recipe that reopens it identically.
+
+    What ``vadgs train PATH`` does with a COLMAP folder, in order: find the model
+    (:func:`find_colmap_model`) and its images (``images_dir``, else ``images/`` next to it as
+    :func:`load_colmap` looks for it); undistort when a camera is not pinhole
+    (:func:`undistort_colmap` into ``undistort_dir``, never next to the input); load with the
+    hold-out ``test_every`` (3DGS: 8); and normalise (:func:`colmap_normalization`).
+
+    Args:
+        path: a model folder, or a project folder with ``sparse/0`` (or ``sparse``).
+        images_dir: the images (default: found next to the model).
+        scale: image resolution factor.
+        test_every: every ``test_every``-th image (in name order) is held out; 0: none.
+        normalize: apply the normalising similarity (False: COLMAP's frame and scale).
+        undistort_dir: where to write the undistorted model and images if needed (required then).
+
+    Returns:
+        ``(colmap, recipe)``: the :class:`ColmapScene` and a JSON-able dict with ``path``
+        (the model loaded: the undistorted one if any), ``images``, ``scale``, ``test_every``,
+        ``transform`` (the ``(4, 4)`` similarity as nested lists, or None), ``source`` (the
+        input model), ``undistorted`` (the distorted cameras, ``[]`` when none) and ``name`` (the
+        project's, which the scene takes).
+        ``load_colmap(recipe["path"], recipe["images"], recipe["scale"],
+        test_every=recipe["test_every"], normalize=recipe["transform"] or False)`` reopens it.
+
+    Raises:
+        FileNotFoundError: if there is no model, no images folder, or a registered image is missing.
+        ValueError: if a camera is distorted and no ``undistort_dir`` is given, or as
+            :func:`load_colmap`.
+    """
+    path = Path(path)
+    model = find_colmap_model(path)
+    if model is None:
+        raise FileNotFoundError(
+            f"{path}: no COLMAP model (cameras, images, points3D as .bin or .txt) in it, in "
+            "sparse/0, sparse or 0"
+        )
+    if images_dir is None:
+        images_dir = _find_images_dir(model)
+        if images_dir is None:
+            raise FileNotFoundError(
+                f"{path}: no images/ folder next to the COLMAP model {model}; give the images folder"
+            )
+    images_dir = Path(images_dir)
+    if not images_dir.is_dir():
+        raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
+    distorted = distorted_cameras(model)
+    source = model
+    if distorted:
+        if undistort_dir is None:
+            raise ValueError(
+                f"{model}: cameras {distorted} are distorted; give undistort_dir to undistort them"
+            )
+        model, images_dir = undistort_colmap(model, images_dir, undistort_dir)
+    colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
+    name = _project_name(source)
+    colmap = colmap._replace(scene=dataclasses.replace(colmap.scene, name=name))
+    transform = None
+    if normalize:
+        transform = colmap_normalization(colmap)
+        colmap = transform_colmap(colmap, transform)
+    recipe = {
+        "path": str(model.resolve()),
+        "images": str(images_dir.resolve()),
+        "scale": float(scale),
+        "test_every": int(test_every),
+        "transform": transform.tolist() if transform is not None else None,
+        "source": str(source.resolve()),
+        "undistorted": distorted,
+        "name": name,
+    }
+    return colmap, recipe

@@ -16,7 +16,7 @@ import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -33,6 +33,9 @@ from vadgs.data.validate import (
     validate_scene,
 )
 from vadgs.geometry.camera import Cameras, invert_rigid, scale_intrinsics
+
+if TYPE_CHECKING:
+    from vadgs.data.colmap import ColmapPoints
 
 __all__ = [
     "CameraInfo",
@@ -169,6 +172,12 @@ class Scene:
         tracks: instance id → :class:`Track` for the rigidly moving objects.
         train_frames / test_frames: the split by frame index.
         scale: the resolution factor applied at load time.
+        lidar_loader: frame index → :class:`LidarFrame`, or None without LiDAR.
+        image_loader: view → ``(3, H, W)`` image, for scenes whose images live in memory.
+        sfm_points: sparse structure-from-motion points with their TRACK table
+            (:class:`~vadgs.data.colmap.ColmapPoints`, ``view_idx`` indexing :attr:`views`), or
+            None. COLMAP scenes have them instead of LiDAR: the trainer initialises from them and
+            VAD-GS builds its voxel visibility from their tracks.
     """
 
     name: str
@@ -183,6 +192,7 @@ class Scene:
     scale: float = 1.0
     lidar_loader: Callable[[int], LidarFrame] | None = None
     image_loader: Callable[[ViewInfo], torch.Tensor] | None = None
+    sfm_points: ColmapPoints | None = None
     _frame_positions: dict[int, int] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -386,9 +396,10 @@ class Scene:
         return [i for i, inst in self.instances.items() if inst.class_name == class_name]
 
     def __repr__(self) -> str:
+        sfm = f", {self.sfm_points.points.shape[0]} SfM points" if self.sfm_points is not None else ""
         return (
             f"Scene({self.name!r}, {len(self.frames)} frames, {self.num_views} views, "
-            f"cameras={self.camera_names}, {len(self.tracks)} tracks, scale={self.scale})"
+            f"cameras={self.camera_names}, {len(self.tracks)} tracks{sfm}, scale={self.scale})"
         )
 
 

@@ -1,6 +1,7 @@
-"""Initialise a :class:`~vadgs.train.model.GaussianModel` from LiDAR (and optionally SfM points).
+"""Initialise a :class:`~vadgs.train.model.GaussianModel` from LiDAR and / or SfM points.
 
-Static points are the training frames' LiDAR without the moving objects (world frame); the points
+Static points are the training frames' LiDAR without the moving objects (world frame) and the SfM
+points (given, or the scene's own ``sfm_points``: a COLMAP scene); the points
 of each moving object are moved into its object frame by instance id and pose
 (:func:`vadgs.data.lidar.accumulate_lidar`). Each point takes the colour of the first training
 image of its own frame that sees it (grey when none does). Points are averaged per voxel, capped
@@ -183,7 +184,8 @@ def init_gaussians(
     Args:
         scene: the scene (its ``train_frames`` / ``train_views`` are used).
         config: :class:`InitConfig`.
-        colmap_points: SfM points (world frame, with colours) added to the static node.
+        colmap_points: SfM points (world frame, with colours) added to the static node
+            (default: ``scene.sfm_points``, the points of a COLMAP scene; all of them, as 3DGS does).
 
     Returns:
         A :class:`~vadgs.train.model.GaussianModel` with one node per track of the scene (a track
@@ -210,6 +212,8 @@ def init_gaussians(
         acc = accumulate_lidar(scene, train_frames, exclude_dynamic=True)
         static_p.append(acc.points)
         static_c.append(_point_colors(scene, acc.points, *acc.point_views, train_views, cache))
+    if colmap_points is None:
+        colmap_points = scene.sfm_points
     if colmap_points is not None and colmap_points.points.shape[0]:
         static_p.append(colmap_points.points.float())
         static_c.append(colmap_points.colors.float().clamp(0, 1))
@@ -217,7 +221,7 @@ def init_gaussians(
         raise ValueError(
             f"scene {scene.name!r}: nothing to initialise from: no LiDAR"
             + (" (use_lidar=False)" if scene.lidar_loader is not None else "")
-            + " and no colmap_points given"
+            + " and no SfM points (colmap_points / scene.sfm_points)"
         )
     p = torch.cat(static_p)
     c = torch.cat(static_c)

@@ -60,6 +60,7 @@ __all__ = [
     "VisibilityIndex",
     "build_visibility_index",
     "reconstruct_instance",
+    "sfm_observations",
 ]
 
 
@@ -356,14 +357,23 @@ def build_visibility_index(
 ) -> VisibilityIndex:
     """Voxelise the scene's LiDAR (static in world, each track in its frame) with visibility sets.
 
+    A scene without LiDAR but with SfM points (``scene.sfm_points``: a COLMAP scene) is voxelised
+    from those, and a voxel's visibility set is the union of its points' TRACK table views
+    (supplement, "Visibility Reasoning"); only observations by views of ``frames`` count, and
+    points observed by none of them are left out. SfM scenes are static: no track grids.
+
     Args:
-        scene: a scene with LiDAR.
+        scene: a scene with LiDAR, or with ``sfm_points``.
         voxel_size: voxel edge (m).
-        frames: frames whose LiDAR is used (default: the training frames).
+        frames: frames whose LiDAR (or whose views' SfM observations) are used (default: the
+            training frames, or every frame without a split).
         zbuffer: z-buffer settings for the per-view voxel depth.
 
     Returns:
         The :class:`VisibilityIndex`.
+
+    Raises:
+        ValueError: if there are no static points to voxelise (no LiDAR and no SfM points).
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
@@ -371,11 +381,24 @@ def build_visibility_index(
         >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.scene.tracks)
         (True, True)
     """
-    acc = accumulate_lidar(scene, frames)
-    if acc.points.shape[0] == 0:
-        raise ValueError(f"scene {scene.name!r}: no static LiDAR points in frames {frames}")
-    grid = voxelize(acc.points, voxel_size, acc.point_views, scene.num_views)
-    labels = voxel_labels(grid.point_to_voxel, acc.instance, len(grid))
+    has_lidar = scene.lidar_loader is not None
+    if has_lidar:
+        acc = accumulate_lidar(scene, frames)
+        points, point_views, instance = acc.points, acc.point_views, acc.instance
+        what = "static LiDAR points"
+    elif scene.sfm_points is not None:
+        points, point_views = sfm_observations(scene, frames)
+        instance = torch.zeros(points.shape[0], dtype=torch.int64)
+        what = "SfM points observed by views"
+    else:
+        raise ValueError(
+            f"scene {scene.name!r}: no LiDAR and no SfM points (scene.sfm_points) to build the voxel "
+            "visibility from"
+        )
+    if points.shape[0] == 0:
+        raise ValueError(f"scene {scene.name!r}: no {what} of frames {frames}")
+    grid = voxelize(points, voxel_size, point_views, scene.num_views)
+    labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
     cameras = scene.cameras()
     allowed = torch.zeros(scene.num_views, dtype=torch.bool, device=cameras.K.device)
     allowed[scene.train_views] = True
@@ -390,7 +413,7 @@ def build_visibility_index(
         allowed,
         zbuffer or ZBufferConfig(),
     )
-    for tid in scene.tracks:
+    for tid in scene.tracks if has_lidar else ():
         tacc = accumulate_lidar(scene, frames, track_id=tid)
         if tacc.points.shape[0] < 3:
             continue
@@ -398,6 +421,37 @@ def build_visibility_index(
         index.track_grids[tid] = tgrid
         index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), scene)
     return index
+
+
+def sfm_observations(
+    scene: Scene, frames: Sequence[int] | None = None
+) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """The scene's SfM points observed by views of ``frames``, with those observations only.
+
+    Args:
+        scene: a scene with ``sfm_points``.
+        frames: frame indices (default: the training frames, or every frame without a split).
+
+    Returns:
+        ``(points (P', 3), (point_idx (T',), view_idx (T',)))``: the points with at least one such
+        observation (renumbered, in their order) and their observations, as
+        :func:`vadgs.geometry.voxelize` takes them.
+
+    Raises:
+        ValueError: if the scene has no ``sfm_points``.
+    """
+    sfm = scene.sfm_points
+    if sfm is None:
+        raise ValueError(f"scene {scene.name!r}: no SfM points (scene.sfm_points)")
+    frames = frames if frames is not None else (scene.train_frames or [f.index for f in scene.frames])
+    wanted = set(int(f) for f in frames)
+    view_ok = torch.tensor([v.frame in wanted and v.group is None for v in scene.views], dtype=torch.bool)
+    keep = view_ok[sfm.view_idx] if sfm.view_idx.numel() else sfm.view_idx.bool()
+    pi, vi = sfm.point_idx[keep], sfm.view_idx[keep]
+    used = torch.zeros(sfm.points.shape[0], dtype=torch.bool)
+    used[pi] = True
+    new_id = torch.cumsum(used.long(), 0) - 1
+    return sfm.points[used], (new_id[pi], vi)
 
 
 def _crops(

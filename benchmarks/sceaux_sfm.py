@@ -1,0 +1,106 @@
+"""Structure from motion on the sceaux castle photos with pycolmap: the COLMAP project for the benchmark.
+
+Downscales the 11 photos (2832x2128) by ``--factor`` (default 4: 708x532, area filter) into
+``OUT/images``, then runs pycolmap's SIFT extraction (one shared SIMPLE_RADIAL camera), exhaustive
+matching and incremental mapping into ``OUT/sparse/0`` (the largest model). Deterministic up to
+COLMAP's own RANSAC seeding, which pycolmap fixes (``random_seed``), on one thread.
+
+Run (from the repository root; ../shared present; about a minute on one CPU core):
+
+    python benchmarks/sceaux_sfm.py /work/shared/data/real/sceaux_castle/images --out /work/runs/sceaux
+
+then train on the project folder, e.g. ``vadgs train /work/runs/sceaux --out ...`` (see
+``docs/results.md``, "A COLMAP scene").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+
+from PIL import Image
+
+
+def downscale_images(src: Path, dst: Path, factor: int) -> list[str]:
+    """Write every JPG/PNG of ``src`` to ``dst`` at ``1 / factor`` of its size (PNG, lossless)."""
+    dst.mkdir(parents=True, exist_ok=True)
+    names = []
+    for p in sorted(src.iterdir()):
+        if p.suffix.lower() not in (".jpg", ".jpeg", ".png"):
+            continue
+        with Image.open(p) as im:
+            im = im.convert("RGB")
+            small = im.resize((im.width // factor, im.height // factor), Image.Resampling.BOX)
+        name = p.stem + ".png"
+        small.save(dst / name)
+        names.append(name)
+    return names
+
+
+def run_sfm(out: Path, threads: int = 1, seed: int = 0) -> dict:
+    """pycolmap SfM on ``out/images`` into ``out/sparse/0``; returns a summary."""
+    import pycolmap
+
+    db = out / "database.db"
+    db.unlink(missing_ok=True)
+    t0 = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    pycolmap.extract_features(
+        db, out / "images", camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )  # fmt: skip
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    t1 = time.perf_counter()
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = threads
+    options.random_seed = seed
+    sparse = out / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    sparse.mkdir()
+    models = pycolmap.incremental_mapping(db, out / "images", sparse, options)
+    t2 = time.perf_counter()
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    # keep the largest model as sparse/0 (pycolmap numbers them by creation)
+    tmp = out / "sparse_best"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    best.write(tmp)
+    shutil.rmtree(sparse)
+    sparse.mkdir()
+    tmp.rename(sparse / "0")
+    return {
+        "images": len(list((out / "images").iterdir())),
+        "registered": best.num_reg_images(),
+        "points": best.num_points3D(),
+        "mean_track_length": round(best.compute_mean_track_length(), 2),
+        "mean_reprojection_error_px": round(best.compute_mean_reprojection_error(), 3),
+        "camera": str(next(iter(best.cameras.values()))),
+        "features_and_matching_s": round(t1 - t0, 1),
+        "mapping_s": round(t2 - t1, 1),
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("images", type=Path, help="the photos (../shared/data/real/sceaux_castle/images)")
+    p.add_argument("--out", type=Path, required=True, help="COLMAP project folder to write")
+    p.add_argument("--factor", type=int, default=4, help="downscale factor of the photos (default 4)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+    names = downscale_images(args.images, args.out / "images", args.factor)
+    summary = {"factor": args.factor, "names": names, **run_sfm(args.out, args.threads, args.seed)}
+    (args.out / "sfm.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()
