@@ -24,12 +24,11 @@ transform exactly; the Gaussians keep the rig's average colour and the transform
 the cameras' differences from it. (With one camera a centred transform is the identity: only
 per-frame residuals remain.)
 
-Unlike gsplat's
-``app_opt`` (a per-image embedding fed with each Gaussian's features to an MLP that predicts its
-colour), the transform acts on the image, has 12 numbers per camera and does not touch the
-Gaussians; unlike drivestudio's (a per-image embedding decoded by an MLP into a 3×4 matrix, the
-mean embedding at test time), a held-out view of a known camera has a transform of its own: the
-camera's. Held-out frames have no per-frame residual (it is learned only from training images),
+Unlike gsplat's ``app_opt`` (a per-image embedding fed with each Gaussian's features to an MLP
+that predicts its colour), the transform acts on the image, has 12 numbers per camera and does not
+touch the Gaussians; unlike drivestudio's (a per-image embedding decoded by an MLP into a 3×4
+matrix, the mean embedding at test time), a held-out view of a known camera has a transform of its
+own: the camera's. Held-out frames have no per-frame residual (it is learned only from training images),
 so evaluation uses the camera's transform alone.
 
 :func:`apply_affine` is the operation; :class:`AppearanceModel` holds the parameters;
