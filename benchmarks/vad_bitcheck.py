@@ -1,0 +1,54 @@
+"""Fingerprint of a short VAD-GS run on street_a: did a code change alter the pipeline's numerics?
+
+Trains ``STEPS`` steps of street_a at half resolution with the street config, ADC every 10 steps
+from step 10 and a VAD-GS event after every sampling cycle (90 training views: the first event
+after step 89), on one thread, and prints the events, the number of Gaussians, a SHA-1 of the
+parameters and the last loss. Run it at two commits; equal fingerprints mean identical numerics
+(the full 1350-step comparison of ``vad_ablation.py`` then gives the same numbers)::
+
+    python benchmarks/vad_bitcheck.py ../shared/data/street_a --steps 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+from vadgs.data import load_scene
+from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.vad import VisibilityDensifyConfig
+
+
+def main() -> None:
+    """Train, then print the fingerprint."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", help="street_a folder")
+    ap.add_argument("--steps", type=int, default=100)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cfg = TrainConfig.from_dict(json.loads((Path(__file__).parent / "street_config.json").read_text()))
+    cfg = dataclasses.replace(
+        cfg,
+        iterations=args.steps,
+        strategy=dataclasses.replace(cfg.strategy, refine_start_iter=10, refine_every=10),
+        checkpoint_every=0,
+        vad=VisibilityDensifyConfig(every_cycles=1, max_instances=2),
+    )
+    trainer = Trainer(load_scene(args.scene, scale=0.5), cfg, progress=False)
+    loss = float("nan")
+    for _ in range(cfg.iterations):
+        loss = trainer.train_step()["total"]
+    h = hashlib.sha1()
+    for k in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        h.update(trainer.model.params[k].detach().cpu().numpy().tobytes())
+    print("events (step, added):", [(e["step"], e["added"]) for e in trainer.state["vad_events"]])
+    print(f"{trainer.model.num_gaussians} Gaussians, params sha1 {h.hexdigest()[:12]}, last loss {loss!r}")
+
+
+if __name__ == "__main__":
+    main()
