@@ -10,7 +10,7 @@ import socket
 
 import viser
 
-from vadgs.cli import _load_run
+from vadgs.cli import _frame_arg, _load_run
 from vadgs.viewer import FILTERS, browser_screenshot, build_viewer
 
 
@@ -25,15 +25,13 @@ def main() -> None:
     ap.add_argument("--budget-ms", type=int, default=60000)
     args = ap.parse_args()
     model, scene, _, _ = _load_run(args.run)
-    indices = [f.index for f in scene.frames]
+    _, position = _frame_arg(scene, args.frame)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
     try:
-        viewer = build_viewer(
-            model, scene, server, indices.index(args.frame) if args.frame is not None else 0
-        )
+        viewer = build_viewer(model, scene, server, position)
         viewer.set_filter(FILTERS[["all", "only", "without"].index(args.filter)])
         w, h = (int(x) for x in args.size.split("x"))
         print(browser_screenshot(f"http://127.0.0.1:{port}", args.out, (w, h), args.budget_ms))

@@ -758,6 +758,15 @@ def _render_args(p: argparse.ArgumentParser) -> None:
 render_run.add_arguments = _render_args  # type: ignore[attr-defined]
 
 
+def _frame_arg(scene: object, frame: int | None) -> tuple[int, int]:
+    """``--frame``: a frame index of the scene (None: its first) → ``(index, position)``."""
+    indices = [f.index for f in scene.frames]
+    index = indices[0] if frame is None else frame
+    if index not in indices:
+        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {index}")
+    return index, indices.index(index)
+
+
 def export_run(args: argparse.Namespace) -> int:
     """Export the world at one frame as one viewer-ready 3DGS PLY (cars posed, SH rotated) and the sky map.
 
@@ -769,10 +778,7 @@ def export_run(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads or 2)
     model, scene, _, ckpt = _load_run(args.run)
-    frame = scene.frames[0].index if args.frame is None else args.frame
-    indices = [f.index for f in scene.frames]
-    if frame not in indices:
-        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {frame}")
+    frame, _ = _frame_arg(scene, args.frame)
     out = Path(args.out) if args.out else _run_dir(args.run) / "export" / f"frame{frame:03d}"
     res = export_world(model, scene, frame, out, inria=args.inria, iteration=int(ckpt["step"]))
     print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
@@ -806,17 +812,14 @@ def view_run(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads or 2)
     model, scene, _, _ = _load_run(args.run)
-    indices = [f.index for f in scene.frames]
-    frame = indices[0] if args.frame is None else args.frame
-    if frame not in indices:
-        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {frame}")
+    _, position = _frame_arg(scene, args.frame)
     server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
     try:
-        viewer = build_viewer(model, scene, server, indices.index(frame), max_gaussians=args.max_gaussians)
+        viewer = build_viewer(model, scene, server, position, max_gaussians=args.max_gaussians)
         shown = sum(int(g.rows.numel()) for g in viewer.groups)
         print(
             f"viewing {_run_dir(args.run)}: {shown} of {model.num_gaussians} Gaussians, "
-            f"{len(model.track_ids)} moving objects, {len(indices)} frames"
+            f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
         )
         host = "localhost" if args.host in ("0.0.0.0", "::") else args.host
         print(f"open http://{host}:{server.get_port()} (Ctrl+C to stop)", flush=True)

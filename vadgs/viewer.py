@@ -38,6 +38,7 @@ __all__ = [
     "Viewer",
     "browser_screenshot",
     "build_viewer",
+    "find_chromium",
     "frame_frusta",
     "node_pose",
     "splat_arrays",
@@ -353,6 +354,12 @@ def build_viewer(
     return viewer
 
 
+def find_chromium() -> str | None:
+    """The path of ``chromium``, ``chromium-browser`` or ``google-chrome`` on the PATH (None: none)."""
+    found = (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome"))
+    return next(filter(None, found), None)
+
+
 def browser_screenshot(
     url: str,
     path: str | Path,
@@ -373,9 +380,7 @@ def browser_screenshot(
     Returns:
         ``path``.
     """
-    exe = chromium or next(
-        (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None
-    )
+    exe = chromium or find_chromium()
     if exe is None:
         raise FileNotFoundError("chromium: not found on the PATH (Debian: apt install chromium)")
     path = Path(path)

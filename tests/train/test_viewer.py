@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import shutil
 import socket
 import subprocess
 import sys
@@ -22,6 +21,7 @@ from vadgs.viewer import (
     FILTERS,
     browser_screenshot,
     build_viewer,
+    find_chromium,
     frame_frusta,
     node_pose,
     splat_arrays,
@@ -30,9 +30,7 @@ from vadgs.viewer import (
 
 viser = pytest.importorskip("viser")
 
-CHROMIUM = next(
-    (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None
-)
+CHROMIUM = find_chromium()
 needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="no Chromium on this machine")
 
 
@@ -190,6 +188,17 @@ class TestViserScene:
         model2.object_to_world = model2.object_to_world[:, :3]
         with pytest.raises(ValueError, match=r"model has 3 frames, scene .* 8"):
             build_viewer(model2, tiny_scene, server)
+
+
+def test_cli_frame_outside_the_scene(run, capsys):
+    from vadgs.cli import main
+
+    trainer, out = run
+    indices = [f.index for f in trainer.scene.frames]
+    for command in ("view", "export"):
+        assert main([command, str(out), "--frame", "99"]) == 2
+        err = capsys.readouterr().err
+        assert f"--frame: scene {trainer.scene.name!r} has frames {indices[0]}..{indices[-1]}, got 99" in err
 
 
 def _screenshot(url: str, path, ready) -> tuple[float, float]:
