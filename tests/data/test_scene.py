@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import shutil
 from pathlib import Path
 
 import pytest
@@ -11,6 +9,8 @@ import torch
 
 from vadgs.data import LidarFrame, Scene, load_scene, sample_scene_path
 from vadgs.geometry import Cameras, invert_rigid, project_points, scale_intrinsics
+
+from .sample_copy import copy_sample_scene
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 STREET_A = SHARED / "data" / "street_a"
@@ -143,29 +143,19 @@ class TestLoadSceneSample:
         assert len(rel) == 0 or rel.median() > 0.1
 
 
-def _broken_copy(tmp_path: Path, edit=None) -> Path:
-    root = tmp_path / "scene"
-    shutil.copytree(sample_scene_path(), root)
-    if edit is not None:
-        meta = json.loads((root / "scene.json").read_text())
-        edit(meta)
-        (root / "scene.json").write_text(json.dumps(meta))
-    return root
-
-
 class TestLoadSceneExceptions:
     def test_missing_scene_json(self, tmp_path):
         with pytest.raises(FileNotFoundError, match=r"no scene\.json"):
             load_scene(tmp_path)
 
     def test_malformed_json(self, tmp_path):
-        root = _broken_copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "scene.json").write_text('{"cameras": [')
         with pytest.raises(ValueError, match="not valid JSON"):
             load_scene(root)
 
     def test_not_an_object(self, tmp_path):
-        root = _broken_copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "scene.json").write_text("[1, 2]")
         with pytest.raises(ValueError, match="JSON object"):
             load_scene(root)
@@ -194,17 +184,17 @@ class TestLoadSceneExceptions:
     )
     def test_bad_entry(self, tmp_path, edit, match):
         with pytest.raises(ValueError, match=match):
-            load_scene(_broken_copy(tmp_path, edit))
+            load_scene(copy_sample_scene(tmp_path, edit))
 
     def test_non_finite_pose(self, tmp_path):
         def edit(m: dict) -> None:
             m["frames"][3]["views"][2]["cam_to_world"][0][3] = float("nan")
 
         with pytest.raises(ValueError, match=r"frames\[3\].views\[2\].cam_to_world: expected finite"):
-            load_scene(_broken_copy(tmp_path, edit))
+            load_scene(copy_sample_scene(tmp_path, edit))
 
     def test_missing_image_file(self, tmp_path):
-        root = _broken_copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "images" / "front" / "019.png").unlink()
         with pytest.raises(FileNotFoundError, match=r"019\.png"):
             load_scene(root)
@@ -213,7 +203,7 @@ class TestLoadSceneExceptions:
             scene.load_images([scene.view_id(19, "front")])
 
     def test_missing_lidar_file(self, tmp_path):
-        root = _broken_copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "lidar" / "020.npz").unlink()
         with pytest.raises(FileNotFoundError, match=r"020\.npz"):
             load_scene(root)
@@ -259,7 +249,7 @@ class TestNovelViews:
             meta["novel_views"] = [dict(v, frame=meta["frames"][1]["index"], shift_ego_m=[0, 2, 0])]
 
         base = load_scene(sample_scene_path())
-        scene = load_scene(_broken_copy(tmp_path, add))
+        scene = load_scene(copy_sample_scene(tmp_path, add))
         assert scene.num_views == base.num_views + 1
         assert scene.novel_views == [base.num_views]
         assert scene.novel_groups() == {"shift+2.0": [base.num_views]}
@@ -277,7 +267,7 @@ class TestNovelViews:
             ]
 
         base = load_scene(sample_scene_path())
-        scene = load_scene(_broken_copy(tmp_path, add))
+        scene = load_scene(copy_sample_scene(tmp_path, add))
         a, b = accumulate_lidar(base), accumulate_lidar(scene)
         assert all(torch.equal(x, y) for x, y in zip(a.point_views, b.point_views))
         index = build_visibility_index(scene)
@@ -299,7 +289,7 @@ class TestNovelViews:
     )
     def test_malformed(self, tmp_path, edit, match):
         with pytest.raises(ValueError, match=match):
-            load_scene(_broken_copy(tmp_path, edit))
+            load_scene(copy_sample_scene(tmp_path, edit))
 
     @needs_street_a
     def test_street_a(self):

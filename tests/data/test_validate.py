@@ -7,8 +7,6 @@ or the scene.json field, the expected and the actual.
 
 from __future__ import annotations
 
-import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -19,15 +17,7 @@ from PIL import Image
 from vadgs.data import ValidationReport, load_scene, sample_scene_path, validate_scene
 from vadgs.data.validate import check_intrinsics, check_rigid, npz_headers
 
-
-def _copy(tmp_path: Path, edit=None) -> Path:
-    root = tmp_path / "scene"
-    shutil.copytree(sample_scene_path(), root)
-    if edit is not None:
-        meta = json.loads((root / "scene.json").read_text())
-        edit(meta)
-        (root / "scene.json").write_text(json.dumps(meta))
-    return root
+from .sample_copy import copy_sample_scene
 
 
 class TestValidateSceneSmoke:
@@ -54,19 +44,19 @@ class TestValidateSceneSmoke:
 
 class TestCorruptFiles:
     def test_corrupt_png(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "images/front/019.png").write_bytes(b"\x89PNG garbage")
         with pytest.raises(ValueError, match=r"images/front/019\.png.*not a decodable image"):
             load_scene(root)
 
     def test_zero_byte_png(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "instances/front_left/017.png").write_bytes(b"")
         with pytest.raises(ValueError, match=r"instances/front_left/017\.png.*empty file \(0 bytes\)"):
             load_scene(root)
 
     def test_truncated_png_found_by_full_check(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         p = root / "images/front/019.png"
         p.write_bytes(p.read_bytes()[:400])  # the header survives, the pixel data does not
         load_scene(root)  # headers only: loads
@@ -79,7 +69,7 @@ class TestCorruptFiles:
             scene.load_images([scene.view_id(19, "front")])
 
     def test_image_of_the_wrong_size(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         Image.new("RGB", (200, 100)).save(root / "images/front_right/020.png")
         with pytest.raises(
             ValueError, match=r"020\.png: image: expected size 240x144 \(W x H\), got 200x100"
@@ -87,19 +77,19 @@ class TestCorruptFiles:
             load_scene(root)
 
     def test_image_of_the_wrong_size_at_half_scale(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         Image.new("RGB", (200, 100)).save(root / "images/front_right/020.png")
         with pytest.raises(ValueError, match=r"expected size 240x144 \(the scene's 120x72 at scale 0.5\)"):
             load_scene(root, scale=0.5)
 
     def test_corrupt_depth_npz(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "depth/front/016.npz").write_bytes(b"not a zip")
         with pytest.raises(ValueError, match=r"depth/front/016\.npz.*not a readable \.npz"):
             load_scene(root)
 
     def test_depth_of_the_wrong_shape_or_key(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         np.savez(root / "depth/front/016.npz", depth=np.zeros((10, 10), np.float16))
         np.savez(root / "depth/front/017.npz", z=np.zeros((144, 240), np.float16))
         report = validate_scene(root)
@@ -109,7 +99,7 @@ class TestCorruptFiles:
 
     def test_nan_depth_of_a_test_view_fails_at_load(self, tmp_path):
         # test views' depth is read only after training: it is decoded at load
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         d = np.full((144, 240), np.nan, np.float16)
         np.savez_compressed(root / "depth/front/018.npz", depth=d)  # frame 18 is a test frame
         with pytest.raises(
@@ -118,7 +108,7 @@ class TestCorruptFiles:
             load_scene(root)
 
     def test_nan_depth_of_a_train_view_found_by_full_check_and_on_read(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         d = np.zeros((144, 240), np.float16)
         d[0, 0] = np.inf
         np.savez_compressed(root / "depth/front/016.npz", depth=d)
@@ -128,13 +118,13 @@ class TestCorruptFiles:
             scene.load_depths([scene.view_id(16, "front")])
 
     def test_zero_byte_lidar(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         (root / "lidar/020.npz").write_bytes(b"")
         with pytest.raises(ValueError, match=r"lidar/020\.npz.*empty file \(0 bytes\)"):
             load_scene(root)
 
     def test_nan_lidar(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         with np.load(root / "lidar/020.npz") as z:
             arrays = dict(z)
         arrays["points"][5] = np.nan
@@ -147,20 +137,20 @@ class TestCorruptFiles:
             scene.lidar(20)
 
     def test_lidar_of_the_wrong_shape(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         np.savez(root / "lidar/020.npz", points=np.zeros((5, 2), np.float32))
         with pytest.raises(ValueError, match=r"020\.npz: lidar \(frame 20\): points: expected \(N, 3\)"):
             load_scene(root)
 
     def test_all_lidar_empty(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         for p in (root / "lidar").glob("*.npz"):
             np.savez(p, points=np.zeros((0, 3), np.float32), instance=np.zeros(0, np.uint16))
         with pytest.raises(ValueError, match=r"scene .*: .*all 8 LiDAR files are empty \(0 points\)"):
             load_scene(root)
 
     def test_one_empty_lidar_is_fine(self, tmp_path):
-        root = _copy(tmp_path)
+        root = copy_sample_scene(tmp_path)
         np.savez(root / "lidar/020.npz", points=np.zeros((0, 3), np.float32))
         assert load_scene(root).lidar(20).points.shape == (0, 3)
 
@@ -211,7 +201,7 @@ class TestMetadata:
     )
     def test_bad_field(self, tmp_path, edit, match):
         with pytest.raises(ValueError, match=match):
-            load_scene(_copy(tmp_path, edit), validate="none")
+            load_scene(copy_sample_scene(tmp_path, edit), validate="none")
 
     @pytest.mark.parametrize(
         ("change", "match"),
@@ -231,14 +221,14 @@ class TestMetadata:
         with pytest.raises(
             ValueError, match=r"scene.json: frames\[2\].views\[1\].cam_to_world: expected .*" + match
         ):
-            load_scene(_copy(tmp_path, edit))
+            load_scene(copy_sample_scene(tmp_path, edit))
 
     def test_pose_last_row(self, tmp_path):
         def edit(m: dict) -> None:
             m["frames"][0]["ego_to_world"][3] = [0, 0, 1, 1]
 
         with pytest.raises(ValueError, match=r"frames\[0\].ego_to_world: expected last row \(0, 0, 0, 1\)"):
-            load_scene(_copy(tmp_path, edit))
+            load_scene(copy_sample_scene(tmp_path, edit))
 
     def test_track_pose(self, tmp_path):
         def edit(m: dict) -> None:
@@ -248,7 +238,7 @@ class TestMetadata:
             m["tracks"][0]["object_to_world"][key] = T.tolist()
 
         with pytest.raises(ValueError, match=r"tracks\[0\].object_to_world\[\d+\]: expected a rigid"):
-            load_scene(_copy(tmp_path, edit))
+            load_scene(copy_sample_scene(tmp_path, edit))
 
     def test_unknown_frame_lidar_message(self):
         scene = load_scene(sample_scene_path())
