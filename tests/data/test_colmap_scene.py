@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 import torch
 
-from vadgs.data import find_colmap_model, load_colmap, match_colmap_views, open_colmap_project
+from vadgs.data import (
+    find_colmap_model,
+    load_colmap,
+    match_colmap_views,
+    open_colmap_project,
+    reopen_colmap_project,
+)
 from vadgs.data.colmap import colmap_normalization, distorted_cameras, transform_colmap
 from vadgs.data.normalize import (
     normalization_transform,
@@ -170,8 +177,8 @@ class TestUndistortion:
         root, _ = project
         colmap, recipe = open_colmap_project(root, scale=0.5)
         assert recipe["undistorted"] == [] and recipe["test_every"] == 8
-        again = load_colmap(recipe["path"], recipe["images"], recipe["scale"],
-                            test_every=recipe["test_every"], normalize=recipe["transform"])  # fmt: skip
+        again = reopen_colmap_project(json.loads(json.dumps(recipe)))  # as stored in a checkpoint
+        assert again.scene.name == colmap.scene.name
         assert again.scene.test_views == colmap.scene.test_views
         for a, b in zip(again.scene.views, colmap.scene.views):
             assert torch.equal(a.cam_to_world, b.cam_to_world)

@@ -13,6 +13,7 @@ from vadgs.data.colmap import (
     load_colmap,
     match_colmap_views,
     open_colmap_project,
+    reopen_colmap_project,
 )
 from vadgs.data.dgp import load_dgp
 from vadgs.data.export import export_scene
@@ -51,6 +52,7 @@ __all__ = [
     "load_waymo",
     "match_colmap_views",
     "open_colmap_project",
+    "reopen_colmap_project",
     "sample_scene_path",
     "validate_scene",
 ]

@@ -43,7 +43,7 @@ import dataclasses
 import shutil
 import warnings
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -65,6 +65,7 @@ __all__ = [
     "load_colmap",
     "match_colmap_views",
     "open_colmap_project",
+    "reopen_colmap_project",
     "transform_colmap",
     "undistort_colmap",
 ]
@@ -627,8 +628,7 @@ def open_colmap_project(
         ``transform`` (the ``(4, 4)`` similarity as nested lists, or None), ``source`` (the
         input model), ``undistorted`` (the distorted cameras, ``[]`` when none) and ``name`` (the
         project's, which the scene takes).
-        ``load_colmap(recipe["path"], recipe["images"], recipe["scale"],
-        test_every=recipe["test_every"], normalize=recipe["transform"] or False)`` reopens it.
+        :func:`reopen_colmap_project` reopens it.
 
     Raises:
         FileNotFoundError: if there is no model, no images folder, or a registered image is missing.
@@ -677,3 +677,26 @@ def open_colmap_project(
         "name": name,
     }
     return colmap, recipe
+
+
+def reopen_colmap_project(recipe: dict[str, Any]) -> ColmapScene:
+    """The scene of an :func:`open_colmap_project` recipe again, exactly (no undistortion, no new fit).
+
+    Args:
+        recipe: the recipe (``path``, ``images``, ``scale``, ``test_every``, ``transform``,
+            ``name``), e.g. a run's scene reference (``open_scene``).
+
+    Returns:
+        The :class:`ColmapScene`: the recorded similarity re-applied, the project's name.
+    """
+    transform = recipe.get("transform")
+    colmap = load_colmap(
+        recipe["path"],
+        recipe.get("images"),
+        scale=float(recipe.get("scale", 1.0)),
+        test_every=int(recipe.get("test_every", 0)),
+        normalize=torch.tensor(transform, dtype=torch.float64) if transform is not None else False,
+    )
+    if recipe.get("name"):
+        colmap = colmap._replace(scene=dataclasses.replace(colmap.scene, name=recipe["name"]))
+    return colmap

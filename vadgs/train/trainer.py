@@ -301,23 +301,16 @@ def open_scene(ref: dict[str, Any]) -> Scene:
     """Load the scene a run refers to: ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``.
 
     ``dgp`` references may carry ``cameras`` and ``test_frames``. ``colmap`` references are the
-    recipe of :func:`vadgs.data.colmap.open_colmap_project`: ``path`` (the model used, the
+    recipe of :func:`vadgs.data.colmap.open_colmap_project`, reopened by
+    :func:`~vadgs.data.colmap.reopen_colmap_project`: ``path`` (the model used, the
     undistorted copy in the run folder if the input was distorted), ``images``, ``test_every``
     and ``transform`` (the normalising similarity, re-applied as recorded; None: COLMAP's frame).
     """
-    from vadgs.data import load_colmap, load_dgp, load_scene
+    from vadgs.data import load_dgp, load_scene, reopen_colmap_project
 
     kind = ref.get("kind", "benchmark")
     if kind == "colmap":
-        transform = ref.get("transform")
-        scene = load_colmap(
-            ref["path"],
-            images_dir=ref.get("images"),
-            scale=float(ref.get("scale", 1.0)),
-            test_every=int(ref.get("test_every", 0)),
-            normalize=torch.tensor(transform, dtype=torch.float64) if transform is not None else False,
-        ).scene
-        return dataclasses.replace(scene, name=ref["name"]) if ref.get("name") else scene
+        return reopen_colmap_project(ref).scene
     if kind == "benchmark":
         return load_scene(ref["path"], scale=float(ref.get("scale", 1.0)))
     if kind == "dgp":
