@@ -875,6 +875,11 @@ def demo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not args.no_progress)
     strategy = trainer.strategy if config.vad is not None else None
+    snapshots: list[dict] = []  # the largest addition only, for the completion figure
+    if strategy is not None:
+        strategy.on_addition = lambda snap: snapshots.__setitem__(
+            slice(None), [max([*snapshots, snap], key=lambda x: x["added"])]
+        )
     result = trainer.train()
     metrics = _finish_run(trainer, out, result, not args.no_progress)
     metrics["wall_s"] = round(time.perf_counter() - t0, 1)
@@ -897,8 +902,8 @@ def demo(args: argparse.Namespace) -> int:
             for e in trainer.state["vad_events"]
         ]
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
-        if strategy.snapshots:
-            _completion_panel(trainer, strategy.snapshots, out / "demo_completion.png", vmax)
+        if snapshots:
+            _completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)
             print(f"wrote {out / 'demo_completion.png'}")
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'} and {png}")

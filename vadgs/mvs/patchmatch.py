@@ -610,9 +610,13 @@ def _patchmatch_level(
     rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
     regions = propagation_regions(cfg.propagation)
     flat_off = [o for r in regions for o in r]
+    # Only the pixels of the region (of any batch element) are scored: with a small object in a
+    # large crop, the cost follows the object, not the crop. Pixels outside keep the worst cost, so
+    # they never win a propagation (as when they were scored: the region zeroes their statistics).
+    active = region_flat.any(0)
     colours = []
     for c in (0, 1):
-        sel = (xs + ys) % 2 == c
+        sel = ((xs + ys) % 2 == c) & active
         idx = torch.nonzero(sel).flatten()
         px, py = xs[idx], ys[idx]
         nbr, nbr_ok = [], []
@@ -635,14 +639,15 @@ def _patchmatch_level(
             )
         )
     del patches, weights
+    colours = [col for col in colours if col.idx.numel()]  # an empty region scores nothing
 
     # Initial hypotheses: random, overridden where an init is given; with an alternative
     # (coarse-to-fine: the caller's full-resolution init), the better-scoring of the two.
     depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
     normal = _random_normals(rays_all, gen)
     depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
-    view_cost = torch.empty(bsz, nv, h * w, device=dev, dtype=dt)
-    agg = torch.empty(bsz, h * w, device=dev, dtype=dt)
+    view_cost = torch.full((bsz, nv, h * w), MAX_COST, device=dev, dtype=dt)
+    agg = torch.full((bsz, h * w), MAX_COST, device=dev, dtype=dt)
     for col in colours:
         vc = _view_costs(src, col, depth[:, col.idx], normal[:, col.idx], cfg.min_variance, chunk)
         view_cost[:, :, col.idx] = vc

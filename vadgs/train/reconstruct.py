@@ -48,7 +48,7 @@ from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
+from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
 from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelectionConfig, select_views
@@ -56,11 +56,15 @@ from vadgs.train.incomplete import voxel_labels
 
 __all__ = [
     "InstanceReconstruction",
+    "MatchScale",
     "ReconstructConfig",
+    "ViewRender",
     "VisibilityIndex",
     "build_visibility_index",
+    "match_scale",
     "reconstruct_instance",
     "sfm_observations",
+    "thin_points",
 ]
 
 
@@ -95,6 +99,25 @@ class ReconstructConfig:
             (``max_upsample``): on street_a it took the sign's completeness in training from 76 %
             to 84 % at +0.3 dB (docs/results.md). (At the training resolution alone it had tilted
             the sign's board.)
+        max_match_pixels: pixel budget of one member's instance mask at the matching scale:
+            an instance larger than this (a facade filling the view) is matched at 1/2, 1/4, ...
+            of the scene's resolution (down to ``1 / max_downsample``), so that an event's cost
+            follows the number of instances rather than their size, and its points come at the
+            spacing of that scale. ``None``: always the scene's resolution (or finer).
+        max_downsample: the coarsest matching scale, ``1 / max_downsample`` (1, 2, 4 or 8).
+        depth_margin: ``(near, far)`` factors on the nearest and farthest instance voxel depth in
+            the reference view: PatchMatch's random depths are drawn in ``[near z_min, far z_max]``.
+        fallback_depth_range: the depth range when the reference sees none of the voxels.
+        min_depth: lower bound of the depth range.
+        explained_alpha: a consistent pixel is *explained* (gives no point) where the member's
+            render has at least this opacity and a depth in front of, or within
+            ``explained_tolerance`` (relative) of, the MVS depth; it still gives a depth prior.
+        explained_tolerance: see ``explained_alpha``.
+        thin_points: keep one point per cell of the point spacing (the members see the same
+            surface: without it, each surface patch becomes one point per member), at the scene's
+            resolution or at the coarser matching scale; the points' ``spacing`` (the new Gaussians'
+            width) is that of the cell. Finer matching of small instances then gives more accurate
+            points, not more of them.
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
@@ -109,12 +132,32 @@ class ReconstructConfig:
     max_points: int = 20000
     max_upsample: int = 2
     planar: PlanarCompletionConfig | None = field(default_factory=PlanarCompletionConfig)
+    max_match_pixels: int | None = 2048
+    max_downsample: int = 4
+    depth_margin: tuple[float, float] = (0.5, 2.0)
+    fallback_depth_range: tuple[float, float] = (0.5, 150.0)
+    min_depth: float = 0.2
+    explained_alpha: float = 0.7
+    explained_tolerance: float = 0.05
+    thin_points: bool = True
 
     def __post_init__(self) -> None:
         if not (isinstance(self.max_upsample, int) and self.max_upsample >= 1):
             raise ValueError(f"max_upsample: expected an integer >= 1, got {self.max_upsample!r}")
         if self.max_crop < 8:
             raise ValueError(f"max_crop: expected >= 8 pixels, got {self.max_crop}")
+        if self.max_match_pixels is not None and self.max_match_pixels < 64:
+            raise ValueError(f"max_match_pixels: expected None or >= 64, got {self.max_match_pixels}")
+        if self.max_downsample not in (1, 2, 4, 8):
+            raise ValueError(f"max_downsample: expected 1, 2, 4 or 8, got {self.max_downsample}")
+        near, far = self.depth_margin
+        lo, hi = self.fallback_depth_range
+        if not (0 < near <= 1 <= far and 0 < lo < hi and self.min_depth > 0):
+            raise ValueError(
+                "depth_margin, fallback_depth_range, min_depth: expected 0 < near <= 1 <= far, "
+                f"0 < lo < hi and min_depth > 0, got {self.depth_margin}, {self.fallback_depth_range}, "
+                f"{self.min_depth}"
+            )
 
 
 class InstanceReconstruction(NamedTuple):
@@ -454,6 +497,65 @@ def sfm_observations(
     return sfm.points[used], (new_id[pi], vi)
 
 
+class ViewRender(NamedTuple):
+    """What the reconstruction needs of a rendered view (no gradient; camera-frame normals).
+
+    Attributes:
+        depth: ``(1, H, W)`` expected z-depth.
+        alpha: ``(1, H, W)`` accumulated opacity.
+        normals: ``(3, H, W)`` camera-frame normals (zeros where nothing is rendered).
+    """
+
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    normals: torch.Tensor
+
+
+class MatchScale(NamedTuple):
+    """The scale an instance is matched at: ``up / down`` times the scene's resolution.
+
+    At most one of the two is above 1: ``up`` for small instances (finer than the training
+    images, up to the files' resolution), ``down`` for large ones (a power of two).
+    """
+
+    up: int = 1
+    down: int = 1
+
+    @property
+    def value(self) -> float:
+        """The scale as a number."""
+        return self.up / self.down
+
+
+def match_scale(
+    mask_pixels: int, crop: tuple[int, int], native: int, config: ReconstructConfig | None = None
+) -> MatchScale:
+    """The matching scale of an instance of ``mask_pixels`` (largest member) in a crop ``(ch, cw)``.
+
+    Small crops (at most ``max_crop / f`` per side) are matched ``f`` times finer, ``f`` up to
+    ``max_upsample`` and ``native`` (the files' resolution over the scene's); otherwise, while the
+    mask has more than ``max_match_pixels`` pixels at the scale, the scale halves (down to
+    ``1 / max_downsample``).
+
+    Example:
+        >>> match_scale(300, (40, 30), native=2)  # a sign: twice finer
+        MatchScale(up=2, down=1)
+        >>> match_scale(6000, (144, 160), native=2)  # a facade: matched at half resolution
+        MatchScale(up=1, down=2)
+        >>> match_scale(6000, (144, 160), 2, ReconstructConfig(max_match_pixels=None))
+        MatchScale(up=1, down=1)
+    """
+    cfg = config or ReconstructConfig()
+    ch, cw = crop
+    up = max(1, min(cfg.max_upsample, native, cfg.max_crop // max(ch, cw, 1)))
+    if up > 1 or cfg.max_match_pixels is None:
+        return MatchScale(up, 1)
+    down = 1
+    while down < cfg.max_downsample and mask_pixels / (down * down) > cfg.max_match_pixels:
+        down *= 2
+    return MatchScale(1, down)
+
+
 def _crops(
     masks: Sequence[torch.Tensor], margin: int, size: tuple[int, int], max_crop: int
 ) -> tuple[list[tuple[int, int]], int, int]:
@@ -474,10 +576,14 @@ def _crops(
     return corners, ch, cw
 
 
-def _upsample_factor(scene: Scene, ch: int, cw: int, cfg: ReconstructConfig) -> int:
-    """The integer factor a crop of ``ch x cw`` pixels is matched at (see ``max_upsample``)."""
-    native = int(1.0 / scene.scale + 1e-6)  # the files' resolution
-    return max(1, min(cfg.max_upsample, native, cfg.max_crop // max(ch, cw, 1)))
+def _align_crops(
+    corners: list[tuple[int, int]], ch: int, cw: int, down: int, size: tuple[int, int]
+) -> tuple[list[tuple[int, int]], int, int]:
+    """Crops on the ``down x down`` block grid of the image (whole blocks only), covering the old ones."""
+    hh, ww = (size[0] // down) * down, (size[1] // down) * down
+    ch2, cw2 = min(-(-ch // down) * down, hh), min(-(-cw // down) * down, ww)
+    out = [(min((y0 // down) * down, hh - ch2), min((x0 // down) * down, ww - cw2)) for y0, x0 in corners]
+    return out, ch2, cw2
 
 
 def _repeat(x: torch.Tensor, f: int) -> torch.Tensor:
@@ -501,6 +607,22 @@ def _pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False
     return torch.where(cnt >= 0.5, out, torch.zeros_like(out))
 
 
+def _pool_mask(m: torch.Tensor, f: int) -> torch.Tensor:
+    """Bool ``(..., H, W)`` → ``(..., H/f, W/f)``: blocks where at least half the pixels are set."""
+    if f == 1:
+        return m
+    lead = m.shape[:-2]
+    x = F.avg_pool2d(m.reshape(-1, 1, *m.shape[-2:]).float(), f)
+    return (x >= 0.5).reshape(*lead, *x.shape[-2:])
+
+
+def _to_scale(x: torch.Tensor, valid: torch.Tensor, scale: MatchScale, unit: bool = False) -> torch.Tensor:
+    """A scene-resolution map ``(C, H, W)`` at the matching scale (valid-pixel means when coarser)."""
+    if scale.up > 1:
+        return _repeat(torch.where(valid, x, torch.zeros_like(x)), scale.up)
+    return _pool_valid(x, valid, scale.down, unit)
+
+
 def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
     K = K.clone()
     K[..., 0, 2] -= x0
@@ -518,18 +640,36 @@ class _InstanceFrame(NamedTuple):
 
 
 class _Crops(NamedTuple):
-    """Step 3's input: the group's images and masks cropped around the instance, at factor ``f``."""
+    """Step 3's input: the group's images and masks cropped around the instance, at the matching scale."""
 
     members: list[int]  # group positions whose instance mask is large enough to be a reference
-    images: torch.Tensor  # (G, 3, H*f, W*f) full images of the group
-    masks: list[torch.Tensor]  # per group view (H*f, W*f): the instance
-    regions: torch.Tensor  # (G, 1, H*f, W*f): where sources may match (static or the object)
-    K: torch.Tensor  # (G, 3, 3) at factor f
-    corners: list[tuple[int, int]]  # per member: top-left of its crop, at factor f
-    size: tuple[int, int]  # crop (ch, cw) at factor f
+    images: torch.Tensor  # (G, 3, h, w) full images of the group at the matching scale
+    masks: list[torch.Tensor]  # per group view (h, w): the instance
+    regions: torch.Tensor  # (G, 1, h, w): where sources may match (static or the object)
+    K: torch.Tensor  # (G, 3, 3) at the matching scale
+    corners: list[tuple[int, int]]  # per member: top-left of its crop, at the matching scale
+    size: tuple[int, int]  # crop (ch, cw) at the matching scale
     corners_lo: list[tuple[int, int]]  # the same at the scene's resolution
     size_lo: tuple[int, int]
-    factor: int
+    scale: MatchScale
+
+
+class _Matched(NamedTuple):
+    """Step 3b's result: PatchMatch of each member's crop, with that crop's inputs."""
+
+    result: PatchMatchResult
+    images: torch.Tensor  # (b, 3, ch, cw) the members' crops
+    masks: torch.Tensor  # (b, 1, ch, cw)
+    K: torch.Tensor  # (b, 3, 3) of the crops
+    world_to_cam: torch.Tensor  # (b, 4, 4)
+
+
+class _Consistent(NamedTuple):
+    """Step 4's result, per member crop."""
+
+    depth: torch.Tensor  # (b, 1, ch, cw)
+    normal: torch.Tensor  # (b, 3, ch, cw) camera frame
+    keep: torch.Tensor  # (b, 1, ch, cw) bool: consistent (or planar-completed)
 
 
 def _instance_frame(
@@ -567,10 +707,21 @@ def _instance_frame(
     return _InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
 
 
+def _depth_range(frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig) -> tuple[float, float]:
+    """PatchMatch's depth range from the instance's voxels as the reference sees them."""
+    cen = frame.covis.voxel_centers[frame.voxels]
+    z = cen @ w2c_ref[2, :3] + w2c_ref[2, 3]
+    z = z[z > 0.1]
+    near, far = cfg.depth_margin
+    lo, hi = (float(z.min()) * near, float(z.max()) * far) if z.numel() else cfg.fallback_depth_range
+    lo = max(lo, cfg.min_depth)
+    return lo, max(hi, lo * 4, 1.0)
+
+
 def _crop_group(
     index: VisibilityIndex, group: list[int], instance: int, track: int | None, cfg: ReconstructConfig
 ) -> _Crops | str:
-    """Step 3a: crops around the instance in each group view, small instances at a finer resolution.
+    """Step 3a: crops around the instance in each group view, at its matching scale (:func:`match_scale`).
 
     Sources match only inside their region: static pixels for a static instance, the object's own
     pixels for a moving one.
@@ -578,10 +729,15 @@ def _crop_group(
     scene = index.scene
     h, w = index.cameras.image_size
     masks = [index.instances(v) == instance for v in group]
-    members = [i for i, m in enumerate(masks) if int(m.sum()) >= cfg.min_pixels]
+    sizes = [int(m.sum()) for m in masks]
+    members = [i for i, n in enumerate(sizes) if n >= cfg.min_pixels]
     if len(members) < 2:
         return "instance_seen_in_fewer_than_two_group_views"
     corners, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
+    native = int(1.0 / scene.scale + 1e-6)  # the files' resolution
+    scale = match_scale(max(sizes[i] for i in members), (ch, cw), native, cfg)
+    if scale.down > 1:
+        corners, ch, cw = _align_crops(corners, ch, cw, scale.down, (h, w))
 
     def region(v: int) -> torch.Tensor:
         ins = index.instances(v)
@@ -591,15 +747,32 @@ def _crop_group(
 
     regions = torch.stack([region(v) for v in group])[:, None]
     K = index.cameras.K[group]
-    f = _upsample_factor(scene, ch, cw, cfg)
     corners_lo, size_lo = corners, (ch, cw)
-    if f > 1:
+    if scale.up > 1:
+        f = scale.up
         masks = [_repeat(m, f) for m in masks]
         regions = _repeat(regions, f)
         corners, ch, cw = [(y0 * f, x0 * f) for y0, x0 in corners], ch * f, cw * f
         K = scale_intrinsics(K, f)
-    images = torch.stack([index.image(v, f) for v in group])
-    return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, f)
+        images = torch.stack([index.image(v, f) for v in group])
+    else:
+        f = scale.down
+        images = torch.stack([index.image(v) for v in group])
+        if f > 1:
+            masks = [_pool_mask(m, f) for m in masks]
+            regions = _pool_mask(regions, f)
+            corners, ch, cw = [(y0 // f, x0 // f) for y0, x0 in corners], ch // f, cw // f
+            K = scale_intrinsics(K, 1.0 / f)
+            images = F.avg_pool2d(images, f)
+    return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
+
+
+def _renders(render_prior, view: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """``(depth, alpha or None, normals)`` of a render prior's answer (a ViewRender or a pair)."""
+    out = render_prior(view)
+    if isinstance(out, tuple) and len(out) == 2:
+        return out[0], None, out[1]
+    return out.depth, out.alpha, out.normals
 
 
 def _match(
@@ -608,19 +781,21 @@ def _match(
     world_to_cam: torch.Tensor,
     depth_range: tuple[float, float],
     cfg: ReconstructConfig,
-    render_prior: Callable[[int], tuple[torch.Tensor, torch.Tensor]] | None,
-):
+    render_prior: Callable[[int], ViewRender] | None,
+) -> _Matched:
     """Step 3b: PatchMatch on the group, each member's crop as reference against all other views."""
     ch, cw = crops.size
-    f = crops.factor
+    dev = crops.images.device
     ref_imgs, ref_masks, ref_K, init_d, init_n = [], [], [], [], []
     for i, (y0, x0) in zip(crops.members, crops.corners):
         ref_imgs.append(crops.images[i, :, y0 : y0 + ch, x0 : x0 + cw])
         ref_masks.append(crops.masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
         ref_K.append(_shift_K(crops.K[i], x0, y0))
         if render_prior is not None:
-            d, n = render_prior(group[i])
-            d, n = _repeat(d, f), _repeat(n, f)
+            d, _, n = _renders(render_prior, group[i])
+            d, n = d.to(dev), n.to(dev)
+            known = d > 0
+            d, n = _to_scale(d, known, crops.scale), _to_scale(n, known, crops.scale, unit=True)
             init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
             init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
     others = [[j for j in range(len(group)) if j != i] for i in crops.members]
@@ -638,36 +813,31 @@ def _match(
         mask=torch.stack(ref_masks),
         src_masks=torch.stack([crops.regions[o] for o in others]),
     )
-    return res, torch.stack(ref_imgs), torch.stack(ref_masks), torch.stack(ref_K)
+    return _Matched(
+        res, torch.stack(ref_imgs), torch.stack(ref_masks), torch.stack(ref_K), world_to_cam[crops.members]
+    )
 
 
 def _consistent(
-    res,
+    matched: _Matched,
     crops: _Crops,
     group: list[int],
     world_to_cam: torch.Tensor,
-    ref_imgs: torch.Tensor,
-    ref_masks: torch.Tensor,
-    ref_K: torch.Tensor,
     planar: bool,
     cfg: ReconstructConfig,
     generator: torch.Generator | None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Step 4: keep the pixels that other members confirm; planar completion of static instances.
-
-    Returns ``(depth, normal, keep)``: ``(b, 1, ch, cw)``, ``(b, 3, ch, cw)`` camera frame, bool.
-    """
-    members = crops.members
-    w2c = world_to_cam[members]
+) -> _Consistent:
+    """Step 4: keep the pixels that other members confirm; planar completion of static instances."""
+    res, w2c = matched.result, matched.world_to_cam
     depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
-    b = len(members)
+    b = len(crops.members)
     src = [[j for j in range(b) if j != i] for i in range(b)]
     cons = geometric_consistency(
         depth,
-        ref_K,
+        matched.K,
         w2c,
         torch.stack([depth[o] for o in src]),
-        torch.stack([ref_K[o] for o in src]),
+        torch.stack([matched.K[o] for o in src]),
         torch.stack([w2c[o] for o in src]),
         cfg.max_reproj_error,
         cfg.max_rel_depth,
@@ -679,30 +849,104 @@ def _consistent(
         normal = res.normal.clone()
         c2w = invert_rigid(w2c)
         for k in range(b):
-            o = [j for j in range(len(group)) if j != members[k]]
+            o = [j for j in range(len(group)) if j != crops.members[k]]
             d_k, n_k, add = complete_planar(
-                depth[k], keep[k], ref_masks[k], ref_imgs[k], ref_K[k], c2w[k], crops.images[o],
-                torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o], world_to_cam[o], cfg.planar,
-                generator, res.normal[k],
+                depth[k], keep[k], matched.masks[k], matched.images[k], matched.K[k], c2w[k],
+                crops.images[o], torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o],
+                world_to_cam[o], cfg.planar, generator, res.normal[k],
             )  # fmt: skip
             depth[k] = d_k
             keep[k] |= add
             normal[k] = torch.where(add, n_k[:, None, None].expand_as(normal[k]), normal[k])
-    return depth, normal, keep
+    return _Consistent(depth, normal, keep)
 
 
-def _depth_priors(
-    depth: torch.Tensor, normal: torch.Tensor, keep: torch.Tensor, crops: _Crops, size: tuple[int, int]
-) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+def _explained(
+    cons: _Consistent,
+    crops: _Crops,
+    group: list[int],
+    cfg: ReconstructConfig,
+    render_prior: Callable[[int], ViewRender] | None,
+) -> torch.Tensor:
+    """Step 5a: ``(b, 1, ch, cw)`` consistent pixels that an opaque rendered surface already explains.
+
+    Each member's MVS depth is compared with that member's own render (at the matching scale):
+    explained where the render has opacity ``>= explained_alpha`` and a depth in front of, or within
+    ``explained_tolerance`` of, the MVS depth. Those pixels give priors but no new point.
+    """
+    out = torch.zeros_like(cons.keep)
+    if render_prior is None:
+        return out
+    ch, cw = crops.size
+    dev = cons.depth.device
+    for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
+        d, a, _ = _renders(render_prior, group[i])
+        if a is None:
+            continue
+        d, a = d.to(dev), a.to(dev)
+        if crops.scale.up > 1:
+            d, a = _repeat(d, crops.scale.up), _repeat(a, crops.scale.up)
+        elif crops.scale.down > 1:
+            d = _pool_valid(d, d > 0, crops.scale.down)
+            a = F.avg_pool2d(a[None], crops.scale.down)[0]
+        d, a = d[:, y0 : y0 + ch, x0 : x0 + cw], a[:, y0 : y0 + ch, x0 : x0 + cw]
+        mvs = cons.depth[k]
+        out[k] = (a >= cfg.explained_alpha) & (d > 0) & (d <= mvs * (1 + cfg.explained_tolerance))
+    return out & cons.keep
+
+
+def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None = None) -> torch.Tensor:
+    """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
+
+    Args:
+        points: ``(P, 3)``, in their priority order (the first point of a voxel is kept).
+        cell: voxel edge.
+        existing: optional ``(Q, 3)`` points (same frame) whose voxels are taken.
+
+    Returns:
+        ``(P,)`` bool: the points kept. On the device of ``points``.
+
+    Example:
+        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.31, 0.0, 0.0]])
+        >>> thin_points(p, 0.1).tolist()
+        [True, False, True]
+        >>> thin_points(p, 0.1, existing=torch.tensor([[0.35, 0.05, 0.05]])).tolist()
+        [True, False, False]
+    """
+    if points.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.bool, device=points.device)
+    cell = max(float(cell), 1e-6)
+    every = points if existing is None else torch.cat([existing.to(points), points])
+    q = torch.floor(every / cell).long()
+    q = q - q.min(0).values
+    span = q.max(0).values + 1
+    keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
+    uniq, inv = torch.unique(keys, return_inverse=True)
+    order = torch.arange(keys.shape[0], device=keys.device)
+    first = torch.full((uniq.shape[0],), keys.shape[0], dtype=torch.long, device=keys.device)
+    first = first.scatter_reduce(0, inv, order, reduce="amin")
+    keep = first[inv] == order
+    return keep[every.shape[0] - points.shape[0] :]
+
+
+def _depth_priors(cons: _Consistent, crops: _Crops, size: tuple[int, int]) -> tuple[list, list]:
     """Step 6: each member's consistent depth and normals in its full image at the scene's resolution."""
     h, w = size
     ch, cw = crops.size_lo
     full_depth, full_normal = [], []
     for k, (y0, x0) in enumerate(crops.corners_lo):
-        fd = depth.new_zeros(1, h, w)
-        fn = normal.new_zeros(3, h, w)
-        fd[:, y0 : y0 + ch, x0 : x0 + cw] = _pool_valid(depth[k], keep[k], crops.factor)
-        fn[:, y0 : y0 + ch, x0 : x0 + cw] = _pool_valid(normal[k], keep[k], crops.factor, unit=True)
+        fd = cons.depth.new_zeros(1, h, w)
+        fn = cons.normal.new_zeros(3, h, w)
+        if crops.scale.up > 1:
+            f = crops.scale.up
+            d = _pool_valid(cons.depth[k], cons.keep[k], f)
+            n = _pool_valid(cons.normal[k], cons.keep[k], f, unit=True)
+        else:
+            f = crops.scale.down
+            d = _repeat(torch.where(cons.keep[k], cons.depth[k], torch.zeros_like(cons.depth[k])), f)
+            n = _repeat(torch.where(cons.keep[k], cons.normal[k], torch.zeros_like(cons.normal[k])), f)
+        fd[:, y0 : y0 + ch, x0 : x0 + cw] = d
+        fn[:, y0 : y0 + ch, x0 : x0 + cw] = n
         full_depth.append(fd)
         full_normal.append(fn)
     return full_depth, full_normal
@@ -715,16 +959,18 @@ def reconstruct_instance(
     instance: int,
     config: ReconstructConfig | None = None,
     generator: torch.Generator | None = None,
-    render_prior: Callable[[int], tuple[torch.Tensor, torch.Tensor]] | None = None,
+    render_prior: Callable[[int], ViewRender] | None = None,
+    occupied: torch.Tensor | None = None,
 ) -> InstanceReconstruction:
     """Reconstruct an instance seen in view ``ref`` from selected supporting views by PatchMatch.
 
     Not differentiable (a search). The steps (see the module docstring): the instance's voxels and
-    frame, view selection (:func:`~vadgs.select.select_views`), crops, PatchMatch
-    (:func:`~vadgs.mvs.patchmatch`), consistency (:func:`~vadgs.mvs.geometric_consistency`) and
-    planar completion (:func:`~vadgs.mvs.complete_planar`), fusion
-    (:func:`~vadgs.mvs.fuse_depth_maps`, one point per consistent pixel), depth priors. On the
-    device of ``index``.
+    frame, view selection (:func:`~vadgs.select.select_views`), crops at the instance's matching
+    scale (:func:`match_scale`), PatchMatch (:func:`~vadgs.mvs.patchmatch`), consistency
+    (:func:`~vadgs.mvs.geometric_consistency`) and planar completion
+    (:func:`~vadgs.mvs.complete_planar`), the pixels the Gaussians already explain, fusion
+    (:func:`~vadgs.mvs.fuse_depth_maps`, one point per consistent unexplained pixel, thinned to one
+    per cell of the point spacing by :func:`thin_points`), depth priors. On the device of ``index``.
 
     Args:
         index: the scene's :class:`VisibilityIndex`.
@@ -732,9 +978,11 @@ def reconstruct_instance(
         instance: the instance id (a track id for a moving object: matched in its own frame).
         config: :class:`ReconstructConfig`.
         generator: seeds the selection noise ``ξ`` (a CPU generator).
-        render_prior: optional ``view -> (depth (1, H, W), normal (3, H, W))`` rendered by the
-            Gaussians (camera frame normals, in the instance's frame of reference), the
-            PatchMatch initialisation; ``0`` where unknown.
+        render_prior: optional ``view -> ViewRender`` rendered by the Gaussians (camera-frame
+            normals), the PatchMatch initialisation and the test of what is already explained;
+            ``0`` where unknown. A function returning ``(depth, normal)`` initialises only.
+        occupied: optional ``(Q, 3)`` points in the instance's frame (e.g. added earlier in the same
+            event) whose cells take no new point.
 
     Returns:
         :class:`InstanceReconstruction` (possibly empty, with the reason).
@@ -765,32 +1013,30 @@ def reconstruct_instance(
     if isinstance(crops, str):
         return nothing(crops, group)
     w2c = frame.world_to_cam[group]
-    # depth range from the instance's voxels as seen by the reference
-    cen = frame.covis.voxel_centers[frame.voxels]
-    z = cen @ w2c[0, 2, :3] + w2c[0, 2, 3]
-    z = z[z > 0.1]
-    lo, hi = (float(z.min()) * 0.5, float(z.max()) * 2.0) if z.numel() else (0.5, 150.0)
-    res, ref_imgs, ref_masks, ref_K = _match(
-        crops, group, w2c, (max(lo, 0.2), max(hi, lo * 4, 1.0)), cfg, render_prior
-    )
+    matched = _match(crops, group, w2c, _depth_range(frame, w2c[0], cfg), cfg, render_prior)
     planar = cfg.planar is not None and track is None  # a car is not planar
-    depth, normal, keep = _consistent(
-        res, crops, group, w2c, ref_imgs, ref_masks, ref_K, planar, cfg, generator
-    )  # 4.
-    members_w2c = w2c[crops.members]
-    fused = fuse_depth_maps(  # 5. one point per consistent pixel, in the instance's frame
-        depth, ref_imgs, ref_K, members_w2c, normal, keep, FusionConfig(min_views=0, deduplicate=False)
-    )
-    seed_w2c, seed_K = members_w2c[fused.view_index], ref_K[fused.view_index]
+    cons = _consistent(matched, crops, group, w2c, planar, cfg, generator)  # 4.
+    new = cons.keep & ~_explained(cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
+    fused = fuse_depth_maps(  # one point per such pixel, in the instance's frame
+        cons.depth, matched.images, matched.K, matched.world_to_cam, cons.normal, new,
+        FusionConfig(min_views=0, deduplicate=False),
+    )  # fmt: skip
+    seed_w2c, seed_K = matched.world_to_cam[fused.view_index], matched.K[fused.view_index]
     z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
     points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
+    if (
+        cfg.thin_points and points.shape[0]
+    ):  # one point per cell of the scene resolution's spacing, or coarser
+        spacing = spacing * crops.scale.up
+        keep = thin_points(points, float(spacing.median()), occupied)
+        points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)
         sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].to(dev)
         points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
-    full_depth, full_normal = _depth_priors(depth, normal, keep, crops, index.cameras.image_size)  # 6.
+    full_depth, full_normal = _depth_priors(cons, crops, index.cameras.image_size)  # 6.
     views = [group[i] for i in crops.members]
-    reason = "ok" if points.shape[0] else "no_consistent_pixels"
+    reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
     return InstanceReconstruction(
         points, normals, colors, spacing, track, views, full_depth, full_normal, reason
     )

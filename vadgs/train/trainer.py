@@ -631,7 +631,12 @@ class Trainer:
         base = DefaultStrategy(self.config.strategy)
         if self.config.vad is None:
             return base
-        return VisibilityAwareDensification(self.scene, self.strategy_context(), self.config.vad, base=base)
+        strategy = VisibilityAwareDensification(
+            self.scene, self.strategy_context(), self.config.vad, base=base
+        )
+        if self.config.vad.visibility:
+            strategy.prepare()  # the visibility index, built once, before the first step
+        return strategy
 
     def strategy_context(self) -> StrategyContext:
         """What a strategy may know of this loop: render a view, step counts, the generator, nodes."""

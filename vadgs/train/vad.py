@@ -37,22 +37,23 @@ strategy (plain ADC), ``view_selection=False`` uses consecutive frames of the re
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
 from vadgs.data.scene import Scene
-from vadgs.geometry.camera import project_points
 from vadgs.train import ops
-from vadgs.train.incomplete import IncompleteConfig, find_incomplete
+from vadgs.train.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import rotation_to_quat
 from vadgs.train.reconstruct import (
     InstanceReconstruction,
     ReconstructConfig,
+    ViewRender,
     VisibilityIndex,
     build_visibility_index,
     reconstruct_instance,
@@ -71,6 +72,7 @@ __all__ = [
 ]
 
 _C0 = 0.28209479177387814
+_MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
 
 
 @dataclass(frozen=True)
@@ -87,8 +89,17 @@ class VisibilityDensifyConfig:
         voxel_size: voxel edge (m) of the visibility grids.
         incomplete: thresholds of the incompleteness test.
         reconstruct: view selection / PatchMatch / consistency settings.
-        max_instances: instances reconstructed per event, in the order of ``ranking`` (an instance
-            whose reconstruction yields no point does not count; at most twice as many are tried).
+        max_instances: at most this many instances reconstructed per event, in the order of
+            ``ranking`` (``None``, the default: every flagged instance, within ``time_budget``).
+        time_budget: an event stops starting new instances once it has taken this fraction of
+            the training time so far (the time between the strategy's calls, events excluded);
+            the instances left are logged as skipped (``"time_budget"``). The first instance is
+            always tried. ``None``: no limit (an exactly reproducible run).
+        render_cache_mb: the loop's renders of the views trained since the last event (depth,
+            opacity, normals; float16, in the strategy's state, so checkpoints hold them and a
+            resumed run stays exact) are kept up to this size and reused by the event for
+            detection, PatchMatch initialisation and the test of what is already explained; the
+            views beyond it are rendered at the event. ``0``: render every view at the event.
         references: reference views per instance: its flagged view with the most pixels, then
             the next largest ones from another camera or at least ``min_frame_gap`` frames away
             from those already chosen (another side of the object, e.g. the back of a sign).
@@ -98,9 +109,9 @@ class VisibilityDensifyConfig:
             such as signs are not starved by large facades; ``"pixels"``: largest first overall.
         cooldown_events: an instance reconstructed at an event is skipped for this many events.
         skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
-        explained_tolerance: a point is "explained" when the reference render has opacity above
-            ``incomplete.alpha_threshold`` and depth within this relative tolerance of (or in front
-            of) the point.
+        explained_tolerance: an MVS pixel is "explained" (gives no new Gaussian) where its view's
+            render has opacity above ``incomplete.alpha_threshold`` and a depth within this
+            relative tolerance of (or in front of) the MVS depth.
         new_opacity: opacity of the new Gaussians.
         flatness: thickness of the new Gaussians along their normal, relative to their width.
         voxel_depth_prior: use the voxel depth where no MVS depth exists.
@@ -115,7 +126,9 @@ class VisibilityDensifyConfig:
     voxel_size: float = 0.2
     incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
-    max_instances: int = 8
+    max_instances: int | None = None
+    time_budget: float | None = 0.1
+    render_cache_mb: float = 256.0
     references: int = 2
     min_frame_gap: int = 3
     ranking: str = "class_round_robin"
@@ -134,11 +147,13 @@ class VisibilityDensifyConfig:
             raise ValueError(f"new_opacity: expected in (0, 1), got {self.new_opacity}")
         if self.ranking not in RANKINGS:
             raise ValueError(f"ranking: expected one of {RANKINGS}, got {self.ranking!r}")
-        if self.references < 1 or self.max_instances < 0:
+        if self.references < 1 or (self.max_instances is not None and self.max_instances < 0):
             raise ValueError(
-                f"references, max_instances: expected >= 1 and >= 0, got {self.references}, "
+                f"references, max_instances: expected >= 1 and None or >= 0, got {self.references}, "
                 f"{self.max_instances}"
             )
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError(f"time_budget: expected None or > 0, got {self.time_budget}")
 
 
 RANKINGS = ("class_round_robin", "pixels")
@@ -247,20 +262,6 @@ def voxel_depth_map(index: VisibilityIndex, view: int) -> tuple[torch.Tensor, to
     return index.voxel_depth(view)
 
 
-class ViewRender(NamedTuple):
-    """What a strategy needs of a rendered view (no gradient; camera-frame normals).
-
-    Attributes:
-        depth: ``(1, H, W)`` expected z-depth.
-        alpha: ``(1, H, W)`` accumulated opacity.
-        normals: ``(3, H, W)`` camera-frame normals (zeros where nothing is rendered).
-    """
-
-    depth: torch.Tensor
-    alpha: torch.Tensor
-    normals: torch.Tensor
-
-
 @dataclass(frozen=True)
 class StrategyContext:
     """What :class:`VisibilityAwareDensification` needs of the training loop, given explicitly.
@@ -298,18 +299,57 @@ class StrategyContext:
 
 
 class _Renders:
-    """Renders of one event, each made at most once until the Gaussians change."""
+    """Renders of one event: the loop's own renders kept in the state, else rendered once."""
 
-    def __init__(self, render: Callable[[int], ViewRender]) -> None:
-        self.render, self.cache = render, {}
+    def __init__(self, render: Callable[[int], ViewRender], kept: Mapping[int, tuple] | None = None) -> None:
+        self.render, self.kept, self.cache = render, kept or {}, {}
+        self.rendered = 0
 
     def __call__(self, view: int) -> ViewRender:
         if view not in self.cache:
-            self.cache[view] = self.render(view)
+            if view in self.kept:
+                self.cache[view] = ViewRender(*(x.float() for x in self.kept[view]))
+            else:
+                self.cache[view] = self.render(view)
+                self.rendered += 1
         return self.cache[view]
 
-    def invalidate(self) -> None:
-        self.cache.clear()
+
+def _chw(x: torch.Tensor) -> torch.Tensor:
+    """A single view's map as ``(C, H, W)``, detached (from ``(1, C, H, W)`` or ``(H, W)``)."""
+    x = x.detach()
+    return x[0] if x.dim() == 4 else x[None] if x.dim() == 2 else x
+
+
+def _keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> None:
+    """Keep a view's render (float16) in ``store``, the oldest dropped beyond ``max_bytes``."""
+    store.pop(view, None)
+    if max_bytes <= 0:
+        return
+    store[view] = tuple(x.half() for x in render)
+    total = sum(sum(x.numel() * x.element_size() for x in r) for r in store.values())
+    while total > max_bytes and len(store) > 1:
+        oldest = next(iter(store))
+        total -= sum(x.numel() * x.element_size() for x in store.pop(oldest))
+
+
+def _view_test(
+    index: VisibilityIndex, view: int, depth: torch.Tensor, alpha: torch.Tensor, config: IncompleteConfig
+) -> tuple[torch.Tensor, ...]:
+    """The incompleteness test of one view, on the index's device.
+
+    Returns the fields of its :class:`~vadgs.train.incomplete.IncompleteInstances` (``view`` = 0).
+    """
+    dev = index.cameras.K.device
+    d, _ = index.voxel_depth(view)
+    rows = find_incomplete(
+        index.instances(view)[None],
+        d[None],
+        depth.detach().reshape(1, 1, *depth.shape[-2:]).to(dev),
+        alpha.detach().reshape(1, 1, *alpha.shape[-2:]).to(dev),
+        config,
+    )
+    return tuple(rows)
 
 
 class VisibilityAwareDensification:
@@ -323,12 +363,16 @@ class VisibilityAwareDensification:
         base: the strategy it extends, whose clone/split/prune keeps running
             (default :class:`~vadgs.train.strategy.DefaultStrategy` with its defaults; vadgs's
             trainer passes its ``TrainConfig.strategy``). gsplat's ``DefaultStrategy`` works too.
-        index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` (built from
-            ``scene`` at the first event otherwise).
+        index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` (built by
+            :meth:`prepare` otherwise).
+        on_addition: optional callback, called with ``{"instance", "view", "step", "added",
+            "depth", "alpha"}`` (the reference's render just before) each time an instance gets new
+            Gaussians (for figures; nothing is kept by the strategy).
 
-    Attributes:
-        snapshots: per instance that got new Gaussians, its reference render just before:
-            ``{"instance", "view", "step", "added", "depth", "alpha"}`` (for figures; not in the state).
+    The incompleteness test of a view reuses the loop's own render when ``info`` carries it
+    (``info["view"]`` and ``info["raster"]`` with ``depth`` / ``alpha``, as vadgs's trainer passes,
+    or ``info["depth"]`` / ``info["alpha"]``): a view trained since the last event is not rendered
+    again for detection. The others are rendered at the event.
     """
 
     def __init__(
@@ -338,6 +382,7 @@ class VisibilityAwareDensification:
         config: VisibilityDensifyConfig | None = None,
         base: Strategy | None = None,
         index: VisibilityIndex | None = None,
+        on_addition: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
         if not isinstance(scene, Scene):
             raise ValueError(f"scene: expected a vadgs.data.Scene, got {type(scene).__name__}")
@@ -348,7 +393,8 @@ class VisibilityAwareDensification:
         self.config = config or VisibilityDensifyConfig()
         self.base = base if base is not None else DefaultStrategy()
         self.index = index
-        self.snapshots: list[dict[str, Any]] = []
+        self.on_addition = on_addition
+        self._last_call: float | None = None
         if not self.config.view_selection:
             sel = replace(self.config.reconstruct.selection, method="consecutive")
             self.config = replace(self.config, reconstruct=replace(self.config.reconstruct, selection=sel))
@@ -356,9 +402,11 @@ class VisibilityAwareDensification:
     # -- Strategy interface ----------------------------------------------------------------------------
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
-        """The base strategy's state plus the event log, the priors and the cycle counter."""
+        """The base strategy's state plus the event log, the priors, the cycle counter and view tests."""
         state = self.base.initialize_state(scene_scale)
-        state.update(vad_events=[], vad_priors={}, vad_cycle=0, vad_last_done={})
+        state.update(
+            vad_events=[], vad_priors={}, vad_cycle=0, vad_last_done={}, vad_tests={}, vad_train_s=0.0
+        )
         return state
 
     def step_pre_backward(self, params, optimizers, state, step, info) -> None:  # noqa: D102
@@ -372,55 +420,103 @@ class VisibilityAwareDensification:
         step: int,
         info: dict[str, Any],
     ) -> None:
-        """Base densification, then a visibility-aware event after every ``every_cycles`` cycles."""
+        """Base densification, then a visibility-aware event after every ``every_cycles`` cycles.
+
+        Also tests the trained view for incompleteness when ``info`` carries its render.
+        """
+        now = time.perf_counter()
+        if self._last_call is not None:
+            state["vad_train_s"] = state.get("vad_train_s", 0.0) + (now - self._last_call)
+        self._last_call = now
         self.base.step_post_backward(params, optimizers, state, step, info)
         if not self.config.visibility:
             return
+        self._observe(state, info)
         cycle = (step + 1) // self.context.steps_per_cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
             late = step >= self.config.last_event_fraction * self.context.total_steps
             if cycle > 0 and cycle % self.config.every_cycles == 0 and not late:
                 self.densify(params, optimizers, state, step)
+                self._last_call = time.perf_counter()  # the event's time is not training time
+
+    def _observe(self, state: dict[str, Any], info: Mapping[str, Any]) -> None:
+        """Test the view the loop just trained, from its own render (see the class docstring)."""
+        view = info.get("view") if isinstance(info, Mapping) else None
+        if view is None or int(view) not in self._train_set():
+            return
+        raster = info.get("raster")
+        src = raster if raster is not None else info
+        get = (lambda k: getattr(src, k, None)) if raster is not None else src.get
+        depth, alpha, normals = get("depth"), get("alpha"), get("normals")
+        if depth is None or alpha is None:
+            return
+        view = int(view)
+        depth, alpha = _chw(depth), _chw(alpha)
+        state.setdefault("vad_tests", {})[view] = _view_test(
+            self.prepare(), view, depth, alpha, self.config.incomplete
+        )
+        normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else _chw(normals)
+        _keep_render(
+            state.setdefault("vad_renders", {}),
+            view,
+            ViewRender(depth, alpha, normals),
+            int(self.config.render_cache_mb * 2**20),
+        )
+
+    def _train_set(self) -> set[int]:
+        if not hasattr(self, "_train_views"):
+            self._train_views = set(self.scene.train_views)
+        return self._train_views
 
     # -- the event ---------------------------------------------------------------------------------------
 
-    def visibility_index(self) -> VisibilityIndex:
-        """The scene's :class:`~vadgs.train.reconstruct.VisibilityIndex` (built at the first use)."""
+    def prepare(self) -> VisibilityIndex:
+        """Build the visibility index (once; the trainer calls it at construction) and return it."""
         if self.index is None:
             self.index = build_visibility_index(self.scene, self.config.voxel_size)
         return self.index
 
+    def visibility_index(self) -> VisibilityIndex:
+        """The scene's :class:`~vadgs.train.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
+        return self.prepare()
+
     @torch.no_grad()
-    def detect(self, views: list[int] | None = None, renders: Callable[[int], ViewRender] | None = None):
+    def detect(
+        self,
+        views: list[int] | None = None,
+        renders: Callable[[int], ViewRender] | None = None,
+        tests: Mapping[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None,
+    ) -> tuple[IncompleteInstances, list[int]]:
         """Run the incompleteness test on training views (default all of them).
 
         Args:
             views: view indices.
             renders: the render function (default the context's).
+            tests: per view, a test already made from the loop's render (``state["vad_tests"]``:
+                the fields of its one-view :class:`~vadgs.train.incomplete.IncompleteInstances`);
+                those views are not rendered again.
 
         Returns:
             ``(rows, views)``: :class:`~vadgs.train.incomplete.IncompleteInstances` (``rows.view``
             indexes ``views``) and the views tested.
         """
-        index = self.visibility_index()
+        index = self.prepare()
         render = renders or self.context.render
         views = views if views is not None else list(self.scene.train_views)
-        ins, vdepth, rdepth, ralpha = [], [], [], []
-        for v in views:
-            out = render(v)
-            dev = out.depth.device
-            d, _ = index.voxel_depth(v)
-            ins.append(index.instances(v).to(dev))
-            vdepth.append(d.to(dev))
-            rdepth.append(out.depth)
-            ralpha.append(out.alpha)
-        rows = find_incomplete(
-            torch.stack(ins),
-            torch.stack(vdepth),
-            torch.stack(rdepth),
-            torch.stack(ralpha),
-            self.config.incomplete,
+        tests = tests or {}
+        parts = []
+        for k, v in enumerate(views):
+            if v in tests:
+                fields = tests[v]
+            else:
+                out = render(v)
+                fields = _view_test(index, v, out.depth, out.alpha, self.config.incomplete)
+            one = IncompleteInstances(*fields)
+            parts.append(one._replace(view=torch.full_like(one.view, k)))
+        dev = index.cameras.K.device
+        rows = IncompleteInstances(
+            *(torch.cat([getattr(p, f).to(dev) for p in parts]) for f in IncompleteInstances._fields)
         )
         return rows, views
 
@@ -434,56 +530,73 @@ class VisibilityAwareDensification:
         """One visibility-aware densification event (detect, reconstruct, add); returns its log."""
         cfg = self.config
         scene = self.scene
-        index = self.visibility_index()
-        renders = _Renders(self.context.render)
+        index = self.prepare()
+        renders = _Renders(self.context.render, state.get("vad_renders"))
         t0 = time.perf_counter()
-        rows, views = self.detect(renders=renders)
+        tests = state.get("vad_tests") or {}
+        rows, views = self.detect(renders=renders, tests=tests)
         t1 = time.perf_counter()
         classes = index.classes()  # incl. derived instances (scenes without maps)
         event = len(state["vad_events"])
         has_nodes = "node_ids" in getattr(params, "params", params)
         # the flagged views of each candidate instance, with its pixel count there
         flagged: dict[int, list[tuple[int, int]]] = {}
+        skipped: dict[str, int] = {}
         for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
             inst, px = int(rows.instance[k]), int(rows.pixels[k])
+            why = None
             if classes.get(inst, "") in cfg.skip_classes:
-                continue
-            if inst in scene.tracks and not has_nodes:
-                continue  # a static model (no node_ids) cannot hold a moving object
-            if event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
-                continue
-            flagged.setdefault(inst, []).append((views[int(rows.view[k])], px))
+                why = "skip_class"
+            elif inst in scene.tracks and not has_nodes:
+                why = "static_model"  # a static model (no node_ids) cannot hold a moving object
+            elif event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
+                why = "cooldown"
+            if why is None:
+                flagged.setdefault(inst, []).append((views[int(rows.view[k])], px))
+        flagged_ids = set(rows.instance[rows.flagged].tolist())
+        for inst in flagged_ids - set(flagged):
+            why = (
+                "skip_class"
+                if classes.get(inst, "") in cfg.skip_classes
+                else "static_model"
+                if inst in scene.tracks and not has_nodes
+                else "cooldown"
+            )
+            skipped[why] = skipped.get(why, 0) + 1
         best = {i: max(c, key=lambda vp: vp[1])[1] for i, c in flagged.items()}
         ranked = rank_instances(best, classes, cfg.ranking)
         added, log = 0, []
         t_mvs = 0.0
-        idx_dev = index.cameras.K.device
-
-        def prior(v: int) -> tuple[torch.Tensor, torch.Tensor]:
-            out = renders(v)
-            return out.depth.to(idx_dev), out.normals.to(idx_dev)
-
-        done = 0
-        # instances whose reconstruction yields nothing (e.g. no supporting views) do not use up
-        # a slot; at most twice max_instances are attempted
-        for inst in ranked[: 2 * cfg.max_instances]:
-            if done >= cfg.max_instances:
-                break
+        budget = math.inf
+        if cfg.time_budget is not None:
+            budget = cfg.time_budget * float(state.get("vad_train_s", 0.0))
+        occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
+        done = repaired = 0
+        for inst in ranked:
+            if cfg.max_instances is not None and done >= cfg.max_instances:
+                skipped["max_instances"] = skipped.get("max_instances", 0) + 1
+                continue
+            if log and time.perf_counter() - t0 > budget:
+                skipped["time_budget"] = skipped.get("time_budget", 0) + 1
+                continue
             refs = pick_references(flagged[inst], scene, cfg.references, cfg.min_frame_gap)
             entry_views, points, n_new_total, reasons = [], 0, 0, []
+            frame_key = inst if inst in scene.tracks else None
             for ref in refs:
                 ta = time.perf_counter()
-                rec = reconstruct_instance(index, ref, inst, cfg.reconstruct, self.context.generator, prior)
+                taken = occupied.get(frame_key)
+                rec = reconstruct_instance(
+                    index, ref, inst, cfg.reconstruct, self.context.generator, renders,
+                    occupied=torch.cat(taken) if taken else None,
+                )  # fmt: skip
                 t_mvs += time.perf_counter() - ta
-                n_new = 0
-                if rec.points.shape[0]:
-                    before = renders(ref)
-                    keep = self._unexplained(rec, ref, before)
-                    n_new = int(keep.sum())
-                    if n_new:
-                        self._add(params, optimizers, state, rec, keep, event + 1)
-                        renders.invalidate()  # the Gaussians changed
-                        self.snapshots.append(
+                n_new = int(rec.points.shape[0])
+                if n_new:
+                    self._add(params, optimizers, state, rec, event=event + 1)
+                    occupied.setdefault(frame_key, []).append(rec.points)
+                    if self.on_addition is not None:
+                        before = renders(ref)
+                        self.on_addition(
                             {"instance": inst, "view": ref, "step": step, "added": n_new,
                              "depth": before.depth[0], "alpha": before.alpha[0]}
                         )  # fmt: skip
@@ -496,11 +609,12 @@ class VisibilityAwareDensification:
                             n = torch.where(has, n, old[1])
                         state["vad_priors"][v] = (d, n)
                 entry_views.append(rec.views)
-                points += int(rec.points.shape[0])
+                points += n_new
                 n_new_total += n_new
                 reasons.append(rec.reason)
             added += n_new_total
             done += points > 0
+            repaired += n_new_total > 0
             state["vad_last_done"][inst] = event
             log.append(
                 {
@@ -514,56 +628,43 @@ class VisibilityAwareDensification:
                 }
             )
         t2 = time.perf_counter()
+        state["vad_tests"] = {}  # the next event tests (and renders) the views trained after this one
+        state["vad_renders"] = {}
         entry = {
             "step": step,
             "cycle": state["vad_cycle"],
             "flagged": int(rows.flagged.sum()),
             "tested": int(rows.flagged.numel()),
-            "flagged_instances": int(rows.instance[rows.flagged].unique().numel()),
+            "flagged_instances": len(flagged_ids),
             "candidates": len(best),
+            "attempted": len(log),
+            "repaired": repaired,
+            "skipped": skipped,
             "instances": log,
             "added": added,
+            "views_rendered": renders.rendered,
+            "tests_reused": sum(v in tests for v in views),
+            "budget_s": None if math.isinf(budget) else budget,
             "detect_s": t1 - t0,
             "mvs_s": t_mvs,
             "total_s": t2 - t0,
         }
         state["vad_events"].append(entry)
-        names = ", ".join(f"{e['class']} {e['instance']} (+{e['added']})" for e in log) or "none"
+        names = (
+            ", ".join(f"{e['class']} {e['instance']} (+{e['added']})" for e in log if e["added"]) or "none"
+        )
+        cut = ", ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
         summary = (
             f"visibility-aware densification: {entry['flagged_instances']} instances flagged, "
-            f"reconstructed {names} in {entry['total_s']:.0f} s"
+            f"{len(log)} attempted, {repaired} repaired (+{added} Gaussians), skipped: {cut}; "
+            f"{entry['total_s']:.1f} s; added to {names}"
         )
-        state.setdefault("pending_log", []).append(
-            {"kind": "visibility_densification", "summary": summary, **entry}
-        )
+        if "time_budget" in skipped:
+            summary += f" (time budget {budget:.1f} s = {cfg.time_budget:g} x training time so far)"
+        log_list = state.setdefault("pending_log", [])
+        log_list.append({"kind": "visibility_densification", "summary": summary, **entry})
+        del log_list[:-_MAX_PENDING]  # bounded when the loop does not pop it
         return entry
-
-    @torch.no_grad()
-    def _unexplained(self, rec: InstanceReconstruction, ref: int, out: ViewRender) -> torch.Tensor:
-        """Points that no opaque rendered surface covers (in front or within tolerance) in ``ref``.
-
-        On the device of the render.
-        """
-        scene = self.scene
-        dev = out.depth.device
-        cams = scene.cameras([ref])
-        w2c = cams.world_to_cam[0]
-        if rec.track is not None:
-            w2c = w2c @ scene.tracks[rec.track].object_to_world[scene.view_frame_position(ref)]
-        uv, z = project_points(rec.points[None].to(dev), cams.K.to(dev), w2c[None].to(dev))
-        uv, z = uv[0], z[0]
-        u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
-        h, w = cams.image_size
-        inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        keep = torch.ones(z.shape[0], dtype=torch.bool, device=dev)
-        uu, vv = u[inside], v[inside]
-        alpha = out.alpha[0, vv, uu]
-        depth = out.depth[0, vv, uu]
-        explained = (alpha >= self.config.incomplete.alpha_threshold) & (
-            depth <= z[inside] * (1 + self.config.explained_tolerance)
-        )
-        keep[inside] = ~explained
-        return keep
 
     def _add(
         self,
@@ -571,10 +672,10 @@ class VisibilityAwareDensification:
         optimizers: Any,
         state: dict[str, Any] | None,
         rec: InstanceReconstruction,
-        keep: torch.Tensor,
+        keep: torch.Tensor | None = None,
         event: int = 1,
     ) -> None:
-        """New flat Gaussians from the kept points, in ``params``' layout, device and dtype.
+        """New flat Gaussians from the (kept) points, in ``params``' layout, device and dtype.
 
         Where ``params`` has a ``provenance`` entry the new rows get ``event`` (1-based).
         """
@@ -583,6 +684,8 @@ class VisibilityAwareDensification:
         p = getattr(params, "params", params)
         ref = p[names.means]
         dev, dt = ref.device, ref.dtype
+        if keep is None:
+            keep = torch.ones(rec.points.shape[0], dtype=torch.bool, device=rec.points.device)
         keep = keep.to(rec.points.device)
         pts, nrm, col, spc = (x[keep].to(dev, dt) for x in (rec.points, rec.normals, rec.colors, rec.spacing))
         m = pts.shape[0]

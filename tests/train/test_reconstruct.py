@@ -1,0 +1,189 @@
+"""The steps of a VAD-GS event on their own: matching scale, point thinning, what is already
+explained, the reuse of the loop's renders, the event log and its time budget."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from tests.train.test_vad import BUILDING, _model, _trainer
+from tests.train.test_vad import gt_points as gt_points
+from tests.train.test_vad import index as index
+from tests.train.test_vad import scene as scene
+from vadgs.train.reconstruct import (
+    MatchScale,
+    ReconstructConfig,
+    ViewRender,
+    match_scale,
+    reconstruct_instance,
+    thin_points,
+)
+from vadgs.train.vad import VisibilityDensifyConfig
+
+
+class TestMatchScale:
+    def test_small_instances_finer_large_ones_coarser(self):
+        cfg = ReconstructConfig(max_match_pixels=1000, max_downsample=4)
+        assert match_scale(200, (30, 30), 2, cfg) == MatchScale(2, 1)
+        assert match_scale(200, (30, 30), 1, cfg) == MatchScale(1, 1)  # not finer than the files
+        assert match_scale(900, (120, 150), 2, cfg) == MatchScale(1, 1)
+        assert match_scale(3000, (120, 150), 2, cfg) == MatchScale(1, 2)  # 750 px at 1/2
+        assert match_scale(5000, (120, 150), 2, cfg) == MatchScale(1, 4)  # 1250 > 1000 at 1/2
+        assert match_scale(10**6, (120, 150), 2, cfg) == MatchScale(1, 4)  # max_downsample
+        assert match_scale(10**6, (120, 150), 2, dataclasses.replace(cfg, max_match_pixels=None)).value == 1
+
+    def test_bad_config(self):
+        with pytest.raises(ValueError, match="max_downsample"):
+            ReconstructConfig(max_downsample=3)
+        with pytest.raises(ValueError, match="max_match_pixels"):
+            ReconstructConfig(max_match_pixels=10)
+        with pytest.raises(ValueError, match="depth_margin"):
+            ReconstructConfig(depth_margin=(1.5, 2.0))
+
+
+class TestThinPoints:
+    def test_one_point_per_cell_first_wins(self):
+        g = torch.Generator().manual_seed(0)
+        p = torch.rand(5000, 3, generator=g)
+        keep = thin_points(p, 0.1)
+        cells = torch.floor(p / 0.1).long()
+        # naive reference: the first point of every occupied cell
+        seen, ref = set(), []
+        for c in cells.tolist():
+            ref.append(tuple(c) not in seen)
+            seen.add(tuple(c))
+        assert keep.tolist() == ref
+        assert int(keep.sum()) == len(seen) <= 1000
+
+    def test_existing_points_take_their_cells(self):
+        p = torch.tensor([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05]])
+        assert thin_points(p, 0.1, torch.tensor([[0.01, 0.01, 0.01]])).tolist() == [False, True]
+        assert thin_points(torch.zeros(0, 3), 0.1).shape == (0,)
+
+
+class TestReconstructSteps:
+    def test_coarse_matching_of_a_large_facade_stays_on_it(self, scene, index, gt_points):
+        """The deleted facade matched at half resolution: fewer points, still on the surface."""
+        pts, _, ins, _ = gt_points
+        target = pts[ins == BUILDING]
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+        fine = ReconstructConfig(max_crop=96, max_match_pixels=None)
+        coarse = dataclasses.replace(fine, max_match_pixels=256)
+        out = {}
+        for name, cfg in (("fine", fine), ("coarse", coarse)):
+            rec = reconstruct_instance(index, ref, BUILDING, cfg, torch.Generator().manual_seed(0))
+            assert rec.reason == "ok"
+            d = torch.cdist(rec.points, target).min(1).values
+            out[name] = (rec.points.shape[0], float(d.median()), float(rec.spacing.median()))
+        (n_f, d_f, s_f), (n_c, d_c, s_c) = out["fine"], out["coarse"]
+        assert n_c < 0.5 * n_f  # coarser scale: fewer points ...
+        assert s_c > 1.5 * s_f  # ... each standing for a larger cell
+        assert d_f < 0.1 and d_c < 0.25  # both on the true facade (the sample is 120x72 px)
+
+    def test_explained_pixels_give_no_points(self, scene, index, gt_points):
+        """Where the render already shows an opaque surface at the MVS depth, nothing is added."""
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+        cfg = ReconstructConfig(max_crop=96, max_match_pixels=None)
+        depths = scene.load_depths()
+
+        def perfect(v):  # a render that explains everything: ground-truth depth, opaque
+            d = depths[v]
+            return ViewRender(d, torch.ones_like(d), torch.zeros(3, *d.shape[-2:]))
+
+        def empty(v):
+            d = torch.zeros_like(depths[v])
+            return ViewRender(d, d, torch.zeros(3, *d.shape[-2:]))
+
+        g = torch.Generator
+        explained = reconstruct_instance(index, ref, BUILDING, cfg, g().manual_seed(0), perfect)
+        missing = reconstruct_instance(index, ref, BUILDING, cfg, g().manual_seed(0), empty)
+        assert missing.points.shape[0] > 200
+        assert explained.points.shape[0] < 0.1 * missing.points.shape[0]
+        # the priors are kept either way
+        assert sum(int((d > 0).sum()) for d in explained.depth) > 0.5 * sum(
+            int((d > 0).sum()) for d in missing.depth
+        )
+
+
+class TestEventReusesTheLoopsRenders:
+    def test_trained_views_are_not_rendered_again(self, scene, index, gt_points):
+        pts, col, ins, spc = gt_points
+        keep = ins != BUILDING
+        trainer = _trainer(
+            scene,
+            _model(scene, pts[keep], col[keep], spc[keep]),
+            index,
+            every_cycles=10**6,
+            skip_classes=("road", "sidewalk", "tree", "car", "sign"),
+            reconstruct=ReconstructConfig(max_crop=96),
+        )
+        calls = []
+        render = trainer.strategy.context.render
+        for _ in range(len(trainer.train_views)):  # one cycle: every training view trained once
+            trainer.train_step()
+        st = trainer.state
+        assert sorted(st["vad_tests"]) == sorted(trainer.train_views)
+        assert sorted(st["vad_renders"]) == sorted(trainer.train_views)
+        ctx = dataclasses.replace(trainer.strategy.context, render=lambda v: calls.append(v) or render(v))
+        trainer.strategy.context = ctx
+        # the stored tests equal fresh ones made from fresh renders up to the model's last steps
+        rows_kept, views = trainer.strategy.detect(tests=st["vad_tests"])
+        assert calls == []
+        event = trainer.strategy.densify(trainer.model.params, trainer.optimizer, st, trainer.step)
+        assert calls == [] and event["views_rendered"] == 0
+        assert event["tests_reused"] == len(views)
+        done = {e["instance"]: e for e in event["instances"]}
+        assert done[BUILDING]["added"] > 100
+        assert st["vad_tests"] == {} and st["vad_renders"] == {}  # the next event tests anew
+        assert int(rows_kept.flagged[rows_kept.instance == BUILDING].sum()) >= 1
+
+    def test_render_cache_is_bounded(self, scene, index, gt_points):
+        pts, col, _, spc = gt_points
+        h, w = scene.cameras([0]).image_size
+        one_view = 5 * 2 * h * w  # float16 depth, alpha and normals
+        trainer = _trainer(
+            scene,
+            _model(scene, pts, col, spc),
+            index,
+            every_cycles=10**6,
+            render_cache_mb=2.5 * one_view / 2**20,
+        )
+        trained, sample = [], trainer.sampler.next
+        trainer.sampler.next = lambda: trained.append(sample()) or trained[-1]
+        for _ in range(6):
+            trainer.train_step()
+        kept = trainer.state["vad_renders"]
+        assert list(kept) == trained[-2:]  # the two most recent views
+        assert len(trainer.state["vad_tests"]) == 6  # tests are small: all kept
+        assert kept[trained[-1]][0].dtype == torch.float16
+
+
+class TestEventLog:
+    def test_log_counts_and_time_budget(self, scene, index, gt_points):
+        pts, col, ins, spc = gt_points
+        keep = (ins != BUILDING) & (ins != 10)
+        trainer = _trainer(
+            scene,
+            _model(scene, pts[keep], col[keep], spc[keep]),
+            index,
+            time_budget=1e-9,  # the first instance only, then cut
+            reconstruct=ReconstructConfig(max_crop=64),
+        )
+        st = trainer.state
+        st["vad_train_s"] = 100.0
+        event = trainer.strategy.densify(trainer.model.params, trainer.optimizer, st, 0)
+        assert event["attempted"] == 1
+        assert event["candidates"] >= 2
+        assert event["skipped"].get("time_budget", 0) == event["candidates"] - 1
+        assert event["budget_s"] == pytest.approx(1e-7)
+        log = st["pending_log"][-1]
+        assert "time budget" in log["summary"] and "skipped" in log["summary"]
+        assert event["flagged_instances"] >= event["candidates"]
+        assert event["repaired"] <= event["attempted"]
+        assert event["total_s"] >= event["mvs_s"] > 0
+
+    def test_no_cap_by_default(self):
+        cfg = VisibilityDensifyConfig()
+        assert cfg.max_instances is None and cfg.time_budget == 0.1
+        with pytest.raises(ValueError, match="time_budget"):
+            VisibilityDensifyConfig(time_budget=0)
