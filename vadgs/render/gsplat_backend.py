@@ -263,8 +263,10 @@ def rasterize_gaussians_gsplat(
     pure-torch renderer's and are ignored (gsplat: 16-px tiles, its own backward); ``near``,
     ``far``, ``eps2d``, ``antialiased`` and ``absgrad`` (``impl="cuda"`` only) are passed on.
     Differentiable w.r.t. means, quats, scales, opacities, colours / SH, background and
-    ``world_to_cam`` (gsplat is not differentiable w.r.t. ``K``); ``means2d.grad`` is gsplat's
-    ``means2d`` gradient in pixels, as the pure-torch renderer's.
+    ``world_to_cam`` (gsplat is not differentiable w.r.t. ``K``). ``means2d`` is a leaf copy of
+    gsplat's screen means in our pixel convention: after ``backward()`` its ``.grad`` is gsplat's
+    ``means2d`` gradient in pixels (the densification statistic, as the pure-torch renderer's),
+    but a loss on ``means2d`` itself does not reach the Gaussians.
 
     Args:
         means: ``(N, 3)`` world means.
@@ -380,20 +382,20 @@ def rasterize_gaussians_gsplat(
         )  # fmt: skip
     render = render.permute(0, 3, 1, 2)
     alpha = alphas.permute(0, 3, 1, 2)
+    # Our pixel centres: a leaf copy of gsplat's means2d, 0.5 px lower, whose .grad (and absgrad)
+    # receive gsplat's means2d gradient during backward (gradients do not flow back through it).
     g_means2d = meta["means2d"]
-    means2d = g_means2d - 0.5  # our pixel centres; the same gradient as gsplat's means2d
-    if means2d.requires_grad:
-        means2d.retain_grad()
-    absgrad = None
-    if cfg.absgrad and g_means2d.requires_grad:
-        absgrad = torch.zeros_like(g_means2d.detach())
+    means2d = (g_means2d.detach() - 0.5).requires_grad_(g_means2d.requires_grad)
+    absgrad = torch.zeros_like(means2d.detach()) if cfg.absgrad and g_means2d.requires_grad else None
+    if g_means2d.requires_grad:
 
-        def _copy_absgrad(grad: torch.Tensor) -> None:
+        def _collect(grad: torch.Tensor) -> None:
+            means2d.grad = grad.detach().clone() if means2d.grad is None else means2d.grad + grad.detach()
             found = getattr(g_means2d, "absgrad", None)
-            if found is not None:
-                absgrad.copy_(found)
+            if absgrad is not None and found is not None:
+                absgrad.add_(found)
 
-        g_means2d.register_hook(_copy_absgrad)
+        g_means2d.register_hook(_collect)
     radii = meta["radii"].to(torch.int32)
     return RenderOutput(
         color=render[:, :d],
