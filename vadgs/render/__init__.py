@@ -4,9 +4,11 @@
 the per-Gaussian screen radii, visibility and 2D-mean gradients that densification needs;
 :class:`GaussianRasterizer` is its ``nn.Module``. The pieces are public too: EWA projection,
 spherical harmonics, tile binning, compositing and 3DGS PLY input/output.
+:func:`rasterize_gaussians_gsplat` renders the same inputs with gsplat (``RasterConfig(backend="gsplat")``).
 """
 
 from vadgs.render.composite import CompositeOutput, composite_gaussians
+from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
 from vadgs.render.ply import GaussianPly, load_ply, read_raw_ply, save_ply, write_raw_ply
 from vadgs.render.projection import ProjectedGaussians, project_gaussians, quaternion_to_rotation
 from vadgs.render.sh import SH_C0, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, sh_to_rgb
@@ -30,6 +32,7 @@ __all__ = [
     "project_gaussians",
     "quaternion_to_rotation",
     "rasterize_gaussians",
+    "rasterize_gaussians_gsplat",
     "read_raw_ply",
     "rgb_to_sh",
     "save_ply",

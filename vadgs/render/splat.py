@@ -53,6 +53,10 @@ class RasterConfig:
             backward; its cost was within the timing noise on benchmark case 1.
         backward: ``"manual"`` (hand-written backward, default) or ``"autograd"`` (the same loop
             differentiated by autograd; slower, more memory, for cross-checks).
+        backend: ``"torch"`` (this pure-torch renderer, default) or ``"gsplat"``
+            (:func:`~vadgs.render.gsplat_backend.rasterize_gaussians_gsplat`: gsplat's CUDA
+            rasterizer for CUDA tensors, its pure-torch reference pipeline otherwise; no median
+            depth; ``tile_size``, ``chunk_size`` and ``backward`` do not apply).
     """
 
     near: float = 0.01
@@ -66,6 +70,7 @@ class RasterConfig:
     chunk_size: int = 32
     absgrad: bool = False
     backward: str = "manual"
+    backend: str = "torch"
 
     def __post_init__(self) -> None:
         if not 0 < self.near < self.far:
@@ -85,6 +90,8 @@ class RasterConfig:
             )
         if self.backward not in ("manual", "autograd"):
             raise ValueError(f"backward: expected 'manual' or 'autograd', got {self.backward!r}")
+        if self.backend not in ("torch", "gsplat"):
+            raise ValueError(f"backend: expected 'torch' or 'gsplat', got {self.backend!r}")
 
 
 class RenderOutput(NamedTuple):
@@ -217,6 +224,10 @@ def rasterize_gaussians(
 ) -> RenderOutput:
     """Render 3D Gaussians into a batch of pinhole cameras.
 
+    With ``RasterConfig(backend="gsplat")`` the call goes to
+    :func:`~vadgs.render.gsplat_backend.rasterize_gaussians_gsplat` (same inputs and outputs,
+    gsplat's rasterizer; see ``docs/render.md``).
+
     Differentiable w.r.t. means, quats, scales, opacities, colors (RGB or SH), background,
     ``world_to_cam`` and ``K`` (through the projection). Radii, visibility and median ids are
     not; median depth is differentiable w.r.t. the depth of the median Gaussian.
@@ -262,6 +273,12 @@ def rasterize_gaussians(
         (torch.Size([1, 3, 24, 32]), 0.5, 4.0)
     """
     cfg = config or RasterConfig()
+    if cfg.backend == "gsplat":
+        from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
+
+        return rasterize_gaussians_gsplat(
+            means, quats, scales, opacities, colors, world_to_cam, K, image_size, background, sh_degree, cfg
+        )
     h, w = check_size(image_size)
     dims = _check_inputs(means, quats, scales, opacities, colors, world_to_cam, K, background)
     b, n, d = dims["B"], dims["N"], dims["D"]

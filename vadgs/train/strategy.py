@@ -106,8 +106,11 @@ class DefaultStrategyConfig:
         reset_every: opacity reset interval (0 = never).
         reset_value: opacities are clamped to this at a reset (gsplat: ``2 · prune_opa``... 3DGS 0.01).
         absgrad: use the absolute gradient (``RasterConfig.absgrad`` must be on).
-        max_gaussians: never grow beyond this count (the largest gradients win).
-        split_factor: scale divisor of split children.
+        max_gaussians: never grow beyond this count (the largest gradients win; gsplat has no cap).
+        split_factor: scale divisor of split children (gsplat hard-codes 1.6).
+        pause_refine_after_reset: no densification in the first this many steps after each
+            opacity reset, i.e. while ``step % reset_every < pause_refine_after_reset`` (gsplat's
+            setting; 0, the default, never pauses).
     """
 
     prune_opa: float = 0.005
@@ -122,12 +125,15 @@ class DefaultStrategyConfig:
     absgrad: bool = False
     max_gaussians: int = 1_000_000
     split_factor: float = 1.6
+    pause_refine_after_reset: int = 0
 
     def __post_init__(self) -> None:
         if self.refine_every < 1:
             raise ValueError(f"refine_every: expected >= 1, got {self.refine_every}")
         if self.max_gaussians < 1:
             raise ValueError(f"max_gaussians: expected >= 1, got {self.max_gaussians}")
+        if self.pause_refine_after_reset < 0:
+            raise ValueError(f"pause_refine_after_reset: expected >= 0, got {self.pause_refine_after_reset}")
 
 
 class DefaultStrategy:
@@ -136,6 +142,14 @@ class DefaultStrategy:
     The state holds ``grad2d (N,)`` (summed gradient norms), ``count (N,)`` (times visible),
     ``scene_scale`` and ``num_resets``; ``generator_state`` is not kept here (the trainer's
     generator drives the splits, passed as ``info["generator"]``).
+
+    Against ``gsplat.strategy.DefaultStrategy`` (``docs/train.md``; tested step by step): the same
+    clone / split / prune decisions with the same settings and ``reset_value = 2 * prune_opa``,
+    except that (1) gsplat <= 1.5.3 never resets opacities (its reset test
+    ``step % reset_every == 0 & step > 0`` is always False; gsplat PR #776), (2) vadgs prunes by size
+    after its first reset, gsplat once ``step > reset_every`` (the same steps whenever resets
+    happen), (3) vadgs caps growth at ``max_gaussians`` and (4) has no 2D-scale rules nor
+    ``revised_opacity``.
 
     Args:
         config: :class:`DefaultStrategyConfig`.
@@ -180,7 +194,8 @@ class DefaultStrategy:
         if step >= cfg.refine_stop_iter:
             return
         self._update_state(params, state, info)
-        if step > cfg.refine_start_iter and step % cfg.refine_every == 0:
+        paused = bool(cfg.reset_every) and step % cfg.reset_every < cfg.pause_refine_after_reset
+        if step > cfg.refine_start_iter and step % cfg.refine_every == 0 and not paused:
             state["last_refine"] = self.refine(params, optimizers, state, step, info.get("generator"))
         if cfg.reset_every and step > 0 and step % cfg.reset_every == 0:
             ops.reset_opacity(params, optimizers, cfg.reset_value)
