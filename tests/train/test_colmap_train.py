@@ -172,7 +172,8 @@ class TestSfmScene:
         ev = events[0]
         assert ev["tested"] > 0 and ev["flagged_instances"] > 0
         assert [i["class"] for i in ev["instances"]] == ["static"]  # a derived ground cell
-        assert ev["instances"][0]["reason"] == "ok" and ev["added"] > 100  # MVS on the SfM-only scene
+        # MVS on the SfM-only scene (points thinned to one per cell of their spacing)
+        assert ev["instances"][0]["reason"] == "ok" and ev["added"] > 50
         logged = [
             json.loads(line)["event"]
             for line in (out / "log.jsonl").read_text().splitlines()

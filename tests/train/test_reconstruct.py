@@ -187,3 +187,20 @@ class TestEventLog:
         assert cfg.max_instances is None and cfg.time_budget == 0.1
         with pytest.raises(ValueError, match="time_budget"):
             VisibilityDensifyConfig(time_budget=0)
+
+
+class TestViewCache:
+    def test_bounded_index_gives_the_same_maps(self, scene, index):
+        """A tiny byte budget drops views and recomputes them identically."""
+        from vadgs.train.reconstruct import ViewCache, build_visibility_index
+
+        small = build_visibility_index(scene)
+        small.view_cache = ViewCache(max_bytes=3 * 120 * 72 * 12)
+        views = list(scene.train_views)[:8]
+        for v in views + views:
+            d, lab = small.voxel_depth(v)
+            d0, lab0 = index.voxel_depth(v)
+            assert torch.equal(d, d0) and torch.equal(lab, lab0)
+            assert torch.equal(small.instances(v), index.instances(v))
+        assert small.view_cache.nbytes <= small.view_cache.max_bytes
+        assert len(small.view_cache.keys()) < 3 * len(views)

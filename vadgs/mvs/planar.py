@@ -84,7 +84,8 @@ def fit_plane_ransac(
     n = points.shape[0]
     if n < 3:
         return None
-    idx = torch.randint(0, n, (iterations, 3), generator=generator, device=points.device)
+    gdev = generator.device if generator is not None else points.device  # a CPU generator for CUDA points
+    idx = torch.randint(0, n, (iterations, 3), generator=generator, device=gdev).to(points.device)
     a, b, c = points[idx[:, 0]], points[idx[:, 1]], points[idx[:, 2]]
     normals = torch.cross(b - a, c - a, dim=-1)
     norm = normals.norm(dim=-1)

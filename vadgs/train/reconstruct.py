@@ -33,6 +33,7 @@ index.
 from __future__ import annotations
 
 import itertools
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +59,7 @@ __all__ = [
     "InstanceReconstruction",
     "MatchScale",
     "ReconstructConfig",
+    "ViewCache",
     "ViewRender",
     "VisibilityIndex",
     "build_visibility_index",
@@ -187,9 +189,63 @@ class InstanceReconstruction(NamedTuple):
     reason: str
 
 
+class ViewCache:
+    """Per-view tensors kept up to a byte budget; the least recently used are dropped first.
+
+    The visibility index computes a view's voxel z-buffer, voxel depth, instance map and image
+    on demand and keeps them here, so a long run on a large scene holds at most ``max_bytes``
+    of them (1 GiB by default: every view of the street scenes at 240×144; some hundred views at
+    1920×1280), and recomputes what was dropped.
+
+    Example:
+        >>> cache = ViewCache(max_bytes=100)
+        >>> a = cache.get(("image", 0), lambda: torch.zeros(10))  # 40 bytes
+        >>> b = cache.get(("image", 1), lambda: torch.zeros(10))
+        >>> c = cache.get(("image", 2), lambda: torch.zeros(10))  # 120 > 100: view 0 dropped
+        >>> sorted(k[1] for k in cache.keys()), cache.nbytes
+        ([1, 2], 80)
+    """
+
+    def __init__(self, max_bytes: int = 1 << 30) -> None:
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict = OrderedDict()
+        self.nbytes = 0
+
+    @staticmethod
+    def _size(value) -> int:
+        items = value if isinstance(value, tuple) else (value,)
+        return sum(x.numel() * x.element_size() for x in items if isinstance(x, torch.Tensor))
+
+    def get(self, key, make: Callable[[], object]):
+        """The cached value of ``key``, made by ``make()`` (and kept) when absent."""
+        if key in self._items:
+            self._items.move_to_end(key)
+            return self._items[key]
+        value = make()
+        self._items[key] = value
+        self.nbytes += self._size(value)
+        while self.nbytes > self.max_bytes and len(self._items) > 1:
+            _, old = self._items.popitem(last=False)
+            self.nbytes -= self._size(old)
+        return value
+
+    def keys(self):
+        """The keys held, least recently used first."""
+        return list(self._items)
+
+    def clear(self) -> None:
+        """Drop everything."""
+        self._items.clear()
+        self.nbytes = 0
+
+
 @dataclass
 class VisibilityIndex:
     """Voxel grids, labels and covisibility of a scene, built once by :func:`build_visibility_index`.
+
+    The grids, labels and covisibility are fixed once built; what is computed per view (voxel
+    z-buffer, voxel depth, instance map, image) is kept in ``view_cache``, a :class:`ViewCache` with
+    an explicit byte bound.
 
     Attributes:
         scene: the scene.
@@ -201,6 +257,9 @@ class VisibilityIndex:
         track_covis: track id → view selection input in the object's frame.
         allowed: ``(V,)`` bool, views that may support (the training views).
         zbuffer: settings of the z-buffer.
+        cell_size: ground-cell edge of derived instances (scenes without instance maps).
+        grow: pixels a derived instance map grows beyond the voxels.
+        view_cache: the per-view cache.
     """
 
     scene: Scene
@@ -212,23 +271,18 @@ class VisibilityIndex:
     track_covis: dict[int, Covisibility]
     allowed: torch.Tensor
     zbuffer: ZBufferConfig = field(default_factory=ZBufferConfig)
-    _rasters: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
-    _images: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
-    _instances: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
     cell_size: float = 10.0
     grow: int = 6
+    view_cache: ViewCache = field(default_factory=ViewCache, repr=False)
     _cells: torch.Tensor | None = field(default=None, repr=False)
     _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
-    _voxel_depths: dict[int, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
 
     def image(self, view: int, factor: int = 1) -> torch.Tensor:
         """``(3, H, W)`` image of a view (cached), or ``factor`` times finer (re-read, not cached)."""
         if factor != 1:
             h, w = self.cameras.image_size
             return self.scene.load_images([view], size=(h * factor, w * factor))[0]
-        if view not in self._images:
-            self._images[view] = self.scene.load_images([view])[0]
-        return self._images[view]
+        return self.view_cache.get(("image", view), lambda: self.scene.load_images([view])[0])
 
     @property
     def derives_instances(self) -> bool:
@@ -241,12 +295,13 @@ class VisibilityIndex:
         The scene's own map when it has one; otherwise :func:`derive_instance_map` (static
         voxel cells plus projected track boxes), which stands in for a segmentation network.
         """
-        if view not in self._instances:
+
+        def make() -> torch.Tensor:
             if self.scene.views[view].instances is not None:
-                self._instances[view] = self.scene.load_instances([view])[0]
-            else:
-                self._instances[view] = derive_instance_map(self, view)
-        return self._instances[view]
+                return self.scene.load_instances([view])[0]
+            return derive_instance_map(self, view)
+
+        return self.view_cache.get(("instances", view), make)
 
     def classes(self) -> dict[int, str]:
         """Instance id → class name, including derived static cells (``"static"``)."""
@@ -272,10 +327,12 @@ class VisibilityIndex:
 
     def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
-        if view not in self._rasters:
+
+        def make() -> tuple[torch.Tensor, torch.Tensor]:
             r = rasterize_voxels(self.grid, self.cameras[view], [view], self.zbuffer)
-            self._rasters[view] = (r.depth[0], r.index[0])
-        return self._rasters[view]
+            return r.depth[0], r.index[0]
+
+        return self.view_cache.get(("raster", view), make)
 
     def voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
@@ -287,8 +344,9 @@ class VisibilityIndex:
             ``(depth, label)``: the nearest voxel surface (0 where empty) and the instance label of
             its voxel (``(H, W)`` int64, 0 where empty; a track's id on its voxels).
         """
-        if view in self._voxel_depths:
-            return self._voxel_depths[view]
+        return self.view_cache.get(("voxel_depth", view), lambda: self._voxel_depth(view))
+
+    def _voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         depth, vidx = self.voxel_raster(view)
         label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
         depth = depth.clone()
@@ -304,7 +362,6 @@ class VisibilityIndex:
             closer = (r.depth[0] > 0) & ((depth == 0) | (r.depth[0] < depth))
             depth = torch.where(closer, r.depth[0], depth)
             label = torch.where(closer[0], torch.full_like(label, tid), label)
-        self._voxel_depths[view] = (depth, label)
         return depth, label
 
     def object_cameras(self, track: int) -> torch.Tensor:
@@ -719,12 +776,18 @@ def _depth_range(frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructC
 
 
 def _crop_group(
-    index: VisibilityIndex, group: list[int], instance: int, track: int | None, cfg: ReconstructConfig
+    index: VisibilityIndex,
+    group: list[int],
+    instance: int,
+    track: int | None,
+    cfg: ReconstructConfig,
+    device: torch.device,
 ) -> _Crops | str:
     """Step 3a: crops around the instance in each group view, at its matching scale (:func:`match_scale`).
 
     Sources match only inside their region: static pixels for a static instance, the object's own
-    pixels for a moving one.
+    pixels for a moving one. The group's images, masks and intrinsics move to ``device`` (where
+    the matching runs), once.
     """
     scene = index.scene
     h, w = index.cameras.image_size
@@ -764,6 +827,8 @@ def _crop_group(
             corners, ch, cw = [(y0 // f, x0 // f) for y0, x0 in corners], ch // f, cw // f
             K = scale_intrinsics(K, 1.0 / f)
             images = F.avg_pool2d(images, f)
+    images, regions, K = images.to(device), regions.to(device), K.to(device)
+    masks = [m.to(device) for m in masks]
     return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
 
 
@@ -961,6 +1026,7 @@ def reconstruct_instance(
     generator: torch.Generator | None = None,
     render_prior: Callable[[int], ViewRender] | None = None,
     occupied: torch.Tensor | None = None,
+    device: torch.device | str | None = None,
 ) -> InstanceReconstruction:
     """Reconstruct an instance seen in view ``ref`` from selected supporting views by PatchMatch.
 
@@ -970,7 +1036,7 @@ def reconstruct_instance(
     (:func:`~vadgs.mvs.geometric_consistency`) and planar completion
     (:func:`~vadgs.mvs.complete_planar`), the pixels the Gaussians already explain, fusion
     (:func:`~vadgs.mvs.fuse_depth_maps`, one point per consistent unexplained pixel, thinned to one
-    per cell of the point spacing by :func:`thin_points`), depth priors. On the device of ``index``.
+    per cell of the point spacing by :func:`thin_points`), depth priors.
 
     Args:
         index: the scene's :class:`VisibilityIndex`.
@@ -983,6 +1049,9 @@ def reconstruct_instance(
             ``0`` where unknown. A function returning ``(depth, normal)`` initialises only.
         occupied: optional ``(Q, 3)`` points in the instance's frame (e.g. added earlier in the same
             event) whose cells take no new point.
+        device: where the matching runs and the results are (default: the render prior's device
+            when given, else the index's). Only the group's images, masks and cameras move there;
+            the visibility index stays where it is.
 
     Returns:
         :class:`InstanceReconstruction` (possibly empty, with the reason).
@@ -992,7 +1061,9 @@ def reconstruct_instance(
     if not 0 <= ref < scene.num_views:
         raise ValueError(f"ref: expected a view in [0, {scene.num_views}), got {ref}")
     track = instance if instance in scene.tracks else None
-    dev = index.cameras.K.device
+    if device is None and render_prior is not None:
+        device = _renders(render_prior, ref)[0].device
+    dev = torch.device(device) if device is not None else index.cameras.K.device
     empty3 = torch.zeros(0, 3, device=dev)
 
     def nothing(reason: str, views: list[int] | None = None) -> InstanceReconstruction:
@@ -1009,11 +1080,13 @@ def reconstruct_instance(
     group = [ref, *sel.views.tolist()]
     if len(group) < 2:
         return nothing(f"selection:{sel.reason}")
-    crops = _crop_group(index, group, instance, track, cfg)  # 3. crops and PatchMatch
+    crops = _crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
     if isinstance(crops, str):
         return nothing(crops, group)
     w2c = frame.world_to_cam[group]
-    matched = _match(crops, group, w2c, _depth_range(frame, w2c[0], cfg), cfg, render_prior)
+    depth_range = _depth_range(frame, w2c[0], cfg)
+    w2c = w2c.to(dev)
+    matched = _match(crops, group, w2c, depth_range, cfg, render_prior)
     planar = cfg.planar is not None and track is None  # a car is not planar
     cons = _consistent(matched, crops, group, w2c, planar, cfg, generator)  # 4.
     new = cons.keep & ~_explained(cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
@@ -1028,7 +1101,7 @@ def reconstruct_instance(
         cfg.thin_points and points.shape[0]
     ):  # one point per cell of the scene resolution's spacing, or coarser
         spacing = spacing * crops.scale.up
-        keep = thin_points(points, float(spacing.median()), occupied)
+        keep = thin_points(points, float(spacing.median()), None if occupied is None else occupied.to(dev))
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)

@@ -336,17 +336,18 @@ def _keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> 
 def _view_test(
     index: VisibilityIndex, view: int, depth: torch.Tensor, alpha: torch.Tensor, config: IncompleteConfig
 ) -> tuple[torch.Tensor, ...]:
-    """The incompleteness test of one view, on the index's device.
+    """The incompleteness test of one view, on the render's device.
 
+    The view's instance map and voxel depth move to the render (the render does not move).
     Returns the fields of its :class:`~vadgs.train.incomplete.IncompleteInstances` (``view`` = 0).
     """
-    dev = index.cameras.K.device
+    dev = depth.device
     d, _ = index.voxel_depth(view)
     rows = find_incomplete(
-        index.instances(view)[None],
-        d[None],
-        depth.detach().reshape(1, 1, *depth.shape[-2:]).to(dev),
-        alpha.detach().reshape(1, 1, *alpha.shape[-2:]).to(dev),
+        index.instances(view)[None].to(dev),
+        d[None].to(dev),
+        depth.detach().reshape(1, 1, *depth.shape[-2:]),
+        alpha.detach().reshape(1, 1, *alpha.shape[-2:]),
         config,
     )
     return tuple(rows)
@@ -514,7 +515,7 @@ class VisibilityAwareDensification:
                 fields = _view_test(index, v, out.depth, out.alpha, self.config.incomplete)
             one = IncompleteInstances(*fields)
             parts.append(one._replace(view=torch.full_like(one.view, k)))
-        dev = index.cameras.K.device
+        dev = parts[0].view.device
         rows = IncompleteInstances(
             *(torch.cat([getattr(p, f).to(dev) for p in parts]) for f in IncompleteInstances._fields)
         )
@@ -724,8 +725,8 @@ class VisibilityAwareDensification:
         only where the voxel belongs to the pixel's own instance (elsewhere the z-buffer sees
         through missing geometry, e.g. the facade behind a sign, and would pull it backwards).
         ``None`` when the strategy or its losses are off, or the view has no prior. Tensors
-        ``(1, 1, H, W)`` / ``(1, 3, H, W)`` on the visibility index's device (the CPU for
-        LiDAR-built indices): move them to the render's device.
+        ``(1, 1, H, W)`` / ``(1, 3, H, W)`` on the device of the MVS priors (the render's), or of
+        the visibility index for a view without them: move them to the render's device.
         """
         cfg = self.config
         if not (cfg.visibility and cfg.geometric_losses):
@@ -737,7 +738,7 @@ class VisibilityAwareDensification:
             index = self.visibility_index()
             vd, vlabel = index.voxel_depth(view)
             vd = torch.where((vlabel == index.instances(view))[None], vd, torch.zeros_like(vd))
-            depth = vd if depth is None else torch.where(depth > 0, depth, vd)
+            depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))
         if depth is None:
             return None
         return GeometryTargets(depth=depth[None], normal=None if normal is None else normal[None])
