@@ -204,3 +204,36 @@ class TestViewCache:
             assert torch.equal(small.instances(v), index.instances(v))
         assert small.view_cache.nbytes <= small.view_cache.max_bytes
         assert len(small.view_cache.keys()) < 3 * len(views)
+
+
+class TestViewsOfDifferentSizes:
+    """A rig whose front-left camera is smaller (120x200 against 144x240) trains with VAD-GS."""
+
+    def test_event_adds_gaussians_from_both_sizes(self, tmp_path):
+        from tests.data.multisize_sample import write_multisize_sample
+        from vadgs.data import load_scene
+        from vadgs.train.trainer import TrainConfig, Trainer
+
+        sc = load_scene(write_multisize_sample(tmp_path))
+        sizes = {sc.image_size(v) for v in range(sc.num_views)}
+        assert sizes == {(120, 200), (144, 240)}
+        vad = VisibilityDensifyConfig(
+            every_cycles=1, time_budget=None, reconstruct=ReconstructConfig(max_crop=48)
+        )
+        trainer = Trainer(sc, TrainConfig(iterations=20, checkpoint_every=10**6, vad=vad), progress=False)
+        index = trainer.strategy.prepare()
+        assert index.cameras.image_size == (144, 240)
+        small = next(v for v in range(sc.num_views) if sc.image_size(v) == (120, 200))
+        # the smaller view's maps are padded: nothing (no voxel, no instance) outside its own area
+        d, _ = index.voxel_depth(small)
+        assert d.shape[-2:] == (144, 240) and not (d[0, 120:] > 0).any() and not (d[0, :, 200:] > 0).any()
+        assert not index.instances(small)[120:].any() and (index.instances(small)[:120, :200] > 0).any()
+        for _ in range(20):
+            trainer.train_step()
+        (event,) = trainer.state["vad_events"]
+        refs = {r: sc.image_size(r) for e in event["instances"] if e["added"] for r in e["references"]}
+        assert event["added"] > 500
+        assert set(refs.values()) == sizes  # Gaussians added from references of both sizes
+        # and the priors of the smaller views come back at their own size
+        targets = trainer.strategy.geometry_targets(trainer.state, small)
+        assert targets.depth.shape[-2:] == (120, 200)

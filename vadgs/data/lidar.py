@@ -83,9 +83,10 @@ def accumulate_lidar(
         p, i = p[keep], i[keep]
         view_ids = list(scene.frames[scene.frame_position(f)].view_ids)
         if p.shape[0] and view_ids:
-            pi, vi = observing_views(p, scene.cameras(view_ids), view_ids)
-            pv_p.append(pi + offset)
-            pv_v.append(vi)
+            for ids in scene.size_groups(view_ids):  # cameras of one image size at a time
+                pi, vi = observing_views(p, scene.cameras(ids), ids)
+                pv_p.append(pi + offset)
+                pv_v.append(vi)
         if track_id is not None and p.shape[0]:
             o2w = scene.tracks[track_id].object_to_world[scene.frame_position(f)]
             w2o = invert_rigid(o2w)

@@ -298,6 +298,20 @@ class Scene:
         cam_to_world = torch.stack([self.views[i].cam_to_world for i in ids])
         return Cameras(K, invert_rigid(cam_to_world), infos[0].image_size)
 
+    def size_groups(self, view_ids: Sequence[int] | None = None) -> list[list[int]]:
+        """The views split by image size (in order of first appearance), for batched camera ops.
+
+        Example:
+            >>> from vadgs.data import load_scene, sample_scene_path
+            >>> sc = load_scene(sample_scene_path())
+            >>> [len(g) for g in sc.size_groups()]  # one rig size
+            [24]
+        """
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i in self._ids(view_ids):
+            groups.setdefault(self.image_size(i), []).append(i)
+        return list(groups.values())
+
     # -- lazy per-view data ---------------------------------------------------------------------------
 
     def image_size(self, view_id: int) -> tuple[int, int]:

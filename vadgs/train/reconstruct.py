@@ -257,6 +257,11 @@ class VisibilityIndex:
         track_covis: track id → view selection input in the object's frame.
         allowed: ``(V,)`` bool, views that may support (the training views).
         zbuffer: settings of the z-buffer.
+        sizes: per view ``(H, W)`` when the views differ in size (a rig of cameras of different
+            sizes, a photo collection), else None. ``cameras.image_size`` is then the largest, and
+            every per-view map (voxel depth, index, instance map, image) is padded at its bottom
+            and right to it (depth 0, index -1, instance 0: no pixel there); intrinsics are
+            unchanged by such padding. :meth:`size` is a view's own size, :meth:`valid` its area.
         cell_size: ground-cell edge of derived instances (scenes without instance maps).
         grow: pixels a derived instance map grows beyond the voxels.
         view_cache: the per-view cache.
@@ -271,18 +276,42 @@ class VisibilityIndex:
     track_covis: dict[int, Covisibility]
     allowed: torch.Tensor
     zbuffer: ZBufferConfig = field(default_factory=ZBufferConfig)
+    sizes: tuple[tuple[int, int], ...] | None = None
     cell_size: float = 10.0
     grow: int = 6
     view_cache: ViewCache = field(default_factory=ViewCache, repr=False)
     _cells: torch.Tensor | None = field(default=None, repr=False)
     _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
 
+    def size(self, view: int) -> tuple[int, int]:
+        """``(H, W)`` of a view (its own, before padding)."""
+        return self.sizes[view] if self.sizes is not None else self.cameras.image_size
+
+    def camera(self, view: int) -> Cameras:
+        """The camera of one view at its own image size."""
+        return Cameras(
+            self.cameras.K[view : view + 1], self.cameras.world_to_cam[view : view + 1], self.size(view)
+        )
+
+    def valid(self, view: int) -> torch.Tensor:
+        """``(H, W)`` bool at the padded size: the view's own pixels."""
+        h, w = self.size(view)
+        out = torch.zeros(self.cameras.image_size, dtype=torch.bool, device=self.cameras.K.device)
+        out[:h, :w] = True
+        return out
+
+    def pad(self, x: torch.Tensor, value: float = 0, factor: int = 1) -> torch.Tensor:
+        """A view's map ``(..., h, w)`` padded at the bottom and right to the index's size (x ``factor``)."""
+        H, W = (n * factor for n in self.cameras.image_size)
+        h, w = x.shape[-2:]
+        return x if (h, w) == (H, W) else F.pad(x, (0, W - w, 0, H - h), value=value)
+
     def image(self, view: int, factor: int = 1) -> torch.Tensor:
         """``(3, H, W)`` image of a view (cached), or ``factor`` times finer (re-read, not cached)."""
         if factor != 1:
-            h, w = self.cameras.image_size
-            return self.scene.load_images([view], size=(h * factor, w * factor))[0]
-        return self.view_cache.get(("image", view), lambda: self.scene.load_images([view])[0])
+            h, w = self.size(view)
+            return self.pad(self.scene.load_images([view], size=(h * factor, w * factor))[0], factor=factor)
+        return self.view_cache.get(("image", view), lambda: self.pad(self.scene.load_images([view])[0]))
 
     @property
     def derives_instances(self) -> bool:
@@ -298,7 +327,7 @@ class VisibilityIndex:
 
         def make() -> torch.Tensor:
             if self.scene.views[view].instances is not None:
-                return self.scene.load_instances([view])[0]
+                return self.pad(self.scene.load_instances([view])[0])
             return derive_instance_map(self, view)
 
         return self.view_cache.get(("instances", view), make)
@@ -329,8 +358,8 @@ class VisibilityIndex:
         """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
 
         def make() -> tuple[torch.Tensor, torch.Tensor]:
-            r = rasterize_voxels(self.grid, self.cameras[view], [view], self.zbuffer)
-            return r.depth[0], r.index[0]
+            r = rasterize_voxels(self.grid, self.camera(view), [view], self.zbuffer)
+            return self.pad(r.depth[0]), self.pad(r.index[0], -1)
 
         return self.view_cache.get(("raster", view), make)
 
@@ -351,7 +380,7 @@ class VisibilityIndex:
         label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
         depth = depth.clone()
         fpos = self.scene.view_frame_position(view)
-        cams = self.cameras[view]
+        cams = self.camera(view)
         for tid, grid in self.track_grids.items():
             track = self.scene.tracks[tid]
             if not bool(track.valid[fpos]):
@@ -359,6 +388,7 @@ class VisibilityIndex:
             o2w = track.object_to_world[fpos].to(cams.world_to_cam)
             obj_cams = Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size)
             r = rasterize_voxels(grid, obj_cams, config=self.zbuffer)
+            r = r._replace(depth=self.pad(r.depth))
             closer = (r.depth[0] > 0) & ((depth == 0) | (r.depth[0] < depth))
             depth = torch.where(closer, r.depth[0], depth)
             label = torch.where(closer[0], torch.full_like(label, tid), label)
@@ -424,10 +454,11 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
     if index.grow > 0 and (lab > 0).any():
         dist, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
         lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
-    h, w = lab.shape
     info = scene.views[view]
     pos = scene.frame_position(info.frame)
-    cam = index.cameras[view]
+    cam = index.camera(view)
+    own = index.valid(view).numpy()
+    lab = np.where(own, lab, 0)  # nothing grows into the padding of a smaller view
     boxes = []
     for tid, t in scene.tracks.items():
         if not bool(t.valid[pos]):
@@ -444,9 +475,20 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
             hull = uv[ConvexHull(uv).vertices]
         except QhullError:
             continue
-        rr, cc = polygon(hull[:, 1], hull[:, 0], shape=(h, w))
+        rr, cc = polygon(hull[:, 1], hull[:, 0], shape=index.size(view))
         lab[rr, cc] = tid
     return torch.from_numpy(np.ascontiguousarray(lab)).long()
+
+
+def _padded_cameras(scene: Scene) -> tuple[Cameras, tuple[tuple[int, int], ...] | None]:
+    """Every view's camera, batched at the largest image size, and the views' own sizes if they differ."""
+    if len(scene.size_groups()) == 1:
+        return scene.cameras(), None
+    sizes = tuple(scene.image_size(v) for v in range(scene.num_views))
+    K = torch.stack([scene.cameras_info[v.camera].K for v in scene.views])
+    cam_to_world = torch.stack([v.cam_to_world for v in scene.views])
+    big = (max(h for h, _ in sizes), max(w for _, w in sizes))
+    return Cameras(K, invert_rigid(cam_to_world), big), sizes
 
 
 def build_visibility_index(
@@ -499,7 +541,7 @@ def build_visibility_index(
         raise ValueError(f"scene {scene.name!r}: no {what} of frames {frames}")
     grid = voxelize(points, voxel_size, point_views, scene.num_views)
     labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
-    cameras = scene.cameras()
+    cameras, sizes = _padded_cameras(scene)
     allowed = torch.zeros(scene.num_views, dtype=torch.bool, device=cameras.K.device)
     allowed[scene.train_views] = True
     index = VisibilityIndex(
@@ -512,6 +554,7 @@ def build_visibility_index(
         {},
         allowed,
         zbuffer or ZBufferConfig(),
+        sizes,
     )
     for tid in scene.tracks if has_lidar else ():
         tacc = accumulate_lidar(scene, frames, track_id=tid)
@@ -806,7 +849,8 @@ def _crop_group(
         ins = index.instances(v)
         if track is not None:
             return ins == instance
-        return ~torch.isin(ins, torch.tensor(sorted(scene.tracks), dtype=ins.dtype, device=ins.device))
+        static = ~torch.isin(ins, torch.tensor(sorted(scene.tracks), dtype=ins.dtype, device=ins.device))
+        return static & index.valid(v)
 
     regions = torch.stack([region(v) for v in group])[:, None]
     K = index.cameras.K[group]
@@ -832,15 +876,23 @@ def _crop_group(
     return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
 
 
-def _renders(render_prior, view: int) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """``(depth, alpha or None, normals)`` of a render prior's answer (a ViewRender or a pair)."""
+def _renders(
+    render_prior, view: int, index: VisibilityIndex | None = None
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """``(depth, alpha or None, normals)`` of a render prior's answer (a ViewRender or a pair).
+
+    Padded to the index's size when ``index`` is given (views of different sizes).
+    """
     out = render_prior(view)
-    if isinstance(out, tuple) and len(out) == 2:
-        return out[0], None, out[1]
-    return out.depth, out.alpha, out.normals
+    d, a, n = (out[0], None, out[1]) if isinstance(out, tuple) and len(out) == 2 else out
+    if index is not None:
+        d, n = index.pad(d), index.pad(n)
+        a = None if a is None else index.pad(a)
+    return d, a, n
 
 
 def _match(
+    index: VisibilityIndex,
     crops: _Crops,
     group: list[int],
     world_to_cam: torch.Tensor,
@@ -857,7 +909,7 @@ def _match(
         ref_masks.append(crops.masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
         ref_K.append(_shift_K(crops.K[i], x0, y0))
         if render_prior is not None:
-            d, _, n = _renders(render_prior, group[i])
+            d, _, n = _renders(render_prior, group[i], index)
             d, n = d.to(dev), n.to(dev)
             known = d > 0
             d, n = _to_scale(d, known, crops.scale), _to_scale(n, known, crops.scale, unit=True)
@@ -927,6 +979,7 @@ def _consistent(
 
 
 def _explained(
+    index: VisibilityIndex,
     cons: _Consistent,
     crops: _Crops,
     group: list[int],
@@ -945,7 +998,7 @@ def _explained(
     ch, cw = crops.size
     dev = cons.depth.device
     for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
-        d, a, _ = _renders(render_prior, group[i])
+        d, a, _ = _renders(render_prior, group[i], index)
         if a is None:
             continue
         d, a = d.to(dev), a.to(dev)
@@ -1086,10 +1139,10 @@ def reconstruct_instance(
     w2c = frame.world_to_cam[group]
     depth_range = _depth_range(frame, w2c[0], cfg)
     w2c = w2c.to(dev)
-    matched = _match(crops, group, w2c, depth_range, cfg, render_prior)
+    matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
     planar = cfg.planar is not None and track is None  # a car is not planar
     cons = _consistent(matched, crops, group, w2c, planar, cfg, generator)  # 4.
-    new = cons.keep & ~_explained(cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
+    new = cons.keep & ~_explained(index, cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
     fused = fuse_depth_maps(  # one point per such pixel, in the instance's frame
         cons.depth, matched.images, matched.K, matched.world_to_cam, cons.normal, new,
         FusionConfig(min_views=0, deduplicate=False),

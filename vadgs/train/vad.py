@@ -342,10 +342,11 @@ def _view_test(
     Returns the fields of its :class:`~vadgs.train.incomplete.IncompleteInstances` (``view`` = 0).
     """
     dev = depth.device
+    h, w = depth.shape[-2:]  # the view's own size (the index's maps may be padded)
     d, _ = index.voxel_depth(view)
     rows = find_incomplete(
-        index.instances(view)[None].to(dev),
-        d[None].to(dev),
+        index.instances(view)[None, :h, :w].to(dev),
+        d[None, :, :h, :w].to(dev),
         depth.detach().reshape(1, 1, *depth.shape[-2:]),
         alpha.detach().reshape(1, 1, *alpha.shape[-2:]),
         config,
@@ -741,4 +742,7 @@ class VisibilityAwareDensification:
             depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))
         if depth is None:
             return None
-        return GeometryTargets(depth=depth[None], normal=None if normal is None else normal[None])
+        h, w = self.prepare().size(view)  # the view's own size (the index's maps may be padded)
+        depth = depth[..., :h, :w]
+        normal = None if normal is None else normal[..., :h, :w]
+        return GeometryTargets(depth=depth[None], normal=normal if normal is None else normal[None])
