@@ -92,3 +92,27 @@ class TestConfigFromDict:
             config_from_dict(_Outer, {"names": [1]}, "c")
         with pytest.raises(ValueError, match=r"c.maybe.b: expected float, got str 'x'"):
             config_from_dict(_Outer, {"maybe": {"b": "x"}}, "c")
+
+
+class TestDeviceBackend:
+    """``vadgs train --device cuda`` renders with gsplat unless the backend is set explicitly."""
+
+    @staticmethod
+    def _config(argv):
+        import argparse
+
+        from vadgs.cli import COMMANDS, _train_config
+
+        p = argparse.ArgumentParser()
+        COMMANDS["train"].add_arguments(p)
+        return _train_config(p.parse_args(["scene", "--out", "run", *argv]))
+
+    def test_cuda_picks_gsplat(self):
+        assert self._config([]).raster.backend == "torch"
+        assert self._config(["--device", "cpu"]).raster.backend == "torch"
+        assert self._config(["--device", "cuda"]).raster.backend == "gsplat"
+        assert self._config(["--device", "cuda:1"]).raster.backend == "gsplat"
+
+    def test_explicit_backend_wins(self):
+        cfg = self._config(["--device", "cuda", "--set", "raster.backend=torch"])
+        assert cfg.raster.backend == "torch"

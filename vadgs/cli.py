@@ -234,6 +234,9 @@ def _train_config(args: argparse.Namespace) -> object:
             d[key] = getattr(args, flag)
     if getattr(args, "max_gaussians", None) is not None:
         d["strategy"]["max_gaussians"] = args.max_gaussians
+    backend_set = any(item.split("=", 1)[0] == "raster.backend" for item in args.set or [])
+    if str(d.get("device", "cpu")).startswith("cuda") and not backend_set:
+        d.setdefault("raster", {})["backend"] = "gsplat"  # gsplat's CUDA rasterizer on GPUs
     if getattr(args, "appearance", False):
         d["appearance"] = d.get("appearance") or {}
     config = TrainConfig.from_dict(d)
@@ -602,7 +605,11 @@ def _train_args(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="--out may hold a previous run: its files are removed and training starts over",
     )
-    p.add_argument("--device", help="torch device for the model and losses (cpu, cuda, cuda:1; default cpu)")
+    p.add_argument(
+        "--device",
+        help="torch device for the model and losses (cpu, cuda, cuda:1; default cpu); on CUDA the "
+        "renderer is gsplat's (raster.backend=gsplat) unless --set raster.backend=torch",
+    )
     p.add_argument("--vad", action="store_true", help="VAD-GS visibility-aware densification (the paper)")
     p.add_argument(
         "--no-view-selection", action="store_true", help="ablation: consecutive frames (with --vad)"
