@@ -44,6 +44,8 @@ VARIANTS = {
     # strategy variants (not paper ablations): redo instances still flagged, planar completion,
     # finer matching of small instances
     "cooldown0": VisibilityDensifyConfig(cooldown_events=0),
+    "cooldown1": VisibilityDensifyConfig(cooldown_events=1),
+    "references3": VisibilityDensifyConfig(references=3),
     "cooldown0_4096": VisibilityDensifyConfig(
         cooldown_events=0, reconstruct=ReconstructConfig(max_match_pixels=4096)
     ),

@@ -37,7 +37,7 @@ def main() -> None:
         iterations=args.steps,
         strategy=dataclasses.replace(cfg.strategy, refine_start_iter=10, refine_every=10),
         checkpoint_every=0,
-        vad=VisibilityDensifyConfig(every_cycles=1, max_instances=2),
+        vad=VisibilityDensifyConfig(every_cycles=1, max_instances=2, time_budget=None),
     )
     trainer = Trainer(load_scene(args.scene, scale=0.5), cfg, progress=False)
     loss = float("nan")

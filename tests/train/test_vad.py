@@ -359,8 +359,8 @@ class TestResumeWithVad:
         from vadgs.train.trainer import CHECKPOINT_NAME
 
         vad = VisibilityDensifyConfig(
-            every_cycles=1, max_instances=2, reconstruct=ReconstructConfig(max_crop=48)
-        )
+            every_cycles=1, max_instances=2, time_budget=None, reconstruct=ReconstructConfig(max_crop=48)
+        )  # no time budget: a run whose cut depends on the machine's speed is not reproducible
         # 18 training views: events after steps 17 and 35; interrupted in between
         config = dataclasses.replace(tiny_config, iterations=40, vad=vad)
         full = Trainer(tiny_scene, config, progress=False)
@@ -398,8 +398,8 @@ class TestProvenance:
         from vadgs.train.trainer import CHECKPOINT_NAME
 
         vad = VisibilityDensifyConfig(
-            every_cycles=1, max_instances=2, reconstruct=ReconstructConfig(max_crop=48)
-        )
+            every_cycles=1, max_instances=2, time_budget=None, reconstruct=ReconstructConfig(max_crop=48)
+        )  # no time budget: a run whose cut depends on the machine's speed is not reproducible
         # 18 training views: the first event after step 17; stopped right after it
         config = dataclasses.replace(tiny_config, iterations=40, vad=vad)
 
