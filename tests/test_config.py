@@ -116,3 +116,50 @@ class TestDeviceBackend:
     def test_explicit_backend_wins(self):
         cfg = self._config(["--device", "cuda", "--set", "raster.backend=torch"])
         assert cfg.raster.backend == "torch"
+
+
+class TestThreads:
+    """``--threads`` holds for the command only; without it torch's count is left alone."""
+
+    def test_threads_apply_during_the_command_and_are_restored(self, monkeypatch):
+        import torch
+
+        from vadgs import cli
+        from vadgs.data import sample_scene_path
+
+        seen = []
+        check = cli.COMMANDS["check"]
+
+        def spy(args):
+            """Validate a scene (counting threads)."""
+            seen.append(torch.get_num_threads())
+            return check(args)
+
+        spy.add_arguments = check.add_arguments
+        monkeypatch.setitem(cli.COMMANDS, "check", spy)
+        before = torch.get_num_threads()
+        other = 1 if before != 1 else 2
+        assert cli.main(["--threads", str(other), "check", str(sample_scene_path())]) == 0
+        assert cli.main(["check", str(sample_scene_path())]) == 0
+        assert seen == [other, before]
+        assert torch.get_num_threads() == before
+
+    def test_trainer_restores_the_callers_count(self, tmp_path):
+        import torch
+
+        from vadgs.data import load_scene, sample_scene_path
+        from vadgs.train.init import InitConfig
+        from vadgs.train.trainer import Trainer
+
+        before = torch.get_num_threads()
+        other = 1 if before != 1 else 2
+        seen = []
+        config = TrainConfig(
+            iterations=2, threads=other, init=InitConfig(voxel_size=1.0, max_points=300, sh_degree=0)
+        )
+        scene = load_scene(sample_scene_path(), scale=0.25)
+        Trainer(
+            scene, config, progress=False, callback=lambda t, s: seen.append(torch.get_num_threads())
+        ).train()
+        assert seen == [other, other]
+        assert torch.get_num_threads() == before

@@ -7,6 +7,7 @@ with an ``add_arguments(parser)`` attribute. ``vadgs --help`` lists them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -481,7 +482,6 @@ def train(args: argparse.Namespace) -> int:
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
     from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, describe_run, open_scene
 
-    torch.set_num_threads(args.threads or 2)
     out = _check_out_dir(args.out, create=False)
     progress = not args.no_progress
     if args.resume:
@@ -655,7 +655,6 @@ def eval_run(args: argparse.Namespace) -> int:
     """
     from vadgs.train.evaluate import evaluate_split
 
-    torch.set_num_threads(args.threads or 2)
     model, scene, config, ckpt = _load_run(args.run)
     groups = evaluate_split(
         model,
@@ -716,7 +715,6 @@ def render_run(args: argparse.Namespace) -> int:
     (``shift:METRES``, + = left; ``shift:X,Y,Z``), colour | depth | normals side by side, moving
     cars at their poses (interpolated between frames with ``--frames-between``).
     """
-    torch.set_num_threads(args.threads or 2)
     model, scene, config, ckpt = _load_run(args.run)
     if args.video:
         from vadgs.train.video import ego_trajectory, parse_trajectory, render_video
@@ -783,7 +781,6 @@ def export_run(args: argparse.Namespace) -> int:
     """
     from vadgs.train.export import export_world
 
-    torch.set_num_threads(args.threads or 2)
     model, scene, _, ckpt = _load_run(args.run)
     frame, _ = _frame_arg(scene, args.frame)
     out = Path(args.out) if args.out else _run_dir(args.run) / "export" / f"frame{frame:03d}"
@@ -817,7 +814,6 @@ def view_run(args: argparse.Namespace) -> int:
         raise ImportError("vadgs view needs viser: pip install 'vadgs[viewer]'") from None
     from vadgs.viewer import build_viewer
 
-    torch.set_num_threads(args.threads or 2)
     model, scene, _, _ = _load_run(args.run)
     _, position = _frame_arg(scene, args.frame)
     server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
@@ -866,7 +862,6 @@ def demo(args: argparse.Namespace) -> int:
     from vadgs.train.trainer import TrainConfig, Trainer
     from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
-    torch.set_num_threads(args.threads or 2)
     out = _check_out_dir(args.out)
     ref = {"kind": "benchmark", "path": str(_scene_arg(None)), "scale": DEMO_SCALE}
     scene = load_scene(ref["path"], scale=DEMO_SCALE)
@@ -1096,17 +1091,21 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="vadgs", description="VAD-GS: visibility-aware densification for 3DGS"
     )
-    parser.add_argument("--threads", type=_int_at_least(1), default=None, help="torch CPU threads (>= 1)")
+    parser.add_argument(
+        "--threads",
+        type=_int_at_least(1),
+        default=None,
+        help="torch CPU threads (>= 1; default: torch's, all cores)",
+    )
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
     for name, fn in COMMANDS.items():
         p = sub.add_parser(name, help=(fn.__doc__ or "").strip().splitlines()[0])
         fn.add_arguments(p)  # type: ignore[attr-defined]
     args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
     try:
-        return COMMANDS[args.command](args)
+        with _torch_threads(args.threads), _colmap_log_level(0 if args.debug else None):
+            return COMMANDS[args.command](args)
     except KeyboardInterrupt:
         if args.debug:
             raise
@@ -1117,6 +1116,36 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"vadgs {args.command}: error: {_one_line(e)}", file=sys.stderr)
         return 3 if isinstance(e, FloatingPointError) else 2
+
+
+@contextlib.contextmanager
+def _torch_threads(threads: int | None):
+    """``torch.set_num_threads(threads)`` for the command (None: leave it; all cores in a new process).
+
+    The previous count comes back afterwards, so ``main`` called in-process (tests, notebooks,
+    ``vadgs batch``) leaves the process as it found it.
+    """
+    before = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+@contextlib.contextmanager
+def _colmap_log_level(level: int | None):
+    """The pycolmap log level for the command (``--debug``: everything), restored afterwards."""
+    from vadgs.data import colmap
+
+    before = colmap.COLMAP_LOG_LEVEL
+    if level is not None:
+        colmap.COLMAP_LOG_LEVEL = level
+    try:
+        yield
+    finally:
+        colmap.COLMAP_LOG_LEVEL = before
 
 
 def _one_line(e: BaseException) -> str:

@@ -173,6 +173,20 @@ class TestUndistortion:
         with pytest.raises(ValueError, match="refusing to replace"):
             open_colmap_project(root, undistort_dir=tmp_path / "other")
 
+    def test_pycolmap_is_quiet_unless_asked(self, tmp_path, capfd, monkeypatch):
+        from vadgs.data import colmap as colmap_module
+        from vadgs.data.colmap import undistort_colmap
+
+        root = tmp_path / "proj"
+        write_sample_colmap(root, model="OPENCV", k=0.05, n_points=100)
+        args = (root / "sparse" / "0", root / "images")
+        capfd.readouterr()
+        undistort_colmap(*args, tmp_path / "quiet")
+        assert "Undistorting image" not in capfd.readouterr().err
+        monkeypatch.setattr(colmap_module, "COLMAP_LOG_LEVEL", 0)  # what ``vadgs --debug`` sets
+        undistort_colmap(*args, tmp_path / "loud")
+        assert capfd.readouterr().err.count("Undistorting image") == 24
+
     def test_recipe_reopens_identically(self, project):
         root, _ = project
         colmap, recipe = open_colmap_project(root, scale=0.5)

@@ -52,7 +52,7 @@ class TestKilledRun:
             import os, signal, sys, torch
             from vadgs.data import load_scene, sample_scene_path
             from vadgs.train.trainer import TrainConfig, Trainer
-            torch.set_num_threads(2)
+            torch.set_num_threads({torch.get_num_threads()})  # the parent's: bit-exact needs the same count
             scene = load_scene(sample_scene_path(), scale=0.25)
             config = TrainConfig.from_dict({config.to_dict()!r})
             def kill(trainer, step):

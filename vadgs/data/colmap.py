@@ -39,6 +39,7 @@ model, and :func:`match_colmap_views` checks that a model belongs to another sce
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 import warnings
@@ -72,6 +73,11 @@ __all__ = [
 
 #: vadgs pixel coordinates = COLMAP pixel coordinates + this offset (pixel centres at integers).
 COLMAP_PIXEL_OFFSET = -0.5
+
+COLMAP_LOG_LEVEL = 1
+"""pycolmap's glog ``minloglevel`` while vadgs calls pycolmap: 0 info, 1 warnings (the default:
+undistortion's hundreds of info lines stay quiet), 2 errors. ``vadgs --debug`` sets 0; a level
+the caller set higher (``pycolmap.logging.minloglevel``) is kept."""
 
 _PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 _DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -502,6 +508,19 @@ def distorted_cameras(sparse_dir: str | Path) -> list[str]:
     ]
 
 
+@contextlib.contextmanager
+def _colmap_logging():
+    """The pycolmap log at :data:`COLMAP_LOG_LEVEL` (or the caller's higher level), restored after."""
+    import pycolmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(before, COLMAP_LOG_LEVEL)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
+
 def undistort_colmap(
     sparse_dir: str | Path, images_dir: str | Path, out_dir: str | Path
 ) -> tuple[Path, Path]:
@@ -541,7 +560,8 @@ def undistort_colmap(
             )
         shutil.rmtree(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    pycolmap.undistort_images(str(out_dir), str(sparse_dir), str(images_dir))
+    with _colmap_logging():
+        pycolmap.undistort_images(str(out_dir), str(sparse_dir), str(images_dir))
     if not _has_model(out_dir / "sparse"):
         raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
     return out_dir / "sparse", out_dir / "images"

@@ -155,7 +155,8 @@ class TrainConfig:
             last checkpoint (0 = off). The end of the first sampling cycle always checkpoints.
         log_every: steps between log lines in ``log.jsonl``.
         max_minutes: stop (and checkpoint) after this much training time (0 = no limit).
-        threads: ``torch.set_num_threads`` (0 = leave).
+        threads: ``torch.set_num_threads`` while :meth:`Trainer.train` runs, restored afterwards
+            (0 = leave torch's count: all cores unless the caller set it).
         diverge_distance, diverge_share: at step 1, every ``log_every`` steps and at the end of
             each sampling cycle, training stops with
             :class:`DivergenceError` when more than ``diverge_share`` of the static Gaussians are
@@ -596,8 +597,6 @@ class Trainer:
         self.extra_losses = extra_losses
         self.progress = progress
         self.callback = callback
-        if self.config.threads:
-            torch.set_num_threads(self.config.threads)
         self.train_views = list(scene.train_views)
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
@@ -990,6 +989,15 @@ class Trainer:
             DivergenceError: when the model diverges (see :class:`TrainConfig`), naming the step.
             OSError: when a checkpoint cannot be written (naming the file; the previous one is kept).
         """
+        before = torch.get_num_threads()
+        if self.config.threads:
+            torch.set_num_threads(self.config.threads)
+        try:
+            return self._train()
+        finally:
+            torch.set_num_threads(before)  # the process's thread count is the caller's
+
+    def _train(self) -> TrainResult:
         from tqdm import tqdm
 
         cfg = self.config
