@@ -26,6 +26,7 @@ def write_sample_colmap(
     link_images: bool = True,
     name_prefix: str = "",
     shift: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    crop: dict[str, tuple[int, int]] | None = None,
 ) -> dict:
     """Write ``root/sparse/0`` (and ``root/images`` -> the sample's images).
 
@@ -37,6 +38,9 @@ def write_sample_colmap(
         link_images: make ``root/images`` a symlink to the sample's images.
         name_prefix: prepended to every image name (a mismatching model when not empty).
         shift: added to every camera centre and point (a model in another world frame).
+        crop: ``{camera: (H, W)}``: that camera's images keep their top-left ``H x W`` (same
+            intrinsics, observations outside dropped): a rig of several image sizes. The
+            images are then copied into ``root/images`` (``link_images`` ignored).
 
     Returns:
         ``{"scene", "names", "points", "obs"}``: the sample scene (full resolution), the image
@@ -50,8 +54,9 @@ def write_sample_colmap(
     names = [str(Path(v.image).relative_to(images_root)) for v in scene.views]
     rec = pycolmap.Reconstruction()
     cam_ids = {}
+    crop = crop or {}
     for i, (cname, info) in enumerate(scene.cameras_info.items()):
-        h, w = info.image_size
+        h, w = crop.get(cname, info.image_size)
         fx, fy = float(info.K[0, 0]), float(info.K[1, 1])
         cx, cy = float(info.K[0, 2]) + 0.5, float(info.K[1, 2]) + 0.5  # COLMAP pixel convention
         params = {
@@ -80,6 +85,9 @@ def write_sample_colmap(
         cam = rec.cameras[cam_ids[v.camera]]
         cam_pts = pts.numpy()[sel] @ cfw[:, :3].T + cfw[:, 3]
         uv = np.asarray(cam.img_from_cam(cam_pts)).reshape(-1, 2)
+        if v.camera in crop:  # observations in the cropped part only
+            inside = (uv[:, 0] < cam.width) & (uv[:, 1] < cam.height)
+            sel, uv = sel[inside], uv[inside]
         image = pycolmap.Image(
             name=name_prefix + names[v.index], keypoints=uv, camera_id=cam_ids[v.camera], image_id=v.index + 1
         )
@@ -96,6 +104,14 @@ def write_sample_colmap(
     sparse = root / "sparse" / "0"
     sparse.mkdir(parents=True, exist_ok=True)
     rec.write(str(sparse))
-    if link_images:
+    if crop:
+        from PIL import Image
+
+        for v, name in zip(scene.views, names):
+            dst = root / "images" / name
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            h, w = crop.get(v.camera, scene.cameras_info[v.camera].image_size)
+            Image.fromarray(np.asarray(Image.open(images_root / name))[:h, :w]).save(dst)
+    elif link_images:
         (root / "images").symlink_to(images_root, target_is_directory=True)
     return {"scene": scene, "names": names, "points": pts, "obs": pairs}

@@ -16,7 +16,7 @@ from vadgs.train.trainer import open_scene
 
 from ..data.colmap_sample import write_sample_colmap
 
-pytest.importorskip("pycolmap")
+pycolmap = pytest.importorskip("pycolmap")
 
 FAST = ["--scale", "0.25", "--no-progress", "--set", "init.sh_degree=0", "--set", "init.max_points=400"]
 
@@ -180,3 +180,21 @@ class TestSfmScene:
             if "event" in line
         ]
         assert len(logged) == 1 and logged[0]["added"] == ev["added"]
+
+    def test_vad_on_a_rig_of_two_image_sizes(self, tmp_path):
+        """Cameras of different sizes (front_left cropped to 120x200): an event adds Gaussians."""
+        root, out = tmp_path / "proj", tmp_path / "vad"
+        write_sample_colmap(root, n_points=1500, crop={"front_left": (120, 200)})
+        sizes = {
+            (c.height, c.width) for c in pycolmap.Reconstruction(str(root / "sparse" / "0")).cameras.values()
+        }
+        assert sizes == {(120, 200), (144, 240)}
+        argv = ["train", str(root), "--out", str(out), "--iterations", "24", "--vad"]
+        argv += ["--set", "vad.every_cycles=1", "--set", "vad.references=2", "--set", "vad.time_budget=null"]
+        argv += ["--set", "vad.reconstruct.max_crop=48", *FAST]
+        assert main(argv) == 0
+        (event,) = json.loads((out / "metrics.json").read_text())["vad_events"]
+        assert event["flagged_instances"] > 0 and event["added"] > 50
+        scene = open_scene(json.loads((out / "config.json").read_text())["scene"])
+        refs = {scene.image_size(r) for e in event["instances"] if e["added"] for r in e["references"]}
+        assert refs == {(30, 50), (36, 60)}  # Gaussians added from references of both sizes
