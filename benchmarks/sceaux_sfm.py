@@ -9,6 +9,9 @@ Run (from the repository root; ../shared present; about a minute on one CPU core
 
     python benchmarks/sceaux_sfm.py /work/shared/data/real/sceaux_castle/images --out /work/runs/sceaux
 
+``--mixed-sizes`` makes a photo collection instead: every photo at its own size and with its own
+camera (see :data:`MIXED_FACTORS`).
+
 then train on the project folder, e.g. ``vadgs train /work/runs/sceaux --out ...`` (see
 ``docs/results.md``, "A COLMAP scene").
 """
@@ -23,25 +26,37 @@ from pathlib import Path
 
 from PIL import Image
 
+MIXED_FACTORS = (1.0, 1.3, 1.6, 1.15)
+"""``--mixed-sizes``: photo ``i`` is downscaled by ``factor * MIXED_FACTORS[i % 4]`` and cropped by
+``i % 3`` percent on the right: a collection of photos of different sizes, one camera each."""
 
-def downscale_images(src: Path, dst: Path, factor: int) -> list[str]:
-    """Write every JPG/PNG of ``src`` to ``dst`` at ``1 / factor`` of its size (PNG, lossless)."""
+
+def downscale_images(src: Path, dst: Path, factor: int, mixed: bool = False) -> list[str]:
+    """Write every JPG/PNG of ``src`` to ``dst`` at ``1 / factor`` of its size (PNG, lossless).
+
+    ``mixed``: every photo at its own size (see :data:`MIXED_FACTORS`), as in a photo collection.
+    """
     dst.mkdir(parents=True, exist_ok=True)
     names = []
-    for p in sorted(src.iterdir()):
-        if p.suffix.lower() not in (".jpg", ".jpeg", ".png"):
-            continue
+    photos = [p for p in sorted(src.iterdir()) if p.suffix.lower() in (".jpg", ".jpeg", ".png")]
+    for i, p in enumerate(photos):
+        f = factor * (MIXED_FACTORS[i % len(MIXED_FACTORS)] if mixed else 1.0)
         with Image.open(p) as im:
             im = im.convert("RGB")
-            small = im.resize((im.width // factor, im.height // factor), Image.Resampling.BOX)
+            small = im.resize((int(im.width / f), int(im.height / f)), Image.Resampling.BOX)
+        if mixed and i % 3:
+            small = small.crop((0, 0, small.width * (100 - i % 3) // 100, small.height))
         name = p.stem + ".png"
         small.save(dst / name)
         names.append(name)
     return names
 
 
-def run_sfm(out: Path, threads: int = 1, seed: int = 0) -> dict:
-    """pycolmap SfM on ``out/images`` into ``out/sparse/0``; returns a summary."""
+def run_sfm(out: Path, threads: int = 1, seed: int = 0, per_image: bool = False) -> dict:
+    """pycolmap SfM on ``out/images`` into ``out/sparse/0``; returns a summary.
+
+    ``per_image``: one camera per photo (``CameraMode.PER_IMAGE``), else one shared camera.
+    """
     import pycolmap
 
     db = out / "database.db"
@@ -50,7 +65,8 @@ def run_sfm(out: Path, threads: int = 1, seed: int = 0) -> dict:
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     pycolmap.extract_features(
-        db, out / "images", camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=extraction,
+        db, out / "images", extraction_options=extraction,
+        camera_mode=pycolmap.CameraMode.PER_IMAGE if per_image else pycolmap.CameraMode.SINGLE,
         device=pycolmap.Device.cpu,
     )  # fmt: skip
     matching = pycolmap.FeatureMatchingOptions()
@@ -82,6 +98,8 @@ def run_sfm(out: Path, threads: int = 1, seed: int = 0) -> dict:
         "points": best.num_points3D(),
         "mean_track_length": round(best.compute_mean_track_length(), 2),
         "mean_reprojection_error_px": round(best.compute_mean_reprojection_error(), 3),
+        "cameras": len(best.cameras),
+        "image_sizes": sorted({(c.width, c.height) for c in best.cameras.values()}),
         "camera": str(next(iter(best.cameras.values()))),
         "features_and_matching_s": round(t1 - t0, 1),
         "mapping_s": round(t2 - t1, 1),
@@ -95,9 +113,11 @@ def main() -> None:
     p.add_argument("--factor", type=int, default=4, help="downscale factor of the photos (default 4)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--mixed-sizes", action="store_true", help="photos of different sizes, one camera each")
     args = p.parse_args()
-    names = downscale_images(args.images, args.out / "images", args.factor)
-    summary = {"factor": args.factor, "names": names, **run_sfm(args.out, args.threads, args.seed)}
+    names = downscale_images(args.images, args.out / "images", args.factor, args.mixed_sizes)
+    sfm = run_sfm(args.out, args.threads, args.seed, per_image=args.mixed_sizes)
+    summary = {"factor": args.factor, "mixed_sizes": args.mixed_sizes, "names": names, **sfm}
     (args.out / "sfm.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
 

@@ -237,3 +237,15 @@ class TestViewsOfDifferentSizes:
         # and the priors of the smaller views come back at their own size
         targets = trainer.strategy.geometry_targets(trainer.state, small)
         assert targets.depth.shape[-2:] == (120, 200)
+        # evaluation and video render every view at its own size
+        from vadgs.train.evaluate import evaluate
+        from vadgs.train.video import ego_trajectory, render_video
+
+        big = next(v for v in range(sc.num_views) if sc.image_size(v) == (144, 240))
+        metrics = evaluate(trainer.model, sc, views=[small, big], with_lpips=False)
+        assert [m["view"] for m in metrics.per_view] == [small, big]
+        assert all(m["psnr"] > 10 for m in metrics.per_view)
+        info = render_video(
+            trainer.model, sc, tmp_path / "v.mp4", ego_trajectory(sc, "front_left"), progress=False
+        )
+        assert info.size[1] == 3 * 200 and info.num_frames == len(sc.frames)
