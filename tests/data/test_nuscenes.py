@@ -388,6 +388,43 @@ class TestLoadNuscenes:
             load_nuscenes(root, "scene-0061")
         assert load_nuscenes(root, "scene-0061", check_files=False).num_views == 2 * N_FRAMES
 
+    def test_without_annotation_tables(self, nus):
+        """A keyframe extract without annotation tables loads with no instances and no tracks."""
+        root, _ = nus
+        full = load_nuscenes(root, "scene-0061")
+        for name in ("sample_annotation", "instance", "category", "log"):
+            (root / "v1.0-mini" / f"{name}.json").unlink()
+        scene = load_nuscenes(root, "scene-0061")
+        assert scene.instances == {} and scene.tracks == {}
+        assert scene.num_views == full.num_views
+        assert (scene.lidar(3).instance == 0).all()
+
+    def test_annotations_need_instance_table(self, nus):
+        root, _ = nus
+        (root / "v1.0-mini" / "instance.json").unlink()
+        with pytest.raises(FileNotFoundError, match=r"nuScenes table instance\.json: missing file"):
+            load_nuscenes(root, "scene-0061")
+
+    def test_without_sample_links(self, nus):
+        """Without first_sample_token / next, the keyframes are the scene's samples in time order."""
+        root, _ = nus
+        full = load_nuscenes(root, "scene-0061")
+        meta = root / "v1.0-mini"
+        scenes = json.loads((meta / "scene.json").read_text())
+        for sc in scenes:
+            sc.pop("first_sample_token")
+        (meta / "scene.json").write_text(json.dumps(scenes))
+        samples = json.loads((meta / "sample.json").read_text())
+        for s in samples:
+            s.pop("prev", None), s.pop("next", None)
+        (meta / "sample.json").write_text(json.dumps(samples[::-1]))
+        scene = load_nuscenes(root, "scene-0061")
+        assert [f.timestamp for f in scene.frames] == [f.timestamp for f in full.frames]
+        for a, b in zip(scene.views, full.views):
+            torch.testing.assert_close(a.cam_to_world, b.cam_to_world)
+        with pytest.raises(ValueError, match=r"scene-0001: scene\.json has no first_sample_token"):
+            load_nuscenes(root, "scene-0001")
+
     def test_missing_token(self, nus):
         root, _ = nus
         path = root / "v1.0-mini" / "sample_annotation.json"

@@ -4,7 +4,8 @@ vadgs reads the tables of a nuScenes release directly (``<dataroot>/<version>/*.
 layout that ``nuscenes-devkit`` reads) and needs no ``nuscenes-devkit`` installed. The tables used:
 
 - ``scene.json`` (``name``, ``first_sample_token``), ``sample.json`` (keyframes, linked by
-  ``next``, ``timestamp`` in µs);
+  ``next``, ``timestamp`` in µs). Without ``first_sample_token`` (a hand-trimmed extract) the
+  keyframes are the samples whose ``scene_token`` is the scene's, in time order;
 - ``sample_data.json`` (one file per sensor reading: ``sample_token``, ``is_key_frame``,
   ``ego_pose_token``, ``calibrated_sensor_token``, ``filename``, ``width``, ``height``,
   ``timestamp``), ``calibrated_sensor.json`` (sensor → ego: ``translation``, ``rotation`` as
@@ -13,6 +14,9 @@ layout that ``nuscenes-devkit`` reads) and needs no ``nuscenes-devkit`` installe
 - ``sample_annotation.json`` (3D boxes in global coordinates: ``translation`` of the centre,
   ``size`` as **width, length, height**, ``rotation`` ``w, x, y, z``, ``instance_token``),
   ``instance.json`` (``category_token``) and ``category.json`` (``name``, e.g. ``vehicle.car``).
+  These three are optional: without ``sample_annotation.json`` (or with an empty one, as in the
+  test split) the scene has no instances and no tracks; ``instance.json`` and ``category.json``
+  are needed only when there are annotations. ``log.json`` and ``map.json`` are not read.
 
 How nuScenes maps to vadgs:
 
@@ -65,17 +69,11 @@ NUSCENES_CAMERAS = (
     "CAM_BACK_LEFT",
 )
 
-_TABLES = (
-    "scene",
-    "sample",
-    "sample_data",
-    "calibrated_sensor",
-    "sensor",
-    "ego_pose",
-    "sample_annotation",
-    "instance",
-    "category",
-)
+#: the tables every scene needs.
+_TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
+#: the annotation tables: a release without annotations (the test split, a trimmed extract) may
+#: lack them; ``instance`` and ``category`` are then needed only if ``sample_annotation`` has rows.
+_ANNOTATION_TABLES = ("sample_annotation", "instance", "category")
 
 
 def nuscenes_pose_to_matrix(rotation: Sequence[float], translation: Sequence[float]) -> np.ndarray:
@@ -225,6 +223,13 @@ def load_nuscenes(
     if min_motion_m is not None and not min_motion_m >= 0:
         raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
     raw = {name: _read_table(meta_dir, name) for name in _TABLES}
+    if (meta_dir / "sample_annotation.json").is_file():
+        raw["sample_annotation"] = _read_table(meta_dir, "sample_annotation")
+    else:
+        raw["sample_annotation"] = []  # no annotations (e.g. a trimmed test keyframe): no tracks
+    for name in _ANNOTATION_TABLES[1:]:
+        needed = bool(raw["sample_annotation"]) or (meta_dir / f"{name}.json").is_file()
+        raw[name] = _read_table(meta_dir, name) if needed else []
     t = {name: _by_token(rows, name) for name, rows in raw.items()}
 
     # -- the scene and its keyframes ------------------------------------------------------------------
@@ -233,13 +238,23 @@ def load_nuscenes(
         raise ValueError(f"scene_name: unknown scene {scene_name!r} in {version}, have {sorted(scenes)[:20]}")
     scene_rec = scenes[scene_name]
     samples = []
-    token = _key(scene_rec, "first_sample_token", f"scene {scene_name}")
+    token = scene_rec.get("first_sample_token")
     while token:
         s = _ref(t["sample"], token, "sample", f"scene {scene_name}: sample chain")
         samples.append(s)
         token = s.get("next", "")
         if len(samples) > len(t["sample"]):
             raise ValueError(f"nuScenes scene {scene_name}: the sample chain loops")
+    if "first_sample_token" not in scene_rec:
+        # a trimmed table without the links: the scene's samples by scene_token, in time order
+        scene_token = _key(scene_rec, "token", f"scene {scene_name}")
+        mine = [s for s in raw["sample"] if s.get("scene_token") == scene_token]
+        if not mine:
+            raise ValueError(
+                f"nuScenes scene {scene_name}: scene.json has no first_sample_token and sample.json "
+                f"no sample with scene_token {scene_token!r}"
+            )
+        samples = sorted(mine, key=lambda s: int(_key(s, "timestamp", f"sample {s.get('token')}")))
     positions = list(range(len(samples))) if frames is None else [int(f) for f in frames]
     bad = [f for f in positions if not 0 <= f < len(samples)]
     if bad or not positions:
