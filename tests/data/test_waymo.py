@@ -468,3 +468,17 @@ class TestConvertWaymo:
         out = tmp_path / "conv"
         assert main(["convert", "waymo", str(wod), "--scene", SEG, "--out", str(out), "--frames", "0:3"]) == 0
         assert load_scene(out).num_views == 6
+
+    def test_cli_no_lidar_needs_no_lidar_component(self, wod, tmp_path, capsys):
+        from vadgs.cli import main
+        from vadgs.data import load_scene
+
+        for comp in ("lidar", "lidar_pose"):
+            (wod / comp / f"{SEG}.parquet").unlink(missing_ok=True)
+        out = tmp_path / "conv"
+        args = ["convert", "waymo", str(wod), "--scene", SEG, "--out", str(out), "--frames", "0:2"]
+        assert main(args) != 0
+        assert "Waymo component 'lidar': missing file" in capsys.readouterr().err
+        assert main([*args, "--no-lidar"]) == 0
+        scene = load_scene(out)
+        assert scene.num_views == 4 and scene.lidar_loader is None
