@@ -25,7 +25,11 @@ How nuScenes maps to vadgs:
 - **Cameras.** nuScenes camera frames are OpenCV (x right, y down, z forward), so
   ``cam_to_world = ego_to_world(camera reading) @ camera_to_ego``, each camera with the ego pose
   at *its own* timestamp (as ``nuscenes-devkit`` does). ``K`` is ``camera_intrinsic`` as is
-  (nuScenes images are undistorted; no pixel offset is applied).
+  (no pixel offset is applied): nuScenes images are already undistorted and rectified, and its
+  ``calibrated_sensor`` has no distortion coefficients (nuscenes-devkit issue 120). Tables that
+  carry a ``camera_distortion`` list (the nuImages layout: OpenCV order ``k1, k2, p1, p2, k3``)
+  with non-zero values get their images undistorted when loaded (:mod:`vadgs.data.undistort`)
+  and ``K`` is then the pinhole ``K`` of the undistorted images.
 - **LiDAR.** ``LIDAR_TOP`` keyframe sweeps (``.pcd.bin``: float32 ``x, y, z, intensity, ring``
   in the LiDAR frame) are moved to the world with their own ego pose and calibration.
 - **Boxes → tracks.** Annotations are grouped by ``instance_token``; each instance gets a
@@ -54,7 +58,8 @@ from vadgs.data._tracks import (
     label_points,
     quat_wxyz_to_matrix,
 )
-from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
+from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["NUSCENES_CAMERAS", "load_nuscenes", "nuscenes_class_name", "nuscenes_pose_to_matrix"]
@@ -162,8 +167,9 @@ def load_nuscenes(
 
     What the scene holds:
 
-    - ``cameras_info``: ``K`` = ``camera_intrinsic`` (rescaled by ``scale``), the image size from
-      ``sample_data``, ``cam_to_ego`` from ``calibrated_sensor``.
+    - ``cameras_info``: ``K`` = ``camera_intrinsic`` (or the pinhole ``K`` of the undistorted
+      images when the table has a non-zero ``camera_distortion``; rescaled by ``scale``), the
+      image size from ``sample_data``, ``cam_to_ego`` from ``calibrated_sensor``.
     - ``views``: ``cam_to_world`` from each camera reading's own ego pose; ``timestamp`` in
       seconds since the first keyframe; the JPEG path (read lazily, resized by ``scale``).
     - ``frames``: ``ego_to_world`` = the ego pose of the ``LIDAR_TOP`` keyframe reading,
@@ -328,6 +334,7 @@ def load_nuscenes(
     # -- cameras ---------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[int, int]] = {}
+    undistort: dict[str, ImageUndistorter] = {}  # cameras with a non-zero camera_distortion
     for c in cam_names:
         sd = reading(0, c)
         what = f"{c} calibrated_sensor"
@@ -337,6 +344,14 @@ def load_nuscenes(
             raise ValueError(f"nuScenes {what}.camera_intrinsic: expected a 3x3 matrix, got shape {K.shape}")
         w, h = int(_key(sd, "width", f"{c} sample_data")), int(_key(sd, "height", f"{c} sample_data"))
         full_size[c] = (w, h)
+        dist = cs.get("camera_distortion")
+        if dist:
+            try:
+                und = ImageUndistorter(torch.from_numpy(K), dist, (h, w))
+            except ValueError as e:
+                raise ValueError(f"nuScenes {what}.camera_distortion: {e}") from None
+            if und.distorted:
+                undistort[c], K = und, und.K.numpy()
         size = (round(h * scale), round(w * scale))
         Kt = as_tensor(K, f"{what}.camera_intrinsic")
         if scale != 1.0:
@@ -433,6 +448,19 @@ def load_nuscenes(
             pts, label_points(pts, frame_boxes), torch.from_numpy(sensor_to_world[:3, 3]).float()
         )
 
+    def image_loader(view: ViewInfo) -> torch.Tensor:
+        """The view's JPEG, undistorted if its camera has distortion coefficients."""
+        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+        und = undistort.get(view.camera)
+        if und is None:
+            return img
+        if tuple(img.shape[-2:]) != und.image_size:
+            raise ValueError(
+                f"nuScenes image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from "
+                f"sample_data's {und.image_size[1]}x{und.image_size[0]}"
+            )
+        return und(img[None])[0].clamp(0.0, 1.0)
+
     return Scene(
         name=scene_name,
         root=dataroot,
@@ -445,4 +473,5 @@ def load_nuscenes(
         test_frames=test,
         scale=float(scale),
         lidar_loader=lidar_loader if lidar is not None else None,
+        image_loader=image_loader if undistort else None,
     )
