@@ -977,7 +977,10 @@ def convert(args: argparse.Namespace) -> int:
             args.src, args.scene, version=args.version, cameras=cameras, scale=args.scale, frames=frames
         )
     else:
-        scene = load_waymo(args.src, args.scene, cameras=cameras, scale=args.scale, frames=frames)
+        lasers = None if args.no_lidar else ("TOP",)  # --no-lidar: a segment without the lidar component
+        scene = load_waymo(
+            args.src, args.scene, cameras=cameras, scale=args.scale, frames=frames, lasers=lasers
+        )
     path = export_scene(scene, args.out, lidar=not args.no_lidar)
     print(f"{scene!r} -> {path}")
     return 0
@@ -992,7 +995,7 @@ def _convert_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cameras", help="comma-separated camera names (default all)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor")
     p.add_argument("--frames", help="frame positions START:STOP (keyframes for nuScenes), default all")
-    p.add_argument("--no-lidar", action="store_true", help="do not write LiDAR")
+    p.add_argument("--no-lidar", action="store_true", help="no LiDAR (Waymo: needs no lidar file)")
 
 
 convert.add_arguments = _convert_args  # type: ignore[attr-defined]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -228,6 +229,48 @@ class TestLoadDgpSynthetic:
         img = half.load_images([1])
         assert img.shape == (1, 3, H_IMG // 2, W_IMG // 2) and img.dtype == torch.float32
         assert abs(img.mean().item() - 40 / 255) < 0.02
+
+    def test_distortion_is_undistorted(self, tmp_path):
+        """A calibration with OpenCV distortion: pinhole K, images remapped as cv2 would."""
+        cv2 = pytest.importorskip("cv2")
+        root = tmp_path / "s"
+        _write_dgp(root)
+        cal_path = root / "calibration" / "c0.json"
+        cal = json.loads(cal_path.read_text())
+        dist = {"k1": 0.12, "k2": -0.03, "p1": 0.004, "p2": -0.002, "k3": 0.0, "fov": 60.0}
+        cal["intrinsics"][1].update(dist)
+        cal_path.write_text(json.dumps(cal))
+        yy, xx = np.mgrid[0:H_IMG, 0:W_IMG]
+        raw = np.stack([xx * 15, yy * 20, (xx + yy) * 8], -1).astype(np.uint8)
+        Image.fromarray(raw).save(root / "rgb/CAM/1.jpg", quality=100)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            scene = load_dgp(root)
+        K_raw = np.array([[20.0, 0, 7.5], [0, 21.0, 5.5], [0, 0, 1]])
+        K = scene.cameras_info["CAM"].K.double().numpy()
+        assert K[0, 0] != 20.0 and K[0, 0] / 20.0 == pytest.approx(K[1, 1] / 21.0)
+        coeffs = np.array([dist[k] for k in ("k1", "k2", "p1", "p2", "k3")])
+        mx, my = cv2.initUndistortRectifyMap(K_raw, coeffs, None, K, (W_IMG, H_IMG), cv2.CV_32FC1)
+        decoded = np.asarray(Image.open(root / "rgb/CAM/1.jpg").convert("RGB")).astype(np.float32) / 255
+        want = cv2.remap(decoded, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        got = scene.load_images([1])[0].permute(1, 2, 0).numpy()
+        np.testing.assert_allclose(got, want, atol=1e-4)
+        # a raw pixel, undistorted by OpenCV, lands where the reader's pinhole image holds its content
+        raw_px = np.array([[[2.0, 3.0]], [[14.5, 10.0]], [[8.2, 1.7]]])
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15)
+        pinhole = cv2.undistortPoints(raw_px, K_raw, coeffs, P=K, criteria=crit)[:, 0].astype(np.float32)
+        source = cv2.remap(np.stack([mx, my], -1), pinhole[None, :, 0], pinhole[None, :, 1], cv2.INTER_LINEAR)
+        np.testing.assert_allclose(source[0], raw_px[:, 0], atol=0.05)  # bilinear in a 16x12 map
+
+    def test_other_camera_models_are_refused(self, tmp_path):
+        root = tmp_path / "s"
+        _write_dgp(root)
+        cal_path = root / "calibration" / "c0.json"
+        cal = json.loads(cal_path.read_text())
+        cal["intrinsics"][1].update({"fisheye": 1, "xi": 0.5})
+        cal_path.write_text(json.dumps(cal))
+        with pytest.raises(ValueError, match=r"intrinsics\[CAM\]: camera model parameters .*'fisheye': 1"):
+            load_dgp(root)
 
     def test_lidar_lands_in_camera(self, tmp_path):
         syn = _write_dgp(tmp_path / "s")

@@ -356,6 +356,37 @@ class TestLoadNuscenes:
         torch.testing.assert_close(imgs[1, :, 6, 8], torch.tensor([10, 90, 220]) / 255.0, atol=0.03, rtol=0)
         torch.testing.assert_close(scene.cameras_info["CAM_FRONT"].K[0], torch.tensor([10.0, 0.0, 7.5]))
 
+    def test_camera_distortion_is_undistorted(self, nus):
+        """nuScenes has no distortion; a table with camera_distortion (nuImages layout) is undistorted."""
+        cv2 = pytest.importorskip("cv2")
+        root, _ = nus
+        meta = root / "v1.0-mini"
+        cal = json.loads((meta / "calibrated_sensor.json").read_text())
+        dist = [0.1, -0.02, 0.003, 0.001, 0.0]
+        for c in cal:
+            c["camera_distortion"] = dist if c["token"] == "cs_CAM_BACK" else [0.0] * 5
+        (meta / "calibrated_sensor.json").write_text(json.dumps(cal))
+        path = next((root / "samples" / "CAM_BACK").glob("*.jpg"))
+        yy, xx = np.mgrid[0:H_IMG, 0:W_IMG]
+        Image.fromarray(np.stack([xx * 8, yy * 10, (xx + yy) * 4], -1).astype(np.uint8)).save(
+            path, quality=100
+        )
+        scene = load_nuscenes(root, "scene-0061")
+        torch.testing.assert_close(scene.cameras_info["CAM_FRONT"].K, torch.tensor(K_NUS))
+        K = scene.cameras_info["CAM_BACK"].K.double().numpy()
+        assert K[0, 0] != K_NUS[0][0] and K[:2, 2].tolist() == [15.5, 11.5]
+        mx, my = cv2.initUndistortRectifyMap(
+            np.array(K_NUS), np.array(dist), None, K, (W_IMG, H_IMG), cv2.CV_32FC1
+        )
+        raw = np.asarray(Image.open(path).convert("RGB")).astype(np.float32) / 255
+        want = cv2.remap(raw, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        vid = next(v.index for v in scene.views if v.image == path)
+        np.testing.assert_allclose(scene.load_images([vid])[0].permute(1, 2, 0).numpy(), want, atol=1e-4)
+        cal[2]["camera_distortion"] = [0.1] * 6  # nuImages' fisheye CAM_BACK has 6: not OpenCV's
+        (meta / "calibrated_sensor.json").write_text(json.dumps(cal))
+        with pytest.raises(ValueError, match=r"CAM_BACK calibrated_sensor\.camera_distortion: .* got 6"):
+            load_nuscenes(root, "scene-0061")
+
     def test_camera_subset(self, nus):
         root, _ = nus
         scene = load_nuscenes(root, "scene-0061", cameras=["CAM_BACK"], lidar=None)
@@ -387,6 +418,43 @@ class TestLoadNuscenes:
         with pytest.raises(FileNotFoundError, match="1 referenced file"):
             load_nuscenes(root, "scene-0061")
         assert load_nuscenes(root, "scene-0061", check_files=False).num_views == 2 * N_FRAMES
+
+    def test_without_annotation_tables(self, nus):
+        """A keyframe extract without annotation tables loads with no instances and no tracks."""
+        root, _ = nus
+        full = load_nuscenes(root, "scene-0061")
+        for name in ("sample_annotation", "instance", "category", "log"):
+            (root / "v1.0-mini" / f"{name}.json").unlink()
+        scene = load_nuscenes(root, "scene-0061")
+        assert scene.instances == {} and scene.tracks == {}
+        assert scene.num_views == full.num_views
+        assert (scene.lidar(3).instance == 0).all()
+
+    def test_annotations_need_instance_table(self, nus):
+        root, _ = nus
+        (root / "v1.0-mini" / "instance.json").unlink()
+        with pytest.raises(FileNotFoundError, match=r"nuScenes table instance\.json: missing file"):
+            load_nuscenes(root, "scene-0061")
+
+    def test_without_sample_links(self, nus):
+        """Without first_sample_token / next, the keyframes are the scene's samples in time order."""
+        root, _ = nus
+        full = load_nuscenes(root, "scene-0061")
+        meta = root / "v1.0-mini"
+        scenes = json.loads((meta / "scene.json").read_text())
+        for sc in scenes:
+            sc.pop("first_sample_token")
+        (meta / "scene.json").write_text(json.dumps(scenes))
+        samples = json.loads((meta / "sample.json").read_text())
+        for s in samples:
+            s.pop("prev", None), s.pop("next", None)
+        (meta / "sample.json").write_text(json.dumps(samples[::-1]))
+        scene = load_nuscenes(root, "scene-0061")
+        assert [f.timestamp for f in scene.frames] == [f.timestamp for f in full.frames]
+        for a, b in zip(scene.views, full.views):
+            torch.testing.assert_close(a.cam_to_world, b.cam_to_world)
+        with pytest.raises(ValueError, match=r"scene-0001: scene\.json has no first_sample_token"):
+            load_nuscenes(root, "scene-0001")
 
     def test_missing_token(self, nus):
         root, _ = nus

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,12 @@ pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 
 from vadgs.data import Scene, load_waymo  # noqa: E402
-from vadgs.data.waymo import waymo_beam_inclinations, waymo_range_image_to_points  # noqa: E402
+from vadgs.data.waymo import (  # noqa: E402
+    read_waymo_poses,
+    waymo_beam_inclinations,
+    waymo_camera_name,
+    waymo_range_image_to_points,
+)
 from vadgs.geometry import project_points  # noqa: E402
 
 SEG = "1005081002024129653_5313_150_5333_150"
@@ -333,11 +339,78 @@ class TestLoadWaymo:
         with pytest.raises(FileNotFoundError, match="no LiDAR"):
             scene.lidar(0)
 
-    def test_distortion_warns(self, tmp_path):
+    def test_distortion_is_undistorted(self, tmp_path):
+        """A distorted camera gets the pinhole K of its undistorted image; a world point lands on the
+        pixel that the distortion model, applied by hand, maps to the raw pixel it projects to."""
         root = tmp_path / "training"
-        _write_waymo(root, distortion=0.1)
-        with pytest.warns(UserWarning, match=r"SIDE_LEFT: distortion .* IGNORED"):
-            load_waymo(root, SEG)
+        _write_waymo(root, distortion=0.1)  # SIDE_LEFT: k1 = 0.1 (pincushion), FRONT: none
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            scene = load_waymo(root, SEG)
+        torch.testing.assert_close(
+            scene.cameras_info["FRONT"].K, torch.tensor([[20.0, 0, 15.5], [0, 21.0, 11.5], [0, 0, 1]])
+        )
+        K = scene.cameras_info["SIDE_LEFT"].K.double()
+        f, c = 15.0, torch.tensor([15.5, 7.5], dtype=torch.float64)  # raw f_u = f_v, c - 0.5
+        assert K[0, 0] > f and K[0, 0] == pytest.approx(K[1, 1]) and K[:2, 2].tolist() == c.tolist()
+        vid = scene.view_id(3, "SIDE_LEFT")
+        c2w = scene.views[vid].cam_to_world.double()
+        p_cam = torch.tensor([1.2, -0.4, 5.0], dtype=torch.float64)
+        p_world = c2w[:3, :3] @ p_cam + c2w[:3, 3]
+        x = p_cam[:2] / p_cam[2]
+        raw = f * x * (1 + 0.1 * float(x @ x)) + c  # Waymo's (OpenCV's) model, by hand
+        pinhole = project_points(p_world[None, None], K[None], torch.linalg.inv(c2w)[None])[0][0, 0]
+        xn = (pinhole.double() - c) / K[0, 0]
+        back = f * xn * (1 + 0.1 * float(xn @ xn)) + c
+        torch.testing.assert_close(back, raw, atol=1e-3, rtol=0)
+        assert (pinhole.double() - raw).abs().max() > 0.05  # the distortion is not negligible here
+        img = scene.load_images([vid])[0]
+        torch.testing.assert_close(img[:, 8, 16], torch.tensor([10, 90, 220]) / 255.0, atol=0.03, rtol=0)
+
+    def test_string_camera_names_and_float32_poses(self, wod):
+        """Release files may hold key.camera_name as a string and transforms as float32."""
+        want = load_waymo(wod, SEG)
+        for comp in ("camera_calibration", "camera_image"):
+            path = wod / comp / f"{SEG}.parquet"
+            t = pq.read_table(path)
+            names = pa.array(
+                [{1: "FRONT", 4: "SIDE_LEFT"}[c] for c in t.column("key.camera_name").to_pylist()]
+            )
+            pq.write_table(
+                t.set_column(t.schema.get_field_index("key.camera_name"), "key.camera_name", names), path
+            )
+        path = wod / "vehicle_pose" / f"{SEG}.parquet"
+        t = pq.read_table(path)
+        col = "[VehiclePoseComponent].world_from_vehicle.transform"
+        pq.write_table(
+            t.set_column(t.schema.get_field_index(col), col, t.column(col).cast(pa.list_(pa.float32(), 16))),
+            path,
+        )
+        got = load_waymo(wod, SEG)
+        assert got.camera_names == want.camera_names and got.num_views == want.num_views
+        for a, b in zip(got.views, want.views):
+            torch.testing.assert_close(a.cam_to_world, b.cam_to_world, atol=2e-3, rtol=0)
+        assert read_waymo_poses(wod, SEG).world_from_vehicle.dtype == torch.float64
+        t = pq.read_table(wod / "camera_image" / f"{SEG}.parquet")
+        bad = pa.array(["FRONT"] + ["REAR"] * (t.num_rows - 1))
+        pq.write_table(
+            t.set_column(t.schema.get_field_index("key.camera_name"), "key.camera_name", bad),
+            wod / "camera_image" / f"{SEG}.parquet",
+        )
+        with pytest.raises(ValueError, match=r"key\.camera_name: expected a camera id .* got 'REAR'"):
+            load_waymo(wod, SEG)
+
+    def test_camera_name(self):
+        assert [waymo_camera_name(v) for v in (2, np.int8(3), "4", "side_right", b"FRONT")] == [
+            "FRONT_LEFT",
+            "FRONT_RIGHT",
+            "SIDE_LEFT",
+            "SIDE_RIGHT",
+            "FRONT",
+        ]
+        for bad in (0, 6, "REAR", None, 1.0):
+            with pytest.raises(ValueError, match=r"key\.camera_name"):
+                waymo_camera_name(bad)
 
     def test_exception(self, wod):
         with pytest.raises(ValueError, match=rf"segment: unknown segment 'nope'.*{SEG}"):
@@ -395,3 +468,17 @@ class TestConvertWaymo:
         out = tmp_path / "conv"
         assert main(["convert", "waymo", str(wod), "--scene", SEG, "--out", str(out), "--frames", "0:3"]) == 0
         assert load_scene(out).num_views == 6
+
+    def test_cli_no_lidar_needs_no_lidar_component(self, wod, tmp_path, capsys):
+        from vadgs.cli import main
+        from vadgs.data import load_scene
+
+        for comp in ("lidar", "lidar_pose"):
+            (wod / comp / f"{SEG}.parquet").unlink(missing_ok=True)
+        out = tmp_path / "conv"
+        args = ["convert", "waymo", str(wod), "--scene", SEG, "--out", str(out), "--frames", "0:2"]
+        assert main(args) != 0
+        assert "Waymo component 'lidar': missing file" in capsys.readouterr().err
+        assert main([*args, "--no-lidar"]) == 0
+        scene = load_scene(out)
+        assert scene.num_views == 4 and scene.lidar_loader is None

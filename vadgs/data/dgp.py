@@ -16,8 +16,11 @@ How DGP's frames map to vadgs's (verified on ``dgp_test_scene/scene_02``, see ``
   equals ``lidar_pose @ inv(lidar_extrinsic) @ camera_extrinsic`` to within 5 cm (the camera is
   triggered about 90 ms before the sweep ends).
 - **Intrinsics** ``fx, fy, cx, cy, skew`` form ``K`` as in OpenCV, pixel centres at integers, so
-  no offset is applied (unlike COLMAP). Distortion coefficients, when a calibration has non-zero
-  ones, are ignored with a :class:`UserWarning`.
+  no offset is applied (unlike COLMAP). When a calibration has non-zero distortion coefficients
+  (OpenCV's ``k1``-``k6``, ``p1``, ``p2``, ``s1``-``s4``, as DGP's ``CameraIntrinsics``) the images
+  are undistorted when loaded (:mod:`vadgs.data.undistort`) and ``K`` is their pinhole ``K``; other
+  camera models (``fisheye``, tilted sensor, UCM, double sphere, equirectangular) are refused
+  with a :class:`ValueError`. The real test scenes have no distortion.
 - **Point clouds** are stored in the *sensor frame* (``X, Y, Z, INTENSITY``, float64) and are
   moved to world coordinates with the LiDAR datum's pose when loaded.
 - **3D boxes** are stored in the frame of the sensor they annotate, centred on the box, with x
@@ -33,7 +36,6 @@ How DGP's frames map to vadgs's (verified on ``dgp_test_scene/scene_02``, see ``
 from __future__ import annotations
 
 import json
-import warnings
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
@@ -42,7 +44,17 @@ import numpy as np
 import torch
 
 from vadgs.checks import check_finite
-from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, LidarFrame, Scene, Track, ViewInfo
+from vadgs.data.scene import (
+    CameraInfo,
+    FrameInfo,
+    InstanceInfo,
+    LidarFrame,
+    Scene,
+    Track,
+    ViewInfo,
+    _read_png,
+)
+from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
 from vadgs.data.validate import validate_scene
 from vadgs.geometry.camera import scale_intrinsics
 
@@ -52,6 +64,8 @@ __all__ = ["dgp_pose_to_matrix", "load_dgp", "points_in_boxes"]
 _BOX3D = "1"
 #: a track whose box centre moves more than this (metres, in the world) is marked dynamic.
 DYNAMIC_MOTION_M = 0.5
+#: ``CameraIntrinsics`` fields of camera models other than OpenCV's (refused when non-zero).
+_OTHER_CAMERA_MODELS = ("fisheye", "taux", "tauy", "alpha", "beta", "w", "xi", "equirectangular")
 
 
 def dgp_pose_to_matrix(pose: dict) -> np.ndarray:
@@ -184,11 +198,13 @@ def load_dgp(
 
     What the scene holds:
 
-    - ``cameras_info``: ``K`` (with skew) from the calibration, rescaled by ``scale``; the image
+    - ``cameras_info``: ``K`` (with skew) from the calibration (the pinhole ``K`` of the
+      undistorted images for a camera with distortion), rescaled by ``scale``; the image
       size from the datums; ``cam_to_ego`` = the sensor-to-vehicle extrinsic.
     - ``views``: ``cam_to_world`` = the camera datum's pose, timestamp in seconds since the first
-      sample, the JPEG path (loaded lazily, resized by ``scale``). No depth or instance maps
-      (DGP has none here: ``ViewInfo.depth`` and ``ViewInfo.instances`` are None).
+      sample, the JPEG path (loaded lazily, undistorted if distorted, resized by ``scale``). No
+      depth or instance maps (DGP has none here: ``ViewInfo.depth`` and ``ViewInfo.instances``
+      are None).
     - ``frames``: ``ego_to_world`` = vehicle pose (LiDAR pose ``@ inv(lidar_extrinsic)``), and
       the LiDAR path. ``Scene.lidar(frame)`` returns the sweep in world coordinates (float32),
       its ``instance`` the id of the 3D box each point falls in (0 outside every box), its
@@ -220,8 +236,9 @@ def load_dgp(
     Raises:
         FileNotFoundError: if the scene JSON, calibration, ontology or a referenced file is missing.
         ValueError: if a JSON file is malformed or lacks a key (named in the message), a pose is
-            not finite, a camera or LiDAR name is unknown, a sample lacks a requested datum, or
-            ``scale`` / ``test_frames`` are invalid.
+            not finite, a camera or LiDAR name is unknown, a sample lacks a requested datum, a
+            camera is not an OpenCV (pinhole + distortion) camera, or ``scale`` / ``test_frames``
+            are invalid.
 
     Example:
         >>> from pathlib import Path
@@ -313,6 +330,7 @@ def load_dgp(
     # -- cameras --------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[object, object]] = {}
+    undistort: dict[str, ImageUndistorter] = {}  # the distorted cameras
     for n in cam_names:
         c = intrinsics[n]
         what = f"calibration.intrinsics[{n}]"
@@ -322,21 +340,26 @@ def load_dgp(
             skew = float(c.get("skew", 0.0))
         except (TypeError, ValueError):
             raise ValueError(f"DGP {what}: expected numbers, got {c!r}") from None
-        distortion = {
-            k: v
-            for k, v in c.items()
-            if k not in ("fx", "fy", "cx", "cy", "skew") and isinstance(v, (int, float)) and v != 0
-        }
-        if distortion:
-            warnings.warn(
-                f"DGP camera {n}: distortion {distortion} is IGNORED (pinhole model only)",
-                UserWarning,
-                stacklevel=2,
+        other = {k: c[k] for k in _OTHER_CAMERA_MODELS if c.get(k) not in (None, 0, 0.0, False)}
+        if other:
+            raise ValueError(
+                f"DGP {what}: camera model parameters {other} are not supported (vadgs undistorts "
+                f"OpenCV's {', '.join(OPENCV_DISTORTION)} only)"
             )
+        try:
+            coeffs = [float(c.get(k) or 0.0) for k in OPENCV_DISTORTION]
+        except (TypeError, ValueError):
+            raise ValueError(f"DGP {what}: expected numeric distortion coefficients, got {c!r}") from None
         K = torch.tensor([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
         first = datum(0, n, "image")
         w, h = int(_key(first, "width", f"{n} image datum")), int(_key(first, "height", f"{n} image datum"))
         full_size[n] = (first["width"], first["height"])
+        if any(coeffs):
+            try:
+                undistort[n] = ImageUndistorter(K, torch.tensor(coeffs, dtype=torch.float64), (h, w))
+            except ValueError as e:
+                raise ValueError(f"DGP {what}: {e}") from None
+            K = undistort[n].K
         size = (round(h * scale), round(w * scale))
         if scale != 1.0:
             K = scale_intrinsics(K, size[1] / w)
@@ -451,6 +474,19 @@ def load_dgp(
             instance[hit] = torch.tensor(ids)[inside[:, hit].float().argmax(0)]
         return LidarFrame(pts, instance, torch.from_numpy(sensor_to_world[:3, 3]).float())
 
+    def image_loader(view: ViewInfo) -> torch.Tensor:
+        """The view's JPEG, undistorted if its camera is distorted."""
+        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+        und = undistort.get(view.camera)
+        if und is None:
+            return img
+        if tuple(img.shape[-2:]) != und.image_size:
+            raise ValueError(
+                f"DGP image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from the "
+                f"camera's {und.image_size[1]}x{und.image_size[0]}"
+            )
+        return und(img[None])[0].clamp(0.0, 1.0)
+
     scene = Scene(
         name=scene_dir.name,
         root=scene_dir,
@@ -463,6 +499,7 @@ def load_dgp(
         test_frames=sorted(int(f) for f in test_frames),
         scale=float(scale),
         lidar_loader=lidar_loader if lidar is not None else None,
+        image_loader=image_loader if undistort else None,
     )
     if check_files and validate != "none":
         validate_scene(scene, full=validate == "full").raise_if_errors()

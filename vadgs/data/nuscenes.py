@@ -4,7 +4,8 @@ vadgs reads the tables of a nuScenes release directly (``<dataroot>/<version>/*.
 layout that ``nuscenes-devkit`` reads) and needs no ``nuscenes-devkit`` installed. The tables used:
 
 - ``scene.json`` (``name``, ``first_sample_token``), ``sample.json`` (keyframes, linked by
-  ``next``, ``timestamp`` in µs);
+  ``next``, ``timestamp`` in µs). Without ``first_sample_token`` (a hand-trimmed extract) the
+  keyframes are the samples whose ``scene_token`` is the scene's, in time order;
 - ``sample_data.json`` (one file per sensor reading: ``sample_token``, ``is_key_frame``,
   ``ego_pose_token``, ``calibrated_sensor_token``, ``filename``, ``width``, ``height``,
   ``timestamp``), ``calibrated_sensor.json`` (sensor → ego: ``translation``, ``rotation`` as
@@ -13,6 +14,9 @@ layout that ``nuscenes-devkit`` reads) and needs no ``nuscenes-devkit`` installe
 - ``sample_annotation.json`` (3D boxes in global coordinates: ``translation`` of the centre,
   ``size`` as **width, length, height**, ``rotation`` ``w, x, y, z``, ``instance_token``),
   ``instance.json`` (``category_token``) and ``category.json`` (``name``, e.g. ``vehicle.car``).
+  These three are optional: without ``sample_annotation.json`` (or with an empty one, as in the
+  test split) the scene has no instances and no tracks; ``instance.json`` and ``category.json``
+  are needed only when there are annotations. ``log.json`` and ``map.json`` are not read.
 
 How nuScenes maps to vadgs:
 
@@ -21,7 +25,11 @@ How nuScenes maps to vadgs:
 - **Cameras.** nuScenes camera frames are OpenCV (x right, y down, z forward), so
   ``cam_to_world = ego_to_world(camera reading) @ camera_to_ego``, each camera with the ego pose
   at *its own* timestamp (as ``nuscenes-devkit`` does). ``K`` is ``camera_intrinsic`` as is
-  (nuScenes images are undistorted; no pixel offset is applied).
+  (no pixel offset is applied): nuScenes images are already undistorted and rectified, and its
+  ``calibrated_sensor`` has no distortion coefficients (nuscenes-devkit issue 120). Tables that
+  carry a ``camera_distortion`` list (the nuImages layout: OpenCV order ``k1, k2, p1, p2, k3``)
+  with non-zero values get their images undistorted when loaded (:mod:`vadgs.data.undistort`)
+  and ``K`` is then the pinhole ``K`` of the undistorted images.
 - **LiDAR.** ``LIDAR_TOP`` keyframe sweeps (``.pcd.bin``: float32 ``x, y, z, intensity, ring``
   in the LiDAR frame) are moved to the world with their own ego pose and calibration.
 - **Boxes → tracks.** Annotations are grouped by ``instance_token``; each instance gets a
@@ -50,7 +58,8 @@ from vadgs.data._tracks import (
     label_points,
     quat_wxyz_to_matrix,
 )
-from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
+from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["NUSCENES_CAMERAS", "load_nuscenes", "nuscenes_class_name", "nuscenes_pose_to_matrix"]
@@ -65,17 +74,11 @@ NUSCENES_CAMERAS = (
     "CAM_BACK_LEFT",
 )
 
-_TABLES = (
-    "scene",
-    "sample",
-    "sample_data",
-    "calibrated_sensor",
-    "sensor",
-    "ego_pose",
-    "sample_annotation",
-    "instance",
-    "category",
-)
+#: the tables every scene needs.
+_TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
+#: the annotation tables: a release without annotations (the test split, a trimmed extract) may
+#: lack them; ``instance`` and ``category`` are then needed only if ``sample_annotation`` has rows.
+_ANNOTATION_TABLES = ("sample_annotation", "instance", "category")
 
 
 def nuscenes_pose_to_matrix(rotation: Sequence[float], translation: Sequence[float]) -> np.ndarray:
@@ -164,8 +167,9 @@ def load_nuscenes(
 
     What the scene holds:
 
-    - ``cameras_info``: ``K`` = ``camera_intrinsic`` (rescaled by ``scale``), the image size from
-      ``sample_data``, ``cam_to_ego`` from ``calibrated_sensor``.
+    - ``cameras_info``: ``K`` = ``camera_intrinsic`` (or the pinhole ``K`` of the undistorted
+      images when the table has a non-zero ``camera_distortion``; rescaled by ``scale``), the
+      image size from ``sample_data``, ``cam_to_ego`` from ``calibrated_sensor``.
     - ``views``: ``cam_to_world`` from each camera reading's own ego pose; ``timestamp`` in
       seconds since the first keyframe; the JPEG path (read lazily, resized by ``scale``).
     - ``frames``: ``ego_to_world`` = the ego pose of the ``LIDAR_TOP`` keyframe reading,
@@ -225,6 +229,13 @@ def load_nuscenes(
     if min_motion_m is not None and not min_motion_m >= 0:
         raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
     raw = {name: _read_table(meta_dir, name) for name in _TABLES}
+    if (meta_dir / "sample_annotation.json").is_file():
+        raw["sample_annotation"] = _read_table(meta_dir, "sample_annotation")
+    else:
+        raw["sample_annotation"] = []  # no annotations (e.g. a trimmed test keyframe): no tracks
+    for name in _ANNOTATION_TABLES[1:]:
+        needed = bool(raw["sample_annotation"]) or (meta_dir / f"{name}.json").is_file()
+        raw[name] = _read_table(meta_dir, name) if needed else []
     t = {name: _by_token(rows, name) for name, rows in raw.items()}
 
     # -- the scene and its keyframes ------------------------------------------------------------------
@@ -233,13 +244,23 @@ def load_nuscenes(
         raise ValueError(f"scene_name: unknown scene {scene_name!r} in {version}, have {sorted(scenes)[:20]}")
     scene_rec = scenes[scene_name]
     samples = []
-    token = _key(scene_rec, "first_sample_token", f"scene {scene_name}")
+    token = scene_rec.get("first_sample_token")
     while token:
         s = _ref(t["sample"], token, "sample", f"scene {scene_name}: sample chain")
         samples.append(s)
         token = s.get("next", "")
         if len(samples) > len(t["sample"]):
             raise ValueError(f"nuScenes scene {scene_name}: the sample chain loops")
+    if "first_sample_token" not in scene_rec:
+        # a trimmed table without the links: the scene's samples by scene_token, in time order
+        scene_token = _key(scene_rec, "token", f"scene {scene_name}")
+        mine = [s for s in raw["sample"] if s.get("scene_token") == scene_token]
+        if not mine:
+            raise ValueError(
+                f"nuScenes scene {scene_name}: scene.json has no first_sample_token and sample.json "
+                f"no sample with scene_token {scene_token!r}"
+            )
+        samples = sorted(mine, key=lambda s: int(_key(s, "timestamp", f"sample {s.get('token')}")))
     positions = list(range(len(samples))) if frames is None else [int(f) for f in frames]
     bad = [f for f in positions if not 0 <= f < len(samples)]
     if bad or not positions:
@@ -313,6 +334,7 @@ def load_nuscenes(
     # -- cameras ---------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[int, int]] = {}
+    undistort: dict[str, ImageUndistorter] = {}  # cameras with a non-zero camera_distortion
     for c in cam_names:
         sd = reading(0, c)
         what = f"{c} calibrated_sensor"
@@ -322,6 +344,14 @@ def load_nuscenes(
             raise ValueError(f"nuScenes {what}.camera_intrinsic: expected a 3x3 matrix, got shape {K.shape}")
         w, h = int(_key(sd, "width", f"{c} sample_data")), int(_key(sd, "height", f"{c} sample_data"))
         full_size[c] = (w, h)
+        dist = cs.get("camera_distortion")
+        if dist:
+            try:
+                und = ImageUndistorter(torch.from_numpy(K), dist, (h, w))
+            except ValueError as e:
+                raise ValueError(f"nuScenes {what}.camera_distortion: {e}") from None
+            if und.distorted:
+                undistort[c], K = und, und.K.numpy()
         size = (round(h * scale), round(w * scale))
         Kt = as_tensor(K, f"{what}.camera_intrinsic")
         if scale != 1.0:
@@ -418,6 +448,19 @@ def load_nuscenes(
             pts, label_points(pts, frame_boxes), torch.from_numpy(sensor_to_world[:3, 3]).float()
         )
 
+    def image_loader(view: ViewInfo) -> torch.Tensor:
+        """The view's JPEG, undistorted if its camera has distortion coefficients."""
+        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+        und = undistort.get(view.camera)
+        if und is None:
+            return img
+        if tuple(img.shape[-2:]) != und.image_size:
+            raise ValueError(
+                f"nuScenes image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from "
+                f"sample_data's {und.image_size[1]}x{und.image_size[0]}"
+            )
+        return und(img[None])[0].clamp(0.0, 1.0)
+
     return Scene(
         name=scene_name,
         root=dataroot,
@@ -430,4 +473,5 @@ def load_nuscenes(
         test_frames=test,
         scale=float(scale),
         lidar_loader=lidar_loader if lidar is not None else None,
+        image_loader=image_loader if undistort else None,
     )

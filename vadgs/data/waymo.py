@@ -3,11 +3,14 @@
 The v2 release stores each *component* of a segment in its own parquet file,
 ``<dataset_dir>/<component>/<segment_context_name>.parquet``, with flat columns named
 ``key.segment_context_name``, ``key.frame_timestamp_micros``, ``key.camera_name``,
-``key.laser_name``, ``key.laser_object_id`` and ``[<Component>].<field>.<subfield>``. vadgs reads
+``key.laser_name``, ``key.laser_object_id`` and ``[<Component>].<field>.<subfield>``
+(``key.camera_name`` is an int8 in the v2 schema; some release files hold the name, e.g.
+``"FRONT"``: both are accepted, see :func:`waymo_camera_name`). vadgs reads
 them with ``pyarrow`` (an optional dependency: ``pip install 'vadgs[waymo]'``); the
 ``waymo-open-dataset`` package (and TensorFlow) is not needed. Components read:
 
-- ``vehicle_pose``: ``[VehiclePoseComponent].world_from_vehicle.transform`` (a row per frame);
+- ``vehicle_pose``: ``[VehiclePoseComponent].world_from_vehicle.transform`` (a row per frame;
+  double in the v2 schema, float32 in some release files: both are read as float64);
 - ``camera_calibration``: ``[CameraCalibrationComponent].intrinsic.{f_u, f_v, c_u, c_v, k1, k2,
   p1, p2, k3}``, ``.extrinsic.transform``, ``.width``, ``.height``;
 - ``camera_image``: ``[CameraImageComponent].image`` (JPEG), ``.pose.transform``,
@@ -29,8 +32,11 @@ How Waymo maps to vadgs:
   image's own ``pose`` (the vehicle pose at ``pose_timestamp``) gives
   ``cam_to_world = pose @ cam_to_ego``. Waymo's image coordinates put 0 at the *left edge* of the
   first pixel (stated for the LiDAR camera projections), vadgs at its centre, so
-  ``cx = c_u - 0.5``, ``cy = c_v - 0.5`` (:data:`WAYMO_PIXEL_OFFSET`). Distortion ``k1, k2, p1, p2,
-  k3`` is ignored with a :class:`UserWarning`; the rolling shutter is ignored.
+  ``cx = c_u - 0.5``, ``cy = c_v - 0.5`` (:data:`WAYMO_PIXEL_OFFSET`). The lens distortion
+  ``k1, k2, p1, p2, k3`` (OpenCV's model and order) is removed: each image is undistorted when
+  loaded (:mod:`vadgs.data.undistort`: same size and principal point, focal lengths scaled by
+  the smallest factor that leaves no pixel without a source: 0.9999-1.0025 for the real cameras)
+  and ``K`` is that pinhole ``K``. The rolling shutter is ignored.
 - **LiDAR.** The first return of each selected laser's range image becomes points with
   :func:`waymo_range_image_to_points` (the official conversion: rows from the beam inclinations,
   top row = highest, columns from azimuth π to -π corrected by the extrinsic's yaw, then the
@@ -49,9 +55,9 @@ from __future__ import annotations
 
 import functools
 import io
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -65,6 +71,7 @@ from vadgs.data._tracks import (
     label_points,
 )
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
+from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = [
@@ -73,8 +80,11 @@ __all__ = [
     "WAYMO_CAMERA_TO_OPENCV",
     "WAYMO_LASERS",
     "WAYMO_PIXEL_OFFSET",
+    "WaymoPoses",
     "load_waymo",
+    "read_waymo_poses",
     "waymo_beam_inclinations",
+    "waymo_camera_name",
     "waymo_range_image_to_points",
 ]
 
@@ -253,6 +263,92 @@ class _Component:
         return {c: out.get(c, [None] * table.num_rows) for c in [*columns, *optional]}
 
 
+def waymo_camera_name(value: object) -> str:
+    """The camera name of a ``key.camera_name`` value: the v2 schema's int8 id or the name itself.
+
+    Raises:
+        ValueError: if the value is neither a known id (1-5) nor a known name; the message names
+            ``key.camera_name`` and lists both.
+
+    Example:
+        >>> waymo_camera_name(1), waymo_camera_name("SIDE_LEFT"), waymo_camera_name(b"FRONT_RIGHT")
+        ('FRONT', 'SIDE_LEFT', 'FRONT_RIGHT')
+    """
+    if isinstance(value, bytes):
+        value = value.decode("utf-8", "replace")
+    if isinstance(value, str):
+        name = value.strip().upper()
+        if name in WAYMO_CAMERAS.values():
+            return name
+        if name.isdigit() and int(name) in WAYMO_CAMERAS:
+            return WAYMO_CAMERAS[int(name)]
+    elif isinstance(value, (int, np.integer)) and int(value) in WAYMO_CAMERAS:
+        return WAYMO_CAMERAS[int(value)]
+    raise ValueError(
+        f"key.camera_name: expected a camera id {sorted(WAYMO_CAMERAS)} or name "
+        f"{list(WAYMO_CAMERAS.values())}, got {value!r}"
+    )
+
+
+class WaymoPoses(NamedTuple):
+    """The vehicle poses of a segment (``vehicle_pose``), in time order.
+
+    Attributes:
+        timestamps_us: ``(F,)`` int64 ``key.frame_timestamp_micros``.
+        world_from_vehicle: ``(F, 4, 4)`` float64 vehicle → Waymo's global frame (not recentred).
+    """
+
+    timestamps_us: torch.Tensor
+    world_from_vehicle: torch.Tensor
+
+
+def read_waymo_poses(dataset_dir: str | Path, segment: str) -> WaymoPoses:
+    """Read a segment's ``vehicle_pose`` component (float64 or float32 transforms).
+
+    Args:
+        dataset_dir: the split folder holding one sub-folder per component.
+        segment: the ``segment_context_name`` (the parquet file's stem).
+
+    Returns:
+        :class:`WaymoPoses`, sorted by timestamp.
+
+    Raises:
+        ImportError: if ``pyarrow`` is not installed.
+        FileNotFoundError: if ``dataset_dir`` or its ``vehicle_pose`` folder is missing.
+        ValueError: if the segment is unknown, a column is missing, a transform is not 16
+            finite numbers, or the segment has no rows.
+
+    Example:
+        >>> from pathlib import Path
+        >>> root = Path("/data/waymo/v2/training")
+        >>> if root.is_dir():  # doctest: +SKIP
+        ...     poses = read_waymo_poses(root, "10023947602400723454_1120_000_1140_000")
+        ...     poses.world_from_vehicle.shape
+        torch.Size([199, 4, 4])
+    """
+    pq = _pyarrow()
+    dataset_dir = Path(dataset_dir)
+    if not dataset_dir.is_dir():
+        raise FileNotFoundError(f"dataset_dir: no such folder {dataset_dir}")
+    pose_dir = dataset_dir / "vehicle_pose"
+    if not pose_dir.is_dir():
+        raise FileNotFoundError(f"Waymo component 'vehicle_pose': no folder {pose_dir}")
+    if not (pose_dir / f"{segment}.parquet").is_file():
+        have = sorted(p.stem for p in pose_dir.glob("*.parquet"))
+        raise ValueError(f"segment: unknown segment {segment!r} in {dataset_dir}, have {have[:20]}")
+    vp = _Component(pq, dataset_dir, "vehicle_pose", segment).read(
+        [_TS, f"{_VP}.world_from_vehicle.transform"], filters=[(_SEG, "=", segment)]
+    )
+    if not vp[_TS]:
+        raise ValueError(f"Waymo segment {segment}: vehicle_pose has no rows")
+    order = np.argsort(vp[_TS], kind="stable")
+    poses = [_matrix(vp[f"{_VP}.world_from_vehicle.transform"][i], "vehicle_pose") for i in order]
+    return WaymoPoses(
+        torch.tensor([int(vp[_TS][i]) for i in order], dtype=torch.int64),
+        torch.from_numpy(np.stack(poses)),
+    )
+
+
 def load_waymo(
     dataset_dir: str | Path,
     segment: str,
@@ -321,23 +417,12 @@ def load_waymo(
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
     if min_motion_m is not None and not min_motion_m >= 0:
         raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
-    pose_dir = dataset_dir / "vehicle_pose"
-    if not pose_dir.is_dir():
-        raise FileNotFoundError(f"Waymo component 'vehicle_pose': no folder {pose_dir}")
-    if not (pose_dir / f"{segment}.parquet").is_file():
-        have = sorted(p.stem for p in pose_dir.glob("*.parquet"))
-        raise ValueError(f"segment: unknown segment {segment!r} in {dataset_dir}, have {have[:20]}")
     seg_filter = [(_SEG, "=", segment)]
 
     # -- frames --------------------------------------------------------------------------------------
-    vp = _Component(pq, dataset_dir, "vehicle_pose", segment).read(
-        [_TS, f"{_VP}.world_from_vehicle.transform"], filters=seg_filter
-    )
-    order = np.argsort(vp[_TS], kind="stable")
-    all_ts = [int(vp[_TS][i]) for i in order]
-    all_poses = [_matrix(vp[f"{_VP}.world_from_vehicle.transform"][i], "vehicle_pose") for i in order]
-    if not all_ts:
-        raise ValueError(f"Waymo segment {segment}: vehicle_pose has no rows")
+    vp = read_waymo_poses(dataset_dir, segment)
+    all_ts = vp.timestamps_us.tolist()
+    all_poses = list(vp.world_from_vehicle.numpy())
     positions = list(range(len(all_ts))) if frames is None else [int(f) for f in frames]
     bad = [f for f in positions if not 0 <= f < len(all_ts)]
     if bad or not positions:
@@ -363,6 +448,7 @@ def load_waymo(
 
     # -- cameras -------------------------------------------------------------------------------------
     intr = ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3")
+    cam_id = {n: k for k, n in WAYMO_CAMERAS.items()}
     cc = _Component(pq, dataset_dir, "camera_calibration", segment).read(
         [
             _CAM,
@@ -373,7 +459,7 @@ def load_waymo(
         ],
         filters=seg_filter,
     )
-    calib = {int(c): i for i, c in enumerate(cc[_CAM])}
+    calib = {cam_id[waymo_camera_name(c)]: i for i, c in enumerate(cc[_CAM])}
     have_cams = [n for k, n in WAYMO_CAMERAS.items() if k in calib]
     cam_names = list(cameras) if cameras is not None else have_cams
     if not cam_names:
@@ -381,26 +467,24 @@ def load_waymo(
     for n in cam_names:
         if n not in have_cams:
             raise ValueError(f"cameras: unknown camera {n!r}, have {have_cams}")
-    cam_id = {n: k for k, n in WAYMO_CAMERAS.items()}
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[int, int]] = {}
+    undistort: dict[str, ImageUndistorter] = {}
     for n in cam_names:
         row = calib[cam_id[n]]
         what = f"camera_calibration[{n}]"
         fu, fv, cu, cv, *dist = (float(cc[f"{_CC}.intrinsic.{k}"][row] or 0.0) for k in intr)
-        if any(d != 0 for d in dist):
-            warnings.warn(
-                f"Waymo camera {n}: distortion (k1, k2, p1, p2, k3) = {tuple(dist)} is IGNORED "
-                "(pinhole model only)",
-                UserWarning,
-                stacklevel=2,
-            )
         w, h = int(cc[f"{_CC}.width"][row]), int(cc[f"{_CC}.height"][row])
         full_size[n] = (w, h)
-        K = torch.tensor(
+        raw_K = torch.tensor(
             [[fu, 0.0, cu - WAYMO_PIXEL_OFFSET], [0.0, fv, cv - WAYMO_PIXEL_OFFSET], [0.0, 0.0, 1.0]],
             dtype=torch.float64,
         )
+        try:
+            undistort[n] = ImageUndistorter(raw_K, torch.tensor(dist, dtype=torch.float64), (h, w))
+        except ValueError as e:
+            raise ValueError(f"Waymo {what}: {e}") from None
+        K = undistort[n].K
         size = (round(h * scale), round(w * scale))
         if scale != 1.0:
             K = scale_intrinsics(K, size[1] / w)
@@ -425,16 +509,17 @@ def load_waymo(
         d = pf.read_row_group(
             rg, columns=cols + ([f"{_CI}.pose_timestamp"] if has_pose_ts else [])
         ).to_pydict()
-        for r, (seg, ts, cam) in enumerate(zip(d[_SEG], d[_TS], d[_CAM])):
+        for r, (seg, ts, cam_value) in enumerate(zip(d[_SEG], d[_TS], d[_CAM])):
             fi = frame_of.get(int(ts))
-            if seg != segment or fi is None or int(cam) not in wanted_ids:
+            if seg != segment or fi is None:
                 continue
-            image_rows[(fi, int(cam))] = (rg, r)
+            cam = cam_id[waymo_camera_name(cam_value)]
+            if cam not in wanted_ids:
+                continue
+            image_rows[(fi, cam)] = (rg, r)
             pose_ts = float(d[f"{_CI}.pose_timestamp"][r] or 0.0) if has_pose_ts else 0.0
-            image_pose[(fi, int(cam))] = (
-                _matrix(
-                    d[f"{_CI}.pose.transform"][r], f"camera_image pose ({WAYMO_CAMERAS[int(cam)]} at {ts})"
-                ),
+            image_pose[(fi, cam)] = (
+                _matrix(d[f"{_CI}.pose.transform"][r], f"camera_image pose ({WAYMO_CAMERAS[cam]} at {ts})"),
                 pose_ts if pose_ts > 0 else int(ts) * 1e-6,
             )
     views: list[ViewInfo] = []
@@ -466,7 +551,8 @@ def load_waymo(
                 f"Waymo {view.camera} image at frame {view.frame}: decoded size "
                 f"{arr.shape[1]}x{arr.shape[0]} differs from the calibration's {w}x{h}"
             )
-        return torch.from_numpy(arr).permute(2, 0, 1).float() / 255.0
+        img = torch.from_numpy(arr).permute(2, 0, 1).float() / 255.0
+        return undistort[view.camera](img[None])[0].clamp(0.0, 1.0)
 
     # -- boxes → instances and tracks ---------------------------------------------------------------
     boxes: dict[int, dict[int, BoxObservation]] = {}
