@@ -35,6 +35,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from vadgs.io import atomic_write
+
 __all__ = [
     "BatchConfig",
     "BatchSummary",
@@ -197,12 +199,6 @@ class BatchSummary:
 
 # ---------------------------------------------------------------------------------------------------
 # run folders
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
@@ -369,7 +365,7 @@ def run_scene(
     run.mkdir(parents=True, exist_ok=True)
     task = _read_json(run / TASK_FILE) or {}
     attempt = int(task.get("attempts", 0)) + 1 if task.get("submission") == submission else 1
-    _atomic_write(
+    atomic_write(
         run / TASK_FILE,
         json.dumps(
             {
@@ -417,8 +413,8 @@ def write_summary(summary: BatchSummary, out_dir: str | Path | None = None) -> P
     """
     out = Path(out_dir if out_dir is not None else summary.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out / "summary.json", json.dumps(summary.to_dict(), indent=2))
-    _atomic_write(out / "summary.md", summary.to_markdown())
+    atomic_write(out / "summary.json", json.dumps(summary.to_dict(), indent=2))
+    atomic_write(out / "summary.md", summary.to_markdown())
     return out / "summary.json"
 
 
@@ -485,7 +481,7 @@ def run_batch(
         run = out / name
         run.mkdir(exist_ok=True)
         if _owner(run) != p:
-            _atomic_write(run / SCENE_FILE, json.dumps({"scene": p}))
+            atomic_write(run / SCENE_FILE, json.dumps({"scene": p}))
         base = SceneResult(scene=p, name=name, run=str(run))
         metrics = _finished(run)
         results.append(base if metrics is None else _skipped(base, run, metrics))

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import torch
 
+from vadgs.io import write_json
+
 __all__ = [
     "COMMANDS",
     "batch",
@@ -168,7 +170,7 @@ def visibility(args: argparse.Namespace) -> int:
             float(((depth - gt).abs()[both] < args.voxel_size).float().mean()) if both.any() else 0.0, 4
         )
     png = save_panel(panels, titles, out / f"visibility_view{view:03d}.png", columns=2)
-    (out / "visibility.json").write_text(json.dumps(metrics, indent=2))
+    write_json(out / "visibility.json", metrics)
     print(json.dumps(metrics, indent=2))
     print(f"wrote {png}")
     return 0
@@ -384,7 +386,7 @@ def _finish_run(trainer: object, out: Path, result: object, progress: bool) -> d
             appearance=trainer.appearance,
         ).to_dict()
     export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
-    _write_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
+    write_json(out / "metrics.json", metrics)
     return metrics
 
 
@@ -538,7 +540,7 @@ def train(args: argparse.Namespace) -> int:
     metrics = _finish_run(trainer, out, result, progress)
     if "vad_events" in trainer.state:
         metrics["vad_events"] = trainer.state["vad_events"]
-        _write_atomic(out / "metrics.json", json.dumps(metrics, indent=2, default=str))
+        write_json(out / "metrics.json", metrics, default=str)
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
     return 0
@@ -676,21 +678,12 @@ def eval_run(args: argparse.Namespace) -> int:
         path = _run_dir(args.run) / f"eval_{args.split}.json"
         shown = {k: {kk: vv for kk, vv in g.items() if kk != "per_view"} for k, g in m["groups"].items()}
         note = next(iter(m["groups"].values()))["lpips_note"]
-    _write_atomic(path, json.dumps(m, indent=2))
+    write_json(path, m)
     print(json.dumps(shown, indent=2))
     if note:
         print(note)
     print(f"wrote {path}")
     return 0
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(text)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _eval_args(p: argparse.ArgumentParser) -> None:
@@ -885,7 +878,7 @@ def demo(args: argparse.Namespace) -> int:
     result = trainer.train()
     metrics = _finish_run(trainer, out, result, not args.no_progress)
     metrics["wall_s"] = round(time.perf_counter() - t0, 1)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_json(out / "metrics.json", metrics)
     view = scene.test_views[len(scene.test_views) // 2]
     r = render_test_view(trainer.model, scene, view, config.raster)
     gtd = scene.load_depths([view])[0, 0]
@@ -903,7 +896,7 @@ def demo(args: argparse.Namespace) -> int:
             {k: v for k, v in e.items() if k != "instances"} | {"instances": e["instances"]}
             for e in trainer.state["vad_events"]
         ]
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+        write_json(out / "metrics.json", metrics, default=str)
         if snapshots:
             _completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)
             print(f"wrote {out / 'demo_completion.png'}")

@@ -27,8 +27,6 @@ the property.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -37,6 +35,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from vadgs.checks import check_finite, check_shape
+from vadgs.io import atomic_write
 from vadgs.render.sh import rgb_to_sh
 
 __all__ = ["GaussianPly", "load_ply", "read_raw_ply", "save_ply", "write_raw_ply"]
@@ -73,18 +72,7 @@ def _write(path: Path, columns: list[np.ndarray], names: list[str]) -> Path:
         vertex[name] = data[:, i]
     ply = PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            ply.write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write(path, lambda tmp: ply.write(str(tmp)))
 
 
 def write_raw_ply(path: str | Path, params: dict[str, torch.Tensor]) -> Path:

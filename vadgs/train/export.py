@@ -36,6 +36,7 @@ from typing import NamedTuple
 import torch
 
 from vadgs.data.scene import Scene
+from vadgs.io import atomic_write
 from vadgs.render import eval_sh, num_sh_bases, save_ply, sh_basis
 from vadgs.render.ply import read_raw_ply, write_raw_ply
 from vadgs.train.model import GaussianModel
@@ -107,7 +108,7 @@ def export_model(
             if bool(model.track_valid[k, f])
         }
     text = json.dumps({"object_to_world": poses, "sh_degree": model.sh_degree}, indent=1)
-    paths.append(_replace_atomic(out_dir / "poses.json", lambda p: p.write_text(text)))
+    paths.append(atomic_write(out_dir / "poses.json", text))
     return paths
 
 
@@ -225,17 +226,6 @@ class WorldExport(NamedTuple):
     num_gaussians: int
 
 
-def _replace_atomic(path: Path, write) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        write(tmp)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
-
-
 @torch.no_grad()
 def world_gaussians(model: GaussianModel, frame: int) -> dict[str, torch.Tensor]:
     """Activated Gaussians of a frame position in the world, SH rotated into the world.
@@ -311,9 +301,9 @@ def export_world(
         if inria
         else out_dir / f"world_frame{frame:03d}.ply"
     )
-    _replace_atomic(ply, lambda p: save_ply(p, w["means"], w["quats"], w["scales"], w["opacities"], w["sh"]))
+    save_ply(ply, w["means"], w["quats"], w["scales"], w["opacities"], w["sh"])
     sky = image_to_uint8(sky_equirect(model, *sky_size))
-    sky_png = _replace_atomic(out_dir / "sky.png", lambda p: Image.fromarray(sky).save(p, format="PNG"))
+    sky_png = atomic_write(out_dir / "sky.png", lambda p: Image.fromarray(sky).save(p, format="PNG"))
     sky_meta = {
         "image": "sky.png",
         "projection": "equirectangular",
@@ -325,7 +315,7 @@ def export_world(
         "sh_degree": model.sky_degree,
         "sh_coefficients": model.sky.detach().cpu().tolist(),
     }
-    sky_json = _replace_atomic(out_dir / "sky.json", lambda p: p.write_text(json.dumps(sky_meta, indent=1)))
+    sky_json = atomic_write(out_dir / "sky.json", json.dumps(sky_meta, indent=1))
     cameras_json = cfg_args = None
     if inria:
         cams = []
@@ -345,13 +335,11 @@ def export_world(
                     "fx": float(info.K[0, 0]),
                 }
             )
-        cameras_json = _replace_atomic(
-            out_dir / "cameras.json", lambda p: p.write_text(json.dumps(cams, indent=1))
-        )
+        cameras_json = atomic_write(out_dir / "cameras.json", json.dumps(cams, indent=1))
         args = (
             f"Namespace(data_device='cuda', eval=True, images='images', model_path={str(out_dir)!r}, "
             f"resolution=-1, sh_degree={model.active_sh_degree}, "
             f"source_path={str(scene.root or '')!r}, white_background=False)"
         )
-        cfg_args = _replace_atomic(out_dir / "cfg_args", lambda p: p.write_text(args))
+        cfg_args = atomic_write(out_dir / "cfg_args", args)
     return WorldExport(ply, sky_png, sky_json, cameras_json, cfg_args, int(w["means"].shape[0]))

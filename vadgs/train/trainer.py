@@ -53,6 +53,7 @@ import torch
 
 from vadgs.checks import checks_enabled
 from vadgs.data.scene import Scene
+from vadgs.io import atomic_write, remove_stale_tmp
 from vadgs.render import RasterConfig
 from vadgs.train import losses as L
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, correct_view, view_camera
@@ -390,15 +391,9 @@ def _atomic_save(obj: Any, path: Path) -> None:
     Raises:
         OSError: naming ``path``, in one line (disk full: ``No space left on device``).
     """
-    tmp = path.with_name(path.name + ".tmp")
     try:
-        with open(tmp, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        atomic_write(path, lambda tmp: torch.save(obj, tmp))
     except BaseException as e:
-        tmp.unlink(missing_ok=True)
         if not isinstance(e, Exception):
             raise
         kept = "the previous file is kept" if path.is_file() else "nothing was written"
@@ -412,23 +407,15 @@ def _atomic_save(obj: Any, path: Path) -> None:
 
 
 def _remove_stale_tmp(folder: Path) -> list[Path]:
-    """Remove temporary files a killed run left behind (``*.tmp`` of checkpoints and exports)."""
-    removed = []
-    for pattern in (CHECKPOINT_NAME + ".tmp", ".*.tmp", "ply/.*.tmp", "ply/.*.partial.*"):
+    """Remove temporary files a killed run left behind (of checkpoints, JSON files and exports)."""
+    removed = remove_stale_tmp(folder, "ply")
+    # the names written before vadgs.io
+    for pattern in (CHECKPOINT_NAME + ".tmp", "ply/.*.partial.*"):
         for p in folder.glob(pattern):
             if p.is_file():
                 p.unlink(missing_ok=True)
                 removed.append(p)
     return removed
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -1009,7 +996,7 @@ class Trainer:
             _remove_stale_tmp(self.out_dir)
             if self.step == 0:  # a new run: a log left by a run killed before any checkpoint goes
                 (self.out_dir / "log.jsonl").unlink(missing_ok=True)
-            _write_text_atomic(
+            atomic_write(
                 self.out_dir / "config.json",
                 json.dumps({"config": cfg.to_dict(), "scene": self.scene_ref}, indent=2),
             )
