@@ -130,6 +130,18 @@ class TestData:
             assert f.fov == pytest.approx(2 * math.atan(h / 2 / float(cam.K[1, 1])))
             assert f.aspect == pytest.approx(w / h)
 
+    def test_frusta_of_a_rig_of_two_sizes(self, tmp_path):
+        from tests.data.multisize_sample import write_multisize_sample
+        from vadgs.data import load_scene
+
+        sc = load_scene(write_multisize_sample(tmp_path))
+        frusta = frame_frusta(sc, 0)
+        by_size = {sc.image_size(f.view): f for f in frusta}
+        assert set(by_size) == {(120, 200), (144, 240)}
+        for (h, w), f in by_size.items():  # each frustum at its own view's size and focal length
+            fy = float(sc.cameras_info[f.camera].K[1, 1])
+            assert f.aspect == pytest.approx(w / h) and f.fov == pytest.approx(2 * math.atan(h / 2 / fy))
+
 
 @pytest.fixture
 def server():
