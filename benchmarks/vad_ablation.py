@@ -46,6 +46,7 @@ VARIANTS = {
     "cooldown0": VisibilityDensifyConfig(cooldown_events=0),
     "cooldown1": VisibilityDensifyConfig(cooldown_events=1),
     "references3": VisibilityDensifyConfig(references=3),
+    "references4": VisibilityDensifyConfig(references=4),
     "cooldown0_4096": VisibilityDensifyConfig(
         cooldown_events=0, reconstruct=ReconstructConfig(max_match_pixels=4096)
     ),
