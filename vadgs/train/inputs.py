@@ -219,7 +219,8 @@ class VisibilityInputs:
         Reads ``image_names``, ``image_paths``, ``camtoworlds`` (``(N, 4, 4)`` OpenCV
         camera-to-world), ``camera_ids``, ``Ks_dict``, ``imsize_dict`` (camera id → ``(W, H)``),
         ``points`` and ``point_indices`` (image name → indices of the points it sees: the TRACK
-        table). Each image is its own frame; there are no instance maps (derived ground cells
+        table). ``K`` is moved to vadgs's pixel convention (centres at integers: ``cx, cy`` minus
+        0.5; gsplat's and COLMAP's centres are at ``i + 0.5``). Each image is its own frame; there are no instance maps (derived ground cells
         stand in) and no moving objects. Images are read with PIL on demand and resized (area) to
         the parser's size; lens distortion is not modelled (use undistorted images / a PINHOLE
         model, as gsplat's ``Dataset`` does with ``mapx_dict``).
@@ -242,6 +243,7 @@ class VisibilityInputs:
             train_views = [i for i in range(n) if not test_every or i % test_every != 0]
         cam_ids = [int(c) for c in parser.camera_ids]
         K = torch.stack([torch.as_tensor(np.asarray(parser.Ks_dict[c])) for c in cam_ids]).float()
+        K[:, :2, 2] -= 0.5  # gsplat / COLMAP: pixel centres at i + 0.5; vadgs: at i
         c2w = torch.as_tensor(np.asarray(parser.camtoworlds), dtype=torch.float32)
         if tuple(c2w.shape) != (n, 4, 4):
             raise ValueError(f"parser.camtoworlds: expected ({n}, 4, 4), got {tuple(c2w.shape)}")
