@@ -175,3 +175,27 @@ def test_simple_trainer_shape_repopulates_a_deleted_facade(parser):
     assert float(runner.strategy_state["count"][n0:].sum()) > 0  # the new rows are seen after the event
     # the events reach the loop through the state, bounded
     assert len(runner.strategy_state["pending_log"]) == 1 <= runner.vad.log_size
+
+
+def test_the_documented_diff_is_this_loop():
+    """examples/gsplat_simple_trainer.md: its diff is the .diff file, at most 40 changed lines, and
+    the lines it adds for the strategy are the ones this test's Runner runs."""
+    import inspect
+    from pathlib import Path
+
+    examples = Path(__file__).resolve().parents[2] / "examples"
+    doc = (examples / "gsplat_simple_trainer.md").read_text()
+    block = doc.split("```diff\n", 1)[1].rsplit("```", 1)[0]
+    assert block == (examples / "gsplat_simple_trainer.diff").read_text()
+    added = [ln[1:] for ln in block.splitlines() if ln.startswith("+") and not ln.startswith("+++")]
+    removed = [ln[1:] for ln in block.splitlines() if ln.startswith("-") and not ln.startswith("---")]
+    assert len(added) + len(removed) <= 40
+    assert block in (examples.parent / "docs" / "vad.md").read_text()  # shown there too
+    source = inspect.getsource(Runner)
+    body = [ln.strip() for ln in added if ln.strip()]
+    start = body.index("def render_for_vad(self, view: int) -> ViewRender:")
+    for line in body[start : start + 8]:  # render_for_vad, line for line
+        assert line in source, line
+    for call in ("VisibilityAwareDensification.from_config(", ".check_sanity(self.splats, self.optimizers)"):
+        assert any(call in ln for ln in body) and call in source
+    assert sum("(self.vad or self.cfg.strategy).step_" in ln for ln in added) == 3

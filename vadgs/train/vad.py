@@ -1,13 +1,16 @@
 r"""VAD-GS: the visibility-aware densification strategy (paper, Sec. "Methodology").
 
-:class:`VisibilityAwareDensification` is a gsplat-style strategy
-(``initialize_state`` / ``step_pre_backward`` / ``step_post_backward`` on ``params``,
-``optimizers``, ``state``, ``step``, ``info``) that wraps a standard one (adaptive density control)
-and never sees the training loop: it gets the scene at construction and, in a frozen
-:class:`StrategyContext`, the three things of the loop it needs — a function that renders a view's
-depth, opacity and normals with the current Gaussians, the total number of steps and the number
-of steps of a sampling cycle — plus the generator of its selection noise. Every ``every_cycles``
-complete sampling cycles of the training views it runs one event, a one-way flow:
+:class:`VisibilityAwareDensification` is a gsplat-style strategy — a dataclass of its settings
+with ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` / ``step_post_backward`` on
+``params``, ``optimizers``, ``state``, ``step``, ``info`` — that wraps a standard one (adaptive
+density control: vadgs's or gsplat's ``DefaultStrategy``, gsplat's ``MCMCStrategy``) and never sees
+the training loop nor a vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it the
+data as a :class:`~vadgs.train.inputs.VisibilityInputs` (``from_scene`` / ``from_gsplat_parser``)
+and, in a frozen :class:`StrategyContext`, the three things of the loop it needs — a function
+that renders a view's depth, opacity and normals with the current Gaussians, the total number of
+steps and the number of steps of a sampling cycle — plus the generator of its selection noise.
+Every ``every_cycles`` complete sampling cycles of the training views it runs one event, a one-way
+flow:
 
 1. **visibility index** (built once): voxel grids of the initial points with per-voxel view
    visibility (:func:`~vadgs.train.reconstruct.build_visibility_index`: LiDAR, or COLMAP tracks);
@@ -275,14 +278,15 @@ class StrategyContext:
     """What :class:`VisibilityAwareDensification` needs of the training loop, given explicitly.
 
     Attributes:
-        render: ``view -> ViewRender``: renders a view of the scene (index into ``scene.views``)
-            with the current Gaussians, at the view's frame, without gradient.
+        render: ``view -> ViewRender``: renders a view (index into the inputs' views, e.g.
+            ``scene.views`` or the Parser's images) with the current Gaussians, at the view's frame,
+            without gradient; normals may be zeros (unknown).
         total_steps: the run's number of steps (events stop after ``last_event_fraction`` of it).
         steps_per_cycle: steps of one sampling cycle (vadgs's trainer: one view per step, so the
             number of training views); cycle ``c`` ends after step ``c * steps_per_cycle - 1``.
         generator: seeds the view-selection noise ``ξ`` and point subsampling (checkpoint it for
             exact resume; vadgs's trainer passes its own).
-        track_nodes: track id → node index of ``params["node_ids"]`` (default: the scene's tracks
+        track_nodes: track id → node index of ``params["node_ids"]`` (default: the inputs' tracks
             in sorted order, as :func:`~vadgs.train.init.init_gaussians` numbers them). Without
             ``node_ids`` in ``params`` (a static gsplat model) moving objects are not densified.
 
