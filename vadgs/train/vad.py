@@ -467,6 +467,32 @@ class VisibilityAwareDensification:
             out.prepare(inputs, context, index)
         return out
 
+    @classmethod
+    def from_scene(
+        cls,
+        scene: Any,
+        context: StrategyContext,
+        config: VisibilityDensifyConfig | None = None,
+        base: Any = None,
+        index: VisibilityIndex | None = None,
+        on_addition: Callable[[dict[str, Any]], None] | None = None,
+    ) -> VisibilityAwareDensification:
+        """Deprecated: the former constructor ``(scene, context, config, base, index)``.
+
+        Use ``from_config(config, base=base, inputs=VisibilityInputs.from_scene(scene),
+        context=context)``.
+        """
+        import warnings
+
+        warnings.warn(
+            "VisibilityAwareDensification.from_scene(scene, context, ...) is deprecated: use "
+            "from_config(config, base=..., inputs=VisibilityInputs.from_scene(scene), context=...)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        inputs = VisibilityInputs.from_scene(scene) if index is None else None
+        return cls.from_config(config, base, inputs, context, index, on_addition)
+
     @property
     def config(self) -> VisibilityDensifyConfig:
         """The settings as a :class:`VisibilityDensifyConfig` (assignable: sets every field)."""
