@@ -220,10 +220,11 @@ class VisibilityInputs:
         camera-to-world), ``camera_ids``, ``Ks_dict``, ``imsize_dict`` (camera id → ``(W, H)``),
         ``points`` and ``point_indices`` (image name → indices of the points it sees: the TRACK
         table). ``K`` is moved to vadgs's pixel convention (centres at integers: ``cx, cy`` minus
-        0.5; gsplat's and COLMAP's centres are at ``i + 0.5``). Each image is its own frame; there are no instance maps (derived ground cells
-        stand in) and no moving objects. Images are read with PIL on demand and resized (area) to
-        the parser's size; lens distortion is not modelled (use undistorted images / a PINHOLE
-        model, as gsplat's ``Dataset`` does with ``mapx_dict``).
+        0.5; gsplat's and COLMAP's centres are at ``i + 0.5``). Each image is its own frame; there
+        are no instance maps (derived ground cells stand in) and no moving objects. Images are read
+        with PIL on demand and resized (area) to the parser's size; lens distortion is not
+        modelled (use undistorted images / a PINHOLE model, as gsplat's ``Dataset`` does with
+        ``mapx_dict``).
 
         Args:
             parser: the parser (or any object with those attributes).
