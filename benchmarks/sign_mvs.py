@@ -25,7 +25,7 @@ from vad_ablation import sign_surface
 from vadgs.data import load_scene
 from vadgs.train.reconstruct import ReconstructConfig, reconstruct_instance
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityAwareDensification, pick_references
+from vadgs.train.vad import VisibilityAwareDensification, VisibilityInputs, pick_references
 
 SETTINGS = {
     "training resolution": ReconstructConfig(max_upsample=1, planar=None),
@@ -54,7 +54,8 @@ def main() -> None:
     surface = sign_surface(scene)
     board = surface[:, 2] > 4.5
     trainer = Trainer.from_checkpoint(args.checkpoint, scene=scene, progress=False)
-    strategy = VisibilityAwareDensification(scene, trainer.strategy_context())
+    strategy = VisibilityAwareDensification()
+    strategy.prepare(VisibilityInputs.from_scene(scene), trainer.strategy_context())
     rows, views = strategy.detect()
     hit = torch.nonzero(rows.flagged & (rows.instance == sign)).squeeze(1).tolist()
     flagged = [(views[int(rows.view[k])], int(rows.pixels[k])) for k in hit]

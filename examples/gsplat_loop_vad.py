@@ -3,13 +3,18 @@
 What a gsplat ``simple_trainer`` user keeps: parameters in a ``ParameterDict`` with gsplat's names
 (``means``, ``scales`` (log), ``quats``, ``opacities`` (logits), ``sh0``, ``shN``), one Adam per
 parameter in a dict, their own render call and their own loss. What they add: a
-:class:`~vadgs.train.vad.VisibilityAwareDensification` strategy, called like gsplat's
-``DefaultStrategy`` (``step_pre_backward`` / ``step_post_backward``), a
-:class:`~vadgs.train.vad.StrategyContext` that tells it how to render a view, and the geometric
-losses on its priors through :func:`vadgs.train.losses.geometric_losses`.
+:class:`~vadgs.train.vad.VisibilityAwareDensification` strategy (a dataclass, called like gsplat's
+``DefaultStrategy``: ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` /
+``step_post_backward``), the data it reads as a :class:`~vadgs.train.inputs.VisibilityInputs`
+(cameras, image loader, LiDAR or TRACK observations; the loop below sees only that, no vadgs
+``Scene``), a :class:`~vadgs.train.vad.StrategyContext` that tells it how to render a view, and the
+geometric losses on its priors through :func:`vadgs.train.losses.geometric_losses`.
 
-Rendering: :func:`vadgs.render.rasterize_gaussians` (pure torch, CPU or GPU) by default; gsplat's
-CUDA ``rasterization`` when ``--backend gsplat`` (needs CUDA and ``pip install gsplat``).
+Rendering: :func:`vadgs.render.rasterize_gaussians` (pure torch, CPU or GPU) by default;
+:func:`vadgs.render.gsplat_backend.rasterize_gaussians_gsplat` (gsplat's CUDA ``rasterization``,
+same conventions and outputs) with ``--backend gsplat``, the default when CUDA and gsplat are
+available. The CUDA path has not run here (no GPU); its conventions are checked on the CPU
+against gsplat's pure-torch reference (``tests/render/test_gsplat_backend.py``).
 
 Run (the bundled sample, static Gaussians from its LiDAR; moving cars are left to the background):
 
@@ -24,13 +29,14 @@ import math
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 from vadgs.data import Scene, load_scene, sample_scene_path
 from vadgs.data.lidar import accumulate_lidar
-from vadgs.geometry import backproject_depth, invert_rigid
+from vadgs.geometry import invert_rigid
 from vadgs.render import rasterize_gaussians, rgb_to_sh
+from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
 from vadgs.train import losses as L
+from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityDensifyConfig
 
@@ -62,37 +68,24 @@ def make_optimizers(params: torch.nn.ParameterDict, scene_scale: float) -> dict[
     return {k: torch.optim.Adam([params[k]], lr=lr, eps=1e-15) for k, lr in lrs.items()}
 
 
-def render(params, scene: Scene, view: int, backend: str = "torch", opacity_override: float | None = None):
+def render(params, inputs: VisibilityInputs, view: int, backend: str = "torch", opacity_override=None):
     """Render one view: ``(color (1, 3, H, W), depth, alpha (1, 1, H, W), normals (1, 3, H, W), info)``.
 
     ``info`` is gsplat's (``means2d``, ``radii``, ``width``, ``height``, ``n_cameras``) for the base
-    strategy.
+    strategy. ``backend="gsplat"``: gsplat's rasterizer (CUDA tensors: its CUDA kernels).
     """
-    cams = scene.cameras([view])
     dev = params["means"].device
-    w2c, K = cams.world_to_cam.to(dev), cams.K.to(dev)
-    h, w = cams.image_size
+    w2c = inputs.cameras.world_to_cam[view : view + 1].to(dev)
+    K = inputs.cameras.K[view : view + 1].to(dev)
+    h, w = inputs.size(view)
     opac = torch.sigmoid(params["opacities"])
     if opacity_override is not None:
         opac = torch.full_like(opac.detach(), opacity_override)
     sh = torch.cat([params["sh0"], params["shN"]], 1)
     degree = math.isqrt(sh.shape[1]) - 1
     bg = torch.full((3,), BACKGROUND, device=dev)
-    if backend == "gsplat":  # CUDA: gsplat's rasterizer; normals from the rendered depth
-        import gsplat
-
-        rgbd, alpha, meta = gsplat.rasterization(
-            params["means"], F.normalize(params["quats"], dim=-1), torch.exp(params["scales"]), opac,
-            sh, w2c, K, w, h, sh_degree=degree, render_mode="RGB+ED", backgrounds=bg[None],
-        )  # fmt: skip
-        color, depth = rgbd[..., :3].permute(0, 3, 1, 2), rgbd[..., 3:].permute(0, 3, 1, 2)
-        alpha = alpha.permute(0, 3, 1, 2)
-        pts = backproject_depth(depth, K)  # camera frame
-        dx, dy = pts[..., :, 1:] - pts[..., :, :-1], pts[..., 1:, :] - pts[..., :-1, :]
-        normals = -F.normalize(torch.cross(F.pad(dx, (0, 1)), F.pad(dy, (0, 0, 0, 1)), dim=1), dim=1)
-        normals = torch.where(depth > 0, normals, torch.zeros_like(normals))
-        return color, depth, alpha, normals, meta
-    out = rasterize_gaussians(
+    raster = rasterize_gaussians_gsplat if backend == "gsplat" else rasterize_gaussians
+    out = raster(
         params["means"], params["quats"], torch.exp(params["scales"]), opac, sh, w2c, K, (h, w),
         background=bg, sh_degree=degree,
     )  # fmt: skip
@@ -119,14 +112,14 @@ def lidar_init(scene: Scene, max_points: int = 20000, seed: int = 0):
     return pts, colors, d
 
 
-def scene_scale(scene: Scene) -> float:
+def scene_scale(inputs: VisibilityInputs) -> float:
     """Radius of the training cameras' centres (3DGS's normalisation), times 1.1."""
-    c = torch.stack([invert_rigid(scene.cameras([v]).world_to_cam)[0, :3, 3] for v in scene.train_views])
+    c = invert_rigid(inputs.cameras.world_to_cam[list(inputs.train_views)])[:, :3, 3]
     return float((c - c.mean(0)).norm(dim=-1).max() * 1.1)
 
 
 def train(
-    scene: Scene,
+    inputs: VisibilityInputs,
     params: torch.nn.ParameterDict,
     steps: int,
     vad: VisibilityDensifyConfig | None = None,
@@ -137,15 +130,15 @@ def train(
     hard_every: int = 4,
     callback=None,
 ):
-    """The loop. Returns ``(params, optimizers, strategy, state)``."""
-    views = list(scene.train_views)
-    scale = scene_scale(scene)
+    """The loop, on the inputs only. Returns ``(params, optimizers, strategy, state)``."""
+    views = list(inputs.train_views)
+    scale = scene_scale(inputs)
     optimizers = make_optimizers(params, scale)
     generator = torch.Generator().manual_seed(seed + 1)
 
     @torch.no_grad()
     def render_for_strategy(view: int) -> ViewRender:
-        _, depth, alpha, normals, _ = render(params, scene, view, backend)
+        _, depth, alpha, normals, _ = render(params, inputs, view, backend)
         return ViewRender(depth[0], alpha[0], normals[0])
 
     context = StrategyContext(
@@ -154,7 +147,9 @@ def train(
     base = DefaultStrategy(
         adc or DefaultStrategyConfig(refine_start_iter=100, refine_every=50, reset_every=0)
     )
-    strategy = VisibilityAwareDensification(scene, context, vad, base=base)
+    strategy = VisibilityAwareDensification.from_config(vad, base=base)
+    strategy.check_sanity(params, optimizers)
+    strategy.prepare(inputs, context)  # the visibility index, once
     state = strategy.initialize_state(scene_scale=scale)
     sampler = torch.Generator().manual_seed(seed)
     order: list[int] = []
@@ -164,8 +159,8 @@ def train(
             order = [views[i] for i in torch.randperm(len(views), generator=sampler).tolist()]
         view = order.pop(0)
         if view not in images:
-            images[view] = scene.load_images([view]).to(params["means"].device)
-        color, depth, _, normals, info = render(params, scene, view, backend)
+            images[view] = inputs.load_image(view, None)[None].to(params["means"].device)
+        color, depth, _, normals, info = render(params, inputs, view, backend)
         strategy.step_pre_backward(params, optimizers, state, step, info)
         loss = L.color_loss(color, images[view])
         targets = strategy.geometry_targets(state, view)  # VAD-GS's MVS / voxel depth priors
@@ -173,7 +168,7 @@ def train(
             weights = L.geometric_weights(step, steps, *lambdas)
             hard = None
             if weights["hard"] > 0 and step % hard_every == 0:
-                hard = render(params, scene, view, backend, opacity_override=1.0)[1]
+                hard = render(params, inputs, view, backend, opacity_override=1.0)[1]
             terms = L.geometric_losses(targets.to(depth.device), depth, normals, weights, hard)
             loss = loss + sum(terms.values())
         loss.backward()
@@ -191,9 +186,10 @@ def train(
 @torch.no_grad()
 def test_psnr(scene: Scene, params, backend: str = "torch") -> float:
     """Mean PSNR over the test views (moving cars included)."""
+    inputs = VisibilityInputs.from_scene(scene)
     out = []
     for v in scene.test_views:
-        color = render(params, scene, v, backend)[0].clamp(0, 1)
+        color = render(params, inputs, v, backend)[0].clamp(0, 1)
         mse = torch.mean((color - scene.load_images([v]).to(color.device)) ** 2)
         out.append(float(-10 * torch.log10(mse)))
     return sum(out) / len(out)
@@ -222,7 +218,8 @@ def main() -> None:
     pts, colors, spacing = lidar_init(scene)
     params = make_params(pts, colors, spacing).to(device)
     vad = VisibilityDensifyConfig(every_cycles=2, max_instances=3)
-    params, _, _, state = train(scene, params, args.steps, vad, backend=backend)
+    inputs = VisibilityInputs.from_scene(scene)  # or VisibilityInputs.from_gsplat_parser(parser)
+    params, _, _, state = train(inputs, params, args.steps, vad, backend=backend)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     result = {

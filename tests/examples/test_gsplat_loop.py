@@ -11,7 +11,7 @@ from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth
 from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.strategy import DefaultStrategyConfig
-from vadgs.train.vad import VisibilityDensifyConfig
+from vadgs.train.vad import VisibilityDensifyConfig, VisibilityInputs
 
 BUILDING = 9  # a large facade of the sample with LiDAR on its lower part
 
@@ -57,7 +57,12 @@ def test_loop_flags_and_repopulates_a_deleted_facade(setup):
     losses = []
     steps = len(scene.train_views) + 2  # the event after the first cycle, then two steps with priors
     params, optimizers, strategy, state = ex.train(
-        scene, params, steps, vad, adc, callback=lambda s, loss: losses.append(loss)
+        VisibilityInputs.from_scene(scene),
+        params,
+        steps,
+        vad,
+        adc,
+        callback=lambda s, loss: losses.append(loss),
     )
     assert len(losses) == steps and all(torch.isfinite(torch.tensor(losses)))
     (event,) = state["vad_events"]

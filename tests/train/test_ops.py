@@ -178,3 +178,71 @@ class TestProvenance:
         assert back.provenance.tolist() == [0] * 6
         m.load_state_dict(sd)
         assert m.provenance.tolist() == [0] * 6
+
+
+def _appearance(n=5):
+    """gsplat's appearance-optimisation layout: ``features`` and ``colors`` instead of SH, one Adam each."""
+    g = torch.Generator().manual_seed(1)
+    splats = torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(torch.randn(n, 3, generator=g)),
+            "scales": torch.nn.Parameter(torch.rand(n, 3, generator=g).log()),
+            "quats": torch.nn.Parameter(torch.randn(n, 4, generator=g)),
+            "opacities": torch.nn.Parameter(torch.randn(n, generator=g)),
+            "features": torch.nn.Parameter(torch.randn(n, 32, generator=g)),
+            "colors": torch.nn.Parameter(torch.randn(n, 3, generator=g)),
+        }
+    )
+    opts = {k: torch.optim.Adam([splats[k]], lr=1e-2) for k in splats}
+    sum(p.square().sum() for p in splats.values()).backward()
+    for o in opts.values():
+        o.step()
+    return splats, opts
+
+
+class TestUnknownKeys:
+    """Keys outside the two layouts (gsplat's ``features`` / ``colors``) follow the rows, as in gsplat."""
+
+    def test_layout(self):
+        splats, _ = _appearance()
+        names = ops.param_names(splats)
+        assert names[:4] == ops.GSPLAT_NAMES[:4] and names.sh_dc is None and names.sh_rest is None
+
+    def test_duplicate_split_remove(self):
+        splats, opts = _appearance()
+        feat, col = splats["features"].detach().clone(), splats["colors"].detach().clone()
+        state = {"grad2d": torch.arange(5.0)}
+        ops.duplicate(splats, opts, state, torch.tensor([False, True, False, False, True]))
+        assert torch.equal(splats["features"][5:], feat[[1, 4]]) and torch.equal(
+            splats["colors"][5:], col[[1, 4]]
+        )
+        assert torch.equal(opts["features"].state[splats["features"]]["exp_avg"][5:], torch.zeros(2, 32))
+        mask = torch.zeros(7, dtype=torch.bool)
+        mask[0] = True
+        ops.split(splats, opts, state, mask, generator=torch.Generator().manual_seed(0))
+        assert splats["features"].shape == (8, 32) and torch.equal(splats["features"][6:], feat[[0, 0]])
+        ops.remove_gaussians(splats, opts, state, torch.arange(8) < 3)
+        assert torch.equal(splats["features"][:3], feat[[4, 1, 4]])
+        for k in splats:
+            assert opts[k].state[splats[k]]["exp_avg"].shape == splats[k].shape, k
+        assert state["grad2d"].shape == (5,)
+
+    def test_vad_adds_with_defaults(self):
+        """New VAD-GS Gaussians: ``colors`` = logit of the MVS colour, ``features`` (unknown) = 0."""
+        from vadgs.train.reconstruct import InstanceReconstruction
+        from vadgs.train.vad import VisibilityAwareDensification
+
+        splats, opts = _appearance()
+        old = {k: v.detach().clone() for k, v in splats.items()}
+        rgb = torch.tensor([[0.2, 0.5, 0.9], [0.7, 0.1, 0.3]])
+        rec = InstanceReconstruction(
+            torch.randn(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2), rgb, torch.full((2,), 0.1),
+            None, [0], [], [], "ok",
+        )  # fmt: skip
+        VisibilityAwareDensification(visibility=False)._add(splats, opts, None, rec)
+        assert splats["means"].shape[0] == 7
+        torch.testing.assert_close(splats["colors"][5:].detach(), torch.logit(rgb))
+        assert torch.equal(splats["features"][5:], torch.zeros(2, 32))
+        for k in splats:
+            assert torch.equal(splats[k][:5].detach(), old[k]), k
+            assert torch.equal(opts[k].state[splats[k]]["exp_avg"][5:], torch.zeros_like(splats[k][5:])), k

@@ -14,6 +14,7 @@ from vadgs.train.vad import (
     StrategyContext,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
+    VisibilityInputs,
     normals_to_quats,
     pick_references,
     rank_instances,
@@ -185,9 +186,9 @@ class TestMovingObject:
             sh_degree=0,
         )
         ctx = StrategyContext(lambda v: None, total_steps=1, steps_per_cycle=1, track_nodes={CAR: 0})
-        VisibilityAwareDensification(scene, ctx)._add(
-            model.params, None, None, rec, torch.ones(rec.points.shape[0], dtype=torch.bool)
-        )
+        vad = VisibilityAwareDensification(visibility=False)
+        vad.prepare(VisibilityInputs.from_scene(scene), ctx)
+        vad._add(model.params, None, None, rec, torch.ones(rec.points.shape[0], dtype=torch.bool))
         assert model.num_gaussians == 1 + rec.points.shape[0]
         assert (model.node_ids[1:] == 0).all()
         # the node's means are stored in the object frame and moved by the track's pose
@@ -345,7 +346,8 @@ class TestBaseStrategy:
         assert trainer.strategy.base.config == adc
         # a given strategy is used as it is, with its own base
         mine = DefaultStrategy(DefaultStrategyConfig(refine_every=11))
-        vad = VisibilityAwareDensification(scene, trainer.strategy_context(), base=mine, index=index)
+        vad = VisibilityAwareDensification(base=mine)
+        vad.prepare(context=trainer.strategy_context(), index=index)
         trainer = Trainer(scene, cfg, strategy=vad, progress=False)
         assert trainer.strategy is vad and vad.base is mine
 

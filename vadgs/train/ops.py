@@ -12,7 +12,13 @@ Two parameter layouts are recognised by their names (:func:`param_names`):
 
 - vadgs's :class:`~vadgs.train.model.GaussianModel` (``model.params``): ``means``, ``quats``,
   ``log_scales``, ``opacity_logits``, ``sh_dc``, ``sh_rest``, ``node_ids`` and ``provenance``;
-- gsplat's: ``means``, ``quats``, ``scales`` (log), ``opacities`` (logits), ``sh0``, ``shN``.
+- gsplat's: ``means``, ``quats``, ``scales`` (log), ``opacities`` (logits), ``sh0``, ``shN`` —
+  or, with gsplat's appearance optimisation, ``features`` and ``colors`` instead of the SH.
+
+Only the geometry (means, quats, scales, opacities) must be present; every other per-Gaussian
+entry (gsplat's ``features`` / ``colors``, any extra key) is kept, duplicated, split and removed
+generically with the rows, as gsplat's ``strategy/ops.py`` does: a clone or a split child copies
+its parent's row, removal drops it.
 
 ``optimizers`` is either one optimizer with a named param group per parameter (vadgs's
 :func:`make_optimizer`) or gsplat's dict ``{name: optimizer}``. A :class:`GaussianModel` may be
@@ -49,14 +55,18 @@ Optimizers = Union[torch.optim.Optimizer, Mapping[str, torch.optim.Optimizer], N
 
 
 class ParamNames(NamedTuple):
-    """The names of the six Gaussian parameters in a params mapping (all stored raw)."""
+    """The names of the Gaussian parameters in a params mapping (all stored raw).
+
+    ``sh_dc`` / ``sh_rest`` are None in a layout without spherical harmonics (gsplat's appearance
+    layout, ``features`` + ``colors``).
+    """
 
     means: str
     quats: str
     log_scales: str
     opacity_logits: str
-    sh_dc: str
-    sh_rest: str
+    sh_dc: str | None
+    sh_rest: str | None
 
 
 VADGS_NAMES = ParamNames("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -70,20 +80,27 @@ def _params(params: Any) -> MutableMapping[str, torch.Tensor]:
 def param_names(params: Mapping[str, torch.Tensor] | GaussianModel) -> ParamNames:
     """The layout of a params mapping: :data:`VADGS_NAMES` or :data:`GSPLAT_NAMES`.
 
+    Recognised by the geometry names (means, quats, scales, opacities); the SH names are None when
+    absent (gsplat's appearance layout: ``features`` and ``colors``). Other keys are allowed.
+
     Raises:
-        ValueError: if the keys match neither layout.
+        ValueError: if the geometry names match neither layout.
 
     Example:
         >>> param_names({k: None for k in ("means", "quats", "scales", "opacities", "sh0", "shN")}).sh_dc
         'sh0'
+        >>> appearance = ("means", "quats", "scales", "opacities", "features", "colors")
+        >>> param_names(dict.fromkeys(appearance)).sh_dc is None
+        True
     """
     keys = set(_params(params).keys())
     for names in (VADGS_NAMES, GSPLAT_NAMES):
-        if set(names) <= keys:
-            return names
+        if set(names[:4]) <= keys:
+            sh = (names.sh_dc, names.sh_rest) if {names.sh_dc, names.sh_rest} <= keys else (None, None)
+            return ParamNames(*names[:4], *sh)
     raise ValueError(
-        f"params: expected vadgs names {list(VADGS_NAMES)} or gsplat names {list(GSPLAT_NAMES)}, "
-        f"got {sorted(keys)}"
+        f"params: expected vadgs names {list(VADGS_NAMES[:4])} or gsplat names {list(GSPLAT_NAMES[:4])} "
+        f"(plus any other per-Gaussian entries), got {sorted(keys)}"
     )
 
 

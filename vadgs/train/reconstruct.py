@@ -37,13 +37,11 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
 
-from vadgs.data.lidar import accumulate_lidar
-from vadgs.data.scene import Scene
 from vadgs.geometry.camera import Cameras, invert_rigid, project_points, scale_intrinsics
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
@@ -54,6 +52,7 @@ from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelectionConfig, select_views
 from vadgs.train.incomplete import voxel_labels
+from vadgs.train.inputs import VisibilityInputs
 
 __all__ = [
     "InstanceReconstruction",
@@ -248,7 +247,8 @@ class VisibilityIndex:
     an explicit byte bound.
 
     Attributes:
-        scene: the scene.
+        inputs: the :class:`~vadgs.train.inputs.VisibilityInputs` it was built from (loaders,
+            tracks, classes, per-view camera and frame).
         cameras: all views' cameras (world frame).
         grid: static voxel grid (world frame).
         labels: ``(M,)`` instance label of each static voxel.
@@ -267,7 +267,7 @@ class VisibilityIndex:
         view_cache: the per-view cache.
     """
 
-    scene: Scene
+    inputs: VisibilityInputs
     cameras: Cameras
     grid: VoxelGrid
     labels: torch.Tensor
@@ -310,13 +310,13 @@ class VisibilityIndex:
         """``(3, H, W)`` image of a view (cached), or ``factor`` times finer (re-read, not cached)."""
         if factor != 1:
             h, w = self.size(view)
-            return self.pad(self.scene.load_images([view], size=(h * factor, w * factor))[0], factor=factor)
-        return self.view_cache.get(("image", view), lambda: self.pad(self.scene.load_images([view])[0]))
+            return self.pad(self.inputs.load_image(view, (h * factor, w * factor)), factor=factor)
+        return self.view_cache.get(("image", view), lambda: self.pad(self.inputs.load_image(view, None)))
 
     @property
     def derives_instances(self) -> bool:
         """True when the scene has no instance maps and :meth:`instances` derives them."""
-        return any(v.instances is None for v in self.scene.views)
+        return self.inputs.derives_instances
 
     def instances(self, view: int) -> torch.Tensor:
         """``(H, W)`` instance map of a view (cached).
@@ -326,15 +326,15 @@ class VisibilityIndex:
         """
 
         def make() -> torch.Tensor:
-            if self.scene.views[view].instances is not None:
-                return self.pad(self.scene.load_instances([view])[0])
+            if self.inputs.has_instances(view):
+                return self.pad(self.inputs.load_instances(view))
             return derive_instance_map(self, view)
 
         return self.view_cache.get(("instances", view), make)
 
     def classes(self) -> dict[int, str]:
         """Instance id → class name, including derived static cells (``"static"``)."""
-        out = dict(self.scene.classes())
+        out = dict(self.inputs.classes)
         if self.derives_instances:
             out.update(dict.fromkeys(self.cell_ids().unique().tolist(), "static"))
         return out
@@ -342,7 +342,7 @@ class VisibilityIndex:
     def box_corners(self, track: int) -> torch.Tensor:
         """``(8, 3)`` box corners of a track in its object frame (cached: a mesh is read once)."""
         if track not in self._corners:
-            self._corners[track] = _box_corners(self.scene.tracks[track])
+            self._corners[track] = _box_corners(self.inputs.tracks[track])
         return self._corners[track]
 
     def cell_ids(self) -> torch.Tensor:
@@ -350,7 +350,7 @@ class VisibilityIndex:
         if self._cells is None:
             xy = torch.floor(self.grid.centers[:, :2] / self.cell_size).long()
             _, cell = torch.unique(xy, dim=0, return_inverse=True)
-            first = max([0, *self.scene.tracks, *self.scene.classes()]) + 1
+            first = max([0, *self.inputs.tracks, *self.inputs.classes]) + 1
             self._cells = cell + first
         return self._cells
 
@@ -379,10 +379,10 @@ class VisibilityIndex:
         depth, vidx = self.voxel_raster(view)
         label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
         depth = depth.clone()
-        fpos = self.scene.view_frame_position(view)
+        fpos = self.inputs.frame_position(view)
         cams = self.camera(view)
         for tid, grid in self.track_grids.items():
-            track = self.scene.tracks[tid]
+            track = self.inputs.tracks[tid]
             if not bool(track.valid[fpos]):
                 continue
             o2w = track.object_to_world[fpos].to(cams.world_to_cam)
@@ -396,14 +396,14 @@ class VisibilityIndex:
 
     def object_cameras(self, track: int) -> torch.Tensor:
         """``(V, 4, 4)`` object-to-camera transforms of every view for a track."""
-        t = self.scene.tracks[track]
-        pos = torch.tensor([self.scene.frame_position(v.frame) for v in self.scene.views])
+        t = self.inputs.tracks[track]
+        pos = torch.tensor([self.inputs.frame_position(v) for v in range(self.inputs.num_views)])
         return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
 
 
-def _covis(grid: VoxelGrid, world_to_cam: torch.Tensor, scene: Scene) -> Covisibility:
-    cam_ids = torch.tensor([scene.camera_names.index(v.camera) for v in scene.views])
-    frame_ids = torch.tensor([v.frame for v in scene.views])
+def _covis(grid: VoxelGrid, world_to_cam: torch.Tensor, inputs: VisibilityInputs) -> Covisibility:
+    cam_ids = torch.tensor(inputs.view_cameras)
+    frame_ids = torch.tensor(inputs.view_frames)
     return Covisibility.from_csr(
         grid.vis_indptr, grid.vis_views, grid.centers, world_to_cam, cam_ids, frame_ids
     )
@@ -447,20 +447,19 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
     from scipy.spatial import ConvexHull, QhullError
     from skimage.draw import polygon
 
-    scene = index.scene
+    inputs = index.inputs
     _, vox = index.voxel_raster(view)
     cells = index.cell_ids()
     lab = torch.where(vox >= 0, cells[vox.clamp_min(0)], torch.zeros_like(vox)).numpy()
     if index.grow > 0 and (lab > 0).any():
         dist, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
         lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
-    info = scene.views[view]
-    pos = scene.frame_position(info.frame)
+    pos = inputs.frame_position(view)
     cam = index.camera(view)
     own = index.valid(view).numpy()
     lab = np.where(own, lab, 0)  # nothing grows into the padding of a smaller view
     boxes = []
-    for tid, t in scene.tracks.items():
+    for tid, t in inputs.tracks.items():
         if not bool(t.valid[pos]):
             continue
         corners = index.box_corners(tid)
@@ -480,35 +479,28 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(lab)).long()
 
 
-def _padded_cameras(scene: Scene) -> tuple[Cameras, tuple[tuple[int, int], ...] | None]:
-    """Every view's camera, batched at the largest image size, and the views' own sizes if they differ."""
-    if len(scene.size_groups()) == 1:
-        return scene.cameras(), None
-    sizes = tuple(scene.image_size(v) for v in range(scene.num_views))
-    K = torch.stack([scene.cameras_info[v.camera].K for v in scene.views])
-    cam_to_world = torch.stack([v.cam_to_world for v in scene.views])
-    big = (max(h for h, _ in sizes), max(w for _, w in sizes))
-    return Cameras(K, invert_rigid(cam_to_world), big), sizes
-
-
 def build_visibility_index(
-    scene: Scene,
+    source: VisibilityInputs | Any,
     voxel_size: float = 0.2,
     frames: Sequence[int] | None = None,
     zbuffer: ZBufferConfig | None = None,
 ) -> VisibilityIndex:
-    """Voxelise the scene's LiDAR (static in world, each track in its frame) with visibility sets.
+    """Voxelise the LiDAR (static in world, each track in its frame) or SfM points with visibility sets.
 
-    A scene without LiDAR but with SfM points (``scene.sfm_points``: a COLMAP scene) is voxelised
-    from those, and a voxel's visibility set is the union of its points' TRACK table views
-    (supplement, "Visibility Reasoning"); only observations by views of ``frames`` count, and
-    points observed by none of them are left out. SfM scenes are static: no track grids.
+    Inputs without LiDAR but with SfM points (:class:`~vadgs.train.inputs.TrackTable`: a COLMAP
+    scene, gsplat's ``Parser``) are voxelised from those, and a voxel's visibility set is the union
+    of its points' TRACK table views (supplement, "Visibility Reasoning"); only observations by
+    training views count (:meth:`~vadgs.train.inputs.VisibilityInputs.from_scene` keeps those of
+    ``frames``), and points observed by none of them are left out. SfM inputs are static: no track
+    grids.
 
     Args:
-        scene: a scene with LiDAR, or with ``sfm_points``.
+        source: :class:`~vadgs.train.inputs.VisibilityInputs`, or a vadgs
+            :class:`~vadgs.data.scene.Scene` (then ``VisibilityInputs.from_scene(scene, frames)``).
         voxel_size: voxel edge (m).
-        frames: frames whose LiDAR (or whose views' SfM observations) are used (default: the
-            training frames, or every frame without a split).
+        frames: for a scene, frames whose LiDAR (or whose views' SfM observations) are used
+            (default: the training frames, or every frame without a split); must be None for
+            inputs (their observations are already chosen).
         zbuffer: z-buffer settings for the per-view voxel depth.
 
     Returns:
@@ -520,54 +512,60 @@ def build_visibility_index(
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
         >>> index = build_visibility_index(load_scene(sample_scene_path()))
-        >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.scene.tracks)
+        >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.inputs.tracks)
         (True, True)
     """
-    has_lidar = scene.lidar_loader is not None
+    if isinstance(source, VisibilityInputs):
+        if frames is not None:
+            raise ValueError(f"frames: expected None with VisibilityInputs, got {list(frames)}")
+        inputs = source
+    else:
+        inputs = VisibilityInputs.from_scene(source, frames)
+    has_lidar = inputs.lidar is not None
     if has_lidar:
-        acc = accumulate_lidar(scene, frames)
+        acc = inputs.lidar(None)
         points, point_views, instance = acc.points, acc.point_views, acc.instance
         what = "static LiDAR points"
-    elif scene.sfm_points is not None:
-        points, point_views = sfm_observations(scene, frames)
+    elif inputs.sfm is not None:
+        points, point_views = inputs.sfm.points, (inputs.sfm.point_idx, inputs.sfm.view_idx)
         instance = torch.zeros(points.shape[0], dtype=torch.int64)
         what = "SfM points observed by views"
     else:
         raise ValueError(
-            f"scene {scene.name!r}: no LiDAR and no SfM points (scene.sfm_points) to build the voxel "
+            f"scene {inputs.name!r}: no LiDAR and no SfM points (scene.sfm_points) to build the voxel "
             "visibility from"
         )
     if points.shape[0] == 0:
-        raise ValueError(f"scene {scene.name!r}: no {what} of frames {frames}")
-    grid = voxelize(points, voxel_size, point_views, scene.num_views)
+        raise ValueError(f"scene {inputs.name!r}: no {what} of frames {frames}")
+    grid = voxelize(points, voxel_size, point_views, inputs.num_views)
     labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
-    cameras, sizes = _padded_cameras(scene)
-    allowed = torch.zeros(scene.num_views, dtype=torch.bool, device=cameras.K.device)
-    allowed[scene.train_views] = True
+    cameras, sizes = inputs.cameras, inputs.sizes
+    allowed = torch.zeros(inputs.num_views, dtype=torch.bool, device=cameras.K.device)
+    allowed[list(inputs.train_views)] = True
     index = VisibilityIndex(
-        scene,
+        inputs,
         cameras,
         grid,
         labels,
-        _covis(grid, cameras.world_to_cam, scene),
+        _covis(grid, cameras.world_to_cam, inputs),
         {},
         {},
         allowed,
         zbuffer or ZBufferConfig(),
         sizes,
     )
-    for tid in scene.tracks if has_lidar else ():
-        tacc = accumulate_lidar(scene, frames, track_id=tid)
+    for tid in inputs.tracks if has_lidar else ():
+        tacc = inputs.lidar(tid)
         if tacc.points.shape[0] < 3:
             continue
-        tgrid = voxelize(tacc.points, voxel_size, tacc.point_views, scene.num_views)
+        tgrid = voxelize(tacc.points, voxel_size, tacc.point_views, inputs.num_views)
         index.track_grids[tid] = tgrid
-        index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), scene)
+        index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), inputs)
     return index
 
 
 def sfm_observations(
-    scene: Scene, frames: Sequence[int] | None = None
+    scene: Any, frames: Sequence[int] | None = None
 ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """The scene's SfM points observed by views of ``frames``, with those observations only.
 
@@ -782,14 +780,14 @@ def _instance_frame(
     sees *through* it in the reference view, whose observers also look at the missing surface.
     Returns the reason as a string when there is nothing to match.
     """
-    scene = index.scene
+    inputs = index.inputs
     dev = index.cameras.K.device
     if track is not None:
         if track not in index.track_covis:
             return "no_lidar_on_track"
         covis = index.track_covis[track]
-        valid = scene.tracks[track].valid.to(dev)
-        pos = torch.tensor([scene.frame_position(v.frame) for v in scene.views], device=dev)
+        valid = inputs.tracks[track].valid.to(dev)
+        pos = torch.tensor([inputs.frame_position(v) for v in range(inputs.num_views)], device=dev)
         return _InstanceFrame(
             covis,
             torch.ones(covis.num_voxels, dtype=torch.bool, device=dev),
@@ -832,7 +830,7 @@ def _crop_group(
     pixels for a moving one. The group's images, masks and intrinsics move to ``device`` (where
     the matching runs), once.
     """
-    scene = index.scene
+    inputs = index.inputs
     h, w = index.cameras.image_size
     masks = [index.instances(v) == instance for v in group]
     sizes = [int(m.sum()) for m in masks]
@@ -840,7 +838,7 @@ def _crop_group(
     if len(members) < 2:
         return "instance_seen_in_fewer_than_two_group_views"
     corners, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
-    native = int(1.0 / scene.scale + 1e-6)  # the files' resolution
+    native = inputs.native_factor  # the files' resolution
     scale = match_scale(max(sizes[i] for i in members), (ch, cw), native, cfg)
     if scale.down > 1:
         corners, ch, cw = _align_crops(corners, ch, cw, scale.down, (h, w))
@@ -849,7 +847,7 @@ def _crop_group(
         ins = index.instances(v)
         if track is not None:
             return ins == instance
-        static = ~torch.isin(ins, torch.tensor(sorted(scene.tracks), dtype=ins.dtype, device=ins.device))
+        static = ~torch.isin(ins, torch.tensor(sorted(inputs.tracks), dtype=ins.dtype, device=ins.device))
         return static & index.valid(v)
 
     regions = torch.stack([region(v) for v in group])[:, None]
@@ -1110,10 +1108,10 @@ def reconstruct_instance(
         :class:`InstanceReconstruction` (possibly empty, with the reason).
     """
     cfg = config or ReconstructConfig()
-    scene = index.scene
-    if not 0 <= ref < scene.num_views:
-        raise ValueError(f"ref: expected a view in [0, {scene.num_views}), got {ref}")
-    track = instance if instance in scene.tracks else None
+    inputs = index.inputs
+    if not 0 <= ref < inputs.num_views:
+        raise ValueError(f"ref: expected a view in [0, {inputs.num_views}), got {ref}")
+    track = instance if instance in inputs.tracks else None
     if device is None and render_prior is not None:
         device = _renders(render_prior, ref)[0].device
     dev = torch.device(device) if device is not None else index.cameras.K.device

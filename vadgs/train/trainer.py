@@ -58,6 +58,7 @@ from vadgs.render import RasterConfig
 from vadgs.train import losses as L
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, correct_view, view_camera
 from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
 from vadgs.train.ops import make_optimizer
@@ -617,11 +618,9 @@ class Trainer:
         base = DefaultStrategy(self.config.strategy)
         if self.config.vad is None:
             return base
-        strategy = VisibilityAwareDensification(
-            self.scene, self.strategy_context(), self.config.vad, base=base
-        )
-        if self.config.vad.visibility:
-            strategy.prepare()  # the visibility index, built once, before the first step
+        strategy = VisibilityAwareDensification.from_config(self.config.vad, base=base)
+        # the scene as data, the loop's context; the visibility index, built once, before the first step
+        strategy.prepare(VisibilityInputs.from_scene(self.scene), self.strategy_context())
         return strategy
 
     def strategy_context(self) -> StrategyContext:

@@ -1,13 +1,16 @@
 r"""VAD-GS: the visibility-aware densification strategy (paper, Sec. "Methodology").
 
-:class:`VisibilityAwareDensification` is a gsplat-style strategy
-(``initialize_state`` / ``step_pre_backward`` / ``step_post_backward`` on ``params``,
-``optimizers``, ``state``, ``step``, ``info``) that wraps a standard one (adaptive density control)
-and never sees the training loop: it gets the scene at construction and, in a frozen
-:class:`StrategyContext`, the three things of the loop it needs — a function that renders a view's
-depth, opacity and normals with the current Gaussians, the total number of steps and the number
-of steps of a sampling cycle — plus the generator of its selection noise. Every ``every_cycles``
-complete sampling cycles of the training views it runs one event, a one-way flow:
+:class:`VisibilityAwareDensification` is a gsplat-style strategy — a dataclass of its settings
+with ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` / ``step_post_backward`` on
+``params``, ``optimizers``, ``state``, ``step``, ``info`` — that wraps a standard one (adaptive
+density control: vadgs's or gsplat's ``DefaultStrategy``, gsplat's ``MCMCStrategy``) and never sees
+the training loop nor a vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it the
+data as a :class:`~vadgs.train.inputs.VisibilityInputs` (``from_scene`` / ``from_gsplat_parser``)
+and, in a frozen :class:`StrategyContext`, the three things of the loop it needs — a function
+that renders a view's depth, opacity and normals with the current Gaussians, the total number of
+steps and the number of steps of a sampling cycle — plus the generator of its selection noise.
+Every ``every_cycles`` complete sampling cycles of the training views it runs one event, a one-way
+flow:
 
 1. **visibility index** (built once): voxel grids of the initial points with per-voxel view
    visibility (:func:`~vadgs.train.reconstruct.build_visibility_index`: LiDAR, or COLMAP tracks);
@@ -37,17 +40,18 @@ strategy (plain ADC), ``view_selection=False`` uses consecutive frames of the re
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from collections.abc import Callable, Mapping, MutableMapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import torch
 
-from vadgs.data.scene import Scene
 from vadgs.train import ops
 from vadgs.train.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
+from vadgs.train.inputs import TrackTable, VisibilityInputs
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import rotation_to_quat
 from vadgs.train.reconstruct import (
@@ -58,13 +62,15 @@ from vadgs.train.reconstruct import (
     build_visibility_index,
     reconstruct_instance,
 )
-from vadgs.train.strategy import DefaultStrategy, Strategy
+from vadgs.train.strategy import DefaultStrategy
 
 __all__ = [
     "StrategyContext",
+    "TrackTable",
     "ViewRender",
     "VisibilityAwareDensification",
     "VisibilityDensifyConfig",
+    "VisibilityInputs",
     "normals_to_quats",
     "pick_references",
     "rank_instances",
@@ -164,13 +170,14 @@ RANKINGS = ("class_round_robin", "pixels")
 
 
 def pick_references(
-    candidates: list[tuple[int, int]], scene, count: int, min_frame_gap: int = 3
+    candidates: list[tuple[int, int]], scene: VisibilityInputs | Any, count: int, min_frame_gap: int = 3
 ) -> list[int]:
     """Reference views of one instance: the largest first, then diverse ones.
 
     Args:
         candidates: ``(view, pixels)`` of the views where the instance was flagged.
-        scene: the :class:`~vadgs.data.Scene` (for each view's camera and frame).
+        scene: :class:`~vadgs.train.inputs.VisibilityInputs` or a vadgs :class:`~vadgs.data.Scene`
+            (for each view's camera and frame).
         count: how many references at most.
         min_frame_gap: a further reference must come from a camera not chosen yet, or be at
             least this many frames from every chosen view of its camera.
@@ -186,15 +193,15 @@ def pick_references(
         >>> pick_references([(0, 500), (3, 450), (1, 100)], sc, 2)  # view 3: same camera, 1 frame on
         [0, 1]
     """
+    if isinstance(scene, VisibilityInputs):
+        cam, frame = scene.view_cameras, scene.view_frames
+    else:
+        cam, frame = [v.camera for v in scene.views], [v.frame for v in scene.views]
     chosen: list[int] = []
     for view, _px in sorted(candidates, key=lambda vp: (-vp[1], vp[0])):
         if len(chosen) >= count:
             break
-        info = scene.views[view]
-        if all(
-            scene.views[c].camera != info.camera or abs(scene.views[c].frame - info.frame) >= min_frame_gap
-            for c in chosen
-        ):
+        if all(cam[c] != cam[view] or abs(frame[c] - frame[view]) >= min_frame_gap for c in chosen):
             chosen.append(view)
     return chosen
 
@@ -271,14 +278,15 @@ class StrategyContext:
     """What :class:`VisibilityAwareDensification` needs of the training loop, given explicitly.
 
     Attributes:
-        render: ``view -> ViewRender``: renders a view of the scene (index into ``scene.views``)
-            with the current Gaussians, at the view's frame, without gradient.
+        render: ``view -> ViewRender``: renders a view (index into the inputs' views, e.g.
+            ``scene.views`` or the Parser's images) with the current Gaussians, at the view's frame,
+            without gradient; normals may be zeros (unknown).
         total_steps: the run's number of steps (events stop after ``last_event_fraction`` of it).
         steps_per_cycle: steps of one sampling cycle (vadgs's trainer: one view per step, so the
             number of training views); cycle ``c`` ends after step ``c * steps_per_cycle - 1``.
         generator: seeds the view-selection noise ``ξ`` and point subsampling (checkpoint it for
             exact resume; vadgs's trainer passes its own).
-        track_nodes: track id → node index of ``params["node_ids"]`` (default: the scene's tracks
+        track_nodes: track id → node index of ``params["node_ids"]`` (default: the inputs' tracks
             in sorted order, as :func:`~vadgs.train.init.init_gaussians` numbers them). Without
             ``node_ids`` in ``params`` (a static gsplat model) moving objects are not densified.
 
@@ -358,65 +366,218 @@ def _view_test(
     return tuple(rows)
 
 
+@dataclass(eq=False)
 class VisibilityAwareDensification:
     """The VAD-GS densification strategy (gsplat ``Strategy`` interface). See the module docstring.
 
-    Args:
-        scene: the scene (training views = ``scene.train_views``; LiDAR or COLMAP tracks for the
-            visibility index; instance maps, or instances derived from the voxels).
-        context: :class:`StrategyContext`: the loop's render function, step counts and generator.
-        config: :class:`VisibilityDensifyConfig`.
-        base: the strategy it extends, whose clone/split/prune keeps running
-            (default :class:`~vadgs.train.strategy.DefaultStrategy` with its defaults; vadgs's
-            trainer passes its ``TrainConfig.strategy``). gsplat's ``DefaultStrategy`` works too.
-        index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` (built by
-            :meth:`prepare` otherwise).
+    A dataclass whose fields are its settings, as gsplat's ``DefaultStrategy`` /
+    ``MCMCStrategy`` (the same fields, defaults and checks as :class:`VisibilityDensifyConfig`, plus
+    ``base``, ``on_addition`` and ``log_size``); :meth:`from_config` builds one from a
+    :class:`VisibilityDensifyConfig` (vadgs's trainer and ``--set vad.KEY=...``). It holds no
+    dataset: :meth:`prepare` gives it a :class:`~vadgs.train.inputs.VisibilityInputs` (per-view
+    cameras, loaders, LiDAR or TRACK observations, tracks) and the loop's
+    :class:`StrategyContext`, and builds the visibility index once. Use::
+
+        strategy = VisibilityAwareDensification(base=DefaultStrategy(), every_cycles=5)
+        strategy.check_sanity(params, optimizers)
+        strategy.prepare(VisibilityInputs.from_gsplat_parser(parser), context)
+        state = strategy.initialize_state(scene_scale)
+        # each step: step_pre_backward(...); loss.backward(); step_post_backward(..., packed=...)
+
+    Attributes:
+        base: the strategy it extends, whose clone/split/prune keeps running (default
+            :class:`~vadgs.train.strategy.DefaultStrategy`; gsplat's ``DefaultStrategy`` (packed or
+            not) and ``MCMCStrategy`` work too: extra keyword arguments of ``step_pre_backward`` /
+            ``step_post_backward`` (``packed=``, ``lr=``) are passed to it, and its
+            ``initialize_state`` gets ``scene_scale`` only when it takes one).
         on_addition: optional callback, called with ``{"instance", "view", "step", "added",
             "depth", "alpha"}`` (the reference's render just before) each time an instance gets new
             Gaussians (for figures; nothing is kept by the strategy).
+        log_size: at most this many events are kept in ``state["pending_log"]`` for the loop to
+            pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
+        the others: see :class:`VisibilityDensifyConfig`.
 
     The incompleteness test of a view reuses the loop's own render when ``info`` carries it
     (``info["view"]`` and ``info["raster"]`` with ``depth`` / ``alpha``, as vadgs's trainer passes,
     or ``info["depth"]`` / ``info["alpha"]``): a view trained since the last event is not rendered
-    again for detection. The others are rendered at the event.
+    again for detection. The others are rendered at the event (kept for that event only).
+
+    Example:
+        >>> import dataclasses, inspect
+        >>> dataclasses.is_dataclass(VisibilityAwareDensification)
+        True
+        >>> list(inspect.signature(VisibilityAwareDensification).parameters)[:3]
+        ['visibility', 'view_selection', 'geometric_losses']
     """
 
-    def __init__(
-        self,
-        scene: Scene,
-        context: StrategyContext,
+    visibility: bool = True
+    view_selection: bool = True
+    geometric_losses: bool = True
+    every_cycles: int = 5
+    voxel_size: float = 0.2
+    incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
+    reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
+    max_instances: int | None = None
+    time_budget: float | None = 0.1
+    render_cache_mb: float = 256.0
+    references: int = 3
+    min_frame_gap: int = 3
+    ranking: str = "class_round_robin"
+    cooldown_events: int = 0
+    skip_classes: tuple[str, ...] = ("road",)
+    explained_tolerance: float = 0.05
+    new_opacity: float = 0.5
+    flatness: float = 0.2
+    voxel_depth_prior: bool = True
+    last_event_fraction: float = 0.9
+    base: Any = field(default_factory=DefaultStrategy)
+    on_addition: Callable[[dict[str, Any]], None] | None = field(default=None, repr=False)
+    log_size: int = _MAX_PENDING
+    inputs: VisibilityInputs | None = field(default=None, init=False, repr=False)
+    context: StrategyContext | None = field(default=None, init=False, repr=False)
+    index: VisibilityIndex | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.config  # noqa: B018  (the settings' checks: VisibilityDensifyConfig.__post_init__)
+        if self.log_size < 1:
+            raise ValueError(f"log_size: expected >= 1, got {self.log_size}")
+        self._last_call: float | None = None
+
+    @classmethod
+    def from_config(
+        cls,
         config: VisibilityDensifyConfig | None = None,
-        base: Strategy | None = None,
+        base: Any = None,
+        inputs: VisibilityInputs | None = None,
+        context: StrategyContext | None = None,
         index: VisibilityIndex | None = None,
         on_addition: Callable[[dict[str, Any]], None] | None = None,
-    ) -> None:
-        if not isinstance(scene, Scene):
-            raise ValueError(f"scene: expected a vadgs.data.Scene, got {type(scene).__name__}")
-        if not isinstance(context, StrategyContext):
-            raise ValueError(f"context: expected a StrategyContext, got {type(context).__name__}")
-        self.scene = scene
-        self.context = context
-        self.config = config or VisibilityDensifyConfig()
-        self.base = base if base is not None else DefaultStrategy()
-        self.index = index
-        self.on_addition = on_addition
-        self._last_call: float | None = None
-        if not self.config.view_selection:
-            sel = replace(self.config.reconstruct.selection, method="consecutive")
-            self.config = replace(self.config, reconstruct=replace(self.config.reconstruct, selection=sel))
+    ) -> VisibilityAwareDensification:
+        """A strategy with the settings of ``config``; :meth:`prepare` d when ``inputs`` or ``index``.
+
+        Example:
+            >>> s = VisibilityAwareDensification.from_config(VisibilityDensifyConfig(every_cycles=2))
+            >>> s.every_cycles, s.config == VisibilityDensifyConfig(every_cycles=2)
+            (2, True)
+        """
+        config = config or VisibilityDensifyConfig()
+        kw = {f.name: getattr(config, f.name) for f in fields(config)}
+        out = cls(**kw, base=base if base is not None else DefaultStrategy(), on_addition=on_addition)
+        if inputs is not None or index is not None or context is not None:
+            out.prepare(inputs, context, index)
+        return out
+
+    @classmethod
+    def from_scene(
+        cls,
+        scene: Any,
+        context: StrategyContext,
+        config: VisibilityDensifyConfig | None = None,
+        base: Any = None,
+        index: VisibilityIndex | None = None,
+        on_addition: Callable[[dict[str, Any]], None] | None = None,
+    ) -> VisibilityAwareDensification:
+        """Deprecated: the former constructor ``(scene, context, config, base, index)``.
+
+        Use ``from_config(config, base=base, inputs=VisibilityInputs.from_scene(scene),
+        context=context)``.
+        """
+        import warnings
+
+        warnings.warn(
+            "VisibilityAwareDensification.from_scene(scene, context, ...) is deprecated: use "
+            "from_config(config, base=..., inputs=VisibilityInputs.from_scene(scene), context=...)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        inputs = VisibilityInputs.from_scene(scene) if index is None else None
+        return cls.from_config(config, base, inputs, context, index, on_addition)
+
+    @property
+    def config(self) -> VisibilityDensifyConfig:
+        """The settings as a :class:`VisibilityDensifyConfig` (assignable: sets every field)."""
+        return VisibilityDensifyConfig(
+            **{f.name: getattr(self, f.name) for f in fields(VisibilityDensifyConfig)}
+        )
+
+    @config.setter
+    def config(self, value: VisibilityDensifyConfig) -> None:
+        for f in fields(VisibilityDensifyConfig):
+            setattr(self, f.name, getattr(value, f.name))
+
+    def _reconstruct_config(self) -> ReconstructConfig:
+        """``reconstruct``, with consecutive-frame selection when ``view_selection`` is off."""
+        if self.view_selection:
+            return self.reconstruct
+        sel = replace(self.reconstruct.selection, method="consecutive")
+        return replace(self.reconstruct, selection=sel)
 
     # -- Strategy interface ----------------------------------------------------------------------------
 
+    def check_sanity(self, params: Mapping[str, torch.Tensor], optimizers: Any) -> None:
+        """Check ``params`` and ``optimizers`` before training (gsplat's ``check_sanity``).
+
+        Every per-Gaussian entry must have the Gaussians as first dimension; the geometry must be
+        vadgs's or gsplat's names (:func:`~vadgs.train.ops.param_names`); each trainable entry
+        must have its optimizer (gsplat's dict ``{name: optimizer}`` with one param group holding
+        that tensor, or one optimizer with a param group named for it). Then the base's own
+        ``check_sanity`` when it has one.
+
+        Raises:
+            ValueError: naming the key, what was expected and what was found.
+        """
+        p = getattr(params, "params", params)
+        names = ops.param_names(p)
+        n = int(p[names.means].shape[0])
+        for k, v in p.items():
+            if not isinstance(v, torch.Tensor) or v.dim() == 0 or v.shape[0] != n:
+                got = tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__
+                raise ValueError(f"params[{k!r}]: expected a tensor of {n} rows (the Gaussians), got {got}")
+        for k, v in p.items():
+            if not v.requires_grad:
+                continue
+            if optimizers is None:
+                raise ValueError(f"optimizers: expected an optimizer of params[{k!r}], got None")
+            if isinstance(optimizers, Mapping):
+                opt = optimizers.get(k)
+                if opt is None:
+                    raise ValueError(f"optimizers: expected a key {k!r}, got keys {sorted(optimizers)}")
+                groups = opt.param_groups
+                if len(groups) != 1 or len(groups[0]["params"]) != 1 or groups[0]["params"][0] is not v:
+                    raise ValueError(
+                        f"optimizers[{k!r}]: expected one param group holding params[{k!r}], got "
+                        f"{len(groups)} group(s) of {[len(g['params']) for g in groups]} tensor(s)"
+                    )
+            else:
+                group = next((g for g in optimizers.param_groups if g.get("name") == k), None)
+                if group is None or not any(q is v for q in group["params"]):
+                    named = [g.get("name") for g in optimizers.param_groups]
+                    raise ValueError(
+                        f"optimizers: expected a param group named {k!r} holding params[{k!r}], "
+                        f"got groups {named}"
+                    )
+        if hasattr(self.base, "check_sanity"):
+            self.base.check_sanity(params, optimizers)
+
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
-        """The base strategy's state plus the event log, the priors, the cycle counter and view tests."""
-        state = self.base.initialize_state(scene_scale)
+        """The base strategy's state plus the event log, the priors, the cycle counter and view tests.
+
+        The base gets ``scene_scale`` when its ``initialize_state`` takes an argument (gsplat's
+        ``MCMCStrategy`` takes none).
+        """
+        init = self.base.initialize_state
+        try:
+            takes = len(inspect.signature(init).parameters) > 0
+        except (TypeError, ValueError):
+            takes = True
+        state = init(scene_scale) if takes else init()
         state.update(
             vad_events=[], vad_priors={}, vad_cycle=0, vad_last_done={}, vad_tests={}, vad_train_s=0.0
         )
         return state
 
-    def step_pre_backward(self, params, optimizers, state, step, info) -> None:  # noqa: D102
-        self.base.step_pre_backward(params, optimizers, state, step, info)
+    def step_pre_backward(self, params, optimizers, state, step, info, **kwargs) -> None:  # noqa: D102
+        self.base.step_pre_backward(params, optimizers, state, step, info, **kwargs)
 
     def step_post_backward(
         self,
@@ -425,24 +586,28 @@ class VisibilityAwareDensification:
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
+        **kwargs: Any,
     ) -> None:
         """Base densification, then a visibility-aware event after every ``every_cycles`` cycles.
 
         Also tests the trained view for incompleteness when ``info`` carries its render.
+        ``kwargs`` (e.g. ``packed=True`` for gsplat's ``DefaultStrategy``, ``lr=`` for its
+        ``MCMCStrategy``) go to the base.
         """
         now = time.perf_counter()
         if self._last_call is not None:
             state["vad_train_s"] = state.get("vad_train_s", 0.0) + (now - self._last_call)
         self._last_call = now
-        self.base.step_post_backward(params, optimizers, state, step, info)
-        if not self.config.visibility:
+        self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
+        if not self.visibility:
             return
+        context = self._context()
         self._observe(state, info)
-        cycle = (step + 1) // self.context.steps_per_cycle
+        cycle = (step + 1) // context.steps_per_cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
-            late = step >= self.config.last_event_fraction * self.context.total_steps
-            if cycle > 0 and cycle % self.config.every_cycles == 0 and not late:
+            late = step >= self.last_event_fraction * context.total_steps
+            if cycle > 0 and cycle % self.every_cycles == 0 and not late:
                 self.densify(params, optimizers, state, step)
                 self._last_call = time.perf_counter()  # the event's time is not training time
 
@@ -460,32 +625,81 @@ class VisibilityAwareDensification:
         view = int(view)
         depth, alpha = _chw(depth), _chw(alpha)
         state.setdefault("vad_tests", {})[view] = _view_test(
-            self.prepare(), view, depth, alpha, self.config.incomplete
+            self.prepare(), view, depth, alpha, self.incomplete
         )
         normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else _chw(normals)
         _keep_render(
             state.setdefault("vad_renders", {}),
             view,
             ViewRender(depth, alpha, normals),
-            int(self.config.render_cache_mb * 2**20),
+            int(self.render_cache_mb * 2**20),
         )
 
     def _train_set(self) -> set[int]:
-        if not hasattr(self, "_train_views"):
-            self._train_views = set(self.scene.train_views)
+        if getattr(self, "_train_views", None) is None:
+            self._train_views = set(self._inputs().train_views)
         return self._train_views
+
+    def _context(self) -> StrategyContext:
+        if self.context is None:
+            raise RuntimeError("VisibilityAwareDensification: call prepare(inputs, context) before training")
+        return self.context
+
+    def _inputs(self) -> VisibilityInputs:
+        if self.inputs is None:
+            if self.index is not None:
+                return self.index.inputs
+            raise RuntimeError("VisibilityAwareDensification: call prepare(inputs, context) before training")
+        return self.inputs
 
     # -- the event ---------------------------------------------------------------------------------------
 
-    def prepare(self) -> VisibilityIndex:
-        """Build the visibility index (once; the trainer calls it at construction) and return it."""
-        if self.index is None:
-            self.index = build_visibility_index(self.scene, self.config.voxel_size)
+    def prepare(
+        self,
+        inputs: VisibilityInputs | None = None,
+        context: StrategyContext | None = None,
+        index: VisibilityIndex | None = None,
+    ) -> VisibilityIndex | None:
+        """Give the strategy its data and the loop's context, and build the visibility index once.
+
+        Call it before the first step (vadgs's trainer does, at construction). Later calls without
+        arguments return the index; the index is built only when ``visibility`` is on.
+
+        Args:
+            inputs: :class:`~vadgs.train.inputs.VisibilityInputs` (e.g.
+                ``VisibilityInputs.from_scene(scene)`` or ``.from_gsplat_parser(parser)``).
+            context: :class:`StrategyContext`: the loop's render function, step counts, generator.
+            index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` of these inputs
+                (its own inputs are used when ``inputs`` is None).
+
+        Returns:
+            The index (None when ``visibility`` is off and none was given).
+
+        Raises:
+            ValueError: on arguments of the wrong type.
+            RuntimeError: when an index is needed and no inputs were ever given.
+        """
+        if inputs is not None and not isinstance(inputs, VisibilityInputs):
+            raise ValueError(f"inputs: expected VisibilityInputs, got {type(inputs).__name__}")
+        if context is not None and not isinstance(context, StrategyContext):
+            raise ValueError(f"context: expected a StrategyContext, got {type(context).__name__}")
+        if index is not None:
+            self.index = index
+            self.inputs = inputs if inputs is not None else index.inputs
+            self._train_views = None
+        elif inputs is not None and inputs is not self.inputs:
+            self.inputs, self.index, self._train_views = inputs, None, None
+        if context is not None:
+            self.context = context
+        if self.index is None and self.visibility:
+            self.index = build_visibility_index(self._inputs(), self.voxel_size)
         return self.index
 
     def visibility_index(self) -> VisibilityIndex:
-        """The scene's :class:`~vadgs.train.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
-        return self.prepare()
+        """The :class:`~vadgs.train.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
+        if self.index is None:
+            self.index = build_visibility_index(self._inputs(), self.voxel_size)
+        return self.index
 
     @torch.no_grad()
     def detect(
@@ -508,8 +722,8 @@ class VisibilityAwareDensification:
             indexes ``views``) and the views tested.
         """
         index = self.prepare()
-        render = renders or self.context.render
-        views = views if views is not None else list(self.scene.train_views)
+        render = renders or self._context().render
+        views = views if views is not None else list(self._inputs().train_views)
         tests = tests or {}
         parts = []
         for k, v in enumerate(views):
@@ -517,7 +731,7 @@ class VisibilityAwareDensification:
                 fields = tests[v]
             else:
                 out = render(v)
-                fields = _view_test(index, v, out.depth, out.alpha, self.config.incomplete)
+                fields = _view_test(index, v, out.depth, out.alpha, self.incomplete)
             one = IncompleteInstances(*fields)
             parts.append(one._replace(view=torch.full_like(one.view, k)))
         dev = parts[0].view.device
@@ -535,9 +749,10 @@ class VisibilityAwareDensification:
     ) -> dict[str, Any]:
         """One visibility-aware densification event (detect, reconstruct, add); returns its log."""
         cfg = self.config
-        scene = self.scene
+        inputs = self._inputs()
+        context = self._context()
         index = self.prepare()
-        renders = _Renders(self.context.render, state.get("vad_renders"))
+        renders = _Renders(context.render, state.get("vad_renders"))
         t0 = time.perf_counter()
         tests = state.get("vad_tests") or {}
         rows, views = self.detect(renders=renders, tests=tests)
@@ -553,7 +768,7 @@ class VisibilityAwareDensification:
             why = None
             if classes.get(inst, "") in cfg.skip_classes:
                 why = "skip_class"
-            elif inst in scene.tracks and not has_nodes:
+            elif inst in inputs.tracks and not has_nodes:
                 why = "static_model"  # a static model (no node_ids) cannot hold a moving object
             elif event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
                 why = "cooldown"
@@ -565,7 +780,7 @@ class VisibilityAwareDensification:
                 "skip_class"
                 if classes.get(inst, "") in cfg.skip_classes
                 else "static_model"
-                if inst in scene.tracks and not has_nodes
+                if inst in inputs.tracks and not has_nodes
                 else "cooldown"
             )
             skipped[why] = skipped.get(why, 0) + 1
@@ -585,14 +800,14 @@ class VisibilityAwareDensification:
             if log and time.perf_counter() - t0 > budget:
                 skipped["time_budget"] = skipped.get("time_budget", 0) + 1
                 continue
-            refs = pick_references(flagged[inst], scene, cfg.references, cfg.min_frame_gap)
+            refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap)
             entry_views, points, n_new_total, reasons = [], 0, 0, []
-            frame_key = inst if inst in scene.tracks else None
+            frame_key = inst if inst in inputs.tracks else None
             for ref in refs:
                 ta = time.perf_counter()
                 taken = occupied.get(frame_key)
                 rec = reconstruct_instance(
-                    index, ref, inst, cfg.reconstruct, self.context.generator, renders,
+                    index, ref, inst, self._reconstruct_config(), context.generator, renders,
                     occupied=torch.cat(taken) if taken else None,
                 )  # fmt: skip
                 t_mvs += time.perf_counter() - ta
@@ -669,7 +884,7 @@ class VisibilityAwareDensification:
             summary += f" (time budget {budget:.1f} s = {cfg.time_budget:g} x training time so far)"
         log_list = state.setdefault("pending_log", [])
         log_list.append({"kind": "visibility_densification", "summary": summary, **entry})
-        del log_list[:-_MAX_PENDING]  # bounded when the loop does not pop it
+        del log_list[: -self.log_size]  # bounded when the loop does not pop it
         return entry
 
     def _add(
@@ -683,7 +898,10 @@ class VisibilityAwareDensification:
     ) -> None:
         """New flat Gaussians from the (kept) points, in ``params``' layout, device and dtype.
 
-        Where ``params`` has a ``provenance`` entry the new rows get ``event`` (1-based).
+        Where ``params`` has a ``provenance`` entry the new rows get ``event`` (1-based). Entries
+        of other layouts: gsplat's appearance ``colors`` ``(N, 3)`` get the logit of the MVS colour
+        (as gsplat's ``simple_trainer`` initialises them); every other unknown per-Gaussian entry
+        (e.g. gsplat's ``features``) gets zeros of its trailing shape and dtype.
         """
         cfg = self.config
         names = ops.param_names(params)
@@ -702,24 +920,30 @@ class VisibilityAwareDensification:
             names.quats: normals_to_quats(nrm),
             names.log_scales: torch.log(torch.stack([width, width, width * cfg.flatness], -1)),
             names.opacity_logits: torch.log(opacity / (1 - opacity)),
-            names.sh_dc: ((col[:, :3] - 0.5) / _C0)[:, None, :],
-            names.sh_rest: torch.zeros(m, *p[names.sh_rest].shape[1:], device=dev, dtype=dt),
         }
+        if names.sh_dc is not None:
+            new[names.sh_dc] = ((col[:, :3] - 0.5) / _C0)[:, None, :]
+            new[names.sh_rest] = torch.zeros(m, *p[names.sh_rest].shape[1:], device=dev, dtype=dt)
         node_ids = None
         if "node_ids" in p:
             node = -1 if rec.track is None else self._track_nodes()[rec.track]
             node_ids = torch.full((m,), node, dtype=torch.int64, device=p["node_ids"].device)
         if "provenance" in p:
             new["provenance"] = torch.full((m,), event, dtype=torch.int64, device=p["provenance"].device)
-        extra = [k for k in p.keys() if k not in new and k != "node_ids"]
-        if extra:
-            raise ValueError(f"params: cannot initialise extra per-Gaussian entries {extra} of new Gaussians")
+        for k in p.keys():
+            if k in new or k == "node_ids":
+                continue
+            t = p[k]
+            if k == "colors" and t.shape[1:] == (3,) and t.is_floating_point():
+                new[k] = torch.logit(col[:, :3].clamp(1e-4, 1 - 1e-4)).to(t)
+            else:
+                new[k] = torch.zeros(m, *t.shape[1:], device=t.device, dtype=t.dtype)
         ops.add_gaussians(params, optimizers, state, new, node_ids)
 
     def _track_nodes(self) -> Mapping[int, int]:
-        if self.context.track_nodes is not None:
+        if self.context is not None and self.context.track_nodes is not None:
             return self.context.track_nodes
-        return {t: k for k, t in enumerate(sorted(self.scene.tracks))}
+        return {t: k for k, t in enumerate(sorted(self._inputs().tracks))}
 
     # -- geometric priors ------------------------------------------------------------------------------
 

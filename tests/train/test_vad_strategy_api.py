@@ -1,0 +1,259 @@
+"""VisibilityAwareDensification as gsplat strategies are: a dataclass of its settings, fed by
+:class:`VisibilityInputs` (a vadgs scene or gsplat's ``Parser``), with ``check_sanity``, an explicit
+``prepare``, and gsplat's ``DefaultStrategy`` (packed or not) and ``MCMCStrategy`` as its base."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import inspect
+
+import pytest
+import torch
+
+from vadgs.data import load_colmap
+from vadgs.train.reconstruct import ReconstructConfig, build_visibility_index
+from vadgs.train.vad import (
+    StrategyContext,
+    ViewRender,
+    VisibilityAwareDensification,
+    VisibilityDensifyConfig,
+    VisibilityInputs,
+)
+
+from ..data.colmap_sample import write_sample_colmap
+from .gsplat_parser import facade_splats, sample_parser
+
+gsplat_strategy = pytest.importorskip("gsplat.strategy")
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    root = tmp_path_factory.mktemp("api") / "proj"
+    write_sample_colmap(root, n_points=1500)
+    return root
+
+
+@pytest.fixture(scope="module")
+def parser(project):
+    return sample_parser(project, factor=2, test_every=8)
+
+
+class TestDataclass:
+    def test_gsplat_shape(self):
+        assert dataclasses.is_dataclass(VisibilityAwareDensification)
+        params = inspect.signature(VisibilityAwareDensification).parameters
+        assert "scene" not in params and "context" not in params
+        assert not any("Scene" in str(p.annotation) for p in params.values())
+        settings = {f.name for f in dataclasses.fields(VisibilityDensifyConfig)}
+        assert settings | {"base", "on_addition", "log_size"} == set(params)
+
+    def test_init_does_not_rewrite_its_settings(self):
+        s = VisibilityAwareDensification(view_selection=False)
+        assert s.reconstruct == ReconstructConfig()  # as given
+        assert s.reconstruct.selection.method != "consecutive"
+        assert s._reconstruct_config().selection.method == "consecutive"  # what the event uses
+        assert s.config == VisibilityDensifyConfig(view_selection=False)
+
+    def test_from_config_round_trip_and_checks(self):
+        cfg = VisibilityDensifyConfig(every_cycles=3, references=2, skip_classes=("road", "sky"))
+        s = VisibilityAwareDensification.from_config(cfg)
+        assert s.config == cfg and s.every_cycles == 3 and s.index is None and s.inputs is None
+        with pytest.raises(ValueError, match="every_cycles: expected >= 1, got 0"):
+            VisibilityAwareDensification(every_cycles=0)
+        with pytest.raises(ValueError, match="log_size: expected >= 1, got 0"):
+            VisibilityAwareDensification(log_size=0)
+
+    def test_needs_prepare(self):
+        s = VisibilityAwareDensification()
+        with pytest.raises(RuntimeError, match=r"call prepare\(inputs, context\)"):
+            s.prepare()
+        with pytest.raises(ValueError, match="inputs: expected VisibilityInputs, got dict"):
+            s.prepare({})
+
+
+class TestCheckSanity:
+    def _splats(self, n=5):
+        keys = {"means": 3, "quats": 4, "scales": 3, "opacities": None, "sh0": (1, 3), "shN": (0, 3)}
+        splats = torch.nn.ParameterDict()
+        for k, tail in keys.items():
+            shape = (n,) if tail is None else (n, *tail) if isinstance(tail, tuple) else (n, tail)
+            splats[k] = torch.nn.Parameter(torch.zeros(shape))
+        return splats, {k: torch.optim.Adam([splats[k]], lr=1e-3) for k in splats}
+
+    def test_passes_and_calls_the_base(self):
+        splats, opts = self._splats()
+        VisibilityAwareDensification(base=gsplat_strategy.DefaultStrategy()).check_sanity(splats, opts)
+        del splats["sh0"], splats["shN"]  # the base's own check runs (gsplat asserts its keys)
+        splats["colors"] = torch.nn.Parameter(torch.zeros(5, 3))
+        opts = {k: torch.optim.Adam([splats[k]], lr=1e-3) for k in splats}
+        VisibilityAwareDensification(base=gsplat_strategy.DefaultStrategy()).check_sanity(splats, opts)
+
+    def test_clear_errors(self):
+        s = VisibilityAwareDensification()
+        splats, opts = self._splats()
+        splats["scales"] = torch.nn.Parameter(torch.zeros(4, 3))
+        with pytest.raises(
+            ValueError, match=r"params\['scales'\]: expected a tensor of 5 rows .*got \(4, 3\)"
+        ):
+            s.check_sanity(splats, opts)
+        splats, opts = self._splats()
+        del opts["shN"]
+        with pytest.raises(ValueError, match=r"optimizers: expected a key 'shN', got keys \["):
+            s.check_sanity(splats, opts)
+        splats, opts = self._splats()
+        opts["sh0"] = torch.optim.Adam([torch.nn.Parameter(torch.zeros(5, 1, 3))], lr=1e-3)  # another tensor
+        with pytest.raises(ValueError, match=r"optimizers\['sh0'\]: expected one param group holding"):
+            s.check_sanity(splats, opts)
+        splats, _ = self._splats()
+        one = torch.optim.Adam([{"params": [splats[k]], "name": k} for k in splats if k != "quats"])
+        with pytest.raises(ValueError, match="expected a param group named 'quats'"):
+            s.check_sanity(splats, one)
+        del splats["quats"]
+        with pytest.raises(ValueError, match=r"params: expected vadgs names .* got \["):
+            s.check_sanity(splats, None)
+
+
+class TestInputsFromParser:
+    def test_same_index_as_the_vadgs_colmap_scene(self, project, parser):
+        """``from_gsplat_parser`` of the Parser-like namespace and ``from_scene`` of vadgs's own
+        COLMAP reader (same model, resolution and split) give the same cameras, images, TRACK
+        visibility and derived instances."""
+        scene, _ = load_colmap(project / "sparse" / "0", scale=0.5, test_every=8)
+        ours = VisibilityInputs.from_gsplat_parser(parser)
+        theirs = VisibilityInputs.from_scene(scene)
+        root = str(project / "images") + "/"
+        order = [parser.image_names.index(str(v.image).split(root)[-1]) for v in scene.views]
+        assert sorted(order) == list(range(24))
+        assert [order[v] for v in theirs.train_views] == list(ours.train_views)  # same split
+        torch.testing.assert_close(ours.cameras.K[order], theirs.cameras.K, atol=1e-4, rtol=0)
+        torch.testing.assert_close(
+            ours.cameras.world_to_cam[order], theirs.cameras.world_to_cam, atol=1e-4, rtol=0
+        )
+        assert ours.cameras.image_size == theirs.cameras.image_size == (72, 120)
+        torch.testing.assert_close(ours.load_image(order[5], None), theirs.load_image(5, None))
+        assert ours.sfm.points.shape == theirs.sfm.points.shape
+        a, b = build_visibility_index(ours, 0.5), build_visibility_index(theirs, 0.5)
+        torch.testing.assert_close(a.grid.centers, b.grid.centers)
+        for m in range(len(a.grid)):
+            assert {order.index(v) for v in a.grid.views_of(m).tolist()} == set(b.grid.views_of(m).tolist())
+        assert a.derives_instances and b.derives_instances
+        for v in (0, 7, 13):
+            assert torch.equal(a.instances(order[v]), b.instances(v)), v
+
+    def test_errors(self, parser):
+        bad = copy.copy(parser)
+        bad.camtoworlds = parser.camtoworlds[:3]
+        with pytest.raises(ValueError, match=r"parser.camtoworlds: expected \(24, 4, 4\), got \(3, 4, 4\)"):
+            VisibilityInputs.from_gsplat_parser(bad)
+
+
+def _gsplat_run(parser, base, steps, post_kwargs, packed=False, monkeypatch=None):
+    """A few steps on the facade scene with ``base`` under VAD-GS (4 steps a cycle: the event at step 3)."""
+    torch.manual_seed(0)
+    inputs = VisibilityInputs.from_gsplat_parser(parser)
+    splats, optimizers, _ = facade_splats(parser, inputs)
+    n0 = splats["means"].shape[0]
+    vad = VisibilityAwareDensification(
+        base=base,
+        every_cycles=1,
+        max_instances=1,
+        time_budget=None,
+        reconstruct=ReconstructConfig(max_crop=64),
+    )
+    train = list(inputs.train_views)
+
+    def rasterize(view):
+        from vadgs.render import rasterize_gaussians
+
+        s = splats
+        out = rasterize_gaussians(
+            s["means"], s["quats"], s["scales"].exp(), s["opacities"].sigmoid(),
+            torch.cat([s["sh0"], s["shN"]], 1), inputs.cameras.world_to_cam[view : view + 1],
+            inputs.cameras.K[view : view + 1], inputs.size(view),
+        )  # fmt: skip
+        h, w = inputs.size(view)
+        return out, {"means2d": out.means2d, "radii": out.radii, "width": w, "height": h, "n_cameras": 1}
+
+    @torch.no_grad()
+    def render(view):
+        out, _ = rasterize(view)
+        return ViewRender(out.depth[0], out.alpha[0], out.normals[0])
+
+    vad.check_sanity(splats, optimizers)
+    vad.prepare(inputs, StrategyContext(render, total_steps=steps, steps_per_cycle=4))
+    state = vad.initialize_state(scene_scale=1.0)
+    for step in range(steps):
+        view = train[(5 * step) % len(train)]
+        out, info = rasterize(view)
+        info["gaussian_ids"] = None
+        vad.step_pre_backward(splats, optimizers, state, step, info)
+        (out.color[0] - inputs.load_image(view, None)).abs().mean().backward()
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if packed:  # gsplat's packed layout of the same render: [nnz, 2] rows and their ids
+            ids = torch.nonzero((info["radii"][0] > 0).all(-1)).squeeze(1)
+            m2d = torch.zeros(ids.numel(), 2, requires_grad=True)
+            m2d.grad = info["means2d"].grad[0][ids]
+            info = {**info, "means2d": m2d, "radii": info["radii"][0][ids], "gaussian_ids": ids}
+        torch.manual_seed(100 + step)  # gsplat's split draws from the global generator
+        vad.step_post_backward(splats, optimizers, state, step, info, **post_kwargs)
+    return splats, optimizers, state, n0
+
+
+class TestGsplatBases:
+    STEPS = 7  # one event (step 3: 4 steps a cycle); the base refines at steps 4 and 6
+
+    def _check(self, splats, optimizers, state, n0):
+        (event,) = state["vad_events"]
+        assert event["step"] == 3 and event["added"] > 500
+        n = splats["means"].shape[0]
+        assert n >= n0 + event["added"]
+        for name, opt in optimizers.items():
+            assert opt.state[splats[name]]["exp_avg"].shape == splats[name].shape, name
+        return event
+
+    def test_default_strategy_packed_and_not(self, parser):
+        """gsplat's DefaultStrategy refines at steps 4 and 6, after the event; ``packed=True``
+        reaches it (a packed ``info`` read as unpacked would fail) and gives the same decisions."""
+        runs = {}
+        for packed in (False, True):
+            base = gsplat_strategy.DefaultStrategy(refine_start_iter=3, refine_every=2)
+            runs[packed] = _gsplat_run(parser, base, self.STEPS, {"packed": packed}, packed=packed)
+        for splats, optimizers, state, n0 in runs.values():
+            event = self._check(splats, optimizers, state, n0)
+            n = splats["means"].shape[0]
+            assert n > n0 + event["added"], "the base grew after the event"  # ADC on the new rows too
+            assert state["grad2d"].shape == (n,) and state["count"].shape == (n,)
+        (a, _, sa, _), (b, _, sb, _) = runs[False], runs[True]
+        assert a["means"].shape == b["means"].shape
+        torch.testing.assert_close(a["means"], b["means"], rtol=0, atol=1e-6)
+        torch.testing.assert_close(sa["grad2d"], sb["grad2d"])
+
+    def test_mcmc_strategy(self, parser, monkeypatch):
+        """gsplat's MCMCStrategy: ``initialize_state()`` without arguments, ``lr=`` passed on.
+
+        Its noise injection runs through gsplat's own pure-torch reference of its one CUDA op
+        (``quat_scale_to_covar_preci``); relocation (CUDA only) is kept after the run.
+        """
+        import gsplat.strategy.ops as gops
+        from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci
+
+        monkeypatch.setattr(gops, "quat_scale_to_covar_preci", _quat_scale_to_covar_preci)
+        base = gsplat_strategy.MCMCStrategy(refine_start_iter=10**6)
+        with pytest.raises(TypeError, match="lr"):  # MCMC needs lr: only given through kwargs
+            _gsplat_run(parser, copy.deepcopy(base), 1, {})
+        splats, optimizers, state, n0 = _gsplat_run(parser, base, self.STEPS, {"lr": 1e-3})
+        event = self._check(splats, optimizers, state, n0)
+        assert splats["means"].shape[0] == n0 + event["added"]
+        assert state["binoms"].shape == (51, 51)
+
+
+def test_former_constructor_is_deprecated(project):
+    scene, _ = load_colmap(project / "sparse" / "0", scale=0.25, test_every=8)
+    ctx = StrategyContext(lambda v: None, total_steps=10, steps_per_cycle=5)
+    with pytest.warns(DeprecationWarning, match="from_config"):
+        s = VisibilityAwareDensification.from_scene(scene, ctx, VisibilityDensifyConfig(every_cycles=2))
+    assert s.every_cycles == 2 and s.context is ctx and s.index is not None
+    assert s.inputs.train_views == tuple(scene.train_views)
