@@ -43,7 +43,7 @@ from __future__ import annotations
 import inspect
 import math
 import time
-from collections.abc import Callable, Mapping, MutableMapping
+from collections.abc import Callable, Collection, Mapping, MutableMapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -118,6 +118,9 @@ class VisibilityDensifyConfig:
         cooldown_events: an instance reconstructed at an event is skipped for this many events
             (default 0: an instance still flagged at the next event is tried again; what the
             Gaussians already explain gives no new points, so a repeat adds only what is missing).
+        whole_reference: at least one reference in which the instance is whole when it was
+            flagged in such a view (``whole`` of :func:`pick_references`); with
+            ``reconstruct.whole_supports`` its supporting views show all of it too.
         skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
         explained_tolerance: an MVS pixel is "explained" (gives no new Gaussian) where its view's
             render has opacity above ``incomplete.alpha_threshold`` and a depth within this
@@ -143,6 +146,7 @@ class VisibilityDensifyConfig:
     min_frame_gap: int = 3
     ranking: str = "class_round_robin"
     cooldown_events: int = 0
+    whole_reference: bool = True
     skip_classes: tuple[str, ...] = ("road",)
     explained_tolerance: float = 0.05
     new_opacity: float = 0.5
@@ -170,7 +174,11 @@ RANKINGS = ("class_round_robin", "pixels")
 
 
 def pick_references(
-    candidates: list[tuple[int, int]], scene: VisibilityInputs | Any, count: int, min_frame_gap: int = 3
+    candidates: list[tuple[int, int]],
+    scene: VisibilityInputs | Any,
+    count: int,
+    min_frame_gap: int = 3,
+    whole: Collection[int] | None = None,
 ) -> list[int]:
     """Reference views of one instance: the largest first, then diverse ones.
 
@@ -181,6 +189,10 @@ def pick_references(
         count: how many references at most.
         min_frame_gap: a further reference must come from a camera not chosen yet, or be at
             least this many frames from every chosen view of its camera.
+        whole: the candidates in which the instance is whole (not cut by the image border). When
+            given and no chosen view is one of them, the last reference is replaced by the
+            largest of them that keeps the rule above (the close views with the most pixels may
+            all cut off the same part, e.g. the top of a sign).
 
     Returns:
         View indices, largest first.
@@ -197,12 +209,22 @@ def pick_references(
         cam, frame = scene.view_cameras, scene.view_frames
     else:
         cam, frame = [v.camera for v in scene.views], [v.frame for v in scene.views]
+
+    def apart(view: int, chosen: list[int]) -> bool:
+        return all(cam[c] != cam[view] or abs(frame[c] - frame[view]) >= min_frame_gap for c in chosen)
+
+    order = [v for v, _px in sorted(candidates, key=lambda vp: (-vp[1], vp[0]))]
     chosen: list[int] = []
-    for view, _px in sorted(candidates, key=lambda vp: (-vp[1], vp[0])):
+    for view in order:
         if len(chosen) >= count:
             break
-        if all(cam[c] != cam[view] or abs(frame[c] - frame[view]) >= min_frame_gap for c in chosen):
+        if apart(view, chosen):
             chosen.append(view)
+    if whole is not None and count >= 2 and chosen and not set(chosen) & set(whole):
+        keep = chosen[: count - 1]
+        extra = next((v for v in order if v in whole and v not in keep and apart(v, keep)), None)
+        if extra is not None:
+            chosen = [*keep, extra]
     return chosen
 
 
@@ -424,6 +446,7 @@ class VisibilityAwareDensification:
     min_frame_gap: int = 3
     ranking: str = "class_round_robin"
     cooldown_events: int = 0
+    whole_reference: bool = True
     skip_classes: tuple[str, ...] = ("road",)
     explained_tolerance: float = 0.05
     new_opacity: float = 0.5
@@ -800,7 +823,12 @@ class VisibilityAwareDensification:
             if log and time.perf_counter() - t0 > budget:
                 skipped["time_budget"] = skipped.get("time_budget", 0) + 1
                 continue
-            refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap)
+            whole = (
+                [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
+                if cfg.whole_reference
+                else None
+            )
+            refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
             entry_views, points, n_new_total, reasons = [], 0, 0, []
             frame_key = inst if inst in inputs.tracks else None
             for ref in refs:
