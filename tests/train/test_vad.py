@@ -301,124 +301,66 @@ class TestPickReferences:
         assert pick_references(cands, scene, 3, min_frame_gap=1) == [front[0], front[1], left[0]]
         assert pick_references([], scene, 2) == []
 
-
-class TestDerivedInstances:
-    """Scenes without instance maps (DGP): cells of the voxel grid plus projected track boxes."""
-
-    def test_track_boxes_cover_the_true_car_masks(self, scene, index):
-        from vadgs.train.reconstruct import derive_instance_map
-
-        ious = []
-        for v in scene.train_views[:6]:
-            true = index.instances(v) == CAR
-            if true.sum() < 50:
-                continue
-            derived = derive_instance_map(index, v) == CAR
-            ious.append(float((true & derived).sum() / (true | derived).sum()))
-            assert (true & derived).sum() >= 0.9 * true.sum()  # the box hull contains the car
-        assert ious and min(ious) > 0.5
-
-    def test_static_pixels_get_cells_and_sky_stays_empty(self, scene, index):
-        from vadgs.train.reconstruct import derive_instance_map
-
-        v = scene.train_views[0]
-        derived = derive_instance_map(index, v)
-        true = index.instances(v)
-        _, vox = index.voxel_raster(v)
-        static_cells = set(index.cell_ids().unique().tolist())
-        on_voxels = derived[vox >= 0]
-        assert set(on_voxels.unique().tolist()) <= static_cells | set(scene.tracks)
-        sky = true == 0
-        assert (derived[sky] == 0).float().mean() > 0.9  # beyond `grow` pixels from any voxel
-        assert min(static_cells) > max(scene.classes())  # no clash with real instance ids
-        assert not index.derives_instances  # the sample has maps: index.instances uses them
+    def test_a_whole_view_replaces_the_last_reference(self, scene):
+        front = [v.index for v in scene.views if v.camera == "front"]
+        left = [v.index for v in scene.views if v.camera == "front_left"]
+        cands = [(front[0], 500), (front[1], 450), (left[0], 100), (front[4], 90), (front[3], 80)]
+        # none of the three largest shows the whole instance: the last becomes the largest whole one
+        assert pick_references(cands, scene, 3, whole=[front[3]]) == [front[0], left[0], front[3]]
+        # ... that keeps the frame gap to the others: front[1] does not (one frame from front[0])
+        assert pick_references(cands, scene, 3, whole=[front[1]]) == [front[0], left[0], front[4]]
+        assert pick_references(cands, scene, 3, whole=[left[0], front[3]]) == [front[0], left[0], front[4]]
+        assert pick_references(cands, scene, 1, whole=[front[3]]) == [front[0]]  # one reference: the largest
+        assert pick_references(cands, scene, 3, whole=[]) == [front[0], left[0], front[4]]
 
 
-class TestBaseStrategy:
-    def test_extends_the_trainers_standard_strategy(self, scene, index):
-        from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
+class TestWholeViews:
+    def test_cut_by_border_is_the_mask_touching_the_image_border(self, scene, index):
+        maps = scene.load_instances(scene.train_views)
+        seen = {True: 0, False: 0}
+        for k, v in enumerate(scene.train_views[:12]):
+            for inst in torch.unique(maps[k]).tolist():
+                if inst <= 0:
+                    continue
+                rows, cols = torch.nonzero(maps[k] == inst, as_tuple=True)
+                h, w = maps[k].shape
+                expected = bool(
+                    rows.min() == 0 or rows.max() == h - 1 or cols.min() == 0 or cols.max() == w - 1
+                )
+                assert index.cut_by_border(v, inst) == expected, (v, inst)
+                seen[expected] += 1
+        assert seen[True] > 5 and seen[False] > 5  # both cases occur in the sample
+        assert not index.cut_by_border(scene.train_views[0], 10**6)  # absent: not cut
 
-        adc = DefaultStrategyConfig(refine_start_iter=7, refine_every=3, max_gaussians=1234)
-        cfg = TrainConfig(iterations=10, checkpoint_every=10**6, strategy=adc, vad=VisibilityDensifyConfig())
-        trainer = Trainer(scene, cfg, progress=False)
-        assert isinstance(trainer.strategy, VisibilityAwareDensification)
-        assert isinstance(trainer.strategy.base, DefaultStrategy)
-        assert trainer.strategy.base.config == adc
-        # a given strategy is used as it is, with its own base
-        mine = DefaultStrategy(DefaultStrategyConfig(refine_every=11))
-        vad = VisibilityAwareDensification(base=mine)
-        vad.prepare(context=trainer.strategy_context(), index=index)
-        trainer = Trainer(scene, cfg, strategy=vad, progress=False)
-        assert trainer.strategy is vad and vad.base is mine
+    def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
+        from vadgs.select import ViewSelectionConfig
+        from vadgs.train.reconstruct import _instance_frame, _select_supports
 
-
-class TestResumeWithVad:
-    """The strategy and its config live in TrainConfig and the checkpoint: a resumed run is VAD-GS."""
-
-    def test_interrupted_and_resumed_equals_uninterrupted(self, tiny_scene, tiny_config, tmp_path):
-        import dataclasses
-
-        from vadgs.train.trainer import CHECKPOINT_NAME
-
-        vad = VisibilityDensifyConfig(
-            every_cycles=1, max_instances=2, time_budget=None, reconstruct=ReconstructConfig(max_crop=48)
-        )  # no time budget: a run whose cut depends on the machine's speed is not reproducible
-        # 18 training views: events after steps 17 and 35; interrupted in between
-        config = dataclasses.replace(tiny_config, iterations=40, vad=vad)
-        full = Trainer(tiny_scene, config, progress=False)
-        full.train()
-        assert [e["step"] for e in full.state["vad_events"]] == [17, 35]
-        assert sum(e["added"] for e in full.state["vad_events"]) > 0
-
-        def stop_at_20(trainer, step):
-            if step == 20:
-                trainer.request_stop()
-
-        part = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False, callback=stop_at_20)
-        assert part.train().step == 20
-        resumed = Trainer.from_checkpoint(tmp_path / CHECKPOINT_NAME, scene=tiny_scene, progress=False)
-        assert isinstance(resumed.strategy, VisibilityAwareDensification)  # not plain ADC
-        assert resumed.config.vad == vad
-        resumed.train()
-        assert [e["step"] for e in resumed.state["vad_events"]] == [17, 35]
-        assert [e["added"] for e in resumed.state["vad_events"]] == [
-            e["added"] for e in full.state["vad_events"]
-        ]
-        assert resumed.model.num_gaussians == full.model.num_gaussians
-        for k, v in full.model.params.items():
-            assert torch.equal(v.detach(), resumed.model.params[k].detach()), k
-        assert sorted(resumed.state["vad_priors"]) == sorted(full.state["vad_priors"])
-
-
-class TestProvenance:
-    """Each event's Gaussians carry its (1-based) number, through checkpoints and export."""
-
-    def test_event_gaussians_are_recorded(self, tiny_scene, tiny_config, tmp_path):
-        import dataclasses
-
-        from vadgs.train.export import export_model
-        from vadgs.train.trainer import CHECKPOINT_NAME
-
-        vad = VisibilityDensifyConfig(
-            every_cycles=1, max_instances=2, time_budget=None, reconstruct=ReconstructConfig(max_crop=48)
-        )  # no time budget: a run whose cut depends on the machine's speed is not reproducible
-        # 18 training views: the first event after step 17; stopped right after it
-        config = dataclasses.replace(tiny_config, iterations=40, vad=vad)
-
-        def stop_at_18(trainer, step):
-            if step == 18:
-                trainer.request_stop()
-
-        trainer = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False, callback=stop_at_18)
-        trainer.train()
-        (event,) = trainer.state["vad_events"]
-        assert event["added"] > 0
-        prov = trainer.model.provenance
-        assert int((prov == 1).sum()) == event["added"]
-        assert int((prov == 0).sum()) == trainer.model.num_gaussians - event["added"]
-        resumed = Trainer.from_checkpoint(tmp_path / CHECKPOINT_NAME, scene=tiny_scene, progress=False)
-        assert torch.equal(resumed.model.provenance, prov)
-        paths = export_model(trainer.model, tmp_path / "export")
-        for path in paths:
-            if path.suffix == ".ply":
-                assert b"provenance" not in path.read_bytes()[:4000]  # only the 3DGS properties
+        # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
+        selection = ViewSelectionConfig(min_shared=1, k=2)
+        maps = scene.load_instances(scene.train_views)
+        changed = 0
+        for k, ref in enumerate(scene.train_views):
+            for inst in torch.unique(maps[k]).tolist():
+                if inst <= 0 or int((maps[k] == inst).sum()) < 50 or index.cut_by_border(ref, inst):
+                    continue
+                frame = _instance_frame(index, ref, inst, None, ReconstructConfig())
+                if isinstance(frame, str):
+                    continue
+                sel = {
+                    whole: _select_supports(
+                        index,
+                        ref,
+                        inst,
+                        frame,
+                        ReconstructConfig(whole_supports=whole, selection=selection),
+                        torch.Generator().manual_seed(0),
+                    ).views.tolist()
+                    for whole in (False, True)
+                }
+                if sel[True] == sel[False]:  # no cut support chosen, or too few whole views
+                    continue
+                changed += 1
+                assert len(sel[True]) == 2 and not any(index.cut_by_border(v, inst) for v in sel[True])
+                assert any(index.cut_by_border(v, inst) for v in sel[False])
+        assert changed >= 5  # 13 (reference, instance) pairs of the sample
