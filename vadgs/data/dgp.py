@@ -35,15 +35,16 @@ How DGP's frames map to vadgs's (verified on ``dgp_test_scene/scene_02``, see ``
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from vadgs.checks import check_finite
+from vadgs.data._json import read_json, require_key
 from vadgs.data.scene import (
     CameraInfo,
     FrameInfo,
@@ -137,21 +138,11 @@ def points_in_boxes(
 
 
 def _read_json(path: Path, what: str) -> dict:
-    if not path.is_file():
-        raise FileNotFoundError(f"DGP {what}: missing file {path}")
-    try:
-        out = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"DGP {what}: {path} is not valid JSON ({e})") from None
-    if not isinstance(out, dict):
-        raise ValueError(f"DGP {what}: {path}: expected a JSON object at the top level")
-    return out
+    return read_json(path, f"DGP {what}")
 
 
-def _key(d: object, key: str, what: str) -> object:
-    if not isinstance(d, dict) or key not in d:
-        raise ValueError(f"DGP {what}: missing key {key!r}")
-    return d[key]
+def _key(d: object, key: str, what: str) -> Any:
+    return require_key(d, key, f"DGP {what}")
 
 
 def _time(stamp: str, what: str) -> datetime:

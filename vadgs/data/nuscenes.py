@@ -43,13 +43,14 @@ How nuScenes maps to vadgs:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from vadgs.data._json import read_json, require_key
 from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
@@ -116,16 +117,7 @@ def nuscenes_class_name(category: str) -> str:
 
 
 def _read_table(meta_dir: Path, name: str) -> list[dict]:
-    path = meta_dir / f"{name}.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"nuScenes table {name}.json: missing file {path}")
-    try:
-        rows = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"nuScenes table {name}.json: not valid JSON ({e})") from None
-    if not isinstance(rows, list):
-        raise ValueError(f"nuScenes table {name}.json: expected a JSON list of records")
-    return rows
+    return read_json(meta_dir / f"{name}.json", f"nuScenes table {name}.json", top=list)
 
 
 def _by_token(rows: list[dict], table: str) -> dict[str, dict]:
@@ -135,10 +127,8 @@ def _by_token(rows: list[dict], table: str) -> dict[str, dict]:
     return out
 
 
-def _key(d: object, key: str, what: str) -> object:
-    if not isinstance(d, dict) or key not in d:
-        raise ValueError(f"nuScenes {what}: missing key {key!r}")
-    return d[key]
+def _key(d: object, key: str, what: str) -> Any:
+    return require_key(d, key, f"nuScenes {what}")
 
 
 def _ref(table: dict[str, dict], token: object, table_name: str, what: str) -> dict:

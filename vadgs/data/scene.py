@@ -12,11 +12,10 @@ never half-loaded silently.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -24,6 +23,7 @@ import torch.nn.functional as F
 from PIL import Image
 
 from vadgs.checks import check_finite
+from vadgs.data._json import read_json, require_key
 from vadgs.data.validate import (
     check_intrinsics,
     check_rigid,
@@ -527,10 +527,8 @@ def _matrix(value: object, shape: tuple[int, ...], what: str) -> torch.Tensor:
     return t.float()
 
 
-def _get(d: dict, key: str, what: str) -> object:
-    if not isinstance(d, dict) or key not in d:
-        raise ValueError(f"scene.json: {what}: missing key {key!r}")
-    return d[key]
+def _get(d: dict, key: str, what: str) -> Any:
+    return require_key(d, key, f"scene.json: {what}")
 
 
 def novel_view_group(shift_ego_m: Sequence[float]) -> str:
@@ -619,12 +617,7 @@ def load_scene(
     meta_path = root / "scene.json"
     if not meta_path.is_file():
         raise FileNotFoundError(f"no scene.json in {root}")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{meta_path}: not valid JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"{meta_path}: expected a JSON object at the top level")
+    meta = read_json(meta_path, "scene.json")
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
     if validate not in ("none", "headers", "full"):
