@@ -1,7 +1,8 @@
-"""Helpers shared by the nuScenes and Waymo readers: 3D boxes → instances, tracks, LiDAR labels.
+"""Helpers shared by the DGP, nuScenes and Waymo readers: 3D boxes → instances, tracks, LiDAR labels.
 
-Both datasets annotate each keyframe with 3D boxes that carry a persistent object identifier (a
-nuScenes instance token, a Waymo ``laser_object_id``). The readers collect them as
+The three datasets annotate each keyframe with 3D boxes that carry a persistent object identifier
+(a DGP ``instance_id``, a nuScenes instance token, a Waymo ``laser_object_id``). The readers
+collect them as
 ``{id: {frame position: BoxObservation}}`` and call :func:`build_instances` to get the instance
 table and the :class:`~vadgs.data.scene.Track` of each moving rigid object.
 """
@@ -14,9 +15,9 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from vadgs.checks import check_finite
-from vadgs.data.dgp import points_in_boxes
 from vadgs.data.scene import InstanceInfo, Track
 
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "build_instances",
     "every_fourth_test_frames",
     "label_points",
+    "points_in_boxes",
     "quat_wxyz_to_matrix",
 ]
 
@@ -45,7 +47,10 @@ class BoxObservation(NamedTuple):
 
 
 def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
-    """A ``(w, x, y, z)`` quaternion as a 3×3 rotation matrix (normalised first).
+    """A ``(w, x, y, z)`` quaternion as a 3×3 float64 rotation matrix (normalised first).
+
+    The sign of ``q`` does not matter (``q`` and ``-q`` are the same rotation); the matrix is
+    :class:`scipy.spatial.transform.Rotation`'s.
 
     Raises:
         ValueError: if ``q`` is not four finite numbers with a non-zero norm.
@@ -61,14 +66,7 @@ def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if not (math.isfinite(n) and n > 0):
         raise ValueError(f"quaternion: expected a finite non-zero (w, x, y, z), got {q!r}")
-    w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return Rotation.from_quat([w, x, y, z], scalar_first=True).as_matrix()
 
 
 def every_fourth_test_frames(num_frames: int) -> list[int]:
@@ -129,6 +127,31 @@ def build_instances(
             size = np.median([obs.size_lwh for obs in per_frame.values()], axis=0)
             tracks[iid] = Track(iid, cls, torch.tensor(size, dtype=torch.float32), poses, valid)
     return instances, tracks
+
+
+def points_in_boxes(
+    points: torch.Tensor, object_to_world: torch.Tensor, size_lwh: torch.Tensor
+) -> torch.Tensor:
+    """Which points lie inside which centred boxes (x along length, y along width, z up).
+
+    Not differentiable (a boolean test).
+
+    Args:
+        points: ``(N, 3)`` world points.
+        object_to_world: ``(M, 4, 4)`` box poses (box centre and axes in the world).
+        size_lwh: ``(M, 3)`` box length, width, height.
+
+    Returns:
+        ``(M, N)`` bool.
+
+    Example:
+        >>> pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+        >>> points_in_boxes(pts, torch.eye(4)[None], torch.tensor([[4.0, 2.0, 2.0]]))
+        tensor([[ True, False]])
+    """
+    rot = object_to_world[:, :3, :3]
+    local = torch.einsum("mji,mnj->mni", rot, points[None] - object_to_world[:, None, :3, 3])
+    return (local.abs() <= size_lwh[:, None] / 2).all(-1)
 
 
 def label_points(points: torch.Tensor, frame_boxes: dict[int, BoxObservation]) -> torch.Tensor:

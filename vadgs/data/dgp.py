@@ -43,18 +43,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from vadgs.checks import check_finite
 from vadgs.data._json import read_json, require_key
-from vadgs.data.scene import (
-    CameraInfo,
-    FrameInfo,
-    InstanceInfo,
-    LidarFrame,
-    Scene,
-    Track,
-    ViewInfo,
-    _read_png,
+from vadgs.data._tracks import (
+    BoxObservation,
+    as_tensor,
+    build_instances,
+    label_points,
+    points_in_boxes,
+    quat_wxyz_to_matrix,
 )
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
 from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
 from vadgs.data.validate import validate_scene
 from vadgs.geometry.camera import scale_intrinsics
@@ -63,8 +61,6 @@ __all__ = ["dgp_pose_to_matrix", "load_dgp", "points_in_boxes"]
 
 #: the DGP annotation type id of 3D bounding boxes (keys of ``annotations`` and ``ontologies``).
 _BOX3D = "1"
-#: a track whose box centre moves more than this (metres, in the world) is marked dynamic.
-DYNAMIC_MOTION_M = 0.5
 #: ``CameraIntrinsics`` fields of camera models other than OpenCV's (refused when non-zero).
 _OTHER_CAMERA_MODELS = ("fisheye", "taux", "tauy", "alpha", "beta", "w", "xi", "equirectangular")
 
@@ -101,40 +97,10 @@ def dgp_pose_to_matrix(pose: dict) -> np.ndarray:
     n = np.linalg.norm(q)
     if not (np.isfinite(n) and n > 0 and np.isfinite(t).all()):
         raise ValueError(f"DGP pose: expected a finite non-zero quaternion and translation, got {pose!r}")
-    w, x, y, z = q / n
     out = np.eye(4)
-    out[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
+    out[:3, :3] = quat_wxyz_to_matrix(q)
     out[:3, 3] = t
     return out
-
-
-def points_in_boxes(
-    points: torch.Tensor, object_to_world: torch.Tensor, size_lwh: torch.Tensor
-) -> torch.Tensor:
-    """Which points lie inside which centred boxes (x along length, y along width, z up).
-
-    Not differentiable (a boolean test).
-
-    Args:
-        points: ``(N, 3)`` world points.
-        object_to_world: ``(M, 4, 4)`` box poses (box centre and axes in the world).
-        size_lwh: ``(M, 3)`` box length, width, height.
-
-    Returns:
-        ``(M, N)`` bool.
-
-    Example:
-        >>> pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
-        >>> points_in_boxes(pts, torch.eye(4)[None], torch.tensor([[4.0, 2.0, 2.0]]))
-        tensor([[ True, False]])
-    """
-    rot = object_to_world[:, :3, :3]
-    local = torch.einsum("mji,mnj->mni", rot, points[None] - object_to_world[:, None, :3, 3])
-    return (local.abs() <= size_lwh[:, None] / 2).all(-1)
 
 
 def _read_json(path: Path, what: str) -> dict:
@@ -198,7 +164,8 @@ def load_dgp(
       are None).
     - ``frames``: ``ego_to_world`` = vehicle pose (LiDAR pose ``@ inv(lidar_extrinsic)``), and
       the LiDAR path. ``Scene.lidar(frame)`` returns the sweep in world coordinates (float32),
-      its ``instance`` the id of the 3D box each point falls in (0 outside every box), its
+      its ``instance`` the id of the 3D box (as annotated at that sample) each point falls in
+      (0 outside every box), its
       ``origin`` the LiDAR position.
     - ``tracks``: one per box instance id: ``object_to_world`` per frame where annotated
       (``valid``), ``size_lwh`` the median over frames, class from the ontology
@@ -313,11 +280,6 @@ def load_dgp(
         out[:3, 3] -= offset
         return out
 
-    def as_tensor(m: np.ndarray, what: str) -> torch.Tensor:
-        t = torch.from_numpy(m)
-        check_finite(t, what)
-        return t.float()
-
     # -- cameras --------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[object, object]] = {}
@@ -365,7 +327,9 @@ def load_dgp(
     frames: list[FrameInfo] = []
     views: list[ViewInfo] = []
     lidar_info: dict[int, tuple[Path, np.ndarray]] = {}
-    boxes: dict[int, dict[int, tuple[np.ndarray, list[float], int]]] = {}  # id -> frame -> (pose, lwh, class)
+    raw_boxes: dict[
+        int, dict[int, tuple[np.ndarray, list[float], int]]
+    ] = {}  # id -> frame -> (pose, lwh, class)
     for fi in frame_ids:
         stamp = _key(_key(samples[fi], "id", f"samples[{fi}]"), "timestamp", f"samples[{fi}].id")
         ts = (_time(stamp, f"samples[{fi}].id.timestamp") - t0).total_seconds()
@@ -402,12 +366,12 @@ def load_dgp(
                 iid = int(_key(a, "instance_id", what))
                 lwh = [float(_key(box, k, f"{what}.box")) for k in ("length", "width", "height")]
                 pose = ref_pose @ dgp_pose_to_matrix(_key(box, "pose", f"{what}.box"))
-                boxes.setdefault(iid, {})[fi] = (pose, lwh, int(_key(a, "class_id", what)))
+                raw_boxes.setdefault(iid, {})[fi] = (pose, lwh, int(_key(a, "class_id", what)))
 
-    # -- instances and tracks -------------------------------------------------------------------------
+    # -- instances and tracks: every box instance is a track ------------------------------------------
     classes: dict[int, str] = {}
     onto_key = meta.get("ontologies", {}).get(_BOX3D)
-    if boxes:
+    if raw_boxes:
         if onto_key is None:
             raise ValueError(f"DGP {scene_json.name}: ontologies: missing key {_BOX3D!r} (3D boxes)")
         onto = _read_json(scene_dir / "ontology" / f"{onto_key}.json", "ontology")
@@ -415,21 +379,15 @@ def load_dgp(
             int(_key(it, "id", "ontology item")): _class_slug(str(_key(it, "name", "ontology item")))
             for it in _key(onto, "items", "ontology")
         }
-    instances: dict[int, InstanceInfo] = {}
-    tracks: dict[int, Track] = {}
-    for iid in sorted(boxes):
-        per_frame = boxes[iid]
-        cls = classes.get(next(iter(per_frame.values()))[2], "unknown")
-        poses = torch.eye(4).repeat(len(frames), 1, 1)
-        valid = torch.zeros(len(frames), dtype=torch.bool)
-        for fi, (pose, _, _) in per_frame.items():
-            poses[fi] = as_tensor(pose, f"box {iid} at frame {fi}")
-            valid[fi] = True
-        size = torch.tensor(np.median([lwh for _, lwh, _ in per_frame.values()], axis=0), dtype=torch.float32)
-        centres = poses[valid, :3, 3]
-        moving = bool((centres - centres[:1]).norm(dim=-1).max() > DYNAMIC_MOTION_M)
-        tracks[iid] = Track(iid, cls, size, poses, valid)
-        instances[iid] = InstanceInfo(iid, f"{cls}_{iid}", cls, moving)
+    boxes = {
+        iid: {
+            fi: BoxObservation(pose, np.asarray(lwh), classes.get(cid, "unknown"))
+            for fi, (pose, lwh, cid) in per_frame.items()
+        }
+        for iid, per_frame in raw_boxes.items()
+    }
+    names = {iid: f"{next(iter(b.values())).class_name}_{iid}" for iid, b in boxes.items()}
+    instances, tracks = build_instances(boxes, names, len(frames), rigid=lambda _: True, min_motion_m=None)
 
     if check_files:
         missing = [str(v.image) for v in views if not v.image.is_file()]
@@ -453,17 +411,10 @@ def load_dgp(
             raise ValueError(f"DGP point cloud {path}: expected (N, >=3) X, Y, Z, ..., got {raw.shape}")
         world = raw[:, :3] @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
         pts = torch.from_numpy(world).float()
-        instance = torch.zeros(len(pts), dtype=torch.int64)
-        ids = [i for i, t in tracks.items() if bool(t.valid[frame])]
-        if ids:
-            inside = points_in_boxes(
-                pts,
-                torch.stack([tracks[i].object_to_world[frame] for i in ids]),
-                torch.stack([tracks[i].size_lwh for i in ids]),
-            )
-            hit = inside.any(0)
-            instance[hit] = torch.tensor(ids)[inside[:, hit].float().argmax(0)]
-        return LidarFrame(pts, instance, torch.from_numpy(sensor_to_world[:3, 3]).float())
+        frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
+        return LidarFrame(
+            pts, label_points(pts, frame_boxes), torch.from_numpy(sensor_to_world[:3, 3]).float()
+        )
 
     def image_loader(view: ViewInfo) -> torch.Tensor:
         """The view's JPEG, undistorted if its camera is distorted."""
