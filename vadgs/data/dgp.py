@@ -52,9 +52,9 @@ from vadgs.data._tracks import (
     points_in_boxes,
     quat_wxyz_to_matrix,
 )
+from vadgs.data.assemble import assemble_scene, check_validate_level
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
 from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
-from vadgs.data.validate import validate_scene
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["dgp_pose_to_matrix", "load_dgp", "points_in_boxes"]
@@ -209,8 +209,7 @@ def load_dgp(
     scene_dir, scene_json = _find_scene_json(Path(scene_dir))
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if validate not in ("none", "headers", "full"):
-        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
+    check_validate_level(validate)
     meta = _read_json(scene_json, "scene")
     samples = _key(meta, "samples", scene_json.name)
     data = _key(meta, "data", scene_json.name)
@@ -326,7 +325,7 @@ def load_dgp(
     )
     frames: list[FrameInfo] = []
     views: list[ViewInfo] = []
-    lidar_info: dict[int, tuple[Path, np.ndarray]] = {}
+    lidar_to_world: dict[int, np.ndarray] = {}  # the LiDAR datum's pose per frame
     raw_boxes: dict[
         int, dict[int, tuple[np.ndarray, list[float], int]]
     ] = {}  # id -> frame -> (pose, lwh, class)
@@ -355,7 +354,7 @@ def load_dgp(
         lidar_path = None
         if lidar is not None:
             lidar_path = scene_dir / str(_key(ref_datum, "filename", f"samples[{fi}].{lidar}"))
-            lidar_info[fi] = (lidar_path, ref_pose)
+            lidar_to_world[fi] = ref_pose
         frames.append(FrameInfo(fi, ts, e2w, tuple(ids), lidar_path))
 
         ann = ref_datum.get("annotations", {}).get(_BOX3D)
@@ -389,20 +388,8 @@ def load_dgp(
     names = {iid: f"{next(iter(b.values())).class_name}_{iid}" for iid, b in boxes.items()}
     instances, tracks = build_instances(boxes, names, len(frames), rigid=lambda _: True, min_motion_m=None)
 
-    if check_files:
-        missing = [str(v.image) for v in views if not v.image.is_file()]
-        missing += [str(p) for p, _ in lidar_info.values() if not p.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"DGP scene {scene_dir}: {len(missing)} referenced file(s) missing, e.g. {missing[:3]}"
-            )
-
-    def lidar_loader(frame: int) -> LidarFrame:
-        if frame not in lidar_info:
-            raise FileNotFoundError(f"DGP scene {scene_dir}: no LiDAR for frame {frame}")
-        path, sensor_to_world = lidar_info[frame]
-        if not path.is_file():
-            raise FileNotFoundError(f"DGP scene {scene_dir}: missing file {path}")
+    def read_lidar(frame: int, path: Path) -> LidarFrame:
+        sensor_to_world = lidar_to_world[frame]
         with np.load(path) as z:
             if "data" not in z:
                 raise ValueError(f"DGP point cloud {path}: missing key 'data'")
@@ -429,7 +416,8 @@ def load_dgp(
             )
         return und(img[None])[0].clamp(0.0, 1.0)
 
-    scene = Scene(
+    return assemble_scene(
+        f"DGP scene {scene_dir}",
         name=scene_dir.name,
         root=scene_dir,
         cameras_info=cams,
@@ -437,12 +425,10 @@ def load_dgp(
         views=views,
         instances=instances,
         tracks=tracks,
-        train_frames=[f for f in frame_ids if f not in set(test_frames)],
         test_frames=sorted(int(f) for f in test_frames),
-        scale=float(scale),
-        lidar_loader=lidar_loader if lidar is not None else None,
+        scale=scale,
+        read_lidar=read_lidar,
         image_loader=image_loader if undistort else None,
+        check_files=check_files,
+        validate=validate,
     )
-    if check_files and validate != "none":
-        validate_scene(scene, full=validate == "full").raise_if_errors()
-    return scene

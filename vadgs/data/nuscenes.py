@@ -59,6 +59,7 @@ from vadgs.data._tracks import (
     label_points,
     quat_wxyz_to_matrix,
 )
+from vadgs.data.assemble import assemble_scene
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
@@ -352,7 +353,7 @@ def load_nuscenes(
     t0 = int(_key(samples[0], "timestamp", "sample"))
     frame_infos: list[FrameInfo] = []
     views: list[ViewInfo] = []
-    lidar_info: dict[int, tuple[Path, np.ndarray]] = {}
+    lidar_to_world: dict[int, np.ndarray] = {}  # the LiDAR's sensor-to-world per frame
     for fi, s in enumerate(samples):
         ids = []
         for c in cam_names:
@@ -373,7 +374,7 @@ def load_nuscenes(
         lidar_path = None
         if lidar is not None:
             lidar_path = dataroot / str(_key(sd, "filename", f"{lidar} at frame {fi}"))
-            lidar_info[fi] = (lidar_path, e2w @ sensor_to_ego(sd, f"{lidar} at frame {fi}")[0])
+            lidar_to_world[fi] = e2w @ sensor_to_ego(sd, f"{lidar} at frame {fi}")[0]
         ts = (int(_key(s, "timestamp", "sample")) - t0) * 1e-6
         frame_infos.append(
             FrameInfo(fi, ts, as_tensor(e2w, f"ego pose at frame {fi}"), tuple(ids), lidar_path)
@@ -412,20 +413,8 @@ def load_nuscenes(
         boxes, names, num_frames, lambda cls: cls in vehicle_classes, min_motion_m
     )
 
-    if check_files:
-        missing = [str(v.image) for v in views if not v.image.is_file()]
-        missing += [str(p) for p, _ in lidar_info.values() if not p.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"nuScenes scene {scene_name}: {len(missing)} referenced file(s) missing, e.g. {missing[:3]}"
-            )
-
-    def lidar_loader(frame: int) -> LidarFrame:
-        if frame not in lidar_info:
-            raise FileNotFoundError(f"nuScenes scene {scene_name}: no LiDAR for frame {frame}")
-        path, sensor_to_world = lidar_info[frame]
-        if not path.is_file():
-            raise FileNotFoundError(f"nuScenes scene {scene_name}: missing file {path}")
+    def read_lidar(frame: int, path: Path) -> LidarFrame:
+        sensor_to_world = lidar_to_world[frame]
         data = np.fromfile(path, dtype=np.float32)
         if data.size % 5:
             raise ValueError(
@@ -451,7 +440,8 @@ def load_nuscenes(
             )
         return und(img[None])[0].clamp(0.0, 1.0)
 
-    return Scene(
+    return assemble_scene(
+        f"nuScenes scene {scene_name}",
         name=scene_name,
         root=dataroot,
         cameras_info=cams,
@@ -459,9 +449,9 @@ def load_nuscenes(
         views=views,
         instances=instances,
         tracks=tracks,
-        train_frames=[f for f in range(num_frames) if f not in set(test)],
         test_frames=test,
-        scale=float(scale),
-        lidar_loader=lidar_loader if lidar is not None else None,
+        scale=scale,
+        read_lidar=read_lidar,
         image_loader=image_loader if undistort else None,
+        check_files=check_files,
     )

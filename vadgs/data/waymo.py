@@ -70,6 +70,7 @@ from vadgs.data._tracks import (
     every_fourth_test_frames,
     label_points,
 )
+from vadgs.data.assemble import assemble_scene
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
@@ -650,7 +651,8 @@ def load_waymo(
             origin = ego_to_world[frame] @ extr[lasers[0]][:, 3]
             return LidarFrame(world, label_points(world, frame_boxes), torch.from_numpy(origin[:3]).float())
 
-    return Scene(
+    return assemble_scene(
+        f"Waymo segment {segment}",
         name=segment,
         root=dataset_dir,
         cameras_info=cams,
@@ -658,9 +660,9 @@ def load_waymo(
         views=views,
         instances=instances,
         tracks=tracks,
-        train_frames=[f for f in range(num_frames) if f not in set(test)],
         test_frames=test,
-        scale=float(scale),
+        scale=scale,
         lidar_loader=lidar_loader,
         image_loader=image_loader,
+        check_files=False,  # the images and LiDAR live in the parquet files read above
     )
