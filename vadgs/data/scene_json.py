@@ -19,16 +19,7 @@ from vadgs.checks import check_finite
 from vadgs.data._json import read_json, require_key
 from vadgs.data.assemble import assemble_scene, check_validate_level
 from vadgs.data.checks import check_intrinsics, check_rigid, check_split
-from vadgs.data.scene import (
-    CameraInfo,
-    FrameInfo,
-    InstanceInfo,
-    LidarFrame,
-    Scene,
-    Track,
-    ViewInfo,
-    _read_lidar,
-)
+from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, _read_lidar
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["load_scene", "novel_view_group"]
@@ -290,9 +281,6 @@ def load_scene(
     check_split(test_frames, all_frames, "scene.json: split.test_frames")
     check_split(train_frames, all_frames, "scene.json: split.train_frames")
 
-    def read_lidar(frame: int, path: Path) -> LidarFrame:
-        return _read_lidar(path)
-
     return assemble_scene(
         f"scene {root}",
         name=str(meta.get("name", root.name)),
@@ -305,7 +293,7 @@ def load_scene(
         train_frames=train_frames,
         test_frames=test_frames,
         scale=scale,
-        read_lidar=read_lidar,
+        read_lidar=lambda frame, path: _read_lidar(path),
         check_files=check_files,
         validate=validate,
     )
