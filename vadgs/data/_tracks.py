@@ -18,14 +18,16 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vadgs.checks import check_finite
-from vadgs.data.scene import InstanceInfo, Track
+from vadgs.data.scene import InstanceInfo, LidarFrame, Track
 
 __all__ = [
     "BoxObservation",
     "as_tensor",
     "build_instances",
+    "check_min_motion",
     "every_fourth_test_frames",
     "label_points",
+    "labelled_lidar",
     "points_in_boxes",
     "quat_wxyz_to_matrix",
 ]
@@ -84,6 +86,12 @@ def as_tensor(m: np.ndarray, what: str) -> torch.Tensor:
     t = torch.from_numpy(np.asarray(m, dtype=np.float64))
     check_finite(t, what)
     return t.float()
+
+
+def check_min_motion(min_motion_m: float | None) -> None:
+    """Raise a :class:`ValueError` unless ``min_motion_m`` is None or a non-negative number."""
+    if min_motion_m is not None and not min_motion_m >= 0:
+        raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
 
 
 def build_instances(
@@ -168,3 +176,22 @@ def label_points(points: torch.Tensor, frame_boxes: dict[int, BoxObservation]) -
     hit = inside.any(0)
     instance[hit] = torch.tensor(ids)[inside[:, hit].float().argmax(0)]
     return instance
+
+
+def labelled_lidar(
+    world: np.ndarray, origin: np.ndarray, boxes: dict[int, dict[int, BoxObservation]], frame: int
+) -> LidarFrame:
+    """A sweep in world coordinates as a :class:`~vadgs.data.scene.LidarFrame`, labelled by the frame's boxes.
+
+    Args:
+        world: ``(N, 3)`` float64 points in the world.
+        origin: ``(3,)`` sensor position in the world.
+        boxes: id → frame position → :class:`BoxObservation` (as for :func:`build_instances`).
+        frame: the frame position of the sweep.
+
+    Returns:
+        float32 points, each point's box id from :func:`label_points` (0 outside), float32 origin.
+    """
+    pts = torch.from_numpy(world).float()
+    frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
+    return LidarFrame(pts, label_points(pts, frame_boxes), torch.from_numpy(np.asarray(origin)).float())

@@ -1,10 +1,11 @@
-"""The last step of every loader: check the referenced files, wire the LiDAR, build and check the Scene.
+"""The steps every loader shares; the last one checks the files, wires the LiDAR, builds the Scene.
 
 Each reader (:func:`~vadgs.data.load_scene`, :func:`~vadgs.data.load_dgp`,
 :func:`~vadgs.data.load_nuscenes`, :func:`~vadgs.data.load_waymo`, :func:`~vadgs.data.load_colmap`)
-parses its format into cameras, frames and views and hands them to :func:`assemble_scene`, so
-that a missing file, a frame without LiDAR and a failed content check read the same whatever the
-format.
+checks its arguments (:func:`check_scale`, :func:`check_validate_level`), parses its format into
+cameras (:func:`pinhole_camera` for a camera with lens distortion), frames and views, and hands
+them to :func:`assemble_scene`, so that a bad argument, a missing file, a frame without LiDAR and
+a failed content check read the same whatever the format.
 """
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from vadgs.checks import check_finite
 from vadgs.data.checks import check_scene
 from vadgs.data.scene import (
     CameraInfo,
@@ -24,9 +27,19 @@ from vadgs.data.scene import (
     Scene,
     Track,
     ViewInfo,
+    _read_png,
 )
+from vadgs.data.undistort import ImageUndistorter
+from vadgs.geometry.camera import scale_intrinsics
 
-__all__ = ["VALIDATE_LEVELS", "assemble_scene", "check_validate_level"]
+__all__ = [
+    "VALIDATE_LEVELS",
+    "assemble_scene",
+    "check_scale",
+    "check_validate_level",
+    "file_image_loader",
+    "pinhole_camera",
+]
 
 #: the ``validate=`` levels of the loaders (see :func:`~vadgs.data.checks.check_scene`).
 VALIDATE_LEVELS = ("none", "headers", "full")
@@ -43,6 +56,105 @@ def check_validate_level(validate: str) -> None:
     """
     if validate not in VALIDATE_LEVELS:
         raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
+
+
+def check_scale(scale: float) -> None:
+    """Raise a :class:`ValueError` unless ``scale`` (a loader's resolution factor) is a positive number.
+
+    Example:
+        >>> check_scale(0)
+        Traceback (most recent call last):
+        ...
+        ValueError: scale: expected a positive number, got 0
+    """
+    if not (isinstance(scale, (int, float)) and scale > 0):
+        raise ValueError(f"scale: expected a positive number, got {scale!r}")
+
+
+def pinhole_camera(
+    name: str,
+    raw_K: torch.Tensor,
+    distortion: torch.Tensor,
+    image_size: tuple[int, int],
+    scale: float,
+    cam_to_ego: np.ndarray,
+    what: str,
+) -> tuple[CameraInfo, ImageUndistorter]:
+    """A camera of raw images with OpenCV lens distortion, as the pinhole camera of its undistorted images.
+
+    ``K`` is the undistorted images' (:class:`~vadgs.data.undistort.ImageUndistorter`; ``raw_K``
+    itself without distortion), rescaled by ``scale`` in float64, then stored as float32.
+
+    Args:
+        name: the camera name.
+        raw_K: ``(3, 3)`` float64 intrinsics of the raw images (pixel centres at integers).
+        distortion: OpenCV coefficients (``k1, k2, p1, p2[, k3, ...]``).
+        image_size: ``(H, W)`` of the raw images.
+        scale: the loader's resolution factor.
+        cam_to_ego: ``(4, 4)`` float64 camera-to-ego transform.
+        what: the camera as the messages name it (e.g. ``"DGP calibration.intrinsics[CAMERA_01]"``).
+
+    Returns:
+        ``(camera, undistorter)``; ``undistorter.distorted`` says whether images need it.
+
+    Raises:
+        ValueError: ``"<what>: ..."`` if the coefficients or ``K`` are invalid or not finite.
+
+    Example:
+        >>> K = torch.tensor([[100.0, 0, 49.5], [0, 100.0, 29.5], [0, 0, 1]], dtype=torch.float64)
+        >>> cam, und = pinhole_camera("c", K, torch.zeros(4), (60, 100), 0.5, np.eye(4), "c")
+        >>> cam.image_size, cam.K[0].tolist(), und.distorted
+        ((30, 50), [50.0, 0.0, 24.5], False)
+    """
+    h, w = image_size
+    try:
+        und = ImageUndistorter(raw_K, distortion, (h, w))
+    except ValueError as e:
+        raise ValueError(f"{what}: {e}") from None
+    K = und.K
+    size = (round(h * scale), round(w * scale))
+    if scale != 1.0:
+        K = scale_intrinsics(K, size[1] / w)
+    K32, c2e = torch.from_numpy(K.numpy()), torch.from_numpy(np.asarray(cam_to_ego, dtype=np.float64))
+    check_finite(K32, f"{what}: K")
+    check_finite(c2e, f"{what}: cam_to_ego")
+    return CameraInfo(name, K32.float(), size, c2e.float()), und
+
+
+def file_image_loader(
+    undistort: dict[str, ImageUndistorter], what: str
+) -> Callable[[ViewInfo], torch.Tensor] | None:
+    """``Scene.image_loader`` reading each view's image file, undistorted for the distorted cameras.
+
+    Args:
+        undistort: camera name → its undistorter; cameras not in it (or not distorted) are read
+            as they are.
+        what: the format as the messages name it (e.g. ``"DGP"``).
+
+    Returns:
+        The loader, or None when no camera is distorted (the scene then reads the files itself).
+
+    Raises:
+        ValueError: from the loader, ``"<what> image <path>: size WxH differs from the camera's
+            wxh"``.
+    """
+    undistort = {n: u for n, u in undistort.items() if u.distorted}
+    if not undistort:
+        return None
+
+    def image_loader(view: ViewInfo) -> torch.Tensor:
+        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+        und = undistort.get(view.camera)
+        if und is None:
+            return img
+        if tuple(img.shape[-2:]) != und.image_size:
+            raise ValueError(
+                f"{what} image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from the "
+                f"camera's {und.image_size[1]}x{und.image_size[0]}"
+            )
+        return und(img[None])[0].clamp(0.0, 1.0)
+
+    return image_loader
 
 
 def _file_lidar_loader(

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from vadgs.checks import check_finite
-from vadgs.data.assemble import assemble_scene, check_validate_level
+from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
@@ -219,8 +219,7 @@ def load_colmap(
     import pycolmap  # imported lazily: only this loader needs it
 
     sparse_dir = Path(sparse_dir)
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
+    check_scale(scale)
     check_validate_level(validate)
     if not (isinstance(test_every, int) and test_every >= 0):
         raise ValueError(f"test_every: expected an integer >= 0 (0 = no test split), got {test_every!r}")

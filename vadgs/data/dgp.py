@@ -48,14 +48,19 @@ from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
     build_instances,
-    label_points,
+    labelled_lidar,
     points_in_boxes,
     quat_wxyz_to_matrix,
 )
-from vadgs.data.assemble import assemble_scene, check_validate_level
-from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
+from vadgs.data.assemble import (
+    assemble_scene,
+    check_scale,
+    check_validate_level,
+    file_image_loader,
+    pinhole_camera,
+)
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
-from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["dgp_pose_to_matrix", "load_dgp", "points_in_boxes"]
 
@@ -207,8 +212,7 @@ def load_dgp(
         (18, (304, 484))
     """
     scene_dir, scene_json = _find_scene_json(Path(scene_dir))
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
+    check_scale(scale)
     check_validate_level(validate)
     meta = _read_json(scene_json, "scene")
     samples = _key(meta, "samples", scene_json.name)
@@ -282,7 +286,7 @@ def load_dgp(
     # -- cameras --------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[object, object]] = {}
-    undistort: dict[str, ImageUndistorter] = {}  # the distorted cameras
+    undistort: dict[str, ImageUndistorter] = {}
     for n in cam_names:
         c = intrinsics[n]
         what = f"calibration.intrinsics[{n}]"
@@ -306,18 +310,8 @@ def load_dgp(
         first = datum(0, n, "image")
         w, h = int(_key(first, "width", f"{n} image datum")), int(_key(first, "height", f"{n} image datum"))
         full_size[n] = (first["width"], first["height"])
-        if any(coeffs):
-            try:
-                undistort[n] = ImageUndistorter(K, torch.tensor(coeffs, dtype=torch.float64), (h, w))
-            except ValueError as e:
-                raise ValueError(f"DGP {what}: {e}") from None
-            K = undistort[n].K
-        size = (round(h * scale), round(w * scale))
-        if scale != 1.0:
-            K = scale_intrinsics(K, size[1] / w)
-        cams[n] = CameraInfo(
-            n, as_tensor(K.numpy(), what), size, as_tensor(sensor_to_ego[n], f"calibration.extrinsics[{n}]")
-        )
+        dist = torch.tensor(coeffs, dtype=torch.float64)
+        cams[n], undistort[n] = pinhole_camera(n, K, dist, (h, w), scale, sensor_to_ego[n], f"DGP {what}")
 
     # -- frames, views, LiDAR, boxes ------------------------------------------------------------------
     t0 = _time(
@@ -397,24 +391,7 @@ def load_dgp(
         if raw.ndim != 2 or raw.shape[1] < 3:
             raise ValueError(f"DGP point cloud {path}: expected (N, >=3) X, Y, Z, ..., got {raw.shape}")
         world = raw[:, :3] @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
-        pts = torch.from_numpy(world).float()
-        frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
-        return LidarFrame(
-            pts, label_points(pts, frame_boxes), torch.from_numpy(sensor_to_world[:3, 3]).float()
-        )
-
-    def image_loader(view: ViewInfo) -> torch.Tensor:
-        """The view's JPEG, undistorted if its camera is distorted."""
-        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
-        und = undistort.get(view.camera)
-        if und is None:
-            return img
-        if tuple(img.shape[-2:]) != und.image_size:
-            raise ValueError(
-                f"DGP image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from the "
-                f"camera's {und.image_size[1]}x{und.image_size[0]}"
-            )
-        return und(img[None])[0].clamp(0.0, 1.0)
+        return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 
     return assemble_scene(
         f"DGP scene {scene_dir}",
@@ -428,7 +405,7 @@ def load_dgp(
         test_frames=sorted(int(f) for f in test_frames),
         scale=scale,
         read_lidar=read_lidar,
-        image_loader=image_loader if undistort else None,
+        image_loader=file_image_loader(undistort, "DGP"),
         check_files=check_files,
         validate=validate,
     )

@@ -55,12 +55,13 @@ from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
     build_instances,
+    check_min_motion,
     every_fourth_test_frames,
-    label_points,
+    labelled_lidar,
     quat_wxyz_to_matrix,
 )
-from vadgs.data.assemble import assemble_scene
-from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
+from vadgs.data.assemble import assemble_scene, check_scale, file_image_loader
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
 
@@ -215,10 +216,8 @@ def load_nuscenes(
     if not meta_dir.is_dir():
         have = sorted(p.name for p in dataroot.iterdir() if p.is_dir() and p.name.startswith("v"))
         raise FileNotFoundError(f"version: no table folder {meta_dir} (have {have})")
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if min_motion_m is not None and not min_motion_m >= 0:
-        raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
+    check_scale(scale)
+    check_min_motion(min_motion_m)
     raw = {name: _read_table(meta_dir, name) for name in _TABLES}
     if (meta_dir / "sample_annotation.json").is_file():
         raw["sample_annotation"] = _read_table(meta_dir, "sample_annotation")
@@ -421,24 +420,8 @@ def load_nuscenes(
                 f"nuScenes LiDAR {path}: expected float32 x, y, z, intensity, ring (5 per point)"
             )
         local = data.reshape(-1, 5)[:, :3].astype(np.float64)
-        pts = torch.from_numpy(local @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]).float()
-        frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
-        return LidarFrame(
-            pts, label_points(pts, frame_boxes), torch.from_numpy(sensor_to_world[:3, 3]).float()
-        )
-
-    def image_loader(view: ViewInfo) -> torch.Tensor:
-        """The view's JPEG, undistorted if its camera has distortion coefficients."""
-        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
-        und = undistort.get(view.camera)
-        if und is None:
-            return img
-        if tuple(img.shape[-2:]) != und.image_size:
-            raise ValueError(
-                f"nuScenes image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from "
-                f"sample_data's {und.image_size[1]}x{und.image_size[0]}"
-            )
-        return und(img[None])[0].clamp(0.0, 1.0)
+        world = local @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
+        return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 
     return assemble_scene(
         f"nuScenes scene {scene_name}",
@@ -452,6 +435,6 @@ def load_nuscenes(
         test_frames=test,
         scale=scale,
         read_lidar=read_lidar,
-        image_loader=image_loader if undistort else None,
+        image_loader=file_image_loader(undistort, "nuScenes"),
         check_files=check_files,
     )

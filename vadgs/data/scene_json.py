@@ -17,7 +17,7 @@ import torch
 
 from vadgs.checks import check_finite
 from vadgs.data._json import read_json, require_key
-from vadgs.data.assemble import assemble_scene, check_validate_level
+from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
 from vadgs.data.checks import check_intrinsics, check_rigid, check_split
 from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, _read_lidar
 from vadgs.geometry.camera import scale_intrinsics
@@ -174,8 +174,7 @@ def load_scene(
     if not meta_path.is_file():
         raise FileNotFoundError(f"no scene.json in {root}")
     meta = read_json(meta_path, "scene.json")
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
+    check_scale(scale)
     check_validate_level(validate)
 
     cams_meta = _get(meta, "cameras", "top level")

@@ -67,13 +67,13 @@ from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
     build_instances,
+    check_min_motion,
     every_fourth_test_frames,
-    label_points,
+    labelled_lidar,
 )
-from vadgs.data.assemble import assemble_scene
+from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
-from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = [
     "WAYMO_BOX_TYPES",
@@ -414,10 +414,8 @@ def load_waymo(
     dataset_dir = Path(dataset_dir)
     if not dataset_dir.is_dir():
         raise FileNotFoundError(f"dataset_dir: no such folder {dataset_dir}")
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if min_motion_m is not None and not min_motion_m >= 0:
-        raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
+    check_scale(scale)
+    check_min_motion(min_motion_m)
     seg_filter = [(_SEG, "=", segment)]
 
     # -- frames --------------------------------------------------------------------------------------
@@ -481,18 +479,9 @@ def load_waymo(
             [[fu, 0.0, cu - WAYMO_PIXEL_OFFSET], [0.0, fv, cv - WAYMO_PIXEL_OFFSET], [0.0, 0.0, 1.0]],
             dtype=torch.float64,
         )
-        try:
-            undistort[n] = ImageUndistorter(raw_K, torch.tensor(dist, dtype=torch.float64), (h, w))
-        except ValueError as e:
-            raise ValueError(f"Waymo {what}: {e}") from None
-        K = undistort[n].K
-        size = (round(h * scale), round(w * scale))
-        if scale != 1.0:
-            K = scale_intrinsics(K, size[1] / w)
         c2e = _matrix(cc[f"{_CC}.extrinsic.transform"][row], f"{what}.extrinsic") @ WAYMO_CAMERA_TO_OPENCV
-        cams[n] = CameraInfo(
-            n, as_tensor(K.numpy(), f"{what}.intrinsic"), size, as_tensor(c2e, f"{what}.extrinsic")
-        )
+        dist_t = torch.tensor(dist, dtype=torch.float64)
+        cams[n], undistort[n] = pinhole_camera(n, raw_K, dist_t, (h, w), scale, c2e, f"Waymo {what}")
 
     # -- views: image poses (the JPEG bytes stay in the file) ----------------------------------------
     ci = _Component(pq, dataset_dir, "camera_image", segment)
@@ -646,10 +635,8 @@ def load_waymo(
                     e2w = ego_to_world[frame]
                     pts = waymo_range_image_to_points(img[..., 0], extr[n], incl) @ e2w[:3, :3].T + e2w[:3, 3]
                 out.append(pts)
-            world = torch.from_numpy(np.concatenate(out)).float()
-            frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
             origin = ego_to_world[frame] @ extr[lasers[0]][:, 3]
-            return LidarFrame(world, label_points(world, frame_boxes), torch.from_numpy(origin[:3]).float())
+            return labelled_lidar(np.concatenate(out), origin[:3], boxes, frame)
 
     return assemble_scene(
         f"Waymo segment {segment}",
