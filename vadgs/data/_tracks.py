@@ -1,4 +1,8 @@
-"""Helpers shared by the DGP, nuScenes and Waymo readers: 3D boxes → instances, tracks, LiDAR labels.
+"""Helpers shared by the DGP, nuScenes and Waymo readers: frames, cameras, world, 3D boxes → tracks.
+
+The three readers select cameras and frames alike (:func:`select_cameras`,
+:func:`select_positions`, :func:`test_split`), translate the dataset's far-away world to the first
+frame (:func:`recentred`), and turn 3D boxes into instances, tracks and LiDAR labels.
 
 The three datasets annotate each keyframe with 3D boxes that carry a persistent object identifier
 (a DGP ``instance_id``, a nuScenes instance token, a Waymo ``laser_object_id``). The readers
@@ -30,6 +34,10 @@ __all__ = [
     "labelled_lidar",
     "points_in_boxes",
     "quat_wxyz_to_matrix",
+    "recentred",
+    "select_cameras",
+    "select_positions",
+    "test_split",
 ]
 
 
@@ -69,6 +77,78 @@ def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
     if not (math.isfinite(n) and n > 0):
         raise ValueError(f"quaternion: expected a finite non-zero (w, x, y, z), got {q!r}")
     return Rotation.from_quat([w, x, y, z], scalar_first=True).as_matrix()
+
+
+def select_cameras(cameras: Sequence[str] | None, have: Sequence[str], none_message: str) -> list[str]:
+    """The cameras to load: ``cameras`` (each one of ``have``), or all of ``have`` when None.
+
+    Raises:
+        ValueError: ``none_message`` when there is no camera to load;
+            ``"cameras: unknown camera 'X', have [...]"`` for a camera not in ``have``.
+
+    Example:
+        >>> have = ["FRONT", "LEFT"]
+        >>> select_cameras(None, have, "no camera"), select_cameras(["LEFT"], have, "no camera")
+        (['FRONT', 'LEFT'], ['LEFT'])
+    """
+    names = list(cameras) if cameras is not None else list(have)
+    if not names:
+        raise ValueError(none_message)
+    for n in names:
+        if n not in have:
+            raise ValueError(f"cameras: unknown camera {n!r}, have {list(have)}")
+    return names
+
+
+def select_positions(frames: Sequence[int] | None, available: int, what: str = "frame") -> list[int]:
+    """The positions of the frames to keep (``frames``, or all ``available`` when None).
+
+    Raises:
+        ValueError: ``"frames: expected <what> positions in [0, N), got [...]"`` if one is out of
+            range or none is left.
+
+    Example:
+        >>> select_positions(None, 3), select_positions(range(1, 3), 3)
+        ([0, 1, 2], [1, 2])
+    """
+    positions = list(range(available)) if frames is None else [int(f) for f in frames]
+    bad = [f for f in positions if not 0 <= f < available]
+    if bad or not positions:
+        raise ValueError(f"frames: expected {what} positions in [0, {available}), got {list(positions)}")
+    return positions
+
+
+def test_split(test_frames: Sequence[int] | None, num_frames: int) -> list[int]:
+    """The held-out frames: ``test_frames`` sorted, or :func:`every_fourth_test_frames` when None.
+
+    Raises:
+        ValueError: ``"test_frames: unknown frame(s) [...], have 0..N-1"``.
+
+    Example:
+        >>> test_split(None, 11), test_split((), 11), test_split([3, 1], 11)
+        ([2, 6, 10], [], [1, 3])
+    """
+    test = (
+        every_fourth_test_frames(num_frames) if test_frames is None else sorted(int(f) for f in test_frames)
+    )
+    bad = [f for f in test if not 0 <= f < num_frames]
+    if bad:
+        raise ValueError(f"test_frames: unknown frame(s) {bad}, have 0..{num_frames - 1}")
+    return test
+
+
+def recentred(m: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """A copy of the ``(..., 4, 4)`` transforms ``m`` with ``offset`` subtracted from their translation.
+
+    The readers' world is the dataset's translated so that the first frame's ego sits at the origin.
+
+    Example:
+        >>> recentred(np.eye(4), np.array([1.0, 2.0, 3.0]))[:3, 3].tolist()
+        [-1.0, -2.0, -3.0]
+    """
+    out = m.copy()
+    out[..., :3, 3] -= offset
+    return out
 
 
 def every_fourth_test_frames(num_frames: int) -> list[int]:

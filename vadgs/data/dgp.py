@@ -51,6 +51,8 @@ from vadgs.data._tracks import (
     labelled_lidar,
     points_in_boxes,
     quat_wxyz_to_matrix,
+    recentred,
+    select_cameras,
 )
 from vadgs.data.assemble import (
     assemble_scene,
@@ -251,12 +253,9 @@ def load_dgp(
             row[str(_key(_key(d, "id", f"datum {k}"), "name", f"datum {k}.id"))] = d
         per_sample.append(row)
     image_names = [n for n in names if any("image" in r.get(n, {}).get("datum", {}) for r in per_sample)]
-    cam_names = list(cameras) if cameras is not None else image_names
-    if not cam_names:
-        raise ValueError(f"DGP {scene_json.name}: no camera to load (image datums: {image_names})")
-    for n in cam_names:
-        if n not in image_names:
-            raise ValueError(f"cameras: unknown camera {n!r}, have {image_names}")
+    cam_names = select_cameras(
+        cameras, image_names, f"DGP {scene_json.name}: no camera to load (image datums: {image_names})"
+    )
     if lidar is not None and lidar not in names:
         raise ValueError(f"lidar: unknown sensor {lidar!r}, have {names}")
     frame_ids = list(range(len(samples)))
@@ -279,9 +278,7 @@ def load_dgp(
     offset = ego0[:3, 3].copy() if recenter else np.zeros(3)
 
     def to_world(sensor_to_dgp_world: np.ndarray) -> np.ndarray:
-        out = sensor_to_dgp_world.copy()
-        out[:3, 3] -= offset
-        return out
+        return recentred(sensor_to_dgp_world, offset)
 
     # -- cameras --------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}

@@ -56,9 +56,12 @@ from vadgs.data._tracks import (
     as_tensor,
     build_instances,
     check_min_motion,
-    every_fourth_test_frames,
     labelled_lidar,
     quat_wxyz_to_matrix,
+    recentred,
+    select_cameras,
+    select_positions,
+    test_split,
 )
 from vadgs.data.assemble import assemble_scene, check_scale, file_image_loader
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
@@ -251,18 +254,9 @@ def load_nuscenes(
                 f"no sample with scene_token {scene_token!r}"
             )
         samples = sorted(mine, key=lambda s: int(_key(s, "timestamp", f"sample {s.get('token')}")))
-    positions = list(range(len(samples))) if frames is None else [int(f) for f in frames]
-    bad = [f for f in positions if not 0 <= f < len(samples)]
-    if bad or not positions:
-        raise ValueError(f"frames: expected keyframe positions in [0, {len(samples)}), got {list(positions)}")
-    samples = [samples[f] for f in positions]
+    samples = [samples[f] for f in select_positions(frames, len(samples), "keyframe")]
     num_frames = len(samples)
-    test = (
-        every_fourth_test_frames(num_frames) if test_frames is None else sorted(int(f) for f in test_frames)
-    )
-    bad = [f for f in test if not 0 <= f < num_frames]
-    if bad:
-        raise ValueError(f"test_frames: unknown frame(s) {bad}, have 0..{num_frames - 1}")
+    test = test_split(test_frames, num_frames)
 
     # -- keyframe readings of each channel --------------------------------------------------------------
     def channel_of(sd: dict, what: str) -> tuple[str, str]:
@@ -285,12 +279,11 @@ def load_nuscenes(
     cam_channels = [c for c in NUSCENES_CAMERAS if modality.get(c) == "camera"] + sorted(
         c for c, m in modality.items() if m == "camera" and c not in NUSCENES_CAMERAS
     )
-    cam_names = list(cameras) if cameras is not None else cam_channels
-    if not cam_names:
-        raise ValueError(f"nuScenes scene {scene_name}: no camera keyframes (channels: {sorted(modality)})")
-    for c in cam_names:
-        if c not in cam_channels:
-            raise ValueError(f"cameras: unknown camera {c!r}, have {cam_channels}")
+    cam_names = select_cameras(
+        cameras,
+        cam_channels,
+        f"nuScenes scene {scene_name}: no camera keyframes (channels: {sorted(modality)})",
+    )
     if lidar is not None and modality.get(lidar) != "lidar":
         have = sorted(c for c, m in modality.items() if m == "lidar")
         raise ValueError(f"lidar: unknown LiDAR channel {lidar!r}, have {have}")
@@ -317,9 +310,7 @@ def load_nuscenes(
     offset = ego_pose(reading(0, ref), f"{ref} at frame 0")[:3, 3].copy() if recenter else np.zeros(3)
 
     def to_world(m: np.ndarray) -> np.ndarray:
-        out = m.copy()
-        out[:3, 3] -= offset
-        return out
+        return recentred(m, offset)
 
     # -- cameras ---------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}

@@ -374,14 +374,11 @@ class Scene:
         Raises:
             FileNotFoundError: if a view has no depth.
         """
-        out = []
-        for i in self._ids(view_ids):
-            v = self.views[i]
-            if v.depth is None:
-                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no ground-truth depth")
-            d = torch.from_numpy(read_depth(v.depth).astype(np.float32))
-            out.append(self._resize(d[None, None], i, "nearest")[0])
-        return torch.stack(out)
+
+        def read(path: Path) -> torch.Tensor:
+            return torch.from_numpy(read_depth(path).astype(np.float32))
+
+        return self._load_maps(view_ids, "depth", "ground-truth depth", read)
 
     def load_instances(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
         """Instance-id maps ``(B, H, W)`` int64 (0 = sky / none).
@@ -389,13 +386,23 @@ class Scene:
         Raises:
             FileNotFoundError: if a view has no instance map.
         """
+
+        def read(path: Path) -> torch.Tensor:  # float64 through the resize: exact below 2^53
+            return torch.from_numpy(_read_png(path).astype(np.int64)).double()
+
+        return self._load_maps(view_ids, "instances", "instance map", read)[:, 0].long()
+
+    def _load_maps(
+        self, view_ids: Sequence[int] | None, field: str, what: str, read: Callable[[Path], torch.Tensor]
+    ) -> torch.Tensor:
+        """``(B, 1, H, W)``: ``read(view.<field>)`` of each view, resized (nearest) to the view's size."""
         out = []
         for i in self._ids(view_ids):
             v = self.views[i]
-            if v.instances is None:
-                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no instance map")
-            ins = torch.from_numpy(_read_png(v.instances).astype(np.int64))
-            out.append(self._resize(ins[None, None].double(), i, "nearest")[0, 0].long())
+            path = getattr(v, field)
+            if path is None:
+                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no {what}")
+            out.append(self._resize(read(path)[None, None], i, "nearest")[0])
         return torch.stack(out)
 
     def _resize(

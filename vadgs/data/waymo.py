@@ -68,8 +68,11 @@ from vadgs.data._tracks import (
     as_tensor,
     build_instances,
     check_min_motion,
-    every_fourth_test_frames,
     labelled_lidar,
+    recentred,
+    select_cameras,
+    select_positions,
+    test_split,
 )
 from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
@@ -422,27 +425,14 @@ def load_waymo(
     vp = read_waymo_poses(dataset_dir, segment)
     all_ts = vp.timestamps_us.tolist()
     all_poses = list(vp.world_from_vehicle.numpy())
-    positions = list(range(len(all_ts))) if frames is None else [int(f) for f in frames]
-    bad = [f for f in positions if not 0 <= f < len(all_ts)]
-    if bad or not positions:
-        raise ValueError(f"frames: expected frame positions in [0, {len(all_ts)}), got {list(positions)}")
+    positions = select_positions(frames, len(all_ts))
     frame_ts = [all_ts[f] for f in positions]
     frame_of = {ts: fi for fi, ts in enumerate(frame_ts)}
     num_frames = len(frame_ts)
-    test = (
-        every_fourth_test_frames(num_frames) if test_frames is None else sorted(int(f) for f in test_frames)
-    )
-    bad = [f for f in test if not 0 <= f < num_frames]
-    if bad:
-        raise ValueError(f"test_frames: unknown frame(s) {bad}, have 0..{num_frames - 1}")
+    test = test_split(test_frames, num_frames)
     offset = all_poses[positions[0]][:3, 3].copy() if recenter else np.zeros(3)
 
-    def to_world(m: np.ndarray) -> np.ndarray:
-        out = m.copy()
-        out[..., :3, 3] -= offset
-        return out
-
-    ego_to_world = [to_world(all_poses[f]) for f in positions]
+    ego_to_world = [recentred(all_poses[f], offset) for f in positions]
     t0 = frame_ts[0] * 1e-6
 
     # -- cameras -------------------------------------------------------------------------------------
@@ -460,12 +450,9 @@ def load_waymo(
     )
     calib = {cam_id[waymo_camera_name(c)]: i for i, c in enumerate(cc[_CAM])}
     have_cams = [n for k, n in WAYMO_CAMERAS.items() if k in calib]
-    cam_names = list(cameras) if cameras is not None else have_cams
-    if not cam_names:
-        raise ValueError(f"Waymo segment {segment}: camera_calibration lists no known camera")
-    for n in cam_names:
-        if n not in have_cams:
-            raise ValueError(f"cameras: unknown camera {n!r}, have {have_cams}")
+    cam_names = select_cameras(
+        cameras, have_cams, f"Waymo segment {segment}: camera_calibration lists no known camera"
+    )
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[int, int]] = {}
     undistort: dict[str, ImageUndistorter] = {}
@@ -520,7 +507,7 @@ def load_waymo(
             if (fi, cam_id[n]) not in image_pose:
                 raise ValueError(f"Waymo segment {segment}: frame {fi} (timestamp {ts} µs) has no {n} image")
             pose, pose_ts = image_pose[(fi, cam_id[n])]
-            c2w = to_world(pose) @ cams[n].cam_to_ego.double().numpy()
+            c2w = recentred(pose, offset) @ cams[n].cam_to_ego.double().numpy()
             views.append(ViewInfo(len(views), fi, n, pose_ts - t0, as_tensor(c2w, f"{n} at frame {fi}")))
             ids.append(len(views) - 1)
         frame_infos.append(
