@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from vadgs.data.assemble import assemble_scene, check_validate_level
+from vadgs.data.assemble import (
+    assemble_scene,
+    check_scale,
+    check_validate_level,
+    file_image_loader,
+    pinhole_camera,
+)
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
+from vadgs.data.undistort import ImageUndistorter
+from vadgs.geometry.camera import scale_intrinsics
 
 
 def _parts(tmp_path, lidar_frames=(0, 1, 2)):
@@ -94,3 +102,52 @@ def test_check_validate_level():
         check_validate_level(level)
     with pytest.raises(ValueError, match="got 'quick'"):
         check_validate_level("quick")
+
+
+def test_check_scale():
+    check_scale(0.5)
+    for bad in (0, -1.0, "1", None):
+        with pytest.raises(ValueError, match="scale: expected a positive number"):
+            check_scale(bad)
+
+
+class TestPinholeCamera:
+    K = torch.tensor([[100.0, 0.0, 49.5], [0.0, 100.0, 29.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+    def test_undistorted_and_scaled(self):
+        c2e = np.eye(4)
+        c2e[0, 3] = 1.5
+        cam, und = pinhole_camera("c", self.K, torch.tensor([-0.2, 0.0, 0.0, 0.0]), (60, 100), 0.5, c2e, "c")
+        assert und.distorted and cam.image_size == (30, 50) and cam.K.dtype == torch.float32
+        torch.testing.assert_close(cam.K.double(), scale_intrinsics(und.K, 0.5).float().double())
+        assert cam.cam_to_ego[0, 3].item() == 1.5
+
+    def test_no_distortion_keeps_K(self):
+        cam, und = pinhole_camera("c", self.K, torch.zeros(4), (60, 100), 1.0, np.eye(4), "c")
+        assert not und.distorted and torch.equal(cam.K, self.K.float())
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match=r"^Waymo cam: distortion: expected 4, 5, 8 or 12"):
+            pinhole_camera("c", self.K, torch.zeros(3), (60, 100), 1.0, np.eye(4), "Waymo cam")
+
+
+class TestFileImageLoader:
+    def test_none_without_distortion(self):
+        und = ImageUndistorter(TestPinholeCamera.K, torch.zeros(4), (60, 100))
+        assert file_image_loader({"c": und}, "DGP") is None
+
+    def test_undistorts_and_checks_size(self, tmp_path):
+        from PIL import Image
+
+        path = tmp_path / "a.png"
+        Image.fromarray(np.full((60, 100, 3), 128, dtype=np.uint8)).save(path)
+        und = ImageUndistorter(TestPinholeCamera.K, torch.tensor([-0.2, 0.0, 0.0, 0.0]), (60, 100))
+        loader = file_image_loader({"c": und}, "DGP")
+        img = loader(ViewInfo(0, 0, "c", 0.0, torch.eye(4), path))
+        assert img.shape == (3, 60, 100) and float(img.max()) <= 1.0
+        assert loader(ViewInfo(0, 0, "other", 0.0, torch.eye(4), path)).shape == (3, 60, 100)
+        Image.fromarray(np.zeros((30, 100, 3), dtype=np.uint8)).save(path)
+        with pytest.raises(
+            ValueError, match=r"^DGP image .*a\.png: size 100x30 differs from the camera's 100x60$"
+        ):
+            loader(ViewInfo(0, 0, "c", 0.0, torch.eye(4), path))

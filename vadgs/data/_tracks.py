@@ -1,7 +1,7 @@
 """Helpers shared by the DGP, nuScenes and Waymo readers: frames, cameras, world, 3D boxes → tracks.
 
 The three readers select cameras and frames alike (:func:`select_cameras`,
-:func:`select_positions`, :func:`test_split`), translate the dataset's far-away world to the first
+:func:`select_positions`, :func:`held_out_frames`), translate the dataset's far-away world to the first
 frame (:func:`recentred`), and turn 3D boxes into instances, tracks and LiDAR labels.
 
 The three datasets annotate each keyframe with 3D boxes that carry a persistent object identifier
@@ -30,6 +30,7 @@ __all__ = [
     "build_instances",
     "check_min_motion",
     "every_fourth_test_frames",
+    "held_out_frames",
     "label_points",
     "labelled_lidar",
     "points_in_boxes",
@@ -37,7 +38,6 @@ __all__ = [
     "recentred",
     "select_cameras",
     "select_positions",
-    "test_split",
 ]
 
 
@@ -118,14 +118,14 @@ def select_positions(frames: Sequence[int] | None, available: int, what: str = "
     return positions
 
 
-def test_split(test_frames: Sequence[int] | None, num_frames: int) -> list[int]:
+def held_out_frames(test_frames: Sequence[int] | None, num_frames: int) -> list[int]:
     """The held-out frames: ``test_frames`` sorted, or :func:`every_fourth_test_frames` when None.
 
     Raises:
         ValueError: ``"test_frames: unknown frame(s) [...], have 0..N-1"``.
 
     Example:
-        >>> test_split(None, 11), test_split((), 11), test_split([3, 1], 11)
+        >>> held_out_frames(None, 11), held_out_frames((), 11), held_out_frames([3, 1], 11)
         ([2, 6, 10], [], [1, 3])
     """
     test = (

@@ -56,12 +56,12 @@ from vadgs.data._tracks import (
     as_tensor,
     build_instances,
     check_min_motion,
+    held_out_frames,
     labelled_lidar,
     quat_wxyz_to_matrix,
     recentred,
     select_cameras,
     select_positions,
-    test_split,
 )
 from vadgs.data.assemble import assemble_scene, check_scale, file_image_loader
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
@@ -256,7 +256,7 @@ def load_nuscenes(
         samples = sorted(mine, key=lambda s: int(_key(s, "timestamp", f"sample {s.get('token')}")))
     samples = [samples[f] for f in select_positions(frames, len(samples), "keyframe")]
     num_frames = len(samples)
-    test = test_split(test_frames, num_frames)
+    test = held_out_frames(test_frames, num_frames)
 
     # -- keyframe readings of each channel --------------------------------------------------------------
     def channel_of(sd: dict, what: str) -> tuple[str, str]:

@@ -68,11 +68,11 @@ from vadgs.data._tracks import (
     as_tensor,
     build_instances,
     check_min_motion,
+    held_out_frames,
     labelled_lidar,
     recentred,
     select_cameras,
     select_positions,
-    test_split,
 )
 from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
@@ -429,7 +429,7 @@ def load_waymo(
     frame_ts = [all_ts[f] for f in positions]
     frame_of = {ts: fi for fi, ts in enumerate(frame_ts)}
     num_frames = len(frame_ts)
-    test = test_split(test_frames, num_frames)
+    test = held_out_frames(test_frames, num_frames)
     offset = all_poses[positions[0]][:3, 3].copy() if recenter else np.zeros(3)
 
     ego_to_world = [recentred(all_poses[f], offset) for f in positions]
