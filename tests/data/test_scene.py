@@ -1,4 +1,4 @@
-"""Tests of the benchmark-format loader (vadgs.data.scene.load_scene) and the Scene object."""
+"""Tests of the benchmark-format loader (vadgs.data.scene_json.load_scene) and the Scene object."""
 
 from __future__ import annotations
 

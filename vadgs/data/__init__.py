@@ -26,8 +26,8 @@ from vadgs.data.scene import (
     Scene,
     Track,
     ViewInfo,
-    load_scene,
 )
+from vadgs.data.scene_json import load_scene
 from vadgs.data.validate import ValidationReport, ValidationRow, validate_scene
 from vadgs.data.waymo import load_waymo
 

@@ -50,9 +50,9 @@ import numpy as np
 import torch
 
 from vadgs.checks import check_finite
+from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
-from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
-from vadgs.data.validate import validate_scene
+from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 
 __all__ = [
@@ -81,38 +81,6 @@ the caller set higher (``pycolmap.logging.minloglevel``) is kept."""
 
 _PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 _DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
-
-
-class ColmapPoints(NamedTuple):
-    """The sparse points of a COLMAP model and their TRACK table.
-
-    The track table is in coordinate (COO) form: observation ``t`` says that point
-    ``point_idx[t]`` is seen in view ``view_idx[t]`` (an index into ``Scene.views``) at pixel
-    ``uv[t]`` (vadgs pixel convention, at the scene's scale).
-
-    Attributes:
-        points: ``(P, 3)`` float32 world coordinates.
-        colors: ``(P, 3)`` float32 RGB in ``[0, 1]``.
-        errors: ``(P,)`` float32 mean reprojection error in pixels at full resolution as stored
-            by COLMAP (``-1`` where COLMAP has none).
-        point_ids: ``(P,)`` int64 COLMAP ``point3D_id`` of each point.
-        point_idx: ``(T,)`` int64 index into ``points`` of each observation.
-        view_idx: ``(T,)`` int64 index into ``Scene.views`` of each observation.
-        uv: ``(T, 2)`` float32 observed pixel ``(x, y)`` of each observation.
-    """
-
-    points: torch.Tensor
-    colors: torch.Tensor
-    errors: torch.Tensor
-    point_ids: torch.Tensor
-    point_idx: torch.Tensor
-    view_idx: torch.Tensor
-    uv: torch.Tensor
-
-    @property
-    def point_views(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(point_idx, view_idx)``, as ``vadgs.geometry.voxelize(..., point_views=...)`` takes it."""
-        return self.point_idx, self.view_idx
 
 
 class ColmapScene(NamedTuple):
@@ -251,10 +219,8 @@ def load_colmap(
     import pycolmap  # imported lazily: only this loader needs it
 
     sparse_dir = Path(sparse_dir)
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if validate not in ("none", "headers", "full"):
-        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
+    check_scale(scale)
+    check_validate_level(validate)
     if not (isinstance(test_every, int) and test_every >= 0):
         raise ValueError(f"test_every: expected an integer >= 0 (0 = no test split), got {test_every!r}")
     transform = None if isinstance(normalize, bool) else _check_similarity(normalize)
@@ -318,13 +284,6 @@ def load_colmap(
             ids.append(len(views) - 1)
         frames.append(FrameInfo(fi, float(fi), None, tuple(ids)))
 
-    if images_dir is not None and check_files:
-        missing = [str(v.image) for v in views if not v.image.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"images_dir {images_dir}: {len(missing)} registered image(s) missing, e.g. {missing[:3]}"
-            )
-
     # -- points and the TRACK table -------------------------------------------------------------------
     pids = sorted(rec.point3D_ids()) if hasattr(rec, "point3D_ids") else sorted(rec.points3D)
     xyz = np.zeros((len(pids), 3))
@@ -357,20 +316,20 @@ def load_colmap(
         view_idx=torch.tensor(v_idx, dtype=torch.int64),
         uv=uv_t.float(),
     )
-    test = {f.index for f in frames if test_every and f.index % test_every == 0}
-    scene = Scene(
+    scene = assemble_scene(
+        f"images_dir {images_dir}",
         name=_project_name(sparse_dir),
         root=sparse_dir,
         cameras_info=cameras,
         frames=frames,
         views=views,
-        train_frames=[f.index for f in frames if f.index not in test],
-        test_frames=sorted(test),
-        scale=float(scale),
+        test_frames=[f.index for f in frames if test_every and f.index % test_every == 0],
+        scale=scale,
         sfm_points=points,
+        check_files=check_files,
+        missing_noun="registered image(s)",
+        validate=validate,
     )
-    if check_files and validate != "none":
-        validate_scene(scene, full=validate == "full").raise_if_errors()
     out = ColmapScene(scene, points)
     if normalize is True:
         transform = colmap_normalization(out)

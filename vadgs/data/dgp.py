@@ -35,35 +35,39 @@ How DGP's frames map to vadgs's (verified on ``dgp_test_scene/scene_02``, see ``
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from vadgs.checks import check_finite
-from vadgs.data.scene import (
-    CameraInfo,
-    FrameInfo,
-    InstanceInfo,
-    LidarFrame,
-    Scene,
-    Track,
-    ViewInfo,
-    _read_png,
+from vadgs.data._json import read_json, require_key
+from vadgs.data._tracks import (
+    BoxObservation,
+    as_tensor,
+    build_instances,
+    labelled_lidar,
+    points_in_boxes,
+    quat_wxyz_to_matrix,
+    recentred,
+    select_cameras,
 )
+from vadgs.data.assemble import (
+    assemble_scene,
+    check_scale,
+    check_validate_level,
+    file_image_loader,
+    pinhole_camera,
+)
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
-from vadgs.data.validate import validate_scene
-from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["dgp_pose_to_matrix", "load_dgp", "points_in_boxes"]
 
 #: the DGP annotation type id of 3D bounding boxes (keys of ``annotations`` and ``ontologies``).
 _BOX3D = "1"
-#: a track whose box centre moves more than this (metres, in the world) is marked dynamic.
-DYNAMIC_MOTION_M = 0.5
 #: ``CameraIntrinsics`` fields of camera models other than OpenCV's (refused when non-zero).
 _OTHER_CAMERA_MODELS = ("fisheye", "taux", "tauy", "alpha", "beta", "w", "xi", "equirectangular")
 
@@ -100,58 +104,18 @@ def dgp_pose_to_matrix(pose: dict) -> np.ndarray:
     n = np.linalg.norm(q)
     if not (np.isfinite(n) and n > 0 and np.isfinite(t).all()):
         raise ValueError(f"DGP pose: expected a finite non-zero quaternion and translation, got {pose!r}")
-    w, x, y, z = q / n
     out = np.eye(4)
-    out[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
+    out[:3, :3] = quat_wxyz_to_matrix(q)
     out[:3, 3] = t
     return out
 
 
-def points_in_boxes(
-    points: torch.Tensor, object_to_world: torch.Tensor, size_lwh: torch.Tensor
-) -> torch.Tensor:
-    """Which points lie inside which centred boxes (x along length, y along width, z up).
-
-    Not differentiable (a boolean test).
-
-    Args:
-        points: ``(N, 3)`` world points.
-        object_to_world: ``(M, 4, 4)`` box poses (box centre and axes in the world).
-        size_lwh: ``(M, 3)`` box length, width, height.
-
-    Returns:
-        ``(M, N)`` bool.
-
-    Example:
-        >>> pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
-        >>> points_in_boxes(pts, torch.eye(4)[None], torch.tensor([[4.0, 2.0, 2.0]]))
-        tensor([[ True, False]])
-    """
-    rot = object_to_world[:, :3, :3]
-    local = torch.einsum("mji,mnj->mni", rot, points[None] - object_to_world[:, None, :3, 3])
-    return (local.abs() <= size_lwh[:, None] / 2).all(-1)
-
-
 def _read_json(path: Path, what: str) -> dict:
-    if not path.is_file():
-        raise FileNotFoundError(f"DGP {what}: missing file {path}")
-    try:
-        out = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"DGP {what}: {path} is not valid JSON ({e})") from None
-    if not isinstance(out, dict):
-        raise ValueError(f"DGP {what}: {path}: expected a JSON object at the top level")
-    return out
+    return read_json(path, f"DGP {what}")
 
 
-def _key(d: object, key: str, what: str) -> object:
-    if not isinstance(d, dict) or key not in d:
-        raise ValueError(f"DGP {what}: missing key {key!r}")
-    return d[key]
+def _key(d: object, key: str, what: str) -> Any:
+    return require_key(d, key, f"DGP {what}")
 
 
 def _time(stamp: str, what: str) -> datetime:
@@ -207,7 +171,8 @@ def load_dgp(
       are None).
     - ``frames``: ``ego_to_world`` = vehicle pose (LiDAR pose ``@ inv(lidar_extrinsic)``), and
       the LiDAR path. ``Scene.lidar(frame)`` returns the sweep in world coordinates (float32),
-      its ``instance`` the id of the 3D box each point falls in (0 outside every box), its
+      its ``instance`` the id of the 3D box (as annotated at that sample) each point falls in
+      (0 outside every box), its
       ``origin`` the LiDAR position.
     - ``tracks``: one per box instance id: ``object_to_world`` per frame where annotated
       (``valid``), ``size_lwh`` the median over frames, class from the ontology
@@ -249,10 +214,8 @@ def load_dgp(
         (18, (304, 484))
     """
     scene_dir, scene_json = _find_scene_json(Path(scene_dir))
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if validate not in ("none", "headers", "full"):
-        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
+    check_scale(scale)
+    check_validate_level(validate)
     meta = _read_json(scene_json, "scene")
     samples = _key(meta, "samples", scene_json.name)
     data = _key(meta, "data", scene_json.name)
@@ -290,12 +253,9 @@ def load_dgp(
             row[str(_key(_key(d, "id", f"datum {k}"), "name", f"datum {k}.id"))] = d
         per_sample.append(row)
     image_names = [n for n in names if any("image" in r.get(n, {}).get("datum", {}) for r in per_sample)]
-    cam_names = list(cameras) if cameras is not None else image_names
-    if not cam_names:
-        raise ValueError(f"DGP {scene_json.name}: no camera to load (image datums: {image_names})")
-    for n in cam_names:
-        if n not in image_names:
-            raise ValueError(f"cameras: unknown camera {n!r}, have {image_names}")
+    cam_names = select_cameras(
+        cameras, image_names, f"DGP {scene_json.name}: no camera to load (image datums: {image_names})"
+    )
     if lidar is not None and lidar not in names:
         raise ValueError(f"lidar: unknown sensor {lidar!r}, have {names}")
     frame_ids = list(range(len(samples)))
@@ -318,19 +278,12 @@ def load_dgp(
     offset = ego0[:3, 3].copy() if recenter else np.zeros(3)
 
     def to_world(sensor_to_dgp_world: np.ndarray) -> np.ndarray:
-        out = sensor_to_dgp_world.copy()
-        out[:3, 3] -= offset
-        return out
-
-    def as_tensor(m: np.ndarray, what: str) -> torch.Tensor:
-        t = torch.from_numpy(m)
-        check_finite(t, what)
-        return t.float()
+        return recentred(sensor_to_dgp_world, offset)
 
     # -- cameras --------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[object, object]] = {}
-    undistort: dict[str, ImageUndistorter] = {}  # the distorted cameras
+    undistort: dict[str, ImageUndistorter] = {}
     for n in cam_names:
         c = intrinsics[n]
         what = f"calibration.intrinsics[{n}]"
@@ -354,18 +307,8 @@ def load_dgp(
         first = datum(0, n, "image")
         w, h = int(_key(first, "width", f"{n} image datum")), int(_key(first, "height", f"{n} image datum"))
         full_size[n] = (first["width"], first["height"])
-        if any(coeffs):
-            try:
-                undistort[n] = ImageUndistorter(K, torch.tensor(coeffs, dtype=torch.float64), (h, w))
-            except ValueError as e:
-                raise ValueError(f"DGP {what}: {e}") from None
-            K = undistort[n].K
-        size = (round(h * scale), round(w * scale))
-        if scale != 1.0:
-            K = scale_intrinsics(K, size[1] / w)
-        cams[n] = CameraInfo(
-            n, as_tensor(K.numpy(), what), size, as_tensor(sensor_to_ego[n], f"calibration.extrinsics[{n}]")
-        )
+        dist = torch.tensor(coeffs, dtype=torch.float64)
+        cams[n], undistort[n] = pinhole_camera(n, K, dist, (h, w), scale, sensor_to_ego[n], f"DGP {what}")
 
     # -- frames, views, LiDAR, boxes ------------------------------------------------------------------
     t0 = _time(
@@ -373,8 +316,10 @@ def load_dgp(
     )
     frames: list[FrameInfo] = []
     views: list[ViewInfo] = []
-    lidar_info: dict[int, tuple[Path, np.ndarray]] = {}
-    boxes: dict[int, dict[int, tuple[np.ndarray, list[float], int]]] = {}  # id -> frame -> (pose, lwh, class)
+    lidar_to_world: dict[int, np.ndarray] = {}  # the LiDAR datum's pose per frame
+    raw_boxes: dict[
+        int, dict[int, tuple[np.ndarray, list[float], int]]
+    ] = {}  # id -> frame -> (pose, lwh, class)
     for fi in frame_ids:
         stamp = _key(_key(samples[fi], "id", f"samples[{fi}]"), "timestamp", f"samples[{fi}].id")
         ts = (_time(stamp, f"samples[{fi}].id.timestamp") - t0).total_seconds()
@@ -400,7 +345,7 @@ def load_dgp(
         lidar_path = None
         if lidar is not None:
             lidar_path = scene_dir / str(_key(ref_datum, "filename", f"samples[{fi}].{lidar}"))
-            lidar_info[fi] = (lidar_path, ref_pose)
+            lidar_to_world[fi] = ref_pose
         frames.append(FrameInfo(fi, ts, e2w, tuple(ids), lidar_path))
 
         ann = ref_datum.get("annotations", {}).get(_BOX3D)
@@ -411,12 +356,12 @@ def load_dgp(
                 iid = int(_key(a, "instance_id", what))
                 lwh = [float(_key(box, k, f"{what}.box")) for k in ("length", "width", "height")]
                 pose = ref_pose @ dgp_pose_to_matrix(_key(box, "pose", f"{what}.box"))
-                boxes.setdefault(iid, {})[fi] = (pose, lwh, int(_key(a, "class_id", what)))
+                raw_boxes.setdefault(iid, {})[fi] = (pose, lwh, int(_key(a, "class_id", what)))
 
-    # -- instances and tracks -------------------------------------------------------------------------
+    # -- instances and tracks: every box instance is a track ------------------------------------------
     classes: dict[int, str] = {}
     onto_key = meta.get("ontologies", {}).get(_BOX3D)
-    if boxes:
+    if raw_boxes:
         if onto_key is None:
             raise ValueError(f"DGP {scene_json.name}: ontologies: missing key {_BOX3D!r} (3D boxes)")
         onto = _read_json(scene_dir / "ontology" / f"{onto_key}.json", "ontology")
@@ -424,36 +369,18 @@ def load_dgp(
             int(_key(it, "id", "ontology item")): _class_slug(str(_key(it, "name", "ontology item")))
             for it in _key(onto, "items", "ontology")
         }
-    instances: dict[int, InstanceInfo] = {}
-    tracks: dict[int, Track] = {}
-    for iid in sorted(boxes):
-        per_frame = boxes[iid]
-        cls = classes.get(next(iter(per_frame.values()))[2], "unknown")
-        poses = torch.eye(4).repeat(len(frames), 1, 1)
-        valid = torch.zeros(len(frames), dtype=torch.bool)
-        for fi, (pose, _, _) in per_frame.items():
-            poses[fi] = as_tensor(pose, f"box {iid} at frame {fi}")
-            valid[fi] = True
-        size = torch.tensor(np.median([lwh for _, lwh, _ in per_frame.values()], axis=0), dtype=torch.float32)
-        centres = poses[valid, :3, 3]
-        moving = bool((centres - centres[:1]).norm(dim=-1).max() > DYNAMIC_MOTION_M)
-        tracks[iid] = Track(iid, cls, size, poses, valid)
-        instances[iid] = InstanceInfo(iid, f"{cls}_{iid}", cls, moving)
+    boxes = {
+        iid: {
+            fi: BoxObservation(pose, np.asarray(lwh), classes.get(cid, "unknown"))
+            for fi, (pose, lwh, cid) in per_frame.items()
+        }
+        for iid, per_frame in raw_boxes.items()
+    }
+    names = {iid: f"{next(iter(b.values())).class_name}_{iid}" for iid, b in boxes.items()}
+    instances, tracks = build_instances(boxes, names, len(frames), rigid=lambda _: True, min_motion_m=None)
 
-    if check_files:
-        missing = [str(v.image) for v in views if not v.image.is_file()]
-        missing += [str(p) for p, _ in lidar_info.values() if not p.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"DGP scene {scene_dir}: {len(missing)} referenced file(s) missing, e.g. {missing[:3]}"
-            )
-
-    def lidar_loader(frame: int) -> LidarFrame:
-        if frame not in lidar_info:
-            raise FileNotFoundError(f"DGP scene {scene_dir}: no LiDAR for frame {frame}")
-        path, sensor_to_world = lidar_info[frame]
-        if not path.is_file():
-            raise FileNotFoundError(f"DGP scene {scene_dir}: missing file {path}")
+    def read_lidar(frame: int, path: Path) -> LidarFrame:
+        sensor_to_world = lidar_to_world[frame]
         with np.load(path) as z:
             if "data" not in z:
                 raise ValueError(f"DGP point cloud {path}: missing key 'data'")
@@ -461,33 +388,10 @@ def load_dgp(
         if raw.ndim != 2 or raw.shape[1] < 3:
             raise ValueError(f"DGP point cloud {path}: expected (N, >=3) X, Y, Z, ..., got {raw.shape}")
         world = raw[:, :3] @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
-        pts = torch.from_numpy(world).float()
-        instance = torch.zeros(len(pts), dtype=torch.int64)
-        ids = [i for i, t in tracks.items() if bool(t.valid[frame])]
-        if ids:
-            inside = points_in_boxes(
-                pts,
-                torch.stack([tracks[i].object_to_world[frame] for i in ids]),
-                torch.stack([tracks[i].size_lwh for i in ids]),
-            )
-            hit = inside.any(0)
-            instance[hit] = torch.tensor(ids)[inside[:, hit].float().argmax(0)]
-        return LidarFrame(pts, instance, torch.from_numpy(sensor_to_world[:3, 3]).float())
+        return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 
-    def image_loader(view: ViewInfo) -> torch.Tensor:
-        """The view's JPEG, undistorted if its camera is distorted."""
-        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
-        und = undistort.get(view.camera)
-        if und is None:
-            return img
-        if tuple(img.shape[-2:]) != und.image_size:
-            raise ValueError(
-                f"DGP image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from the "
-                f"camera's {und.image_size[1]}x{und.image_size[0]}"
-            )
-        return und(img[None])[0].clamp(0.0, 1.0)
-
-    scene = Scene(
+    return assemble_scene(
+        f"DGP scene {scene_dir}",
         name=scene_dir.name,
         root=scene_dir,
         cameras_info=cams,
@@ -495,12 +399,10 @@ def load_dgp(
         views=views,
         instances=instances,
         tracks=tracks,
-        train_frames=[f for f in frame_ids if f not in set(test_frames)],
         test_frames=sorted(int(f) for f in test_frames),
-        scale=float(scale),
-        lidar_loader=lidar_loader if lidar is not None else None,
-        image_loader=image_loader if undistort else None,
+        scale=scale,
+        read_lidar=read_lidar,
+        image_loader=file_image_loader(undistort, "DGP"),
+        check_files=check_files,
+        validate=validate,
     )
-    if check_files and validate != "none":
-        validate_scene(scene, full=validate == "full").raise_if_errors()
-    return scene

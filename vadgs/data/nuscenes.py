@@ -43,22 +43,28 @@ How nuScenes maps to vadgs:
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from vadgs.data._json import read_json, require_key
 from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
     build_instances,
-    every_fourth_test_frames,
-    label_points,
+    check_min_motion,
+    held_out_frames,
+    labelled_lidar,
     quat_wxyz_to_matrix,
+    recentred,
+    select_cameras,
+    select_positions,
 )
-from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, _read_png
+from vadgs.data.assemble import assemble_scene, check_scale, file_image_loader
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
 
@@ -116,16 +122,7 @@ def nuscenes_class_name(category: str) -> str:
 
 
 def _read_table(meta_dir: Path, name: str) -> list[dict]:
-    path = meta_dir / f"{name}.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"nuScenes table {name}.json: missing file {path}")
-    try:
-        rows = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"nuScenes table {name}.json: not valid JSON ({e})") from None
-    if not isinstance(rows, list):
-        raise ValueError(f"nuScenes table {name}.json: expected a JSON list of records")
-    return rows
+    return read_json(meta_dir / f"{name}.json", f"nuScenes table {name}.json", top=list)
 
 
 def _by_token(rows: list[dict], table: str) -> dict[str, dict]:
@@ -135,10 +132,8 @@ def _by_token(rows: list[dict], table: str) -> dict[str, dict]:
     return out
 
 
-def _key(d: object, key: str, what: str) -> object:
-    if not isinstance(d, dict) or key not in d:
-        raise ValueError(f"nuScenes {what}: missing key {key!r}")
-    return d[key]
+def _key(d: object, key: str, what: str) -> Any:
+    return require_key(d, key, f"nuScenes {what}")
 
 
 def _ref(table: dict[str, dict], token: object, table_name: str, what: str) -> dict:
@@ -224,10 +219,8 @@ def load_nuscenes(
     if not meta_dir.is_dir():
         have = sorted(p.name for p in dataroot.iterdir() if p.is_dir() and p.name.startswith("v"))
         raise FileNotFoundError(f"version: no table folder {meta_dir} (have {have})")
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if min_motion_m is not None and not min_motion_m >= 0:
-        raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
+    check_scale(scale)
+    check_min_motion(min_motion_m)
     raw = {name: _read_table(meta_dir, name) for name in _TABLES}
     if (meta_dir / "sample_annotation.json").is_file():
         raw["sample_annotation"] = _read_table(meta_dir, "sample_annotation")
@@ -261,18 +254,9 @@ def load_nuscenes(
                 f"no sample with scene_token {scene_token!r}"
             )
         samples = sorted(mine, key=lambda s: int(_key(s, "timestamp", f"sample {s.get('token')}")))
-    positions = list(range(len(samples))) if frames is None else [int(f) for f in frames]
-    bad = [f for f in positions if not 0 <= f < len(samples)]
-    if bad or not positions:
-        raise ValueError(f"frames: expected keyframe positions in [0, {len(samples)}), got {list(positions)}")
-    samples = [samples[f] for f in positions]
+    samples = [samples[f] for f in select_positions(frames, len(samples), "keyframe")]
     num_frames = len(samples)
-    test = (
-        every_fourth_test_frames(num_frames) if test_frames is None else sorted(int(f) for f in test_frames)
-    )
-    bad = [f for f in test if not 0 <= f < num_frames]
-    if bad:
-        raise ValueError(f"test_frames: unknown frame(s) {bad}, have 0..{num_frames - 1}")
+    test = held_out_frames(test_frames, num_frames)
 
     # -- keyframe readings of each channel --------------------------------------------------------------
     def channel_of(sd: dict, what: str) -> tuple[str, str]:
@@ -295,12 +279,11 @@ def load_nuscenes(
     cam_channels = [c for c in NUSCENES_CAMERAS if modality.get(c) == "camera"] + sorted(
         c for c, m in modality.items() if m == "camera" and c not in NUSCENES_CAMERAS
     )
-    cam_names = list(cameras) if cameras is not None else cam_channels
-    if not cam_names:
-        raise ValueError(f"nuScenes scene {scene_name}: no camera keyframes (channels: {sorted(modality)})")
-    for c in cam_names:
-        if c not in cam_channels:
-            raise ValueError(f"cameras: unknown camera {c!r}, have {cam_channels}")
+    cam_names = select_cameras(
+        cameras,
+        cam_channels,
+        f"nuScenes scene {scene_name}: no camera keyframes (channels: {sorted(modality)})",
+    )
     if lidar is not None and modality.get(lidar) != "lidar":
         have = sorted(c for c, m in modality.items() if m == "lidar")
         raise ValueError(f"lidar: unknown LiDAR channel {lidar!r}, have {have}")
@@ -327,9 +310,7 @@ def load_nuscenes(
     offset = ego_pose(reading(0, ref), f"{ref} at frame 0")[:3, 3].copy() if recenter else np.zeros(3)
 
     def to_world(m: np.ndarray) -> np.ndarray:
-        out = m.copy()
-        out[:3, 3] -= offset
-        return out
+        return recentred(m, offset)
 
     # -- cameras ---------------------------------------------------------------------------------------
     cams: dict[str, CameraInfo] = {}
@@ -362,7 +343,7 @@ def load_nuscenes(
     t0 = int(_key(samples[0], "timestamp", "sample"))
     frame_infos: list[FrameInfo] = []
     views: list[ViewInfo] = []
-    lidar_info: dict[int, tuple[Path, np.ndarray]] = {}
+    lidar_to_world: dict[int, np.ndarray] = {}  # the LiDAR's sensor-to-world per frame
     for fi, s in enumerate(samples):
         ids = []
         for c in cam_names:
@@ -383,7 +364,7 @@ def load_nuscenes(
         lidar_path = None
         if lidar is not None:
             lidar_path = dataroot / str(_key(sd, "filename", f"{lidar} at frame {fi}"))
-            lidar_info[fi] = (lidar_path, e2w @ sensor_to_ego(sd, f"{lidar} at frame {fi}")[0])
+            lidar_to_world[fi] = e2w @ sensor_to_ego(sd, f"{lidar} at frame {fi}")[0]
         ts = (int(_key(s, "timestamp", "sample")) - t0) * 1e-6
         frame_infos.append(
             FrameInfo(fi, ts, as_tensor(e2w, f"ego pose at frame {fi}"), tuple(ids), lidar_path)
@@ -422,46 +403,19 @@ def load_nuscenes(
         boxes, names, num_frames, lambda cls: cls in vehicle_classes, min_motion_m
     )
 
-    if check_files:
-        missing = [str(v.image) for v in views if not v.image.is_file()]
-        missing += [str(p) for p, _ in lidar_info.values() if not p.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"nuScenes scene {scene_name}: {len(missing)} referenced file(s) missing, e.g. {missing[:3]}"
-            )
-
-    def lidar_loader(frame: int) -> LidarFrame:
-        if frame not in lidar_info:
-            raise FileNotFoundError(f"nuScenes scene {scene_name}: no LiDAR for frame {frame}")
-        path, sensor_to_world = lidar_info[frame]
-        if not path.is_file():
-            raise FileNotFoundError(f"nuScenes scene {scene_name}: missing file {path}")
+    def read_lidar(frame: int, path: Path) -> LidarFrame:
+        sensor_to_world = lidar_to_world[frame]
         data = np.fromfile(path, dtype=np.float32)
         if data.size % 5:
             raise ValueError(
                 f"nuScenes LiDAR {path}: expected float32 x, y, z, intensity, ring (5 per point)"
             )
         local = data.reshape(-1, 5)[:, :3].astype(np.float64)
-        pts = torch.from_numpy(local @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]).float()
-        frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
-        return LidarFrame(
-            pts, label_points(pts, frame_boxes), torch.from_numpy(sensor_to_world[:3, 3]).float()
-        )
+        world = local @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
+        return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 
-    def image_loader(view: ViewInfo) -> torch.Tensor:
-        """The view's JPEG, undistorted if its camera has distortion coefficients."""
-        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
-        und = undistort.get(view.camera)
-        if und is None:
-            return img
-        if tuple(img.shape[-2:]) != und.image_size:
-            raise ValueError(
-                f"nuScenes image {view.image}: size {img.shape[-1]}x{img.shape[-2]} differs from "
-                f"sample_data's {und.image_size[1]}x{und.image_size[0]}"
-            )
-        return und(img[None])[0].clamp(0.0, 1.0)
-
-    return Scene(
+    return assemble_scene(
+        f"nuScenes scene {scene_name}",
         name=scene_name,
         root=dataroot,
         cameras_info=cams,
@@ -469,9 +423,9 @@ def load_nuscenes(
         views=views,
         instances=instances,
         tracks=tracks,
-        train_frames=[f for f in range(num_frames) if f not in set(test)],
         test_frames=test,
-        scale=float(scale),
-        lidar_loader=lidar_loader if lidar is not None else None,
-        image_loader=image_loader if undistort else None,
+        scale=scale,
+        read_lidar=read_lidar,
+        image_loader=file_image_loader(undistort, "nuScenes"),
+        check_files=check_files,
     )

@@ -1,52 +1,41 @@
-"""The scene object shared by every loader, and the loader of the benchmark scene format.
+"""The scene object shared by every loader, and the readers of its files.
 
 A :class:`Scene` holds cameras, frames and views, LiDAR per frame, the instance table, the tracks
-of rigidly moving objects and the train/test split. Per-view images, depth maps and instance maps
-are loaded lazily from disk (or from memory for scenes built in code).
+of rigidly moving objects, the train/test split and (COLMAP scenes) sparse points. Per-view
+images, depth maps and instance maps are loaded lazily from disk (or from memory for scenes built
+in code) with the readers at the end of this module.
 
-The benchmark format (``scene.json`` beside ``images/``, ``depth/``, ``instances/``, ``lidar/``)
-is described in ``../shared/data/README.md``; :func:`load_scene` reads it. Loading validates the
-whole ``scene.json`` and checks that every referenced file exists before returning, so a scene is
-never half-loaded silently.
+This module imports no other module of :mod:`vadgs.data`: the loaders
+(:func:`~vadgs.data.load_scene`, :func:`~vadgs.data.load_dgp`, ...) and the checks
+(:mod:`vadgs.data.checks`) build on it.
 """
 
 from __future__ import annotations
 
-import json
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from vadgs.checks import check_finite
-from vadgs.data.validate import (
-    check_intrinsics,
-    check_rigid,
-    check_split,
-    npz_headers,
-    read_depth,
-    validate_scene,
-)
-from vadgs.geometry.camera import Cameras, invert_rigid, scale_intrinsics
-
-if TYPE_CHECKING:
-    from vadgs.data.colmap import ColmapPoints
+from vadgs.geometry.camera import Cameras, invert_rigid
 
 __all__ = [
     "CameraInfo",
+    "ColmapPoints",
     "FrameInfo",
     "InstanceInfo",
     "LidarFrame",
     "Scene",
     "Track",
     "ViewInfo",
-    "load_scene",
-    "novel_view_group",
+    "npz_headers",
+    "read_depth",
 ]
 
 
@@ -153,6 +142,38 @@ class LidarFrame(NamedTuple):
     origin: torch.Tensor
 
 
+class ColmapPoints(NamedTuple):
+    """The sparse points of a COLMAP model and their TRACK table.
+
+    The track table is in coordinate (COO) form: observation ``t`` says that point
+    ``point_idx[t]`` is seen in view ``view_idx[t]`` (an index into ``Scene.views``) at pixel
+    ``uv[t]`` (vadgs pixel convention, at the scene's scale).
+
+    Attributes:
+        points: ``(P, 3)`` float32 world coordinates.
+        colors: ``(P, 3)`` float32 RGB in ``[0, 1]``.
+        errors: ``(P,)`` float32 mean reprojection error in pixels at full resolution as stored
+            by COLMAP (``-1`` where COLMAP has none).
+        point_ids: ``(P,)`` int64 COLMAP ``point3D_id`` of each point.
+        point_idx: ``(T,)`` int64 index into ``points`` of each observation.
+        view_idx: ``(T,)`` int64 index into ``Scene.views`` of each observation.
+        uv: ``(T, 2)`` float32 observed pixel ``(x, y)`` of each observation.
+    """
+
+    points: torch.Tensor
+    colors: torch.Tensor
+    errors: torch.Tensor
+    point_ids: torch.Tensor
+    point_idx: torch.Tensor
+    view_idx: torch.Tensor
+    uv: torch.Tensor
+
+    @property
+    def point_views(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(point_idx, view_idx)``, as ``vadgs.geometry.voxelize(..., point_views=...)`` takes it."""
+        return self.point_idx, self.view_idx
+
+
 @dataclass
 class Scene:
     """A recorded scene: rig, frames, views, LiDAR, instances, tracks and split.
@@ -175,7 +196,7 @@ class Scene:
         lidar_loader: frame index → :class:`LidarFrame`, or None without LiDAR.
         image_loader: view → ``(3, H, W)`` image, for scenes whose images live in memory.
         sfm_points: sparse structure-from-motion points with their TRACK table
-            (:class:`~vadgs.data.colmap.ColmapPoints`, ``view_idx`` indexing :attr:`views`), or
+            (:class:`ColmapPoints`, ``view_idx`` indexing :attr:`views`), or
             None. COLMAP scenes have them instead of LiDAR: the trainer initialises from them and
             VAD-GS builds its voxel visibility from their tracks.
     """
@@ -353,14 +374,11 @@ class Scene:
         Raises:
             FileNotFoundError: if a view has no depth.
         """
-        out = []
-        for i in self._ids(view_ids):
-            v = self.views[i]
-            if v.depth is None:
-                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no ground-truth depth")
-            d = torch.from_numpy(read_depth(v.depth).astype(np.float32))
-            out.append(self._resize(d[None, None], i, "nearest")[0])
-        return torch.stack(out)
+
+        def read(path: Path) -> torch.Tensor:
+            return torch.from_numpy(read_depth(path).astype(np.float32))
+
+        return self._load_maps(view_ids, "depth", "ground-truth depth", read)
 
     def load_instances(self, view_ids: Sequence[int] | None = None) -> torch.Tensor:
         """Instance-id maps ``(B, H, W)`` int64 (0 = sky / none).
@@ -368,13 +386,23 @@ class Scene:
         Raises:
             FileNotFoundError: if a view has no instance map.
         """
+
+        def read(path: Path) -> torch.Tensor:  # float64 through the resize: exact below 2^53
+            return torch.from_numpy(_read_png(path).astype(np.int64)).double()
+
+        return self._load_maps(view_ids, "instances", "instance map", read)[:, 0].long()
+
+    def _load_maps(
+        self, view_ids: Sequence[int] | None, field: str, what: str, read: Callable[[Path], torch.Tensor]
+    ) -> torch.Tensor:
+        """``(B, 1, H, W)``: ``read(view.<field>)`` of each view, resized (nearest) to the view's size."""
         out = []
         for i in self._ids(view_ids):
             v = self.views[i]
-            if v.instances is None:
-                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no instance map")
-            ins = torch.from_numpy(_read_png(v.instances).astype(np.int64))
-            out.append(self._resize(ins[None, None].double(), i, "nearest")[0, 0].long())
+            path = getattr(v, field)
+            if path is None:
+                raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no {what}")
+            out.append(self._resize(read(path)[None, None], i, "nearest")[0])
         return torch.stack(out)
 
     def _resize(
@@ -418,7 +446,7 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------------------------------
-# the benchmark scene format
+# readers of the files a scene references
 
 
 def _read_png(path: Path, expect_rgb: bool = False) -> np.ndarray:
@@ -469,306 +497,61 @@ def _read_lidar(path: Path) -> LidarFrame:
     )
 
 
-def _int(value: object, what: str) -> int:
-    """An integer field of scene.json (an int, or a float / string holding one)."""
-    if isinstance(value, bool):
-        raise ValueError(f"scene.json: {what}: expected an integer, got {value!r}")
-    if isinstance(value, int):
-        return value
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
-    if isinstance(value, str):
-        try:
-            return int(value)
-        except ValueError:
-            pass
-    raise ValueError(f"scene.json: {what}: expected an integer, got {value!r}")
-
-
-def _float(value: object, what: str) -> float:
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value):
-        return float(value)
-    raise ValueError(f"scene.json: {what}: expected a finite number, got {value!r}")
-
-
-def _str(value: object, what: str) -> str:
-    if isinstance(value, str) and value:
-        return value
-    raise ValueError(f"scene.json: {what}: expected a non-empty string, got {value!r}")
-
-
-def _bool(value: object, what: str) -> bool:
-    if isinstance(value, bool):
-        return value
-    raise ValueError(f"scene.json: {what}: expected true or false, got {value!r}")
-
-
-def _pose(value: object, what: str) -> torch.Tensor:
-    """A rigid 4x4 transform of scene.json (see :func:`~vadgs.data.validate.check_rigid`)."""
-    t = _matrix(value, (4, 4), what)
-    check_rigid(t, f"scene.json: {what}")
-    return t
-
-
-def _frame_list(value: object, what: str) -> list[int]:
-    if not isinstance(value, list):
-        raise ValueError(f"scene.json: {what}: expected a list of frame indices, got {value!r}")
-    return [_int(f, f"{what}[{i}]") for i, f in enumerate(value)]
-
-
-def _matrix(value: object, shape: tuple[int, ...], what: str) -> torch.Tensor:
-    try:
-        t = torch.tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"scene.json: {what}: expected a {shape} matrix of numbers, got {value!r}") from None
-    if tuple(t.shape) != shape:
-        raise ValueError(f"scene.json: {what}: expected shape {shape}, got {tuple(t.shape)}")
-    check_finite(t, f"scene.json: {what}")
-    return t.float()
-
-
-def _get(d: dict, key: str, what: str) -> object:
-    if not isinstance(d, dict) or key not in d:
-        raise ValueError(f"scene.json: {what}: missing key {key!r}")
-    return d[key]
-
-
-def novel_view_group(shift_ego_m: Sequence[float]) -> str:
-    """Group name of a novel view from its ego-frame shift: ``"shift+2.0"`` for a lateral ``(0, 2, 0)``.
-
-    Any other shift is named by its three components, ``"shift+1.0,+0.0,+0.5"``.
-
-    Example:
-        >>> novel_view_group([0.0, -2.0, 0.0]), novel_view_group([1, 0, 0.5])
-        ('shift-2.0', 'shift+1.0,+0.0,+0.5')
-    """
-    x, y, z = (float(c) for c in shift_ego_m)
-    if x == 0.0 and z == 0.0:
-        return f"shift{y:+.1f}"
-    return f"shift{x:+.1f},{y:+.1f},{z:+.1f}"
-
-
-def _novel_views(
-    meta: dict, root: Path, cameras: dict[str, CameraInfo], frames: dict[int, FrameInfo], start: int
-) -> list[ViewInfo]:
-    """The ``novel_views`` entries of ``scene.json`` as :class:`ViewInfo` (indices from ``start``)."""
-    entries = meta.get("novel_views", [])
-    if not isinstance(entries, list):
-        raise ValueError("scene.json: novel_views: expected a list")
-    views = []
-    for ni, nm in enumerate(entries):
-        what = f"novel_views[{ni}]"
-        frame = int(_get(nm, "frame", what))
-        if frame not in frames:
-            raise ValueError(f"scene.json: {what}.frame: no frame {frame} in the scene")
-        cam = str(_get(nm, "camera", what))
-        if cam not in cameras:
-            raise ValueError(f"scene.json: {what}.camera: unknown camera {cam!r}, have {list(cameras)}")
-        c2w = _matrix(_get(nm, "cam_to_world", what), (4, 4), f"{what}.cam_to_world")
-        if "group" in nm:
-            group = str(nm["group"])
-        else:
-            shift = _get(nm, "shift_ego_m", what)
-            if not (isinstance(shift, list) and len(shift) == 3):
-                raise ValueError(f"scene.json: {what}.shift_ego_m: expected 3 numbers, got {shift!r}")
-            group = novel_view_group(shift)
-        files = {k: (root / nm[k]) if nm.get(k) else None for k in ("image", "depth", "instances")}
-        if files["image"] is None:
-            raise ValueError(f"scene.json: {what}: missing key 'image'")
-        views.append(ViewInfo(start + ni, frame, cam, frames[frame].timestamp, c2w, **files, group=group))
-    return views
-
-
-def load_scene(
-    path: str | Path, scale: float = 1.0, check_files: bool = True, validate: str = "headers"
-) -> Scene:
-    """Load a scene in the benchmark format (``scene.json`` and its files).
-
-    Args:
-        path: the scene folder (or its ``scene.json``).
-        scale: resolution factor; images are resized on load and intrinsics rescaled
-            (e.g. ``0.5`` for 240×144 from 480×288).
-        check_files: verify that every referenced file exists before returning.
-        validate: content checks of the files (:func:`~vadgs.data.validate_scene`):
-            ``"headers"`` (default: image sizes and decodable headers, ``.npz`` keys, shapes and
-            dtypes, a non-empty LiDAR total, the test views' depth decoded), ``"full"`` (decode
-            and check every file, as ``vadgs check --full``) or ``"none"``. The metadata
-            (field types, ``K``, rigid poses, the split) is always checked.
-
-    Returns:
-        The :class:`Scene`, with per-view data loaded lazily. ``novel_views`` entries of
-        ``scene.json`` become views after the recorded ones (:attr:`Scene.novel_views`).
+def npz_headers(path: str | Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shapes and dtypes of the arrays in an ``.npz``, read from their headers (no decompression).
 
     Raises:
-        FileNotFoundError: if ``scene.json`` or a referenced file is missing.
-        ValueError: if ``scene.json`` is malformed (the message names the entry: a field of the
-            wrong type, a singular ``K``, a pose that is not rigid, a duplicate or unknown split
-            frame) or a file's content is wrong (the message names the file, the expected and
-            the actual: an image of another size, a corrupt PNG or ``.npz``, no LiDAR points).
-
-    Example:
-        >>> from vadgs.data import sample_scene_path
-        >>> scene = load_scene(sample_scene_path())
-        >>> scene.num_views, scene.camera_names
-        (24, ['front', 'front_left', 'front_right'])
-        >>> scene.load_images([0]).shape
-        torch.Size([1, 3, 144, 240])
+        ValueError: if the file is not a readable ``.npz`` (the message names the file).
     """
     path = Path(path)
-    root = path.parent if path.name == "scene.json" else path
-    meta_path = root / "scene.json"
-    if not meta_path.is_file():
-        raise FileNotFoundError(f"no scene.json in {root}")
+    out = {}
     try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{meta_path}: not valid JSON ({e})") from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"{meta_path}: expected a JSON object at the top level")
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if validate not in ("none", "headers", "full"):
-        raise ValueError(f"validate: expected 'none', 'headers' or 'full', got {validate!r}")
+        with zipfile.ZipFile(path) as zf:
+            for name in zf.namelist():
+                if not name.endswith(".npy"):
+                    continue
+                with zf.open(name) as f:
+                    version = np.lib.format.read_magic(f)
+                    read = (
+                        np.lib.format.read_array_header_1_0
+                        if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0
+                    )
+                    shape, _, dtype = read(f)
+                out[name[: -len(".npy")]] = (tuple(shape), dtype)
+    except (OSError, zipfile.BadZipFile, ValueError, EOFError) as e:
+        size = path.stat().st_size if path.is_file() else None
+        what = "an empty file (0 bytes)" if size == 0 else f"{type(e).__name__}: {e}"
+        raise ValueError(f"{path}: not a readable .npz archive ({what})") from None
+    return out
 
-    cams_meta = _get(meta, "cameras", "top level")
-    if not isinstance(cams_meta, dict) or not cams_meta:
-        raise ValueError("scene.json: cameras: expected a non-empty object")
-    cameras: dict[str, CameraInfo] = {}
-    for name, c in cams_meta.items():
-        w = _int(_get(c, "width", f"cameras.{name}"), f"cameras.{name}.width")
-        h = _int(_get(c, "height", f"cameras.{name}"), f"cameras.{name}.height")
-        if w <= 0 or h <= 0:
-            raise ValueError(f"scene.json: cameras.{name}: expected positive width and height, got {w}x{h}")
-        K = _matrix(_get(c, "K", f"cameras.{name}"), (3, 3), f"cameras.{name}.K")
-        check_intrinsics(K, f"scene.json: cameras.{name}.K")
-        size = (round(h * scale), round(w * scale))
-        if scale != 1.0:
-            K = scale_intrinsics(K, size[1] / w)
-        c2e = _pose(c["cam_to_ego"], f"cameras.{name}.cam_to_ego") if "cam_to_ego" in c else None
-        cameras[name] = CameraInfo(name, K, size, c2e)
 
-    frames: list[FrameInfo] = []
-    views: list[ViewInfo] = []
-    frames_meta = _get(meta, "frames", "top level")
-    if not isinstance(frames_meta, list) or not frames_meta:
-        raise ValueError("scene.json: frames: expected a non-empty list")
-    for fi, fm in enumerate(frames_meta):
-        what = f"frames[{fi}]"
-        index = _int(_get(fm, "index", what), f"{what}.index")
-        ts = _float(fm.get("timestamp", index), f"{what}.timestamp")
-        e2w = _pose(fm["ego_to_world"], f"{what}.ego_to_world") if "ego_to_world" in fm else None
-        ids = []
-        vms = _get(fm, "views", what)
-        if not isinstance(vms, list):
-            raise ValueError(f"scene.json: {what}.views: expected a list")
-        for vi, vm in enumerate(vms):
-            vwhat = f"{what}.views[{vi}]"
-            cam = _str(_get(vm, "camera", vwhat), f"{vwhat}.camera")
-            if cam not in cameras:
-                raise ValueError(f"scene.json: {vwhat}.camera: unknown camera {cam!r}, have {list(cameras)}")
-            c2w = _pose(_get(vm, "cam_to_world", vwhat), f"{vwhat}.cam_to_world")
-            files = {
-                k: (root / _str(vm[k], f"{vwhat}.{k}")) if vm.get(k) else None
-                for k in ("image", "depth", "instances")
-            }
-            if files["image"] is None:
-                raise ValueError(f"scene.json: {vwhat}: missing key 'image'")
-            views.append(ViewInfo(len(views), index, cam, ts, c2w, **files))
-            ids.append(len(views) - 1)
-        lidar = root / _str(fm["lidar"], f"{what}.lidar") if fm.get("lidar") else None
-        frames.append(FrameInfo(index, ts, e2w, tuple(ids), lidar))
+def read_depth(path: Path) -> np.ndarray:
+    """The ``depth`` array of a depth ``.npz``, checked (2-D, floating, finite, non-negative).
 
-    views += _novel_views(meta, root, cameras, {f.index: f for f in frames}, len(views))
-
-    instances = {}
-    inst_meta = meta.get("instances", [])
-    if not isinstance(inst_meta, list):
-        raise ValueError(f"scene.json: instances: expected a list, got {type(inst_meta).__name__}")
-    for ii, im in enumerate(inst_meta):
-        iid = _int(_get(im, "id", f"instances[{ii}]"), f"instances[{ii}].id")
-        instances[iid] = InstanceInfo(
-            iid,
-            str(im.get("name", iid)),
-            _str(im.get("class", "unknown"), f"instances[{ii}].class"),
-            _bool(im.get("dynamic", False), f"instances[{ii}].dynamic"),
+    Raises:
+        ValueError: naming the file and what is wrong.
+    """
+    try:
+        with np.load(path) as z:
+            if "depth" not in z:
+                raise ValueError(f"{path}: expected key 'depth', got keys {sorted(z.keys())}")
+            d = np.asarray(z["depth"])
+    except ValueError:
+        raise
+    except (OSError, zipfile.BadZipFile, EOFError) as e:
+        raise ValueError(f"{path}: not a readable .npz archive ({type(e).__name__}: {e})") from None
+    except Exception as e:  # zlib.error and friends on a corrupt member
+        raise ValueError(f"{path}: corrupt depth array ({type(e).__name__}: {e})") from None
+    if d.ndim != 2 or d.dtype.kind != "f":
+        raise ValueError(f"{path}: depth: expected a 2-D floating array, got shape {d.shape} dtype {d.dtype}")
+    bad = ~np.isfinite(d)
+    if bad.any():
+        raise ValueError(
+            f"{path}: depth: expected finite values, got {int(bad.sum())} non-finite of {d.size}"
         )
-
-    frame_pos = {f.index: i for i, f in enumerate(frames)}
-    tracks = {}
-    for ti, tm in enumerate(meta.get("tracks", [])):
-        what = f"tracks[{ti}]"
-        tid = _int(_get(tm, "id", what), f"{what}.id")
-        poses = torch.eye(4).repeat(len(frames), 1, 1)
-        valid = torch.zeros(len(frames), dtype=torch.bool)
-        o2w = _get(tm, "object_to_world", what)
-        if not isinstance(o2w, dict):
-            raise ValueError(
-                f"scene.json: {what}.object_to_world: expected an object (frame -> 4x4), got {o2w!r}"
-            )
-        for key, mat in o2w.items():
-            fk = _int(key, f"{what}.object_to_world key")
-            if fk in frame_pos:
-                poses[frame_pos[fk]] = _pose(mat, f"{what}.object_to_world[{key}]")
-                valid[frame_pos[fk]] = True
-        lwh = _matrix(tm.get("size_lwh", [0.0, 0.0, 0.0]), (3,), f"{what}.size_lwh")
-        tracks[tid] = Track(
-            tid,
-            str(tm.get("class", "car")),
-            lwh,
-            poses,
-            valid,
-            root / tm["mesh"] if tm.get("mesh") else None,
+    if (d < 0).any():
+        raise ValueError(
+            f"{path}: depth: expected values >= 0 (0 = no surface), got min {float(d.min()):.3g}"
         )
-
-    split = meta.get("split", {})
-    if not isinstance(split, dict):
-        raise ValueError(f"scene.json: split: expected an object, got {split!r}")
-    all_frames = [f.index for f in frames]
-    if len(set(all_frames)) != len(all_frames):
-        check_split(all_frames, all_frames, "scene.json: frames[].index")
-    test_frames = _frame_list(split.get("test_frames", []), "split.test_frames")
-    train_frames = _frame_list(
-        split.get("train_frames", [f for f in all_frames if f not in test_frames]), "split.train_frames"
-    )
-    check_split(test_frames, all_frames, "scene.json: split.test_frames")
-    check_split(train_frames, all_frames, "scene.json: split.train_frames")
-
-    if check_files:
-        missing = [
-            p for v in views for p in (v.image, v.depth, v.instances) if p is not None and not p.is_file()
-        ] + [f.lidar for f in frames if f.lidar is not None and not f.lidar.is_file()]
-        if missing:
-            raise FileNotFoundError(
-                f"scene {root}: {len(missing)} referenced file(s) missing, "
-                f"e.g. {[str(m) for m in missing[:3]]}"
-            )
-
-    lidar_paths = {f.index: f.lidar for f in frames}
-
-    def lidar_loader(frame: int) -> LidarFrame:
-        if frame not in frame_pos:
-            raise FileNotFoundError(
-                f"scene {root}: no LiDAR for frame {frame}: the scene has no such frame "
-                f"(frames {min(all_frames)}..{max(all_frames)})"
-            )
-        p = lidar_paths.get(frame)
-        if p is None:
-            raise FileNotFoundError(f"scene {root}: no LiDAR for frame {frame}")
-        return _read_lidar(p)
-
-    scene = Scene(
-        name=str(meta.get("name", root.name)),
-        root=root,
-        cameras_info=cameras,
-        frames=frames,
-        views=views,
-        instances=instances,
-        tracks=tracks,
-        train_frames=train_frames,
-        test_frames=test_frames,
-        scale=float(scale),
-        lidar_loader=lidar_loader if any(lidar_paths.values()) else None,
-    )
-    if check_files and validate != "none":
-        validate_scene(scene, full=validate == "full").raise_if_errors()
-    return scene
+    return d

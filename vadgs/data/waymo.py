@@ -67,12 +67,16 @@ from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
     build_instances,
-    every_fourth_test_frames,
-    label_points,
+    check_min_motion,
+    held_out_frames,
+    labelled_lidar,
+    recentred,
+    select_cameras,
+    select_positions,
 )
+from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
-from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = [
     "WAYMO_BOX_TYPES",
@@ -413,37 +417,22 @@ def load_waymo(
     dataset_dir = Path(dataset_dir)
     if not dataset_dir.is_dir():
         raise FileNotFoundError(f"dataset_dir: no such folder {dataset_dir}")
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ValueError(f"scale: expected a positive number, got {scale!r}")
-    if min_motion_m is not None and not min_motion_m >= 0:
-        raise ValueError(f"min_motion_m: expected a non-negative number or None, got {min_motion_m!r}")
+    check_scale(scale)
+    check_min_motion(min_motion_m)
     seg_filter = [(_SEG, "=", segment)]
 
     # -- frames --------------------------------------------------------------------------------------
     vp = read_waymo_poses(dataset_dir, segment)
     all_ts = vp.timestamps_us.tolist()
     all_poses = list(vp.world_from_vehicle.numpy())
-    positions = list(range(len(all_ts))) if frames is None else [int(f) for f in frames]
-    bad = [f for f in positions if not 0 <= f < len(all_ts)]
-    if bad or not positions:
-        raise ValueError(f"frames: expected frame positions in [0, {len(all_ts)}), got {list(positions)}")
+    positions = select_positions(frames, len(all_ts))
     frame_ts = [all_ts[f] for f in positions]
     frame_of = {ts: fi for fi, ts in enumerate(frame_ts)}
     num_frames = len(frame_ts)
-    test = (
-        every_fourth_test_frames(num_frames) if test_frames is None else sorted(int(f) for f in test_frames)
-    )
-    bad = [f for f in test if not 0 <= f < num_frames]
-    if bad:
-        raise ValueError(f"test_frames: unknown frame(s) {bad}, have 0..{num_frames - 1}")
+    test = held_out_frames(test_frames, num_frames)
     offset = all_poses[positions[0]][:3, 3].copy() if recenter else np.zeros(3)
 
-    def to_world(m: np.ndarray) -> np.ndarray:
-        out = m.copy()
-        out[..., :3, 3] -= offset
-        return out
-
-    ego_to_world = [to_world(all_poses[f]) for f in positions]
+    ego_to_world = [recentred(all_poses[f], offset) for f in positions]
     t0 = frame_ts[0] * 1e-6
 
     # -- cameras -------------------------------------------------------------------------------------
@@ -461,12 +450,9 @@ def load_waymo(
     )
     calib = {cam_id[waymo_camera_name(c)]: i for i, c in enumerate(cc[_CAM])}
     have_cams = [n for k, n in WAYMO_CAMERAS.items() if k in calib]
-    cam_names = list(cameras) if cameras is not None else have_cams
-    if not cam_names:
-        raise ValueError(f"Waymo segment {segment}: camera_calibration lists no known camera")
-    for n in cam_names:
-        if n not in have_cams:
-            raise ValueError(f"cameras: unknown camera {n!r}, have {have_cams}")
+    cam_names = select_cameras(
+        cameras, have_cams, f"Waymo segment {segment}: camera_calibration lists no known camera"
+    )
     cams: dict[str, CameraInfo] = {}
     full_size: dict[str, tuple[int, int]] = {}
     undistort: dict[str, ImageUndistorter] = {}
@@ -480,18 +466,9 @@ def load_waymo(
             [[fu, 0.0, cu - WAYMO_PIXEL_OFFSET], [0.0, fv, cv - WAYMO_PIXEL_OFFSET], [0.0, 0.0, 1.0]],
             dtype=torch.float64,
         )
-        try:
-            undistort[n] = ImageUndistorter(raw_K, torch.tensor(dist, dtype=torch.float64), (h, w))
-        except ValueError as e:
-            raise ValueError(f"Waymo {what}: {e}") from None
-        K = undistort[n].K
-        size = (round(h * scale), round(w * scale))
-        if scale != 1.0:
-            K = scale_intrinsics(K, size[1] / w)
         c2e = _matrix(cc[f"{_CC}.extrinsic.transform"][row], f"{what}.extrinsic") @ WAYMO_CAMERA_TO_OPENCV
-        cams[n] = CameraInfo(
-            n, as_tensor(K.numpy(), f"{what}.intrinsic"), size, as_tensor(c2e, f"{what}.extrinsic")
-        )
+        dist_t = torch.tensor(dist, dtype=torch.float64)
+        cams[n], undistort[n] = pinhole_camera(n, raw_K, dist_t, (h, w), scale, c2e, f"Waymo {what}")
 
     # -- views: image poses (the JPEG bytes stay in the file) ----------------------------------------
     ci = _Component(pq, dataset_dir, "camera_image", segment)
@@ -530,7 +507,7 @@ def load_waymo(
             if (fi, cam_id[n]) not in image_pose:
                 raise ValueError(f"Waymo segment {segment}: frame {fi} (timestamp {ts} µs) has no {n} image")
             pose, pose_ts = image_pose[(fi, cam_id[n])]
-            c2w = to_world(pose) @ cams[n].cam_to_ego.double().numpy()
+            c2w = recentred(pose, offset) @ cams[n].cam_to_ego.double().numpy()
             views.append(ViewInfo(len(views), fi, n, pose_ts - t0, as_tensor(c2w, f"{n} at frame {fi}")))
             ids.append(len(views) - 1)
         frame_infos.append(
@@ -645,12 +622,11 @@ def load_waymo(
                     e2w = ego_to_world[frame]
                     pts = waymo_range_image_to_points(img[..., 0], extr[n], incl) @ e2w[:3, :3].T + e2w[:3, 3]
                 out.append(pts)
-            world = torch.from_numpy(np.concatenate(out)).float()
-            frame_boxes = {i: b[frame] for i, b in boxes.items() if frame in b}
             origin = ego_to_world[frame] @ extr[lasers[0]][:, 3]
-            return LidarFrame(world, label_points(world, frame_boxes), torch.from_numpy(origin[:3]).float())
+            return labelled_lidar(np.concatenate(out), origin[:3], boxes, frame)
 
-    return Scene(
+    return assemble_scene(
+        f"Waymo segment {segment}",
         name=segment,
         root=dataset_dir,
         cameras_info=cams,
@@ -658,9 +634,9 @@ def load_waymo(
         views=views,
         instances=instances,
         tracks=tracks,
-        train_frames=[f for f in range(num_frames) if f not in set(test)],
         test_frames=test,
-        scale=float(scale),
+        scale=scale,
         lidar_loader=lidar_loader,
         image_loader=image_loader,
+        check_files=False,  # the images and LiDAR live in the parquet files read above
     )

@@ -2,7 +2,7 @@
 
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affine
 from vadgs.train.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
-from vadgs.train.export import export_model, export_world, read_ply, rotate_sh, write_ply
+from vadgs.train.export import export_model, export_world, rotate_sh
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.losses import (
     color_loss,
@@ -53,12 +53,10 @@ __all__ = [
     "init_gaussians",
     "make_optimizer",
     "normal_loss",
-    "read_ply",
     "remove_gaussians",
     "render_video",
     "reset_opacity",
     "rotate_sh",
     "save_test_panels",
     "split",
-    "write_ply",
 ]

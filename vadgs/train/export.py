@@ -38,7 +38,7 @@ import torch
 from vadgs.data.scene import Scene
 from vadgs.io import atomic_write
 from vadgs.render import eval_sh, num_sh_bases, save_ply, sh_basis
-from vadgs.render.ply import read_raw_ply, write_raw_ply
+from vadgs.render.ply import write_raw_ply
 from vadgs.train.model import GaussianModel
 
 __all__ = [
@@ -46,33 +46,11 @@ __all__ = [
     "equirect_directions",
     "export_model",
     "export_world",
-    "read_ply",
     "rotate_sh",
     "sh_rotation",
     "sky_equirect",
     "world_gaussians",
-    "write_ply",
 ]
-
-
-def write_ply(path: str | Path, params: dict[str, torch.Tensor]) -> Path:
-    """Write raw Gaussian parameters as a 3DGS PLY: :func:`vadgs.render.ply.write_raw_ply`.
-
-    Example:
-        >>> import tempfile, os
-        >>> p = {"means": torch.zeros(2, 3), "quats": torch.tensor([[1.0, 0, 0, 0]] * 2),
-        ...      "log_scales": torch.zeros(2, 3), "opacity_logits": torch.zeros(2),
-        ...      "sh_dc": torch.zeros(2, 1, 3), "sh_rest": torch.zeros(2, 3, 3)}
-        >>> path = write_ply(os.path.join(tempfile.mkdtemp(), "g.ply"), p)
-        >>> {k: tuple(v.shape) for k, v in read_ply(path).items()}["sh_rest"]
-        (2, 3, 3)
-    """
-    return write_raw_ply(path, params)
-
-
-def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
-    """Read a 3DGS PLY into raw parameters: :func:`vadgs.render.ply.read_raw_ply`."""
-    return read_raw_ply(path)
 
 
 def export_model(
@@ -95,13 +73,13 @@ def export_model(
     paths = []
     p = {k: v.detach() for k, v in model.params.items()}
     static = model.node_ids < 0
-    paths.append(write_ply(out_dir / "static.ply", {k: v[static] for k, v in p.items()}))
+    paths.append(write_raw_ply(out_dir / "static.ply", {k: v[static] for k, v in p.items()}))
     nf = model.object_to_world.shape[1]
     frame_indices = frame_indices if frame_indices is not None else list(range(nf))
     poses = {}
     for k, tid in enumerate(model.track_ids):
         sel = model.node_ids == k
-        paths.append(write_ply(out_dir / f"object_{tid}.ply", {kk: v[sel] for kk, v in p.items()}))
+        paths.append(write_raw_ply(out_dir / f"object_{tid}.ply", {kk: v[sel] for kk, v in p.items()}))
         poses[str(tid)] = {
             str(frame_indices[f]): model.object_to_world[k, f].tolist()
             for f in range(nf)

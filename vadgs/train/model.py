@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from torch import nn
 
 from vadgs.checks import check_shape
@@ -71,9 +72,11 @@ def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Unit ``wxyz`` quaternion of rotation matrices (Shepperd's method, branch-free).
+    """Unit ``wxyz`` quaternion of rotation matrices, with ``w >= 0``.
 
-    Not meant to be differentiated (poses are fixed).
+    :func:`kornia.geometry.conversions.rotation_matrix_to_quaternion` (Shepperd's choice of the
+    best conditioned component, branch-free), its sign fixed so that ``w >= 0``. Not meant to be
+    differentiated (poses are fixed).
 
     Shape:
         ``(*, 3, 3)`` → ``(*, 4)``.
@@ -82,53 +85,7 @@ def rotation_to_quat(R: torch.Tensor) -> torch.Tensor:
         >>> rotation_to_quat(torch.eye(3))
         tensor([1., 0., 0., 0.])
     """
-    m = R
-    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    cands = torch.stack(
-        [
-            torch.stack(
-                [
-                    1 + tr,
-                    m[..., 2, 1] - m[..., 1, 2],
-                    m[..., 0, 2] - m[..., 2, 0],
-                    m[..., 1, 0] - m[..., 0, 1],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[..., 2, 1] - m[..., 1, 2],
-                    1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
-                    m[..., 0, 1] + m[..., 1, 0],
-                    m[..., 0, 2] + m[..., 2, 0],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[..., 0, 2] - m[..., 2, 0],
-                    m[..., 0, 1] + m[..., 1, 0],
-                    1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
-                    m[..., 1, 2] + m[..., 2, 1],
-                ],
-                -1,
-            ),
-            torch.stack(
-                [
-                    m[..., 1, 0] - m[..., 0, 1],
-                    m[..., 0, 2] + m[..., 2, 0],
-                    m[..., 1, 2] + m[..., 2, 1],
-                    1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
-                ],
-                -1,
-            ),
-        ],
-        -2,
-    )  # (*, 4, 4): row i is 4 q_i q (unnormalised), best conditioned where q_i is largest
-    diag = torch.diagonal(cands, dim1=-2, dim2=-1)
-    best = diag.argmax(-1)
-    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
-    q = F.normalize(q, dim=-1)
+    q = rotation_matrix_to_quaternion(R)
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 

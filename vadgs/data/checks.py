@@ -1,0 +1,387 @@
+"""The checks behind :func:`~vadgs.data.validate_scene`: intrinsics, rigid poses, the split, and files.
+
+:func:`check_scene` checks a loaded :class:`~vadgs.data.Scene` (from any loader) and returns a
+:class:`ValidationReport`, one row per check. Two levels:
+
+- **headers** (the default, run by every loader that takes ``validate=``): metadata
+  (``K`` finite with positive focal lengths and last row ``(0, 0, 1)``; every pose rigid: an
+  orthonormal rotation with determinant +1 and last row ``(0, 0, 0, 1)`` within
+  :data:`RIGID_TOLERANCE`; the split's frames unique and in the scene) and each file's header:
+  a PNG's size and mode read without decoding, an ``.npz``'s keys, shapes and dtypes read from
+  the array headers without decompressing, and the total LiDAR point count (an error when every
+  LiDAR file is empty). The test views' depth maps are decoded in full (finite, non-negative):
+  they are read only at the end of a training run, so a fault there would otherwise surface
+  after the whole run; they are a quarter of the views and decode in about a millisecond each.
+- **full** (``vadgs check SCENE --full``): also decodes every image, depth map, instance map and
+  LiDAR sweep and checks their values (finite depth and points, non-empty sweeps).
+
+The single checks (:func:`check_intrinsics`, :func:`check_rigid`, :func:`check_split`) are also
+what the readers run on the metadata they parse. Imports go one way: :mod:`vadgs.data.scene` ←
+this module ← the readers ← :mod:`vadgs.data.validate`.
+
+Example:
+    >>> pose = torch.eye(4); pose[:3, :3] *= 1.1  # scaled: not rigid
+    >>> check_rigid(pose, "pose")
+    Traceback (most recent call last):
+    ...
+    ValueError: pose: expected a rigid transform (orthonormal rotation, det +1), got max |R^T R - I| = 0.21...
+"""
+
+from __future__ import annotations
+
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from PIL import Image
+
+from vadgs.data.scene import Scene, npz_headers, read_depth
+
+__all__ = [
+    "RIGID_TOLERANCE",
+    "ValidationReport",
+    "ValidationRow",
+    "check_intrinsics",
+    "check_rigid",
+    "check_scene",
+    "check_split",
+]
+
+#: Absolute tolerance on ``R^T R - I``, ``det R - 1`` and the last row of a rigid transform.
+#: Poses stored with 6 decimals are off by about 1e-6; a 1 % scale is off by 0.02.
+RIGID_TOLERANCE = 1e-3
+
+
+class ValidationRow(NamedTuple):
+    """One check: ``status`` is ``"ok"`` or ``"error"``; ``file`` is empty for metadata."""
+
+    item: str
+    file: str
+    status: str
+    message: str
+
+
+class ValidationReport(NamedTuple):
+    """What :func:`check_scene` (and :func:`~vadgs.data.validate_scene`) found.
+
+    Attributes:
+        scene: the scene's name or folder.
+        rows: the checks in order, see :class:`ValidationRow`.
+        full: whether every file was decoded.
+    """
+
+    scene: str
+    rows: tuple[ValidationRow, ...]
+    full: bool = False
+
+    @property
+    def errors(self) -> list[ValidationRow]:
+        """The rows whose status is ``"error"``."""
+        return [r for r in self.rows if r.status != "ok"]
+
+    @property
+    def ok(self) -> bool:
+        """True when no check failed."""
+        return not self.errors
+
+    def raise_if_errors(self) -> None:
+        """Raise a :class:`ValueError` naming the first failed checks (and how many there are)."""
+        errs = self.errors
+        if not errs:
+            return
+        shown = "; ".join(_row_text(r) for r in errs[:3])
+        more = f" (and {len(errs) - 3} more)" if len(errs) > 3 else ""
+        raise ValueError(
+            f"scene {self.scene}: {len(errs)} problem(s): {shown}{more}; `vadgs check` lists them all"
+        )
+
+    def format_table(self) -> str:
+        """The rows as an aligned text table (``status  item  file  message``)."""
+        head = ("status", "check", "file", "message")
+        lines = [head] + [(r.status, r.item, r.file or "-", r.message) for r in self.rows]
+        widths = [max(len(line[i]) for line in lines) for i in range(3)]
+        out = ["  ".join(c.ljust(w) for c, w in zip(line[:3], widths)) + "  " + line[3] for line in lines]
+        out.insert(1, "  ".join("-" * w for w in widths) + "  " + "-" * 7)
+        return "\n".join(s.rstrip() for s in out)
+
+
+def _row_text(r: ValidationRow) -> str:
+    return f"{r.file}: {r.item}: {r.message}" if r.file else f"{r.item}: {r.message}"
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def check_intrinsics(K: torch.Tensor, what: str = "K") -> None:
+    """Raise a :class:`ValueError` unless ``K (3, 3)`` is a finite, invertible pinhole matrix.
+
+    Requires positive focal lengths ``fx = K[0, 0]``, ``fy = K[1, 1]``, zeros below the diagonal
+    and ``K[2, 2] = 1``.
+    """
+    K = torch.as_tensor(K, dtype=torch.float64)
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"{what}: expected shape (3, 3), got {tuple(K.shape)}")
+    if not bool(torch.isfinite(K).all()):
+        raise ValueError(f"{what}: expected finite values, got {K.tolist()}")
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    if not (fx > 0 and fy > 0):
+        raise ValueError(f"{what}: expected positive focal lengths fx, fy, got fx={_fmt(fx)}, fy={_fmt(fy)}")
+    last = K[2].tolist()
+    if abs(last[0]) > 1e-9 or abs(last[1]) > 1e-9 or abs(last[2] - 1) > 1e-9 or abs(float(K[1, 0])) > 1e-9:
+        raise ValueError(f"{what}: expected an upper-triangular K with last row (0, 0, 1), got {K.tolist()}")
+
+
+def check_rigid(T: torch.Tensor, what: str, tol: float = RIGID_TOLERANCE) -> None:
+    """Raise a :class:`ValueError` unless ``T (4, 4)`` is a rigid transform within ``tol``.
+
+    Rigid: finite, last row ``(0, 0, 0, 1)``, rotation block orthonormal with determinant +1
+    (no scale, shear or reflection).
+    """
+    T = torch.as_tensor(T, dtype=torch.float64)
+    if tuple(T.shape) != (4, 4):
+        raise ValueError(f"{what}: expected shape (4, 4), got {tuple(T.shape)}")
+    if not bool(torch.isfinite(T).all()):
+        raise ValueError(f"{what}: expected finite values, got a non-finite entry")
+    row = T[3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype)
+    if float(row.abs().max()) > tol:
+        raise ValueError(
+            f"{what}: expected last row (0, 0, 0, 1), got {tuple(round(v, 6) for v in T[3].tolist())}"
+        )
+    R = T[:3, :3]
+    err = float((R.T @ R - torch.eye(3, dtype=T.dtype)).abs().max())
+    if err > tol:
+        raise ValueError(
+            f"{what}: expected a rigid transform (orthonormal rotation, det +1), "
+            f"got max |R^T R - I| = {_fmt(err)} (tolerance {tol:g})"
+        )
+    det = float(torch.linalg.det(R))
+    if abs(det - 1) > tol:
+        raise ValueError(f"{what}: expected a rotation with det +1, got det {_fmt(det)} (a reflection)")
+
+
+# ---------------------------------------------------------------------------------------------------
+
+
+class _Collector:
+    def __init__(self) -> None:
+        self.rows: list[ValidationRow] = []
+
+    def run(self, item: str, file: Path | str | None, fn: Callable[[], str | None]) -> bool:
+        """Run one check; a raised ValueError / OSError becomes an error row."""
+        try:
+            msg = fn()
+        except FileNotFoundError as e:
+            self.rows.append(ValidationRow(item, str(file or ""), "error", f"missing file ({e})"))
+            return False
+        except (ValueError, OSError, KeyError, zipfile.BadZipFile, EOFError) as e:
+            text = str(e)
+            if file is not None and text.startswith(f"{file}: "):
+                text = text[len(f"{file}: ") :]
+            if text.startswith(f"{item}: "):
+                text = text[len(f"{item}: ") :]
+            self.rows.append(ValidationRow(item, str(file or ""), "error", text))
+            return False
+        if msg is not None:
+            self.rows.append(ValidationRow(item, str(file or ""), "ok", msg))
+        return True
+
+
+def _expected_file_size(size: tuple[int, int], scale: float) -> str:
+    h, w = size
+    if scale == 1.0:
+        return f"{w}x{h}"
+    return f"{round(w / scale)}x{round(h / scale)} (the scene's {w}x{h} at scale {scale:g})"
+
+
+def _size_matches(file_wh: tuple[int, int], size: tuple[int, int], scale: float) -> bool:
+    fw, fh = file_wh
+    return (round(fh * scale), round(fw * scale)) == tuple(size)
+
+
+def _check_png(
+    path: Path, size: tuple[int, int], scale: float, modes: tuple[str, ...] | None, full: bool
+) -> None:
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    try:
+        with Image.open(path) as im:
+            wh, mode = im.size, im.mode
+            if full:
+                im.load()
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        nbytes = path.stat().st_size
+        what = "an empty file (0 bytes)" if nbytes == 0 else f"{type(e).__name__}: {e}"
+        raise ValueError(f"not a decodable image ({what})") from None
+    if not _size_matches(wh, size, scale):
+        raise ValueError(f"expected size {_expected_file_size(size, scale)} (W x H), got {wh[0]}x{wh[1]}")
+    if modes is not None and mode not in modes:
+        raise ValueError(f"expected an image of mode {'/'.join(modes)}, got mode {mode}")
+
+
+def _check_depth(path: Path, size: tuple[int, int], scale: float, full: bool) -> None:
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    heads = npz_headers(path)
+    if "depth" not in heads:
+        raise ValueError(f"expected key 'depth', got keys {sorted(heads)}")
+    shape, dtype = heads["depth"]
+    if len(shape) != 2 or not _size_matches((shape[1], shape[0]), size, scale):
+        h, w = size
+        raise ValueError(
+            f"depth: expected shape (H, W) = ({round(h / scale)}, {round(w / scale)}), got {shape}"
+        )
+    if dtype.kind != "f":
+        raise ValueError(f"depth: expected a floating dtype, got {dtype}")
+    if full:
+        read_depth(path)
+
+
+def _lidar_count(path: Path) -> int:
+    if not path.is_file():
+        raise FileNotFoundError(path)
+    heads = npz_headers(path)
+    if "points" in heads:  # the benchmark format
+        shape, dtype = heads["points"]
+        if len(shape) != 2 or shape[1] != 3 or dtype.kind != "f":
+            raise ValueError(f"points: expected (N, 3) floating, got shape {shape} dtype {dtype}")
+        n = shape[0]
+        if "instance" in heads:
+            ishape, idtype = heads["instance"]
+            if ishape != (n,) or idtype.kind not in "iu":
+                raise ValueError(f"instance: expected ({n},) integer, got shape {ishape} dtype {idtype}")
+        if "origin" in heads and heads["origin"][0] != (3,):
+            raise ValueError(f"origin: expected shape (3,), got {heads['origin'][0]}")
+        return n
+    if "data" in heads:  # DGP point clouds: (N, >= 3) X, Y, Z, ...
+        shape, _ = heads["data"]
+        if len(shape) != 2 or shape[1] < 3:
+            raise ValueError(f"data: expected (N, >=3) X, Y, Z, ..., got shape {shape}")
+        return shape[0]
+    raise ValueError(f"expected key 'points' (or DGP 'data'), got keys {sorted(heads)}")
+
+
+def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLERANCE) -> ValidationReport:
+    """Check a loaded scene's metadata and files; see the module docstring for what each level reads.
+
+    :func:`~vadgs.data.validate_scene` calls it (and also takes a scene folder); the loaders call
+    it through :func:`~vadgs.data.assemble.assemble_scene`.
+
+    Args:
+        scene: a loaded :class:`~vadgs.data.Scene` (any loader).
+        full: decode every file and check its values (``vadgs check --full``).
+        tolerance: of the rigid-pose check (:func:`check_rigid`).
+
+    Returns:
+        The :class:`ValidationReport` (never raises for a bad scene: failures are rows).
+    """
+    col = _Collector()
+    name = str(scene.root) if scene.root is not None else scene.name
+
+    # -- metadata -------------------------------------------------------------------------------------
+    for cam in scene.cameras_info.values():
+
+        def camera(c=cam) -> str:
+            check_intrinsics(c.K, f"cameras.{c.name}.K")
+            (h, w), fx, fy = c.image_size, float(c.K[0, 0]), float(c.K[1, 1])
+            return f"fx={fx:.1f} fy={fy:.1f}, {w}x{h}"
+
+        col.run(f"cameras.{cam.name}.K", None, camera)
+
+    poses: list[tuple[str, torch.Tensor]] = []
+    poses += [(f"cameras.{c.name}.cam_to_ego", c.cam_to_ego) for c in scene.cameras_info.values()]
+    poses += [(f"frame {f.index}.ego_to_world", f.ego_to_world) for f in scene.frames]
+    poses += [(f"view {v.index} ({v.camera}@{v.frame}).cam_to_world", v.cam_to_world) for v in scene.views]
+    for tid, t in scene.tracks.items():
+        poses += [
+            (f"track {tid}.object_to_world[frame {scene.frames[i].index}]", t.object_to_world[i])
+            for i in range(len(scene.frames))
+            if bool(t.valid[i])
+        ]
+    poses = [(w, p) for w, p in poses if p is not None]
+    bad_pose = [not col.run(w, None, lambda w=w, p=p: check_rigid(p, w, tolerance)) for w, p in poses]
+    if not any(bad_pose):
+        col.rows.append(ValidationRow("poses", "", "ok", f"{len(poses)} rigid (tolerance {tolerance:g})"))
+
+    frame_ids = [f.index for f in scene.frames]
+    for key, frames in (("train_frames", scene.train_frames), ("test_frames", scene.test_frames)):
+        col.run(
+            f"split.{key}", None,
+            lambda k=key, fr=frames: (check_split(fr, frame_ids, f"split.{k}"), f"{len(fr)} frames")[1],
+        )  # fmt: skip
+
+    # -- files ----------------------------------------------------------------------------------------
+    s = float(scene.scale)
+    test = set(scene.test_views)
+    counts = {"images": 0, "depth": 0, "instances": 0}
+    failed = {"images": 0, "depth": 0, "instances": 0}
+    for v in scene.views:
+        size = scene.image_size(v.index)
+        if v.image is not None:
+            counts["images"] += 1
+            failed["images"] += not col.run(
+                "image", v.image, lambda v=v, z=size: _check_png(v.image, z, s, None, full)
+            )
+        if v.depth is not None:
+            counts["depth"] += 1
+            decode = full or v.index in test
+            failed["depth"] += not col.run(
+                "depth", v.depth, lambda v=v, z=size, d=decode: _check_depth(v.depth, z, s, d)
+            )
+        if v.instances is not None:
+            counts["instances"] += 1
+            failed["instances"] += not col.run(
+                "instances", v.instances,
+                lambda v=v, z=size: _check_png(v.instances, z, s, ("I;16", "I;16B", "I;16L", "I", "L"), full),
+            )  # fmt: skip
+    for kind, n in counts.items():
+        if n and not failed[kind]:
+            how = "decoded" if full else ("headers" if kind != "depth" else "headers; test views decoded")
+            col.rows.append(ValidationRow(kind, "", "ok", f"{n} files ({how})"))
+
+    lidar = [(f.index, f.lidar) for f in scene.frames if f.lidar is not None]
+    if lidar:
+        total, good = 0, 0
+        for frame, p in lidar:
+            box: dict[str, int] = {}
+
+            def one(frame: int = frame, p: Path = p, box: dict = box) -> None:
+                box["n"] = _lidar_count(p)
+                if full:
+                    lf = scene.lidar(frame)
+                    bad = ~torch.isfinite(lf.points)
+                    if bool(bad.any()):
+                        raise ValueError(
+                            f"points: expected finite values, got {int(bad.any(-1).sum())} non-finite points "
+                            f"of {len(lf.points)}"
+                        )
+
+            if col.run(f"lidar (frame {frame})", p, one):
+                good += 1
+                total += box["n"]
+        if good == len(lidar):
+            if total == 0:
+                col.rows.append(ValidationRow(
+                    "lidar", "", "error",
+                    f"all {len(lidar)} LiDAR files are empty (0 points): no points to initialise from",
+                ))  # fmt: skip
+            else:
+                col.rows.append(ValidationRow("lidar", "", "ok", f"{len(lidar)} files, {total} points"))
+    return ValidationReport(name, tuple(col.rows), full)
+
+
+def check_split(frames: list[int], frame_ids: list[int], what: str) -> None:
+    """Raise a :class:`ValueError` if ``frames`` has duplicates or frames not in ``frame_ids``."""
+    seen: set[int] = set()
+    dup = sorted({f for f in frames if f in seen or seen.add(f)})  # type: ignore[func-returns-value]
+    if dup:
+        raise ValueError(f"{what}: expected unique frame indices, got duplicates {dup[:5]}")
+    known = set(frame_ids)
+    unknown = [f for f in frames if f not in known]
+    if unknown:
+        lo, hi = min(frame_ids), max(frame_ids)
+        raise ValueError(
+            f"{what}: frame(s) {unknown[:5]} not in the scene (it has {len(frame_ids)} frames, {lo}..{hi})"
+        )
