@@ -19,6 +19,9 @@ the training views, the event must flag that cell and re-populate it.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Optional
+
 import pytest
 import torch
 
@@ -199,3 +202,35 @@ def test_the_documented_diff_is_this_loop():
     for call in ("VisibilityAwareDensification.from_config(", ".check_sanity(self.splats, self.optimizers)"):
         assert any(call in ln for ln in body) and call in source
     assert sum("(self.vad or self.cfg.strategy).step_" in ln for ln in added) == 3
+
+
+@dataclasses.dataclass
+class _SimpleTrainerConfig:  # the fields of simple_trainer's Config that matter here
+    max_steps: int = 30_000
+    steps_scaler: float = 1.0
+    vad: Optional[VisibilityDensifyConfig] = None  # noqa: UP045 (the diff's spelling)
+
+
+def test_tyro_spells_the_vad_entry_of_the_diff(monkeypatch):
+    """simple_trainer's command line: ``tyro.extras.overridable_config_cli`` over ``configs``."""
+    tyro = pytest.importorskip("tyro")
+    cfg = _SimpleTrainerConfig
+    configs = {  # as in the diff: default, mcmc, and the new vad entry
+        "default": ("gsplat's default strategy", cfg()),
+        "mcmc": ("MCMC", cfg(max_steps=10)),
+        "vad": ("VAD-GS around the default strategy", cfg(vad=VisibilityDensifyConfig())),
+    }
+
+    def run(*args):
+        monkeypatch.setattr("sys.argv", ["simple_trainer.py", *args])
+        return tyro.extras.overridable_config_cli(configs)
+
+    assert run("default").vad is None and run("mcmc", "--steps_scaler", "0.25").steps_scaler == 0.25
+    assert run("vad").vad == VisibilityDensifyConfig()
+    on = run("vad", "--vad.references", "4", "--vad.reconstruct.max-crop", "128", "--vad.time-budget", "None")
+    assert (on.vad.references, on.vad.reconstruct.max_crop, on.vad.time_budget) == (4, 128, None)
+    assert run("vad", "--vad.skip-classes", "road", "sky").vad.skip_classes == ("road", "sky")
+    with pytest.raises(SystemExit):  # tyro prints the error and exits
+        run("vad", "--vad.references", "many")
+    with pytest.raises(SystemExit):  # no VAD-GS flags on the default entry: its vad is None
+        run("default", "--vad.references", "4")
