@@ -29,7 +29,7 @@ import torch.nn.functional as F
 
 from vadgs.geometry.camera import Cameras, invert_rigid
 
-__all__ = ["TrackTable", "VisibilityInputs"]
+__all__ = ["TrackTable", "VisibilityInputs", "sfm_observations"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,8 +179,6 @@ class VisibilityInputs:
                 return accumulate_lidar(scene, frames, track_id=track_id)
 
         elif scene.sfm_points is not None:
-            from vadgs.train.reconstruct import sfm_observations
-
             points, (pi, vi) = sfm_observations(scene, frames)
             sfm = TrackTable(points, pi, vi)
         with_maps = frozenset(v.index for v in scene.views if v.instances is not None)
@@ -291,3 +289,34 @@ class VisibilityInputs:
             sfm=TrackTable(points[used], new_id[pi_t], vi_t),
             name=str(getattr(parser, "data_dir", "gsplat parser")),
         )
+
+
+def sfm_observations(
+    scene: Any, frames: Sequence[int] | None = None
+) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """The scene's SfM points observed by views of ``frames``, with those observations only.
+
+    Args:
+        scene: a scene with ``sfm_points``.
+        frames: frame indices (default: the training frames, or every frame without a split).
+
+    Returns:
+        ``(points (P', 3), (point_idx (T',), view_idx (T',)))``: the points with at least one such
+        observation (renumbered, in their order) and their observations, as
+        :func:`vadgs.geometry.voxelize` takes them.
+
+    Raises:
+        ValueError: if the scene has no ``sfm_points``.
+    """
+    sfm = scene.sfm_points
+    if sfm is None:
+        raise ValueError(f"scene {scene.name!r}: no SfM points (scene.sfm_points)")
+    frames = frames if frames is not None else (scene.train_frames or [f.index for f in scene.frames])
+    wanted = set(int(f) for f in frames)
+    view_ok = torch.tensor([v.frame in wanted and v.group is None for v in scene.views], dtype=torch.bool)
+    keep = view_ok[sfm.view_idx] if sfm.view_idx.numel() else sfm.view_idx.bool()
+    pi, vi = sfm.point_idx[keep], sfm.view_idx[keep]
+    used = torch.zeros(sfm.points.shape[0], dtype=torch.bool)
+    used[pi] = True
+    new_id = torch.cumsum(used.long(), 0) - 1
+    return sfm.points[used], (new_id[pi], vi)

@@ -52,7 +52,7 @@ from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, ViewSelectionConfig, select_views
 from vadgs.train.incomplete import voxel_labels
-from vadgs.train.inputs import VisibilityInputs
+from vadgs.train.inputs import VisibilityInputs, sfm_observations
 
 __all__ = [
     "InstanceReconstruction",
@@ -578,37 +578,6 @@ def build_visibility_index(
         index.track_grids[tid] = tgrid
         index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), inputs)
     return index
-
-
-def sfm_observations(
-    scene: Any, frames: Sequence[int] | None = None
-) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-    """The scene's SfM points observed by views of ``frames``, with those observations only.
-
-    Args:
-        scene: a scene with ``sfm_points``.
-        frames: frame indices (default: the training frames, or every frame without a split).
-
-    Returns:
-        ``(points (P', 3), (point_idx (T',), view_idx (T',)))``: the points with at least one such
-        observation (renumbered, in their order) and their observations, as
-        :func:`vadgs.geometry.voxelize` takes them.
-
-    Raises:
-        ValueError: if the scene has no ``sfm_points``.
-    """
-    sfm = scene.sfm_points
-    if sfm is None:
-        raise ValueError(f"scene {scene.name!r}: no SfM points (scene.sfm_points)")
-    frames = frames if frames is not None else (scene.train_frames or [f.index for f in scene.frames])
-    wanted = set(int(f) for f in frames)
-    view_ok = torch.tensor([v.frame in wanted and v.group is None for v in scene.views], dtype=torch.bool)
-    keep = view_ok[sfm.view_idx] if sfm.view_idx.numel() else sfm.view_idx.bool()
-    pi, vi = sfm.point_idx[keep], sfm.view_idx[keep]
-    used = torch.zeros(sfm.points.shape[0], dtype=torch.bool)
-    used[pi] = True
-    new_id = torch.cumsum(used.long(), 0) - 1
-    return sfm.points[used], (new_id[pi], vi)
 
 
 class ViewRender(NamedTuple):

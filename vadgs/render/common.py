@@ -1,0 +1,195 @@
+"""What both renderers share: :class:`RasterConfig`, :class:`RenderOutput` and the input checks.
+
+:func:`vadgs.render.rasterize_gaussians` (pure torch, ``vadgs/render/splat.py``) and
+:func:`vadgs.render.gsplat_backend.rasterize_gaussians_gsplat` take the same inputs and settings and
+return the same :class:`RenderOutput`; both import them from here, so neither imports the other at
+load time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from vadgs.checks import check_finite, check_same_device, check_shape, checks_enabled
+
+__all__ = ["RasterConfig", "RenderOutput"]
+
+
+@dataclass(frozen=True)
+class RasterConfig:
+    """Settings of the rasterizer (gsplat's defaults unless stated).
+
+    Attributes:
+        near: Gaussians with camera-frame ``z <= near`` are culled (metres).
+        far: Gaussians with ``z >= far`` are culled.
+        eps2d: screen-space low-pass variance added to every 2D covariance, px² (3DGS: 0.3).
+        antialiased: Mip-Splatting opacity compensation ``sqrt(det(Σ) / det(Σ + eps2d I))``.
+        alpha_max: alpha cap (gsplat 0.999; the original 3DGS uses 0.99). Must be < 1.
+        alpha_min: a Gaussian with ``alpha < alpha_min`` at a pixel is skipped there (1/255).
+        transmittance_min: a pixel stops before the Gaussian that would bring its transmittance
+            to this or below (1e-4).
+        tile_size: tile side in pixels (8 is fastest on CPU, see ``docs/render.md``).
+        chunk_size: Gaussians per tile processed per step of the compositing loop.
+        absgrad: also accumulate gsplat's ``absgrad`` (sum over pixels of the absolute
+            per-pixel gradient of the 2D means) in :attr:`RenderOutput.means2d_absgrad` during
+            backward; its cost was within the timing noise on benchmark case 1.
+        backward: ``"manual"`` (hand-written backward, default) or ``"autograd"`` (the same loop
+            differentiated by autograd; slower, more memory, for cross-checks).
+        backend: ``"torch"`` (this pure-torch renderer, default) or ``"gsplat"``
+            (:func:`~vadgs.render.gsplat_backend.rasterize_gaussians_gsplat`: gsplat's CUDA
+            rasterizer for CUDA tensors, its pure-torch reference pipeline otherwise; no median
+            depth; ``tile_size``, ``chunk_size`` and ``backward`` do not apply).
+    """
+
+    near: float = 0.01
+    far: float = 1e10
+    eps2d: float = 0.3
+    antialiased: bool = False
+    alpha_max: float = 0.999
+    alpha_min: float = 1.0 / 255.0
+    transmittance_min: float = 1e-4
+    tile_size: int = 8
+    chunk_size: int = 32
+    absgrad: bool = False
+    backward: str = "manual"
+    backend: str = "torch"
+
+    def __post_init__(self) -> None:
+        if not 0 < self.near < self.far:
+            raise ValueError(f"near, far: expected 0 < near < far, got near={self.near}, far={self.far}")
+        if self.eps2d < 0:
+            raise ValueError(f"eps2d: expected >= 0, got {self.eps2d}")
+        if not 0 < self.alpha_min < self.alpha_max < 1:
+            raise ValueError(
+                f"alpha_min, alpha_max: expected 0 < alpha_min < alpha_max < 1, "
+                f"got {self.alpha_min}, {self.alpha_max}"
+            )
+        if not 0 <= self.transmittance_min < 1:
+            raise ValueError(f"transmittance_min: expected in [0, 1), got {self.transmittance_min}")
+        if self.tile_size < 1 or self.chunk_size < 1:
+            raise ValueError(
+                f"tile_size, chunk_size: expected positive ints, got {self.tile_size}, {self.chunk_size}"
+            )
+        if self.backward not in ("manual", "autograd"):
+            raise ValueError(f"backward: expected 'manual' or 'autograd', got {self.backward!r}")
+        if self.backend not in ("torch", "gsplat"):
+            raise ValueError(f"backend: expected 'torch' or 'gsplat', got {self.backend!r}")
+
+
+class RenderOutput(NamedTuple):
+    """What :func:`rasterize_gaussians` returns.
+
+    Attributes:
+        color: ``(B, D, H, W)`` composited colour plus ``T * background`` (D = 3 for SH).
+        alpha: ``(B, 1, H, W)`` accumulated opacity ``1 - T``.
+        depth: ``(B, 1, H, W)`` expected z-depth ``sum_i w_i z_i / alpha``; 0 where alpha = 0.
+        median_depth: ``(B, 1, H, W)`` z of the Gaussian at which the transmittance first drops
+            to 0.5 or below; 0 where it never does.
+        normals: ``(B, 3, H, W)`` normalised ``sum_i w_i n_i`` of the Gaussians' shortest axes,
+            camera frame, facing the camera; zeros where nothing is rendered.
+        median_ids: ``(B, H, W)`` int64 index of that median Gaussian, ``-1`` where none.
+        means2d: ``(B, N, 2)`` screen means in pixels. When the inputs require grad it retains
+            its gradient: after ``backward()``, ``means2d.grad`` is the densification statistic
+            (gsplat's ``means2d`` gradient, in pixel units).
+        means2d_absgrad: ``(B, N, 2)`` sum over pixels of the absolute per-pixel gradient of
+            ``means2d`` (gsplat's ``absgrad``), filled during backward when
+            ``RasterConfig.absgrad``; None otherwise.
+        radii: ``(B, N, 2)`` int32 half sizes of the screen boxes, 0 where culled.
+        visible: ``(B, N)`` bool, ``radii > 0``: in front of the camera, inside the near/far
+            range, opaque enough and overlapping the image.
+        depths: ``(B, N)`` camera-frame z of the means.
+    """
+
+    color: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    median_depth: torch.Tensor
+    normals: torch.Tensor
+    median_ids: torch.Tensor
+    means2d: torch.Tensor
+    means2d_absgrad: torch.Tensor | None
+    radii: torch.Tensor
+    visible: torch.Tensor
+    depths: torch.Tensor
+
+
+def _check_inputs(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    world_to_cam: torch.Tensor,
+    K: torch.Tensor,
+    background: torch.Tensor | None,
+) -> dict[str, int]:
+    dims = check_shape(means, "means", ("N", 3))
+    check_shape(quats, "quats", ("N", 4), dims)
+    check_shape(scales, "scales", ("N", 3), dims)
+    check_shape(opacities, "opacities", ("N",), dims)
+    if not isinstance(colors, torch.Tensor) or colors.dim() not in (2, 3):
+        shape = tuple(colors.shape) if isinstance(colors, torch.Tensor) else type(colors).__name__
+        raise ValueError(f"colors: expected shape (N, D) or SH (N, K, 3), got {shape}")
+    if colors.dim() == 2:
+        check_shape(colors, "colors", ("N", "D"), dims)
+    else:
+        check_shape(colors, "colors", ("N", "K", 3), dims)
+        dims["D"] = 3
+    check_shape(world_to_cam, "world_to_cam", ("B", 4, 4), dims)
+    check_shape(K, "K", ("B", 3, 3), dims)
+    named = [
+        ("means", means),
+        ("quats", quats),
+        ("scales", scales),
+        ("opacities", opacities),
+        ("colors", colors),
+        ("world_to_cam", world_to_cam),
+        ("K", K),
+    ]
+    if background is not None:
+        if background.dim() == 1:
+            check_shape(background, "background", ("D",), dims)
+        else:
+            check_shape(background, "background", ("B", "D"), dims)
+        named.append(("background", background))
+    check_same_device(*named)
+    dtypes = {name: t.dtype for name, t in named}
+    if len(set(dtypes.values())) > 1:
+        raise ValueError(f"expected one floating dtype for all inputs, got {dtypes}")
+    if not means.is_floating_point():
+        raise ValueError(f"means: expected a floating dtype, got {means.dtype}")
+    for name, t in named:
+        check_finite(t, name)
+    if checks_enabled():
+        f = K.detach()[:, [0, 1], [0, 1]]
+        bad = ~(f > 0).all(-1)
+        if bool(bad.any()):
+            b = int(bad.nonzero()[0, 0])
+            raise ValueError(
+                f"K: expected positive focal lengths fx = K[b, 0, 0], fy = K[b, 1, 1] (an invertible "
+                f"pinhole K), got fx={float(f[b, 0]):.4g}, fy={float(f[b, 1]):.4g} for camera b={b}"
+            )
+    if dims["N"] and checks_enabled():
+        qn = quats.detach().norm(dim=-1)
+        if bool((qn < 1e-12).any()):
+            raise ValueError(f"quats: expected non-zero quaternions, got {int((qn < 1e-12).sum())} of norm 0")
+        if bool((scales < 0).any()):
+            raise ValueError(
+                "scales: expected activated (non-negative) scales, got negative values; pass exp(log_scales)"
+            )
+        if bool(((opacities < 0) | (opacities > 1)).any()):
+            raise ValueError(
+                "opacities: expected activated opacities in [0, 1], got values outside; pass sigmoid(logits)"
+            )
+        limit = math.sqrt(torch.finfo(scales.dtype).max) / 1e3
+        smax = float(scales.detach().max())
+        if smax >= limit:
+            raise ValueError(
+                f"scales: expected < {limit:.3g} (larger overflows the {scales.dtype} covariance), "
+                f"got max {smax:.3g}; pass exp(log_scales) of a sane model"
+            )
+    return dims
