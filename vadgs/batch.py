@@ -355,7 +355,7 @@ def run_scene(
             retries it.
     """
     from vadgs.cli import main
-    from vadgs.train.trainer import CHECKPOINT_NAME
+    from vadgs.train.checkpoint import CHECKPOINT_NAME
 
     run = Path(run_dir)
     base = SceneResult(scene=str(scene), name=run.name, run=str(run))

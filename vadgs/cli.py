@@ -206,7 +206,7 @@ def _deep_update(base: dict, upd: dict, where: str = "config") -> dict:
 
 
 def _train_config(args: argparse.Namespace) -> object:
-    from vadgs.train.trainer import TrainConfig
+    from vadgs.train.config import TrainConfig
 
     d = TrainConfig().to_dict()
     if args.config:
@@ -252,7 +252,7 @@ def _train_config(args: argparse.Namespace) -> object:
 def _read_config_file(path: str) -> dict:
     """A ``--config`` JSON file, type-checked against :class:`TrainConfig` on its own."""
     from vadgs.config import config_from_dict
-    from vadgs.train.trainer import TrainConfig
+    from vadgs.train.config import TrainConfig
 
     p = Path(path)
     if not p.is_file():
@@ -436,9 +436,16 @@ _NOT_ON_RESUME = (
 )
 
 
+# train flags a resumed run applies: TrainConfig fields of RESUMABLE_CHANGES (vadgs.train.checkpoint)
+_ON_RESUME = ("iterations", "max_minutes", "device")
+# train flags of the session, not of the run
+_SESSION = ("out", "resume", "no_progress")
+
+
 def _resume(args: argparse.Namespace, out: Path, progress: bool) -> object:
     """The trainer of ``--resume``: rejects flags it cannot honour, applies those it can, loudly."""
-    from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, load_checkpoint
+    from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+    from vadgs.train.trainer import Trainer
 
     given = [flag for key, flag in _NOT_ON_RESUME if getattr(args, key, None) not in (None, False, [])]
     if given:
@@ -450,7 +457,7 @@ def _resume(args: argparse.Namespace, out: Path, progress: bool) -> object:
     if not (out / CHECKPOINT_NAME).is_file():
         raise FileNotFoundError(f"--resume: no checkpoint in {out}")
     changes: dict = {}
-    for key in ("iterations", "max_minutes", "device"):
+    for key in _ON_RESUME:
         if getattr(args, key, None) is not None:
             changes[key] = getattr(args, key)
     if changes:
@@ -482,7 +489,9 @@ def _resume(args: argparse.Namespace, out: Path, progress: bool) -> object:
 
 def train(args: argparse.Namespace) -> int:
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
-    from vadgs.train.trainer import CHECKPOINT_NAME, Trainer, describe_run, open_scene
+    from vadgs.train.checkpoint import CHECKPOINT_NAME
+    from vadgs.train.run import describe_run, open_scene
+    from vadgs.train.trainer import Trainer
 
     out = _check_out_dir(args.out, create=False)
     progress = not args.no_progress
@@ -632,8 +641,10 @@ train.add_arguments = _train_args  # type: ignore[attr-defined]
 
 
 def _load_run(run: str) -> tuple:
+    from vadgs.train.checkpoint import load_checkpoint
+    from vadgs.train.config import TrainConfig
     from vadgs.train.model import GaussianModel
-    from vadgs.train.trainer import TrainConfig, load_checkpoint, open_scene
+    from vadgs.train.run import open_scene
 
     ckpt = load_checkpoint(run)
     model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
@@ -851,8 +862,9 @@ view_run.add_arguments = _view_args  # type: ignore[attr-defined]
 def demo(args: argparse.Namespace) -> int:
     """Train briefly on the bundled sample scene; write metrics.json and a PNG panel."""
     from vadgs.data import load_scene
+    from vadgs.train.config import TrainConfig
     from vadgs.train.evaluate import render_test_view
-    from vadgs.train.trainer import TrainConfig, Trainer
+    from vadgs.train.trainer import Trainer
     from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
     out = _check_out_dir(args.out)

@@ -45,3 +45,24 @@ class TestCli:
         assert [e["step"] for e in logged] == [90]  # the line of the step that ran the event
         assert logged[0]["event"]["added"] == events[0]["added"]
         assert main(["train", "--out", str(out), "--resume", "--no-progress"]) == 0
+
+
+def test_every_train_flag_has_a_resume_policy():
+    """A ``vadgs train`` flag is refused on ``--resume``, applied to the resumed run, or of the session.
+
+    Otherwise it would be silently ignored when a run is resumed.
+    """
+    import argparse
+
+    from vadgs.cli import _NOT_ON_RESUME, _ON_RESUME, _SESSION, _train_args
+    from vadgs.train.checkpoint import RESUMABLE_CHANGES
+
+    p = argparse.ArgumentParser()
+    _train_args(p)
+    flags = {a.dest for a in p._actions} - {"help"}
+    refused = {key for key, _ in _NOT_ON_RESUME}
+    assert not refused & set(_ON_RESUME) and not refused & set(_SESSION)
+    assert flags == refused | set(_ON_RESUME) | set(_SESSION), sorted(
+        flags ^ (refused | set(_ON_RESUME) | set(_SESSION))
+    )
+    assert set(_ON_RESUME) <= set(RESUMABLE_CHANGES)  # what the checkpoint lets a resume change

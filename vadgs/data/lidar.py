@@ -11,7 +11,7 @@ from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
 from vadgs.geometry.voxel import observing_views
 
-__all__ = ["AccumulatedLidar", "accumulate_lidar"]
+__all__ = ["AccumulatedLidar", "accumulate_lidar", "lidar_depth_map"]
 
 
 class AccumulatedLidar(NamedTuple):
@@ -102,3 +102,29 @@ def accumulate_lidar(
         torch.cat(frm) if frm else empty,
         (torch.cat(pv_p) if pv_p else empty, torch.cat(pv_v) if pv_v else empty),
     )
+
+
+def lidar_depth_map(scene: Scene, view: int) -> torch.Tensor:
+    """The view's own LiDAR sweep projected into it: ``(1, 1, H, W)`` nearest z per pixel, 0 elsewhere.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> d = lidar_depth_map(scene, 0)
+        >>> d.shape, bool((d > 0).any())
+        (torch.Size([1, 1, 144, 240]), True)
+    """
+    from vadgs.geometry.camera import project_points
+
+    v = scene.views[view]
+    cams = scene.cameras([view])
+    h, w = cams.image_size
+    pts = scene.lidar(v.frame).points
+    uv, z = project_points(pts[None], cams.K, cams.world_to_cam)
+    u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+    ok = (z[0] > 0.1) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
+    flat = vv[ok] * w + u[ok]
+    depth = torch.full((h * w,), float("inf"))
+    depth.scatter_reduce_(0, flat, z[0][ok], reduce="amin")
+    depth[torch.isinf(depth)] = 0.0
+    return depth.reshape(1, 1, h, w)

@@ -1,6 +1,7 @@
 """Gaussian model, losses, densification strategies, trainer and evaluation (see ``docs/train.md``)."""
 
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affine
+from vadgs.train.config import TrainConfig
 from vadgs.train.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
 from vadgs.train.export import export_model, export_world, rotate_sh
 from vadgs.train.init import InitConfig, init_gaussians
@@ -16,7 +17,7 @@ from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_a
 from vadgs.train.ops import add_gaussians, duplicate, make_optimizer, remove_gaussians, reset_opacity, split
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
-from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, TrainConfig, Trainer, TrainResult
+from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, Trainer, TrainResult
 from vadgs.train.video import ego_trajectory, render_video
 
 __all__ = [

@@ -29,42 +29,45 @@ starts); :meth:`Trainer.from_checkpoint` continues it.
 
 from __future__ import annotations
 
-import dataclasses
-import errno
-import hashlib
 import json
 import math
-import os
 import random
 import resource
-import shutil
 import signal
 import threading
 import time
-import types
-import typing
-import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
 
 from vadgs.checks import checks_enabled
+from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
-from vadgs.io import atomic_write, remove_stale_tmp
-from vadgs.render import RasterConfig
+from vadgs.io import atomic_write
 from vadgs.train import losses as L
-from vadgs.train.appearance import AppearanceConfig, AppearanceModel, correct_view, view_camera
-from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.appearance import AppearanceModel, correct_view, view_camera
+from vadgs.train.checkpoint import (
+    _FORMAT,
+    _VERSION,
+    CHECKPOINT_NAME,
+    RESUMABLE_CHANGES,
+    _atomic_save,
+    _remove_stale_tmp,
+    checkpoint_checksum,
+    load_checkpoint,
+)
+from vadgs.train.config import LearningRates, TrainConfig
+from vadgs.train.init import init_gaussians
 from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
 from vadgs.train.ops import make_optimizer
+from vadgs.train.run import clear_run, describe_run, open_scene
 from vadgs.train.sampler import ViewSampler
-from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, GeometryPriors, Strategy
-from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityDensifyConfig
+from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
+from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -84,10 +87,6 @@ __all__ = [
     "open_scene",
 ]
 
-CHECKPOINT_NAME = "checkpoint.pt"
-_FORMAT = "vadgs-train-checkpoint"
-_VERSION = 1
-
 
 class NonFiniteLossError(FloatingPointError):
     """A loss or parameter became NaN / infinite; ``step`` says when."""
@@ -103,181 +102,6 @@ class DivergenceError(FloatingPointError):
     def __init__(self, step: int, what: str) -> None:
         super().__init__(f"training diverged at step {step}: {what}")
         self.step = step
-
-
-@dataclass(frozen=True)
-class LearningRates:
-    """Adam learning rates (3DGS's).
-
-    ``means`` decays exponentially to ``means_final``; both are multiplied by the scene scale.
-    """
-
-    means: float = 1.6e-4
-    means_final: float = 1.6e-6
-    quats: float = 1e-3
-    log_scales: float = 5e-3
-    opacity_logits: float = 5e-2
-    sh_dc: float = 2.5e-3
-    sh_rest: float = 2.5e-3 / 20
-    sky: float = 1e-2
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything a run depends on.
-
-    Composed frozen dataclasses; JSON round trip with :meth:`to_dict` / :meth:`from_dict`.
-
-    Attributes:
-        iterations: optimisation steps (one view each).
-        seed: seeds the sampler, the split noise and torch.
-        init: :class:`~vadgs.train.init.InitConfig`.
-        strategy: :class:`~vadgs.train.strategy.DefaultStrategyConfig`.
-        raster: :class:`~vadgs.render.RasterConfig`.
-        lr: :class:`LearningRates`.
-        ssim_weight: λ of the colour loss.
-        sh_degree_interval: the active SH degree grows by one every this many steps.
-        lambda_lidar: weight of the relative L1 between the rendered depth and the view's own
-            LiDAR sweep projected into it (0 disables; the baseline's only geometric term).
-        lambda_normal, lambda_hard, lambda_soft, hard_until: the paper's geometric loss weights
-            (applied to priors: VAD-GS's, or a :class:`GeometryTargets` provider's).
-        hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
-            every ``hard_every``-th step only, to bound its cost (1: the paper's schedule).
-        vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
-            visibility-aware densification (extending ``strategy``); None: standard ADC only.
-            Stored in checkpoints: a resumed run continues with the same strategy.
-        appearance: :class:`~vadgs.train.appearance.AppearanceConfig` to learn a colour transform
-            per camera (and optionally per frame) applied to the render before the colour loss
-            (real rigs with differently exposed cameras); None (the default): no transform, no
-            extra parameters. The transforms have their own Adam and go into checkpoints.
-        device: where the model, images and losses live (``"cpu"``, ``"cuda"``, ``"cuda:1"``);
-            the scene and its visibility index stay on the CPU.
-        checkpoint_every: steps between checkpoints (0 = only at the end / on interruption).
-        checkpoint_minutes: also checkpoint when this much wall-clock time has passed since the
-            last checkpoint (0 = off). The end of the first sampling cycle always checkpoints.
-        log_every: steps between log lines in ``log.jsonl``.
-        max_minutes: stop (and checkpoint) after this much training time (0 = no limit).
-        threads: ``torch.set_num_threads`` while :meth:`Trainer.train` runs, restored afterwards
-            (0 = leave torch's count: all cores unless the caller set it).
-        diverge_distance, diverge_share: at step 1, every ``log_every`` steps and at the end of
-            each sampling cycle, training stops with
-            :class:`DivergenceError` when more than ``diverge_share`` of the static Gaussians are
-            farther than ``diverge_distance`` x the scene scale from the cameras' centre
-            (``diverge_distance`` 0 = off).
-        diverge_loss_factor: training stops with :class:`DivergenceError` when the running mean of
-            the colour loss exceeds this factor x its lowest value, after the first sampling cycle
-            (0 = off).
-    """
-
-    iterations: int = 3000
-    seed: int = 0
-    init: InitConfig = field(default_factory=InitConfig)
-    strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)
-    raster: RasterConfig = field(default_factory=RasterConfig)
-    lr: LearningRates = field(default_factory=LearningRates)
-    ssim_weight: float = 0.2
-    sh_degree_interval: int = 1000
-    lambda_lidar: float = 0.05
-    lambda_normal: float = 0.02
-    lambda_hard: float = 0.1
-    lambda_soft: float = 0.1
-    hard_until: float = 0.8
-    hard_every: int = 4
-    vad: VisibilityDensifyConfig | None = None
-    appearance: AppearanceConfig | None = None
-    device: str = "cpu"
-    checkpoint_every: int = 500
-    checkpoint_minutes: float = 5.0
-    log_every: int = 50
-    max_minutes: float = 0.0
-    threads: int = 0
-    diverge_distance: float = 100.0
-    diverge_share: float = 0.2
-    diverge_loss_factor: float = 10.0
-
-    def __post_init__(self) -> None:
-        if self.iterations < 0:
-            raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
-        if self.sh_degree_interval < 1 or self.log_every < 1 or self.hard_every < 1:
-            raise ValueError(
-                "sh_degree_interval, log_every, hard_every: expected >= 1, got "
-                f"{self.sh_degree_interval}, {self.log_every}, {self.hard_every}"
-            )
-        try:
-            torch.device(self.device)
-        except (RuntimeError, TypeError):
-            raise ValueError(
-                f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r}"
-            ) from None
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain nested dict (JSON-serialisable)."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
-        """Inverse of :meth:`to_dict`, type-checked (:func:`vadgs.config.config_from_dict`).
-
-        Raises:
-            ValueError: on an unknown key or a value of the wrong type, naming the field's path
-                (``config.strategy.refine_every: expected int, got str 'abc'``).
-
-        Example:
-            >>> c = TrainConfig(iterations=10)
-            >>> TrainConfig.from_dict(c.to_dict()) == c
-            True
-        """
-        from vadgs.config import config_from_dict
-
-        return config_from_dict(cls, d)
-
-    def replace(self, **changes: Any) -> TrainConfig:
-        """A copy with changes; nested fields as ``"init.max_points"``."""
-        flat = self.to_dict()
-        for k, v in changes.items():
-            parts = k.split(".")
-            target = flat
-            for p in parts[:-1]:
-                target = target[p]
-            if parts[-1] not in target:
-                raise ValueError(f"config: unknown field {k!r}")
-            target[parts[-1]] = v
-        return TrainConfig.from_dict(flat)
-
-
-def _from_dict(cls: type, d: Any, where: str) -> Any:
-    """Build a (nested) frozen config dataclass from a plain dict, naming bad or unknown keys."""
-    if not isinstance(d, dict):
-        raise ValueError(f"{where}: expected an object with keys of {cls.__name__}, got {d!r}")
-    known = {f.name for f in dataclasses.fields(cls)}
-    bad = set(d) - known
-    if bad:
-        raise ValueError(f"{where}: unknown keys {sorted(bad)}")
-    hints = typing.get_type_hints(cls)
-    kw: dict[str, Any] = {}
-    for k, v in d.items():
-        kw[k] = _from_value(hints[k], v, f"{where}.{k}")
-    try:
-        return cls(**kw)
-    except TypeError as e:
-        raise ValueError(f"{where}: {e}") from None
-
-
-def _from_value(tp: Any, v: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if v is None:
-            return None
-        return _from_value(args[0], v, where) if len(args) == 1 else v
-    if dataclasses.is_dataclass(tp):
-        return v if isinstance(v, tp) else _from_dict(tp, v, where)
-    if origin is tuple and isinstance(v, (list, tuple)):
-        args = typing.get_args(tp)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_from_value(args[0], x, where) for x in v)
-        return tuple(_from_value(a, x, where) for a, x in zip(args, v))
-    return v
 
 
 class TrainResult(NamedTuple):
@@ -300,216 +124,9 @@ class TrainResult(NamedTuple):
     num_gaussians: int
 
 
-def open_scene(ref: dict[str, Any]) -> Scene:
-    """Load the scene a run refers to: ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``.
-
-    ``dgp`` references may carry ``cameras`` and ``test_frames``. ``colmap`` references are the
-    recipe of :func:`vadgs.data.colmap.open_colmap_project`, reopened by
-    :func:`~vadgs.data.colmap.reopen_colmap_project`: ``path`` (the model used, the
-    undistorted copy in the run folder if the input was distorted), ``images``, ``test_every``
-    and ``transform`` (the normalising similarity, re-applied as recorded; None: COLMAP's frame).
-    """
-    from vadgs.data import load_dgp, load_scene, reopen_colmap_project
-
-    kind = ref.get("kind", "benchmark")
-    if kind == "colmap":
-        return reopen_colmap_project(ref).scene
-    if kind == "benchmark":
-        return load_scene(ref["path"], scale=float(ref.get("scale", 1.0)))
-    if kind == "dgp":
-        return load_dgp(
-            ref["path"],
-            cameras=ref.get("cameras"),
-            scale=float(ref.get("scale", 1.0)),
-            test_frames=tuple(ref.get("test_frames", ())),
-        )
-    raise ValueError(f"scene reference: unknown kind {kind!r}")
-
-
-def lidar_depth_map(scene: Scene, view: int) -> torch.Tensor:
-    """The view's own LiDAR sweep projected into it: ``(1, 1, H, W)`` nearest z per pixel, 0 elsewhere.
-
-    Example:
-        >>> from vadgs.data import load_scene, sample_scene_path
-        >>> scene = load_scene(sample_scene_path())
-        >>> d = lidar_depth_map(scene, 0)
-        >>> d.shape, bool((d > 0).any())
-        (torch.Size([1, 1, 144, 240]), True)
-    """
-    from vadgs.geometry.camera import project_points
-
-    v = scene.views[view]
-    cams = scene.cameras([view])
-    h, w = cams.image_size
-    pts = scene.lidar(v.frame).points
-    uv, z = project_points(pts[None], cams.K, cams.world_to_cam)
-    u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
-    ok = (z[0] > 0.1) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
-    flat = vv[ok] * w + u[ok]
-    depth = torch.full((h * w,), float("inf"))
-    depth.scatter_reduce_(0, flat, z[0][ok], reduce="amin")
-    depth[torch.isinf(depth)] = 0.0
-    return depth.reshape(1, 1, h, w)
-
-
 def _scene_scale(scene: Scene, views: list[int]) -> float:
     centres = torch.stack([scene.views[v].cam_to_world[:3, 3] for v in views])
     return float((centres - centres.mean(0)).norm(dim=-1).max() * 1.1) or 1.0
-
-
-def _hash_into(h: Any, obj: Any) -> None:
-    """Feed a nested checkpoint structure into a hash, deterministically (tensors by their bytes)."""
-    if isinstance(obj, torch.Tensor):
-        t = obj.detach().to("cpu").contiguous()
-        h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
-        if t.numel():
-            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
-    elif isinstance(obj, dict):
-        h.update(b"{")
-        for k in sorted(obj, key=repr):
-            h.update(repr(k).encode())
-            _hash_into(h, obj[k])
-        h.update(b"}")
-    elif isinstance(obj, (list, tuple)):
-        h.update(b"[")
-        for x in obj:
-            _hash_into(h, x)
-        h.update(b"]")
-    else:
-        h.update(repr(obj).encode())
-
-
-def checkpoint_checksum(ckpt: dict[str, Any]) -> str:
-    """SHA-256 of a checkpoint's content (every entry but ``checksum``; tensors by their bytes)."""
-    h = hashlib.sha256()
-    _hash_into(h, {k: v for k, v in ckpt.items() if k != "checksum"})
-    return h.hexdigest()
-
-
-def _atomic_save(obj: Any, path: Path) -> None:
-    """``torch.save`` to ``path.tmp``, fsync, rename; on failure the tmp is removed, ``path`` kept.
-
-    Raises:
-        OSError: naming ``path``, in one line (disk full: ``No space left on device``).
-    """
-    try:
-        atomic_write(path, lambda tmp: torch.save(obj, tmp))
-    except BaseException as e:
-        if not isinstance(e, Exception):
-            raise
-        kept = "the previous file is kept" if path.is_file() else "nothing was written"
-        if isinstance(e, OSError) and e.errno is not None:
-            code, why = e.errno, e.strerror or str(e)
-        else:  # torch's zip writer reports a full disk as RuntimeError("[enforce fail at ...")
-            free = shutil.disk_usage(path.parent).free
-            code = errno.ENOSPC if free < (1 << 20) else errno.EIO
-            why = os.strerror(code) if code == errno.ENOSPC else " ".join(str(e).split())[:200]
-        raise OSError(code, f"cannot write ({why}); {kept}", str(path)) from e
-
-
-def _remove_stale_tmp(folder: Path) -> list[Path]:
-    """Remove temporary files a killed run left behind (of checkpoints, JSON files and exports)."""
-    removed = remove_stale_tmp(folder, "ply")
-    # the names written before vadgs.io
-    for pattern in (CHECKPOINT_NAME + ".tmp", "ply/.*.partial.*"):
-        for p in folder.glob(pattern):
-            if p.is_file():
-                p.unlink(missing_ok=True)
-                removed.append(p)
-    return removed
-
-
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint written by :class:`Trainer` (``weights_only`` unpickling).
-
-    Raises:
-        FileNotFoundError: if it does not exist.
-        ValueError: if it is corrupt, truncated, modified (its SHA-256 checksum does not match) or
-            not a vadgs training checkpoint. A checkpoint without a checksum (older vadgs) loads
-            with a warning.
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT_NAME
-    if not path.is_file():
-        raise FileNotFoundError(f"no checkpoint at {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise ValueError(f"checkpoint {path} is corrupt or unreadable ({type(e).__name__}: {e})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != _FORMAT:
-        raise ValueError(f"checkpoint {path}: not a vadgs training checkpoint")
-    if int(ckpt.get("version", -1)) != _VERSION:
-        raise ValueError(f"checkpoint {path}: unsupported version {ckpt.get('version')}")
-    missing = [
-        k
-        for k in ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
-        if k not in ckpt
-    ]
-    if missing:
-        raise ValueError(f"checkpoint {path}: missing entries {missing}")
-    if "checksum" not in ckpt:
-        warnings.warn(
-            f"checkpoint {path}: no checksum (written by an older vadgs); its content is not verified",
-            stacklevel=2,
-        )
-    elif checkpoint_checksum(ckpt) != ckpt["checksum"]:
-        raise ValueError(f"checkpoint {path}: checksum mismatch: the file was modified or is corrupt")
-    return ckpt
-
-
-RESUMABLE_CHANGES = (
-    "iterations",
-    "max_minutes",
-    "device",
-    "threads",
-    "checkpoint_every",
-    "checkpoint_minutes",
-    "log_every",
-)
-"""The :class:`TrainConfig` fields :meth:`Trainer.from_checkpoint` can change (the others define the run)."""
-
-_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
-_RUN_DIRS = ("ply", "renders")
-
-
-def describe_run(folder: str | Path) -> str | None:
-    """What run a folder holds: ``"step S/N"`` (its checkpoint), ``"finished"``, or None.
-
-    A folder holds a run when it has a ``checkpoint.pt`` or a ``metrics.json``; a folder with only
-    the log of a run killed before its first checkpoint holds nothing that can be continued.
-    """
-    folder = Path(folder)
-    ck = folder / CHECKPOINT_NAME
-    if ck.is_file():
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                c = load_checkpoint(ck)
-            return f"step {int(c['step'])}/{int(c['config'].get('iterations', 0))}"
-        except (ValueError, OSError) as e:
-            return f"an unreadable checkpoint: {e}"
-    if (folder / "metrics.json").is_file():
-        return "finished, no checkpoint"
-    return None
-
-
-def clear_run(folder: str | Path) -> list[Path]:
-    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/)."""
-    folder = Path(folder)
-    removed = []
-    for name in _RUN_FILES:
-        p = folder / name
-        if p.is_file():
-            p.unlink()
-            removed.append(p)
-    for name in _RUN_DIRS:
-        p = folder / name
-        if p.is_dir():
-            shutil.rmtree(p)
-            removed.append(p)
-    removed += _remove_stale_tmp(folder)
-    return removed
 
 
 class Trainer:
@@ -540,6 +157,7 @@ class Trainer:
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
+        >>> from vadgs.train.init import InitConfig
         >>> scene = load_scene(sample_scene_path(), scale=0.25)
         >>> cfg = TrainConfig(iterations=2, init=InitConfig(voxel_size=1.0, max_points=500, sh_degree=0))
         >>> result = Trainer(scene, cfg, progress=False).train()

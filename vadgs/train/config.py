@@ -1,0 +1,162 @@
+"""The training run's settings: :class:`TrainConfig` and its :class:`LearningRates`.
+
+Frozen dataclasses, checked in ``__post_init__``, stored in every checkpoint
+(:meth:`TrainConfig.to_dict` / :meth:`TrainConfig.from_dict`, through
+:func:`vadgs.config.config_from_dict`); :class:`~vadgs.train.trainer.Trainer` runs them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from vadgs.render import RasterConfig
+from vadgs.train.appearance import AppearanceConfig
+from vadgs.train.init import InitConfig
+from vadgs.train.strategy import DefaultStrategyConfig
+from vadgs.train.vad import VisibilityDensifyConfig
+
+__all__ = ["LearningRates", "TrainConfig"]
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam learning rates (3DGS's).
+
+    ``means`` decays exponentially to ``means_final``; both are multiplied by the scene scale.
+    """
+
+    means: float = 1.6e-4
+    means_final: float = 1.6e-6
+    quats: float = 1e-3
+    log_scales: float = 5e-3
+    opacity_logits: float = 5e-2
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 2.5e-3 / 20
+    sky: float = 1e-2
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a run depends on.
+
+    Composed frozen dataclasses; JSON round trip with :meth:`to_dict` / :meth:`from_dict`.
+
+    Attributes:
+        iterations: optimisation steps (one view each).
+        seed: seeds the sampler, the split noise and torch.
+        init: :class:`~vadgs.train.init.InitConfig`.
+        strategy: :class:`~vadgs.train.strategy.DefaultStrategyConfig`.
+        raster: :class:`~vadgs.render.RasterConfig`.
+        lr: :class:`LearningRates`.
+        ssim_weight: λ of the colour loss.
+        sh_degree_interval: the active SH degree grows by one every this many steps.
+        lambda_lidar: weight of the relative L1 between the rendered depth and the view's own
+            LiDAR sweep projected into it (0 disables; the baseline's only geometric term).
+        lambda_normal, lambda_hard, lambda_soft, hard_until: the paper's geometric loss weights
+            (applied to priors: VAD-GS's, or a :class:`GeometryTargets` provider's).
+        hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
+            every ``hard_every``-th step only, to bound its cost (1: the paper's schedule).
+        vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
+            visibility-aware densification (extending ``strategy``); None: standard ADC only.
+            Stored in checkpoints: a resumed run continues with the same strategy.
+        appearance: :class:`~vadgs.train.appearance.AppearanceConfig` to learn a colour transform
+            per camera (and optionally per frame) applied to the render before the colour loss
+            (real rigs with differently exposed cameras); None (the default): no transform, no
+            extra parameters. The transforms have their own Adam and go into checkpoints.
+        device: where the model, images and losses live (``"cpu"``, ``"cuda"``, ``"cuda:1"``);
+            the scene and its visibility index stay on the CPU.
+        checkpoint_every: steps between checkpoints (0 = only at the end / on interruption).
+        checkpoint_minutes: also checkpoint when this much wall-clock time has passed since the
+            last checkpoint (0 = off). The end of the first sampling cycle always checkpoints.
+        log_every: steps between log lines in ``log.jsonl``.
+        max_minutes: stop (and checkpoint) after this much training time (0 = no limit).
+        threads: ``torch.set_num_threads`` while :meth:`Trainer.train` runs, restored afterwards
+            (0 = leave torch's count: all cores unless the caller set it).
+        diverge_distance, diverge_share: at step 1, every ``log_every`` steps and at the end of
+            each sampling cycle, training stops with
+            :class:`DivergenceError` when more than ``diverge_share`` of the static Gaussians are
+            farther than ``diverge_distance`` x the scene scale from the cameras' centre
+            (``diverge_distance`` 0 = off).
+        diverge_loss_factor: training stops with :class:`DivergenceError` when the running mean of
+            the colour loss exceeds this factor x its lowest value, after the first sampling cycle
+            (0 = off).
+    """
+
+    iterations: int = 3000
+    seed: int = 0
+    init: InitConfig = field(default_factory=InitConfig)
+    strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)
+    raster: RasterConfig = field(default_factory=RasterConfig)
+    lr: LearningRates = field(default_factory=LearningRates)
+    ssim_weight: float = 0.2
+    sh_degree_interval: int = 1000
+    lambda_lidar: float = 0.05
+    lambda_normal: float = 0.02
+    lambda_hard: float = 0.1
+    lambda_soft: float = 0.1
+    hard_until: float = 0.8
+    hard_every: int = 4
+    vad: VisibilityDensifyConfig | None = None
+    appearance: AppearanceConfig | None = None
+    device: str = "cpu"
+    checkpoint_every: int = 500
+    checkpoint_minutes: float = 5.0
+    log_every: int = 50
+    max_minutes: float = 0.0
+    threads: int = 0
+    diverge_distance: float = 100.0
+    diverge_share: float = 0.2
+    diverge_loss_factor: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0:
+            raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
+        if self.sh_degree_interval < 1 or self.log_every < 1 or self.hard_every < 1:
+            raise ValueError(
+                "sh_degree_interval, log_every, hard_every: expected >= 1, got "
+                f"{self.sh_degree_interval}, {self.log_every}, {self.hard_every}"
+            )
+        try:
+            torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(
+                f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r}"
+            ) from None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (JSON-serialisable)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        """Inverse of :meth:`to_dict`, type-checked (:func:`vadgs.config.config_from_dict`).
+
+        Raises:
+            ValueError: on an unknown key or a value of the wrong type, naming the field's path
+                (``config.strategy.refine_every: expected int, got str 'abc'``).
+
+        Example:
+            >>> c = TrainConfig(iterations=10)
+            >>> TrainConfig.from_dict(c.to_dict()) == c
+            True
+        """
+        from vadgs.config import config_from_dict
+
+        return config_from_dict(cls, d)
+
+    def replace(self, **changes: Any) -> TrainConfig:
+        """A copy with changes; nested fields as ``"init.max_points"``."""
+        flat = self.to_dict()
+        for k, v in changes.items():
+            parts = k.split(".")
+            target = flat
+            for p in parts[:-1]:
+                target = target[p]
+            if parts[-1] not in target:
+                raise ValueError(f"config: unknown field {k!r}")
+            target[parts[-1]] = v
+        return TrainConfig.from_dict(flat)

@@ -1,0 +1,87 @@
+"""A run folder and the scene it refers to: :func:`open_scene`, :func:`describe_run`, :func:`clear_run`.
+
+A run is a folder (``--out``) holding ``checkpoint.pt`` (:mod:`vadgs.train.checkpoint`),
+``log.jsonl``, ``config.json``, ``metrics.json`` and the exports; its checkpoint records the
+*scene reference* — ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}`` — that
+:func:`open_scene` reopens (``docs/design.md``, "A run").
+"""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+from pathlib import Path
+from typing import Any
+
+from vadgs.data.scene import Scene
+from vadgs.train.checkpoint import CHECKPOINT_NAME, _remove_stale_tmp, load_checkpoint
+
+__all__ = ["clear_run", "describe_run", "open_scene"]
+
+_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
+_RUN_DIRS = ("ply", "renders")
+
+
+def describe_run(folder: str | Path) -> str | None:
+    """What run a folder holds: ``"step S/N"`` (its checkpoint), ``"finished"``, or None.
+
+    A folder holds a run when it has a ``checkpoint.pt`` or a ``metrics.json``; a folder with only
+    the log of a run killed before its first checkpoint holds nothing that can be continued.
+    """
+    folder = Path(folder)
+    ck = folder / CHECKPOINT_NAME
+    if ck.is_file():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                c = load_checkpoint(ck)
+            return f"step {int(c['step'])}/{int(c['config'].get('iterations', 0))}"
+        except (ValueError, OSError) as e:
+            return f"an unreadable checkpoint: {e}"
+    if (folder / "metrics.json").is_file():
+        return "finished, no checkpoint"
+    return None
+
+
+def clear_run(folder: str | Path) -> list[Path]:
+    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/)."""
+    folder = Path(folder)
+    removed = []
+    for name in _RUN_FILES:
+        p = folder / name
+        if p.is_file():
+            p.unlink()
+            removed.append(p)
+    for name in _RUN_DIRS:
+        p = folder / name
+        if p.is_dir():
+            shutil.rmtree(p)
+            removed.append(p)
+    removed += _remove_stale_tmp(folder)
+    return removed
+
+
+def open_scene(ref: dict[str, Any]) -> Scene:
+    """Load the scene a run refers to: ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``.
+
+    ``dgp`` references may carry ``cameras`` and ``test_frames``. ``colmap`` references are the
+    recipe of :func:`vadgs.data.colmap.open_colmap_project`, reopened by
+    :func:`~vadgs.data.colmap.reopen_colmap_project`: ``path`` (the model used, the
+    undistorted copy in the run folder if the input was distorted), ``images``, ``test_every``
+    and ``transform`` (the normalising similarity, re-applied as recorded; None: COLMAP's frame).
+    """
+    from vadgs.data import load_dgp, load_scene, reopen_colmap_project
+
+    kind = ref.get("kind", "benchmark")
+    if kind == "colmap":
+        return reopen_colmap_project(ref).scene
+    if kind == "benchmark":
+        return load_scene(ref["path"], scale=float(ref.get("scale", 1.0)))
+    if kind == "dgp":
+        return load_dgp(
+            ref["path"],
+            cameras=ref.get("cameras"),
+            scale=float(ref.get("scale", 1.0)),
+            test_frames=tuple(ref.get("test_frames", ())),
+        )
+    raise ValueError(f"scene reference: unknown kind {kind!r}")
