@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from vadgs.io import write_json
+from vadgs.train.run import finish_run
 
 __all__ = [
     "COMMANDS",
@@ -361,35 +362,6 @@ def _open_colmap_scene(args: argparse.Namespace, out: Path) -> tuple[dict, objec
     return {"kind": "colmap", **recipe}, scene
 
 
-def _finish_run(trainer: object, out: Path, result: object, progress: bool) -> dict:
-    from vadgs.train.evaluate import evaluate
-    from vadgs.train.export import export_model
-
-    scene = trainer.scene
-    metrics: dict = {
-        "scene": scene.name,
-        "steps": result.step,
-        "completed": result.completed,
-        "train_s": round(result.train_s, 1),
-        "s_per_step": round(result.train_s / max(result.step, 1), 3),
-        "peak_rss_mb": round(result.peak_rss_mb, 1),
-        "num_gaussians": result.num_gaussians,
-        "gaussians_per_node": trainer.model.node_counts(),
-        "threads": torch.get_num_threads(),
-    }
-    if scene.test_views:
-        metrics["test"] = evaluate(
-            trainer.model,
-            scene,
-            config=trainer.config.raster,
-            progress=progress,
-            appearance=trainer.appearance,
-        ).to_dict()
-    export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
-    write_json(out / "metrics.json", metrics)
-    return metrics
-
-
 def _summary(metrics: dict) -> str:
     t = metrics.get("test")
     parts = [
@@ -546,10 +518,7 @@ def train(args: argparse.Namespace) -> int:
         print(f"stopped ({result.reason}) at step {result.step}; checkpoint {out / CHECKPOINT_NAME}; "
               f"continue with: vadgs train --out {out} --resume")  # fmt: skip
         return 130 if result.reason == "interrupted" else 0
-    metrics = _finish_run(trainer, out, result, progress)
-    if "vad_events" in trainer.state:
-        metrics["vad_events"] = trainer.state["vad_events"]
-        write_json(out / "metrics.json", metrics, default=str)
+    metrics = finish_run(trainer, out, result, progress)
     print(_summary(metrics))
     print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
     return 0
@@ -888,9 +857,7 @@ def demo(args: argparse.Namespace) -> int:
             slice(None), [max([*snapshots, snap], key=lambda x: x["added"])]
         )
     result = trainer.train()
-    metrics = _finish_run(trainer, out, result, not args.no_progress)
-    metrics["wall_s"] = round(time.perf_counter() - t0, 1)
-    write_json(out / "metrics.json", metrics)
+    metrics = finish_run(trainer, out, result, not args.no_progress, started=t0)
     view = scene.test_views[len(scene.test_views) // 2]
     r = render_test_view(trainer.model, scene, view, config.raster)
     gtd = scene.load_depths([view])[0, 0]
@@ -904,11 +871,6 @@ def demo(args: argparse.Namespace) -> int:
         columns=2,
     )  # fmt: skip
     if strategy is not None:
-        metrics["vad_events"] = [
-            {k: v for k, v in e.items() if k != "instances"} | {"instances": e["instances"]}
-            for e in trainer.state["vad_events"]
-        ]
-        write_json(out / "metrics.json", metrics, default=str)
         if snapshots:
             _completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)
             print(f"wrote {out / 'demo_completion.png'}")

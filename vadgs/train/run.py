@@ -9,14 +9,18 @@ A run is a folder (``--out``) holding ``checkpoint.pt`` (:mod:`vadgs.train.check
 from __future__ import annotations
 
 import shutil
+import time
 import warnings
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from vadgs.data.scene import Scene
+from vadgs.io import write_json
 from vadgs.train.checkpoint import CHECKPOINT_NAME, _remove_stale_tmp, load_checkpoint
 
-__all__ = ["clear_run", "describe_run", "open_scene"]
+__all__ = ["clear_run", "describe_run", "finish_run", "open_scene"]
 
 _RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
 _RUN_DIRS = ("ply", "renders")
@@ -85,3 +89,54 @@ def open_scene(ref: dict[str, Any]) -> Scene:
             test_frames=tuple(ref.get("test_frames", ())),
         )
     raise ValueError(f"scene reference: unknown kind {kind!r}")
+
+
+def finish_run(
+    trainer: Any, out: str | Path, result: Any, progress: bool = True, started: float | None = None
+) -> dict[str, Any]:
+    """Finish a trained run: evaluate the test views, export the PLYs, write ``metrics.json``.
+
+    Args:
+        trainer: the :class:`~vadgs.train.trainer.Trainer` that ran.
+        out: the run folder (``metrics.json`` and ``ply/`` go there).
+        result: its :class:`~vadgs.train.trainer.TrainResult`.
+        progress: progress bar of the evaluation.
+        started: a :func:`time.perf_counter` value: ``wall_s`` is the time since then, this
+            function included.
+
+    Returns:
+        The metrics written: steps, time, memory, Gaussians (per node), threads, ``test`` (the
+        :func:`~vadgs.train.evaluate.evaluate` metrics, when the scene has test views),
+        ``vad_events`` (VAD-GS runs), ``wall_s`` (with ``started``). Written once, atomically.
+    """
+    from vadgs.train.evaluate import evaluate
+    from vadgs.train.export import export_model
+
+    out = Path(out)
+    scene = trainer.scene
+    metrics: dict[str, Any] = {
+        "scene": scene.name,
+        "steps": result.step,
+        "completed": result.completed,
+        "train_s": round(result.train_s, 1),
+        "s_per_step": round(result.train_s / max(result.step, 1), 3),
+        "peak_rss_mb": round(result.peak_rss_mb, 1),
+        "num_gaussians": result.num_gaussians,
+        "gaussians_per_node": trainer.model.node_counts(),
+        "threads": torch.get_num_threads(),
+    }
+    if scene.test_views:
+        metrics["test"] = evaluate(
+            trainer.model,
+            scene,
+            config=trainer.config.raster,
+            progress=progress,
+            appearance=trainer.appearance,
+        ).to_dict()
+    export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
+    if "vad_events" in trainer.state:
+        metrics["vad_events"] = trainer.state["vad_events"]
+    if started is not None:
+        metrics["wall_s"] = round(time.perf_counter() - started, 1)
+    write_json(out / "metrics.json", metrics, default=str)
+    return metrics

@@ -1,0 +1,33 @@
+"""vadgs.train.run: a run folder's bookkeeping and its finish (evaluate, export, metrics.json once)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+
+from vadgs.io import TMP_GLOB
+from vadgs.train.run import clear_run, describe_run, finish_run
+from vadgs.train.trainer import Trainer
+
+
+def test_finish_run_writes_the_metrics_it_returns(tiny_scene, tiny_config, tmp_path):
+    config = dataclasses.replace(tiny_config, iterations=4, checkpoint_every=4)
+    trainer = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False)
+    result = trainer.train()
+    assert describe_run(tmp_path) == "step 4/4"
+    t0 = time.perf_counter()
+    metrics = finish_run(trainer, tmp_path, result, progress=False, started=t0)
+    on_disk = json.loads((tmp_path / "metrics.json").read_text())
+    assert on_disk == json.loads(json.dumps(metrics, default=str))
+    assert on_disk["steps"] == 4 and on_disk["num_gaussians"] == trainer.model.num_gaussians
+    assert 0 < on_disk["wall_s"] <= time.perf_counter() - t0 + 0.1
+    # the test views were evaluated: one entry per held-out view, a real PSNR
+    per_view = on_disk["test"]["per_view"]
+    assert [p["view"] for p in per_view] == tiny_scene.test_views and all(p["psnr"] > 5 for p in per_view)
+    assert sorted(p.name for p in (tmp_path / "ply").glob("*.ply"))  # the export
+    assert "vad_events" not in on_disk  # standard densification
+    assert list(tmp_path.glob(TMP_GLOB)) == []
+    removed = clear_run(tmp_path)
+    assert {p.name for p in removed} >= {"checkpoint.pt", "metrics.json", "ply"}
+    assert describe_run(tmp_path) is None
