@@ -20,8 +20,7 @@ import torch
 from kornia.metrics import psnr
 
 from vadgs.train.evaluate import render_test_view
-from vadgs.train.model import GaussianModel
-from vadgs.train.trainer import TrainConfig, load_checkpoint, open_scene
+from vadgs.train.run import load_run
 
 
 def best_affine(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -37,9 +36,8 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    ckpt = load_checkpoint(args.run)
-    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
-    scene, config = open_scene(ckpt["scene_ref"]), TrainConfig.from_dict(ckpt["config"])
+    run = load_run(args.run)
+    model, scene, config = run.model, run.scene, run.config
     raw, fitted = [], []
     for v in scene.test_views:
         render = render_test_view(model, scene, v, config.raster).color.clamp(0, 1)[0]

@@ -21,16 +21,13 @@ import torch
 
 from vadgs.geometry import project_points
 from vadgs.train.evaluate import render_test_view
-from vadgs.train.model import GaussianModel
-from vadgs.train.trainer import TrainConfig, load_checkpoint, open_scene
+from vadgs.train.run import load_run
 
 
 def sfm_depth_errors(run: Path) -> dict:
     """Median AbsRel and share within 5 % of the rendered depth at the test views' SfM observations."""
-    ckpt = load_checkpoint(run)
-    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
-    scene = open_scene(ckpt["scene_ref"])
-    raster = TrainConfig.from_dict(ckpt["config"]).raster
+    loaded = load_run(run)
+    model, scene, raster = loaded.model, loaded.scene, loaded.config.raster
     sfm = scene.sfm_points
     out, all_rel = {"per_view": []}, []
     for v in scene.test_views:

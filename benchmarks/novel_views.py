@@ -39,7 +39,7 @@ from vadgs.geometry import backproject_depth
 from vadgs.render import RasterConfig
 from vadgs.train.evaluate import evaluate_split, render_test_view
 from vadgs.train.model import GaussianModel
-from vadgs.train.trainer import TrainConfig, load_checkpoint
+from vadgs.train.run import load_run
 
 LABELS = {"baseline": "baseline", "vadgs": "VAD-GS"}
 REGIONS = (("all", "all"), ("sign", "sign"), ("upper_facade", "facade>5m"))
@@ -47,9 +47,8 @@ REGIONS = (("all", "all"), ("sign", "sign"), ("upper_facade", "facade>5m"))
 
 def load_variant(path: str | Path) -> tuple[GaussianModel, RasterConfig, int]:
     """The model of a checkpoint, its rasterizer settings and its step."""
-    ckpt = load_checkpoint(path)
-    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
-    return model, TrainConfig.from_dict(ckpt["config"]).raster, int(ckpt["step"])
+    run = load_run(path, open=False)
+    return run.model, run.config.raster, run.step
 
 
 def evaluate_views(model: GaussianModel, scene: Scene, raster: RasterConfig | None = None) -> dict[str, dict]:

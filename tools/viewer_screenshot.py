@@ -10,7 +10,7 @@ import socket
 
 import viser
 
-from vadgs.cli import _frame_arg, _load_run
+from vadgs.train.run import frame_position, load_run
 from vadgs.viewer import FILTERS, browser_screenshot, build_viewer
 
 
@@ -24,8 +24,9 @@ def main() -> None:
     ap.add_argument("--size", default="1280x800")
     ap.add_argument("--budget-ms", type=int, default=60000)
     args = ap.parse_args()
-    model, scene, _, _ = _load_run(args.run)
-    _, position = _frame_arg(scene, args.frame)
+    run = load_run(args.run)
+    model, scene = run.model, run.scene
+    _, position = frame_position(scene, args.frame, "--frame")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

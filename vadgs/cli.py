@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from vadgs.io import write_json
-from vadgs.train.run import finish_run
+from vadgs.train.run import finish_run, frame_position, load_run
 
 __all__ = [
     "COMMANDS",
@@ -609,26 +609,6 @@ def _train_args(p: argparse.ArgumentParser) -> None:
 train.add_arguments = _train_args  # type: ignore[attr-defined]
 
 
-def _load_run(run: str) -> tuple:
-    from vadgs.train.checkpoint import load_checkpoint
-    from vadgs.train.config import TrainConfig
-    from vadgs.train.model import GaussianModel
-    from vadgs.train.run import open_scene
-
-    ckpt = load_checkpoint(run)
-    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
-    return model, open_scene(ckpt["scene_ref"]), TrainConfig.from_dict(ckpt["config"]), ckpt
-
-
-def _load_appearance(ckpt: dict, config: object) -> object:
-    """The appearance model of a run's checkpoint (None when it trained without one)."""
-    from vadgs.train.appearance import AppearanceModel
-
-    if config.appearance is None or "appearance" not in ckpt:
-        return None
-    return AppearanceModel.from_state_dict(ckpt["appearance"]["model"], config.appearance.centered)
-
-
 def eval_run(args: argparse.Namespace) -> int:
     """Evaluate a run's checkpoint on the test split or the novel views (PSNR, PSNR*, SSIM, depth, #G).
 
@@ -637,16 +617,16 @@ def eval_run(args: argparse.Namespace) -> int:
     """
     from vadgs.train.evaluate import evaluate_split
 
-    model, scene, config, ckpt = _load_run(args.run)
+    run = load_run(args.run)
     groups = evaluate_split(
-        model,
-        scene,
+        run.model,
+        run.scene,
         args.split,
-        config=config.raster,
+        config=run.config.raster,
         progress=not args.no_progress,
-        appearance=_load_appearance(ckpt, config),
+        appearance=run.appearance,
     )
-    step = int(ckpt["step"])
+    step = run.step
     if args.split == "test":
         m = groups["test"].to_dict()
         m["step"] = step
@@ -688,7 +668,8 @@ def render_run(args: argparse.Namespace) -> int:
     (``shift:METRES``, + = left; ``shift:X,Y,Z``), colour | depth | normals side by side, moving
     cars at their poses (interpolated between frames with ``--frames-between``).
     """
-    model, scene, config, ckpt = _load_run(args.run)
+    run = load_run(args.run)
+    model, scene, config = run.model, run.scene, run.config
     if args.video:
         from vadgs.train.video import ego_trajectory, parse_trajectory, render_video
 
@@ -705,9 +686,7 @@ def render_run(args: argparse.Namespace) -> int:
 
     views = args.views if args.views else None
     out = _check_out_dir(args.out if args.out else _run_dir(args.run) / "renders")
-    paths = save_test_panels(
-        model, scene, out, views, config.raster, not args.no_progress, _load_appearance(ckpt, config)
-    )
+    paths = save_test_panels(model, scene, out, views, config.raster, not args.no_progress, run.appearance)
     print(f"wrote {len(paths)} panels to {out}")
     return 0
 
@@ -736,15 +715,6 @@ def _render_args(p: argparse.ArgumentParser) -> None:
 render_run.add_arguments = _render_args  # type: ignore[attr-defined]
 
 
-def _frame_arg(scene: object, frame: int | None) -> tuple[int, int]:
-    """``--frame``: a frame index of the scene (None: its first) → ``(index, position)``."""
-    indices = [f.index for f in scene.frames]
-    index = indices[0] if frame is None else frame
-    if index not in indices:
-        raise ValueError(f"--frame: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {index}")
-    return index, indices.index(index)
-
-
 def export_run(args: argparse.Namespace) -> int:
     """Export the world at one frame as one viewer-ready 3DGS PLY (cars posed, SH rotated) and the sky map.
 
@@ -754,10 +724,11 @@ def export_run(args: argparse.Namespace) -> int:
     """
     from vadgs.train.export import export_world
 
-    model, scene, _, ckpt = _load_run(args.run)
-    frame, _ = _frame_arg(scene, args.frame)
+    run = load_run(args.run)
+    model, scene = run.model, run.scene
+    frame, _ = frame_position(scene, args.frame, "--frame")
     out = Path(args.out) if args.out else _run_dir(args.run) / "export" / f"frame{frame:03d}"
-    res = export_world(model, scene, frame, out, inria=args.inria, iteration=int(ckpt["step"]))
+    res = export_world(model, scene, frame, out, inria=args.inria, iteration=run.step)
     print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
     return 0
 
@@ -787,8 +758,9 @@ def view_run(args: argparse.Namespace) -> int:
         raise ImportError("vadgs view needs viser: pip install 'vadgs[viewer]'") from None
     from vadgs.viewer import build_viewer
 
-    model, scene, _, _ = _load_run(args.run)
-    _, position = _frame_arg(scene, args.frame)
+    run = load_run(args.run)
+    model, scene = run.model, run.scene
+    _, position = frame_position(scene, args.frame, "--frame")
     server = viser.ViserServer(host=args.host, port=args.port, verbose=False)
     try:
         viewer = build_viewer(model, scene, server, position, max_gaussians=args.max_gaussians)

@@ -31,3 +31,26 @@ def test_finish_run_writes_the_metrics_it_returns(tiny_scene, tiny_config, tmp_p
     removed = clear_run(tmp_path)
     assert {p.name for p in removed} >= {"checkpoint.pt", "metrics.json", "ply"}
     assert describe_run(tmp_path) is None
+
+
+def test_load_run_gives_back_the_trained_model(tiny_scene, tiny_config, tmp_path):
+    import pytest
+    import torch
+
+    from vadgs.train.run import frame_position, load_run
+
+    config = dataclasses.replace(tiny_config, iterations=3, checkpoint_every=3)
+    ref = {"kind": "benchmark", "path": str(tiny_scene.root), "scale": 0.25}
+    trainer = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False, scene_ref=ref)
+    trainer.train()
+    run = load_run(tmp_path)
+    assert run.step == 3 and run.config == config and run.appearance is None
+    for k, v in trainer.model.params.items():
+        assert torch.equal(run.model.params[k], v), k
+    assert run.scene.name == tiny_scene.name and run.scene.num_views == tiny_scene.num_views
+    assert load_run(tmp_path / "checkpoint.pt", open=False).scene is None
+    first = tiny_scene.frames[0].index
+    assert frame_position(run.scene, None) == (first, 0)
+    assert frame_position(run.scene, tiny_scene.frames[2].index) == (tiny_scene.frames[2].index, 2)
+    with pytest.raises(ValueError, match=r"--frame: scene .* has frames .*, got 999"):
+        frame_position(run.scene, 999, "--frame")

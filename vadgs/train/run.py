@@ -12,7 +12,7 @@ import shutil
 import time
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -20,7 +20,7 @@ from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.train.checkpoint import CHECKPOINT_NAME, _remove_stale_tmp, load_checkpoint
 
-__all__ = ["clear_run", "describe_run", "finish_run", "open_scene"]
+__all__ = ["Run", "clear_run", "describe_run", "finish_run", "frame_position", "load_run", "open_scene"]
 
 _RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
 _RUN_DIRS = ("ply", "renders")
@@ -140,3 +140,60 @@ def finish_run(
         metrics["wall_s"] = round(time.perf_counter() - started, 1)
     write_json(out / "metrics.json", metrics, default=str)
     return metrics
+
+
+class Run(NamedTuple):
+    """A trained run, as :func:`load_run` reads it from its checkpoint.
+
+    Attributes:
+        model: the :class:`~vadgs.train.model.GaussianModel`.
+        scene: the scene it refers to, reopened (None with ``open=False``).
+        config: its :class:`~vadgs.train.config.TrainConfig`.
+        appearance: its :class:`~vadgs.train.appearance.AppearanceModel`, or None.
+        step: steps trained.
+        checkpoint: the checkpoint dict (:func:`~vadgs.train.checkpoint.load_checkpoint`).
+    """
+
+    model: Any
+    scene: Scene | None
+    config: Any
+    appearance: Any
+    step: int
+    checkpoint: dict[str, Any]
+
+
+def load_run(path: str | Path, open: bool = True) -> Run:
+    """Read a run folder (or its ``checkpoint.pt``): the model, its scene, config and appearance.
+
+    Args:
+        path: the run folder or its checkpoint.
+        open: reopen the scene of its scene reference (:func:`open_scene`).
+
+    Raises:
+        FileNotFoundError, ValueError: from :func:`~vadgs.train.checkpoint.load_checkpoint`.
+    """
+    from vadgs.train.appearance import AppearanceModel
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.model import GaussianModel
+
+    ckpt = load_checkpoint(path)
+    config = TrainConfig.from_dict(ckpt["config"])
+    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
+    appearance = None
+    if config.appearance is not None and "appearance" in ckpt:
+        appearance = AppearanceModel.from_state_dict(ckpt["appearance"]["model"], config.appearance.centered)
+    scene = open_scene(ckpt["scene_ref"]) if open else None
+    return Run(model, scene, config, appearance, int(ckpt["step"]), ckpt)
+
+
+def frame_position(scene: Scene, frame: int | None, name: str = "frame") -> tuple[int, int]:
+    """A frame index of the scene (None: its first) → ``(index, position)`` in ``scene.frames``.
+
+    Raises:
+        ValueError: naming ``name`` (e.g. ``"--frame"``), the scene's frames and the value.
+    """
+    indices = [f.index for f in scene.frames]
+    index = indices[0] if frame is None else frame
+    if index not in indices:
+        raise ValueError(f"{name}: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {index}")
+    return index, indices.index(index)
