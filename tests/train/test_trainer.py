@@ -175,3 +175,46 @@ class TestTrainer:
             TrainConfig.from_dict({"bogus": 1})
         with pytest.raises(ValueError, match="unknown"):
             TrainConfig().replace(**{"init.bogus": 1})
+
+
+class TestHardDepth:
+    def test_stride_one_is_the_opaque_render(self, tiny_scene, tiny_config):
+        tr = Trainer(tiny_scene, tiny_config, progress=False)
+        v = tr.train_views[0]
+        with torch.no_grad():
+            full = tr.render_view(v, opacity_override=1.0).raster.depth
+            assert torch.equal(tr.render_hard_depth(v), full)
+
+    def test_strided_render_is_the_full_render_at_those_pixels(self, tiny_scene, tiny_config):
+        tr = Trainer(tiny_scene, dataclasses.replace(tiny_config, hard_stride=2), progress=False)
+        v = tr.train_views[0]
+        with torch.no_grad():
+            full = tr.render_view(v, opacity_override=1.0).raster.depth
+            half = tr.render_hard_depth(v)
+        h, w = full.shape[-2:]
+        assert half.shape[-2:] == ((h + 1) // 2, (w + 1) // 2)
+        sub = full[..., ::2, ::2]
+        both = (sub > 0) & (half > 0)
+        assert both.float().mean() > 0.5
+        rel = ((half - sub).abs() / sub)[both]
+        # the same surfaces at the same pixels (only the footprints' pixel blur differs)
+        assert rel.median() < 0.02, float(rel.median())
+
+    def test_loss_compares_the_targets_at_the_strided_pixels(self):
+        from vadgs.train import losses as L
+
+        target = torch.arange(1.0, 1.0 + 5 * 7).reshape(1, 1, 5, 7)
+        t = L.GeometryTargets(depth=target)
+        w = L.geometric_weights(0, 10)
+        hard = target[..., ::2, ::2].clone()
+        d = torch.zeros(1, 1, 5, 7)
+        terms = L.geometric_losses(t, d, torch.zeros(1, 3, 5, 7), w, hard, hard_stride=2)
+        assert float(terms["hard"]) == 0.0
+        terms = L.geometric_losses(t, d, torch.zeros(1, 3, 5, 7), w, hard * 2, hard_stride=2)
+        assert float(terms["hard"]) > 0
+        with pytest.raises(ValueError, match="hard_depth: expected spatial size"):
+            L.geometric_losses(t, d, torch.zeros(1, 3, 5, 7), w, hard, hard_stride=1)
+
+    def test_bad_stride(self):
+        with pytest.raises(ValueError, match="hard_stride"):
+            TrainConfig(hard_stride=0)

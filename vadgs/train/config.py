@@ -60,6 +60,9 @@ class TrainConfig:
             (applied to priors: VAD-GS's, or a :class:`GeometryTargets` provider's).
         hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
             every ``hard_every``-th step only, to bound its cost (1: the paper's schedule).
+        hard_stride: the hard depth is rendered on every ``hard_stride``-th pixel row and column
+            (a camera with ``fx, fy, cx, cy`` divided by it) and compared with the target depth
+            there, to bound its cost further (1: every pixel).
         vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
             visibility-aware densification (extending ``strategy``); None: standard ADC only.
             Stored in checkpoints: a resumed run continues with the same strategy.
@@ -100,6 +103,7 @@ class TrainConfig:
     lambda_soft: float = 0.1
     hard_until: float = 0.8
     hard_every: int = 4
+    hard_stride: int = 1
     vad: VisibilityDensifyConfig | None = None
     appearance: AppearanceConfig | None = None
     device: str = "cpu"
@@ -115,10 +119,10 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.iterations < 0:
             raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
-        if self.sh_degree_interval < 1 or self.log_every < 1 or self.hard_every < 1:
+        if min(self.sh_degree_interval, self.log_every, self.hard_every, self.hard_stride) < 1:
             raise ValueError(
-                "sh_degree_interval, log_every, hard_every: expected >= 1, got "
-                f"{self.sh_degree_interval}, {self.log_every}, {self.hard_every}"
+                "sh_degree_interval, log_every, hard_every, hard_stride: expected >= 1, got "
+                f"{self.sh_degree_interval}, {self.log_every}, {self.hard_every}, {self.hard_stride}"
             )
         try:
             torch.device(self.device)

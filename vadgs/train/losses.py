@@ -230,6 +230,7 @@ def geometric_losses(
     normals: torch.Tensor,
     weights: dict[str, float],
     hard_depth: torch.Tensor | None = None,
+    hard_stride: int = 1,
 ) -> dict[str, torch.Tensor]:
     r"""The paper's geometric loss terms of one view, already weighted: ``soft``, ``hard``, ``normal``.
 
@@ -244,7 +245,10 @@ def geometric_losses(
         depth: ``(1, 1, H, W)`` rendered expected depth.
         normals: ``(1, 3, H, W)`` rendered camera-frame normals.
         weights: ``{"normal", "hard", "soft"}`` (:func:`geometric_weights`).
-        hard_depth: ``(1, 1, H, W)`` or None.
+        hard_depth: ``(1, 1, H, W)`` or None; with ``hard_stride`` s, ``(1, 1, ceil(H / s),
+            ceil(W / s))``: the depth at every s-th pixel row and column, compared with the
+            targets there.
+        hard_stride: the stride of ``hard_depth``.
 
     Returns:
         ``{name: scalar}``.
@@ -261,7 +265,16 @@ def geometric_losses(
         if weights["soft"] > 0:
             terms["soft"] = weights["soft"] * depth_loss_soft(depth, targets.depth, targets.mask)
         if hard_depth is not None and weights["hard"] > 0:
-            terms["hard"] = weights["hard"] * depth_loss_hard(hard_depth, targets.depth, targets.mask)
+            target, mask = targets.depth, targets.mask
+            if hard_stride > 1:
+                target = target[..., ::hard_stride, ::hard_stride]
+                mask = None if mask is None else mask[..., ::hard_stride, ::hard_stride]
+            if hard_depth.shape[-2:] != target.shape[-2:]:
+                raise ValueError(
+                    f"hard_depth: expected spatial size {tuple(target.shape[-2:])} (stride {hard_stride}), "
+                    f"got {tuple(hard_depth.shape[-2:])}"
+                )
+            terms["hard"] = weights["hard"] * depth_loss_hard(hard_depth, target, mask)
     if targets.normal is not None and weights["normal"] > 0:
         terms["normal"] = weights["normal"] * normal_loss(normals, targets.normal, targets.mask)
     return terms

@@ -419,6 +419,27 @@ class Trainer:
             **kwargs,
         )
 
+    def render_hard_depth(self, view: int) -> torch.Tensor:
+        """The depth ``(1, 1, ceil(H / s), ceil(W / s))`` of a view with every opacity fixed to 1.
+
+        Rendered on every ``s = config.hard_stride``-th pixel row and column (pixel ``(s i, s j)``
+        of the view is pixel ``(i, j)`` here); the paper's hard depth loss compares it with the
+        target depth at those pixels.
+        """
+        s = self.config.hard_stride
+        cams = self.scene.cameras([view])
+        K = cams.K.clone()
+        K[:, :2] /= s
+        h, w = cams.image_size
+        return self.model.render(
+            cams.world_to_cam.to(self.device),
+            K.to(self.device),
+            (-(-h // s), -(-w // s)),
+            self.scene.view_frame_position(view),
+            self.config.raster,
+            opacity_override=1.0,
+        ).raster.depth
+
     @torch.no_grad()
     def render_geometry(self, view: int) -> ViewRender:
         """Depth, opacity and normals of a view, without gradient (a strategy's ``render``)."""
@@ -464,8 +485,10 @@ class Trainer:
             )
             hard = None
             if w["hard"] > 0 and targets.depth is not None and step % cfg.hard_every == 0:
-                hard = self.render_view(view, opacity_override=1.0).raster.depth
-            terms.update(L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard))
+                hard = self.render_hard_depth(view)
+            terms.update(
+                L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, cfg.hard_stride)
+            )
         if self.extra_losses is not None:
             terms.update(self.extra_losses(step, out, view))
         return terms
