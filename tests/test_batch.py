@@ -24,6 +24,7 @@ from vadgs.batch import (
 )
 from vadgs.cli import main
 from vadgs.data import sample_scene_path
+from vadgs.train.config import TrainConfig
 
 # the bundled sample at 60x36, about 4k Gaussians, 60 steps (~30 ms each), a checkpoint every 10
 TINY = {
@@ -38,7 +39,7 @@ TINY = {
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
-    """Two copies of the sample (seg_a, seg_b), a corrupt scene, and the tiny config's arguments."""
+    """Two copies of the sample (seg_a, seg_b), a corrupt scene, and the tiny config's train arguments."""
     root = tmp_path_factory.mktemp("scenes")
     for name in ("seg_a", "seg_b"):
         shutil.copytree(sample_scene_path(), root / name)
@@ -75,12 +76,39 @@ class TestRunNames:
             run_names([tmp_path / "a", tmp_path / "." / "a"], tmp_path)
 
 
+def _tiny(**changes) -> BatchConfig:
+    """The batch configuration ``--train-args`` of the ``scenes`` fixture give."""
+    return BatchConfig(train=TrainConfig.from_dict(TINY), scene_options={"scale": 0.25}, **changes)
+
+
 class TestBatchConfig:
     def test_exception(self):
         with pytest.raises(ValueError, match="cpus_per_scene"):
             BatchConfig(cpus_per_scene=-1)
         with pytest.raises(ValueError, match="max_retries"):
             BatchConfig(max_retries=-1)
+        with pytest.raises(TypeError, match="train: expected a TrainConfig or None, got tuple"):
+            BatchConfig(train=("--vad",))
+
+    def test_train_args_are_parsed_in_the_driver(self, scenes, tmp_path, capsys):
+        root, train_args = scenes
+        from vadgs.cli import _batch_train
+
+        config, kind, options = _batch_train(" ".join(train_args) + " --vad --dgp --cameras a,b")
+        assert config == TrainConfig.from_dict({**TINY, "vad": {}})
+        assert (kind, options) == ("dgp", {"scale": 0.25, "cameras": ["a", "b"]})
+        # a bad argument fails the whole batch at once, before Ray starts, in one line
+        argv = ["batch", str(root / "seg_a"), "--out", str(tmp_path / "b")]
+        for bad, says in (
+            ("--bogus", "unrecognized arguments: --bogus"),
+            ("--iterations x", "argument --iterations: expected an integer >= 0, got 'x'"),
+            ("--resume", "--resume is not for a batch"),
+            ("--set lr.means=fast", "lr.means"),
+        ):
+            assert main([*argv, f"--train-args={bad}"]) == 2, bad
+            err = capsys.readouterr().err.strip()
+            assert says in err and "\n" not in err, err
+        assert not (tmp_path / "b").exists()
 
     def test_threads(self):
         assert BatchConfig().torch_threads == 1
@@ -90,16 +118,17 @@ class TestBatchConfig:
 
 class TestRunScene:
     def test_bad_scene_is_reported_not_raised(self, scenes, tmp_path):
-        root, train_args = scenes
-        threads = torch.get_num_threads()  # run_scene sets the process's torch threads
-        r = run_scene(root / "seg_bad", tmp_path / "run", train_args, submission="s1")
+        root, _ = scenes
+        threads = torch.get_num_threads()
+        train = TrainConfig.from_dict(TINY)
+        r = run_scene(root / "seg_bad", tmp_path / "run", train, threads=1, submission="s1")
         assert r.status == "failed" and "not valid JSON" in r.error and "\n" not in r.error
         assert r.retries == 0
-        r = run_scene(root / "seg_bad", tmp_path / "run", train_args, submission="s1")
+        assert torch.get_num_threads() == threads  # restored
+        r = run_scene(root / "seg_bad", tmp_path / "run", train, submission="s1")
         assert r.retries == 1  # a second attempt of the same submission
-        r = run_scene(root / "seg_bad", tmp_path / "run", ["--bogus"], submission="s2")
-        assert r.status == "failed" and "unrecognized arguments" in r.error and r.retries == 0
-        torch.set_num_threads(threads)
+        r = run_scene(root / "seg_a", tmp_path / "run2", train, submission="s2", scene_options={"bogus": 1})
+        assert r.status == "failed" and "['bogus']: not options of a benchmark scene" in r.error
 
     def test_finished_run_is_skipped(self, tmp_path):
         run = tmp_path / "run"
@@ -169,15 +198,13 @@ def _kill_after_first_checkpoint(run: Path, killed: dict, sig: int = signal.SIGK
 @pytest.fixture(scope="module")
 def batch(local_ray, scenes, tmp_path_factory):
     """seg_a, seg_b (same data, same config) and seg_bad; seg_a's worker is killed mid-run."""
-    root, train_args = scenes
+    root, _ = scenes
     out = tmp_path_factory.mktemp("batch")
     killed: dict = {}
     killer = threading.Thread(target=_kill_after_first_checkpoint, args=(out / "seg_a", killed))
     killer.start()
     t0 = time.perf_counter()
-    summary = run_batch(
-        [root / "seg_a", root / "seg_b", root / "seg_bad"], out, BatchConfig(train_args=train_args)
-    )
+    summary = run_batch([root / "seg_a", root / "seg_b", root / "seg_bad"], out, _tiny())
     wall = time.perf_counter() - t0
     killer.join()
     return summary, out, killed, wall
@@ -249,12 +276,12 @@ class TestRunBatch:
         assert summary["scenes"][0]["psnr"] == _row(batch[0], "seg_a").psnr
 
     def test_sigterm_checkpoints_and_is_retried(self, batch, scenes, tmp_path):
-        root, train_args = scenes
+        root, _ = scenes
         killed: dict = {}
         args = (tmp_path / "seg_a", killed, signal.SIGTERM)
         killer = threading.Thread(target=_kill_after_first_checkpoint, args=args)
         killer.start()
-        summary = run_batch([root / "seg_a"], tmp_path, BatchConfig(train_args=train_args, progress=False))
+        summary = run_batch([root / "seg_a"], tmp_path, _tiny(progress=False))
         killer.join()
         assert "pid" in killed and not killed["done"]
         # the trainer checkpointed at the signal, the task raised RunInterrupted, Ray retried it

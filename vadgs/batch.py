@@ -1,13 +1,14 @@
 """Batch reconstruction of many scenes on Ray, fault-tolerant through exact resume.
 
-:func:`run_batch` runs one Ray task per scene; each task is a ``vadgs train`` (:func:`run_scene`)
-in its own run folder ``out_dir/<name>``. A task whose worker dies (killed, out of memory, node
-lost) is retried by Ray (``BatchConfig.max_retries``) and continues from the run's last checkpoint
-with ``vadgs train --resume``, which is exact: the retried run ends with the same parameters and
-metrics as an uninterrupted one. A run whose ``metrics.json`` says ``"completed": true`` is skipped,
-so re-submitting a batch only computes what is missing. A scene that fails with an error (a bad
-folder, a corrupt checkpoint, NaNs) is not retried: its error goes into the summary and the other
-scenes go on.
+:func:`run_batch` runs one Ray task per scene; each task is a
+:func:`vadgs.train.run.train_scene` (:func:`run_scene`) in its own run folder ``out_dir/<name>``,
+with the batch's :class:`~vadgs.train.config.TrainConfig`. A task whose worker dies (killed, out of
+memory, node lost) is retried by Ray (``BatchConfig.max_retries``) and continues from the run's
+last checkpoint (``train_scene(..., resume=True)``), which is exact: the retried run ends with the
+same parameters and metrics as an uninterrupted one. A run whose ``metrics.json`` says
+``"completed": true`` is skipped, so re-submitting a batch only computes what is missing. A scene
+that fails with an error (a bad folder, a corrupt checkpoint, NaNs) is not retried: its error goes
+into the summary and the other scenes go on.
 
 The summary (``out_dir/summary.json`` and ``out_dir/summary.md``: scene, PSNR, PSNR*, SSIM, depth
 AbsRel, Gaussians, training seconds, retries) is rewritten atomically each time a run ends.
@@ -22,20 +23,21 @@ Ray is an optional dependency (``pip install vadgs[ray]``); only :func:`run_batc
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
 import re
 import socket
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from vadgs.io import atomic_write
+from vadgs.train.config import TrainConfig
 
 __all__ = [
     "BatchConfig",
@@ -72,8 +74,11 @@ class BatchConfig:
         threads: torch threads of each run (0 = ``cpus_per_scene``, at least 1).
         max_retries: Ray retries of a task whose worker or node died (system failures); each
             retry resumes from the checkpoint. Application errors are never retried.
-        train_args: extra ``vadgs train`` arguments for every scene (e.g. ``("--vad",
-            "--iterations", "3000")``); used when a run starts, a resumed run keeps its own config.
+        train: the :class:`~vadgs.train.config.TrainConfig` of every scene (None: the defaults);
+            used when a run starts, a resumed run keeps its own.
+        scene_kind: the kind of every scene (``"benchmark"``, ``"dgp"``, ``"colmap"``; None:
+            found per folder, :func:`vadgs.train.run.scene_ref`).
+        scene_options: the options of every scene's reference (``scale``, ``cameras``, ...).
         runtime_env: Ray runtime environment passed to ``ray.init`` when this call starts Ray.
         progress: print a line each time a run ends.
     """
@@ -83,7 +88,9 @@ class BatchConfig:
     gpus_per_scene: float = 0.0
     threads: int = 0
     max_retries: int = 3
-    train_args: tuple[str, ...] = ()
+    train: TrainConfig | None = None
+    scene_kind: str | None = None
+    scene_options: dict[str, Any] = field(default_factory=dict, hash=False)
     runtime_env: dict[str, Any] | None = field(default=None, hash=False)
     progress: bool = True
 
@@ -95,7 +102,8 @@ class BatchConfig:
             )
         if self.max_retries < 0 or self.threads < 0:
             raise ValueError(f"max_retries / threads: expected >= 0, got {self.max_retries} / {self.threads}")
-        object.__setattr__(self, "train_args", tuple(str(a) for a in self.train_args))
+        if self.train is not None and not isinstance(self.train, TrainConfig):
+            raise TypeError(f"train: expected a TrainConfig or None, got {type(self.train).__name__}")
 
     @property
     def torch_threads(self) -> int:
@@ -304,58 +312,41 @@ def _one_line(text: str) -> str:
 # one scene (the body of a Ray task; plain Python)
 
 
-class _Tee:
-    """Write-through text stream that keeps the last lines written (to report errors)."""
-
-    def __init__(self, stream: Any) -> None:
-        self.stream = stream
-        self.text = ""
-
-    def write(self, s: str) -> int:
-        self.text = (self.text + s)[-4000:]
-        return self.stream.write(s) if self.stream is not None else len(s)
-
-    def flush(self) -> None:
-        if self.stream is not None:
-            self.stream.flush()
-
-    def error_line(self) -> str:
-        lines = [ln for ln in self.text.splitlines() if "error:" in ln]
-        return _one_line(lines[-1] if lines else self.text)
-
-
 def run_scene(
     scene: str | Path,
     run_dir: str | Path,
-    train_args: Sequence[str] = (),
+    config: TrainConfig | None = None,
     threads: int = 1,
     submission: str = "",
+    scene_kind: str | None = None,
+    scene_options: dict[str, Any] | None = None,
 ) -> SceneResult:
-    """Train one scene into ``run_dir`` with ``vadgs train``: start, resume, or skip.
+    """Train one scene into ``run_dir`` (:func:`vadgs.train.run.train_scene`): start, resume, or skip.
 
-    The run is skipped when ``run_dir/metrics.json`` says ``"completed": true``; it is continued
-    with ``--resume`` when ``run_dir/checkpoint.pt`` exists (the stored configuration wins over
-    ``train_args``); otherwise it starts with ``train_args``. Each call records its attempt, the
-    process id and the host in ``run_dir/batch_task.json`` (attempts are counted per
-    ``submission``).
+    The run is skipped when ``run_dir/metrics.json`` says ``"completed": true``; it is resumed
+    when ``run_dir/checkpoint.pt`` exists (the stored configuration wins over ``config``);
+    otherwise it starts with ``config``. Each call records its attempt, the process id and the
+    host in ``run_dir/batch_task.json`` (attempts are counted per ``submission``).
 
     Args:
         scene: the scene folder.
         run_dir: the run folder.
-        train_args: extra ``vadgs train`` arguments for a new run.
+        config: the :class:`~vadgs.train.config.TrainConfig` of a new run (None: the defaults).
         threads: torch threads.
         submission: an id of the batch submission (attempts are counted per submission).
+        scene_kind: the scene's kind (:func:`vadgs.train.run.scene_ref`; None: found).
+        scene_options: the options of its reference (``scale``, ...).
 
     Returns:
         The :class:`SceneResult` (status ``done``, ``skipped``, ``stopped`` or ``failed``); errors
-        of the run are reported in it, not raised.
+        of the run are reported in it, as one line, not raised.
 
     Raises:
         RunInterrupted: when SIGINT / SIGTERM stopped the run (after a checkpoint), so that Ray
             retries it.
     """
-    from vadgs.cli import main
     from vadgs.train.checkpoint import CHECKPOINT_NAME
+    from vadgs.train.run import scene_ref, train_scene
 
     run = Path(run_dir)
     base = SceneResult(scene=str(scene), name=run.name, run=str(run))
@@ -378,23 +369,21 @@ def run_scene(
         ),
     )
     base = replace(base, retries=attempt - 1)
-    argv = ["--threads", str(threads), "train"]
-    if (run / CHECKPOINT_NAME).is_file():
-        argv += ["--out", str(run), "--resume", "--no-progress"]
-    else:
-        argv += [str(scene), "--out", str(run), "--no-progress", *train_args]
-    tee = _Tee(sys.stderr)
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(threads)))
     try:
-        with contextlib.redirect_stderr(tee):
-            rc = main(argv)
-    except SystemExit as e:  # argparse: bad train arguments
-        return replace(base, status="failed", error=tee.error_line() or f"exit status {e.code}")
+        if (run / CHECKPOINT_NAME).is_file():
+            outcome = train_scene(None, None, run, resume=True, progress=False)
+        else:
+            ref = scene_ref(scene, scene_kind, **(scene_options or {}))
+            outcome = train_scene(ref, config, run, progress=False)
     except Exception as e:
-        return replace(base, status="failed", error=_one_line(f"{type(e).__name__}: {e}"))
-    if rc == 130:
+        text = " ".join(str(e).split())
+        return replace(base, status="failed", error=_one_line(f"{type(e).__name__}: {text}"))
+    finally:
+        torch.set_num_threads(threads_before)
+    if outcome.reason == "interrupted":
         raise RunInterrupted(f"{run}: training interrupted by a signal (checkpointed)")
-    if rc != 0:
-        return replace(base, status="failed", error=tee.error_line() or f"exit status {rc}")
     metrics = _finished(run)
     if metrics is None:
         return replace(base, status="stopped", error="stopped before the last step; re-submit to continue")
@@ -444,7 +433,7 @@ def run_batch(
     every Ray node can read and write (a shared file system on a cluster).
 
     Args:
-        scenes: scene folders (``vadgs train`` scenes; add ``--dgp`` to ``train_args`` for DGP).
+        scenes: scene folders (``vadgs train`` scenes; ``scene_kind="dgp"`` for DGP).
         out_dir: the batch folder: one run folder per scene, ``summary.json``, ``summary.md``.
         config: :class:`BatchConfig`.
 
@@ -458,7 +447,9 @@ def run_batch(
     Example:
         >>> summary = run_batch(  # doctest: +SKIP
         ...     ["data/seg-0001", "data/seg-0002"], "runs",
-        ...     BatchConfig(cpus_per_scene=4, train_args=("--vad", "--iterations", "3000")),
+        ...     BatchConfig(
+        ...         cpus_per_scene=4, train=TrainConfig(iterations=3000, vad=VisibilityDensifyConfig())
+        ...     ),
         ... )
         >>> [(r.name, r.status, r.psnr, r.retries) for r in summary.results]  # doctest: +SKIP
         [('seg-0001', 'done', 27.1, 0), ('seg-0002', 'done', 26.4, 1)]
@@ -516,7 +507,13 @@ def run_batch(
         )
         pending = {
             task.remote(
-                results[i].scene, results[i].run, config.train_args, config.torch_threads, submission
+                results[i].scene,
+                results[i].run,
+                config.train,
+                config.torch_threads,
+                submission,
+                config.scene_kind,
+                config.scene_options,
             ): i
             for i in todo
         }

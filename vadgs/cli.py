@@ -279,31 +279,21 @@ def _nest(parts: list[str], val: object) -> dict:
     return {parts[0]: val} if len(parts) == 1 else {parts[0]: _nest(parts[1:], val)}
 
 
-def _scene_kind(args: argparse.Namespace) -> str:
-    """The kind of ``vadgs train``'s SCENE (benchmark, dgp, colmap), checking each kind's flags.
+def _scene(args: argparse.Namespace) -> object:
+    """The typed reference of ``vadgs train``'s SCENE (benchmark, dgp, colmap), checking each kind's flags.
 
-    A COLMAP model or project folder (:func:`vadgs.data.find_colmap_model`) without ``scene.json``
-    is detected without ``--colmap-scene``.
+    A COLMAP model or project folder without ``scene.json`` is detected without ``--colmap-scene``
+    (:func:`vadgs.train.run.scene_ref`).
     """
-    from vadgs.data import find_colmap_model
+    from vadgs.train.run import scene_ref
 
     if args.dgp and args.colmap_scene:
         raise ValueError("--dgp, --colmap-scene: give one scene kind")
     path = _scene_arg(args.scene)
-    if args.dgp:
-        kind = "dgp"
-    elif args.colmap_scene:
-        kind = "colmap"
-    elif args.scene is not None and not (path / "scene.json").is_file() and path.name != "scene.json":
-        if find_colmap_model(path) is None:
-            raise FileNotFoundError(
-                f"SCENE {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
-                "(cameras, images, points3D as .bin or .txt in it, in sparse/0, sparse or 0); "
-                "a DGP scene needs --dgp"
-            )
-        kind = "colmap"
-    else:
-        kind = "benchmark"
+    kind = "dgp" if args.dgp else "colmap" if args.colmap_scene else None
+    if kind is None and args.scene is not None:
+        kind = scene_ref(path).kind
+    kind = kind or "benchmark"
     if kind != "colmap":
         for key, flag in (
             ("images", "--images"),
@@ -319,47 +309,15 @@ def _scene_kind(args: argparse.Namespace) -> str:
         raise ValueError("--colmap: not with a COLMAP scene, whose own SfM points initialise it")
     elif args.cameras or args.test_frames:
         raise ValueError("--cameras / --test-frames: DGP only; a COLMAP scene's split is --test-every")
-    return kind
-
-
-def _scene_ref(args: argparse.Namespace) -> dict:
-    path = str(_scene_arg(args.scene))
-    if args.dgp:
-        ref = {"kind": "dgp", "path": path, "scale": args.scale, "test_frames": args.test_frames or []}
-        if args.cameras:
-            ref["cameras"] = args.cameras.split(",")
-        return ref
-    return {"kind": "benchmark", "path": path, "scale": args.scale}
-
-
-def _open_colmap_scene(args: argparse.Namespace, out: Path) -> tuple[dict, object]:
-    """The reference and scene of a COLMAP SCENE (undistorted into ``OUT/undistorted`` if needed)."""
-    from vadgs.data import open_colmap_project
-    from vadgs.data.normalize import similarity_scale
-
-    if args.images is not None and not Path(args.images).is_dir():
-        raise FileNotFoundError(f"--images {args.images}: no such folder")
-    colmap, recipe = open_colmap_project(
-        _scene_arg(args.scene),
-        args.images,
-        scale=args.scale,
-        test_every=8 if args.test_every is None else args.test_every,
-        normalize=not args.no_normalize,
-        undistort_dir=out / "undistorted",
-    )
-    scene = colmap.scene
-    if recipe["undistorted"]:
-        print(
-            f"COLMAP cameras {recipe['undistorted']} are distorted: undistorted {scene.num_views} images "
-            f"with pycolmap into {out / 'undistorted'} (the run reads them from there)"
-        )
-    if recipe["transform"] is not None:
-        s = similarity_scale(torch.tensor(recipe["transform"]))
-        print(
-            f"normalised the COLMAP frame: cameras centred, up on +z, scale x{s:.4g} (median "
-            "camera-to-point depth 10 units); --no-normalize keeps COLMAP's"
-        )
-    return {"kind": "colmap", **recipe}, scene
+    scale = args.scale if args.scale is not None else 1.0 if kind == "colmap" else 0.5
+    if kind == "colmap":
+        test_every = 8 if args.test_every is None else args.test_every
+        return scene_ref(path, kind, images=args.images, scale=scale, test_every=test_every,
+                         normalize=not args.no_normalize)  # fmt: skip
+    if kind == "dgp":
+        cameras = args.cameras.split(",") if args.cameras else None
+        return scene_ref(path, kind, scale=scale, cameras=cameras, test_frames=args.test_frames or ())
+    return scene_ref(path, kind, scale=scale)
 
 
 def _summary(metrics: dict) -> str:
@@ -414,10 +372,9 @@ _ON_RESUME = ("iterations", "max_minutes", "device")
 _SESSION = ("out", "resume", "no_progress")
 
 
-def _resume(args: argparse.Namespace, out: Path, progress: bool) -> object:
-    """The trainer of ``--resume``: rejects flags it cannot honour, applies those it can, loudly."""
+def _resume_changes(args: argparse.Namespace, out: Path) -> dict:
+    """The changes ``--resume`` can honour (said aloud); the flags it cannot are rejected."""
     from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from vadgs.train.trainer import Trainer
 
     given = [flag for key, flag in _NOT_ON_RESUME if getattr(args, key, None) not in (None, False, [])]
     if given:
@@ -428,47 +385,64 @@ def _resume(args: argparse.Namespace, out: Path, progress: bool) -> object:
         )
     if not (out / CHECKPOINT_NAME).is_file():
         raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-    changes: dict = {}
-    for key in _ON_RESUME:
-        if getattr(args, key, None) is not None:
-            changes[key] = getattr(args, key)
-    if changes:
-        stored = load_checkpoint(out)
-        cfg, step = stored["config"], int(stored["step"])
-        changes = {k: v for k, v in changes.items() if cfg.get(k) != v}
-        if "iterations" in changes:
-            if changes["iterations"] < step:
-                raise ValueError(
-                    f"--resume --iterations {changes['iterations']}: the run is already at step {step}"
-                )
-            print(
-                f"NOTE: --iterations changes the run from {cfg['iterations']} to {changes['iterations']} "
-                "steps; the means' learning-rate decay and VAD-GS's event window "
-                "(last_event_fraction) follow the new total from here on, so the result differs "
-                "from a run trained with either total from the start"
+    changes = {key: getattr(args, key) for key in _ON_RESUME if getattr(args, key, None) is not None}
+    if not changes:
+        return changes
+    stored = load_checkpoint(out)
+    cfg, step = stored["config"], int(stored["step"])
+    changes = {k: v for k, v in changes.items() if cfg.get(k) != v}
+    if "iterations" in changes:
+        if changes["iterations"] < step:
+            raise ValueError(
+                f"--resume --iterations {changes['iterations']}: the run is already at step {step}"
             )
-        for key in ("max_minutes", "device"):
-            if key in changes:
-                print(
-                    f"NOTE: --{key.replace('_', '-')} changes {key} from {cfg.get(key)!r} to {changes[key]!r}"
-                )
-        del stored
-    trainer = Trainer.from_checkpoint(out, progress=progress, config_changes=changes or None)
-    kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
-    print(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
-    return trainer
+        print(
+            f"NOTE: --iterations changes the run from {cfg['iterations']} to {changes['iterations']} "
+            "steps; the means' learning-rate decay and VAD-GS's event window "
+            "(last_event_fraction) follow the new total from here on, so the result differs "
+            "from a run trained with either total from the start"
+        )
+    for key in ("max_minutes", "device"):
+        if key in changes:
+            print(f"NOTE: --{key.replace('_', '-')} changes {key} from {cfg.get(key)!r} to {changes[key]!r}")
+    return changes
+
+
+def _init_points(args: argparse.Namespace) -> object:
+    """``--colmap``: the SfM points of a COLMAP model of the scene's views, or None.
+
+    A function of the opened scene, which checks that the model's images are its views.
+    """
+    if not args.colmap:
+        return None
+    from vadgs.data import find_colmap_model, load_colmap, match_colmap_views
+
+    model = find_colmap_model(args.colmap)
+    if model is None:
+        raise FileNotFoundError(
+            f"--colmap {args.colmap}: no COLMAP model (cameras, images, points3D as .bin or "
+            ".txt in it, in sparse/0, sparse or 0)"
+        )
+
+    def points(scene: object) -> object:
+        match_colmap_views(scene, model, "--colmap")
+        return load_colmap(model, scale=args.scale, check_files=False).points
+
+    return points
 
 
 def train(args: argparse.Namespace) -> int:
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
     from vadgs.train.checkpoint import CHECKPOINT_NAME
-    from vadgs.train.run import describe_run, open_scene
-    from vadgs.train.trainer import Trainer
+    from vadgs.train.run import describe_run, train_scene
 
     out = _check_out_dir(args.out, create=False)
     progress = not args.no_progress
     if args.resume:
-        trainer = _resume(args, out, progress)
+        changes = _resume_changes(args, out)
+        outcome = train_scene(
+            None, None, out, resume=True, config_changes=changes, progress=progress, log=print
+        )
     else:
         if args.scene is None and not args.sample:
             raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
@@ -477,49 +451,23 @@ def train(args: argparse.Namespace) -> int:
             raise ValueError(
                 f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
             )
-        kind = _scene_kind(args)
-        if args.scale is None:
-            args.scale = 1.0 if kind == "colmap" else 0.5
+        scene = _scene(args)
+        args.scale = scene.scale
         config = _train_config(args)
-        if kind == "colmap":
-            ref, scene = _open_colmap_scene(args, out)
-        else:
-            ref = _scene_ref(args)
-            scene = open_scene(ref)
-        colmap = None
-        if args.colmap:
-            from vadgs.data import find_colmap_model, load_colmap, match_colmap_views
-
-            model = find_colmap_model(args.colmap)
-            if model is None:
-                raise FileNotFoundError(
-                    f"--colmap {args.colmap}: no COLMAP model (cameras, images, points3D as .bin or "
-                    ".txt in it, in sparse/0, sparse or 0)"
-                )
-            match_colmap_views(scene, model, "--colmap")
-            colmap = load_colmap(model, scale=args.scale, check_files=False).points
-        trainer = Trainer(
+        outcome = train_scene(
             scene,
             config,
-            out_dir=out,
-            scene_ref=ref,
-            colmap_points=colmap,
-            progress=progress,
+            out,
             overwrite=args.overwrite,
+            init_points=_init_points(args),
+            progress=progress,
+            log=print,
         )
-        if held is not None:
-            print(f"--overwrite: the previous run in {out} ({held}) is removed as training starts")
-        print(
-            f"{scene}: {len(scene.train_views)} training views, "
-            f"{trainer.model.num_gaussians} initial Gaussians"
-        )
-    result = trainer.train()
-    if not result.completed:
-        print(f"stopped ({result.reason}) at step {result.step}; checkpoint {out / CHECKPOINT_NAME}; "
+    if not outcome.completed:
+        print(f"stopped ({outcome.reason}) at step {outcome.step}; checkpoint {out / CHECKPOINT_NAME}; "
               f"continue with: vadgs train --out {out} --resume")  # fmt: skip
-        return 130 if result.reason == "interrupted" else 0
-    metrics = finish_run(trainer, out, result, progress)
-    print(_summary(metrics))
+        return 130 if outcome.reason == "interrupted" else 0
+    print(_summary(outcome.metrics))
     print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
     return 0
 
@@ -940,19 +888,59 @@ def _convert_args(p: argparse.ArgumentParser) -> None:
 convert.add_arguments = _convert_args  # type: ignore[attr-defined]
 
 
-def batch(args: argparse.Namespace) -> int:
-    """Train many scenes on Ray, one task each, retried and resumed on failure (needs vadgs[ray])."""
+def _batch_train(text: str) -> tuple[object, str | None, dict]:
+    """``vadgs batch --train-args``: the TrainConfig, scene kind and scene options they give.
+
+    Parsed once, in the driver, with ``vadgs train``'s own flags, so a bad argument fails the
+    batch before any scene starts; the flags of one run folder (``--out``, ``--resume``, ...) are
+    refused.
+    """
     import shlex
 
+    p = argparse.ArgumentParser(prog="vadgs batch --train-args", add_help=False, exit_on_error=False)
+    _train_args(p)
+    try:
+        targs, extra = p.parse_known_args(["--out", ".", *shlex.split(text)])
+    except argparse.ArgumentError as e:
+        raise ValueError(f"--train-args: {e}") from None
+    if extra:
+        raise ValueError(f"--train-args: unrecognized arguments: {' '.join(extra)}")
+    for key, flag in (("scene", "SCENE"), ("sample", "--sample"), ("resume", "--resume"),
+                      ("overwrite", "--overwrite"), ("colmap", "--colmap")):  # fmt: skip
+        if getattr(targs, key) not in (None, False):
+            raise ValueError(
+                f"--train-args: {flag} is not for a batch (the scenes and run folders are its own)"
+            )
+    if targs.dgp and targs.colmap_scene:
+        raise ValueError("--train-args: --dgp, --colmap-scene: give one scene kind")
+    kind = "dgp" if targs.dgp else "colmap" if targs.colmap_scene else None
+    options: dict = {}
+    for key, name in (("scale", "scale"), ("images", "images"), ("test_every", "test_every")):
+        if getattr(targs, key) is not None:
+            options[name] = getattr(targs, key)
+    if targs.no_normalize:
+        options["normalize"] = False
+    if targs.cameras:
+        options["cameras"] = targs.cameras.split(",")
+    if targs.test_frames:
+        options["test_frames"] = targs.test_frames
+    return _train_config(targs), kind, options
+
+
+def batch(args: argparse.Namespace) -> int:
+    """Train many scenes on Ray, one task each, retried and resumed on failure (needs vadgs[ray])."""
     from vadgs.batch import BatchConfig, run_batch
 
+    train, kind, options = _batch_train(args.train_args)
     config = BatchConfig(
         address=args.address,
         cpus_per_scene=args.cpus_per_scene,
         gpus_per_scene=args.gpus_per_scene,
         threads=args.threads or 0,
         max_retries=args.max_retries,
-        train_args=tuple(shlex.split(args.train_args)),
+        train=train,
+        scene_kind=kind,
+        scene_options=options,
         progress=not args.no_progress,
     )
     try:

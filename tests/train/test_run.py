@@ -54,3 +54,61 @@ def test_load_run_gives_back_the_trained_model(tiny_scene, tiny_config, tmp_path
     assert frame_position(run.scene, tiny_scene.frames[2].index) == (tiny_scene.frames[2].index, 2)
     with pytest.raises(ValueError, match=r"--frame: scene .* has frames .*, got 999"):
         frame_position(run.scene, 999, "--frame")
+
+
+def test_scene_ref_finds_the_kind_and_checks_the_options(tmp_path):
+    import pytest
+
+    from vadgs.data import sample_scene_path
+    from vadgs.train.run import BenchmarkRef, ColmapRef, DGPRef, scene_ref
+
+    ref = scene_ref(sample_scene_path(), scale=0.25)
+    assert ref == BenchmarkRef(str(sample_scene_path()), 0.25)
+    assert ref.to_dict() == {"kind": "benchmark", "path": str(sample_scene_path()), "scale": 0.25}
+    assert scene_ref(sample_scene_path() / "scene.json").kind == "benchmark"
+    dgp = scene_ref(tmp_path, "dgp", cameras=["front"], test_frames=[3])
+    assert dgp == DGPRef(str(tmp_path), 0.5, ("front",), (3,))
+    assert dgp.to_dict()["cameras"] == ["front"] and dgp.to_dict()["test_frames"] == [3]
+    assert ColmapRef(str(tmp_path)).scale == 1.0  # COLMAP images at full size, the others at half
+    with pytest.raises(FileNotFoundError, match=r"neither a benchmark scene .* nor a COLMAP model"):
+        scene_ref(tmp_path)
+    with pytest.raises(ValueError, match=r"\['images'\]: not options of a benchmark scene"):
+        scene_ref(sample_scene_path(), images="x")
+    with pytest.raises(ValueError, match="kind: expected one of"):
+        scene_ref(tmp_path, "nerf")
+    with pytest.raises(ValueError, match=r"BenchmarkRef\.scale: expected > 0, got 0"):
+        BenchmarkRef(str(tmp_path), scale=0)
+    with pytest.raises(ValueError, match=r"ColmapRef\.test_every: expected >= 0, got -1"):
+        ColmapRef(str(tmp_path), test_every=-1)
+
+
+def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path):
+    """train_scene = Trainer + train + finish_run: same parameters, metrics written; resume goes on."""
+    import pytest
+    import torch
+
+    from vadgs.train.run import load_run, scene_ref, train_scene
+
+    config = dataclasses.replace(tiny_config, iterations=4, checkpoint_every=2)
+    ref = scene_ref(tiny_scene.root, scale=0.25)
+    said: list[str] = []
+    outcome = train_scene(ref, config, tmp_path / "a", progress=False, log=said.append)
+    assert outcome.completed and outcome.reason == "done" and outcome.step == 4
+    assert outcome.metrics == json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert any(f"{len(tiny_scene.train_views)} training views" in s for s in said)
+    trainer = Trainer(tiny_scene, config, out_dir=tmp_path / "b", progress=False)
+    trainer.train()
+    run = load_run(tmp_path / "a")
+    assert run.checkpoint["scene_ref"] == ref.to_dict()
+    for k, v in trainer.model.params.items():
+        assert torch.equal(run.model.params[k], v), k
+    assert outcome.metrics["num_gaussians"] == trainer.model.num_gaussians
+    # the run folder is not overwritten unless asked; resume continues it with a longer schedule
+    with pytest.raises(ValueError, match=r"holds a run \(step 4/4\): pass resume=True"):
+        train_scene(ref, config, tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match=r"resume=True.*pass None"):
+        train_scene(ref, None, tmp_path / "a", resume=True)
+    more = train_scene(None, None, tmp_path / "a", resume=True, config_changes={"iterations": 6})
+    assert more.completed and more.step == 6 and more.metrics["steps"] == 6
+    again = train_scene(ref, config, tmp_path / "a", overwrite=True, progress=False)
+    assert again.step == 4 and again.metrics["num_gaussians"] == outcome.metrics["num_gaussians"]

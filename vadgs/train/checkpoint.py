@@ -4,7 +4,8 @@ A checkpoint is one ``torch.save`` file (``checkpoint.pt`` in the run folder) of
 containers (read with ``weights_only``), with a format name, a version and a SHA-256 checksum of
 its content; :class:`~vadgs.train.trainer.Trainer` writes and reads it
 (:meth:`~vadgs.train.trainer.Trainer.checkpoint_payload`,
-:meth:`~vadgs.train.trainer.Trainer.from_checkpoint`).
+:meth:`~vadgs.train.trainer.Trainer.from_checkpoint`). :func:`describe_run` says what run a folder
+holds; :func:`clear_run` removes one.
 """
 
 from __future__ import annotations
@@ -21,7 +22,14 @@ import torch
 
 from vadgs.io import atomic_write, remove_stale_tmp
 
-__all__ = ["CHECKPOINT_NAME", "RESUMABLE_CHANGES", "checkpoint_checksum", "load_checkpoint"]
+__all__ = [
+    "CHECKPOINT_NAME",
+    "RESUMABLE_CHANGES",
+    "checkpoint_checksum",
+    "clear_run",
+    "describe_run",
+    "load_checkpoint",
+]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 _FORMAT = "vadgs-train-checkpoint"
@@ -139,3 +147,49 @@ RESUMABLE_CHANGES = (
     "log_every",
 )
 """The :class:`TrainConfig` fields :meth:`Trainer.from_checkpoint` can change (the others define the run)."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# the run folder
+
+_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
+_RUN_DIRS = ("ply", "renders")
+
+
+def describe_run(folder: str | Path) -> str | None:
+    """What run a folder holds: ``"step S/N"`` (its checkpoint), ``"finished"``, or None.
+
+    A folder holds a run when it has a ``checkpoint.pt`` or a ``metrics.json``; a folder with only
+    the log of a run killed before its first checkpoint holds nothing that can be continued.
+    """
+    folder = Path(folder)
+    ck = folder / CHECKPOINT_NAME
+    if ck.is_file():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                c = load_checkpoint(ck)
+            return f"step {int(c['step'])}/{int(c['config'].get('iterations', 0))}"
+        except (ValueError, OSError) as e:
+            return f"an unreadable checkpoint: {e}"
+    if (folder / "metrics.json").is_file():
+        return "finished, no checkpoint"
+    return None
+
+
+def clear_run(folder: str | Path) -> list[Path]:
+    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/)."""
+    folder = Path(folder)
+    removed = []
+    for name in _RUN_FILES:
+        p = folder / name
+        if p.is_file():
+            p.unlink()
+            removed.append(p)
+    for name in _RUN_DIRS:
+        p = folder / name
+        if p.is_dir():
+            shutil.rmtree(p)
+            removed.append(p)
+    removed += _remove_stale_tmp(folder)
+    return removed

@@ -1,16 +1,29 @@
-"""A run folder and the scene it refers to: :func:`open_scene`, :func:`describe_run`, :func:`clear_run`.
+"""A run as a library concept: a scene reference, a run folder, and the whole run as one call.
 
 A run is a folder (``--out``) holding ``checkpoint.pt`` (:mod:`vadgs.train.checkpoint`),
 ``log.jsonl``, ``config.json``, ``metrics.json`` and the exports; its checkpoint records the
 *scene reference* — ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}`` — that
 :func:`open_scene` reopens (``docs/design.md``, "A run").
+
+- Scene references (:mod:`vadgs.train.scenes`, re-exported here), one typed dataclass per kind:
+  :class:`BenchmarkRef`, :class:`DGPRef`, :class:`ColmapRef`; :func:`scene_ref` picks the kind of
+  a folder; :func:`prepare_scene` opens one for a new run (a distorted COLMAP project is
+  undistorted into the run folder) and returns the reference the checkpoint stores.
+- :func:`train_scene`: open → train → :func:`finish_run` (evaluate, export, ``metrics.json``), or
+  continue a run folder's checkpoint. ``vadgs train`` and ``vadgs batch`` are adapters over it.
+- :func:`load_run` reads a finished or running run back; :func:`describe_run` / :func:`clear_run`
+  (:mod:`vadgs.train.checkpoint`, re-exported) look after its folder.
+
+Example::
+
+    ref = scene_ref("data/street_a", scale=0.5)
+    outcome = train_scene(ref, TrainConfig(vad=VisibilityDensifyConfig()), "runs/street_a")
+    outcome.metrics["test"]["psnr"]
 """
 
 from __future__ import annotations
 
-import shutil
 import time
-import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -18,77 +31,26 @@ import torch
 
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
-from vadgs.train.checkpoint import CHECKPOINT_NAME, _remove_stale_tmp, load_checkpoint
+from vadgs.train.checkpoint import CHECKPOINT_NAME, clear_run, describe_run, load_checkpoint
+from vadgs.train.scenes import BenchmarkRef, ColmapRef, DGPRef, SceneRef, open_scene, prepare_scene, scene_ref
 
-__all__ = ["Run", "clear_run", "describe_run", "finish_run", "frame_position", "load_run", "open_scene"]
-
-_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
-_RUN_DIRS = ("ply", "renders")
-
-
-def describe_run(folder: str | Path) -> str | None:
-    """What run a folder holds: ``"step S/N"`` (its checkpoint), ``"finished"``, or None.
-
-    A folder holds a run when it has a ``checkpoint.pt`` or a ``metrics.json``; a folder with only
-    the log of a run killed before its first checkpoint holds nothing that can be continued.
-    """
-    folder = Path(folder)
-    ck = folder / CHECKPOINT_NAME
-    if ck.is_file():
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                c = load_checkpoint(ck)
-            return f"step {int(c['step'])}/{int(c['config'].get('iterations', 0))}"
-        except (ValueError, OSError) as e:
-            return f"an unreadable checkpoint: {e}"
-    if (folder / "metrics.json").is_file():
-        return "finished, no checkpoint"
-    return None
-
-
-def clear_run(folder: str | Path) -> list[Path]:
-    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/)."""
-    folder = Path(folder)
-    removed = []
-    for name in _RUN_FILES:
-        p = folder / name
-        if p.is_file():
-            p.unlink()
-            removed.append(p)
-    for name in _RUN_DIRS:
-        p = folder / name
-        if p.is_dir():
-            shutil.rmtree(p)
-            removed.append(p)
-    removed += _remove_stale_tmp(folder)
-    return removed
-
-
-def open_scene(ref: dict[str, Any]) -> Scene:
-    """Load the scene a run refers to: ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``.
-
-    ``dgp`` references may carry ``cameras`` and ``test_frames``. ``colmap`` references are the
-    recipe of :func:`vadgs.data.colmap.open_colmap_project`, reopened by
-    :func:`~vadgs.data.colmap.reopen_colmap_project`: ``path`` (the model used, the
-    undistorted copy in the run folder if the input was distorted), ``images``, ``test_every``
-    and ``transform`` (the normalising similarity, re-applied as recorded; None: COLMAP's frame).
-    """
-    from vadgs.data import load_dgp, load_scene, reopen_colmap_project
-
-    kind = ref.get("kind", "benchmark")
-    if kind == "colmap":
-        return reopen_colmap_project(ref).scene
-    if kind == "benchmark":
-        return load_scene(ref["path"], scale=float(ref.get("scale", 1.0)))
-    if kind == "dgp":
-        return load_dgp(
-            ref["path"],
-            cameras=ref.get("cameras"),
-            scale=float(ref.get("scale", 1.0)),
-            test_frames=tuple(ref.get("test_frames", ())),
-        )
-    raise ValueError(f"scene reference: unknown kind {kind!r}")
+__all__ = [
+    "BenchmarkRef",
+    "ColmapRef",
+    "DGPRef",
+    "Run",
+    "RunOutcome",
+    "SceneRef",
+    "clear_run",
+    "describe_run",
+    "finish_run",
+    "frame_position",
+    "load_run",
+    "open_scene",
+    "prepare_scene",
+    "scene_ref",
+    "train_scene",
+]
 
 
 def finish_run(
@@ -197,3 +159,107 @@ def frame_position(scene: Scene, frame: int | None, name: str = "frame") -> tupl
     if index not in indices:
         raise ValueError(f"{name}: scene {scene.name!r} has frames {indices[0]}..{indices[-1]}, got {index}")
     return index, indices.index(index)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the whole run
+
+
+class RunOutcome(NamedTuple):
+    """What :func:`train_scene` did.
+
+    Attributes:
+        out_dir: the run folder.
+        completed: the run reached its last step (and was finished: ``metrics``).
+        reason: why training stopped (:class:`~vadgs.train.trainer.TrainResult`): ``"done"``,
+            ``"interrupted"`` (SIGINT / SIGTERM, checkpointed) or ``"time limit"`` (``max_minutes``).
+        step: steps trained.
+        metrics: ``metrics.json`` as written by :func:`finish_run`, or None when not completed.
+    """
+
+    out_dir: Path
+    completed: bool
+    reason: str
+    step: int
+    metrics: dict[str, Any] | None
+
+
+def train_scene(
+    scene: SceneRef | None,
+    config: Any = None,
+    out_dir: str | Path = "outputs/run",
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    config_changes: dict[str, Any] | None = None,
+    init_points: Any = None,
+    progress: bool = True,
+    log: Any = None,
+) -> RunOutcome:
+    """A whole run as one call: open the scene, train, evaluate, export, write ``metrics.json``.
+
+    Args:
+        scene: the scene of a new run (:func:`scene_ref`); None with ``resume``.
+        config: its :class:`~vadgs.train.config.TrainConfig` (default: the defaults).
+        out_dir: the run folder.
+        resume: continue the checkpoint in ``out_dir`` exactly; the scene and configuration are
+            the checkpoint's, save ``config_changes``.
+        overwrite: a new run may replace a previous run in ``out_dir`` (else that is an error).
+        config_changes: what a resumed run may change (:data:`~vadgs.train.checkpoint.RESUMABLE_CHANGES`).
+        init_points: :class:`~vadgs.data.colmap.ColmapPoints` that initialise a new run (with
+            their TRACK table) besides the scene's own points, or a function of the opened scene
+            that returns them (e.g. after checking that a COLMAP model matches its views).
+        progress: progress bars.
+        log: a ``print``-like callable for what the run does (None: silent).
+
+    Returns:
+        :class:`RunOutcome`. A run stopped early (signal, ``max_minutes``) keeps its checkpoint
+        and is not finished; call again with ``resume=True``.
+
+    Raises:
+        ValueError, FileNotFoundError: bad inputs, named; errors of training propagate (the
+            checkpoint of the last good step stays).
+    """
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.trainer import Trainer
+
+    started = time.perf_counter()
+    out = Path(out_dir)
+    say = log if log is not None else (lambda *_: None)
+    if resume:
+        if scene is not None or config is not None:
+            raise ValueError("train_scene(resume=True): the scene and config are the checkpoint's; pass None")
+        if not (out / CHECKPOINT_NAME).is_file():
+            raise FileNotFoundError(f"resume: no checkpoint in {out}")
+        trainer = Trainer.from_checkpoint(out, progress=progress, config_changes=config_changes or None)
+        kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
+        say(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
+    else:
+        if scene is None:
+            raise ValueError("train_scene: give a scene reference (scene_ref(path)) or resume=True")
+        if config_changes:
+            raise ValueError("train_scene: config_changes are for resume=True; a new run takes config")
+        config = TrainConfig() if config is None else config
+        held = describe_run(out) if out.is_dir() else None
+        if held is not None and not overwrite:
+            # the Trainer says so too; before opening the scene, which may undistort into out_dir
+            raise ValueError(f"{out} holds a run ({held}): pass resume=True to continue or overwrite=True")
+        opened, stored = prepare_scene(scene, out, say)
+        if callable(init_points):
+            init_points = init_points(opened)
+        trainer = Trainer(
+            opened,
+            config,
+            out_dir=out,
+            scene_ref=stored,
+            colmap_points=init_points,
+            progress=progress,
+            overwrite=overwrite,
+        )
+        if held is not None:
+            say(f"overwrite: the previous run in {out} ({held}) is removed as training starts")
+        n = trainer.model.num_gaussians
+        say(f"{opened}: {len(opened.train_views)} training views, {n} initial Gaussians")
+    result = trainer.train()
+    metrics = finish_run(trainer, out, result, progress, started) if result.completed else None
+    return RunOutcome(out, bool(result.completed), str(result.reason), int(result.step), metrics)

@@ -56,6 +56,8 @@ from vadgs.train.checkpoint import (
     _atomic_save,
     _remove_stale_tmp,
     checkpoint_checksum,
+    clear_run,
+    describe_run,
     load_checkpoint,
 )
 from vadgs.train.config import LearningRates, TrainConfig
@@ -64,8 +66,8 @@ from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
 from vadgs.train.ops import make_optimizer
-from vadgs.train.run import clear_run, describe_run, open_scene
 from vadgs.train.sampler import ViewSampler
+from vadgs.train.scenes import open_scene
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification
 
