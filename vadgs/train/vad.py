@@ -388,14 +388,33 @@ def _view_test(
     return tuple(rows)
 
 
+def _with_settings_of(config_cls: type) -> Callable[[type], type]:
+    """Give a class the fields of the dataclass ``config_cls`` (same names, types, defaults) first.
+
+    The strategy's settings are :class:`VisibilityDensifyConfig`'s, written once there: a mutable
+    dataclass cannot inherit them from a frozen one, so they are copied in before ``@dataclass``.
+    """
+
+    def add(cls: type) -> type:
+        own = dict(inspect.get_annotations(cls))
+        cls.__annotations__ = {f.name: f.type for f in fields(config_cls)} | own
+        for f in fields(config_cls):
+            setattr(cls, f.name, field(default=f.default, default_factory=f.default_factory))
+        return cls
+
+    return add
+
+
 @dataclass(eq=False)
+@_with_settings_of(VisibilityDensifyConfig)
 class VisibilityAwareDensification:
     """The VAD-GS densification strategy (gsplat ``Strategy`` interface). See the module docstring.
 
     A dataclass whose fields are its settings, as gsplat's ``DefaultStrategy`` /
-    ``MCMCStrategy`` (the same fields, defaults and checks as :class:`VisibilityDensifyConfig`, plus
-    ``base``, ``on_addition`` and ``log_size``); :meth:`from_config` builds one from a
-    :class:`VisibilityDensifyConfig` (vadgs's trainer and ``--set vad.KEY=...``). It holds no
+    ``MCMCStrategy``: the fields, defaults and checks of :class:`VisibilityDensifyConfig` (copied
+    from it, written once), then ``base``, ``on_addition`` and ``log_size``; :meth:`from_config`
+    builds one from a :class:`VisibilityDensifyConfig` (vadgs's trainer and ``vadgs train
+    --vad.KEY VALUE``). It holds no
     dataset: :meth:`prepare` gives it a :class:`~vadgs.train.inputs.VisibilityInputs` (per-view
     cameras, loaders, LiDAR or TRACK observations, tracks) and the loop's
     :class:`StrategyContext`, and builds the visibility index once. Use::
@@ -432,27 +451,6 @@ class VisibilityAwareDensification:
         ['visibility', 'view_selection', 'geometric_losses']
     """
 
-    visibility: bool = True
-    view_selection: bool = True
-    geometric_losses: bool = True
-    every_cycles: int = 5
-    voxel_size: float = 0.2
-    incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
-    reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
-    max_instances: int | None = None
-    time_budget: float | None = 0.1
-    render_cache_mb: float = 256.0
-    references: int = 3
-    min_frame_gap: int = 3
-    ranking: str = "class_round_robin"
-    cooldown_events: int = 0
-    whole_reference: bool = True
-    skip_classes: tuple[str, ...] = ("road",)
-    explained_tolerance: float = 0.05
-    new_opacity: float = 0.5
-    flatness: float = 0.2
-    voxel_depth_prior: bool = True
-    last_event_fraction: float = 0.9
     base: Any = field(default_factory=DefaultStrategy)
     on_addition: Callable[[dict[str, Any]], None] | None = field(default=None, repr=False)
     log_size: int = _MAX_PENDING

@@ -1,0 +1,433 @@
+"""``vadgs train`` and ``vadgs batch``: adapters over :func:`vadgs.train.run.train_scene`.
+
+``vadgs train`` is parsed by tyro over :class:`TrainCommand`: the run's own flags (scene, ``--out``,
+``--resume``, ...) and every field of :class:`~vadgs.train.config.TrainConfig` as a flag, nested
+ones dotted (``--iterations 3000``, ``--init.max-points 50000``, ``--vad.max-instances 8``,
+``--strategy.max-gaussians 1000000``, ``--raster.backend torch``), as gsplat's ``simple_trainer.py``
+and nerfstudio do. The flags apply over a starting configuration: the defaults, a ``--config``
+JSON file, or (``--resume``) the checkpoint's; ``--vad`` and ``--appearance`` switch those parts on,
+and their fields then appear as ``--vad.*`` / ``--appearance.*``. ``vadgs train --help`` lists them
+all. Errors are one line, naming the flag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import io
+import json
+import re
+import shlex
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any
+
+import tyro
+
+from vadgs.cli._common import _check_out_dir, _int_at_least, _scene_arg, _summary
+from vadgs.train.config import TrainConfig
+
+__all__ = ["TrainCommand", "batch", "parse_train", "train"]
+
+_Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]
+
+
+@dataclass(frozen=True)
+class TrainCommand:
+    """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
+
+    scene: tyro.conf.Positional[str | None] = None
+    """scene folder: benchmark format (scene.json), a COLMAP model or project folder (sparse/0;
+    detected), or DGP with --dgp"""
+    out: str = ""
+    """run folder (checkpoints, metrics, PLY); required"""
+    sample: _Flag = False
+    """use the bundled sample scene"""
+    config: str | None = None
+    """JSON file with (part of) a TrainConfig: the starting point of the flags below"""
+    resume: _Flag = False
+    """continue the run in --out from its checkpoint (only the fields of RESUMABLE_CHANGES may change:
+    --iterations, --max-minutes, --device, --threads, --checkpoint-every, --checkpoint-minutes,
+    --log-every)"""
+    overwrite: _Flag = False
+    """--out may hold a previous run: its files are removed and training starts over"""
+    no_progress: _Flag = False
+    """no progress bar"""
+    scale: float | None = None
+    """image resolution factor (default 0.5 = 240x144 for the benchmark; 1.0 for COLMAP)"""
+    dgp: _Flag = False
+    """SCENE is a DGP scene folder"""
+    cameras: str | None = None
+    """DGP: comma-separated camera names"""
+    test_frames: tuple[int, ...] = ()
+    """DGP: held-out frames (samples)"""
+    colmap_scene: _Flag = False
+    """SCENE is a COLMAP model or project folder (detected without it when there is no scene.json)"""
+    images: str | None = None
+    """COLMAP scene: the images folder (default: images/ next to the model)"""
+    test_every: int | None = None
+    """COLMAP scene: hold out every N-th image in name order, index % N == 0 (default 8; 0 = none)"""
+    no_normalize: _Flag = False
+    """COLMAP scene: keep COLMAP's frame and scale (default: cameras centred, up +z, median
+    camera-to-point depth 10)"""
+    colmap: str | None = None
+    """COLMAP model of this scene's views (same image names, same world frame) whose points are added
+    to the initialisation"""
+    vad: _Flag = False
+    """VAD-GS visibility-aware densification (the paper); its settings are then --vad.*"""
+    appearance: _Flag = False
+    """learn a colour transform per camera (real rigs with differently exposed cameras); its settings
+    are then --appearance.*"""
+    train: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        if self.scale is not None and not self.scale > 0:
+            raise ValueError(f"--scale: expected a positive number, got {self.scale}")
+        if self.test_every is not None and self.test_every < 0:
+            raise ValueError(f"--test-every: expected an integer >= 0, got {self.test_every}")
+        for key in ("max_minutes", "threads", "checkpoint_every"):
+            if getattr(self.train, key) < 0:
+                flag = "--" + key.replace("_", "-")
+                raise ValueError(f"{flag}: expected >= 0 (0 = off), got {getattr(self.train, key)}")
+
+
+# TrainCommand fields of the session, not of the run (the others are refused on --resume)
+_SESSION = ("out", "resume", "no_progress", "train")
+
+
+def _flag(key: str) -> str:
+    """A dotted TrainConfig key as its flag: ``vad.max_instances`` → ``--vad.max-instances``."""
+    return "--" + key.replace("_", "-")
+
+
+def _tyro_error(text: str) -> str:
+    """tyro's boxed error message as one line (the lines between the title rule and the next)."""
+    lines = [ln.strip() for ln in text.splitlines()]
+    rules = [i for i, ln in enumerate(lines) if ln and set(ln) <= {"-", "─", "━"}]
+    body = lines[rules[0] + 1 : rules[1]] if len(rules) >= 2 else lines
+    message = " ".join(ln for ln in body if ln)
+    message = re.sub(r"^Error parsing (TrainCommand|TrainConfig|[A-Za-z]+Config): ", "", message)
+    message = re.sub(r"^Error parsing (--\S+): ", r"\1: ", message)
+    return message or " ".join(ln for ln in lines if ln) or "bad arguments"
+
+
+def _read_config_file(path: str) -> dict:
+    """A ``--config`` JSON file, type-checked against :class:`TrainConfig` on its own."""
+    from vadgs.config import config_from_dict
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"--config {p}: no such file")
+    try:
+        data = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"--config {p}: not valid JSON ({e})") from None
+    config_from_dict(TrainConfig, data, where=f"--config {p}")
+    return data
+
+
+def _starting_config(argv: list[str]) -> tuple[TrainConfig, dict]:
+    """The configuration the flags apply over, and the ``--config`` file's dict (``{}`` without).
+
+    The defaults, the ``--config`` file, or with ``--resume`` the checkpoint's; ``--vad`` and
+    ``--appearance`` switch those parts on.
+    """
+    from vadgs.train.appearance import AppearanceConfig
+    from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+    from vadgs.train.vad import VisibilityDensifyConfig
+
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    for name in ("--config", "--out"):
+        pre.add_argument(name)
+    for name in ("--resume", "--vad", "--appearance"):
+        pre.add_argument(name, action="store_true")
+    known, _ = pre.parse_known_args(argv)
+    data: dict = {}
+    if known.resume and known.out:
+        out = Path(known.out)
+        if not (out / CHECKPOINT_NAME).is_file():
+            raise FileNotFoundError(f"--resume: no checkpoint in {out}")
+        base = TrainConfig.from_dict(load_checkpoint(out)["config"])
+    elif known.config:
+        data = _read_config_file(known.config)
+        base = TrainConfig.from_dict(data)
+    else:
+        base = TrainConfig()
+    if known.vad and base.vad is None:
+        base = dataclasses.replace(base, vad=VisibilityDensifyConfig())
+    if known.appearance and base.appearance is None:
+        base = dataclasses.replace(base, appearance=AppearanceConfig())
+    return base, data
+
+
+def parse_train(argv: list[str]) -> TrainCommand | None:
+    """``vadgs train``'s arguments → :class:`TrainCommand` (None after ``--help``, which it prints).
+
+    Raises:
+        ValueError: a bad flag or value, as one line naming the flag.
+    """
+    argv = list(argv)
+    config = (tyro.conf.AvoidSubcommands,)
+    if "-h" in argv or "--help" in argv:
+        base, _ = _starting_config([a for a in argv if a not in ("-h", "--help", "--resume")])
+        with contextlib.suppress(SystemExit):
+            tyro.cli(TrainCommand, default=TrainCommand(train=base), args=["--help"], config=config,
+                     prog="vadgs train")  # fmt: skip
+        return None
+    base, data = _starting_config(argv)
+    text = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(text), contextlib.redirect_stdout(text):
+            cmd = tyro.cli(TrainCommand, default=TrainCommand(train=base), args=argv, config=config,
+                           prog="vadgs train")  # fmt: skip
+    except SystemExit:
+        raise ValueError(_tyro_error(text.getvalue())) from None
+    if not cmd.out:
+        raise ValueError("--out: required (the run folder)")
+    backend_given = any(a.startswith("--raster.backend") for a in argv) or "backend" in (data.get("raster") or {})
+    if str(cmd.train.device).startswith("cuda") and not backend_given and not cmd.resume:
+        raster = dataclasses.replace(cmd.train.raster, backend="gsplat")  # gsplat's CUDA rasterizer on GPUs
+        cmd = dataclasses.replace(cmd, train=dataclasses.replace(cmd.train, raster=raster))
+    return cmd
+
+
+def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
+    """The configuration changes ``--resume`` can honour (said aloud); anything else is refused."""
+    from vadgs.train.checkpoint import RESUMABLE_CHANGES, load_checkpoint
+
+    stored = load_checkpoint(out)
+    before, step = TrainConfig.from_dict(stored["config"]), int(stored["step"])
+    a, b = _flat(before.to_dict()), _flat(cmd.train.to_dict())
+    changed = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    defaults = TrainCommand()
+    given = [
+        "SCENE" if f.name == "scene" else _flag(f.name)
+        for f in dataclasses.fields(TrainCommand)
+        if f.name not in _SESSION and getattr(cmd, f.name) != getattr(defaults, f.name)
+    ]
+    refused = given + [_flag(k) for k in changed if k not in RESUMABLE_CHANGES]
+    if refused:
+        allowed = ", ".join(_flag(k) for k in RESUMABLE_CHANGES)
+        raise ValueError(
+            f"--resume: {', '.join(refused)} cannot be honoured: a resumed run keeps the scene and "
+            f"configuration of its checkpoint (only {allowed} can change); start a new run with "
+            "--overwrite instead"
+        )
+    changes = {k: b[k] for k in changed}
+    if "iterations" in changes:
+        if changes["iterations"] < step:
+            raise ValueError(f"--resume --iterations {changes['iterations']}: the run is already at step {step}")
+        print(
+            f"NOTE: --iterations changes the run from {a['iterations']} to {changes['iterations']} "
+            "steps; the means' learning-rate decay and VAD-GS's event window "
+            "(last_event_fraction) follow the new total from here on, so the result differs "
+            "from a run trained with either total from the start"
+        )
+    for key in changes:
+        if key != "iterations":
+            print(f"NOTE: {_flag(key)} changes {key} from {a.get(key)!r} to {changes[key]!r}")
+    return changes
+
+
+def _scene(cmd: TrainCommand) -> Any:
+    """The typed reference of ``vadgs train``'s SCENE (benchmark, dgp, colmap), checking each kind's flags.
+
+    A COLMAP model or project folder without ``scene.json`` is detected without ``--colmap-scene``
+    (:func:`vadgs.train.run.scene_ref`).
+    """
+    from vadgs.train.run import scene_ref
+
+    if cmd.dgp and cmd.colmap_scene:
+        raise ValueError("--dgp, --colmap-scene: give one scene kind")
+    path = _scene_arg(cmd.scene)
+    kind = "dgp" if cmd.dgp else "colmap" if cmd.colmap_scene else None
+    if kind is None and cmd.scene is not None:
+        kind = scene_ref(path).kind
+    kind = kind or "benchmark"
+    if kind != "colmap":
+        for key, flag in (("images", "--images"), ("test_every", "--test-every"), ("no_normalize", "--no-normalize")):
+            if getattr(cmd, key) not in (None, False):
+                raise ValueError(
+                    f"{flag}: only for a COLMAP scene (SCENE a COLMAP model or project folder), "
+                    f"got a {kind} scene {path}"
+                )
+    elif cmd.colmap:
+        raise ValueError("--colmap: not with a COLMAP scene, whose own SfM points initialise it")
+    elif cmd.cameras or cmd.test_frames:
+        raise ValueError("--cameras / --test-frames: DGP only; a COLMAP scene's split is --test-every")
+    scale = cmd.scale if cmd.scale is not None else 1.0 if kind == "colmap" else 0.5
+    if kind == "colmap":
+        test_every = 8 if cmd.test_every is None else cmd.test_every
+        return scene_ref(path, kind, images=cmd.images, scale=scale, test_every=test_every,
+                         normalize=not cmd.no_normalize)  # fmt: skip
+    if kind == "dgp":
+        cameras = cmd.cameras.split(",") if cmd.cameras else None
+        return scene_ref(path, kind, scale=scale, cameras=cameras, test_frames=cmd.test_frames)
+    return scene_ref(path, kind, scale=scale)
+
+
+def _init_points(cmd: TrainCommand, scale: float) -> Any:
+    """``--colmap``: the SfM points of a COLMAP model of the scene's views, or None.
+
+    A function of the opened scene, which checks that the model's images are its views.
+    """
+    if not cmd.colmap:
+        return None
+    from vadgs.data import find_colmap_model, load_colmap, match_colmap_views
+
+    model = find_colmap_model(cmd.colmap)
+    if model is None:
+        raise FileNotFoundError(
+            f"--colmap {cmd.colmap}: no COLMAP model (cameras, images, points3D as .bin or "
+            ".txt in it, in sparse/0, sparse or 0)"
+        )
+
+    def points(scene: Any) -> Any:
+        match_colmap_views(scene, model, "--colmap")
+        return load_colmap(model, scale=scale, check_files=False).points
+
+    return points
+
+
+def train(args: argparse.Namespace) -> int:
+    """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
+    from vadgs.train.checkpoint import CHECKPOINT_NAME
+    from vadgs.train.run import describe_run, train_scene
+
+    cmd = parse_train(args.train_argv)
+    if cmd is None:
+        return 0
+    out = _check_out_dir(cmd.out, create=False)
+    progress = not cmd.no_progress
+    if cmd.resume:
+        if not (out / CHECKPOINT_NAME).is_file():
+            raise FileNotFoundError(f"--resume: no checkpoint in {out}")
+        changes = _resume_changes(cmd, out)
+        outcome = train_scene(
+            None, None, out, resume=True, config_changes=changes, progress=progress, log=print
+        )
+    else:
+        if cmd.scene is None and not cmd.sample:
+            raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
+        held = describe_run(out) if out.is_dir() else None
+        if held is not None and not cmd.overwrite:
+            raise ValueError(
+                f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
+            )
+        scene = _scene(cmd)
+        outcome = train_scene(
+            scene,
+            cmd.train,
+            out,
+            overwrite=cmd.overwrite,
+            init_points=_init_points(cmd, scene.scale),
+            progress=progress,
+            log=print,
+        )
+    if not outcome.completed:
+        print(f"stopped ({outcome.reason}) at step {outcome.step}; checkpoint {out / CHECKPOINT_NAME}; "
+              f"continue with: vadgs train --out {out} --resume")  # fmt: skip
+        return 130 if outcome.reason == "interrupted" else 0
+    print(_summary(outcome.metrics))
+    print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
+    return 0
+
+
+def _train_args(p: argparse.ArgumentParser) -> None:
+    """Nothing: ``vadgs train``'s arguments are parsed by tyro (:func:`parse_train`)."""
+
+
+train.add_arguments = _train_args  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------------------------------
+# batch
+
+
+def _batch_train(text: str) -> tuple[TrainConfig, str | None, dict]:
+    """``vadgs batch --train-args``: the TrainConfig, scene kind and scene options they give.
+
+    Parsed once, in the driver, with ``vadgs train``'s own flags, so a bad argument fails the
+    batch before any scene starts; the flags of one run folder (``--out``, ``--resume``, ...) are
+    refused.
+    """
+    words = shlex.split(text)
+    for word in ("--out", "--resume", "--overwrite", "--sample", "--colmap", "-h", "--help"):
+        if word in words or any(w.startswith(word + "=") for w in words):
+            raise ValueError(f"--train-args: {word} is not for a batch (the scenes and run folders are its own)")
+    cmd = parse_train(["--out", ".", *words])
+    assert cmd is not None  # no --help
+    if cmd.scene is not None:
+        raise ValueError(f"--train-args: SCENE {cmd.scene!r} is not for a batch (the scenes are its own)")
+    if cmd.dgp and cmd.colmap_scene:
+        raise ValueError("--train-args: --dgp, --colmap-scene: give one scene kind")
+    kind = "dgp" if cmd.dgp else "colmap" if cmd.colmap_scene else None
+    options: dict = {}
+    for key in ("scale", "images", "test_every"):
+        if getattr(cmd, key) is not None:
+            options[key] = getattr(cmd, key)
+    if cmd.no_normalize:
+        options["normalize"] = False
+    if cmd.cameras:
+        options["cameras"] = cmd.cameras.split(",")
+    if cmd.test_frames:
+        options["test_frames"] = list(cmd.test_frames)
+    return cmd.train, kind, options
+
+
+def batch(args: argparse.Namespace) -> int:
+    """Train many scenes on Ray, one task each, retried and resumed on failure (needs vadgs[ray])."""
+    from vadgs.batch import BatchConfig, run_batch
+
+    train_config, kind, options = _batch_train(args.train_args)
+    config = BatchConfig(
+        address=args.address,
+        cpus_per_scene=args.cpus_per_scene,
+        gpus_per_scene=args.gpus_per_scene,
+        threads=args.threads or 0,
+        max_retries=args.max_retries,
+        train=train_config,
+        scene_kind=kind,
+        scene_options=options,
+        progress=not args.no_progress,
+    )
+    try:
+        summary = run_batch(args.scenes, args.out, config)
+    except ImportError as e:
+        print(f"vadgs batch: error: {e}", file=sys.stderr)
+        return 2
+    print(summary.to_markdown())
+    print(f"wrote {Path(summary.out_dir) / 'summary.json'}, {Path(summary.out_dir) / 'summary.md'}")
+    return 1 if summary.failed else 0
+
+
+def _batch_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene folders (one run folder each)")
+    p.add_argument("--out", required=True, help="batch folder: run folders, summary.json, summary.md")
+    p.add_argument(
+        "--address", help="Ray cluster: auto, ray://HEAD:10001 or HOST:6379 (default: start a local Ray)"
+    )
+    p.add_argument("--cpus-per-scene", type=float, default=1.0, help="Ray CPUs per task (default 1)")
+    p.add_argument("--gpus-per-scene", type=float, default=0.0, help="Ray GPUs per task (default 0)")
+    p.add_argument("--max-retries", type=int, default=3, help="retries of a task whose worker/node died")
+    p.add_argument(
+        "--train-args",
+        default="",
+        help='arguments of each vadgs train, e.g. --train-args="--vad --iterations 3000" (with "=")',
+    )
+    p.add_argument("--no-progress", action="store_true", help="no line per finished run")
+
+
+batch.add_arguments = _batch_args  # type: ignore[attr-defined]
