@@ -53,7 +53,7 @@ def checkpoint(scene_dir, tmp_path_factory):
         "2",
         "--no-progress",
     ]
-    args += ["--set", "init.max_points=400", "--set", "init.voxel_size=1.0", "--set", "init.sh_degree=0"]
+    args += ["--init.max-points", "400", "--init.voxel-size", "1.0", "--init.sh-degree", "0"]
     assert cli(args) == 0
     return out / "checkpoint.pt"
 

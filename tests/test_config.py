@@ -99,13 +99,9 @@ class TestDeviceBackend:
 
     @staticmethod
     def _config(argv):
-        import argparse
+        from vadgs.cli.train import parse_train
 
-        from vadgs.cli import COMMANDS, _train_config
-
-        p = argparse.ArgumentParser()
-        COMMANDS["train"].add_arguments(p)
-        return _train_config(p.parse_args(["scene", "--out", "run", *argv]))
+        return parse_train(["scene", "--out", "run", *argv]).train
 
     def test_cuda_picks_gsplat(self):
         assert self._config([]).raster.backend == "torch"
@@ -113,9 +109,12 @@ class TestDeviceBackend:
         assert self._config(["--device", "cuda"]).raster.backend == "gsplat"
         assert self._config(["--device", "cuda:1"]).raster.backend == "gsplat"
 
-    def test_explicit_backend_wins(self):
-        cfg = self._config(["--device", "cuda", "--set", "raster.backend=torch"])
+    def test_explicit_backend_wins(self, tmp_path):
+        cfg = self._config(["--device", "cuda", "--raster.backend", "torch"])
         assert cfg.raster.backend == "torch"
+        config = tmp_path / "c.json"
+        config.write_text('{"raster": {"backend": "torch"}}')
+        assert self._config(["--device", "cuda", "--config", str(config)]).raster.backend == "torch"
 
 
 class TestThreads:

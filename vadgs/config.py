@@ -1,6 +1,6 @@
 """Type-checked construction of (nested, frozen) config dataclasses from plain dicts.
 
-Configs come from JSON files and ``--set KEY=VALUE`` on the command line, so a wrong type must
+Configs come from JSON files (``--config``, checkpoints, batch arguments), so a wrong type must
 fail at load time with the field's path, the expected and the actual type, not as an arithmetic
 error deep inside training. :func:`config_from_dict` reads each field's annotation through
 :func:`typing.get_type_hints` (the configs use ``from __future__ import annotations``, so

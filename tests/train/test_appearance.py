@@ -20,8 +20,8 @@ from vadgs.train.appearance import (
 from vadgs.train.evaluate import evaluate
 from vadgs.train.trainer import TrainConfig, Trainer
 
-TINY = ["--sample", "--scale", "0.25", "--no-progress", "--set", "init.max_points=400"]
-TINY += ["--set", "init.voxel_size=1.0", "--set", "init.sh_degree=0"]
+TINY = ["--sample", "--scale", "0.25", "--no-progress", "--init.max-points", "400"]
+TINY += ["--init.voxel-size", "1.0", "--init.sh-degree", "0"]
 
 
 def _apply_affine_naive(rgb, matrix, bias):
@@ -300,7 +300,7 @@ class TestCli:
     def test_train_eval_and_resume_flags(self, tmp_path, capsys):
         out = tmp_path / "run"
         args = ["train", *TINY, "--out", str(out), "--iterations", "3", "--appearance"]
-        assert main([*args, "--set", "appearance.per_frame=true"]) == 0
+        assert main([*args, "--appearance.per-frame"]) == 0
         assert "uncorrected (no appearance transform) PSNR" in capsys.readouterr().out
         cfg = json.loads((out / "config.json").read_text())["config"]["appearance"]
         assert cfg["per_frame"] is True and cfg["centered"] is True
@@ -310,6 +310,6 @@ class TestCli:
         assert json.loads((out / "eval.json").read_text())["uncorrected"] == test["uncorrected"]
         assert main(["train", "--out", str(out), "--resume", "--appearance"]) == 2
         assert "--appearance cannot be honoured" in capsys.readouterr().err
-        bad = ["train", *TINY, "--out", str(tmp_path / "bad"), "--set", "appearance.lr=-1"]
+        bad = ["train", *TINY, "--out", str(tmp_path / "bad"), "--appearance.lr", "-1"]
         assert main(bad) == 2
         assert "appearance.lr: expected > 0" in capsys.readouterr().err

@@ -9,8 +9,8 @@ class TestCli:
     def test_train_eval_render_resume(self, tmp_path, capsys):
         out = tmp_path / "run"
         args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "3"]
-        args += ["--no-progress", "--set", "init.max_points=400", "--set", "init.voxel_size=1.0"]
-        args += ["--set", "init.sh_degree=0"]
+        args += ["--no-progress", "--init.max-points", "400", "--init.voxel-size", "1.0"]
+        args += ["--init.sh-degree", "0"]
         assert main(args) == 0
         metrics = json.loads((out / "metrics.json").read_text())
         assert metrics["steps"] == 3 and metrics["test"]["num_views"] == 6
@@ -27,14 +27,14 @@ class TestCli:
         assert main(["eval", str(tmp_path)]) == 2
         assert "corrupt" in capsys.readouterr().err
         assert main(["train", "--out", str(tmp_path / "none"), "--resume"]) == 2
-        assert main(["train", "--sample", "--out", str(tmp_path / "x"), "--set", "bogus=1"]) == 2
+        assert main(["train", "--sample", "--out", str(tmp_path / "x"), "--bogus", "1"]) == 2
 
     def test_train_with_vad_strategy(self, tmp_path):
         out = tmp_path / "vad"
         # 18 training views: the first visibility-aware event runs after 5 cycles (step 89), before
         # the last 10% of the iterations (last_event_fraction)
         args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "100", "--vad"]
-        args += ["--no-progress", "--set", "init.max_points=2000", "--set", "init.sh_degree=0"]
+        args += ["--no-progress", "--init.max-points", "2000", "--init.sh-degree", "0"]
         assert main(args) == 0
         ckpt_cfg = json.loads((out / "config.json").read_text())["config"]
         assert ckpt_cfg["vad"]["view_selection"] is True  # the strategy is part of the run's config
@@ -47,22 +47,56 @@ class TestCli:
         assert main(["train", "--out", str(out), "--resume", "--no-progress"]) == 0
 
 
-def test_every_train_flag_has_a_resume_policy():
-    """A ``vadgs train`` flag is refused on ``--resume``, applied to the resumed run, or of the session.
+def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
+    """On ``--resume`` every ``vadgs train`` flag is of the session, applied, or refused by name.
 
-    Otherwise it would be silently ignored when a run is resumed.
+    Otherwise it would be silently ignored when a run is resumed. Each flag is tried on a real
+    checkpoint: the run's own flags (SCENE, ``--scale``, ``--vad``, ...) and every TrainConfig field
+    outside ``RESUMABLE_CHANGES`` are refused naming the flag; the resumable ones are applied.
     """
-    import argparse
+    import dataclasses
 
-    from vadgs.cli import _NOT_ON_RESUME, _ON_RESUME, _SESSION, _train_args
+    import pytest
+
+    from vadgs.cli.train import _SESSION, TrainCommand, _resume_changes, parse_train
     from vadgs.train.checkpoint import RESUMABLE_CHANGES
+    from vadgs.train.config import TrainConfig
 
-    p = argparse.ArgumentParser()
-    _train_args(p)
-    flags = {a.dest for a in p._actions} - {"help"}
-    refused = {key for key, _ in _NOT_ON_RESUME}
-    assert not refused & set(_ON_RESUME) and not refused & set(_SESSION)
-    assert flags == refused | set(_ON_RESUME) | set(_SESSION), sorted(
-        flags ^ (refused | set(_ON_RESUME) | set(_SESSION))
-    )
-    assert set(_ON_RESUME) <= set(RESUMABLE_CHANGES)  # what the checkpoint lets a resume change
+    out = tmp_path / "run"
+    args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "1", "--no-progress"]
+    assert main([*args, "--init.max-points", "200", "--init.sh-degree", "0"]) == 0
+    stored = parse_train(["--out", str(out), "--resume"])
+    assert stored.train.iterations == 1 and stored.train.init.max_points == 200  # the checkpoint's
+    assert _resume_changes(stored, out) == {}
+    others = {
+        "scene": "x", "sample": True, "config": "c.json", "overwrite": True, "scale": 0.5, "dgp": True,
+        "cameras": "a", "test_frames": (1,), "colmap_scene": True, "images": "i", "test_every": 2,
+        "no_normalize": True, "colmap": "m", "vad": True, "appearance": True,
+    }  # fmt: skip
+    fields = {f.name for f in dataclasses.fields(TrainCommand)}
+    assert fields == set(others) | set(_SESSION), sorted(fields ^ (set(others) | set(_SESSION)))
+    for name, value in others.items():
+        flag = "SCENE" if name == "scene" else "--" + name.replace("_", "-")
+        with pytest.raises(ValueError, match=f"--resume: {flag} cannot be honoured"):
+            _resume_changes(dataclasses.replace(stored, **{name: value}), out)
+    changed = {"iterations": 5, "max_minutes": 1.0, "device": "cpu:0", "threads": 1,
+               "checkpoint_every": 7, "checkpoint_minutes": 2.0, "log_every": 3}  # fmt: skip
+    assert set(changed) == set(RESUMABLE_CHANGES)
+    for name, value in changed.items():
+        cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, **{name: value}))
+        assert _resume_changes(cmd, out) == {name: value}
+    for name, value in (("seed", 3), ("hard_every", 2), ("lambda_hard", 0.5)):
+        cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, **{name: value}))
+        with pytest.raises(ValueError, match="--" + name.replace("_", "-") + " cannot be honoured"):
+            _resume_changes(cmd, out)
+    strategy = dataclasses.replace(stored.train.strategy, max_gaussians=5)
+    with pytest.raises(ValueError, match=r"--strategy\.max-gaussians cannot be honoured"):
+        _resume_changes(
+            dataclasses.replace(stored, train=dataclasses.replace(stored.train, strategy=strategy)), out
+        )
+    assert TrainConfig.from_dict(stored.train.to_dict()) == stored.train
+    # end to end: a refused flag is one line, exit 2; a resumable one is applied with a note
+    assert main(["train", "--out", str(out), "--resume", "--seed", "3"]) == 2
+    assert "--resume: --seed cannot be honoured" in capsys.readouterr().err
+    assert main(["train", "--out", str(out), "--resume", "--iterations", "2", "--no-progress"]) == 0
+    assert "NOTE: --iterations changes the run from 1 to 2" in capsys.readouterr().out

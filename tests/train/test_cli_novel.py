@@ -25,7 +25,7 @@ def run(tmp_path_factory):
     (root / "scene.json").write_text(json.dumps(meta))
     out = tmp_path_factory.mktemp("run") / "run"
     args = ["train", str(root), "--scale", "0.25", "--out", str(out), "--iterations", "3", "--no-progress"]
-    args += ["--set", "init.max_points=400", "--set", "init.voxel_size=1.0", "--set", "init.sh_degree=1"]
+    args += ["--init.max-points", "400", "--init.voxel-size", "1.0", "--init.sh-degree", "1"]
     assert main(args) == 0
     return out
 
@@ -54,7 +54,7 @@ class TestCliNovel:
             "1",
             "--no-progress",
         ]
-        args += ["--set", "init.max_points=200", "--set", "init.voxel_size=1.0", "--set", "init.sh_degree=0"]
+        args += ["--init.max-points", "200", "--init.voxel-size", "1.0", "--init.sh-degree", "0"]
         assert main(args) == 0
         assert main(["eval", str(out), "--split", "novel", "--no-progress"]) == 2
         assert "no novel views" in capsys.readouterr().err

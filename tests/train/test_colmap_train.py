@@ -18,7 +18,7 @@ from ..data.colmap_sample import write_sample_colmap
 
 pycolmap = pytest.importorskip("pycolmap")
 
-FAST = ["--scale", "0.25", "--no-progress", "--set", "init.sh_degree=0", "--set", "init.max_points=400"]
+FAST = ["--scale", "0.25", "--no-progress", "--init.sh-degree", "0", "--init.max-points", "400"]
 
 
 def main(argv: list[str]) -> int:
@@ -164,8 +164,8 @@ class TestSfmScene:
         write_sample_colmap(root, n_points=1500)
         # 21 training views; one cycle per event: the first at step 20, before 90 % of 24 steps
         argv = ["train", str(root), "--out", str(out), "--iterations", "24", "--vad"]
-        argv += ["--set", "vad.every_cycles=1", "--set", "vad.max_instances=1", "--set", "vad.references=1"]
-        argv += ["--set", "vad.reconstruct.max_crop=48", *FAST]
+        argv += ["--vad.every-cycles", "1", "--vad.max-instances", "1", "--vad.references", "1"]
+        argv += ["--vad.reconstruct.max-crop", "48", *FAST]
         assert main(argv) == 0
         events = json.loads((out / "metrics.json").read_text())["vad_events"]
         assert len(events) == 1 and events[0]["step"] == 20
@@ -190,8 +190,8 @@ class TestSfmScene:
         }
         assert sizes == {(120, 200), (144, 240)}
         argv = ["train", str(root), "--out", str(out), "--iterations", "24", "--vad"]
-        argv += ["--set", "vad.every_cycles=1", "--set", "vad.references=2", "--set", "vad.time_budget=null"]
-        argv += ["--set", "vad.reconstruct.max_crop=48", *FAST]
+        argv += ["--vad.every-cycles", "1", "--vad.references", "2", "--vad.time-budget", "None"]
+        argv += ["--vad.reconstruct.max-crop", "48", *FAST]
         assert main(argv) == 0
         (event,) = json.loads((out / "metrics.json").read_text())["vad_events"]
         assert event["flagged_instances"] > 0 and event["added"] > 50

@@ -26,8 +26,8 @@ from vadgs.train.trainer import (
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = ["--sample", "--scale", "0.25", "--no-progress", "--set", "init.max_points=400"]
-TINY += ["--set", "init.voxel_size=1.0", "--set", "init.sh_degree=0"]
+TINY = ["--sample", "--scale", "0.25", "--no-progress", "--init.max-points", "400"]
+TINY += ["--init.voxel-size", "1.0", "--init.sh-degree", "0"]
 
 
 def _params(trainer):
@@ -184,7 +184,7 @@ class TestDivergence:
 
     def test_cli_exit_3_with_the_message(self, tmp_path, capsys):
         args = ["train", "--out", str(tmp_path / "r"), "--iterations", "6", *TINY]
-        assert main([*args, "--set", "lr.means=1e8", "--set", "log_every=2"]) == 3
+        assert main([*args, "--lr.means", "1e8", "--log-every", "2"]) == 3
         err = capsys.readouterr().err
         assert "training diverged at step" in err and "static Gaussians are farther" in err, err
         assert not (tmp_path / "r" / "metrics.json").exists()
@@ -224,7 +224,7 @@ class TestRunFolder:
         assert main(["train", "--out", str(out), "--iterations", "2", *TINY]) == 0
         capsys.readouterr()
         for extra, flag in (
-            (["--set", "lr.means=1"], "--set"),
+            (["--lr.means", "1"], "--set"),
             (["--vad"], "--vad"),
             (["--seed", "3"], "--seed"),
             (["--scale", "0.5"], "--scale"),

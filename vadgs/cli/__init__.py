@@ -21,7 +21,8 @@ from collections.abc import Callable
 
 import torch
 
-from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, demo
+from vadgs.cli._common import _int_at_least
+from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, demo  # noqa: F401 (DEMO_*: documented here)
 from vadgs.cli.runs import eval_run, export_run, render_run, view_run
 from vadgs.cli.scenes import check, convert, visibility
 from vadgs.cli.train import batch, train

@@ -26,7 +26,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from vadgs.cli._common import _check_out_dir, _int_at_least, _scene_arg, _summary
+from vadgs.cli._common import _check_out_dir, _scene_arg, _summary
 from vadgs.train.config import TrainConfig
 
 __all__ = ["TrainCommand", "batch", "parse_train", "train"]
@@ -38,10 +38,10 @@ _Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]
 class TrainCommand:
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
 
-    scene: tyro.conf.Positional[str | None] = None
+    scene: Annotated[str | None, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")] = None
     """scene folder: benchmark format (scene.json), a COLMAP model or project folder (sparse/0;
     detected), or DGP with --dgp"""
-    out: str = ""
+    out: Annotated[str, tyro.conf.arg(metavar="FOLDER")] = ""
     """run folder (checkpoints, metrics, PLY); required"""
     sample: _Flag = False
     """use the bundled sample scene"""
@@ -87,10 +87,6 @@ class TrainCommand:
             raise ValueError(f"--scale: expected a positive number, got {self.scale}")
         if self.test_every is not None and self.test_every < 0:
             raise ValueError(f"--test-every: expected an integer >= 0, got {self.test_every}")
-        for key in ("max_minutes", "threads", "checkpoint_every"):
-            if getattr(self.train, key) < 0:
-                flag = "--" + key.replace("_", "-")
-                raise ValueError(f"{flag}: expected >= 0 (0 = off), got {getattr(self.train, key)}")
 
 
 # TrainCommand fields of the session, not of the run (the others are refused on --resume)
@@ -103,14 +99,24 @@ def _flag(key: str) -> str:
 
 
 def _tyro_error(text: str) -> str:
-    """tyro's boxed error message as one line (the lines between the title rule and the next)."""
+    """Tyro's boxed error message as one line (the lines between the title rule and the next)."""
     lines = [ln.strip() for ln in text.splitlines()]
     rules = [i for i, ln in enumerate(lines) if ln and set(ln) <= {"-", "─", "━"}]
     body = lines[rules[0] + 1 : rules[1]] if len(rules) >= 2 else lines
-    message = " ".join(ln for ln in body if ln)
-    message = re.sub(r"^Error parsing (TrainCommand|TrainConfig|[A-Za-z]+Config): ", "", message)
-    message = re.sub(r"^Error parsing (--\S+): ", r"\1: ", message)
-    return message or " ".join(ln for ln in lines if ln) or "bad arguments"
+    message = " ".join(ln for ln in body if ln) or " ".join(ln for ln in lines if ln) or "bad arguments"
+    m = re.match(r"Error parsing (\S+): (.*)", message)
+    if m is None:
+        return message
+    where, rest = m.groups()
+    if where.startswith("--"):
+        return f"{where}: {rest}"
+    # a dataclass's own check, e.g. "Error parsing train.raster: backend: expected ...": name the flags
+    prefix = [p for p in where.split(".") if p != "train" and not p[:1].isupper()]
+    named = re.match(r"([a-z_]+(?:, [a-z_]+)*): (.*)", rest)
+    if named is None:
+        return rest
+    flags = [_flag(".".join([*prefix, name])) for name in named.group(1).split(", ")]
+    return f"{', '.join(flags)}: {named.group(2)}"
 
 
 def _read_config_file(path: str) -> dict:
@@ -184,9 +190,13 @@ def parse_train(argv: list[str]) -> TrainCommand | None:
                            prog="vadgs train")  # fmt: skip
     except SystemExit:
         raise ValueError(_tyro_error(text.getvalue())) from None
+    except ValueError as e:  # a check of TrainConfig itself, not wrapped by tyro
+        raise ValueError(_tyro_error(f"Error parsing train: {e}")) from None
     if not cmd.out:
         raise ValueError("--out: required (the run folder)")
-    backend_given = any(a.startswith("--raster.backend") for a in argv) or "backend" in (data.get("raster") or {})
+    backend_given = any(a.startswith("--raster.backend") for a in argv) or "backend" in (
+        data.get("raster") or {}
+    )
     if str(cmd.train.device).startswith("cuda") and not backend_given and not cmd.resume:
         raster = dataclasses.replace(cmd.train.raster, backend="gsplat")  # gsplat's CUDA rasterizer on GPUs
         cmd = dataclasses.replace(cmd, train=dataclasses.replace(cmd.train, raster=raster))
@@ -228,7 +238,9 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
     changes = {k: b[k] for k in changed}
     if "iterations" in changes:
         if changes["iterations"] < step:
-            raise ValueError(f"--resume --iterations {changes['iterations']}: the run is already at step {step}")
+            raise ValueError(
+                f"--resume --iterations {changes['iterations']}: the run is already at step {step}"
+            )
         print(
             f"NOTE: --iterations changes the run from {a['iterations']} to {changes['iterations']} "
             "steps; the means' learning-rate decay and VAD-GS's event window "
@@ -257,7 +269,11 @@ def _scene(cmd: TrainCommand) -> Any:
         kind = scene_ref(path).kind
     kind = kind or "benchmark"
     if kind != "colmap":
-        for key, flag in (("images", "--images"), ("test_every", "--test-every"), ("no_normalize", "--no-normalize")):
+        for key, flag in (
+            ("images", "--images"),
+            ("test_every", "--test-every"),
+            ("no_normalize", "--no-normalize"),
+        ):
             if getattr(cmd, key) not in (None, False):
                 raise ValueError(
                     f"{flag}: only for a COLMAP scene (SCENE a COLMAP model or project folder), "
@@ -366,7 +382,9 @@ def _batch_train(text: str) -> tuple[TrainConfig, str | None, dict]:
     words = shlex.split(text)
     for word in ("--out", "--resume", "--overwrite", "--sample", "--colmap", "-h", "--help"):
         if word in words or any(w.startswith(word + "=") for w in words):
-            raise ValueError(f"--train-args: {word} is not for a batch (the scenes and run folders are its own)")
+            raise ValueError(
+                f"--train-args: {word} is not for a batch (the scenes and run folders are its own)"
+            )
     cmd = parse_train(["--out", ".", *words])
     assert cmd is not None  # no --help
     if cmd.scene is not None:

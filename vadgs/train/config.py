@@ -8,6 +8,7 @@ Frozen dataclasses, checked in ``__post_init__``, stored in every checkpoint
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -119,6 +120,15 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.iterations < 0:
             raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
+        if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
+            raise ValueError(
+                f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"
+            )
+        if self.threads < 0 or self.checkpoint_every < 0:
+            raise ValueError(
+                "threads, checkpoint_every: expected >= 0 (0 = off), got "
+                f"{self.threads}, {self.checkpoint_every}"
+            )
         if min(self.sh_degree_interval, self.log_every, self.hard_every, self.hard_stride) < 1:
             raise ValueError(
                 "sh_degree_interval, log_every, hard_every, hard_stride: expected >= 1, got "
