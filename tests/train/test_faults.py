@@ -224,7 +224,7 @@ class TestRunFolder:
         assert main(["train", "--out", str(out), "--iterations", "2", *TINY]) == 0
         capsys.readouterr()
         for extra, flag in (
-            (["--lr.means", "1"], "--set"),
+            (["--lr.means", "1"], "--lr.means"),
             (["--vad"], "--vad"),
             (["--seed", "3"], "--seed"),
             (["--scale", "0.5"], "--scale"),

@@ -219,15 +219,19 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
 
     stored = load_checkpoint(out)
     before, step = TrainConfig.from_dict(stored["config"]), int(stored["step"])
-    a, b = _flat(before.to_dict()), _flat(cmd.train.to_dict())
-    changed = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    da, db = before.to_dict(), cmd.train.to_dict()
+    # a part switched on or off (vad, appearance) is one change, not one per field
+    switched = sorted(k for k in da.keys() | db.keys() if (da.get(k) is None) != (db.get(k) is None))
+    a = _flat({k: v for k, v in da.items() if k not in switched})
+    b = _flat({k: v for k, v in db.items() if k not in switched})
+    changed = switched + sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
     defaults = TrainCommand()
     given = [
         "SCENE" if f.name == "scene" else _flag(f.name)
         for f in dataclasses.fields(TrainCommand)
         if f.name not in _SESSION and getattr(cmd, f.name) != getattr(defaults, f.name)
     ]
-    refused = given + [_flag(k) for k in changed if k not in RESUMABLE_CHANGES]
+    refused = list(dict.fromkeys(given + [_flag(k) for k in changed if k not in RESUMABLE_CHANGES]))
     if refused:
         allowed = ", ".join(_flag(k) for k in RESUMABLE_CHANGES)
         raise ValueError(
