@@ -61,6 +61,7 @@ from vadgs.train.checkpoint import (
     load_checkpoint,
 )
 from vadgs.train.config import LearningRates, TrainConfig
+from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
 from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.losses import GeometryTargets
@@ -88,22 +89,6 @@ __all__ = [
     "load_checkpoint",
     "open_scene",
 ]
-
-
-class NonFiniteLossError(FloatingPointError):
-    """A loss or parameter became NaN / infinite; ``step`` says when."""
-
-    def __init__(self, step: int, what: str) -> None:
-        super().__init__(f"non-finite value at step {step}: {what}")
-        self.step = step
-
-
-class DivergenceError(FloatingPointError):
-    """The model diverged (Gaussians flew out of the scene, or the loss exploded); ``step`` says when."""
-
-    def __init__(self, step: int, what: str) -> None:
-        super().__init__(f"training diverged at step {step}: {what}")
-        self.step = step
 
 
 class TrainResult(NamedTuple):
@@ -231,8 +216,7 @@ class Trainer:
         self._lidar: dict[int, tuple[torch.Tensor, bool]] = {}
         self._stop = False
         self._saved_step: int | None = None
-        self._color_ema: float | None = None
-        self._color_min = math.inf
+        self._divergence: DivergenceMonitor | None = None
 
     def _configured_strategy(self) -> Strategy:
         base = DefaultStrategy(self.config.strategy)
@@ -559,46 +543,22 @@ class Trainer:
         return res
 
     def check_divergence(self, res: dict[str, float]) -> None:
-        """Raise :class:`DivergenceError` if the model diverged (see :class:`TrainConfig`).
+        """Raise :class:`DivergenceError` if the model diverged (:class:`DivergenceMonitor`).
 
         Uses the colour loss already on the host every step; at step 1, every ``log_every`` steps
-        and at the end of each cycle, one reduction over the static means (the share farther than
-        ``diverge_distance`` x the scene scale).
+        and at the end of each cycle, one reduction over the static means.
         """
         cfg = self.config
-        color = res.get("color")
-        if cfg.diverge_loss_factor > 0 and color is not None:
-            self._color_ema = color if self._color_ema is None else 0.9 * self._color_ema + 0.1 * color
-            if self.step >= len(self.sampler):
-                if self._color_ema > cfg.diverge_loss_factor * max(self._color_min, 1e-4):
-                    raise DivergenceError(
-                        self.step,
-                        f"the colour loss exploded (running mean {self._color_ema:.4g}, more than "
-                        f"{cfg.diverge_loss_factor:g} x its lowest {self._color_min:.4g})",
-                    )
-                self._color_min = min(self._color_min, self._color_ema)
         at = self.step % cfg.log_every == 0 or self.step % len(self.sampler) == 0 or self.step == 1
-        if cfg.diverge_distance > 0 and at:
-            with torch.no_grad():
-                static = self.model.node_ids < 0
-                means = self.model.params["means"].detach()[static]
-                if means.shape[0] == 0:
-                    return
-                if not hasattr(self, "_centre"):
-                    self._centre = (
-                        torch.stack([self.scene.views[v].cam_to_world[:3, 3] for v in self.train_views])
-                        .mean(0)
-                        .to(means)
-                    )
-                far = (means - self._centre).norm(dim=-1) > cfg.diverge_distance * self.scene_scale
-                share = float(far.float().mean())
-            if share > cfg.diverge_share:
-                raise DivergenceError(
-                    self.step,
-                    f"{share:.0%} of the static Gaussians are farther than {cfg.diverge_distance:g} x "
-                    f"the scene scale ({cfg.diverge_distance * self.scene_scale:.4g}) from the cameras' "
-                    f"centre (limit {cfg.diverge_share:.0%}; a learning rate too high?)",
-                )
+        if self._divergence is None:
+            centre = torch.stack([self.scene.views[v].cam_to_world[:3, 3] for v in self.train_views]).mean(0)
+            self._divergence = DivergenceMonitor(
+                centre, self.scene_scale, cfg.diverge_distance, cfg.diverge_share, cfg.diverge_loss_factor
+            )
+        means = None
+        if at and cfg.diverge_distance > 0:
+            means = self.model.params["means"].detach()[self.model.node_ids < 0]
+        self._divergence.check(self.step, res.get("color"), means, self.step >= len(self.sampler), at)
 
     def train(self) -> TrainResult:
         """Run to ``config.iterations`` (from the current step), checkpointing on the way.
