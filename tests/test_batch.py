@@ -92,7 +92,7 @@ class TestBatchConfig:
 
     def test_train_args_are_parsed_in_the_driver(self, scenes, tmp_path, capsys):
         root, train_args = scenes
-        from vadgs.cli import _batch_train
+        from vadgs.cli.train import _batch_train
 
         config, kind, options = _batch_train(" ".join(train_args) + " --vad --dgp --cameras a,b")
         assert config == TrainConfig.from_dict({**TINY, "vad": {}})
@@ -100,10 +100,11 @@ class TestBatchConfig:
         # a bad argument fails the whole batch at once, before Ray starts, in one line
         argv = ["batch", str(root / "seg_a"), "--out", str(tmp_path / "b")]
         for bad, says in (
-            ("--bogus", "unrecognized arguments: --bogus"),
-            ("--iterations x", "argument --iterations: expected an integer >= 0, got 'x'"),
+            ("--bogus", "Unrecognized options: --bogus"),
+            ("--iterations x", "--iterations: invalid literal for int() with base 10: 'x'"),
             ("--resume", "--resume is not for a batch"),
-            ("--set lr.means=fast", "lr.means"),
+            ("--lr.means fast", "--lr.means: could not convert string to float: 'fast'"),
+            ("some_scene", "SCENE 'some_scene' is not for a batch"),
         ):
             assert main([*argv, f"--train-args={bad}"]) == 2, bad
             err = capsys.readouterr().err.strip()

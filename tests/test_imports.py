@@ -80,11 +80,21 @@ def import_graph() -> nx.DiGraph:
     return g
 
 
-@pytest.mark.parametrize("name", sorted(_modules()))
+@pytest.mark.parametrize("name", sorted(n for n in _modules() if not n.endswith(".__main__")))
 def test_every_module_imports(name):
     if name == "vadgs.viewer":
         pytest.importorskip("viser")
     importlib.import_module(name)
+
+
+def test_python_m_vadgs_cli_is_the_command(capsys, monkeypatch):
+    import runpy
+    import sys
+
+    monkeypatch.setattr(sys, "argv", ["vadgs", "--help"])
+    with pytest.raises(SystemExit) as e:
+        runpy.run_module("vadgs.cli", run_name="__main__")
+    assert e.value.code == 0 and "train" in capsys.readouterr().out
 
 
 def test_no_import_circle():

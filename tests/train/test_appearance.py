@@ -310,6 +310,6 @@ class TestCli:
         assert json.loads((out / "eval.json").read_text())["uncorrected"] == test["uncorrected"]
         assert main(["train", "--out", str(out), "--resume", "--appearance"]) == 2
         assert "--appearance cannot be honoured" in capsys.readouterr().err
-        bad = ["train", *TINY, "--out", str(tmp_path / "bad"), "--appearance.lr", "-1"]
+        bad = ["train", *TINY, "--out", str(tmp_path / "bad"), "--appearance", "--appearance.lr", "-1"]
         assert main(bad) == 2
-        assert "appearance.lr: expected > 0" in capsys.readouterr().err
+        assert "--appearance.lr: expected > 0" in capsys.readouterr().err

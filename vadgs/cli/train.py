@@ -112,10 +112,14 @@ def _tyro_error(text: str) -> str:
         return f"{where}: {rest}"
     # a dataclass's own check, e.g. "Error parsing train.raster: backend: expected ...": name the flags
     prefix = [p for p in where.split(".") if p != "train" and not p[:1].isupper()]
-    named = re.match(r"([a-z_]+(?:, [a-z_]+)*): (.*)", rest)
+    named = re.match(r"([a-z_.]+(?:, [a-z_.]+)*): (.*)", rest)
     if named is None:
         return rest
-    flags = [_flag(".".join([*prefix, name])) for name in named.group(1).split(", ")]
+    # a message that names its field with its section already ("appearance.lr") keeps it
+    flags = [
+        _flag(name if prefix and name.startswith(prefix[-1] + ".") else ".".join([*prefix, name]))
+        for name in named.group(1).split(", ")
+    ]
     return f"{', '.join(flags)}: {named.group(2)}"
 
 
