@@ -58,6 +58,10 @@ VARIANTS = {
     "no_upsample_no_planar": VisibilityDensifyConfig(
         reconstruct=ReconstructConfig(max_upsample=1, planar=None)
     ),
+    # fewer, wider Gaussians per reconstructed surface (issue 21: the model's size and its step time)
+    "thin2": VisibilityDensifyConfig(reconstruct=ReconstructConfig(thin_factor=2.0)),
+    "thin3": VisibilityDensifyConfig(reconstruct=ReconstructConfig(thin_factor=3.0)),
+    "thin1.5": VisibilityDensifyConfig(reconstruct=ReconstructConfig(thin_factor=1.5)),
 }
 
 

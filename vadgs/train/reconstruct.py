@@ -1,12 +1,8 @@
 r"""Reconstruct one flagged instance by multi-view stereo (paper, Fig. 2 and 4).
 
-:class:`VisibilityIndex` gathers what the visibility-aware densification needs about a scene:
-the static voxel grid (world frame) and one grid per moving object (its own frame), each voxel's
-instance label and visibility set, and the cameras of every view, as
-:class:`~vadgs.select.Covisibility` objects for view selection.
-
-:func:`reconstruct_instance` then, for a reference view and an instance flagged by
-:func:`~vadgs.train.incomplete.find_incomplete`:
+:func:`reconstruct_instance`, given the scene's :class:`~vadgs.train.visibility.VisibilityIndex`
+(:mod:`vadgs.train.visibility`; re-exported here with :func:`build_visibility_index`), a
+reference view and an instance flagged by :func:`~vadgs.train.incomplete.find_incomplete`:
 
 1. takes the instance's voxels (their visibility sets are the candidate views) — or, when the
    instance has almost no voxels of its own (the LiDAR missed it), the voxels the z-buffer sees
@@ -32,27 +28,22 @@ index.
 
 from __future__ import annotations
 
-import itertools
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 
-from vadgs.geometry.camera import Cameras, invert_rigid, project_points, scale_intrinsics
-from vadgs.geometry.voxel import VoxelGrid, voxelize
-from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
+from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
 from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
 from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, ViewSelectionConfig, select_views
-from vadgs.train.incomplete import voxel_labels
-from vadgs.train.inputs import VisibilityInputs, sfm_observations
+from vadgs.train.inputs import sfm_observations
+from vadgs.train.visibility import ViewCache, VisibilityIndex, build_visibility_index, derive_instance_map
 
 __all__ = [
     "InstanceReconstruction",
@@ -62,6 +53,7 @@ __all__ = [
     "ViewRender",
     "VisibilityIndex",
     "build_visibility_index",
+    "derive_instance_map",
     "match_scale",
     "reconstruct_instance",
     "sfm_observations",
@@ -119,6 +111,11 @@ class ReconstructConfig:
             resolution or at the coarser matching scale; the points' ``spacing`` (the new Gaussians'
             width) is that of the cell. Finer matching of small instances then gives more accurate
             points, not more of them.
+        thin_factor: for an instance matched below the scene's resolution (a large one, such as a
+            facade: ``max_match_pixels``), the cell of ``thin_points`` is this many times the
+            point spacing and the new Gaussians are as much wider: fewer, larger Gaussians on
+            large surfaces. Smaller instances (a sign) keep one point per pixel footprint. 1: no
+            change.
         whole_supports: when the instance is whole in the reference view (its mask does not touch
             the image border), select the supporting views among those where it is whole too, if
             there are ``selection.k`` of them (else among all). A view that cuts the instance off
@@ -146,6 +143,7 @@ class ReconstructConfig:
     explained_alpha: float = 0.7
     explained_tolerance: float = 0.05
     thin_points: bool = True
+    thin_factor: float = 1.0
     whole_supports: bool = True
 
     def __post_init__(self) -> None:
@@ -155,6 +153,8 @@ class ReconstructConfig:
             raise ValueError(f"max_crop: expected >= 8 pixels, got {self.max_crop}")
         if self.max_match_pixels is not None and self.max_match_pixels < 64:
             raise ValueError(f"max_match_pixels: expected None or >= 64, got {self.max_match_pixels}")
+        if not self.thin_factor >= 1:
+            raise ValueError(f"thin_factor: expected >= 1, got {self.thin_factor}")
         if self.max_downsample not in (1, 2, 4, 8):
             raise ValueError(f"max_downsample: expected 1, 2, 4 or 8, got {self.max_downsample}")
         near, far = self.depth_margin
@@ -192,392 +192,6 @@ class InstanceReconstruction(NamedTuple):
     depth: list[torch.Tensor]
     normal: list[torch.Tensor]
     reason: str
-
-
-class ViewCache:
-    """Per-view tensors kept up to a byte budget; the least recently used are dropped first.
-
-    The visibility index computes a view's voxel z-buffer, voxel depth, instance map and image
-    on demand and keeps them here, so a long run on a large scene holds at most ``max_bytes``
-    of them (1 GiB by default: every view of the street scenes at 240×144; some hundred views at
-    1920×1280), and recomputes what was dropped.
-
-    Example:
-        >>> cache = ViewCache(max_bytes=100)
-        >>> a = cache.get(("image", 0), lambda: torch.zeros(10))  # 40 bytes
-        >>> b = cache.get(("image", 1), lambda: torch.zeros(10))
-        >>> c = cache.get(("image", 2), lambda: torch.zeros(10))  # 120 > 100: view 0 dropped
-        >>> sorted(k[1] for k in cache.keys()), cache.nbytes
-        ([1, 2], 80)
-    """
-
-    def __init__(self, max_bytes: int = 1 << 30) -> None:
-        self.max_bytes = int(max_bytes)
-        self._items: OrderedDict = OrderedDict()
-        self.nbytes = 0
-
-    @staticmethod
-    def _size(value) -> int:
-        items = value if isinstance(value, tuple) else (value,)
-        return sum(x.numel() * x.element_size() for x in items if isinstance(x, torch.Tensor))
-
-    def get(self, key, make: Callable[[], object]):
-        """The cached value of ``key``, made by ``make()`` (and kept) when absent."""
-        if key in self._items:
-            self._items.move_to_end(key)
-            return self._items[key]
-        value = make()
-        self._items[key] = value
-        self.nbytes += self._size(value)
-        while self.nbytes > self.max_bytes and len(self._items) > 1:
-            _, old = self._items.popitem(last=False)
-            self.nbytes -= self._size(old)
-        return value
-
-    def keys(self):
-        """The keys held, least recently used first."""
-        return list(self._items)
-
-    def clear(self) -> None:
-        """Drop everything."""
-        self._items.clear()
-        self.nbytes = 0
-
-
-@dataclass
-class VisibilityIndex:
-    """Voxel grids, labels and covisibility of a scene, built once by :func:`build_visibility_index`.
-
-    The grids, labels and covisibility are fixed once built; what is computed per view (voxel
-    z-buffer, voxel depth, instance map, image) is kept in ``view_cache``, a :class:`ViewCache` with
-    an explicit byte bound.
-
-    Attributes:
-        inputs: the :class:`~vadgs.train.inputs.VisibilityInputs` it was built from (loaders,
-            tracks, classes, per-view camera and frame).
-        cameras: all views' cameras (world frame).
-        grid: static voxel grid (world frame).
-        labels: ``(M,)`` instance label of each static voxel.
-        covis: view selection input over the static voxels.
-        track_grids: track id → voxel grid in the object's frame.
-        track_covis: track id → view selection input in the object's frame.
-        allowed: ``(V,)`` bool, views that may support (the training views).
-        zbuffer: settings of the z-buffer.
-        sizes: per view ``(H, W)`` when the views differ in size (a rig of cameras of different
-            sizes, a photo collection), else None. ``cameras.image_size`` is then the largest, and
-            every per-view map (voxel depth, index, instance map, image) is padded at its bottom
-            and right to it (depth 0, index -1, instance 0: no pixel there); intrinsics are
-            unchanged by such padding. :meth:`size` is a view's own size, :meth:`valid` its area.
-        cell_size: ground-cell edge of derived instances (scenes without instance maps).
-        grow: pixels a derived instance map grows beyond the voxels.
-        view_cache: the per-view cache.
-    """
-
-    inputs: VisibilityInputs
-    cameras: Cameras
-    grid: VoxelGrid
-    labels: torch.Tensor
-    covis: Covisibility
-    track_grids: dict[int, VoxelGrid]
-    track_covis: dict[int, Covisibility]
-    allowed: torch.Tensor
-    zbuffer: ZBufferConfig = field(default_factory=ZBufferConfig)
-    sizes: tuple[tuple[int, int], ...] | None = None
-    cell_size: float = 10.0
-    grow: int = 6
-    view_cache: ViewCache = field(default_factory=ViewCache, repr=False)
-    _cells: torch.Tensor | None = field(default=None, repr=False)
-    _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
-
-    def size(self, view: int) -> tuple[int, int]:
-        """``(H, W)`` of a view (its own, before padding)."""
-        return self.sizes[view] if self.sizes is not None else self.cameras.image_size
-
-    def camera(self, view: int) -> Cameras:
-        """The camera of one view at its own image size."""
-        return Cameras(
-            self.cameras.K[view : view + 1], self.cameras.world_to_cam[view : view + 1], self.size(view)
-        )
-
-    def cut_by_border(self, view: int, instance: int) -> bool:
-        """Whether the instance's mask in ``view`` touches the border of the view's own image.
-
-        Such a view shows only part of the instance (e.g. the top of a sign above the frame of a
-        close view). An instance that is not in the view is not cut.
-        """
-        h, w = self.size(view)
-        m = self.instances(view)[:h, :w] == instance
-        return bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
-
-    def valid(self, view: int) -> torch.Tensor:
-        """``(H, W)`` bool at the padded size: the view's own pixels."""
-        h, w = self.size(view)
-        out = torch.zeros(self.cameras.image_size, dtype=torch.bool, device=self.cameras.K.device)
-        out[:h, :w] = True
-        return out
-
-    def pad(self, x: torch.Tensor, value: float = 0, factor: int = 1) -> torch.Tensor:
-        """A view's map ``(..., h, w)`` padded at the bottom and right to the index's size (x ``factor``)."""
-        H, W = (n * factor for n in self.cameras.image_size)
-        h, w = x.shape[-2:]
-        return x if (h, w) == (H, W) else F.pad(x, (0, W - w, 0, H - h), value=value)
-
-    def image(self, view: int, factor: int = 1) -> torch.Tensor:
-        """``(3, H, W)`` image of a view (cached), or ``factor`` times finer (re-read, not cached)."""
-        if factor != 1:
-            h, w = self.size(view)
-            return self.pad(self.inputs.load_image(view, (h * factor, w * factor)), factor=factor)
-        return self.view_cache.get(("image", view), lambda: self.pad(self.inputs.load_image(view, None)))
-
-    @property
-    def derives_instances(self) -> bool:
-        """True when the scene has no instance maps and :meth:`instances` derives them."""
-        return self.inputs.derives_instances
-
-    def instances(self, view: int) -> torch.Tensor:
-        """``(H, W)`` instance map of a view (cached).
-
-        The scene's own map when it has one; otherwise :func:`derive_instance_map` (static
-        voxel cells plus projected track boxes), which stands in for a segmentation network.
-        """
-
-        def make() -> torch.Tensor:
-            if self.inputs.has_instances(view):
-                return self.pad(self.inputs.load_instances(view))
-            return derive_instance_map(self, view)
-
-        return self.view_cache.get(("instances", view), make)
-
-    def classes(self) -> dict[int, str]:
-        """Instance id → class name, including derived static cells (``"static"``)."""
-        out = dict(self.inputs.classes)
-        if self.derives_instances:
-            out.update(dict.fromkeys(self.cell_ids().unique().tolist(), "static"))
-        return out
-
-    def box_corners(self, track: int) -> torch.Tensor:
-        """``(8, 3)`` box corners of a track in its object frame (cached: a mesh is read once)."""
-        if track not in self._corners:
-            self._corners[track] = _box_corners(self.inputs.tracks[track])
-        return self._corners[track]
-
-    def cell_ids(self) -> torch.Tensor:
-        """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell."""
-        if self._cells is None:
-            xy = torch.floor(self.grid.centers[:, :2] / self.cell_size).long()
-            _, cell = torch.unique(xy, dim=0, return_inverse=True)
-            first = max([0, *self.inputs.tracks, *self.inputs.classes]) + 1
-            self._cells = cell + first
-        return self._cells
-
-    def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
-
-        def make() -> tuple[torch.Tensor, torch.Tensor]:
-            r = rasterize_voxels(self.grid, self.camera(view), [view], self.zbuffer)
-            return self.pad(r.depth[0]), self.pad(r.index[0], -1)
-
-        return self.view_cache.get(("raster", view), make)
-
-    def voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
-
-        Moving objects are rasterised in their own frame at the view's timestamp; the nearest
-        voxel surface wins. Cached per view.
-
-        Returns:
-            ``(depth, label)``: the nearest voxel surface (0 where empty) and the instance label of
-            its voxel (``(H, W)`` int64, 0 where empty; a track's id on its voxels).
-        """
-        return self.view_cache.get(("voxel_depth", view), lambda: self._voxel_depth(view))
-
-    def _voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
-        depth, vidx = self.voxel_raster(view)
-        label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
-        depth = depth.clone()
-        fpos = self.inputs.frame_position(view)
-        cams = self.camera(view)
-        for tid, grid in self.track_grids.items():
-            track = self.inputs.tracks[tid]
-            if not bool(track.valid[fpos]):
-                continue
-            o2w = track.object_to_world[fpos].to(cams.world_to_cam)
-            obj_cams = Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size)
-            r = rasterize_voxels(grid, obj_cams, config=self.zbuffer)
-            r = r._replace(depth=self.pad(r.depth))
-            closer = (r.depth[0] > 0) & ((depth == 0) | (r.depth[0] < depth))
-            depth = torch.where(closer, r.depth[0], depth)
-            label = torch.where(closer[0], torch.full_like(label, tid), label)
-        return depth, label
-
-    def object_cameras(self, track: int) -> torch.Tensor:
-        """``(V, 4, 4)`` object-to-camera transforms of every view for a track."""
-        t = self.inputs.tracks[track]
-        pos = torch.tensor([self.inputs.frame_position(v) for v in range(self.inputs.num_views)])
-        return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
-
-
-def _covis(grid: VoxelGrid, world_to_cam: torch.Tensor, inputs: VisibilityInputs) -> Covisibility:
-    cam_ids = torch.tensor(inputs.view_cameras)
-    frame_ids = torch.tensor(inputs.view_frames)
-    return Covisibility.from_csr(
-        grid.vis_indptr, grid.vis_views, grid.centers, world_to_cam, cam_ids, frame_ids
-    )
-
-
-def _box_corners(track) -> torch.Tensor:
-    """``(8, 3)`` box corners of a track in its object frame.
-
-    The mesh's bounds when the track has a mesh (street scenes put the origin on the ground), else
-    ``size_lwh`` about the origin (DGP boxes).
-    """
-    if track.mesh is not None and Path(track.mesh).is_file():
-        import trimesh
-
-        lo, hi = (
-            torch.tensor(b, dtype=torch.float32) for b in trimesh.load(track.mesh, process=False).bounds
-        )
-    else:
-        hi = track.size_lwh.float() / 2
-        lo = -hi
-    pick = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.bool)
-    return torch.where(pick, hi, lo)
-
-
-def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
-    """An instance map for a scene without one, from the voxel index map and the tracks.
-
-    Static pixels take the id of their voxel's ground cell (``index.cell_size`` metres square,
-    :meth:`VisibilityIndex.cell_ids`); pixels without a voxel take the nearest labelled pixel's id
-    within ``index.grow`` pixels (so MVS can extend a little beyond the LiDAR's reach), else 0.
-    Tracks with a pose at the view's frame paint their projected 3D box (convex hull of its
-    corners, far boxes first). Unlike a segmentation network, this cannot label structures far
-    from any LiDAR point (a sign above the LiDAR's field of view): the strategy then only repairs
-    geometry near what the LiDAR saw.
-
-    Returns:
-        ``(H, W)`` int64 instance ids (0 = none).
-    """
-    import numpy as np
-    from scipy import ndimage
-    from scipy.spatial import ConvexHull, QhullError
-    from skimage.draw import polygon
-
-    inputs = index.inputs
-    _, vox = index.voxel_raster(view)
-    cells = index.cell_ids()
-    lab = torch.where(vox >= 0, cells[vox.clamp_min(0)], torch.zeros_like(vox)).numpy()
-    if index.grow > 0 and (lab > 0).any():
-        dist, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
-        lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
-    pos = inputs.frame_position(view)
-    cam = index.camera(view)
-    own = index.valid(view).numpy()
-    lab = np.where(own, lab, 0)  # nothing grows into the padding of a smaller view
-    boxes = []
-    for tid, t in inputs.tracks.items():
-        if not bool(t.valid[pos]):
-            continue
-        corners = index.box_corners(tid)
-        o2w = t.object_to_world[pos].float()
-        world = corners @ o2w[:3, :3].T + o2w[:3, 3]
-        uv, z = project_points(world[None], cam.K, cam.world_to_cam)
-        if bool((z < 0.1).any()):  # a box across the image plane: skip rather than mis-project
-            continue
-        boxes.append((float(z.mean()), tid, uv[0].numpy()))
-    for _, tid, uv in sorted(boxes, reverse=True):  # far first: near boxes paint over them
-        try:
-            hull = uv[ConvexHull(uv).vertices]
-        except QhullError:
-            continue
-        rr, cc = polygon(hull[:, 1], hull[:, 0], shape=index.size(view))
-        lab[rr, cc] = tid
-    return torch.from_numpy(np.ascontiguousarray(lab)).long()
-
-
-def build_visibility_index(
-    source: VisibilityInputs | Any,
-    voxel_size: float = 0.2,
-    frames: Sequence[int] | None = None,
-    zbuffer: ZBufferConfig | None = None,
-) -> VisibilityIndex:
-    """Voxelise the LiDAR (static in world, each track in its frame) or SfM points with visibility sets.
-
-    Inputs without LiDAR but with SfM points (:class:`~vadgs.train.inputs.TrackTable`: a COLMAP
-    scene, gsplat's ``Parser``) are voxelised from those, and a voxel's visibility set is the union
-    of its points' TRACK table views (supplement, "Visibility Reasoning"); only observations by
-    training views count (:meth:`~vadgs.train.inputs.VisibilityInputs.from_scene` keeps those of
-    ``frames``), and points observed by none of them are left out. SfM inputs are static: no track
-    grids.
-
-    Args:
-        source: :class:`~vadgs.train.inputs.VisibilityInputs`, or a vadgs
-            :class:`~vadgs.data.scene.Scene` (then ``VisibilityInputs.from_scene(scene, frames)``).
-        voxel_size: voxel edge (m).
-        frames: for a scene, frames whose LiDAR (or whose views' SfM observations) are used
-            (default: the training frames, or every frame without a split); must be None for
-            inputs (their observations are already chosen).
-        zbuffer: z-buffer settings for the per-view voxel depth.
-
-    Returns:
-        The :class:`VisibilityIndex`.
-
-    Raises:
-        ValueError: if there are no static points to voxelise (no LiDAR and no SfM points).
-
-    Example:
-        >>> from vadgs.data import load_scene, sample_scene_path
-        >>> index = build_visibility_index(load_scene(sample_scene_path()))
-        >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.inputs.tracks)
-        (True, True)
-    """
-    if isinstance(source, VisibilityInputs):
-        if frames is not None:
-            raise ValueError(f"frames: expected None with VisibilityInputs, got {list(frames)}")
-        inputs = source
-    else:
-        inputs = VisibilityInputs.from_scene(source, frames)
-    has_lidar = inputs.lidar is not None
-    if has_lidar:
-        acc = inputs.lidar(None)
-        points, point_views, instance = acc.points, acc.point_views, acc.instance
-        what = "static LiDAR points"
-    elif inputs.sfm is not None:
-        points, point_views = inputs.sfm.points, (inputs.sfm.point_idx, inputs.sfm.view_idx)
-        instance = torch.zeros(points.shape[0], dtype=torch.int64)
-        what = "SfM points observed by views"
-    else:
-        raise ValueError(
-            f"scene {inputs.name!r}: no LiDAR and no SfM points (scene.sfm_points) to build the voxel "
-            "visibility from"
-        )
-    if points.shape[0] == 0:
-        raise ValueError(f"scene {inputs.name!r}: no {what} of frames {frames}")
-    grid = voxelize(points, voxel_size, point_views, inputs.num_views)
-    labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
-    cameras, sizes = inputs.cameras, inputs.sizes
-    allowed = torch.zeros(inputs.num_views, dtype=torch.bool, device=cameras.K.device)
-    allowed[list(inputs.train_views)] = True
-    index = VisibilityIndex(
-        inputs,
-        cameras,
-        grid,
-        labels,
-        _covis(grid, cameras.world_to_cam, inputs),
-        {},
-        {},
-        allowed,
-        zbuffer or ZBufferConfig(),
-        sizes,
-    )
-    for tid in inputs.tracks if has_lidar else ():
-        tacc = inputs.lidar(tid)
-        if tacc.points.shape[0] < 3:
-            continue
-        tgrid = voxelize(tacc.points, voxel_size, tacc.point_views, inputs.num_views)
-        index.track_grids[tid] = tgrid
-        index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), inputs)
-    return index
 
 
 class ViewRender(NamedTuple):
@@ -1158,7 +772,7 @@ def reconstruct_instance(
     if (
         cfg.thin_points and points.shape[0]
     ):  # one point per cell of the scene resolution's spacing, or coarser
-        spacing = spacing * crops.scale.up
+        spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
         keep = thin_points(points, float(spacing.median()), None if occupied is None else occupied.to(dev))
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
