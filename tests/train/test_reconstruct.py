@@ -80,6 +80,32 @@ class TestReconstructSteps:
         assert s_c > 1.5 * s_f  # ... each standing for a larger cell
         assert d_f < 0.1 and d_c < 0.25  # both on the true facade (the sample is 120x72 px)
 
+    def test_thin_factor_widens_only_coarsely_matched_instances(self, scene, index, gt_points):
+        """``thin_factor``: fewer, wider points on a large (coarsely matched) facade, still on it;
+        an instance matched at the scene's resolution is untouched."""
+        pts, _, ins, _ = gt_points
+        target = pts[ins == BUILDING]
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+        coarse = ReconstructConfig(max_crop=96, max_match_pixels=256, thin_factor=1.0)
+        out = {}
+        for f in (1.0, 2.0):
+            cfg = dataclasses.replace(coarse, thin_factor=f)
+            rec = reconstruct_instance(index, ref, BUILDING, cfg, torch.Generator().manual_seed(0))
+            d = torch.cdist(rec.points, target).min(1).values
+            out[f] = (rec.points.shape[0], float(d.median()), float(rec.spacing.median()))
+        (n1, d1, s1), (n2, d2, s2) = out[1.0], out[2.0]
+        assert n2 < 0.6 * n1 and 1.6 * s1 < s2 < 2.5 * s1, out  # a quarter of the cells, twice as wide
+        assert d2 < 0.25, out  # still on the true facade
+        fine = ReconstructConfig(max_crop=96, max_match_pixels=None)
+        a, b = (
+            reconstruct_instance(index, ref, BUILDING, dataclasses.replace(fine, thin_factor=f),
+                                 torch.Generator().manual_seed(0))
+            for f in (1.0, 2.0)
+        )  # fmt: skip
+        assert torch.equal(a.points, b.points) and torch.equal(a.spacing, b.spacing)
+        with pytest.raises(ValueError, match="thin_factor: expected >= 1"):
+            ReconstructConfig(thin_factor=0.5)
+
     def test_explained_pixels_give_no_points(self, scene, index, gt_points):
         """Where the render already shows an opaque surface at the MVS depth, nothing is added."""
         ref = max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))

@@ -179,7 +179,7 @@ class TestTrainer:
 
 class TestHardDepth:
     def test_stride_one_is_the_opaque_render(self, tiny_scene, tiny_config):
-        tr = Trainer(tiny_scene, tiny_config, progress=False)
+        tr = Trainer(tiny_scene, dataclasses.replace(tiny_config, hard_stride=1), progress=False)
         v = tr.train_views[0]
         with torch.no_grad():
             full = tr.render_view(v, opacity_override=1.0).raster.depth
