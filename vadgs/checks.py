@@ -36,6 +36,7 @@ from collections.abc import Iterator, Sequence
 import torch
 
 __all__ = [
+    "check_at_least",
     "check_finite",
     "check_same_device",
     "check_shape",
@@ -174,3 +175,23 @@ def check_same_device(*named: tuple[str, torch.Tensor]) -> None:
     devices = {name: t.device for name, t in named if isinstance(t, torch.Tensor)}
     if len(set(devices.values())) > 1:
         raise ValueError(f"expected all tensors on one device, got {devices}")
+
+
+def check_at_least(config: object, minimum: float, *names: str, note: str = "") -> None:
+    """Raise ``ValueError`` unless every field ``names`` of ``config`` is ``>= minimum`` (NaN fails).
+
+    The message names the fields together, the bound and the values, e.g.
+    ``"log_every, hard_every: expected >= 1, got 50, 0"`` (``note`` follows the bound). For the
+    ``__post_init__`` of a frozen config dataclass.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> check_at_least(SimpleNamespace(a=1, b=0), 1, "a", "b")
+        Traceback (most recent call last):
+        ...
+        ValueError: a, b: expected >= 1, got 1, 0
+    """
+    values = [getattr(config, name) for name in names]
+    if not all(v >= minimum for v in values):
+        got = ", ".join(str(v) for v in values)
+        raise ValueError(f"{', '.join(names)}: expected >= {minimum:g}{note}, got {got}")

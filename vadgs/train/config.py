@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 
+from vadgs.checks import check_at_least
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
 from vadgs.train.init import InitConfig
@@ -119,22 +120,13 @@ class TrainConfig:
     diverge_loss_factor: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.iterations < 0:
-            raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
+        check_at_least(self, 0, "iterations")
         if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
             raise ValueError(
                 f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"
             )
-        if self.threads < 0 or self.checkpoint_every < 0:
-            raise ValueError(
-                "threads, checkpoint_every: expected >= 0 (0 = off), got "
-                f"{self.threads}, {self.checkpoint_every}"
-            )
-        if min(self.sh_degree_interval, self.log_every, self.hard_every, self.hard_stride) < 1:
-            raise ValueError(
-                "sh_degree_interval, log_every, hard_every, hard_stride: expected >= 1, got "
-                f"{self.sh_degree_interval}, {self.log_every}, {self.hard_every}, {self.hard_stride}"
-            )
+        check_at_least(self, 0, "threads", "checkpoint_every", note=" (0 = off)")
+        check_at_least(self, 1, "sh_degree_interval", "log_every", "hard_every", "hard_stride")
         try:
             torch.device(self.device)
         except (RuntimeError, TypeError):
