@@ -192,7 +192,7 @@ class TestConfig:
         assert TrainConfig().appearance is None
         tr = Trainer(tiny_scene, tiny_config, progress=False)
         assert tr.appearance is None and tr.appearance_optimizer is None
-        assert "appearance" not in tr.state_dict()
+        assert tr.checkpoint().appearance is None
         assert not any("appearance" in str(g.get("name")) for g in tr.optimizer.param_groups)
         v = tr.train_views[0]
         assert "appearance" not in tr.compute_losses(0, v, tr.render_view(v))

@@ -68,7 +68,7 @@ class TestKilledRun:
         )
         assert proc.returncode == -signal.SIGKILL, proc.stderr
         # the end of the first sampling cycle always checkpoints (checkpoint_every and _minutes off)
-        assert int(load_checkpoint(run)["step"]) == cycle
+        assert int(load_checkpoint(run).step) == cycle
         (run / (CHECKPOINT_NAME + ".tmp")).write_bytes(b"half a checkpoint")  # killed mid-write
         resumed = Trainer.from_checkpoint(run, scene=tiny_scene, progress=False)
         assert resumed.train().completed
@@ -110,7 +110,7 @@ class TestExceptions:
             tr.train()
         line = _one_line(e.value)
         assert "checkpoint of step 7" in line and "--resume" in line, line
-        assert int(load_checkpoint(tmp_path)["step"]) == 7
+        assert int(load_checkpoint(tmp_path).step) == 7
         resumed = Trainer.from_checkpoint(tmp_path, scene=tiny_scene, progress=False)
         resumed.train()
         full = Trainer(tiny_scene, config, progress=False)
@@ -128,7 +128,7 @@ class TestExceptions:
             tr.train()
         assert "last good checkpoint: step 2" in _one_line(e.value)
         ckpt = load_checkpoint(tmp_path)
-        assert int(ckpt["step"]) == 2 and bool(torch.isfinite(ckpt["model"]["params.means"]).all())
+        assert int(ckpt.step) == 2 and bool(torch.isfinite(ckpt.model["params.means"]).all())
 
     def test_disk_full_keeps_the_previous_checkpoint(self, tiny_scene, tiny_config, tmp_path, monkeypatch):
         config = dataclasses.replace(tiny_config, checkpoint_every=4, checkpoint_minutes=0.0)
@@ -149,7 +149,7 @@ class TestExceptions:
         assert "cannot write (No space left on device); the previous file is kept" in line
         assert "last good checkpoint: step 4" in line and "\n" not in line, line
         assert list(tmp_path.glob(TMP_GLOB)) == []
-        assert int(load_checkpoint(tmp_path)["step"]) == 4
+        assert int(load_checkpoint(tmp_path).step) == 4
 
 
 class TestCheckpointChecksum:
@@ -159,7 +159,7 @@ class TestCheckpointChecksum:
         )
         tr.train()
         path = tmp_path / CHECKPOINT_NAME
-        ckpt = load_checkpoint(path)
+        ckpt = torch.load(path, weights_only=True)  # the file's dict
         ckpt["model"]["params.means"][0, 0] += 1.0  # means overwritten, checksum kept
         torch.save(ckpt, path)
         with pytest.raises(ValueError, match="checksum mismatch: the file was modified or is corrupt"):
@@ -168,7 +168,7 @@ class TestCheckpointChecksum:
         del ckpt["checksum"]
         torch.save(ckpt, path)
         with pytest.warns(UserWarning, match="no checksum"):
-            assert int(load_checkpoint(path)["step"]) == 2
+            assert int(load_checkpoint(path).step) == 2
 
 
 class TestDivergence:
@@ -180,7 +180,7 @@ class TestDivergence:
         with pytest.raises(DivergenceError, match="static Gaussians are farther than") as e:
             tr.train()
         # the diverged state is not saved: the checkpoint is the step before
-        assert int(load_checkpoint(tmp_path)["step"]) == e.value.step - 1
+        assert int(load_checkpoint(tmp_path).step) == e.value.step - 1
 
     def test_cli_exit_3_with_the_message(self, tmp_path, capsys):
         args = ["train", "--out", str(tmp_path / "r"), "--iterations", "6", *TINY]
@@ -237,7 +237,7 @@ class TestRunFolder:
         said = capsys.readouterr().out
         assert "NOTE: --iterations changes the run from 2 to 3 steps" in said and "learning-rate" in said
         assert json.loads((out / "metrics.json").read_text())["steps"] == 3
-        assert int(load_checkpoint(out)["config"]["iterations"]) == 3
+        assert int(load_checkpoint(out).config["iterations"]) == 3
 
 
 class TestExports:

@@ -99,7 +99,7 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
     trainer = Trainer(tiny_scene, config, out_dir=tmp_path / "b", progress=False)
     trainer.train()
     run = load_run(tmp_path / "a")
-    assert run.checkpoint["scene_ref"] == ref.to_dict()
+    assert run.checkpoint.scene_ref == ref.to_dict()
     for k, v in trainer.model.params.items():
         assert torch.equal(run.model.params[k], v), k
     assert outcome.metrics["num_gaussians"] == trainer.model.num_gaussians

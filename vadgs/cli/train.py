@@ -159,7 +159,7 @@ def _starting_config(argv: list[str]) -> tuple[TrainConfig, dict]:
         out = Path(known.out)
         if not (out / CHECKPOINT_NAME).is_file():
             raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-        base = TrainConfig.from_dict(load_checkpoint(out)["config"])
+        base = load_checkpoint(out).train_config()
     elif known.config:
         data = _read_config_file(known.config)
         base = TrainConfig.from_dict(data)
@@ -222,7 +222,7 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
     from vadgs.train.checkpoint import RESUMABLE_CHANGES, load_checkpoint
 
     stored = load_checkpoint(out)
-    before, step = TrainConfig.from_dict(stored["config"]), int(stored["step"])
+    before, step = stored.train_config(), stored.step
     da, db = before.to_dict(), cmd.train.to_dict()
     # a part switched on or off (vad, appearance) is one change, not one per field
     switched = sorted(k for k in da.keys() | db.keys() if (da.get(k) is None) != (db.get(k) is None))

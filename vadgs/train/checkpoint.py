@@ -2,9 +2,11 @@
 
 A checkpoint is one ``torch.save`` file (``checkpoint.pt`` in the run folder) of plain tensors and
 containers (read with ``weights_only``), with a format name, a version and a SHA-256 checksum of
-its content; :class:`~vadgs.train.trainer.Trainer` writes and reads it
-(:meth:`~vadgs.train.trainer.Trainer.checkpoint_payload`,
-:meth:`~vadgs.train.trainer.Trainer.from_checkpoint`). :func:`describe_run` says what run a folder
+its content. In memory it is a :class:`Checkpoint`: :func:`save_checkpoint` writes one atomically,
+:func:`load_checkpoint` reads and verifies one, :func:`resumed_config` applies the changes a
+resume may make (:data:`RESUMABLE_CHANGES`). :class:`~vadgs.train.trainer.Trainer` builds them
+(:meth:`~vadgs.train.trainer.Trainer.checkpoint`) and continues from them
+(:meth:`~vadgs.train.trainer.Trainer.from_checkpoint`). :func:`describe_run` says what run a folder
 holds; :func:`clear_run` removes one.
 """
 
@@ -13,27 +15,96 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import random
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
 from vadgs.io import atomic_write, remove_stale_tmp
+from vadgs.train.config import TrainConfig
 
 __all__ = [
     "CHECKPOINT_NAME",
     "RESUMABLE_CHANGES",
+    "Checkpoint",
+    "capture_rng",
     "checkpoint_checksum",
     "clear_run",
     "describe_run",
     "load_checkpoint",
+    "restore_rng",
+    "resumed_config",
+    "save_checkpoint",
 ]
 
 CHECKPOINT_NAME = "checkpoint.pt"
 _FORMAT = "vadgs-train-checkpoint"
 _VERSION = 1
+_REQUIRED = ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
+
+
+class Checkpoint(NamedTuple):
+    """A run's whole state at a step: what ``checkpoint.pt`` holds.
+
+    Attributes:
+        step: steps done.
+        config: the run's :class:`~vadgs.train.config.TrainConfig` as a dict (:meth:`train_config`).
+        scene_ref: how to reopen the scene (:func:`~vadgs.train.scenes.open_scene`); ``{}`` when
+            the run was trained on an in-memory scene.
+        model, model_extra: :meth:`GaussianModel.state_dict` and :meth:`GaussianModel.extra_state`.
+        optimizer: Adam's state dict.
+        strategy_state: the densification strategy's state.
+        sampler: the view sampler's state.
+        rng: every random generator (:func:`capture_rng`).
+        train_s: training seconds so far, all sessions together.
+        appearance: ``{"model", "optimizer"}`` state dicts of the appearance model, or None.
+    """
+
+    step: int
+    config: dict[str, Any]
+    scene_ref: dict[str, Any]
+    model: dict[str, Any]
+    model_extra: dict[str, Any]
+    optimizer: dict[str, Any]
+    strategy_state: dict[str, Any]
+    sampler: dict[str, Any]
+    rng: dict[str, Any]
+    train_s: float = 0.0
+    appearance: dict[str, Any] | None = None
+
+    def train_config(self) -> TrainConfig:
+        """The run's :class:`~vadgs.train.config.TrainConfig`."""
+        return TrainConfig.from_dict(self.config)
+
+    def to_dict(self, checksum: bool = True) -> dict[str, Any]:
+        """The file's content: format, version, the fields (no ``appearance`` when None), checksum."""
+        out: dict[str, Any] = {"format": _FORMAT, "version": _VERSION, **self._asdict()}
+        if self.appearance is None:
+            del out["appearance"]
+        if checksum:
+            out["checksum"] = checkpoint_checksum(out)
+        return out
+
+
+def capture_rng(generator: torch.Generator) -> dict[str, Any]:
+    """The state of torch's global generator, ``generator`` and Python's ``random`` (plain data)."""
+    st = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "generator": generator.get_state(),
+        "python": [st[0], list(st[1]), st[2]],
+    }
+
+
+def restore_rng(rng: dict[str, Any], generator: torch.Generator) -> None:
+    """Put back what :func:`capture_rng` took (``generator`` is set in place)."""
+    torch.set_rng_state(rng["torch"])
+    generator.set_state(rng["generator"])
+    st = rng["python"]
+    random.setstate((int(st[0]), tuple(int(x) for x in st[1]), st[2]))
 
 
 def _hash_into(h: Any, obj: Any) -> None:
@@ -98,8 +169,21 @@ def _remove_stale_tmp(folder: Path) -> list[Path]:
     return removed
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint written by :class:`Trainer` (``weights_only`` unpickling).
+def save_checkpoint(ckpt: Checkpoint, path: str | Path) -> Path:
+    """Write a checkpoint atomically (temporary file, fsync, rename), with its checksum.
+
+    Raises:
+        OSError: naming the file when it cannot be written (disk full...): the temporary file
+            is removed and the previous checkpoint is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_save(ckpt.to_dict(), path)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint` (``weights_only`` unpickling).
 
     Raises:
         FileNotFoundError: if it does not exist.
@@ -120,11 +204,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise ValueError(f"checkpoint {path}: not a vadgs training checkpoint")
     if int(ckpt.get("version", -1)) != _VERSION:
         raise ValueError(f"checkpoint {path}: unsupported version {ckpt.get('version')}")
-    missing = [
-        k
-        for k in ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
-        if k not in ckpt
-    ]
+    missing = [k for k in _REQUIRED if k not in ckpt]
     if missing:
         raise ValueError(f"checkpoint {path}: missing entries {missing}")
     if "checksum" not in ckpt:
@@ -134,7 +214,13 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         )
     elif checkpoint_checksum(ckpt) != ckpt["checksum"]:
         raise ValueError(f"checkpoint {path}: checksum mismatch: the file was modified or is corrupt")
-    return ckpt
+    return Checkpoint(
+        step=int(ckpt["step"]),
+        scene_ref=ckpt.get("scene_ref") or {},
+        train_s=float(ckpt.get("train_s", 0.0)),
+        appearance=ckpt.get("appearance"),
+        **{k: ckpt[k] for k in _REQUIRED if k != "step"},
+    )
 
 
 RESUMABLE_CHANGES = (
@@ -147,6 +233,28 @@ RESUMABLE_CHANGES = (
     "log_every",
 )
 """The :class:`TrainConfig` fields :meth:`Trainer.from_checkpoint` can change (the others define the run)."""
+
+
+def resumed_config(ckpt: Checkpoint, changes: dict[str, Any] | None = None) -> TrainConfig:
+    """The configuration a resumed run continues with: the checkpoint's, with ``changes``.
+
+    Raises:
+        ValueError: on a field outside :data:`RESUMABLE_CHANGES`, or ``iterations`` below the
+            checkpoint's step.
+    """
+    config = ckpt.train_config()
+    if not changes:
+        return config
+    bad = sorted(set(changes) - set(RESUMABLE_CHANGES))
+    if bad:
+        raise ValueError(
+            f"resume: cannot change {bad} of a run (its configuration is fixed by the "
+            f"checkpoint); resumable changes: {list(RESUMABLE_CHANGES)}"
+        )
+    it = changes.get("iterations")
+    if it is not None and int(it) < ckpt.step:
+        raise ValueError(f"resume: iterations={it} is below the checkpoint's step {ckpt.step}")
+    return config.replace(**changes)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -169,7 +277,7 @@ def describe_run(folder: str | Path) -> str | None:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 c = load_checkpoint(ck)
-            return f"step {int(c['step'])}/{int(c['config'].get('iterations', 0))}"
+            return f"step {c.step}/{int(c.config.get('iterations', 0))}"
         except (ValueError, OSError) as e:
             return f"an unreadable checkpoint: {e}"
     if (folder / "metrics.json").is_file():

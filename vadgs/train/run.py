@@ -31,7 +31,7 @@ import torch
 
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
-from vadgs.train.checkpoint import CHECKPOINT_NAME, clear_run, describe_run, load_checkpoint
+from vadgs.train.checkpoint import CHECKPOINT_NAME, Checkpoint, clear_run, describe_run, load_checkpoint
 from vadgs.train.scenes import BenchmarkRef, ColmapRef, DGPRef, SceneRef, open_scene, prepare_scene, scene_ref
 
 __all__ = [
@@ -113,7 +113,7 @@ class Run(NamedTuple):
         config: its :class:`~vadgs.train.config.TrainConfig`.
         appearance: its :class:`~vadgs.train.appearance.AppearanceModel`, or None.
         step: steps trained.
-        checkpoint: the checkpoint dict (:func:`~vadgs.train.checkpoint.load_checkpoint`).
+        checkpoint: the :class:`~vadgs.train.checkpoint.Checkpoint` it was read from.
     """
 
     model: Any
@@ -121,7 +121,7 @@ class Run(NamedTuple):
     config: Any
     appearance: Any
     step: int
-    checkpoint: dict[str, Any]
+    checkpoint: Checkpoint
 
 
 def load_run(path: str | Path, open: bool = True) -> Run:
@@ -135,17 +135,16 @@ def load_run(path: str | Path, open: bool = True) -> Run:
         FileNotFoundError, ValueError: from :func:`~vadgs.train.checkpoint.load_checkpoint`.
     """
     from vadgs.train.appearance import AppearanceModel
-    from vadgs.train.config import TrainConfig
     from vadgs.train.model import GaussianModel
 
     ckpt = load_checkpoint(path)
-    config = TrainConfig.from_dict(ckpt["config"])
-    model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
+    config = ckpt.train_config()
+    model = GaussianModel.from_state(ckpt.model, ckpt.model_extra)
     appearance = None
-    if config.appearance is not None and "appearance" in ckpt:
-        appearance = AppearanceModel.from_state_dict(ckpt["appearance"]["model"], config.appearance.centered)
-    scene = open_scene(ckpt["scene_ref"]) if open else None
-    return Run(model, scene, config, appearance, int(ckpt["step"]), ckpt)
+    if config.appearance is not None and ckpt.appearance is not None:
+        appearance = AppearanceModel.from_state_dict(ckpt.appearance["model"], config.appearance.centered)
+    scene = open_scene(ckpt.scene_ref) if open else None
+    return Run(model, scene, config, appearance, ckpt.step, ckpt)
 
 
 def frame_position(scene: Scene, frame: int | None, name: str = "frame") -> tuple[int, int]:

@@ -49,16 +49,18 @@ from vadgs.io import atomic_write
 from vadgs.train import losses as L
 from vadgs.train.appearance import AppearanceModel, correct_view, view_camera
 from vadgs.train.checkpoint import (
-    _FORMAT,
-    _VERSION,
     CHECKPOINT_NAME,
     RESUMABLE_CHANGES,
-    _atomic_save,
+    Checkpoint,
     _remove_stale_tmp,
+    capture_rng,
     checkpoint_checksum,
     clear_run,
     describe_run,
     load_checkpoint,
+    restore_rng,
+    resumed_config,
+    save_checkpoint,
 )
 from vadgs.train.config import LearningRates, TrainConfig
 from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFiniteLossError
@@ -265,80 +267,56 @@ class Trainer:
         """
         path = Path(path)
         ckpt = load_checkpoint(path)
-        config = TrainConfig.from_dict(ckpt["config"])
-        if config_changes:
-            bad = sorted(set(config_changes) - set(RESUMABLE_CHANGES))
-            if bad:
-                raise ValueError(
-                    f"resume: cannot change {bad} of a run (its configuration is fixed by the "
-                    f"checkpoint); resumable changes: {list(RESUMABLE_CHANGES)}"
-                )
-            it = config_changes.get("iterations")
-            if it is not None and int(it) < int(ckpt["step"]):
-                raise ValueError(f"resume: iterations={it} is below the checkpoint's step {ckpt['step']}")
-            config = config.replace(**config_changes)
+        config = resumed_config(ckpt, config_changes)
         if scene is None:
-            if not ckpt["scene_ref"].get("path"):
+            if not ckpt.scene_ref.get("path"):
                 raise ValueError(
                     f"checkpoint {path}: no scene reference stored (trained from an in-memory scene); "
                     "pass scene="
                 )
-            scene = open_scene(ckpt["scene_ref"])
-        model = GaussianModel.from_state(ckpt["model"], ckpt["model_extra"])
+            scene = open_scene(ckpt.scene_ref)
+        model = GaussianModel.from_state(ckpt.model, ckpt.model_extra)
         kwargs.setdefault("out_dir", path if path.is_dir() else path.parent)
-        kwargs.setdefault("scene_ref", ckpt["scene_ref"])
+        kwargs.setdefault("scene_ref", ckpt.scene_ref)
         trainer = cls(scene, config, model=model, _resuming=True, **kwargs)
-        trainer.optimizer.load_state_dict(ckpt["optimizer"])
+        trainer.optimizer.load_state_dict(ckpt.optimizer)
         if trainer.appearance is not None:
-            if "appearance" not in ckpt:
+            if ckpt.appearance is None:
                 raise ValueError(f"checkpoint {path}: config.appearance is set but no appearance is stored")
-            trainer.appearance.load_state_dict(ckpt["appearance"]["model"])
-            trainer.appearance_optimizer.load_state_dict(ckpt["appearance"]["optimizer"])
-        trainer.state = ckpt["strategy_state"]
-        trainer.sampler.load_state_dict(ckpt["sampler"])
-        torch.set_rng_state(ckpt["rng"]["torch"])
-        trainer.generator.set_state(ckpt["rng"]["generator"])
-        random.setstate(_to_py_random_state(ckpt["rng"]["python"]))
-        trainer.step = int(ckpt["step"])
-        trainer.train_s = float(ckpt.get("train_s", 0.0))
+            trainer.appearance.load_state_dict(ckpt.appearance["model"])
+            trainer.appearance_optimizer.load_state_dict(ckpt.appearance["optimizer"])
+        trainer.state = ckpt.strategy_state
+        trainer.sampler.load_state_dict(ckpt.sampler)
+        restore_rng(ckpt.rng, trainer.generator)
+        trainer.step = ckpt.step
+        trainer.train_s = ckpt.train_s
         trainer._saved_step = trainer.step
         return trainer
 
-    def state_dict(self) -> dict[str, Any]:
-        """The checkpoint content (with ``"appearance"``: its model and optimizer, when on)."""
-        state = {
-            "format": _FORMAT,
-            "version": _VERSION,
-            "step": self.step,
-            "config": self.config.to_dict(),
-            "scene_ref": self.scene_ref,
-            "model": self.model.state_dict(),
-            "model_extra": self.model.extra_state(),
-            "optimizer": self.optimizer.state_dict(),
-            "strategy_state": self.state,
-            "sampler": self.sampler.state_dict(),
-            "rng": {
-                "torch": torch.get_rng_state(),
-                "generator": self.generator.get_state(),
-                "python": _from_py_random_state(random.getstate()),
-            },
-            "train_s": self.train_s,
-        }
+    def checkpoint(self) -> Checkpoint:
+        """The run's state now, as a :class:`~vadgs.train.checkpoint.Checkpoint`."""
+        appearance = None
         if self.appearance is not None:
-            state["appearance"] = {
+            appearance = {
                 "model": self.appearance.state_dict(),
                 "optimizer": self.appearance_optimizer.state_dict(),
             }
-        return state
-
-    def checkpoint_payload(self) -> dict[str, Any]:
-        """:meth:`state_dict` with its ``checksum`` (what :meth:`save_checkpoint` writes)."""
-        ckpt = self.state_dict()
-        ckpt["checksum"] = checkpoint_checksum(ckpt)
-        return ckpt
+        return Checkpoint(
+            step=self.step,
+            config=self.config.to_dict(),
+            scene_ref=self.scene_ref,
+            model=self.model.state_dict(),
+            model_extra=self.model.extra_state(),
+            optimizer=self.optimizer.state_dict(),
+            strategy_state=self.state,
+            sampler=self.sampler.state_dict(),
+            rng=capture_rng(self.generator),
+            train_s=self.train_s,
+            appearance=appearance,
+        )
 
     def save_checkpoint(self, path: str | Path | None = None) -> Path:
-        """Write the checkpoint atomically (``out_dir/checkpoint.pt`` by default), with its checksum.
+        """Write :meth:`checkpoint` atomically (``out_dir/checkpoint.pt`` by default), with its checksum.
 
         Raises:
             OSError: naming the file when it cannot be written (disk full...): the temporary file
@@ -349,9 +327,7 @@ class Trainer:
             if self.out_dir is None:
                 raise ValueError("save_checkpoint: no path and no out_dir")
             path = self.out_dir / CHECKPOINT_NAME
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_save(self.checkpoint_payload(), path)
+        path = save_checkpoint(self.checkpoint(), path)
         if default:
             self._saved_step = self.step
             self._saved_at = time.monotonic()
@@ -484,12 +460,7 @@ class Trainer:
         step = self.step
         cfg = self.config
         # what a step that fails before the parameters change may have consumed (restored by train())
-        self._undo = (
-            self.sampler.state_dict(),
-            torch.get_rng_state(),
-            self.generator.get_state(),
-            random.getstate(),
-        )
+        self._undo = (self.sampler.state_dict(), capture_rng(self.generator))
         self._updating = False
         for g in self.optimizer.param_groups:
             g["lr"] = self._lrs(step)[g["name"]]
@@ -700,11 +671,9 @@ class Trainer:
         failed_write = isinstance(e, OSError) and e.filename == str(path)
         if not self._updating and not isinstance(e, FloatingPointError) and not failed_write:
             if self._undo is not None:
-                sampler, rng, gen, py = self._undo
+                sampler, rng = self._undo
                 self.sampler.load_state_dict(sampler)
-                torch.set_rng_state(rng)
-                self.generator.set_state(gen)
-                random.setstate(py)
+                restore_rng(rng, self.generator)
                 self._undo = None
             if self._saved_step != self.step:
                 try:
@@ -743,10 +712,3 @@ class Trainer:
         for sig, h in old.items():
             signal.signal(sig, h)
 
-
-def _from_py_random_state(st: tuple) -> list:
-    return [st[0], list(st[1]), st[2]]
-
-
-def _to_py_random_state(st: list) -> tuple:
-    return (int(st[0]), tuple(int(x) for x in st[1]), st[2])
