@@ -195,7 +195,7 @@ class TestConfig:
         assert tr.checkpoint().appearance is None
         assert not any("appearance" in str(g.get("name")) for g in tr.optimizer.param_groups)
         v = tr.train_views[0]
-        assert "appearance" not in tr.compute_losses(0, v, tr.render_view(v))
+        assert "appearance" not in tr.objective(0, v, tr.render_view(v), tr.render_hard_depth)
 
     @pytest.mark.parametrize(
         ("data", "match"),
@@ -290,7 +290,7 @@ class TestTraining:
         after = tr.render_geometry(v)
         assert all(torch.equal(a, b) for a, b in zip(before, after))
         raw = tr.render_view(v).color.detach()
-        assert not torch.equal(tr.corrected_color(v, raw), raw)
+        assert not torch.equal(tr.objective.corrected_color(v, raw), raw)
         assert torch.equal(
             correct_view(tr.appearance, tiny_scene, v, raw), tr.appearance(raw, view_camera(tiny_scene, v))
         )

@@ -26,7 +26,8 @@ class TestTrainer:
 
         def loss():
             with torch.no_grad():
-                return sum(float(tr.compute_losses(0, v, tr.render_view(v))["color"]) for v in views)
+                terms = [tr.objective(0, v, tr.render_view(v), tr.render_hard_depth) for v in views]
+                return sum(float(t["color"]) for t in terms)
 
         before = loss()
         tr.train()

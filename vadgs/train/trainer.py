@@ -1,30 +1,23 @@
-"""The training loop: configuration, optimisation, checkpoints and exact resume.
+"""The training loop.
 
 :class:`Trainer` fits a :class:`~vadgs.train.model.GaussianModel` to a scene's training views,
-sampled without replacement (:class:`~vadgs.train.sampler.ViewSampler`), with the colour loss,
-an optional sparse LiDAR depth term, the paper's geometric losses on priors
-(:class:`~vadgs.train.losses.GeometryTargets` from a provider or from a strategy that implements
-:class:`~vadgs.train.strategy.GeometryPriors`, through :func:`~vadgs.train.losses.geometric_losses`),
-extra losses from a hook, and a densification :class:`~vadgs.train.strategy.Strategy`: the standard
-one, VAD-GS's when ``TrainConfig.vad`` is set, or any given one. The trainer hands strategies
-gsplat's arguments (``model.params``, the optimizer, the state, the step, the render's ``info``) and,
-for VAD-GS, a :class:`~vadgs.train.vad.StrategyContext`; strategies never see the trainer.
+sampled without replacement (:class:`~vadgs.train.sampler.ViewSampler`), on the loss of
+:class:`~vadgs.train.objective.Objective` (colour, optional LiDAR depth, the paper's geometric
+losses on a strategy's or a provider's priors, extra terms from a hook), with a densification
+:class:`~vadgs.train.strategy.Strategy`: the standard one, VAD-GS's when ``TrainConfig.vad`` is set,
+or any given one. The trainer hands strategies gsplat's arguments (``model.params``, the optimizer,
+the state, the step, the render's ``info``) and, for VAD-GS, a
+:class:`~vadgs.train.vad.StrategyContext`; strategies never see the trainer.
 
-Checkpoints (``checkpoint.pt`` in the run folder) hold the step, the configuration, the scene
-reference, the model, Adam's state, the strategy state, the sampler and every random generator, so
-``resume`` continues *exactly* (the same parameters as an uninterrupted run). They are written
-atomically (temporary file + rename) every ``checkpoint_every`` steps, at the end, and when the
-run is interrupted (SIGINT / SIGTERM stop the loop at the end of the current step), and also
-every ``checkpoint_minutes`` of wall-clock time, at the end of the first sampling cycle, and when
-an exception stops the loop (the last completed step; see :meth:`Trainer.train`). Saving never
-changes the training trajectory. Each checkpoint carries a SHA-256 of its content, verified by
-:func:`load_checkpoint`. A non-finite loss or parameter raises :class:`NonFiniteLossError`, a
+Checkpoints (:class:`~vadgs.train.checkpoint.Checkpoint`, ``checkpoint.pt`` in the run folder)
+hold everything the run depends on, so ``resume`` continues *exactly*. They are written atomically
+every ``checkpoint_every`` steps and ``checkpoint_minutes``, at the end of the first sampling
+cycle, at the end, when SIGINT / SIGTERM stop the loop (:func:`~vadgs.train.session.stop_on_signals`)
+and when an exception stops it (the last completed step; see :meth:`Trainer.train`); saving never
+changes the trajectory. A non-finite loss or parameter raises :class:`NonFiniteLossError`, a
 diverging model :class:`DivergenceError`, both naming the step; nothing is saved over the last
-good checkpoint then.
-
-A run folder that holds a run (a checkpoint or ``metrics.json``) is never reused by a new
-:class:`Trainer` unless ``overwrite=True`` (which clears the previous run's files when training
-starts); :meth:`Trainer.from_checkpoint` continues it.
+good checkpoint then. A run folder that holds a run is never reused by a new :class:`Trainer`
+unless ``overwrite=True``; :meth:`Trainer.from_checkpoint` continues it.
 """
 
 from __future__ import annotations
@@ -33,8 +26,6 @@ import json
 import math
 import random
 import resource
-import signal
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -46,8 +37,7 @@ from vadgs.checks import checks_enabled
 from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
 from vadgs.io import atomic_write
-from vadgs.train import losses as L
-from vadgs.train.appearance import AppearanceModel, correct_view, view_camera
+from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     RESUMABLE_CHANGES,
@@ -68,9 +58,11 @@ from vadgs.train.init import init_gaussians
 from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
+from vadgs.train.objective import Objective
 from vadgs.train.ops import make_optimizer
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
+from vadgs.train.session import RunLog, stop_on_signals
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification
 
@@ -188,8 +180,6 @@ class Trainer:
         self.device = torch.device(self.config.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"device: {self.config.device!r} requested but CUDA is not available")
-        self.geometry_targets = geometry_targets
-        self.extra_losses = extra_losses
         self.progress = progress
         self.callback = callback
         self.train_views = list(scene.train_views)
@@ -212,10 +202,13 @@ class Trainer:
             self.appearance_optimizer = torch.optim.Adam(self.appearance.parameters(), lr=app.lr)
         self.strategy = strategy if strategy is not None else self._configured_strategy()
         self.state = self.strategy.initialize_state(self.scene_scale)
+        if geometry_targets is None and isinstance(self.strategy, GeometryPriors):
+            geometry_targets = self._strategy_priors
+        self.objective = Objective(
+            scene, self.config, self.device, self.appearance, geometry_targets, extra_losses
+        )
         self.step = 0
         self.train_s = 0.0
-        self._images: dict[int, torch.Tensor] = {}
-        self._lidar: dict[int, tuple[torch.Tensor, bool]] = {}
         self._stop = False
         self._saved_step: int | None = None
         self._divergence: DivergenceMonitor | None = None
@@ -228,6 +221,9 @@ class Trainer:
         # the scene as data, the loop's context; the visibility index, built once, before the first step
         strategy.prepare(VisibilityInputs.from_scene(self.scene), self.strategy_context())
         return strategy
+
+    def _strategy_priors(self, view: int) -> GeometryTargets | None:
+        return self.strategy.geometry_targets(self.state, view)
 
     def strategy_context(self) -> StrategyContext:
         """What a strategy may know of this loop: render a view, step counts, the generator, nodes."""
@@ -349,25 +345,6 @@ class Trainer:
         out["sky"] = lr.sky
         return out
 
-    def image(self, view: int) -> torch.Tensor:
-        """Training image ``(1, 3, H, W)`` (cached)."""
-        if view not in self._images:
-            self._images[view] = self.scene.load_images([view]).to(self.device)
-        return self._images[view]
-
-    def lidar_depth(self, view: int) -> torch.Tensor | None:
-        """Sparse LiDAR depth of a view on the trainer's device (cached), None without LiDAR there."""
-        if self.scene.lidar_loader is None:
-            return None
-        if view not in self._lidar:
-            try:
-                d = lidar_depth_map(self.scene, view)
-            except FileNotFoundError:
-                d = torch.zeros(1, 1, *self.scene.image_size(view))
-            self._lidar[view] = (d.to(self.device), bool((d > 0).any()))  # decided once, not per step
-        depth, any_point = self._lidar[view]
-        return depth if any_point else None
-
     def render_view(self, view: int, **kwargs: Any) -> ModelRender:
         """Render a scene view with the current model (on the trainer's device)."""
         cams = self.scene.cameras([view])
@@ -408,53 +385,6 @@ class Trainer:
         r = self.render_view(view).raster
         return ViewRender(r.depth[0], r.alpha[0], r.normals[0])
 
-    def corrected_color(self, view: int, color: torch.Tensor) -> torch.Tensor:
-        """A render's colour ``(1, 3, H, W)`` after the view's appearance transform.
-
-        The transform of the view's camera and frame; ``color`` itself when ``config.appearance``
-        is None.
-        """
-        return correct_view(self.appearance, self.scene, view, color, held_out=False)
-
-    def compute_losses(self, step: int, view: int, out: ModelRender) -> dict[str, torch.Tensor]:
-        """Every loss term of a step (already weighted), by name.
-
-        ``out`` is the raw render of ``view``; the colour loss compares its
-        :meth:`corrected_color` with the image, and with ``config.appearance`` the term
-        ``"appearance"`` regularises the view's transform. ``extra_losses`` get ``out`` as given.
-        """
-        cfg = self.config
-        gt = self.image(view)
-        terms = {"color": L.color_loss(self.corrected_color(view, out.color), gt, cfg.ssim_weight)}
-        if self.appearance is not None:
-            app = cfg.appearance
-            camera = view_camera(self.scene, view)
-            cam, frame = self.appearance.penalty(camera, self.scene.view_frame_position(view))
-            terms["appearance"] = app.reg * cam + app.frame_reg * frame
-        if cfg.lambda_lidar > 0:
-            lid = self.lidar_depth(view)
-            if lid is not None:
-                terms["lidar"] = cfg.lambda_lidar * L.depth_loss(out.raster.depth, lid)
-        targets = None
-        if self.geometry_targets is not None:
-            targets = self.geometry_targets(view)
-        elif isinstance(self.strategy, GeometryPriors):
-            targets = self.strategy.geometry_targets(self.state, view)
-        if targets is not None:
-            targets = targets.to(self.device)
-            w = L.geometric_weights(
-                step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
-            )
-            hard = None
-            if w["hard"] > 0 and targets.depth is not None and step % cfg.hard_every == 0:
-                hard = self.render_hard_depth(view)
-            terms.update(
-                L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, cfg.hard_stride)
-            )
-        if self.extra_losses is not None:
-            terms.update(self.extra_losses(step, out, view))
-        return terms
-
     def train_step(self) -> dict[str, float]:
         """One optimisation step on the next sampled view; returns the loss terms as floats."""
         step = self.step
@@ -477,7 +407,7 @@ class Trainer:
         }
         params = self.model.params
         self.strategy.step_pre_backward(params, self.optimizer, self.state, step, info)
-        terms = self.compute_losses(step, view, out)
+        terms = self.objective(step, view, out, self.render_hard_depth)
         total = torch.stack([t.reshape(()) for t in terms.values()]).sum()
         if checks_enabled() and not bool(torch.isfinite(total)):
             bad = {k: float(v.detach()) for k, v in terms.items()}
@@ -500,8 +430,8 @@ class Trainer:
                         raise NonFiniteLossError(step, f"appearance parameter {k!r} after the optimizer step")
         self.step = step + 1
         with torch.no_grad():
-            color = self.corrected_color(view, out.color.detach())
-            mse = torch.mean((color.clamp(0, 1) - self.image(view)) ** 2)
+            color = self.objective.corrected_color(view, out.color.detach())
+            mse = torch.mean((color.clamp(0, 1) - self.objective.image(view)) ** 2)
         res = {k: float(v.detach()) for k, v in terms.items()}
         res["total"] = float(total.detach())
         res["psnr"] = float(-10 * torch.log10(mse.clamp(min=1e-10)))
@@ -574,8 +504,6 @@ class Trainer:
                 json.dumps({"config": cfg.to_dict(), "scene": self.scene_ref}, indent=2),
             )
         self._saved_at = time.monotonic()
-        first_cycle = len(self.sampler)
-        handlers = self._install_signal_handlers()
         reason = "done"
         bar = tqdm(
             total=cfg.iterations,
@@ -584,76 +512,63 @@ class Trainer:
             desc="train",
             dynamic_ncols=True,
         )
-        log = (self.out_dir / "log.jsonl").open("a") if self.out_dir is not None else None
         self._undo = None
         self._updating = False
         try:
-            while self.step < cfg.iterations:
-                t0 = time.perf_counter()
-                res = self.train_step()
-                self.train_s += time.perf_counter() - t0
-                bar.update(1)
-                for event in self.state.pop("pending_log", None) or []:
-                    if log is not None:
-                        log.write(json.dumps({"step": self.step, "event": event}, default=str) + "\n")
-                        log.flush()
-                    if self.progress and "summary" in event:
-                        bar.write(f"step {self.step}: {event['summary']}")
-                if self.step % cfg.log_every == 0 or self.step == 1:
-                    bar.set_postfix(
-                        loss=f"{res['total']:.4f}", psnr=f"{res['psnr']:.2f}", n=self.model.num_gaussians
-                    )
-                    if log is not None:
+            with RunLog(self.out_dir) as log, stop_on_signals(self.request_stop, lambda: self._stop):
+                while self.step < cfg.iterations:
+                    t0 = time.perf_counter()
+                    res = self.train_step()
+                    self.train_s += time.perf_counter() - t0
+                    bar.update(1)
+                    for event in self.state.pop("pending_log", None) or []:
+                        log.write({"step": self.step, "event": event})
+                        if self.progress and "summary" in event:
+                            bar.write(f"step {self.step}: {event['summary']}")
+                    if self.step % cfg.log_every == 0 or self.step == 1:
+                        n = self.model.num_gaussians
+                        bar.set_postfix(loss=f"{res['total']:.4f}", psnr=f"{res['psnr']:.2f}", n=n)
                         log.write(
-                            json.dumps(
-                                {
-                                    "step": self.step,
-                                    "n": self.model.num_gaussians,
-                                    "train_s": round(self.train_s, 2),
-                                    "refine": self.state.get("last_refine", {}),
-                                    **{k: round(v, 6) for k, v in res.items()},
-                                }
-                            )
-                            + "\n"
+                            {
+                                "step": self.step,
+                                "n": n,
+                                "train_s": round(self.train_s, 2),
+                                "refine": self.state.get("last_refine", {}),
+                                **{k: round(v, 6) for k, v in res.items()},
+                            }
                         )
-                        log.flush()
-                self._updating = True  # a diverged state is not saved
-                self.check_divergence(res)
-                self._updating = False
-                if self.callback is not None:
-                    self.callback(self, self.step)
-                if self._stop:
-                    reason = "interrupted"
-                    break
-                if cfg.max_minutes and self.train_s > cfg.max_minutes * 60:
-                    reason = "time limit"
-                    break
-                if (
-                    self.out_dir is not None
-                    and self.step < cfg.iterations
-                    and (
-                        (cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0)
-                        or self.step == first_cycle
-                        or (
-                            cfg.checkpoint_minutes
-                            and time.monotonic() - self._saved_at > cfg.checkpoint_minutes * 60
-                        )
-                    )
-                ):
-                    self.save_checkpoint()
+                    self._updating = True  # a diverged state is not saved
+                    self.check_divergence(res)
+                    self._updating = False
+                    if self.callback is not None:
+                        self.callback(self, self.step)
+                    if self._stop:
+                        reason = "interrupted"
+                        break
+                    if cfg.max_minutes and self.train_s > cfg.max_minutes * 60:
+                        reason = "time limit"
+                        break
+                    if self.out_dir is not None and self.step < cfg.iterations and self._checkpoint_due():
+                        self.save_checkpoint()
         except Exception as e:
             self._save_after_failure(e)
             raise
         finally:
             bar.close()
-            if log is not None:
-                log.close()
-            self._restore_signal_handlers(handlers)
         if self.out_dir is not None:
             self.save_checkpoint()
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         return TrainResult(
             self.step, self.step >= cfg.iterations, reason, self.train_s, peak, self.model.num_gaussians
+        )
+
+    def _checkpoint_due(self) -> bool:
+        """Every ``checkpoint_every`` steps, every ``checkpoint_minutes``, and after the first cycle."""
+        cfg = self.config
+        return bool(
+            (cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0)
+            or self.step == len(self.sampler)
+            or (cfg.checkpoint_minutes and time.monotonic() - self._saved_at > cfg.checkpoint_minutes * 60)
         )
 
     def _save_after_failure(self, e: Exception) -> None:
@@ -692,23 +607,3 @@ class Trainer:
             e.add_note(note)
             return
         e.add_note(f"{note}; continue with: vadgs train --out {self.out_dir} --resume")
-
-    def _install_signal_handlers(self) -> dict[int, Any]:
-        if threading.current_thread() is not threading.main_thread():
-            return {}
-
-        def handler(signum: int, _frame: Any) -> None:
-            if self._stop and signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            self._stop = True
-
-        old = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old[sig] = signal.signal(sig, handler)
-        return old
-
-    @staticmethod
-    def _restore_signal_handlers(old: dict[int, Any]) -> None:
-        for sig, h in old.items():
-            signal.signal(sig, h)
-

@@ -1,0 +1,121 @@
+"""The loss of a training step: every term, by name, from a render of one view.
+
+:class:`Objective` holds what the terms need besides the render (the scene's images and LiDAR
+sweeps, cached on the training device; the appearance model; the priors of the paper's geometric
+losses; extra terms from a hook) and returns the weighted terms of a step: the colour loss of
+the appearance-corrected render, the appearance regulariser, the sparse LiDAR depth term and
+:func:`~vadgs.train.losses.geometric_losses` (normal, hard and soft depth) on the view's
+:class:`~vadgs.train.losses.GeometryTargets`. :class:`~vadgs.train.trainer.Trainer` sums them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from vadgs.data.lidar import lidar_depth_map
+from vadgs.data.scene import Scene
+from vadgs.train import losses as L
+from vadgs.train.appearance import AppearanceModel, correct_view, view_camera
+from vadgs.train.config import TrainConfig
+from vadgs.train.losses import GeometryTargets
+from vadgs.train.model import ModelRender
+
+__all__ = ["Objective"]
+
+
+class Objective:
+    """The weighted loss terms of a step (see the module docstring).
+
+    Args:
+        scene: the scene whose views are trained.
+        config: the run's :class:`~vadgs.train.config.TrainConfig` (weights, schedule, hard stride).
+        device: where images and LiDAR depth are cached.
+        appearance: the appearance model, or None.
+        geometry_targets: ``view -> GeometryTargets | None``, the geometric losses' priors, or None.
+        extra_losses: ``(step, render, view) -> {name: scalar}`` added as given, or None.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        config: TrainConfig,
+        device: torch.device,
+        appearance: AppearanceModel | None = None,
+        geometry_targets: Callable[[int], GeometryTargets | None] | None = None,
+        extra_losses: Callable[[int, ModelRender, int], dict[str, torch.Tensor]] | None = None,
+    ) -> None:
+        self.scene = scene
+        self.config = config
+        self.device = device
+        self.appearance = appearance
+        self.geometry_targets = geometry_targets
+        self.extra_losses = extra_losses
+        self._images: dict[int, torch.Tensor] = {}
+        self._lidar: dict[int, tuple[torch.Tensor, bool]] = {}
+
+    def image(self, view: int) -> torch.Tensor:
+        """Training image ``(1, 3, H, W)`` (cached)."""
+        if view not in self._images:
+            self._images[view] = self.scene.load_images([view]).to(self.device)
+        return self._images[view]
+
+    def lidar_depth(self, view: int) -> torch.Tensor | None:
+        """Sparse LiDAR depth of a view (cached), None without a LiDAR point there."""
+        if self.scene.lidar_loader is None:
+            return None
+        if view not in self._lidar:
+            try:
+                d = lidar_depth_map(self.scene, view)
+            except FileNotFoundError:
+                d = torch.zeros(1, 1, *self.scene.image_size(view))
+            self._lidar[view] = (d.to(self.device), bool((d > 0).any()))  # decided once, not per step
+        depth, any_point = self._lidar[view]
+        return depth if any_point else None
+
+    def corrected_color(self, view: int, color: torch.Tensor) -> torch.Tensor:
+        """A render's colour ``(1, 3, H, W)`` after the view's appearance transform, if any."""
+        return correct_view(self.appearance, self.scene, view, color, held_out=False)
+
+    def __call__(
+        self, step: int, view: int, out: ModelRender, render_hard: Callable[[int], torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
+        """Every loss term of a step (already weighted), by name.
+
+        Args:
+            step: the step (the geometric losses' schedule).
+            view: the view rendered.
+            out: its raw render; the colour loss compares its :meth:`corrected_color` with the
+                image; ``extra_losses`` get it as given.
+            render_hard: ``view -> (1, 1, ceil(H/s), ceil(W/s))`` the view's depth with every
+                opacity 1 on every ``s = hard_stride``-th pixel; called on the steps the hard depth
+                loss applies.
+        """
+        cfg = self.config
+        color = self.corrected_color(view, out.color)
+        terms = {"color": L.color_loss(color, self.image(view), cfg.ssim_weight)}
+        if self.appearance is not None:
+            app = cfg.appearance
+            camera = view_camera(self.scene, view)
+            cam, frame = self.appearance.penalty(camera, self.scene.view_frame_position(view))
+            terms["appearance"] = app.reg * cam + app.frame_reg * frame
+        if cfg.lambda_lidar > 0:
+            lid = self.lidar_depth(view)
+            if lid is not None:
+                terms["lidar"] = cfg.lambda_lidar * L.depth_loss(out.raster.depth, lid)
+        targets = self.geometry_targets(view) if self.geometry_targets is not None else None
+        if targets is not None:
+            targets = targets.to(self.device)
+            w = L.geometric_weights(
+                step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
+            )
+            hard = None
+            if w["hard"] > 0 and targets.depth is not None and step % cfg.hard_every == 0:
+                hard = render_hard(view)
+            terms.update(
+                L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, cfg.hard_stride)
+            )
+        if self.extra_losses is not None:
+            terms.update(self.extra_losses(step, out, view))
+        return terms

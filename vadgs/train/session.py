@@ -1,0 +1,79 @@
+"""What a training session does around its loop: the run's log file and the stop signals.
+
+:class:`RunLog` appends JSON lines to a run folder's ``log.jsonl``; :func:`stop_on_signals` turns
+SIGINT / SIGTERM into a request to stop at the end of the current step (a second SIGINT raises
+``KeyboardInterrupt`` at once). :class:`~vadgs.train.trainer.Trainer` uses both.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+__all__ = ["RunLog", "stop_on_signals"]
+
+
+class RunLog:
+    """A run's ``log.jsonl``, one JSON object per line, flushed line by line.
+
+    Args:
+        folder: the run folder; None writes nothing.
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     with RunLog(Path(d)) as log:
+        ...         log.write({"step": 1, "loss": 0.5})
+        ...     (Path(d) / "log.jsonl").read_text().splitlines()
+        ['{"step": 1, "loss": 0.5}']
+    """
+
+    def __init__(self, folder: Path | None) -> None:
+        self._file = (folder / "log.jsonl").open("a") if folder is not None else None
+
+    def write(self, record: dict[str, Any]) -> None:
+        """Append ``record`` (values JSON cannot hold are written with ``str``)."""
+        if self._file is not None:
+            self._file.write(json.dumps(record, default=str) + "\n")
+            self._file.flush()
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> RunLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@contextmanager
+def stop_on_signals(request_stop: Callable[[], None], stopping: Callable[[], bool]) -> Iterator[None]:
+    """SIGINT / SIGTERM call ``request_stop`` while the block runs; the handlers are put back after.
+
+    A SIGINT while ``stopping()`` is already true raises ``KeyboardInterrupt``. Outside the main
+    thread (where Python cannot install handlers) nothing is installed.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: Any) -> None:
+        if stopping() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        request_stop()
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
