@@ -1,4 +1,5 @@
-"""Benchmark of one training step with vadgs's input checks on and off (pytest-benchmark).
+"""Benchmarks of one training step with vadgs's input checks on and off, and of the hard depth
+render (``GaussianModel.render_depth`` against a full render) (pytest-benchmark).
 
 Run (the numbers in docs/benchmarks.md come from exactly this; ../shared present):
 
@@ -54,3 +55,32 @@ def test_train_step(benchmark, trainer, checks):
     benchmark.group = "train step, street_a 240x144"
     with checking(checks == "on"):
         benchmark.pedantic(trainer.train_step, rounds=20, warmup_rounds=3)
+
+
+def _hard_depth_full_render(trainer: Trainer, view: int) -> torch.Tensor:
+    """The hard depth as it was rendered before ``GaussianModel.render_depth``: a full render
+    (SH colours, sky) at the strided camera, of which only the depth is used."""
+    s = trainer.config.hard_stride
+    cams = trainer.scene.cameras([view])
+    K = cams.K.clone()
+    K[:, :2] /= s
+    h, w = cams.image_size
+    frame = trainer.scene.view_frame_position(view)
+    size = (-(-h // s), -(-w // s))
+    out = trainer.model.render(cams.world_to_cam, K, size, frame, trainer.config.raster, opacity_override=1.0)
+    return out.raster.depth
+
+
+@pytest.mark.parametrize("path", ["render_depth", "full render"])
+def test_hard_depth_render(benchmark, trainer, path):
+    """Forward and backward of the hard depth loss's render (stride ``hard_stride``, opacities 1)."""
+    benchmark.group = "hard depth render + backward, street_a 240x144"
+    view = trainer.train_views[0]
+    render = trainer.render_hard_depth if path == "render_depth" else _hard_depth_full_render
+    args = (view,) if path == "render_depth" else (trainer, view)
+
+    def run():
+        render(*args).sum().backward()
+        trainer.optimizer.zero_grad(set_to_none=True)
+
+    benchmark.pedantic(run, rounds=20, warmup_rounds=3)

@@ -101,6 +101,35 @@ class TestGaussiansAt:
         assert m2.active_sh_degree == 1 and m2.track_ids == [7]
 
 
+class TestRenderDepth:
+    def test_equals_the_full_render_with_its_gradients(self):
+        torch.manual_seed(0)
+        m = _model(n_static=40, n_obj=0)
+        with torch.no_grad():
+            m.params["means"].copy_(
+                torch.randn(40, 3) * torch.tensor([1.0, 1.0, 0.3]) + torch.tensor([0, 0, 5.0])
+            )
+        K = torch.tensor([[[40.0, 0, 16.0], [0, 40.0, 12.0], [0, 0, 1]]])
+        w2c = torch.eye(4)[None]
+        outs = []
+        for depth_only in (False, True):
+            for p in m.params.values():
+                p.grad = None
+            if depth_only:
+                r = m.render_depth(w2c, K, (24, 32), 0, opacity_override=1.0)
+            else:
+                r = m.render(w2c, K, (24, 32), 0, opacity_override=1.0).raster
+            (r.depth * torch.linspace(0, 1, 32)).sum().backward()
+            outs.append((r, {k: p.grad.clone() for k, p in m.params.items() if p.grad is not None}))
+        (full, g_full), (geo, g_geo) = outs
+        assert geo.color.shape == (1, 0, 24, 32) and bool((full.alpha > 0.5).any())
+        for name in ("depth", "alpha", "normals", "median_depth"):
+            assert torch.equal(getattr(full, name), getattr(geo, name)), name
+        assert set(g_geo) == {"means", "quats", "log_scales"}  # opacities fixed, no colour
+        for k, g in g_geo.items():
+            assert torch.allclose(g, g_full[k], rtol=1e-5, atol=1e-7), k
+
+
 class TestInit:
     def test_voxel_downsample_and_knn(self):
         p = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [1.0, 0, 0], [3.0, 0, 0]])

@@ -391,6 +391,33 @@ class GaussianModel(nn.Module):
         color = raster.color + (1.0 - raster.alpha) * sky
         return ModelRender(color, raster, sky, g.ids)
 
+    def render_depth(
+        self,
+        world_to_cam: torch.Tensor,
+        K: torch.Tensor,
+        image_size: tuple[int, int],
+        frame: int,
+        config: RasterConfig | None = None,
+        opacity_override: float | None = None,
+    ) -> RenderOutput:
+        """Render geometry only: :meth:`render`'s ``raster`` without colour (no SH, no sky).
+
+        ``color`` is ``(1, 0, H, W)`` (``(1, 1, H, W)`` of zeros with the gsplat backend); depth,
+        alpha, normals and the rest equal :meth:`render`'s (each channel is composited on its own),
+        at less cost: for the hard depth loss (``opacity_override=1.0``) and other depth-only renders.
+        """
+        check_shape(world_to_cam, "world_to_cam", (1, 4, 4))
+        check_shape(K, "K", (1, 3, 3))
+        g = self.gaussians_at(frame)
+        opac = g.opacities
+        if opacity_override is not None:
+            opac = torch.full_like(opac.detach(), float(opacity_override))
+        channels = 1 if config is not None and config.backend == "gsplat" else 0  # gsplat: >= 1 channel
+        no_color = g.means.new_zeros(g.means.shape[0], channels)
+        return rasterize_gaussians(
+            g.means, g.quats, g.scales, opac, no_color, world_to_cam, K, image_size, config=config
+        )
+
     # -- (de)serialisation ----------------------------------------------------------------------------
 
     def extra_state(self) -> dict:

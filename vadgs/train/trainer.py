@@ -370,14 +370,14 @@ class Trainer:
         K = cams.K.clone()
         K[:, :2] /= s
         h, w = cams.image_size
-        return self.model.render(
+        return self.model.render_depth(
             cams.world_to_cam.to(self.device),
             K.to(self.device),
             (-(-h // s), -(-w // s)),
             self.scene.view_frame_position(view),
             self.config.raster,
             opacity_override=1.0,
-        ).raster.depth
+        ).depth
 
     @torch.no_grad()
     def render_geometry(self, view: int) -> ViewRender:
