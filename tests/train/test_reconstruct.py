@@ -93,7 +93,7 @@ class TestReconstructSteps:
             rec = reconstruct_instance(index, ref, BUILDING, cfg, torch.Generator().manual_seed(0))
             d = torch.cdist(rec.points, target).min(1).values
             out[f] = (rec.points.shape[0], float(d.median()), float(rec.spacing.median()))
-        (n1, d1, s1), (n2, d2, s2) = out[1.0], out[2.0]
+        (n1, _d1, s1), (n2, d2, s2) = out[1.0], out[2.0]
         assert n2 < 0.6 * n1 and 1.6 * s1 < s2 < 2.5 * s1, out  # a quarter of the cells, twice as wide
         assert d2 < 0.25, out  # still on the true facade
         fine = ReconstructConfig(max_crop=96, max_match_pixels=None)
