@@ -123,6 +123,7 @@ _CC, _CI, _LC, _L, _LP, _LB, _VP = (
     "[LiDARBoxComponent]",
     "[VehiclePoseComponent]",
 )
+_RANGE_IMAGE = ("range_image_return1.values", "range_image_return1.shape")  # fields of lidar, lidar_pose
 
 
 def _pyarrow():
@@ -134,6 +135,11 @@ def _pyarrow():
             "(or pip install pyarrow)"
         ) from None
     return pq
+
+
+def _columns(component: str, *fields: str) -> list[str]:
+    """The column names ``<component>.<field>`` of a component's fields, in order."""
+    return [f"{component}.{f}" for f in fields]
 
 
 def _matrix(value: object, what: str) -> np.ndarray:
@@ -339,13 +345,7 @@ def load_waymo(
     intr = ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3")
     cam_id = {n: k for k, n in WAYMO_CAMERAS.items()}
     cc = _Component(pq, dataset_dir, "camera_calibration", segment).read(
-        [
-            _CAM,
-            *(f"{_CC}.intrinsic.{k}" for k in intr),
-            f"{_CC}.extrinsic.transform",
-            f"{_CC}.width",
-            f"{_CC}.height",
-        ],
+        [_CAM, *_columns(_CC, *(f"intrinsic.{k}" for k in intr), "extrinsic.transform", "width", "height")],
         filters=seg_filter,
     )
     calib = {cam_id[waymo_camera_name(c)]: i for i, c in enumerate(cc[_CAM])}
@@ -437,8 +437,8 @@ def load_waymo(
     box_names: dict[int, str] = {}
     lb = _Component(pq, dataset_dir, "lidar_box", segment, required=False)
     if lb.exists:
-        fields = [f"{_LB}.box.center.{a}" for a in "xyz"] + [f"{_LB}.box.size.{a}" for a in "xyz"]
-        d = lb.read([_TS, _OBJ, *fields, f"{_LB}.box.heading", f"{_LB}.type"], filters=seg_filter)
+        fields = _columns(_LB, *(f"box.center.{a}" for a in "xyz"), *(f"box.size.{a}" for a in "xyz"))
+        d = lb.read([_TS, _OBJ, *fields, *_columns(_LB, "box.heading", "type")], filters=seg_filter)
         rows = sorted(range(len(d[_TS])), key=lambda i: (int(d[_TS][i]), str(d[_OBJ][i])))
         for i in rows:
             fi = frame_of.get(int(d[_TS][i]))
@@ -465,13 +465,8 @@ def load_waymo(
     if lasers is not None:
         laser_id = {n: k for k, n in WAYMO_LASERS.items()}
         lc = _Component(pq, dataset_dir, "lidar_calibration", segment).read(
-            [
-                _LASER,
-                f"{_LC}.extrinsic.transform",
-                f"{_LC}.beam_inclination.min",
-                f"{_LC}.beam_inclination.max",
-            ],
-            optional=[f"{_LC}.beam_inclination.values"],
+            [_LASER, *_columns(_LC, "extrinsic.transform", "beam_inclination.min", "beam_inclination.max")],
+            optional=_columns(_LC, "beam_inclination.values"),
             filters=seg_filter,
         )
         lcal = {int(k): i for i, k in enumerate(lc[_LASER])}
@@ -490,15 +485,10 @@ def load_waymo(
             if not 0 <= frame < num_frames:
                 raise FileNotFoundError(f"Waymo segment {segment}: no LiDAR for frame {frame}")
             flt = [*seg_filter, (_TS, "=", frame_ts[frame])]
-            ri = lidar_comp.read(
-                [_LASER, f"{_L}.range_image_return1.values", f"{_L}.range_image_return1.shape"], filters=flt
-            )
+            ri = lidar_comp.read([_LASER, *_columns(_L, *_RANGE_IMAGE)], filters=flt)
             pix = {}
             if pose_comp.exists:
-                pr = pose_comp.read(
-                    [_LASER, f"{_LP}.range_image_return1.values", f"{_LP}.range_image_return1.shape"],
-                    filters=flt,
-                )
+                pr = pose_comp.read([_LASER, *_columns(_LP, *_RANGE_IMAGE)], filters=flt)
                 for k, v, s in zip(*pr.values()):
                     if v is not None:
                         pix[int(k)] = np.asarray(v, dtype=np.float64).reshape(s)
