@@ -13,12 +13,6 @@ Example:
     >>> report = validate_scene(sample_scene_path())
     >>> report.ok, report.rows[0].item
     (True, 'cameras.front.K')
-    >>> import torch
-    >>> pose = torch.eye(4); pose[:3, :3] *= 1.1  # scaled: not rigid
-    >>> check_rigid(pose, "pose")
-    Traceback (most recent call last):
-    ...
-    ValueError: pose: expected a rigid transform (orthonormal rotation, det +1), got max |R^T R - I| = 0.21...
 """
 
 from __future__ import annotations

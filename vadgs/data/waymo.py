@@ -38,10 +38,11 @@ How Waymo maps to vadgs:
   the smallest factor that leaves no pixel without a source: 0.9999-1.0025 for the real cameras)
   and ``K`` is that pinhole ``K``. The rolling shutter is ignored.
 - **LiDAR.** The first return of each selected laser's range image becomes points with
-  :func:`waymo_range_image_to_points` (the official conversion: rows from the beam inclinations,
-  top row = highest, columns from azimuth π to -π corrected by the extrinsic's yaw, then the
-  extrinsic). With a ``lidar_pose`` component (the TOP laser's per-pixel vehicle pose) each point
-  is moved to the world with its own pose (ego-motion compensated); otherwise with the frame's.
+  :func:`waymo_range_image_to_points` (:mod:`vadgs.data.waymo_lidar`, re-exported here; the
+  official conversion: rows from the beam inclinations, top row = highest, columns from azimuth
+  π to -π corrected by the extrinsic's yaw, then the extrinsic). With a ``lidar_pose`` component
+  (the TOP laser's per-pixel vehicle pose) each point is moved to the world with its own pose
+  (ego-motion compensated); otherwise with the frame's.
 - **Boxes → tracks.** ``lidar_box`` boxes are in the vehicle frame of their frame (7-DOF:
   centre, length/width/height along x/y/z, heading about z). ``laser_object_id`` persists across
   frames; each gets an integer id 1, 2, ... in order of first appearance. Every object is in
@@ -77,6 +78,7 @@ from vadgs.data._tracks import (
 from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
+from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_range_image_to_points
 
 __all__ = [
     "WAYMO_BOX_TYPES",
@@ -121,6 +123,7 @@ _CC, _CI, _LC, _L, _LP, _LB, _VP = (
     "[LiDARBoxComponent]",
     "[VehiclePoseComponent]",
 )
+_RANGE_IMAGE = ("range_image_return1.values", "range_image_return1.shape")  # fields of lidar, lidar_pose
 
 
 def _pyarrow():
@@ -134,106 +137,9 @@ def _pyarrow():
     return pq
 
 
-def waymo_beam_inclinations(
-    height: int, inclination_min: float, inclination_max: float, values: Sequence[float] | None = None
-) -> np.ndarray:
-    """The inclination (radians) of each range-image row, row 0 at the top.
-
-    The calibration lists inclinations from lowest to highest (``values``), or gives only
-    ``min`` / ``max`` for uniformly spaced beams (row centres at ``(i + 0.5) / height``); the
-    range image's row 0 is the highest beam, so the list is reversed.
-
-    Raises:
-        ValueError: if ``values`` does not have ``height`` entries.
-
-    Example:
-        >>> waymo_beam_inclinations(4, -0.4, 0.4).round(3).tolist()
-        [0.3, 0.1, -0.1, -0.3]
-    """
-    if values is not None and len(values) > 0:
-        incl = np.asarray(values, dtype=np.float64)
-        if incl.shape != (height,):
-            raise ValueError(
-                f"beam_inclination.values: expected {height} values (range image rows), got {incl.shape}"
-            )
-    else:
-        incl = inclination_min + (np.arange(height) + 0.5) / height * (inclination_max - inclination_min)
-    return incl[::-1].copy()
-
-
-def _euler_to_matrix(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Waymo's 3-2-1 Euler angles as rotations ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, ``(..., 3, 3)``."""
-    cr, sr, cp, sp, cy, sy = (
-        np.cos(roll),
-        np.sin(roll),
-        np.cos(pitch),
-        np.sin(pitch),
-        np.cos(yaw),
-        np.sin(yaw),
-    )
-    return np.stack(
-        [
-            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
-            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
-            np.stack([-sp, cp * sr, cp * cr], -1),
-        ],
-        -2,
-    )
-
-
-def waymo_range_image_to_points(
-    ranges: np.ndarray,
-    extrinsic: np.ndarray,
-    row_inclination: np.ndarray,
-    pixel_pose: np.ndarray | None = None,
-) -> np.ndarray:
-    """The points of a Waymo range image (pixels with range > 0), as the official conversion.
-
-    Column ``c`` of a ``W``-wide image looks at azimuth ``(2 (W - c - 0.5) / W - 1) π - yaw`` in
-    the LiDAR frame, ``yaw = atan2(E[1, 0], E[0, 0])`` of the extrinsic ``E``; row ``r`` at
-    ``row_inclination[r]``. The point ``range · (cos az cos inc, sin az cos inc, sin inc)`` is
-    then moved to the vehicle frame by ``E``, and to the world by ``pixel_pose`` if given.
-
-    Args:
-        ranges: ``(H, W)`` ranges in metres (channel 0 of the range image; ``<= 0`` = no return).
-        extrinsic: ``(4, 4)`` LiDAR → vehicle.
-        row_inclination: ``(H,)`` from :func:`waymo_beam_inclinations`.
-        pixel_pose: optional ``(H, W, 6)`` per-pixel vehicle → world pose ``roll, pitch, yaw,
-            x, y, z`` (the ``lidar_pose`` component).
-
-    Returns:
-        ``(N, 3)`` float64 points, row-major over the valid pixels: in the vehicle frame, or in
-        the world when ``pixel_pose`` is given.
-
-    Raises:
-        ValueError: on inconsistent shapes.
-
-    Example:
-        >>> pts = waymo_range_image_to_points(np.array([[0.0, 10.0, 0.0, 0.0]]), np.eye(4), np.zeros(1))
-        >>> pts.round(4).tolist()  # column 1 of 4 looks 45° to the left
-        [[7.0711, 7.0711, 0.0]]
-    """
-    ranges = np.asarray(ranges, dtype=np.float64)
-    if ranges.ndim != 2:
-        raise ValueError(f"ranges: expected shape (H, W), got {ranges.shape}")
-    h, w = ranges.shape
-    if np.shape(extrinsic) != (4, 4):
-        raise ValueError(f"extrinsic: expected shape (4, 4), got {np.shape(extrinsic)}")
-    if np.shape(row_inclination) != (h,):
-        raise ValueError(f"row_inclination: expected shape ({h},), got {np.shape(row_inclination)}")
-    if pixel_pose is not None and np.shape(pixel_pose) != (h, w, 6):
-        raise ValueError(f"pixel_pose: expected shape ({h}, {w}, 6), got {np.shape(pixel_pose)}")
-    yaw = np.arctan2(extrinsic[1, 0], extrinsic[0, 0])
-    azimuth = (2.0 * (w - np.arange(w) - 0.5) / w - 1.0) * np.pi - yaw
-    rows, cols = np.nonzero(ranges > 0)
-    r, az, inc = ranges[rows, cols], azimuth[cols], np.asarray(row_inclination, dtype=np.float64)[rows]
-    local = np.stack([np.cos(az) * np.cos(inc), np.sin(az) * np.cos(inc), np.sin(inc)], -1) * r[:, None]
-    pts = local @ extrinsic[:3, :3].T + extrinsic[:3, 3]
-    if pixel_pose is not None:
-        pp = np.asarray(pixel_pose, dtype=np.float64)[rows, cols]
-        rot = _euler_to_matrix(pp[:, 0], pp[:, 1], pp[:, 2])
-        pts = np.einsum("nij,nj->ni", rot, pts) + pp[:, 3:]
-    return pts
+def _columns(component: str, *fields: str) -> list[str]:
+    """The column names ``<component>.<field>`` of a component's fields, in order."""
+    return [f"{component}.{f}" for f in fields]
 
 
 def _matrix(value: object, what: str) -> np.ndarray:
@@ -439,13 +345,7 @@ def load_waymo(
     intr = ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3")
     cam_id = {n: k for k, n in WAYMO_CAMERAS.items()}
     cc = _Component(pq, dataset_dir, "camera_calibration", segment).read(
-        [
-            _CAM,
-            *(f"{_CC}.intrinsic.{k}" for k in intr),
-            f"{_CC}.extrinsic.transform",
-            f"{_CC}.width",
-            f"{_CC}.height",
-        ],
+        [_CAM, *_columns(_CC, *(f"intrinsic.{k}" for k in intr), "extrinsic.transform", "width", "height")],
         filters=seg_filter,
     )
     calib = {cam_id[waymo_camera_name(c)]: i for i, c in enumerate(cc[_CAM])}
@@ -537,8 +437,8 @@ def load_waymo(
     box_names: dict[int, str] = {}
     lb = _Component(pq, dataset_dir, "lidar_box", segment, required=False)
     if lb.exists:
-        fields = [f"{_LB}.box.center.{a}" for a in "xyz"] + [f"{_LB}.box.size.{a}" for a in "xyz"]
-        d = lb.read([_TS, _OBJ, *fields, f"{_LB}.box.heading", f"{_LB}.type"], filters=seg_filter)
+        fields = _columns(_LB, *(f"box.center.{a}" for a in "xyz"), *(f"box.size.{a}" for a in "xyz"))
+        d = lb.read([_TS, _OBJ, *fields, *_columns(_LB, "box.heading", "type")], filters=seg_filter)
         rows = sorted(range(len(d[_TS])), key=lambda i: (int(d[_TS][i]), str(d[_OBJ][i])))
         for i in rows:
             fi = frame_of.get(int(d[_TS][i]))
@@ -565,13 +465,8 @@ def load_waymo(
     if lasers is not None:
         laser_id = {n: k for k, n in WAYMO_LASERS.items()}
         lc = _Component(pq, dataset_dir, "lidar_calibration", segment).read(
-            [
-                _LASER,
-                f"{_LC}.extrinsic.transform",
-                f"{_LC}.beam_inclination.min",
-                f"{_LC}.beam_inclination.max",
-            ],
-            optional=[f"{_LC}.beam_inclination.values"],
+            [_LASER, *_columns(_LC, "extrinsic.transform", "beam_inclination.min", "beam_inclination.max")],
+            optional=_columns(_LC, "beam_inclination.values"),
             filters=seg_filter,
         )
         lcal = {int(k): i for i, k in enumerate(lc[_LASER])}
@@ -590,15 +485,10 @@ def load_waymo(
             if not 0 <= frame < num_frames:
                 raise FileNotFoundError(f"Waymo segment {segment}: no LiDAR for frame {frame}")
             flt = [*seg_filter, (_TS, "=", frame_ts[frame])]
-            ri = lidar_comp.read(
-                [_LASER, f"{_L}.range_image_return1.values", f"{_L}.range_image_return1.shape"], filters=flt
-            )
+            ri = lidar_comp.read([_LASER, *_columns(_L, *_RANGE_IMAGE)], filters=flt)
             pix = {}
             if pose_comp.exists:
-                pr = pose_comp.read(
-                    [_LASER, f"{_LP}.range_image_return1.values", f"{_LP}.range_image_return1.shape"],
-                    filters=flt,
-                )
+                pr = pose_comp.read([_LASER, *_columns(_LP, *_RANGE_IMAGE)], filters=flt)
                 for k, v, s in zip(*pr.values()):
                     if v is not None:
                         pix[int(k)] = np.asarray(v, dtype=np.float64).reshape(s)

@@ -193,3 +193,9 @@ def _check_inputs(
                 f"got max {smax:.3g}; pass exp(log_scales) of a sane model"
             )
     return dims
+
+
+def _check_no_sh_degree(colors: torch.Tensor, sh_degree: int | None) -> None:
+    """``sh_degree`` must be None when ``colors`` are not SH coefficients (``(N, D)`` colours)."""
+    if sh_degree is not None:
+        raise ValueError(f"sh_degree: given ({sh_degree}) but colors are not SH, shape {tuple(colors.shape)}")

@@ -37,7 +37,7 @@ import torch.nn.functional as F
 
 from vadgs.checks import check_size
 from vadgs.geometry.camera import camera_centers
-from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs
+from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs, _check_no_sh_degree
 from vadgs.render.projection import quaternion_to_rotation
 
 __all__ = ["GSPLAT_TILE_SIZE", "rasterize_gaussians_gsplat"]
@@ -342,10 +342,7 @@ def rasterize_gaussians_gsplat(
             sh = _spherical_harmonics(degree, dirs, coeffs)
         rgb = torch.clamp_min(sh + 0.5, 0.0)
     else:
-        if sh_degree is not None:
-            raise ValueError(
-                f"sh_degree: given ({sh_degree}) but colors are not SH, shape {tuple(colors.shape)}"
-            )
+        _check_no_sh_degree(colors, sh_degree)
         rgb = colors[None].expand(b, n, d)
     normals = _shortest_axis_normals(means, quats, scales, world_to_cam)
     feats = torch.cat([rgb, normals], -1)  # (B, N, D + 3)

@@ -21,7 +21,7 @@ from torch import nn
 
 from vadgs.checks import check_size, checks_enabled
 from vadgs.geometry.camera import Cameras, camera_centers
-from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs
+from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs, _check_no_sh_degree
 from vadgs.render.composite import composite_gaussians
 from vadgs.render.projection import project_gaussians
 from vadgs.render.sh import eval_sh
@@ -132,10 +132,7 @@ def rasterize_gaussians(
         dirs = F.normalize(means[None] - camera_centers(world_to_cam)[:, None], dim=-1)
         rgb = eval_sh(colors, dirs, sh_degree)
     else:
-        if sh_degree is not None:
-            raise ValueError(
-                f"sh_degree: given ({sh_degree}) but colors are not SH, shape {tuple(colors.shape)}"
-            )
+        _check_no_sh_degree(colors, sh_degree)
         rgb = colors.expand(b, n, d)
     features = torch.cat([rgb, proj.depths[..., None], proj.normals], dim=-1)
     means2d = proj.means2d

@@ -41,6 +41,7 @@ __all__ = [
     "VADGS_NAMES",
     "ParamNames",
     "add_gaussians",
+    "check_params",
     "duplicate",
     "make_optimizer",
     "param_names",
@@ -143,6 +144,58 @@ def _group(optimizers: Optimizers, name: str) -> tuple[torch.optim.Optimizer, di
         if g.get("name") == name:
             return optimizers, g
     return None
+
+
+def check_params(params: Mapping[str, torch.Tensor] | GaussianModel, optimizers: Optimizers) -> None:
+    """Check that ``params`` and ``optimizers`` agree (a strategy's ``check_sanity``).
+
+    Every per-Gaussian entry must have the Gaussians as first dimension; the geometry must be
+    vadgs's or gsplat's names (:func:`param_names`); each trainable entry must have its optimizer
+    (gsplat's dict ``{name: optimizer}`` with one param group holding that tensor, or one
+    optimizer with a param group named for it).
+
+    Raises:
+        ValueError: naming the key, what was expected and what was found.
+
+    Example:
+        >>> geometry = ("means", "quats", "scales", "opacities")
+        >>> params = {k: torch.zeros(4, 3, requires_grad=True) for k in geometry}
+        >>> check_params(params, {k: torch.optim.Adam([v]) for k, v in params.items()})  # gsplat's layout
+        >>> check_params(params, None)
+        Traceback (most recent call last):
+        ...
+        ValueError: optimizers: expected an optimizer of params['means'], got None
+    """
+    p = getattr(params, "params", params)
+    names = param_names(p)
+    n = int(p[names.means].shape[0])
+    for k, v in p.items():
+        if not isinstance(v, torch.Tensor) or v.dim() == 0 or v.shape[0] != n:
+            got = tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__
+            raise ValueError(f"params[{k!r}]: expected a tensor of {n} rows (the Gaussians), got {got}")
+    for k, v in p.items():
+        if not v.requires_grad:
+            continue
+        if optimizers is None:
+            raise ValueError(f"optimizers: expected an optimizer of params[{k!r}], got None")
+        if isinstance(optimizers, Mapping):
+            opt = optimizers.get(k)
+            if opt is None:
+                raise ValueError(f"optimizers: expected a key {k!r}, got keys {sorted(optimizers)}")
+            groups = opt.param_groups
+            if len(groups) != 1 or len(groups[0]["params"]) != 1 or groups[0]["params"][0] is not v:
+                raise ValueError(
+                    f"optimizers[{k!r}]: expected one param group holding params[{k!r}], got "
+                    f"{len(groups)} group(s) of {[len(g['params']) for g in groups]} tensor(s)"
+                )
+        else:
+            group = next((g for g in optimizers.param_groups if g.get("name") == k), None)
+            if group is None or not any(q is v for q in group["params"]):
+                named = [g.get("name") for g in optimizers.param_groups]
+                raise ValueError(
+                    f"optimizers: expected a param group named {k!r} holding params[{k!r}], "
+                    f"got groups {named}"
+                )
 
 
 @torch.no_grad()

@@ -23,26 +23,38 @@ reference view and an instance flagged by :func:`~vadgs.train.incomplete.find_in
 
 Each step is a small function (``_instance_frame``, :func:`~vadgs.select.select_views`,
 ``_crop_group`` and ``_match``, ``_consistent``, fusion, ``_depth_priors``) on the device of the
-index.
+index. The settings, :class:`ReconstructConfig`, live in :mod:`vadgs.train.reconstruct_config`; the
+crops and the matching scale (:func:`match_scale`, ``_crop_group``) in
+:mod:`vadgs.train.instance_crops`; both are re-exported here.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 
-from vadgs.geometry.camera import invert_rigid, scale_intrinsics
+from vadgs.geometry.camera import invert_rigid
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
-from vadgs.mvs.planar import PlanarCompletionConfig, complete_planar
+from vadgs.mvs.patchmatch import PatchMatchResult, patchmatch
+from vadgs.mvs.planar import complete_planar
 from vadgs.select.covisibility import Covisibility
-from vadgs.select.selector import ViewSelection, ViewSelectionConfig, select_views
+from vadgs.select.selector import ViewSelection, select_views
 from vadgs.train.inputs import sfm_observations
+from vadgs.train.instance_crops import (
+    MatchScale,
+    _crop_group,
+    _Crops,
+    _pool_valid,
+    _repeat,
+    _shift_K,
+    _to_scale,
+    match_scale,
+)
+from vadgs.train.reconstruct_config import ReconstructConfig
 from vadgs.train.visibility import ViewCache, VisibilityIndex, build_visibility_index, derive_instance_map
 
 __all__ = [
@@ -59,113 +71,6 @@ __all__ = [
     "sfm_observations",
     "thin_points",
 ]
-
-
-@dataclass(frozen=True)
-class ReconstructConfig:
-    """Settings of :func:`reconstruct_instance`.
-
-    Attributes:
-        selection: view selection (``k = 4`` supporting views by default; ``method="consecutive"``
-            is the paper's "w/o view selection" ablation).
-        patchmatch: PatchMatch settings.
-        margin: pixels added around each instance's bounding box for the crops.
-        max_crop: crops are limited to this many pixels per side (larger instances are
-            reconstructed in their central part only; keeps the cost bounded).
-        max_reproj_error: forward–backward reprojection threshold (px) of the consistency check.
-        max_rel_depth: relative depth threshold of the consistency check.
-        min_consistent_views: other group members that must confirm a pixel.
-        min_instance_voxels: below this many own voxels, the voxels seen through the instance
-            in the reference view stand in for its candidates.
-        min_pixels: members whose instance mask has fewer pixels are used as sources only.
-        max_points: cap on the points returned (random subset, seeded).
-        max_upsample: small instances, whose crop is at most ``max_crop / f`` pixels, are matched
-            at ``f`` times the scene's resolution, ``f`` up to this integer and never finer than
-            the image files (``1 / scene.scale``): a sign 40 px tall at half resolution gets four
-            times the pixels and half the depth error (on street_a: its MVS points within 5 cm of
-            the true surface 35 % → 60 %, its surface covered 51 % → 65 %), while the crop stays
-            within ``max_crop`` so the cost stays bounded. ``1``: always the scene's resolution.
-        planar: planar completion of the textureless parts of static instances
-            (:func:`vadgs.mvs.complete_planar`); ``None`` turns it off. Never applied to moving
-            objects: a car is not planar, and one plane fitted to it fills many of its pixels off
-            its surface. On by default since small instances are matched at a finer resolution
-            (``max_upsample``): on street_a it took the sign's completeness in training from 76 %
-            to 84 % at +0.3 dB (docs/results.md). (At the training resolution alone it had tilted
-            the sign's board.)
-        max_match_pixels: pixel budget of one member's instance mask at the matching scale:
-            an instance larger than this (a facade filling the view) is matched at 1/2, 1/4, ...
-            of the scene's resolution (down to ``1 / max_downsample``), so that an event's cost
-            follows the number of instances rather than their size, and its points come at the
-            spacing of that scale. ``None``: always the scene's resolution (or finer).
-        max_downsample: the coarsest matching scale, ``1 / max_downsample`` (1, 2, 4 or 8).
-        depth_margin: ``(near, far)`` factors on the nearest and farthest instance voxel depth in
-            the reference view: PatchMatch's random depths are drawn in ``[near z_min, far z_max]``.
-        fallback_depth_range: the depth range when the reference sees none of the voxels.
-        min_depth: lower bound of the depth range.
-        explained_alpha: a consistent pixel is *explained* (gives no point) where the member's
-            render has at least this opacity and a depth in front of, or within
-            ``explained_tolerance`` (relative) of, the MVS depth; it still gives a depth prior.
-        explained_tolerance: see ``explained_alpha``.
-        thin_points: keep one point per cell of the point spacing (the members see the same
-            surface: without it, each surface patch becomes one point per member), at the scene's
-            resolution or at the coarser matching scale; the points' ``spacing`` (the new Gaussians'
-            width) is that of the cell. Finer matching of small instances then gives more accurate
-            points, not more of them.
-        thin_factor: for an instance matched below the scene's resolution (a large one, such as a
-            facade: ``max_match_pixels``), the cell of ``thin_points`` is this many times the
-            point spacing and the new Gaussians are as much wider: fewer, larger Gaussians on
-            large surfaces. Smaller instances (a sign) keep one point per pixel footprint. 1: no
-            change. 1.5 by default: on street_a 1.24x the baseline's Gaussians instead of 1.32x,
-            PSNR 29.51 dB, sign and facades as at 1 (docs/results.md).
-        whole_supports: when the instance is whole in the reference view (its mask does not touch
-            the image border), select the supporting views among those where it is whole too, if
-            there are ``selection.k`` of them (else among all). A view that cuts the instance off
-            cannot confirm the part it does not show: on street_a the sign's top 0.3 m is above
-            the frame of the close views the voxels favour, and stayed empty (82.8 % complete).
-    """
-
-    selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
-    patchmatch: PatchMatchConfig = field(default_factory=lambda: PatchMatchConfig(iterations=3))
-    margin: int = 6
-    max_crop: int = 160
-    max_reproj_error: float = 2.0
-    max_rel_depth: float = 0.01
-    min_consistent_views: int = 1
-    min_instance_voxels: int = 8
-    min_pixels: int = 16
-    max_points: int = 20000
-    max_upsample: int = 2
-    planar: PlanarCompletionConfig | None = field(default_factory=PlanarCompletionConfig)
-    max_match_pixels: int | None = 2048
-    max_downsample: int = 4
-    depth_margin: tuple[float, float] = (0.5, 2.0)
-    fallback_depth_range: tuple[float, float] = (0.5, 150.0)
-    min_depth: float = 0.2
-    explained_alpha: float = 0.7
-    explained_tolerance: float = 0.05
-    thin_points: bool = True
-    thin_factor: float = 1.5
-    whole_supports: bool = True
-
-    def __post_init__(self) -> None:
-        if not (isinstance(self.max_upsample, int) and self.max_upsample >= 1):
-            raise ValueError(f"max_upsample: expected an integer >= 1, got {self.max_upsample!r}")
-        if self.max_crop < 8:
-            raise ValueError(f"max_crop: expected >= 8 pixels, got {self.max_crop}")
-        if self.max_match_pixels is not None and self.max_match_pixels < 64:
-            raise ValueError(f"max_match_pixels: expected None or >= 64, got {self.max_match_pixels}")
-        if not self.thin_factor >= 1:
-            raise ValueError(f"thin_factor: expected >= 1, got {self.thin_factor}")
-        if self.max_downsample not in (1, 2, 4, 8):
-            raise ValueError(f"max_downsample: expected 1, 2, 4 or 8, got {self.max_downsample}")
-        near, far = self.depth_margin
-        lo, hi = self.fallback_depth_range
-        if not (0 < near <= 1 <= far and 0 < lo < hi and self.min_depth > 0):
-            raise ValueError(
-                "depth_margin, fallback_depth_range, min_depth: expected 0 < near <= 1 <= far, "
-                f"0 < lo < hi and min_depth > 0, got {self.depth_margin}, {self.fallback_depth_range}, "
-                f"{self.min_depth}"
-            )
 
 
 class InstanceReconstruction(NamedTuple):
@@ -209,125 +114,6 @@ class ViewRender(NamedTuple):
     normals: torch.Tensor
 
 
-class MatchScale(NamedTuple):
-    """The scale an instance is matched at: ``up / down`` times the scene's resolution.
-
-    At most one of the two is above 1: ``up`` for small instances (finer than the training
-    images, up to the files' resolution), ``down`` for large ones (a power of two).
-    """
-
-    up: int = 1
-    down: int = 1
-
-    @property
-    def value(self) -> float:
-        """The scale as a number."""
-        return self.up / self.down
-
-
-def match_scale(
-    mask_pixels: int, crop: tuple[int, int], native: int, config: ReconstructConfig | None = None
-) -> MatchScale:
-    """The matching scale of an instance of ``mask_pixels`` (largest member) in a crop ``(ch, cw)``.
-
-    Small crops (at most ``max_crop / f`` per side) are matched ``f`` times finer, ``f`` up to
-    ``max_upsample`` and ``native`` (the files' resolution over the scene's); otherwise, while the
-    mask has more than ``max_match_pixels`` pixels at the scale, the scale halves (down to
-    ``1 / max_downsample``).
-
-    Example:
-        >>> match_scale(300, (40, 30), native=2)  # a sign: twice finer
-        MatchScale(up=2, down=1)
-        >>> match_scale(6000, (144, 160), native=2)  # a facade: matched at half resolution
-        MatchScale(up=1, down=2)
-        >>> match_scale(6000, (144, 160), 2, ReconstructConfig(max_match_pixels=None))
-        MatchScale(up=1, down=1)
-    """
-    cfg = config or ReconstructConfig()
-    ch, cw = crop
-    up = max(1, min(cfg.max_upsample, native, cfg.max_crop // max(ch, cw, 1)))
-    if up > 1 or cfg.max_match_pixels is None:
-        return MatchScale(up, 1)
-    down = 1
-    while down < cfg.max_downsample and mask_pixels / (down * down) > cfg.max_match_pixels:
-        down *= 2
-    return MatchScale(1, down)
-
-
-def _crops(
-    masks: Sequence[torch.Tensor], margin: int, size: tuple[int, int], max_crop: int
-) -> tuple[list[tuple[int, int]], int, int]:
-    """One crop size for all masks and each crop's top-left corner.
-
-    The size is the largest bounding box plus margin (capped); each crop is centred on its mask's
-    box and clipped to the image.
-    """
-    hh, ww = size
-    centres, hs, ws = [], [], []
-    for m in masks:
-        ys, xs = m.nonzero(as_tuple=True)
-        centres.append(((int(ys.min()) + int(ys.max())) // 2, (int(xs.min()) + int(xs.max())) // 2))
-        hs.append(int(ys.max()) - int(ys.min()) + 1 + 2 * margin)
-        ws.append(int(xs.max()) - int(xs.min()) + 1 + 2 * margin)
-    ch, cw = min(max(hs), max_crop, hh), min(max(ws), max_crop, ww)
-    corners = [(min(max(cy - ch // 2, 0), hh - ch), min(max(cx - cw // 2, 0), ww - cw)) for cy, cx in centres]
-    return corners, ch, cw
-
-
-def _align_crops(
-    corners: list[tuple[int, int]], ch: int, cw: int, down: int, size: tuple[int, int]
-) -> tuple[list[tuple[int, int]], int, int]:
-    """Crops on the ``down x down`` block grid of the image (whole blocks only), covering the old ones."""
-    hh, ww = (size[0] // down) * down, (size[1] // down) * down
-    ch2, cw2 = min(-(-ch // down) * down, hh), min(-(-cw // down) * down, ww)
-    out = [(min((y0 // down) * down, hh - ch2), min((x0 // down) * down, ww - cw2)) for y0, x0 in corners]
-    return out, ch2, cw2
-
-
-def _repeat(x: torch.Tensor, f: int) -> torch.Tensor:
-    """Nearest upsampling of the last two dims by ``f`` (pixel (y, x) -> block (fy.., fx..))."""
-    return x if f == 1 else x.repeat_interleave(f, -2).repeat_interleave(f, -1)
-
-
-def _pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False) -> torch.Tensor:
-    """``(C, H, W)`` → ``(C, H/f, W/f)``: the mean of the valid pixels of each ``f x f`` block.
-
-    Zero where fewer than half are valid (``unit``: renormalised, for normals); at ``f = 1``, ``x``
-    with zeros outside ``valid``.
-    """
-    if f == 1:
-        return torch.where(valid, x, torch.zeros_like(x))
-    v = valid.to(x.dtype)
-    cnt = F.avg_pool2d(v[None], f)[0]
-    out = F.avg_pool2d((x * v)[None], f)[0] / cnt.clamp(min=1e-6)
-    if unit:
-        out = F.normalize(out, dim=0)
-    return torch.where(cnt >= 0.5, out, torch.zeros_like(out))
-
-
-def _pool_mask(m: torch.Tensor, f: int) -> torch.Tensor:
-    """Bool ``(..., H, W)`` → ``(..., H/f, W/f)``: blocks where at least half the pixels are set."""
-    if f == 1:
-        return m
-    lead = m.shape[:-2]
-    x = F.avg_pool2d(m.reshape(-1, 1, *m.shape[-2:]).float(), f)
-    return (x >= 0.5).reshape(*lead, *x.shape[-2:])
-
-
-def _to_scale(x: torch.Tensor, valid: torch.Tensor, scale: MatchScale, unit: bool = False) -> torch.Tensor:
-    """A scene-resolution map ``(C, H, W)`` at the matching scale (valid-pixel means when coarser)."""
-    if scale.up > 1:
-        return _repeat(torch.where(valid, x, torch.zeros_like(x)), scale.up)
-    return _pool_valid(x, valid, scale.down, unit)
-
-
-def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
-    K = K.clone()
-    K[..., 0, 2] -= x0
-    K[..., 1, 2] -= y0
-    return K
-
-
 class _InstanceFrame(NamedTuple):
     """Step 1's result: where the instance is matched and which voxels stand for it."""
 
@@ -335,21 +121,6 @@ class _InstanceFrame(NamedTuple):
     voxels: torch.Tensor  # (M,) bool
     world_to_cam: torch.Tensor  # (V, 4, 4): world (static) or object frame (track) to each view
     allowed: torch.Tensor  # (V,) bool: views that may support
-
-
-class _Crops(NamedTuple):
-    """Step 3's input: the group's images and masks cropped around the instance, at the matching scale."""
-
-    members: list[int]  # group positions whose instance mask is large enough to be a reference
-    images: torch.Tensor  # (G, 3, h, w) full images of the group at the matching scale
-    masks: list[torch.Tensor]  # per group view (h, w): the instance
-    regions: torch.Tensor  # (G, 1, h, w): where sources may match (static or the object)
-    K: torch.Tensor  # (G, 3, 3) at the matching scale
-    corners: list[tuple[int, int]]  # per member: top-left of its crop, at the matching scale
-    size: tuple[int, int]  # crop (ch, cw) at the matching scale
-    corners_lo: list[tuple[int, int]]  # the same at the scene's resolution
-    size_lo: tuple[int, int]
-    scale: MatchScale
 
 
 class _Matched(NamedTuple):
@@ -436,64 +207,6 @@ def _depth_range(frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructC
     lo, hi = (float(z.min()) * near, float(z.max()) * far) if z.numel() else cfg.fallback_depth_range
     lo = max(lo, cfg.min_depth)
     return lo, max(hi, lo * 4, 1.0)
-
-
-def _crop_group(
-    index: VisibilityIndex,
-    group: list[int],
-    instance: int,
-    track: int | None,
-    cfg: ReconstructConfig,
-    device: torch.device,
-) -> _Crops | str:
-    """Step 3a: crops around the instance in each group view, at its matching scale (:func:`match_scale`).
-
-    Sources match only inside their region: static pixels for a static instance, the object's own
-    pixels for a moving one. The group's images, masks and intrinsics move to ``device`` (where
-    the matching runs), once.
-    """
-    inputs = index.inputs
-    h, w = index.cameras.image_size
-    masks = [index.instances(v) == instance for v in group]
-    sizes = [int(m.sum()) for m in masks]
-    members = [i for i, n in enumerate(sizes) if n >= cfg.min_pixels]
-    if len(members) < 2:
-        return "instance_seen_in_fewer_than_two_group_views"
-    corners, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
-    native = inputs.native_factor  # the files' resolution
-    scale = match_scale(max(sizes[i] for i in members), (ch, cw), native, cfg)
-    if scale.down > 1:
-        corners, ch, cw = _align_crops(corners, ch, cw, scale.down, (h, w))
-
-    def region(v: int) -> torch.Tensor:
-        ins = index.instances(v)
-        if track is not None:
-            return ins == instance
-        static = ~torch.isin(ins, torch.tensor(sorted(inputs.tracks), dtype=ins.dtype, device=ins.device))
-        return static & index.valid(v)
-
-    regions = torch.stack([region(v) for v in group])[:, None]
-    K = index.cameras.K[group]
-    corners_lo, size_lo = corners, (ch, cw)
-    if scale.up > 1:
-        f = scale.up
-        masks = [_repeat(m, f) for m in masks]
-        regions = _repeat(regions, f)
-        corners, ch, cw = [(y0 * f, x0 * f) for y0, x0 in corners], ch * f, cw * f
-        K = scale_intrinsics(K, f)
-        images = torch.stack([index.image(v, f) for v in group])
-    else:
-        f = scale.down
-        images = torch.stack([index.image(v) for v in group])
-        if f > 1:
-            masks = [_pool_mask(m, f) for m in masks]
-            regions = _pool_mask(regions, f)
-            corners, ch, cw = [(y0 // f, x0 // f) for y0, x0 in corners], ch // f, cw // f
-            K = scale_intrinsics(K, 1.0 / f)
-            images = F.avg_pool2d(images, f)
-    images, regions, K = images.to(device), regions.to(device), K.to(device)
-    masks = [m.to(device) for m in masks]
-    return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
 
 
 def _renders(

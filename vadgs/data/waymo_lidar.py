@@ -1,0 +1,117 @@
+"""Waymo LiDAR range images as points (the official conversion, without TensorFlow).
+
+:func:`waymo_beam_inclinations` gives each range-image row its beam inclination and
+:func:`waymo_range_image_to_points` turns the first return into points in the vehicle frame, or in
+the world with the per-pixel vehicle poses of the ``lidar_pose`` component. Used by
+:func:`vadgs.data.waymo.load_waymo`, and importable from :mod:`vadgs.data.waymo`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = ["waymo_beam_inclinations", "waymo_range_image_to_points"]
+
+
+def waymo_beam_inclinations(
+    height: int, inclination_min: float, inclination_max: float, values: Sequence[float] | None = None
+) -> np.ndarray:
+    """The inclination (radians) of each range-image row, row 0 at the top.
+
+    The calibration lists inclinations from lowest to highest (``values``), or gives only
+    ``min`` / ``max`` for uniformly spaced beams (row centres at ``(i + 0.5) / height``); the
+    range image's row 0 is the highest beam, so the list is reversed.
+
+    Raises:
+        ValueError: if ``values`` does not have ``height`` entries.
+
+    Example:
+        >>> waymo_beam_inclinations(4, -0.4, 0.4).round(3).tolist()
+        [0.3, 0.1, -0.1, -0.3]
+    """
+    if values is not None and len(values) > 0:
+        incl = np.asarray(values, dtype=np.float64)
+        if incl.shape != (height,):
+            raise ValueError(
+                f"beam_inclination.values: expected {height} values (range image rows), got {incl.shape}"
+            )
+    else:
+        incl = inclination_min + (np.arange(height) + 0.5) / height * (inclination_max - inclination_min)
+    return incl[::-1].copy()
+
+
+def _euler_to_matrix(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Waymo's 3-2-1 Euler angles as rotations ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, ``(..., 3, 3)``."""
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
+    return np.stack(
+        [
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            np.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        -2,
+    )
+
+
+def waymo_range_image_to_points(
+    ranges: np.ndarray,
+    extrinsic: np.ndarray,
+    row_inclination: np.ndarray,
+    pixel_pose: np.ndarray | None = None,
+) -> np.ndarray:
+    """The points of a Waymo range image (pixels with range > 0), as the official conversion.
+
+    Column ``c`` of a ``W``-wide image looks at azimuth ``(2 (W - c - 0.5) / W - 1) π - yaw`` in
+    the LiDAR frame, ``yaw = atan2(E[1, 0], E[0, 0])`` of the extrinsic ``E``; row ``r`` at
+    ``row_inclination[r]``. The point ``range · (cos az cos inc, sin az cos inc, sin inc)`` is
+    then moved to the vehicle frame by ``E``, and to the world by ``pixel_pose`` if given.
+
+    Args:
+        ranges: ``(H, W)`` ranges in metres (channel 0 of the range image; ``<= 0`` = no return).
+        extrinsic: ``(4, 4)`` LiDAR → vehicle.
+        row_inclination: ``(H,)`` from :func:`waymo_beam_inclinations`.
+        pixel_pose: optional ``(H, W, 6)`` per-pixel vehicle → world pose ``roll, pitch, yaw,
+            x, y, z`` (the ``lidar_pose`` component).
+
+    Returns:
+        ``(N, 3)`` float64 points, row-major over the valid pixels: in the vehicle frame, or in
+        the world when ``pixel_pose`` is given.
+
+    Raises:
+        ValueError: on inconsistent shapes.
+
+    Example:
+        >>> pts = waymo_range_image_to_points(np.array([[0.0, 10.0, 0.0, 0.0]]), np.eye(4), np.zeros(1))
+        >>> pts.round(4).tolist()  # column 1 of 4 looks 45° to the left
+        [[7.0711, 7.0711, 0.0]]
+    """
+    ranges = np.asarray(ranges, dtype=np.float64)
+    if ranges.ndim != 2:
+        raise ValueError(f"ranges: expected shape (H, W), got {ranges.shape}")
+    h, w = ranges.shape
+    if np.shape(extrinsic) != (4, 4):
+        raise ValueError(f"extrinsic: expected shape (4, 4), got {np.shape(extrinsic)}")
+    if np.shape(row_inclination) != (h,):
+        raise ValueError(f"row_inclination: expected shape ({h},), got {np.shape(row_inclination)}")
+    if pixel_pose is not None and np.shape(pixel_pose) != (h, w, 6):
+        raise ValueError(f"pixel_pose: expected shape ({h}, {w}, 6), got {np.shape(pixel_pose)}")
+    yaw = np.arctan2(extrinsic[1, 0], extrinsic[0, 0])
+    azimuth = (2.0 * (w - np.arange(w) - 0.5) / w - 1.0) * np.pi - yaw
+    rows, cols = np.nonzero(ranges > 0)
+    r, az, inc = ranges[rows, cols], azimuth[cols], np.asarray(row_inclination, dtype=np.float64)[rows]
+    local = np.stack([np.cos(az) * np.cos(inc), np.sin(az) * np.cos(inc), np.sin(inc)], -1) * r[:, None]
+    pts = local @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+    if pixel_pose is not None:
+        pp = np.asarray(pixel_pose, dtype=np.float64)[rows, cols]
+        rot = _euler_to_matrix(pp[:, 0], pp[:, 1], pp[:, 2])
+        pts = np.einsum("nij,nj->ni", rot, pts) + pp[:, 3:]
+    return pts

@@ -1,0 +1,215 @@
+"""An instance's crops at its matching scale: step 3a of reconstructing it by multi-view stereo.
+
+:func:`~vadgs.train.reconstruct.reconstruct_instance` matches an instance on crops around it in
+each group view, at a scale of its own (:func:`match_scale`): finer than the scene's resolution
+for small instances (a sign), coarser for large ones (a facade). ``_crop_group`` makes the
+crops; the helpers resample maps between the scene's resolution and the matching scale (nearest
+upsampling, means of the valid pixels of each block) and shift intrinsics to a crop. Importable
+from :mod:`vadgs.train.reconstruct`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from vadgs.geometry.camera import scale_intrinsics
+from vadgs.train.reconstruct_config import ReconstructConfig
+from vadgs.train.visibility import VisibilityIndex
+
+__all__ = ["MatchScale", "match_scale"]
+
+
+class MatchScale(NamedTuple):
+    """The scale an instance is matched at: ``up / down`` times the scene's resolution.
+
+    At most one of the two is above 1: ``up`` for small instances (finer than the training
+    images, up to the files' resolution), ``down`` for large ones (a power of two).
+    """
+
+    up: int = 1
+    down: int = 1
+
+    @property
+    def value(self) -> float:
+        """The scale as a number."""
+        return self.up / self.down
+
+
+def match_scale(
+    mask_pixels: int, crop: tuple[int, int], native: int, config: ReconstructConfig | None = None
+) -> MatchScale:
+    """The matching scale of an instance of ``mask_pixels`` (largest member) in a crop ``(ch, cw)``.
+
+    Small crops (at most ``max_crop / f`` per side) are matched ``f`` times finer, ``f`` up to
+    ``max_upsample`` and ``native`` (the files' resolution over the scene's); otherwise, while the
+    mask has more than ``max_match_pixels`` pixels at the scale, the scale halves (down to
+    ``1 / max_downsample``).
+
+    Example:
+        >>> match_scale(300, (40, 30), native=2)  # a sign: twice finer
+        MatchScale(up=2, down=1)
+        >>> match_scale(6000, (144, 160), native=2)  # a facade: matched at half resolution
+        MatchScale(up=1, down=2)
+        >>> match_scale(6000, (144, 160), 2, ReconstructConfig(max_match_pixels=None))
+        MatchScale(up=1, down=1)
+    """
+    cfg = config or ReconstructConfig()
+    ch, cw = crop
+    up = max(1, min(cfg.max_upsample, native, cfg.max_crop // max(ch, cw, 1)))
+    if up > 1 or cfg.max_match_pixels is None:
+        return MatchScale(up, 1)
+    down = 1
+    while down < cfg.max_downsample and mask_pixels / (down * down) > cfg.max_match_pixels:
+        down *= 2
+    return MatchScale(1, down)
+
+
+def _crops(
+    masks: Sequence[torch.Tensor], margin: int, size: tuple[int, int], max_crop: int
+) -> tuple[list[tuple[int, int]], int, int]:
+    """One crop size for all masks and each crop's top-left corner.
+
+    The size is the largest bounding box plus margin (capped); each crop is centred on its mask's
+    box and clipped to the image.
+    """
+    hh, ww = size
+    centres, hs, ws = [], [], []
+    for m in masks:
+        ys, xs = m.nonzero(as_tuple=True)
+        centres.append(((int(ys.min()) + int(ys.max())) // 2, (int(xs.min()) + int(xs.max())) // 2))
+        hs.append(int(ys.max()) - int(ys.min()) + 1 + 2 * margin)
+        ws.append(int(xs.max()) - int(xs.min()) + 1 + 2 * margin)
+    ch, cw = min(max(hs), max_crop, hh), min(max(ws), max_crop, ww)
+    corners = [(min(max(cy - ch // 2, 0), hh - ch), min(max(cx - cw // 2, 0), ww - cw)) for cy, cx in centres]
+    return corners, ch, cw
+
+
+def _align_crops(
+    corners: list[tuple[int, int]], ch: int, cw: int, down: int, size: tuple[int, int]
+) -> tuple[list[tuple[int, int]], int, int]:
+    """Crops on the ``down x down`` block grid of the image (whole blocks only), covering the old ones."""
+    hh, ww = (size[0] // down) * down, (size[1] // down) * down
+    ch2, cw2 = min(-(-ch // down) * down, hh), min(-(-cw // down) * down, ww)
+    out = [(min((y0 // down) * down, hh - ch2), min((x0 // down) * down, ww - cw2)) for y0, x0 in corners]
+    return out, ch2, cw2
+
+
+def _repeat(x: torch.Tensor, f: int) -> torch.Tensor:
+    """Nearest upsampling of the last two dims by ``f`` (pixel (y, x) -> block (fy.., fx..))."""
+    return x if f == 1 else x.repeat_interleave(f, -2).repeat_interleave(f, -1)
+
+
+def _pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False) -> torch.Tensor:
+    """``(C, H, W)`` → ``(C, H/f, W/f)``: the mean of the valid pixels of each ``f x f`` block.
+
+    Zero where fewer than half are valid (``unit``: renormalised, for normals); at ``f = 1``, ``x``
+    with zeros outside ``valid``.
+    """
+    if f == 1:
+        return torch.where(valid, x, torch.zeros_like(x))
+    v = valid.to(x.dtype)
+    cnt = F.avg_pool2d(v[None], f)[0]
+    out = F.avg_pool2d((x * v)[None], f)[0] / cnt.clamp(min=1e-6)
+    if unit:
+        out = F.normalize(out, dim=0)
+    return torch.where(cnt >= 0.5, out, torch.zeros_like(out))
+
+
+def _pool_mask(m: torch.Tensor, f: int) -> torch.Tensor:
+    """Bool ``(..., H, W)`` → ``(..., H/f, W/f)``: blocks where at least half the pixels are set."""
+    if f == 1:
+        return m
+    lead = m.shape[:-2]
+    x = F.avg_pool2d(m.reshape(-1, 1, *m.shape[-2:]).float(), f)
+    return (x >= 0.5).reshape(*lead, *x.shape[-2:])
+
+
+def _to_scale(x: torch.Tensor, valid: torch.Tensor, scale: MatchScale, unit: bool = False) -> torch.Tensor:
+    """A scene-resolution map ``(C, H, W)`` at the matching scale (valid-pixel means when coarser)."""
+    if scale.up > 1:
+        return _repeat(torch.where(valid, x, torch.zeros_like(x)), scale.up)
+    return _pool_valid(x, valid, scale.down, unit)
+
+
+def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
+    K = K.clone()
+    K[..., 0, 2] -= x0
+    K[..., 1, 2] -= y0
+    return K
+
+
+class _Crops(NamedTuple):
+    """Step 3's input: the group's images and masks cropped around the instance, at the matching scale."""
+
+    members: list[int]  # group positions whose instance mask is large enough to be a reference
+    images: torch.Tensor  # (G, 3, h, w) full images of the group at the matching scale
+    masks: list[torch.Tensor]  # per group view (h, w): the instance
+    regions: torch.Tensor  # (G, 1, h, w): where sources may match (static or the object)
+    K: torch.Tensor  # (G, 3, 3) at the matching scale
+    corners: list[tuple[int, int]]  # per member: top-left of its crop, at the matching scale
+    size: tuple[int, int]  # crop (ch, cw) at the matching scale
+    corners_lo: list[tuple[int, int]]  # the same at the scene's resolution
+    size_lo: tuple[int, int]
+    scale: MatchScale
+
+
+def _crop_group(
+    index: VisibilityIndex,
+    group: list[int],
+    instance: int,
+    track: int | None,
+    cfg: ReconstructConfig,
+    device: torch.device,
+) -> _Crops | str:
+    """Step 3a: crops around the instance in each group view, at its matching scale (:func:`match_scale`).
+
+    Sources match only inside their region: static pixels for a static instance, the object's own
+    pixels for a moving one. The group's images, masks and intrinsics move to ``device`` (where
+    the matching runs), once.
+    """
+    inputs = index.inputs
+    h, w = index.cameras.image_size
+    masks = [index.instances(v) == instance for v in group]
+    sizes = [int(m.sum()) for m in masks]
+    members = [i for i, n in enumerate(sizes) if n >= cfg.min_pixels]
+    if len(members) < 2:
+        return "instance_seen_in_fewer_than_two_group_views"
+    corners, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
+    native = inputs.native_factor  # the files' resolution
+    scale = match_scale(max(sizes[i] for i in members), (ch, cw), native, cfg)
+    if scale.down > 1:
+        corners, ch, cw = _align_crops(corners, ch, cw, scale.down, (h, w))
+
+    def region(v: int) -> torch.Tensor:
+        ins = index.instances(v)
+        if track is not None:
+            return ins == instance
+        static = ~torch.isin(ins, torch.tensor(sorted(inputs.tracks), dtype=ins.dtype, device=ins.device))
+        return static & index.valid(v)
+
+    regions = torch.stack([region(v) for v in group])[:, None]
+    K = index.cameras.K[group]
+    corners_lo, size_lo = corners, (ch, cw)
+    if scale.up > 1:
+        f = scale.up
+        masks = [_repeat(m, f) for m in masks]
+        regions = _repeat(regions, f)
+        corners, ch, cw = [(y0 * f, x0 * f) for y0, x0 in corners], ch * f, cw * f
+        K = scale_intrinsics(K, f)
+        images = torch.stack([index.image(v, f) for v in group])
+    else:
+        f = scale.down
+        images = torch.stack([index.image(v) for v in group])
+        if f > 1:
+            masks = [_pool_mask(m, f) for m in masks]
+            regions = _pool_mask(regions, f)
+            corners, ch, cw = [(y0 // f, x0 // f) for y0, x0 in corners], ch // f, cw // f
+            K = scale_intrinsics(K, 1.0 / f)
+            images = F.avg_pool2d(images, f)
+    images, regions, K = images.to(device), regions.to(device), K.to(device)
+    masks = [m.to(device) for m in masks]
+    return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)

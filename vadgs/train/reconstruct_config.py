@@ -1,0 +1,123 @@
+"""Settings of the reconstruction of one flagged instance by multi-view stereo.
+
+:class:`ReconstructConfig` is the settings of :func:`~vadgs.train.reconstruct.reconstruct_instance`
+(view selection, crops and matching scale, PatchMatch, consistency, planar completion, fusion);
+importable from :mod:`vadgs.train.reconstruct`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from vadgs.mvs.patchmatch import PatchMatchConfig
+from vadgs.mvs.planar import PlanarCompletionConfig
+from vadgs.select.selector import ViewSelectionConfig
+
+__all__ = ["ReconstructConfig"]
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Settings of :func:`~vadgs.train.reconstruct.reconstruct_instance`.
+
+    Attributes:
+        selection: view selection (``k = 4`` supporting views by default; ``method="consecutive"``
+            is the paper's "w/o view selection" ablation).
+        patchmatch: PatchMatch settings.
+        margin: pixels added around each instance's bounding box for the crops.
+        max_crop: crops are limited to this many pixels per side (larger instances are
+            reconstructed in their central part only; keeps the cost bounded).
+        max_reproj_error: forward–backward reprojection threshold (px) of the consistency check.
+        max_rel_depth: relative depth threshold of the consistency check.
+        min_consistent_views: other group members that must confirm a pixel.
+        min_instance_voxels: below this many own voxels, the voxels seen through the instance
+            in the reference view stand in for its candidates.
+        min_pixels: members whose instance mask has fewer pixels are used as sources only.
+        max_points: cap on the points returned (random subset, seeded).
+        max_upsample: small instances, whose crop is at most ``max_crop / f`` pixels, are matched
+            at ``f`` times the scene's resolution, ``f`` up to this integer and never finer than
+            the image files (``1 / scene.scale``): a sign 40 px tall at half resolution gets four
+            times the pixels and half the depth error (on street_a: its MVS points within 5 cm of
+            the true surface 35 % → 60 %, its surface covered 51 % → 65 %), while the crop stays
+            within ``max_crop`` so the cost stays bounded. ``1``: always the scene's resolution.
+        planar: planar completion of the textureless parts of static instances
+            (:func:`vadgs.mvs.complete_planar`); ``None`` turns it off. Never applied to moving
+            objects: a car is not planar, and one plane fitted to it fills many of its pixels off
+            its surface. On by default since small instances are matched at a finer resolution
+            (``max_upsample``): on street_a it took the sign's completeness in training from 76 %
+            to 84 % at +0.3 dB (docs/results.md). (At the training resolution alone it had tilted
+            the sign's board.)
+        max_match_pixels: pixel budget of one member's instance mask at the matching scale:
+            an instance larger than this (a facade filling the view) is matched at 1/2, 1/4, ...
+            of the scene's resolution (down to ``1 / max_downsample``), so that an event's cost
+            follows the number of instances rather than their size, and its points come at the
+            spacing of that scale. ``None``: always the scene's resolution (or finer).
+        max_downsample: the coarsest matching scale, ``1 / max_downsample`` (1, 2, 4 or 8).
+        depth_margin: ``(near, far)`` factors on the nearest and farthest instance voxel depth in
+            the reference view: PatchMatch's random depths are drawn in ``[near z_min, far z_max]``.
+        fallback_depth_range: the depth range when the reference sees none of the voxels.
+        min_depth: lower bound of the depth range.
+        explained_alpha: a consistent pixel is *explained* (gives no point) where the member's
+            render has at least this opacity and a depth in front of, or within
+            ``explained_tolerance`` (relative) of, the MVS depth; it still gives a depth prior.
+        explained_tolerance: see ``explained_alpha``.
+        thin_points: keep one point per cell of the point spacing (the members see the same
+            surface: without it, each surface patch becomes one point per member), at the scene's
+            resolution or at the coarser matching scale; the points' ``spacing`` (the new Gaussians'
+            width) is that of the cell. Finer matching of small instances then gives more accurate
+            points, not more of them.
+        thin_factor: for an instance matched below the scene's resolution (a large one, such as a
+            facade: ``max_match_pixels``), the cell of ``thin_points`` is this many times the
+            point spacing and the new Gaussians are as much wider: fewer, larger Gaussians on
+            large surfaces. Smaller instances (a sign) keep one point per pixel footprint. 1: no
+            change. 1.5 by default: on street_a 1.24x the baseline's Gaussians instead of 1.32x,
+            PSNR 29.51 dB, sign and facades as at 1 (docs/results.md).
+        whole_supports: when the instance is whole in the reference view (its mask does not touch
+            the image border), select the supporting views among those where it is whole too, if
+            there are ``selection.k`` of them (else among all). A view that cuts the instance off
+            cannot confirm the part it does not show: on street_a the sign's top 0.3 m is above
+            the frame of the close views the voxels favour, and stayed empty (82.8 % complete).
+    """
+
+    selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
+    patchmatch: PatchMatchConfig = field(default_factory=lambda: PatchMatchConfig(iterations=3))
+    margin: int = 6
+    max_crop: int = 160
+    max_reproj_error: float = 2.0
+    max_rel_depth: float = 0.01
+    min_consistent_views: int = 1
+    min_instance_voxels: int = 8
+    min_pixels: int = 16
+    max_points: int = 20000
+    max_upsample: int = 2
+    planar: PlanarCompletionConfig | None = field(default_factory=PlanarCompletionConfig)
+    max_match_pixels: int | None = 2048
+    max_downsample: int = 4
+    depth_margin: tuple[float, float] = (0.5, 2.0)
+    fallback_depth_range: tuple[float, float] = (0.5, 150.0)
+    min_depth: float = 0.2
+    explained_alpha: float = 0.7
+    explained_tolerance: float = 0.05
+    thin_points: bool = True
+    thin_factor: float = 1.5
+    whole_supports: bool = True
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.max_upsample, int) and self.max_upsample >= 1):
+            raise ValueError(f"max_upsample: expected an integer >= 1, got {self.max_upsample!r}")
+        if self.max_crop < 8:
+            raise ValueError(f"max_crop: expected >= 8 pixels, got {self.max_crop}")
+        if self.max_match_pixels is not None and self.max_match_pixels < 64:
+            raise ValueError(f"max_match_pixels: expected None or >= 64, got {self.max_match_pixels}")
+        if not self.thin_factor >= 1:
+            raise ValueError(f"thin_factor: expected >= 1, got {self.thin_factor}")
+        if self.max_downsample not in (1, 2, 4, 8):
+            raise ValueError(f"max_downsample: expected 1, 2, 4 or 8, got {self.max_downsample}")
+        near, far = self.depth_margin
+        lo, hi = self.fallback_depth_range
+        if not (0 < near <= 1 <= far and 0 < lo < hi and self.min_depth > 0):
+            raise ValueError(
+                "depth_margin, fallback_depth_range, min_depth: expected 0 < near <= 1 <= far, "
+                f"0 < lo < hi and min_depth > 0, got {self.depth_margin}, {self.fallback_depth_range}, "
+                f"{self.min_depth}"
+            )

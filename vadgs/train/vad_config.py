@@ -1,0 +1,167 @@
+"""Settings of the VAD-GS strategy and the context it is given by the training loop.
+
+:class:`VisibilityDensifyConfig` holds the settings of
+:class:`~vadgs.train.vad.VisibilityAwareDensification` (its fields are copied onto the strategy by
+:func:`_with_settings_of`, written once here); :class:`StrategyContext` is what the strategy needs
+of the loop (a render function, step counts, a generator). Both are importable from
+:mod:`vadgs.train.vad`.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
+
+import torch
+
+from vadgs.train.incomplete import IncompleteConfig
+from vadgs.train.reconstruct import ReconstructConfig, ViewRender
+
+__all__ = ["RANKINGS", "StrategyContext", "VisibilityDensifyConfig"]
+
+
+@dataclass(frozen=True)
+class VisibilityDensifyConfig:
+    """Settings of :class:`~vadgs.train.vad.VisibilityAwareDensification` (paper values by default).
+
+    Attributes:
+        visibility: the whole strategy on (False: the "w/o voxel visibility reasoning" ablation,
+            which disables everything else).
+        view_selection: diversity-aware selection (False: consecutive frames of the reference
+            camera, the "w/o view selection" ablation).
+        geometric_losses: normal and hard/soft depth losses on the priors.
+        every_cycles: detection and densification every this many complete sampling cycles.
+        voxel_size: voxel edge (m) of the visibility grids.
+        incomplete: thresholds of the incompleteness test.
+        reconstruct: view selection / PatchMatch / consistency settings.
+        max_instances: at most this many instances reconstructed per event, in the order of
+            ``ranking`` (``None``, the default: every flagged instance, within ``time_budget``).
+        time_budget: an event stops starting new instances once it has taken this fraction of
+            the training time so far (the time between the strategy's calls, events excluded);
+            the instances left are logged as skipped (``"time_budget"``). The first instance is
+            always tried. ``None``: no limit (an exactly reproducible run).
+        render_cache_mb: the loop's renders of the views trained since the last event (depth,
+            opacity, normals; float16, in the strategy's state, so checkpoints hold them and a
+            resumed run stays exact) are kept up to this size and reused by the event for
+            detection, PatchMatch initialisation and the test of what is already explained; the
+            views beyond it are rendered at the event. ``0``: render every view at the event.
+        references: reference views per instance: its flagged view with the most pixels, then
+            the next largest ones from another camera or at least ``min_frame_gap`` frames away
+            from those already chosen (another side of the object, e.g. the back of a sign).
+            3 by default (2 before the event got cheap: on street_a a third reference took PSNR
+            29.15 → 29.35 dB for 118k → 125k Gaussians, docs/results.md).
+        min_frame_gap: see ``references``.
+        ranking: ``"class_round_robin"`` (default): one instance per class in turn, the largest
+            (most pixels in its best flagged view) first within a class, so that small structures
+            such as signs are not starved by large facades; ``"pixels"``: largest first overall.
+        cooldown_events: an instance reconstructed at an event is skipped for this many events
+            (default 0: an instance still flagged at the next event is tried again; what the
+            Gaussians already explain gives no new points, so a repeat adds only what is missing).
+        whole_reference: at least one reference in which the instance is whole when it was
+            flagged in such a view (``whole`` of :func:`~vadgs.train.vad_event.pick_references`); with
+            ``reconstruct.whole_supports`` its supporting views show all of it too.
+        skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
+        explained_tolerance: an MVS pixel is "explained" (gives no new Gaussian) where its view's
+            render has opacity above ``incomplete.alpha_threshold`` and a depth within this
+            relative tolerance of (or in front of) the MVS depth.
+        new_opacity: opacity of the new Gaussians.
+        flatness: thickness of the new Gaussians along their normal, relative to their width.
+        voxel_depth_prior: use the voxel depth where no MVS depth exists.
+        last_event_fraction: no event after this fraction of the iterations (Gaussians added at
+            the very end would not be trained).
+    """
+
+    visibility: bool = True
+    view_selection: bool = True
+    geometric_losses: bool = True
+    every_cycles: int = 5
+    voxel_size: float = 0.2
+    incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
+    reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
+    max_instances: int | None = None
+    time_budget: float | None = 0.1
+    render_cache_mb: float = 256.0
+    references: int = 3
+    min_frame_gap: int = 3
+    ranking: str = "class_round_robin"
+    cooldown_events: int = 0
+    whole_reference: bool = True
+    skip_classes: tuple[str, ...] = ("road",)
+    explained_tolerance: float = 0.05
+    new_opacity: float = 0.5
+    flatness: float = 0.2
+    voxel_depth_prior: bool = True
+    last_event_fraction: float = 0.9
+
+    def __post_init__(self) -> None:
+        if self.every_cycles < 1:
+            raise ValueError(f"every_cycles: expected >= 1, got {self.every_cycles}")
+        if not 0 < self.new_opacity < 1:
+            raise ValueError(f"new_opacity: expected in (0, 1), got {self.new_opacity}")
+        if self.ranking not in RANKINGS:
+            raise ValueError(f"ranking: expected one of {RANKINGS}, got {self.ranking!r}")
+        if self.references < 1 or (self.max_instances is not None and self.max_instances < 0):
+            raise ValueError(
+                f"references, max_instances: expected >= 1 and None or >= 0, got {self.references}, "
+                f"{self.max_instances}"
+            )
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError(f"time_budget: expected None or > 0, got {self.time_budget}")
+
+
+RANKINGS = ("class_round_robin", "pixels")
+
+
+@dataclass(frozen=True)
+class StrategyContext:
+    """What the VAD-GS strategy (:class:`~vadgs.train.vad.VisibilityAwareDensification`) needs of the loop.
+
+    Attributes:
+        render: ``view -> ViewRender``: renders a view (index into the inputs' views, e.g.
+            ``scene.views`` or the Parser's images) with the current Gaussians, at the view's frame,
+            without gradient; normals may be zeros (unknown).
+        total_steps: the run's number of steps (events stop after ``last_event_fraction`` of it).
+        steps_per_cycle: steps of one sampling cycle (vadgs's trainer: one view per step, so the
+            number of training views); cycle ``c`` ends after step ``c * steps_per_cycle - 1``.
+        generator: seeds the view-selection noise ``ξ`` and point subsampling (checkpoint it for
+            exact resume; vadgs's trainer passes its own).
+        track_nodes: track id → node index of ``params["node_ids"]`` (default: the inputs' tracks
+            in sorted order, as :func:`~vadgs.train.init.init_gaussians` numbers them). Without
+            ``node_ids`` in ``params`` (a static gsplat model) moving objects are not densified.
+
+    Example:
+        >>> ctx = StrategyContext(render=lambda v: None, total_steps=3000, steps_per_cycle=40)
+        >>> ctx.steps_per_cycle
+        40
+    """
+
+    render: Callable[[int], ViewRender]
+    total_steps: int
+    steps_per_cycle: int
+    generator: torch.Generator | None = None
+    track_nodes: Mapping[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.total_steps < 0 or self.steps_per_cycle < 1:
+            raise ValueError(
+                f"total_steps, steps_per_cycle: expected >= 0 and >= 1, got {self.total_steps}, "
+                f"{self.steps_per_cycle}"
+            )
+
+
+def _with_settings_of(config_cls: type) -> Callable[[type], type]:
+    """Give a class the fields of the dataclass ``config_cls`` (same names, types, defaults) first.
+
+    The strategy's settings are :class:`VisibilityDensifyConfig`'s, written once there: a mutable
+    dataclass cannot inherit them from a frozen one, so they are copied in before ``@dataclass``.
+    """
+
+    def add(cls: type) -> type:
+        own = dict(inspect.get_annotations(cls))
+        cls.__annotations__ = {f.name: f.type for f in fields(config_cls)} | own
+        for f in fields(config_cls):
+            setattr(cls, f.name, field(default=f.default, default_factory=f.default_factory))
+        return cls
+
+    return add

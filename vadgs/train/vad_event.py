@@ -1,0 +1,281 @@
+"""The pure steps of a VAD-GS event, used by :class:`~vadgs.train.vad.VisibilityAwareDensification`.
+
+Which flagged instances to reconstruct and from which views (:func:`rank_instances`,
+:func:`pick_references`), the flat Gaussians made of an instance's fused points
+(:func:`flat_gaussians`, oriented by :func:`normals_to_quats`), and the store of the loop's
+renders reused by the event (kept in the strategy's state between events). All are importable
+from :mod:`vadgs.train.vad`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Collection, Mapping
+from typing import Any
+
+import torch
+
+from vadgs.train import ops
+from vadgs.train.incomplete import IncompleteConfig, find_incomplete
+from vadgs.train.inputs import VisibilityInputs
+from vadgs.train.model import rotation_to_quat
+from vadgs.train.reconstruct import InstanceReconstruction, ViewRender, VisibilityIndex
+from vadgs.train.vad_config import RANKINGS
+
+__all__ = ["flat_gaussians", "normals_to_quats", "pick_references", "rank_instances", "voxel_depth_map"]
+
+_C0 = 0.28209479177387814
+
+
+def pick_references(
+    candidates: list[tuple[int, int]],
+    scene: VisibilityInputs | Any,
+    count: int,
+    min_frame_gap: int = 3,
+    whole: Collection[int] | None = None,
+) -> list[int]:
+    """Reference views of one instance: the largest first, then diverse ones.
+
+    Args:
+        candidates: ``(view, pixels)`` of the views where the instance was flagged.
+        scene: :class:`~vadgs.train.inputs.VisibilityInputs` or a vadgs :class:`~vadgs.data.Scene`
+            (for each view's camera and frame).
+        count: how many references at most.
+        min_frame_gap: a further reference must come from a camera not chosen yet, or be at
+            least this many frames from every chosen view of its camera.
+        whole: the candidates in which the instance is whole (not cut by the image border). When
+            given and no chosen view is one of them, the last reference is replaced by the
+            largest of them that keeps the rule above (the close views with the most pixels may
+            all cut off the same part, e.g. the top of a sign).
+
+    Returns:
+        View indices, largest first.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> sc = load_scene(sample_scene_path())
+        >>> [(sc.views[v].camera, sc.views[v].frame) for v in (0, 1, 3)]
+        [('front', 16), ('front_left', 16), ('front', 17)]
+        >>> pick_references([(0, 500), (3, 450), (1, 100)], sc, 2)  # view 3: same camera, 1 frame on
+        [0, 1]
+    """
+    if isinstance(scene, VisibilityInputs):
+        cam, frame = scene.view_cameras, scene.view_frames
+    else:
+        cam, frame = [v.camera for v in scene.views], [v.frame for v in scene.views]
+
+    def apart(view: int, chosen: list[int]) -> bool:
+        return all(cam[c] != cam[view] or abs(frame[c] - frame[view]) >= min_frame_gap for c in chosen)
+
+    order = [v for v, _px in sorted(candidates, key=lambda vp: (-vp[1], vp[0]))]
+    chosen: list[int] = []
+    for view in order:
+        if len(chosen) >= count:
+            break
+        if apart(view, chosen):
+            chosen.append(view)
+    if whole is not None and count >= 2 and chosen and not set(chosen) & set(whole):
+        keep = chosen[: count - 1]
+        extra = next((v for v in order if v in whole and v not in keep and apart(v, keep)), None)
+        if extra is not None:
+            chosen = [*keep, extra]
+    return chosen
+
+
+def rank_instances(
+    pixels: dict[int, int], classes: dict[int, str], ranking: str = "class_round_robin"
+) -> list[int]:
+    """Order flagged instances for reconstruction.
+
+    Args:
+        pixels: instance id → its size (pixels in its best flagged view).
+        classes: instance id → class name (missing ids form one class ``""``).
+        ranking: ``"pixels"`` (largest first) or ``"class_round_robin"`` (the largest of each class
+            in turn; classes ordered by their largest instance).
+
+    Example:
+        >>> px = {1: 900, 2: 800, 3: 700, 7: 50, 9: 300}
+        >>> cls = {1: "building", 2: "building", 3: "building", 7: "sign", 9: "tree"}
+        >>> rank_instances(px, cls, "pixels")
+        [1, 2, 3, 9, 7]
+        >>> rank_instances(px, cls)
+        [1, 9, 7, 2, 3]
+    """
+    if ranking not in RANKINGS:
+        raise ValueError(f"ranking: expected one of {RANKINGS}, got {ranking!r}")
+    order = sorted(pixels, key=lambda i: (-pixels[i], i))
+    if ranking == "pixels":
+        return order
+    queues: dict[str, list[int]] = {}
+    for i in order:  # classes in the order of their largest instance
+        queues.setdefault(classes.get(i, ""), []).append(i)
+    out: list[int] = []
+    while any(queues.values()):
+        for q in queues.values():
+            if q:
+                out.append(q.pop(0))
+    return out
+
+
+def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
+    """``wxyz`` quaternions of rotations whose third axis is the given unit normal ``(N, 3)``.
+
+    A Gaussian with scales ``(s, s, t)``, ``t << s``, and this rotation is a disc in the plane of
+    the normal. On the device and in the dtype of ``normals``.
+
+    Example:
+        >>> from vadgs.render import quaternion_to_rotation
+        >>> n = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
+        >>> torch.allclose(quaternion_to_rotation(normals_to_quats(n))[:, :, 2], n, atol=1e-6)
+        True
+    """
+    n = torch.nn.functional.normalize(normals, dim=-1)
+    helper = torch.where(
+        n[:, 2:3].abs() < 0.9,
+        n.new_tensor([0.0, 0.0, 1.0]).expand_as(n),
+        n.new_tensor([1.0, 0.0, 0.0]).expand_as(n),
+    )
+    a = torch.nn.functional.normalize(torch.cross(helper, n, dim=-1), dim=-1)
+    b = torch.cross(n, a, dim=-1)
+    R = torch.stack([a, b, n], dim=-1)  # columns: the Gaussian's axes in the world
+    return rotation_to_quat(R)
+
+
+def flat_gaussians(
+    params: Mapping[str, torch.Tensor] | Any,
+    rec: InstanceReconstruction,
+    keep: torch.Tensor | None = None,
+    new_opacity: float = 0.5,
+    flatness: float = 0.2,
+    event: int = 1,
+) -> dict[str, torch.Tensor]:
+    """New flat Gaussians from an instance's (kept) fused points, in ``params``' layout.
+
+    Each point becomes a disc oriented by its MVS normal (:func:`normals_to_quats`), of width its
+    spacing and thickness ``flatness`` times that, with opacity ``new_opacity`` and the MVS colour,
+    on the device and in the dtype of ``params``' means. Where ``params`` has a ``provenance``
+    entry the new rows get ``event`` (1-based). Entries of other layouts: gsplat's appearance
+    ``colors`` ``(N, 3)`` get the logit of the MVS colour (as gsplat's ``simple_trainer``
+    initialises them); every other unknown per-Gaussian entry (e.g. gsplat's ``features``) gets
+    zeros of its trailing shape and dtype. ``node_ids`` is left to the caller (it depends on the
+    model's tracks). Not differentiable (new leaf values).
+
+    Args:
+        params: the per-Gaussian tensors (vadgs's or gsplat's names, :func:`~vadgs.train.ops.param_names`).
+        rec: the instance's :class:`~vadgs.train.reconstruct.InstanceReconstruction`.
+        keep: boolean mask ``(M,)`` of the points to use (default all).
+        new_opacity: opacity of the new Gaussians, in (0, 1).
+        flatness: thickness along the normal relative to the width.
+        event: the 1-based event number written to ``provenance``.
+
+    Returns:
+        ``{name: (m, ...)}`` for every entry of ``params`` but ``node_ids``.
+    """
+    names = ops.param_names(params)
+    p = getattr(params, "params", params)
+    ref = p[names.means]
+    dev, dt = ref.device, ref.dtype
+    if keep is None:
+        keep = torch.ones(rec.points.shape[0], dtype=torch.bool, device=rec.points.device)
+    keep = keep.to(rec.points.device)
+    pts, nrm, col, spc = (x[keep].to(dev, dt) for x in (rec.points, rec.normals, rec.colors, rec.spacing))
+    m = pts.shape[0]
+    width = spc.clamp(min=1e-4)
+    opacity = torch.full((m,), new_opacity, device=dev, dtype=dt)
+    new = {
+        names.means: pts,
+        names.quats: normals_to_quats(nrm),
+        names.log_scales: torch.log(torch.stack([width, width, width * flatness], -1)),
+        names.opacity_logits: torch.log(opacity / (1 - opacity)),
+    }
+    if names.sh_dc is not None:
+        new[names.sh_dc] = ((col[:, :3] - 0.5) / _C0)[:, None, :]
+        new[names.sh_rest] = torch.zeros(m, *p[names.sh_rest].shape[1:], device=dev, dtype=dt)
+    if "provenance" in p:
+        new["provenance"] = torch.full((m,), event, dtype=torch.int64, device=p["provenance"].device)
+    for k in p.keys():
+        if k in new or k == "node_ids":
+            continue
+        t = p[k]
+        if k == "colors" and t.shape[1:] == (3,) and t.is_floating_point():
+            new[k] = torch.logit(col[:, :3].clamp(1e-4, 1 - 1e-4)).to(t)
+        else:
+            new[k] = torch.zeros(m, *t.shape[1:], device=t.device, dtype=t.dtype)
+    return new
+
+
+def voxel_depth_map(index: VisibilityIndex, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Voxel depth ``(1, H, W)`` and instance label ``(H, W)`` of a view.
+
+    See :meth:`~vadgs.train.reconstruct.VisibilityIndex.voxel_depth`.
+    """
+    return index.voxel_depth(view)
+
+
+def _event_summary(entry: Mapping[str, Any], time_budget: float | None) -> str:
+    """The one-line summary of an event's log ``entry`` (``summary`` in ``state["pending_log"]``)."""
+    added = [f"{e['class']} {e['instance']} (+{e['added']})" for e in entry["instances"] if e["added"]]
+    cut = ", ".join(f"{n} {why}" for why, n in entry["skipped"].items()) or "none"
+    summary = (
+        f"visibility-aware densification: {entry['flagged_instances']} instances flagged, "
+        f"{entry['attempted']} attempted, {entry['repaired']} repaired (+{entry['added']} Gaussians), "
+        f"skipped: {cut}; {entry['total_s']:.1f} s; added to {', '.join(added) or 'none'}"
+    )
+    if "time_budget" in entry["skipped"]:
+        summary += f" (time budget {entry['budget_s']:.1f} s = {time_budget:g} x training time so far)"
+    return summary
+
+
+class _Renders:
+    """Renders of one event: the loop's own renders kept in the state, else rendered once."""
+
+    def __init__(self, render: Callable[[int], ViewRender], kept: Mapping[int, tuple] | None = None) -> None:
+        self.render, self.kept, self.cache = render, kept or {}, {}
+        self.rendered = 0
+
+    def __call__(self, view: int) -> ViewRender:
+        if view not in self.cache:
+            if view in self.kept:
+                self.cache[view] = ViewRender(*(x.float() for x in self.kept[view]))
+            else:
+                self.cache[view] = self.render(view)
+                self.rendered += 1
+        return self.cache[view]
+
+
+def _chw(x: torch.Tensor) -> torch.Tensor:
+    """A single view's map as ``(C, H, W)``, detached (from ``(1, C, H, W)`` or ``(H, W)``)."""
+    x = x.detach()
+    return x[0] if x.dim() == 4 else x[None] if x.dim() == 2 else x
+
+
+def _keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> None:
+    """Keep a view's render (float16) in ``store``, the oldest dropped beyond ``max_bytes``."""
+    store.pop(view, None)
+    if max_bytes <= 0:
+        return
+    store[view] = tuple(x.half() for x in render)
+    total = sum(sum(x.numel() * x.element_size() for x in r) for r in store.values())
+    while total > max_bytes and len(store) > 1:
+        oldest = next(iter(store))
+        total -= sum(x.numel() * x.element_size() for x in store.pop(oldest))
+
+
+def _view_test(
+    index: VisibilityIndex, view: int, depth: torch.Tensor, alpha: torch.Tensor, config: IncompleteConfig
+) -> tuple[torch.Tensor, ...]:
+    """The incompleteness test of one view, on the render's device.
+
+    The view's instance map and voxel depth move to the render (the render does not move).
+    Returns the fields of its :class:`~vadgs.train.incomplete.IncompleteInstances` (``view`` = 0).
+    """
+    dev = depth.device
+    h, w = depth.shape[-2:]  # the view's own size (the index's maps may be padded)
+    d, _ = index.voxel_depth(view)
+    rows = find_incomplete(
+        index.instances(view)[None, :h, :w].to(dev),
+        d[None, :, :h, :w].to(dev),
+        depth.detach().reshape(1, 1, *depth.shape[-2:]),
+        alpha.detach().reshape(1, 1, *alpha.shape[-2:]),
+        config,
+    )
+    return tuple(rows)
