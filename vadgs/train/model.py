@@ -347,6 +347,17 @@ class GaussianModel(nn.Module):
         col = eval_sh(coeffs, dirs.reshape(b, h * w, 3), self.sky_degree).clamp(max=1.0)
         return col.reshape(b, h, w, 3).permute(0, 3, 1, 2)
 
+    def _to_render(
+        self, world_to_cam: torch.Tensor, K: torch.Tensor, frame: int, opacity_override: float | None
+    ) -> tuple[Gaussians, torch.Tensor]:
+        """The frame's Gaussians and the opacities to render them with (checked camera)."""
+        check_shape(world_to_cam, "world_to_cam", (1, 4, 4))
+        check_shape(K, "K", (1, 3, 3))
+        g = self.gaussians_at(frame)
+        if opacity_override is None:
+            return g, g.opacities
+        return g, torch.full_like(g.opacities.detach(), float(opacity_override))
+
     def render(
         self,
         world_to_cam: torch.Tensor,
@@ -374,16 +385,11 @@ class GaussianModel(nn.Module):
         Returns:
             :class:`ModelRender`.
         """
-        check_shape(world_to_cam, "world_to_cam", (1, 4, 4))
-        check_shape(K, "K", (1, 3, 3))
-        g = self.gaussians_at(frame)
+        g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
         center = invert_rigid(world_to_cam)[0, :3, 3]
         dirs = F.normalize(g.means.detach() - center, dim=-1)
         dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)
         colors = eval_sh(g.sh, dirs_local, self.active_sh_degree)
-        opac = g.opacities
-        if opacity_override is not None:
-            opac = torch.full_like(opac.detach(), float(opacity_override))
         raster = rasterize_gaussians(
             g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config
         )
@@ -406,12 +412,7 @@ class GaussianModel(nn.Module):
         alpha, normals and the rest equal :meth:`render`'s (each channel is composited on its own),
         at less cost: for the hard depth loss (``opacity_override=1.0``) and other depth-only renders.
         """
-        check_shape(world_to_cam, "world_to_cam", (1, 4, 4))
-        check_shape(K, "K", (1, 3, 3))
-        g = self.gaussians_at(frame)
-        opac = g.opacities
-        if opacity_override is not None:
-            opac = torch.full_like(opac.detach(), float(opacity_override))
+        g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
         channels = 1 if config is not None and config.backend == "gsplat" else 0  # gsplat: >= 1 channel
         no_color = g.means.new_zeros(g.means.shape[0], channels)
         return rasterize_gaussians(
