@@ -60,8 +60,11 @@ class TrainConfig:
             LiDAR sweep projected into it (0 disables; the baseline's only geometric term).
         lambda_normal, lambda_hard, lambda_soft, hard_until: the paper's geometric loss weights
             (applied to priors: VAD-GS's, or a :class:`GeometryTargets` provider's).
-        hard_every: the hard depth loss (an extra render with opacities fixed to 1) is applied on
-            every ``hard_every``-th step only, to bound its cost (1: the paper's schedule).
+        hard_every: the hard depth loss (an extra depth-only render with opacities fixed to 1,
+            :meth:`~vadgs.train.model.GaussianModel.render_depth`) is applied on every
+            ``hard_every``-th step only, to bound its cost (1: the paper's schedule). 8 by
+            default: on street_a 1.26x the baseline's training time, PSNR 29.52 dB, the sign 93 %
+            complete (docs/results.md, round 14).
         hard_stride: the hard depth is rendered on every ``hard_stride``-th pixel row and column
             (a camera with ``fx, fy, cx, cy`` divided by it) and compared with the target depth
             there, to bound its cost further (1: every pixel). 2 by default: on street_a PSNR
@@ -105,7 +108,7 @@ class TrainConfig:
     lambda_hard: float = 0.1
     lambda_soft: float = 0.1
     hard_until: float = 0.8
-    hard_every: int = 4
+    hard_every: int = 8
     hard_stride: int = 2
     vad: VisibilityDensifyConfig | None = None
     appearance: AppearanceConfig | None = None
