@@ -91,14 +91,9 @@ def test_hard_depth_stride(benchmark, trainer, stride):
     """The hard depth render + backward at ``hard_stride`` 1, 2, 4 (pixel rows and columns kept)."""
     benchmark.group = "hard depth render + backward by stride, street_a 240x144"
     view = trainer.train_views[0]
-    before = trainer.config
-    trainer.config = dataclasses.replace(before, hard_stride=stride)
 
     def run():
-        trainer.render_hard_depth(view).sum().backward()
+        trainer.render_hard_depth(view, stride).sum().backward()
         trainer.optimizer.zero_grad(set_to_none=True)
 
-    try:
-        benchmark.pedantic(run, rounds=20, warmup_rounds=3)
-    finally:
-        trainer.config = before
+    benchmark.pedantic(run, rounds=20, warmup_rounds=3)

@@ -79,7 +79,7 @@ class Objective:
         return correct_view(self.appearance, self.scene, view, color, held_out=False)
 
     def __call__(
-        self, step: int, view: int, out: ModelRender, render_hard: Callable[[int], torch.Tensor]
+        self, step: int, view: int, out: ModelRender, render_hard: Callable[[int, int], torch.Tensor]
     ) -> dict[str, torch.Tensor]:
         """Every loss term of a step (already weighted), by name.
 
@@ -88,9 +88,9 @@ class Objective:
             view: the view rendered.
             out: its raw render; the colour loss compares its :meth:`corrected_color` with the
                 image; ``extra_losses`` get it as given.
-            render_hard: ``view -> (1, 1, ceil(H/s), ceil(W/s))`` the view's depth with every
-                opacity 1 on every ``s = hard_stride``-th pixel; called on the steps the hard depth
-                loss applies.
+            render_hard: ``(view, s) -> (1, 1, ceil(H/s), ceil(W/s))`` the view's depth with every
+                opacity 1 on every ``s``-th pixel row and column (``s = config.hard_stride``, the
+                stride the targets are sampled at); called on the steps the hard depth loss applies.
         """
         cfg = self.config
         color = self.corrected_color(view, out.color)
@@ -112,7 +112,7 @@ class Objective:
             )
             hard = None
             if w["hard"] > 0 and targets.depth is not None and step % cfg.hard_every == 0:
-                hard = render_hard(view)
+                hard = render_hard(view, cfg.hard_stride)
             terms.update(
                 L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, cfg.hard_stride)
             )

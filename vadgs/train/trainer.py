@@ -22,7 +22,6 @@ unless ``overwrite=True``; :meth:`Trainer.from_checkpoint` continues it.
 
 from __future__ import annotations
 
-import json
 import math
 import random
 import resource
@@ -36,7 +35,7 @@ import torch
 from vadgs.checks import checks_enabled
 from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
-from vadgs.io import atomic_write
+from vadgs.io import write_json
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
@@ -358,14 +357,14 @@ class Trainer:
             **kwargs,
         )
 
-    def render_hard_depth(self, view: int) -> torch.Tensor:
+    def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
         """The depth ``(1, 1, ceil(H / s), ceil(W / s))`` of a view with every opacity fixed to 1.
 
-        Rendered on every ``s = config.hard_stride``-th pixel row and column (pixel ``(s i, s j)``
-        of the view is pixel ``(i, j)`` here); the paper's hard depth loss compares it with the
-        target depth at those pixels.
+        Rendered on every ``s = stride``-th pixel row and column (default ``config.hard_stride``;
+        pixel ``(s i, s j)`` of the view is pixel ``(i, j)`` here); the paper's hard depth loss
+        compares it with the target depth at those pixels.
         """
-        s = self.config.hard_stride
+        s = self.config.hard_stride if stride is None else stride
         cams = self.scene.cameras([view])
         K = cams.K.clone()
         K[:, :2] /= s
@@ -499,10 +498,7 @@ class Trainer:
             _remove_stale_tmp(self.out_dir)
             if self.step == 0:  # a new run: a log left by a run killed before any checkpoint goes
                 (self.out_dir / "log.jsonl").unlink(missing_ok=True)
-            atomic_write(
-                self.out_dir / "config.json",
-                json.dumps({"config": cfg.to_dict(), "scene": self.scene_ref}, indent=2),
-            )
+            write_json(self.out_dir / "config.json", {"config": cfg.to_dict(), "scene": self.scene_ref})
         self._saved_at = time.monotonic()
         reason = "done"
         bar = tqdm(
