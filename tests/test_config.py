@@ -127,20 +127,22 @@ class TestThreads:
         from vadgs.data import sample_scene_path
 
         seen = []
-        check = cli.COMMANDS["check"]
 
-        def spy(args):
+        @dataclasses.dataclass(frozen=True)
+        class Spy(cli.CheckCommand):
             """Validate a scene (counting threads)."""
-            seen.append(torch.get_num_threads())
-            return check(args)
 
-        spy.add_arguments = check.add_arguments
-        monkeypatch.setitem(cli.COMMANDS, "check", spy)
+            def main(self) -> int:
+                seen.append(torch.get_num_threads())
+                return super().main()
+
+        monkeypatch.setitem(cli.COMMANDS, "check", Spy)
         before = torch.get_num_threads()
         other = 1 if before != 1 else 2
         assert cli.main(["--threads", str(other), "check", str(sample_scene_path())]) == 0
         assert cli.main(["check", str(sample_scene_path())]) == 0
-        assert seen == [other, before]
+        assert cli.main(["check", str(sample_scene_path()), "--threads", str(other)]) == 0
+        assert seen == [other, before, other]
         assert torch.get_num_threads() == before
 
     def test_trainer_restores_the_callers_count(self, tmp_path):

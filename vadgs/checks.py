@@ -30,6 +30,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 from collections.abc import Iterator, Sequence
 
@@ -38,6 +39,7 @@ import torch
 __all__ = [
     "check_at_least",
     "check_finite",
+    "check_positive",
     "check_same_device",
     "check_shape",
     "check_size",
@@ -195,3 +197,26 @@ def check_at_least(config: object, minimum: float, *names: str, note: str = "") 
     if not all(v >= minimum for v in values):
         got = ", ".join(str(v) for v in values)
         raise ValueError(f"{', '.join(names)}: expected >= {minimum:g}{note}, got {got}")
+
+
+def check_positive(config: object, *names: str) -> None:
+    """Raise ``ValueError`` unless every field ``names`` of ``config`` is a finite number > 0.
+
+    Fields that are None (an optional setting left unset) pass. For the ``__post_init__`` of a
+    frozen config dataclass, like :func:`check_at_least`.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> check_positive(SimpleNamespace(fps=10.0, scale=0.0), "fps", "scale")
+        Traceback (most recent call last):
+        ...
+        ValueError: scale: expected a positive number, got 0.0
+    """
+    bad = [n for n in names if not _positive_or_none(getattr(config, n))]
+    if bad:
+        got = ", ".join(str(getattr(config, n)) for n in bad)
+        raise ValueError(f"{', '.join(bad)}: expected a positive number, got {got}")
+
+
+def _positive_or_none(value: float | None) -> bool:
+    return value is None or (math.isfinite(value) and value > 0)

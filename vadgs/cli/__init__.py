@@ -1,108 +1,131 @@
 """The ``vadgs`` command line: thin adapters over the library, one module per command group.
 
-Subcommands are registered in :data:`COMMANDS`; each is a function ``(argparse.Namespace) -> int``
-with an ``add_arguments(parser)`` attribute. ``vadgs --help`` lists them. ``vadgs train`` takes
-its arguments through tyro (:mod:`vadgs.cli.train`: every TrainConfig field a flag); the other
-commands have a few flags of their own and no configuration dataclass.
+Every command is a frozen dataclass parsed by tyro (:class:`~vadgs.cli._common.Command`): its
+fields are its flags, checked in ``__post_init__``; ``main()`` runs it and returns the exit code.
+:data:`COMMANDS` maps the names to them; ``vadgs --help`` lists them, ``vadgs COMMAND --help``
+shows a command's flags. ``--threads`` and ``--debug`` go before or after the command's name.
 
-- :mod:`vadgs.cli.train`: ``train``, ``batch``
+- :mod:`vadgs.cli.train`: ``train`` (every TrainConfig field a flag), ``batch``
 - :mod:`vadgs.cli.runs`: ``eval``, ``render``, ``export``, ``view``
 - :mod:`vadgs.cli.scenes`: ``check``, ``visibility``, ``convert``
 - :mod:`vadgs.cli.demo`: ``demo``
+
+Errors are one line, ``vadgs COMMAND: error: ...`` naming the flag or file, with exit code 2
+(3 for a diverged run, 130 when interrupted); ``--debug`` adds the traceback.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import sys
 import traceback
-from collections.abc import Callable
 
 import torch
 
-from vadgs.cli._common import _int_at_least
-from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, demo  # noqa: F401 (DEMO_*: documented here)
-from vadgs.cli.runs import eval_run, export_run, render_run, view_run
-from vadgs.cli.scenes import check, convert, visibility
-from vadgs.cli.train import batch, train
+from vadgs.cli._common import Command
+from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, DemoCommand  # noqa: F401 (DEMO_*: documented here)
+from vadgs.cli.runs import EvalCommand, ExportCommand, RenderCommand, ViewCommand
+from vadgs.cli.scenes import CheckCommand, ConvertCommand, VisibilityCommand
+from vadgs.cli.train import BatchCommand, TrainCommand
 
 __all__ = [
     "COMMANDS",
-    "batch",
-    "check",
-    "convert",
-    "demo",
-    "eval_run",
-    "export_run",
+    "BatchCommand",
+    "CheckCommand",
+    "Command",
+    "ConvertCommand",
+    "DemoCommand",
+    "EvalCommand",
+    "ExportCommand",
+    "RenderCommand",
+    "TrainCommand",
+    "ViewCommand",
+    "VisibilityCommand",
     "main",
-    "render_run",
-    "train",
-    "visibility",
 ]
 
-COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
-    "check": check,
-    "visibility": visibility,
-    "train": train,
-    "eval": eval_run,
-    "render": render_run,
-    "export": export_run,
-    "view": view_run,
-    "demo": demo,
-    "convert": convert,
-    "batch": batch,
+#: The commands by name: a :class:`Command` dataclass each (``vadgs train``'s is
+#: :class:`TrainCommand`, whose ``--threads`` is the run's ``TrainConfig.threads``).
+COMMANDS: dict[str, type] = {
+    "check": CheckCommand,
+    "visibility": VisibilityCommand,
+    "train": TrainCommand,
+    "eval": EvalCommand,
+    "render": RenderCommand,
+    "export": ExportCommand,
+    "view": ViewCommand,
+    "demo": DemoCommand,
+    "convert": ConvertCommand,
+    "batch": BatchCommand,
 }
+
+#: The flags every command takes, also before its name.
+_GLOBAL_FLAGS = {"--threads": 1, "--debug": 0}  # flag: the number of values it takes
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``vadgs`` console script."""
-    parser = argparse.ArgumentParser(
-        prog="vadgs", description="VAD-GS: visibility-aware densification for 3DGS"
-    )
-    parser.add_argument(
-        "--threads",
-        type=_int_at_least(1),
-        default=None,
-        help="torch CPU threads (>= 1; default: torch's, all cores)",
-    )
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
-    sub = parser.add_subparsers(dest="command", required=True)
-    for name, fn in COMMANDS.items():
-        p = sub.add_parser(name, help=(fn.__doc__ or "").strip().splitlines()[0], add_help=name != "train")
-        fn.add_arguments(p)  # type: ignore[attr-defined]
+    """Entry point of the ``vadgs`` console script: ``vadgs [--threads N] [--debug] COMMAND ...``."""
     argv = list(sys.argv[1:] if argv is None else argv)
     at = _command_at(argv)
-    train_argv: list[str] = []
-    if at is not None and argv[at] == "train":  # tyro parses the rest (vadgs.cli.train)
-        argv, train_argv = argv[: at + 1], argv[at + 1 :]
-    args = parser.parse_args(argv)
-    args.train_argv = train_argv
+    if at is None:
+        if any(a in ("-h", "--help") for a in argv):
+            print(_usage())
+            return 0
+        given = next((a for a in argv if not a.startswith("-")), None)
+        what = f"got {given!r}" if given else "got none"
+        print(f"vadgs: error: expected a command ({', '.join(COMMANDS)}), {what}", file=sys.stderr)
+        return 2
+    name = argv[at]
+    args = argv[:at] + argv[at + 1 :]  # the global flags given before the name are the command's
+    debug = "--debug" in args
     try:
-        with _torch_threads(args.threads), _colmap_log_level(0 if args.debug else None):
-            return COMMANDS[args.command](args)
+        cmd = COMMANDS[name].parse(args, f"vadgs {name}")
+        if cmd is None:  # --help
+            return 0
+        threads = cmd.threads if isinstance(cmd, Command) else 0  # train: TrainConfig.threads
+        with _torch_threads(threads), _colmap_log_level(0 if cmd.debug else None):
+            return cmd.main()
     except KeyboardInterrupt:
-        if args.debug:
+        if debug:
             raise
-        print(f"vadgs {args.command}: interrupted", file=sys.stderr)
+        print(f"vadgs {name}: interrupted", file=sys.stderr)
         return 130
     except Exception as e:
-        if args.debug:
+        if debug:
             traceback.print_exc()
-        print(f"vadgs {args.command}: error: {_one_line(e)}", file=sys.stderr)
+        print(f"vadgs {name}: error: {_one_line(e)}", file=sys.stderr)
         return 3 if isinstance(e, FloatingPointError) else 2
 
 
 def _command_at(argv: list[str]) -> int | None:
-    """The position of the command in ``argv`` (after the global options), or None."""
+    """The position of the command in ``argv`` (after the global flags), or None."""
     i = 0
     while i < len(argv):
         if argv[i] in COMMANDS:
             return i
-        if not argv[i].startswith("-"):
+        if argv[i] not in _GLOBAL_FLAGS:
             return None
-        i += 2 if argv[i] == "--threads" else 1
+        i += 1 + _GLOBAL_FLAGS[argv[i]]
     return None
+
+
+def _usage() -> str:
+    """``vadgs --help``: the synopsis and the commands with the first line of their help."""
+    lines = [f"usage: vadgs [--threads N] [--debug] {{{','.join(COMMANDS)}}} ..."]
+    lines += ["", "VAD-GS: visibility-aware densification for 3D Gaussian splatting", "", "commands:"]
+    width = max(map(len, COMMANDS))
+    for name, cls in COMMANDS.items():
+        first = (cls.__doc__ or "").strip().splitlines()[0].replace("``", "")
+        lines.append(f"  {name:<{width}}  {first}")
+    lines += [
+        "",
+        "flags of every command (before or after its name):",
+        "  --threads N  torch CPU threads (0: torch's own count, all cores)",
+        "  --debug      show the traceback of an error",
+        "",
+        "vadgs COMMAND --help shows the command's flags.",
+    ]
+    return "\n".join(lines)
 
 
 @contextlib.contextmanager

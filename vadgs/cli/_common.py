@@ -1,48 +1,128 @@
-"""Argument types and helpers shared by the ``vadgs`` commands."""
+"""What the ``vadgs`` commands share: the :class:`Command` base, its tyro parser, and helpers.
+
+Every command is a frozen dataclass whose fields are its flags (tyro: ``--no-progress`` for
+``no_progress``, positional fields marked :data:`Positional`), checked in ``__post_init__``, with a
+``main()`` that runs it and returns the exit code, as nerfstudio's ``ns-export`` commands and
+gsplat's ``simple_trainer`` configs are written. :func:`parse_command` parses one and turns tyro's
+boxed errors into one line naming the flag.
+"""
 
 from __future__ import annotations
 
-import argparse
-import math
+import contextlib
+import io
 import os
+import re
 import tempfile
-from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, TypeVar
+
+import tyro
+
+from vadgs.checks import check_at_least
+
+#: A flag that is off unless given (``--no-progress``; no ``--no-no-progress`` pair).
+Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]
+
+#: A positional argument shown as ``metavar`` (``Positional[str, "RUN"]``-style use:
+#: ``Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]``).
+Positional = tyro.conf.Positional
+
+C = TypeVar("C")
 
 
-def _int_at_least(minimum: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
-        return value
+@dataclass(frozen=True, kw_only=True)
+class Command:
+    """A ``vadgs`` command: its fields are the flags, :meth:`main` runs it.
 
-    parse.__name__ = f"integer >= {minimum}"
-    return parse
+    Two flags every command has (also accepted before the command's name: ``vadgs --threads 2
+    check`` is ``vadgs check --threads 2``).
+    """
 
+    threads: int = 0
+    """torch CPU threads for the command (0: torch's own count, all cores)"""
+    debug: Flag = False
+    """show the traceback of an error"""
 
-def _finite_float(zero_ok: bool) -> Callable[[str], float]:
-    """An argparse type: a finite number > 0 (or >= 0 with ``zero_ok``, where 0 means "off")."""
-    want = "a finite number >= 0 (0 = no limit)" if zero_ok else "a positive number"
+    def __post_init__(self) -> None:
+        check_at_least(self, 0, "threads")
 
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
-        if not (math.isfinite(value) and (value > 0 or (zero_ok and value == 0))):
-            raise argparse.ArgumentTypeError(f"expected {want}, got {text}")
-        return value
+    @classmethod
+    def parse(cls: type[C], argv: list[str], prog: str) -> C | None:
+        """The command from its arguments (None after ``--help``, which it prints)."""
+        return parse_command(cls, argv, prog)
 
-    parse.__name__ = want
-    return parse
+    def main(self) -> int:
+        """Run the command; the exit code."""
+        raise NotImplementedError
 
 
-_non_negative_float = _finite_float(zero_ok=True)
-_positive_float = _finite_float(zero_ok=False)
+def parse_command(cls: type[C], argv: list[str], prog: str, default: C | None = None) -> C | None:
+    """``argv`` → an instance of the dataclass ``cls`` by tyro (None after ``--help``, which it prints).
+
+    Args:
+        cls: the command's dataclass.
+        argv: its arguments (without the command's name).
+        prog: the name shown in the help, e.g. ``"vadgs eval"``.
+        default: the instance the flags apply over (e.g. ``vadgs train``'s starting config).
+
+    Raises:
+        ValueError: a bad flag or value, as one line naming the flag.
+    """
+    config = (tyro.conf.AvoidSubcommands,)
+    if "-h" in argv or "--help" in argv:
+        with contextlib.suppress(SystemExit):
+            tyro.cli(cls, default=default, args=["--help"], config=config, prog=prog)
+        return None
+    text = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(text), contextlib.redirect_stdout(text):
+            return tyro.cli(cls, default=default, args=list(argv), config=config, prog=prog)
+    except SystemExit:
+        raise ValueError(_tyro_error(text.getvalue())) from None
+    except ValueError as e:  # a dataclass's own check, not wrapped by tyro
+        raise ValueError(_tyro_error(f"Error parsing {cls.__name__}: {e}")) from None
+
+
+def _flag(key: str) -> str:
+    """A dotted field name as its flag: ``vad.max_instances`` → ``--vad.max-instances``."""
+    return "--" + key.replace("_", "-")
+
+
+def _tyro_error(text: str) -> str:
+    """Tyro's boxed error message as one line (the lines between the title rule and the next).
+
+    A check of a dataclass (``"Error parsing TrainConfig.raster: backend: expected ..."``) names
+    its flags (``--raster.backend: expected ...``); a missing argument is ``"missing RUN"``.
+    """
+    lines = [ln.strip() for ln in text.splitlines()]
+    rules = [i for i, ln in enumerate(lines) if ln and set(ln) <= {"-", "─", "━"}]
+    body = [ln for ln in (lines[rules[0] + 1 : rules[1]] if len(rules) >= 2 else lines) if ln]
+    if body and body[0].startswith("Missing from "):  # "Missing from vadgs eval:", "RUN", "help (required)"
+        return "missing " + ", ".join(ln for ln in body[1::2]) + " (see --help)"
+    if "Got errors:" in body:  # an optional value: the error of the type it was meant to be
+        tried = [ln for ln in body[body.index("Got errors:") + 1 :] if "NoneType" not in ln]
+        body = [*body[:1], re.sub(r"^- <class '\w+'>: ", "", " ".join(tried))]
+        body[0] = body[0].split(": no type matching")[0] + ":"
+    message = " ".join(body) or " ".join(ln for ln in lines if ln) or "bad arguments"
+    m = re.match(r"Error parsing (\S+): (.*)", message)
+    if m is None:
+        return message
+    where, rest = m.groups()
+    if where.startswith("--"):
+        return f"{where}: {rest}"
+    # a dataclass's own check, e.g. "Error parsing train.raster: backend: expected ...": name the flags
+    prefix = [p for p in where.split(".") if p != "train" and not p[:1].isupper()]
+    named = re.match(r"([a-z_.]+(?:, [a-z_.]+)*): (.*)", rest)
+    if named is None:
+        return rest
+    # a message that names its field with its section already ("appearance.lr") keeps it
+    flags = [
+        _flag(name if prefix and name.startswith(prefix[-1] + ".") else ".".join([*prefix, name]))
+        for name in named.group(1).split(", ")
+    ]
+    return f"{', '.join(flags)}: {named.group(2)}"
 
 
 def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -> Path:

@@ -2,64 +2,83 @@
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from vadgs.cli._common import _check_out_dir, _int_at_least, _scene_arg, _summary
+from vadgs.checks import check_at_least
+from vadgs.cli._common import Command, Flag, _check_out_dir, _scene_arg, _summary
 from vadgs.train.run import finish_run
 
 
-def demo(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class DemoCommand(Command):
     """Train briefly on the bundled sample scene; write metrics.json and a PNG panel."""
-    from vadgs.data import load_scene
-    from vadgs.train.config import TrainConfig
-    from vadgs.train.evaluate import render_test_view
-    from vadgs.train.trainer import Trainer
-    from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
-    out = _check_out_dir(args.out)
-    ref = {"kind": "benchmark", "path": str(_scene_arg(None)), "scale": DEMO_SCALE}
-    scene = load_scene(ref["path"], scale=DEMO_SCALE)
-    config = TrainConfig.from_dict(DEMO_CONFIG)
-    if args.iterations is not None:
-        config = config.replace(iterations=args.iterations)
-    if not args.baseline:
-        from vadgs.train.reconstruct import ReconstructConfig
-        from vadgs.train.vad import VisibilityDensifyConfig
+    out: str = "outputs/demo"
+    """output folder"""
+    iterations: int | None = None
+    """override the demo's iteration count (250)"""
+    baseline: Flag = False
+    """standard densification only (no VAD-GS)"""
+    no_progress: Flag = False
+    """no progress bar"""
 
-        vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
-        config = dataclasses.replace(config, vad=vad)
-    t0 = time.perf_counter()
-    trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not args.no_progress)
-    strategy = trainer.strategy if config.vad is not None else None
-    snapshots: list[dict] = []  # the largest addition only, for the completion figure
-    if strategy is not None:
-        strategy.on_addition = lambda snap: snapshots.__setitem__(
-            slice(None), [max([*snapshots, snap], key=lambda x: x["added"])]
-        )
-    result = trainer.train()
-    metrics = finish_run(trainer, out, result, not args.no_progress, started=t0)
-    view = scene.test_views[len(scene.test_views) // 2]
-    r = render_test_view(trainer.model, scene, view, config.raster)
-    gtd = scene.load_depths([view])[0, 0]
-    vmax = float(gtd[gtd > 0].quantile(0.98))
-    pv = next(p for p in metrics["test"]["per_view"] if p["view"] == view)
-    png = save_panel(
-        [image_to_uint8(r.color[0]), image_to_uint8(scene.load_images([view])[0]),
-         colorize_depth(r.raster.depth[0, 0], None, vmax), colorize_depth(gtd, None, vmax)],
-        [f"test render ({pv['psnr']:.2f} dB)", "ground truth", "rendered depth", "ground-truth depth"],
-        out / "demo_panel.png",
-        columns=2,
-    )  # fmt: skip
-    if strategy is not None:
-        if snapshots:
-            _completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)
-            print(f"wrote {out / 'demo_completion.png'}")
-    print(_summary(metrics))
-    print(f"wrote {out / 'metrics.json'} and {png}")
-    return 0
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.iterations is not None:
+            check_at_least(self, 0, "iterations")
+
+    def main(self) -> int:
+        """Train, evaluate, write the figures; 0."""
+        from vadgs.data import load_scene
+        from vadgs.train.config import TrainConfig
+        from vadgs.train.evaluate import render_test_view
+        from vadgs.train.trainer import Trainer
+        from vadgs.viz import colorize_depth, image_to_uint8, save_panel
+
+        out = _check_out_dir(self.out)
+        ref = {"kind": "benchmark", "path": str(_scene_arg(None)), "scale": DEMO_SCALE}
+        scene = load_scene(ref["path"], scale=DEMO_SCALE)
+        config = TrainConfig.from_dict(DEMO_CONFIG)
+        if self.iterations is not None:
+            config = config.replace(iterations=self.iterations)
+        if not self.baseline:
+            from vadgs.train.reconstruct import ReconstructConfig
+            from vadgs.train.vad import VisibilityDensifyConfig
+
+            vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
+            config = dataclasses.replace(config, vad=vad)
+        t0 = time.perf_counter()
+        trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not self.no_progress)
+        strategy = trainer.strategy if config.vad is not None else None
+        snapshots: list[dict] = []  # the largest addition only, for the completion figure
+        if strategy is not None:
+            strategy.on_addition = lambda snap: snapshots.__setitem__(
+                slice(None), [max([*snapshots, snap], key=lambda x: x["added"])]
+            )
+        result = trainer.train()
+        metrics = finish_run(trainer, out, result, not self.no_progress, started=t0)
+        view = scene.test_views[len(scene.test_views) // 2]
+        r = render_test_view(trainer.model, scene, view, config.raster)
+        gtd = scene.load_depths([view])[0, 0]
+        vmax = float(gtd[gtd > 0].quantile(0.98))
+        pv = next(p for p in metrics["test"]["per_view"] if p["view"] == view)
+        png = save_panel(
+            [image_to_uint8(r.color[0]), image_to_uint8(scene.load_images([view])[0]),
+             colorize_depth(r.raster.depth[0, 0], None, vmax), colorize_depth(gtd, None, vmax)],
+            [f"test render ({pv['psnr']:.2f} dB)", "ground truth", "rendered depth", "ground-truth depth"],
+            out / "demo_panel.png",
+            columns=2,
+        )  # fmt: skip
+        if strategy is not None:
+            if snapshots:
+                _completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)
+                print(f"wrote {out / 'demo_completion.png'}")
+        print(_summary(metrics))
+        print(f"wrote {out / 'metrics.json'} and {png}")
+        return 0
 
 
 def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path:
@@ -101,13 +120,3 @@ DEMO_CONFIG: dict = {
     "checkpoint_every": 0,
     "log_every": 10,
 }  # fmt: skip
-
-
-def _demo_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="outputs/demo", help="output folder")
-    p.add_argument("--iterations", type=_int_at_least(0), help="override the demo's iteration count")
-    p.add_argument("--baseline", action="store_true", help="standard densification only (no VAD-GS)")
-    p.add_argument("--no-progress", action="store_true")
-
-
-demo.add_arguments = _demo_args  # type: ignore[attr-defined]

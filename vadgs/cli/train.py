@@ -13,11 +13,8 @@ all. Errors are one line, naming the flag.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import io
 import json
-import re
 import shlex
 import sys
 from dataclasses import dataclass, field
@@ -26,101 +23,125 @@ from typing import Annotated, Any
 
 import tyro
 
-from vadgs.cli._common import _check_out_dir, _scene_arg, _summary
+from vadgs.checks import check_at_least, check_positive
+from vadgs.cli._common import (
+    Command,
+    Flag,
+    Positional,
+    _check_out_dir,
+    _flag,
+    _scene_arg,
+    _summary,
+    parse_command,
+)
 from vadgs.train.config import TrainConfig
 
-__all__ = ["TrainCommand", "batch", "parse_train", "train"]
-
-_Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]
+__all__ = ["BatchCommand", "TrainCommand", "parse_train"]
 
 
 @dataclass(frozen=True)
 class TrainCommand:
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
 
-    scene: Annotated[str | None, tyro.conf.Positional, tyro.conf.arg(metavar="SCENE")] = None
+    scene: Annotated[str | None, Positional, tyro.conf.arg(metavar="SCENE")] = None
     """scene folder: benchmark format (scene.json), a COLMAP model or project folder (sparse/0;
     detected), or DGP with --dgp"""
     out: Annotated[str, tyro.conf.arg(metavar="FOLDER")] = ""
     """run folder (checkpoints, metrics, PLY); required"""
-    sample: _Flag = False
+    sample: Flag = False
     """use the bundled sample scene"""
     config: str | None = None
     """JSON file with (part of) a TrainConfig: the starting point of the flags below"""
-    resume: _Flag = False
+    resume: Flag = False
     """continue the run in --out from its checkpoint (only the fields of RESUMABLE_CHANGES may change:
     --iterations, --max-minutes, --device, --threads, --checkpoint-every, --checkpoint-minutes,
     --log-every)"""
-    overwrite: _Flag = False
+    overwrite: Flag = False
     """--out may hold a previous run: its files are removed and training starts over"""
-    no_progress: _Flag = False
+    no_progress: Flag = False
     """no progress bar"""
     scale: float | None = None
     """image resolution factor (default 0.5 = 240x144 for the benchmark; 1.0 for COLMAP)"""
-    dgp: _Flag = False
+    dgp: Flag = False
     """SCENE is a DGP scene folder"""
     cameras: str | None = None
     """DGP: comma-separated camera names"""
     test_frames: tuple[int, ...] = ()
     """DGP: held-out frames (samples)"""
-    colmap_scene: _Flag = False
+    colmap_scene: Flag = False
     """SCENE is a COLMAP model or project folder (detected without it when there is no scene.json)"""
     images: str | None = None
     """COLMAP scene: the images folder (default: images/ next to the model)"""
     test_every: int | None = None
     """COLMAP scene: hold out every N-th image in name order, index % N == 0 (default 8; 0 = none)"""
-    no_normalize: _Flag = False
+    no_normalize: Flag = False
     """COLMAP scene: keep COLMAP's frame and scale (default: cameras centred, up +z, median
     camera-to-point depth 10)"""
     colmap: str | None = None
     """COLMAP model of this scene's views (same image names, same world frame) whose points are added
     to the initialisation"""
-    vad: _Flag = False
+    vad: Flag = False
     """VAD-GS visibility-aware densification (the paper); its settings are then --vad.*"""
-    appearance: _Flag = False
+    appearance: Flag = False
     """learn a colour transform per camera (real rigs with differently exposed cameras); its settings
     are then --appearance.*"""
+    debug: Flag = False
+    """show the traceback of an error"""
     train: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
-        if self.scale is not None and not self.scale > 0:
-            raise ValueError(f"--scale: expected a positive number, got {self.scale}")
-        if self.test_every is not None and self.test_every < 0:
-            raise ValueError(f"--test-every: expected an integer >= 0, got {self.test_every}")
+        check_positive(self, "scale")
+        if self.test_every is not None:
+            check_at_least(self, 0, "test_every")
+
+    @classmethod
+    def parse(cls, argv: list[str], prog: str = "vadgs train") -> TrainCommand | None:
+        """:func:`parse_train` (the flags apply over the defaults, ``--config`` or the checkpoint)."""
+        return parse_train(argv)
+
+    def main(self) -> int:
+        """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
+        from vadgs.train.checkpoint import CHECKPOINT_NAME
+        from vadgs.train.run import describe_run, train_scene
+
+        out = _check_out_dir(self.out, create=False)
+        progress = not self.no_progress
+        if self.resume:
+            if not (out / CHECKPOINT_NAME).is_file():
+                raise FileNotFoundError(f"--resume: no checkpoint in {out}")
+            changes = _resume_changes(self, out)
+            outcome = train_scene(
+                None, None, out, resume=True, config_changes=changes, progress=progress, log=print
+            )
+        else:
+            if self.scene is None and not self.sample:
+                raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
+            held = describe_run(out) if out.is_dir() else None
+            if held is not None and not self.overwrite:
+                raise ValueError(
+                    f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
+                )
+            scene = _scene(self)
+            outcome = train_scene(
+                scene,
+                self.train,
+                out,
+                overwrite=self.overwrite,
+                init_points=_init_points(self, scene.scale),
+                progress=progress,
+                log=print,
+            )
+        if not outcome.completed:
+            print(f"stopped ({outcome.reason}) at step {outcome.step}; checkpoint {out / CHECKPOINT_NAME}; "
+                  f"continue with: vadgs train --out {out} --resume")  # fmt: skip
+            return 130 if outcome.reason == "interrupted" else 0
+        print(_summary(outcome.metrics))
+        print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
+        return 0
 
 
 # TrainCommand fields of the session, not of the run (the others are refused on --resume)
-_SESSION = ("out", "resume", "no_progress", "train")
-
-
-def _flag(key: str) -> str:
-    """A dotted TrainConfig key as its flag: ``vad.max_instances`` → ``--vad.max-instances``."""
-    return "--" + key.replace("_", "-")
-
-
-def _tyro_error(text: str) -> str:
-    """Tyro's boxed error message as one line (the lines between the title rule and the next)."""
-    lines = [ln.strip() for ln in text.splitlines()]
-    rules = [i for i, ln in enumerate(lines) if ln and set(ln) <= {"-", "─", "━"}]
-    body = lines[rules[0] + 1 : rules[1]] if len(rules) >= 2 else lines
-    message = " ".join(ln for ln in body if ln) or " ".join(ln for ln in lines if ln) or "bad arguments"
-    m = re.match(r"Error parsing (\S+): (.*)", message)
-    if m is None:
-        return message
-    where, rest = m.groups()
-    if where.startswith("--"):
-        return f"{where}: {rest}"
-    # a dataclass's own check, e.g. "Error parsing train.raster: backend: expected ...": name the flags
-    prefix = [p for p in where.split(".") if p != "train" and not p[:1].isupper()]
-    named = re.match(r"([a-z_.]+(?:, [a-z_.]+)*): (.*)", rest)
-    if named is None:
-        return rest
-    # a message that names its field with its section already ("appearance.lr") keeps it
-    flags = [
-        _flag(name if prefix and name.startswith(prefix[-1] + ".") else ".".join([*prefix, name]))
-        for name in named.group(1).split(", ")
-    ]
-    return f"{', '.join(flags)}: {named.group(2)}"
+_SESSION = ("out", "resume", "no_progress", "debug", "train")
 
 
 def _read_config_file(path: str) -> dict:
@@ -179,23 +200,12 @@ def parse_train(argv: list[str]) -> TrainCommand | None:
         ValueError: a bad flag or value, as one line naming the flag.
     """
     argv = list(argv)
-    config = (tyro.conf.AvoidSubcommands,)
-    if "-h" in argv or "--help" in argv:
+    if "-h" in argv or "--help" in argv:  # the help shows the defaults of the starting config
         base, _ = _starting_config([a for a in argv if a not in ("-h", "--help", "--resume")])
-        with contextlib.suppress(SystemExit):
-            tyro.cli(TrainCommand, default=TrainCommand(train=base), args=["--help"], config=config,
-                     prog="vadgs train")  # fmt: skip
-        return None
+        return parse_command(TrainCommand, ["--help"], "vadgs train", default=TrainCommand(train=base))
     base, data = _starting_config(argv)
-    text = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(text), contextlib.redirect_stdout(text):
-            cmd = tyro.cli(TrainCommand, default=TrainCommand(train=base), args=argv, config=config,
-                           prog="vadgs train")  # fmt: skip
-    except SystemExit:
-        raise ValueError(_tyro_error(text.getvalue())) from None
-    except ValueError as e:  # a check of TrainConfig itself, not wrapped by tyro
-        raise ValueError(_tyro_error(f"Error parsing train: {e}")) from None
+    cmd = parse_command(TrainCommand, argv, "vadgs train", default=TrainCommand(train=base))
+    assert cmd is not None  # not --help
     if not cmd.out:
         raise ValueError("--out: required (the run folder)")
     backend_given = any(a.startswith("--raster.backend") for a in argv) or "backend" in (
@@ -325,57 +335,6 @@ def _init_points(cmd: TrainCommand, scale: float) -> Any:
     return points
 
 
-def train(args: argparse.Namespace) -> int:
-    """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
-    from vadgs.train.checkpoint import CHECKPOINT_NAME
-    from vadgs.train.run import describe_run, train_scene
-
-    cmd = parse_train(args.train_argv)
-    if cmd is None:
-        return 0
-    out = _check_out_dir(cmd.out, create=False)
-    progress = not cmd.no_progress
-    if cmd.resume:
-        if not (out / CHECKPOINT_NAME).is_file():
-            raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-        changes = _resume_changes(cmd, out)
-        outcome = train_scene(
-            None, None, out, resume=True, config_changes=changes, progress=progress, log=print
-        )
-    else:
-        if cmd.scene is None and not cmd.sample:
-            raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
-        held = describe_run(out) if out.is_dir() else None
-        if held is not None and not cmd.overwrite:
-            raise ValueError(
-                f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
-            )
-        scene = _scene(cmd)
-        outcome = train_scene(
-            scene,
-            cmd.train,
-            out,
-            overwrite=cmd.overwrite,
-            init_points=_init_points(cmd, scene.scale),
-            progress=progress,
-            log=print,
-        )
-    if not outcome.completed:
-        print(f"stopped ({outcome.reason}) at step {outcome.step}; checkpoint {out / CHECKPOINT_NAME}; "
-              f"continue with: vadgs train --out {out} --resume")  # fmt: skip
-        return 130 if outcome.reason == "interrupted" else 0
-    print(_summary(outcome.metrics))
-    print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
-    return 0
-
-
-def _train_args(p: argparse.ArgumentParser) -> None:
-    """Nothing: ``vadgs train``'s arguments are parsed by tyro (:func:`parse_train`)."""
-
-
-train.add_arguments = _train_args  # type: ignore[attr-defined]
-
-
 # ---------------------------------------------------------------------------------------------------
 # batch
 
@@ -413,47 +372,51 @@ def _batch_train(text: str) -> tuple[TrainConfig, str | None, dict]:
     return cmd.train, kind, options
 
 
-def batch(args: argparse.Namespace) -> int:
-    """Train many scenes on Ray, one task each, retried and resumed on failure (needs vadgs[ray])."""
-    from vadgs.batch import BatchConfig, run_batch
+@dataclass(frozen=True)
+class BatchCommand(Command):
+    """Train many scenes on Ray, one task each, retried and resumed on failure (needs vadgs[ray]).
 
-    train_config, kind, options = _batch_train(args.train_args)
-    config = BatchConfig(
-        address=args.address,
-        cpus_per_scene=args.cpus_per_scene,
-        gpus_per_scene=args.gpus_per_scene,
-        threads=args.threads or 0,
-        max_retries=args.max_retries,
-        train=train_config,
-        scene_kind=kind,
-        scene_options=options,
-        progress=not args.no_progress,
-    )
-    try:
-        summary = run_batch(args.scenes, args.out, config)
-    except ImportError as e:
-        print(f"vadgs batch: error: {e}", file=sys.stderr)
-        return 2
-    print(summary.to_markdown())
-    print(f"wrote {Path(summary.out_dir) / 'summary.json'}, {Path(summary.out_dir) / 'summary.md'}")
-    return 1 if summary.failed else 0
+    ``--threads`` is each run's torch threads (0: ``--cpus-per-scene``).
+    """
 
+    scenes: Annotated[tuple[str, ...], Positional, tyro.conf.arg(metavar="SCENE")]
+    """scene folders (one run folder each)"""
+    out: str
+    """batch folder: run folders, summary.json, summary.md"""
+    address: str | None = None
+    """Ray cluster: auto, ray://HEAD:10001 or HOST:6379 (default: start a local Ray)"""
+    cpus_per_scene: float = 1.0
+    """Ray CPUs per task"""
+    gpus_per_scene: float = 0.0
+    """Ray GPUs per task"""
+    max_retries: int = 3
+    """retries of a task whose worker/node died"""
+    train_args: str = ""
+    """arguments of each vadgs train, e.g. --train-args="--vad --iterations 3000" (with "=")"""
+    no_progress: Flag = False
+    """no line per finished run"""
 
-def _batch_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenes", nargs="+", metavar="SCENE", help="scene folders (one run folder each)")
-    p.add_argument("--out", required=True, help="batch folder: run folders, summary.json, summary.md")
-    p.add_argument(
-        "--address", help="Ray cluster: auto, ray://HEAD:10001 or HOST:6379 (default: start a local Ray)"
-    )
-    p.add_argument("--cpus-per-scene", type=float, default=1.0, help="Ray CPUs per task (default 1)")
-    p.add_argument("--gpus-per-scene", type=float, default=0.0, help="Ray GPUs per task (default 0)")
-    p.add_argument("--max-retries", type=int, default=3, help="retries of a task whose worker/node died")
-    p.add_argument(
-        "--train-args",
-        default="",
-        help='arguments of each vadgs train, e.g. --train-args="--vad --iterations 3000" (with "=")',
-    )
-    p.add_argument("--no-progress", action="store_true", help="no line per finished run")
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.scenes:
+            raise ValueError("SCENE: expected at least one scene folder, got none")
+        check_positive(self, "cpus_per_scene")
+        check_at_least(self, 0, "gpus_per_scene")
+        check_at_least(self, 0, "max_retries")
 
+    def main(self) -> int:
+        """Run the batch; 0 when every run succeeded, else 1."""
+        from vadgs.batch import BatchConfig, run_batch
 
-batch.add_arguments = _batch_args  # type: ignore[attr-defined]
+        train_config, kind, options = _batch_train(self.train_args)
+        shared = {k: getattr(self, k) for k in ("address", "cpus_per_scene", "gpus_per_scene", "threads")}
+        config = BatchConfig(**shared, max_retries=self.max_retries, train=train_config, scene_kind=kind,
+                             scene_options=options, progress=not self.no_progress)  # fmt: skip
+        try:
+            summary = run_batch(list(self.scenes), self.out, config)
+        except ImportError as e:
+            print(f"vadgs batch: error: {e}", file=sys.stderr)
+            return 2
+        print(summary.to_markdown())
+        print(f"wrote {Path(summary.out_dir) / 'summary.json'}, {Path(summary.out_dir) / 'summary.md'}")
+        return 1 if summary.failed else 0

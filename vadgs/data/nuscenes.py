@@ -205,11 +205,8 @@ def load_nuscenes(
             what there is), a table lacks a key or token, or an argument is invalid.
 
     Example:
-        >>> from pathlib import Path
-        >>> root = Path("/data/sets/nuscenes")
-        >>> if root.is_dir():  # doctest: +SKIP
-        ...     scene = load_nuscenes(root, "scene-0061", scale=0.25)
-        ...     scene.num_views, scene.image_size(0)
+        >>> scene = load_nuscenes("/data/sets/nuscenes", "scene-0061", scale=0.25)  # doctest: +SKIP
+        >>> scene.num_views, scene.image_size(0)  # doctest: +SKIP
         (234, (225, 400))
     """
     dataroot = Path(dataroot)

@@ -312,11 +312,9 @@ def load_waymo(
             is), a column is missing, a frame lacks an image, or an argument is invalid.
 
     Example:
-        >>> from pathlib import Path
-        >>> root = Path("/data/waymo/v2/training")
-        >>> if root.is_dir():  # doctest: +SKIP
-        ...     scene = load_waymo(root, "10017090168044687777_6380_000_6400_000", scale=0.25)
-        ...     scene.num_views, scene.image_size(0)
+        >>> segment = "10017090168044687777_6380_000_6400_000"
+        >>> scene = load_waymo("/data/waymo/v2/training", segment, scale=0.25)  # doctest: +SKIP
+        >>> scene.num_views, scene.image_size(0)  # doctest: +SKIP
         (995, (320, 480))
     """
     pq = _pyarrow()
