@@ -240,6 +240,12 @@ class TestErrorContract:
         assert main(["check"]) == 2
         assert _error_line(capsys) == "vadgs check: error: /some/file: Permission denied"
 
+    def test_broken_pipe_is_quiet(self, monkeypatch, capsys):
+        """``vadgs ... | head``: the reader went away; no error line, exit 141 as a shell's SIGPIPE."""
+        self._raise(monkeypatch, BrokenPipeError(32, "Broken pipe"))
+        assert main(["check"]) == 141
+        assert capsys.readouterr().err == ""
+
     def test_floating_point_error_and_interrupt(self, monkeypatch, capsys):
         self._raise(monkeypatch, FloatingPointError("loss is NaN at step 3"))
         assert main(["check"]) == 3

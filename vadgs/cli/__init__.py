@@ -17,12 +17,13 @@ Errors are one line, ``vadgs COMMAND: error: ...`` naming the flag or file, with
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 import traceback
 
 import torch
 
-from vadgs.cli._common import Command
+from vadgs.cli._common import Command, _plain
 from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, DemoCommand  # noqa: F401 (DEMO_*: documented here)
 from vadgs.cli.runs import EvalCommand, ExportCommand, RenderCommand, ViewCommand
 from vadgs.cli.scenes import CheckCommand, ConvertCommand, VisibilityCommand
@@ -90,6 +91,10 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"vadgs {name}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the output's reader went away (vadgs ... | head): stop quietly
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except Exception as e:
         if debug:
             traceback.print_exc()
@@ -115,7 +120,7 @@ def _usage() -> str:
     lines += ["", "VAD-GS: visibility-aware densification for 3D Gaussian splatting", "", "commands:"]
     width = max(map(len, COMMANDS))
     for name, cls in COMMANDS.items():
-        first = (cls.__doc__ or "").strip().splitlines()[0].replace("``", "")
+        first = _plain(cls.__doc__ or "").strip().splitlines()[0]
         lines.append(f"  {name:<{width}}  {first}")
     lines += [
         "",

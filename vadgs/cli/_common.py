@@ -10,6 +10,7 @@ boxed errors into one line naming the flag.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import io
 import os
 import re
@@ -70,19 +71,26 @@ def parse_command(cls: type[C], argv: list[str], prog: str, default: C | None = 
     Raises:
         ValueError: a bad flag or value, as one line naming the flag.
     """
-    config = (tyro.conf.AvoidSubcommands,)
+    kwargs = {"default": default, "config": (tyro.conf.AvoidSubcommands,), "prog": prog}
+    kwargs["description"] = _plain(cls.__doc__ or "")
     if "-h" in argv or "--help" in argv:
         with contextlib.suppress(SystemExit):
-            tyro.cli(cls, default=default, args=["--help"], config=config, prog=prog)
+            tyro.cli(cls, args=["--help"], **kwargs)
         return None
     text = io.StringIO()
     try:
         with contextlib.redirect_stderr(text), contextlib.redirect_stdout(text):
-            return tyro.cli(cls, default=default, args=list(argv), config=config, prog=prog)
+            return tyro.cli(cls, args=list(argv), **kwargs)
     except SystemExit:
         raise ValueError(_tyro_error(text.getvalue())) from None
     except ValueError as e:  # a dataclass's own check, not wrapped by tyro
         raise ValueError(_tyro_error(f"Error parsing {cls.__name__}: {e}")) from None
+
+
+def _plain(doc: str) -> str:
+    """A docstring as help text: reST literals and roles as plain text (```--out``` → ``--out``)."""
+    doc = re.sub(r":\w+:`~?([^`]+)`", lambda m: m.group(1).rsplit(".", 1)[-1], inspect.cleandoc(doc))
+    return doc.replace("``", "")
 
 
 def _flag(key: str) -> str:

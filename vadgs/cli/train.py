@@ -379,7 +379,7 @@ class BatchCommand(Command):
     ``--threads`` is each run's torch threads (0: ``--cpus-per-scene``).
     """
 
-    scenes: Annotated[tuple[str, ...], Positional, tyro.conf.arg(metavar="SCENE")]
+    scenes: Annotated[tuple[str, ...], Positional, tyro.conf.arg(metavar="SCENE...")]
     """scene folders (one run folder each)"""
     out: str
     """batch folder: run folders, summary.json, summary.md"""
