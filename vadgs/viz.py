@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vadgs.io import atomic_write
+
 __all__ = ["colorize_depth", "colorize_index", "colorize_normals", "image_to_uint8", "save_panel"]
 
 
@@ -97,8 +99,7 @@ def save_panel(
         ax.imshow(im)
         ax.set_title(title, fontsize=8)
     fig.tight_layout(pad=0.3)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    try:
+        return atomic_write(path, fig.savefig)  # the format from the suffix, kept by the temporary
+    finally:
+        plt.close(fig)

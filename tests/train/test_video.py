@@ -126,3 +126,25 @@ class TestRenderVideo:
         # the timeline bar: white up to the frame's position (video compression blurs its edge)
         bar_first, bar_last = frames[0][h + 1, :, 0].astype(int), frames[-1][h + 1, :, 0].astype(int)
         assert bar_first[-20:].mean() < 120 and bar_last[-20:].mean() > 200
+
+    def test_interrupted_video_keeps_the_previous_file(self, tiny_model, tiny_scene, tmp_path, monkeypatch):
+        """A failure mid-video (here at the third frame) leaves the previous file and no temporary."""
+        import vadgs.train.video as video
+
+        path = tmp_path / "v.mp4"
+        path.write_bytes(b"previous")
+        frame = video.video_frame
+        calls = []
+
+        def failing(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 3:
+                raise KeyboardInterrupt
+            return frame(*args, **kwargs)
+
+        monkeypatch.setattr(video, "video_frame", failing)
+        traj = ego_trajectory(tiny_scene, "front")
+        with pytest.raises(KeyboardInterrupt):
+            render_video(tiny_model, tiny_scene, path, traj, fps=5, progress=False)
+        assert len(calls) == 3
+        assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"] and path.read_bytes() == b"previous"

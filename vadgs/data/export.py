@@ -6,13 +6,13 @@ tool that reads :func:`~vadgs.data.load_scene` work on it (``vadgs convert`` on 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
 from vadgs.data.scene import Scene
+from vadgs.io import atomic_write, write_json
 
 __all__ = ["export_scene"]
 
@@ -64,10 +64,9 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         for vid in f.view_ids:
             v = scene.views[vid]
             rel = f"images/{v.camera}/{f.index:06d}.png"
-            (out / rel).parent.mkdir(parents=True, exist_ok=True)
             img = scene.load_images([vid])[0]
-            arr = (img.clamp(0, 1) * 255).round().byte()
-            Image.fromarray(arr.permute(1, 2, 0).numpy()).save(out / rel)
+            pil = Image.fromarray((img.clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy())
+            atomic_write(out / rel, lambda tmp, pil=pil: pil.save(tmp, format="PNG"))
             views.append({"camera": v.camera, "image": rel, "cam_to_world": _list(v.cam_to_world)})
         fm: dict = {"index": f.index, "timestamp": f.timestamp, "views": views}
         if f.ego_to_world is not None:
@@ -75,13 +74,12 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         if lidar and scene.lidar_loader is not None:
             lf = scene.lidar(f.index)
             rel = f"lidar/{f.index:06d}.npz"
-            (out / rel).parent.mkdir(parents=True, exist_ok=True)
-            np.savez(
-                out / rel,
-                points=lf.points.float().numpy(),
-                instance=lf.instance.numpy().astype(np.int32),
-                origin=lf.origin.float().numpy(),
-            )
+            arrays = {
+                "points": lf.points.float().numpy(),
+                "instance": lf.instance.numpy().astype(np.int32),
+                "origin": lf.origin.float().numpy(),
+            }
+            atomic_write(out / rel, lambda tmp, arrays=arrays: np.savez(tmp, **arrays))
             fm["lidar"] = rel
         frames.append(fm)
     meta = {
@@ -109,6 +107,4 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         ],
         "split": {"train_frames": list(scene.train_frames), "test_frames": list(scene.test_frames)},
     }
-    path = out / "scene.json"
-    path.write_text(json.dumps(meta))
-    return path
+    return write_json(out / "scene.json", meta, indent=None)  # last: a folder with it is complete

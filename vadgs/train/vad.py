@@ -74,7 +74,6 @@ from vadgs.train.vad_event import (
     normals_to_quats,
     pick_references,
     rank_instances,
-    voxel_depth_map,
 )
 
 __all__ = [
@@ -88,7 +87,6 @@ __all__ = [
     "normals_to_quats",
     "pick_references",
     "rank_instances",
-    "voxel_depth_map",
 ]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them

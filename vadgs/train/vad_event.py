@@ -21,7 +21,7 @@ from vadgs.train.model import rotation_to_quat
 from vadgs.train.reconstruct import InstanceReconstruction, ViewRender, VisibilityIndex
 from vadgs.train.vad_config import RANKINGS
 
-__all__ = ["flat_gaussians", "normals_to_quats", "pick_references", "rank_instances", "voxel_depth_map"]
+__all__ = ["flat_gaussians", "normals_to_quats", "pick_references", "rank_instances"]
 
 _C0 = 0.28209479177387814
 
@@ -201,14 +201,6 @@ def flat_gaussians(
         else:
             new[k] = torch.zeros(m, *t.shape[1:], device=t.device, dtype=t.dtype)
     return new
-
-
-def voxel_depth_map(index: VisibilityIndex, view: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Voxel depth ``(1, H, W)`` and instance label ``(H, W)`` of a view.
-
-    See :meth:`~vadgs.train.reconstruct.VisibilityIndex.voxel_depth`.
-    """
-    return index.voxel_depth(view)
 
 
 def _event_summary(entry: Mapping[str, Any], time_budget: float | None) -> str:

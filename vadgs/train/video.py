@@ -37,6 +37,7 @@ import torch
 from vadgs.checks import check_shape
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
+from vadgs.io import atomic_write
 from vadgs.render import RasterConfig, quaternion_to_rotation
 from vadgs.train.model import GaussianModel, ModelRender, rotation_to_quat
 
@@ -316,39 +317,38 @@ def render_video(
     info = scene.cameras_info[trajectory.camera]
     K = info.K[None]
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix or '.mp4'}")
-    depth_range = None
-    size = None
-    writer = imageio.get_writer(
-        tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p", macro_block_size=1
-    )
-    try:
-        last = max(len(trajectory.time) - 1, 1)
-        for i, (c2w, t) in enumerate(
-            tqdm(
-                list(zip(trajectory.cam_to_world, trajectory.time.tolist())),
-                disable=not progress,
-                desc="video",
-            )
-        ):
-            w2c = invert_rigid(c2w[None].to(K.dtype))
-            out = model_at_time(model, t).render(w2c, K, info.image_size, 0, config)
-            if depth_range is None:
-                # the opaque pixels only: a faint Gaussian at the camera would squash the range
-                d = out.raster.depth[(out.raster.depth > 0) & (out.raster.alpha > 0.5)]
-                depth_range = (
-                    (float(d.quantile(0.02)), float(d.quantile(0.98))) if d.numel() else (1.0, 100.0)
-                )
-            frame = video_frame(out, depth_range, i / last)
-            h, w = frame.shape[:2]
-            frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)))  # yuv420p needs even sizes
-            size = frame.shape[:2]
-            writer.append_data(frame)
-    except BaseException:
-        writer.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    writer.close()
-    tmp.replace(path)
-    return VideoInfo(path, len(trajectory.time), size)
+    sizes: list[tuple[int, int]] = []
+
+    def write(tmp: Path) -> None:  # into a temporary file: an interrupted video leaves no partial file
+        depth_range = None
+        writer = imageio.get_writer(
+            tmp,
+            format="FFMPEG",
+            mode="I",
+            fps=fps,
+            codec="libx264",
+            pixelformat="yuv420p",
+            macro_block_size=1,
+        )
+        try:
+            last = max(len(trajectory.time) - 1, 1)
+            poses = list(zip(trajectory.cam_to_world, trajectory.time.tolist()))
+            for i, (c2w, t) in enumerate(tqdm(poses, disable=not progress, desc="video")):
+                w2c = invert_rigid(c2w[None].to(K.dtype))
+                out = model_at_time(model, t).render(w2c, K, info.image_size, 0, config)
+                if depth_range is None:
+                    # the opaque pixels only: a faint Gaussian at the camera would squash the range
+                    d = out.raster.depth[(out.raster.depth > 0) & (out.raster.alpha > 0.5)]
+                    depth_range = (
+                        (float(d.quantile(0.02)), float(d.quantile(0.98))) if d.numel() else (1.0, 100.0)
+                    )
+                frame = video_frame(out, depth_range, i / last)
+                h, w = frame.shape[:2]
+                frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)))  # yuv420p needs even sizes
+                sizes[:] = [frame.shape[:2]]
+                writer.append_data(frame)
+        finally:
+            writer.close()
+
+    atomic_write(path, write)
+    return VideoInfo(path, len(trajectory.time), sizes[0] if sizes else (0, 0))
