@@ -179,7 +179,7 @@ def train(
         for event in state.pop("pending_log", []):
             print(f"step {step}: {event['summary']}")
         if callback is not None:
-            callback(step, float(loss))
+            callback(step, float(loss.detach()))
     return params, optimizers, strategy, state
 
 
