@@ -155,3 +155,19 @@ def test_case2_forward_backward(benchmark, case2, backward):
 
 def test_case2_forward(benchmark, case2):
     benchmark.pedantic(_forward, args=(case2, RasterConfig()), rounds=3, warmup_rounds=1)
+
+
+@pytest.mark.parametrize("case", ["case1", "case2"])
+@pytest.mark.parametrize("growth", [32, 1])
+def test_chunk_growth_forward_backward(benchmark, request, case, growth, monkeypatch):
+    """The compositor's growing chunks (default: up to 32x ``chunk_size`` as tiles finish) against
+    fixed chunks (growth 1: the compositor before), forward+backward, in the same session."""
+    import vadgs.render.composite as composite
+
+    if case == "case2" and not (STREET / "scene.json").is_file():
+        pytest.skip("needs ../shared/data/street_a")
+    scene = request.getfixturevalue(case)
+    monkeypatch.setattr(composite, "_MAX_CHUNK_GROWTH", growth)
+    benchmark.group = f"chunk growth, {case} forward+backward"
+    benchmark.extra_info["threads"] = torch.get_num_threads()
+    benchmark.pedantic(_forward_backward, args=(scene, RasterConfig()), rounds=9, warmup_rounds=3)

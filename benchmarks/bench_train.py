@@ -97,3 +97,28 @@ def test_hard_depth_stride(benchmark, trainer, stride):
         trainer.optimizer.zero_grad(set_to_none=True)
 
     benchmark.pedantic(run, rounds=20, warmup_rounds=3)
+
+
+@pytest.mark.parametrize("what", ["render", "hard depth"])
+@pytest.mark.parametrize("growth", [32, 1])
+def test_chunk_growth(benchmark, trainer, what, growth, monkeypatch):
+    """The compositor's growing chunks (default) against fixed chunks (growth 1: the compositor
+    before), on the renders of a VAD-GS step: the colour render + backward of 4 training views
+    (every 12th) at 240x144, and the hard depth render + backward of 2 of them."""
+    import vadgs.render.composite as composite
+
+    monkeypatch.setattr(composite, "_MAX_CHUNK_GROWTH", growth)
+    benchmark.group = f"chunk growth, {what} + backward, street_a 240x144"
+    views = trainer.train_views[::12][:4]
+
+    def render():
+        for v in views:
+            trainer.render_view(v).color.sum().backward()
+            trainer.optimizer.zero_grad(set_to_none=True)
+
+    def hard():
+        for v in views[:2]:
+            trainer.render_hard_depth(v).sum().backward()
+            trainer.optimizer.zero_grad(set_to_none=True)
+
+    benchmark.pedantic(render if what == "render" else hard, rounds=7, warmup_rounds=1)

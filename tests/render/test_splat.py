@@ -190,6 +190,24 @@ class TestRasterizeGaussians:
             25, (13, 21), seed=5, dtype=torch.float32, cfg=RasterConfig(tile_size=16, chunk_size=3), bg=False
         )
 
+    @pytest.mark.parametrize("backward", ["manual", "autograd"])
+    def test_feature_vs_naive_growing_chunks(self, backward, monkeypatch):
+        """Tiles with lists of very different lengths: the chunk doubles as tiles finish (up to 16
+        here from 2), and the images and gradients still match the naive per-pixel reference."""
+        import vadgs.render.composite as composite
+
+        sizes = []
+        chunk_size = composite._chunk_size
+
+        def spy(s, n, n0):
+            sizes.append(chunk_size(s, n, n0))
+            return sizes[-1]
+
+        monkeypatch.setattr(composite, "_chunk_size", spy)
+        cfg = RasterConfig(chunk_size=2, backward=backward)
+        _compare(150, (16, 40), seed=9, dtype=torch.float64, cfg=cfg, opac=(0.02, 0.3), scale=(0.05, 0.4))
+        assert sizes[0] == 2 and max(sizes) == 16  # 10 tiles in the first step, 1 in the last: 2 x 8
+
     def test_feature_alpha_cap(self):
         cfg = RasterConfig(alpha_max=0.99, chunk_size=4)
         _compare(20, (10, 12), seed=8, dtype=torch.float64, cfg=cfg, opac=(0.995, 1.0), scale=(0.2, 0.5))
