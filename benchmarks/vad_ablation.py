@@ -54,6 +54,9 @@ VARIANTS = {
         cooldown_events=0, reconstruct=ReconstructConfig(planar=PlanarCompletionConfig())
     ),
     "no_planar": VisibilityDensifyConfig(reconstruct=ReconstructConfig(planar=None)),
+    # the events' time budget (default 0.1 of the training time so far; None: no limit)
+    "budget0.2": VisibilityDensifyConfig(time_budget=0.2),
+    "no_budget": VisibilityDensifyConfig(time_budget=None),
     "no_upsample": VisibilityDensifyConfig(reconstruct=ReconstructConfig(max_upsample=1)),
     "no_upsample_no_planar": VisibilityDensifyConfig(
         reconstruct=ReconstructConfig(max_upsample=1, planar=None)

@@ -210,7 +210,7 @@ class TestEventLog:
 
     def test_no_cap_by_default(self):
         cfg = VisibilityDensifyConfig()
-        assert cfg.max_instances is None and cfg.time_budget == 0.1
+        assert cfg.max_instances is None and cfg.time_budget == 0.2
         with pytest.raises(ValueError, match="time_budget"):
             VisibilityDensifyConfig(time_budget=0)
 

@@ -80,7 +80,7 @@ class VisibilityDensifyConfig:
     incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
     max_instances: int | None = None
-    time_budget: float | None = 0.1
+    time_budget: float | None = 0.2
     render_cache_mb: float = 256.0
     references: int = 3
     min_frame_gap: int = 3
