@@ -15,7 +15,8 @@ import torch
 from PIL import Image
 
 from vadgs.data import ValidationReport, load_scene, sample_scene_path, validate_scene
-from vadgs.data.validate import check_intrinsics, check_rigid, npz_headers
+from vadgs.data.checks import check_intrinsics, check_rigid
+from vadgs.data.scene import npz_headers
 
 from .sample_copy import copy_sample_scene
 

@@ -6,6 +6,7 @@ maps are read lazily.
 
 from pathlib import Path
 
+from vadgs.data.checks import ValidationReport, ValidationRow
 from vadgs.data.colmap import (
     ColmapPoints,
     ColmapScene,
@@ -28,7 +29,7 @@ from vadgs.data.scene import (
     ViewInfo,
 )
 from vadgs.data.scene_json import load_scene
-from vadgs.data.validate import ValidationReport, ValidationRow, validate_scene
+from vadgs.data.validate import validate_scene
 from vadgs.data.waymo import load_waymo
 
 __all__ = [

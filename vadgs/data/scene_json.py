@@ -60,7 +60,7 @@ def _bool(value: object, what: str) -> bool:
 
 
 def _pose(value: object, what: str) -> torch.Tensor:
-    """A rigid 4x4 transform of scene.json (see :func:`~vadgs.data.validate.check_rigid`)."""
+    """A rigid 4x4 transform of scene.json (see :func:`~vadgs.data.checks.check_rigid`)."""
     t = _matrix(value, (4, 4), what)
     check_rigid(t, f"scene.json: {what}")
     return t

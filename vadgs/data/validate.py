@@ -19,26 +19,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from vadgs.data.checks import (
-    RIGID_TOLERANCE,
-    ValidationReport,
-    ValidationRow,
-    check_intrinsics,
-    check_rigid,
-    check_scene,
-)
-from vadgs.data.scene import Scene, npz_headers
+from vadgs.data.checks import RIGID_TOLERANCE, ValidationReport, ValidationRow, check_scene
+from vadgs.data.scene import Scene
 from vadgs.data.scene_json import load_scene
 
-__all__ = [
-    "RIGID_TOLERANCE",
-    "ValidationReport",
-    "ValidationRow",
-    "check_intrinsics",
-    "check_rigid",
-    "npz_headers",
-    "validate_scene",
-]
+__all__ = ["validate_scene"]
 
 
 def validate_scene(
@@ -54,7 +39,7 @@ def validate_scene(
             (loaded with ``validate="none"``; a ``scene.json`` that does not parse is one error row).
         full: decode every file and check its values (``vadgs check --full``).
         scale: the resolution factor when ``scene`` is a folder.
-        tolerance: of the rigid-pose check (:func:`check_rigid`).
+        tolerance: of the rigid-pose check (:func:`~vadgs.data.checks.check_rigid`).
 
     Returns:
         The :class:`ValidationReport` (never raises for a bad scene: failures are rows).
