@@ -83,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         cmd = COMMANDS[name].parse(args, f"vadgs {name}")
         if cmd is None:  # --help
             return 0
+        debug = cmd.debug  # as parsed (until then: "--debug" among the arguments)
         threads = cmd.threads if isinstance(cmd, Command) else 0  # train: TrainConfig.threads
-        with _torch_threads(threads), _colmap_log_level(0 if cmd.debug else None):
+        with _torch_threads(threads), _colmap_log_level(0 if debug else None):
             return cmd.main()
     except KeyboardInterrupt:
         if debug:

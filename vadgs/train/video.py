@@ -317,9 +317,10 @@ def render_video(
     info = scene.cameras_info[trajectory.camera]
     K = info.K[None]
     path = Path(path)
-    sizes: list[tuple[int, int]] = []
+    size = None  # of the frames written
 
     def write(tmp: Path) -> None:  # into a temporary file: an interrupted video leaves no partial file
+        nonlocal size
         depth_range = None
         writer = imageio.get_writer(
             tmp,
@@ -345,10 +346,10 @@ def render_video(
                 frame = video_frame(out, depth_range, i / last)
                 h, w = frame.shape[:2]
                 frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)))  # yuv420p needs even sizes
-                sizes[:] = [frame.shape[:2]]
+                size = frame.shape[:2]
                 writer.append_data(frame)
         finally:
             writer.close()
 
     atomic_write(path, write)
-    return VideoInfo(path, len(trajectory.time), sizes[0] if sizes else (0, 0))
+    return VideoInfo(path, len(trajectory.time), size)
