@@ -54,7 +54,8 @@ VARIANTS = {
         cooldown_events=0, reconstruct=ReconstructConfig(planar=PlanarCompletionConfig())
     ),
     "no_planar": VisibilityDensifyConfig(reconstruct=ReconstructConfig(planar=None)),
-    # the events' time budget (default 0.1 of the training time so far; None: no limit)
+    # the events' time budget (default 0.2 of the training time so far, 0.1 before; None: no limit)
+    "budget0.1": VisibilityDensifyConfig(time_budget=0.1),
     "budget0.2": VisibilityDensifyConfig(time_budget=0.2),
     "no_budget": VisibilityDensifyConfig(time_budget=None),
     "no_upsample": VisibilityDensifyConfig(reconstruct=ReconstructConfig(max_upsample=1)),
@@ -217,8 +218,17 @@ def main() -> None:
     paper = ["baseline", "vadgs", "no_view_selection", "no_geometric_losses"]
     ap.add_argument("--variants", nargs="+", default=paper, choices=list(VARIANTS))
     ap.add_argument("--threads", type=int, default=1)
+    # the compositor's chunk schedule (vadgs.render.composite._chunk_size), for control runs
+    ap.add_argument("--chunk-growth", type=int, help="at most this many times chunk_size (1: fixed chunks)")
+    ap.add_argument("--step-slots", type=int, help="grow the chunk below this many tile x Gaussian slots")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    import vadgs.render.composite as composite
+
+    if args.chunk_growth is not None:
+        composite._MAX_CHUNK_GROWTH = args.chunk_growth
+    if args.step_slots is not None:
+        composite._STEP_SLOTS = args.step_slots
     scene = load_scene(args.scene, scale=args.scale)
     config = (
         TrainConfig.from_dict(json.loads(Path(args.config).read_text())) if args.config else TrainConfig()
