@@ -242,5 +242,9 @@ class TestLoadColmap:
             load_colmap(tmp_path / "fish")
         (tmp_path / "bad").mkdir()
         (tmp_path / "bad" / "cameras.txt").write_text("1 PINHOLE not numbers\n")
-        with pytest.raises(ValueError, match="cannot read"):
+        with pytest.raises(FileNotFoundError, match="missing images, points3D"):
+            load_colmap(tmp_path / "bad")
+        (tmp_path / "bad" / "images.txt").write_text("")
+        (tmp_path / "bad" / "points3D.txt").write_text("")
+        with pytest.raises(ValueError, match=r"cannot read .*cameras.txt: a line of 4 fields"):
             load_colmap(tmp_path / "bad")

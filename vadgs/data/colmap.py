@@ -53,6 +53,7 @@ import torch
 
 from vadgs.checks import check_finite
 from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
+from vadgs.data.colmap_files import check_colmap_images
 from vadgs.data.colmap_model import (
     COLMAP_PIXEL_OFFSET,
     _cam_from_world,
@@ -169,8 +170,6 @@ def load_colmap(
         >>> points.point_views
         (tensor([0]), tensor([0]))
     """
-    import pycolmap  # imported lazily: only this loader needs it
-
     sparse_dir = Path(sparse_dir)
     check_scale(scale)
     check_validate_level(validate)
@@ -179,10 +178,7 @@ def load_colmap(
     transform = None if isinstance(normalize, bool) else _check_similarity(normalize)
     if not any((sparse_dir / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
         raise FileNotFoundError(f"sparse_dir: no COLMAP model (cameras.bin or cameras.txt) in {sparse_dir}")
-    try:
-        rec = pycolmap.Reconstruction(str(sparse_dir))
-    except Exception as e:  # pycolmap raises a bare RuntimeError / ValueError on corrupt files
-        raise ValueError(f"sparse_dir: cannot read the COLMAP model in {sparse_dir}: {e}") from None
+    rec = _read_model(sparse_dir, "sparse_dir")
 
     if images_dir is not None:
         images_dir = Path(images_dir)
@@ -402,11 +398,9 @@ def undistort_colmap(
     rec = _read_model(sparse_dir, "sparse_dir")
     if not images_dir.is_dir():
         raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
-    missing = [im.name for im in rec.images.values() if im.has_pose and not (images_dir / im.name).is_file()]
-    if missing:
-        raise FileNotFoundError(
-            f"images_dir {images_dir}: {len(missing)} registered image(s) missing, e.g. {sorted(missing)[:3]}"
-        )
+    # pycolmap's undistorter aborts the process on an image of the wrong size and grey-fills a
+    # truncated one: every registered image is decoded and measured first, naming the file
+    check_colmap_images(rec, images_dir, full=True)
     if out_dir.exists():
         if not _has_model(out_dir / "sparse"):
             raise ValueError(
@@ -414,10 +408,14 @@ def undistort_colmap(
             )
         shutil.rmtree(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    with _colmap_logging():
-        pycolmap.undistort_images(str(out_dir), str(sparse_dir), str(images_dir))
-    if not _has_model(out_dir / "sparse"):
-        raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
+    try:
+        with _colmap_logging():
+            pycolmap.undistort_images(str(out_dir), str(sparse_dir), str(images_dir))
+        if not _has_model(out_dir / "sparse"):
+            raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
+    except BaseException:
+        shutil.rmtree(out_dir, ignore_errors=True)  # no half-written copy left in the run folder
+        raise
     return out_dir / "sparse", out_dir / "images"
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from vadgs.data.colmap_files import check_reconstruction, diagnose_model_files
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
 
@@ -87,11 +88,12 @@ def _cam_from_world(image: object) -> np.ndarray:
     return out
 
 
+def _model_file(folder: Path, name: str) -> bool:
+    return any((folder / f"{name}.{e}").is_file() for e in ("bin", "txt"))
+
+
 def _has_model(folder: Path) -> bool:
-    return all(
-        any((folder / f"{n}.{e}").is_file() for e in ("bin", "txt"))
-        for n in ("cameras", "images", "points3D")
-    )
+    return all(_model_file(folder, n) for n in ("cameras", "images", "points3D"))
 
 
 def find_colmap_model(path: str | Path) -> Path | None:
@@ -118,13 +120,27 @@ def _read_model(sparse_dir: Path, what: str) -> object:
     import pycolmap
 
     if not _has_model(sparse_dir):
+        missing = [n for n in ("cameras", "images", "points3D") if not _model_file(sparse_dir, n)]
         raise FileNotFoundError(
-            f"{what} {sparse_dir}: no COLMAP model (cameras, images, points3D as .bin or .txt)"
+            f"{what} {sparse_dir}: no COLMAP model (cameras, images, points3D as .bin or .txt; "
+            f"missing {', '.join(missing)})"
         )
     try:
-        return pycolmap.Reconstruction(str(sparse_dir))
+        rec = pycolmap.Reconstruction(str(sparse_dir))
     except Exception as e:  # pycolmap raises a bare RuntimeError / ValueError on corrupt files
-        raise ValueError(f"{what} {sparse_dir}: cannot read the COLMAP model: {e}") from None
+        raise ValueError(
+            f"{what} {sparse_dir}: cannot read the COLMAP model: {_pycolmap_error(sparse_dir, e)}"
+        ) from None
+    check_reconstruction(rec, sparse_dir)
+    return rec
+
+
+def _pycolmap_error(sparse_dir: Path, error: Exception) -> str:
+    """The error of pycolmap as one line naming the file at fault (found by :func:`diagnose_model_files`)."""
+    first = " ".join(str(error).split())
+    first = first.split("] ", 1)[-1] if first.startswith("[") else first  # "[file.cc:123] Check failed"
+    found = diagnose_model_files(sparse_dir)
+    return f"{found} (pycolmap: {first[:200]})" if found else f"pycolmap: {first[:200]}"
 
 
 def distorted_cameras(sparse_dir: str | Path) -> list[str]:
