@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TMP_GLOB", "atomic_write", "remove_stale_tmp", "write_json"]
+__all__ = ["TMP_GLOB", "atomic_write", "check_inside", "remove_stale_tmp", "safe_filename", "write_json"]
 
 TMP_GLOB = ".*.tmp*"
 """Glob of the temporary files :func:`atomic_write` creates (in the target's folder)."""
@@ -92,3 +93,40 @@ def remove_stale_tmp(folder: str | Path, *subfolders: str) -> list[Path]:
                 p.unlink(missing_ok=True)
                 removed.append(p)
     return removed
+
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9._+-]+")
+
+
+def safe_filename(name: object) -> str:
+    r"""``name`` (a camera, image or instance name from a dataset) as one safe file-name component.
+
+    Every run of characters other than letters, digits, ``. _ + -`` becomes ``_`` (so no ``/``,
+    ``\``, NUL or space survives), and leading dots are replaced, so the result can neither leave
+    its folder (``..``) nor hide (``.name``). Names of dataset files are made safe with it before
+    a path is built from them; the scene's own metadata keeps the original name.
+
+    Example:
+        >>> safe_filename("front_left"), safe_filename("../../etc/passwd"), safe_filename("")
+        ('front_left', '__.._etc_passwd', '_')
+    """
+    text = _UNSAFE.sub("_", str(name))
+    text = re.sub(r"^\.+", "_", text)
+    return text[:200] or "_"
+
+
+def check_inside(path: str | Path, root: str | Path, what: str) -> Path:
+    """``path`` if it lies inside the folder ``root`` once both are resolved (symlinks followed).
+
+    Raises:
+        ValueError: ``"<what>: <path> resolves to <real>, outside <root>"``.
+
+    Example:
+        >>> check_inside("/tmp/run/renders/a.png", "/tmp/run", "panel")
+        PosixPath('/tmp/run/renders/a.png')
+    """
+    path, root = Path(path), Path(root)
+    real, real_root = path.resolve(), root.resolve()
+    if real != real_root and real_root not in real.parents:
+        raise ValueError(f"{what}: {path} resolves to {real}, outside {root}")
+    return path

@@ -12,7 +12,7 @@ import numpy as np
 from PIL import Image
 
 from vadgs.data.scene import Scene
-from vadgs.io import atomic_write, write_json
+from vadgs.io import atomic_write, safe_filename, write_json
 
 __all__ = ["export_scene"]
 
@@ -63,7 +63,7 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         views = []
         for vid in f.view_ids:
             v = scene.views[vid]
-            rel = f"images/{v.camera}/{f.index:06d}.png"
+            rel = f"images/{safe_filename(v.camera)}/{f.index:06d}.png"
             img = scene.load_images([vid])[0]
             pil = Image.fromarray((img.clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy())
             atomic_write(out / rel, lambda tmp, pil=pil: pil.save(tmp, format="PNG"))

@@ -8,8 +8,10 @@ referenced file exists before returning (and, by default, the files' headers: se
 
 from __future__ import annotations
 
+import os
+import warnings
 from collections.abc import Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -22,7 +24,49 @@ from vadgs.data.checks import check_intrinsics, check_rigid, check_split
 from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, _read_lidar
 from vadgs.geometry.camera import scale_intrinsics
 
-__all__ = ["load_scene", "novel_view_group"]
+__all__ = ["ALLOW_OUTSIDE_ENV", "load_scene", "novel_view_group"]
+
+#: Environment variable: ``1`` lets every scene read files outside its folder (as
+#: ``load_scene(..., allow_outside=True)``; for the ``vadgs`` commands).
+ALLOW_OUTSIDE_ENV = "VADGS_ALLOW_OUTSIDE_SCENE"
+
+
+class _SceneFiles:
+    """The paths ``scene.json`` names, kept inside the scene folder unless allowed otherwise.
+
+    A path written with ``..`` or as an absolute path is refused (``allow_outside`` lets it
+    through); a path that leaves the folder only through a symlink on disk (a data folder linked
+    from elsewhere) is read, with one :class:`UserWarning` per scene naming the files.
+    """
+
+    def __init__(self, root: Path, allow_outside: bool | None) -> None:
+        if allow_outside is None:
+            allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "").strip().lower() in ("1", "true", "yes")
+        self.root, self.real_root, self.allow = root, root.resolve(), bool(allow_outside)
+        self.linked: list[str] = []
+
+    def __call__(self, rel: str, what: str) -> Path:
+        path = self.root / rel
+        parts = PurePosixPath(rel.replace("\\", "/")).parts
+        if not self.allow and (PurePosixPath(rel).is_absolute() or ".." in parts):
+            raise ValueError(
+                f"scene.json: {what}: expected a path inside the scene folder {self.root}, got {rel!r} "
+                f"(to read files outside it: load_scene(..., allow_outside=True) or {ALLOW_OUTSIDE_ENV}=1)"
+            )
+        if not self.allow:
+            real = path.resolve()
+            if real != self.real_root and self.real_root not in real.parents:
+                self.linked.append(f"{what} {rel} -> {real}")
+        return path
+
+    def warn(self) -> None:
+        if self.linked:
+            warnings.warn(
+                f"scene {self.root}: {len(self.linked)} file(s) outside the scene folder through symlinks, "
+                f"e.g. {self.linked[:2]} ({ALLOW_OUTSIDE_ENV}=1 silences this)",
+                UserWarning,
+                stacklevel=3,
+            )
 
 
 def _int(value: object, what: str) -> int:
@@ -103,7 +147,7 @@ def novel_view_group(shift_ego_m: Sequence[float]) -> str:
 
 
 def _novel_views(
-    meta: dict, root: Path, cameras: dict[str, CameraInfo], frames: dict[int, FrameInfo], start: int
+    meta: dict, root: _SceneFiles, cameras: dict[str, CameraInfo], frames: dict[int, FrameInfo], start: int
 ) -> list[ViewInfo]:
     """The ``novel_views`` entries of ``scene.json`` as :class:`ViewInfo` (indices from ``start``)."""
     entries = meta.get("novel_views", [])
@@ -126,7 +170,10 @@ def _novel_views(
             if not (isinstance(shift, list) and len(shift) == 3):
                 raise ValueError(f"scene.json: {what}.shift_ego_m: expected 3 numbers, got {shift!r}")
             group = novel_view_group(shift)
-        files = {k: (root / nm[k]) if nm.get(k) else None for k in ("image", "depth", "instances")}
+        files = {
+            k: root(_str(nm[k], f"{what}.{k}"), f"{what}.{k}") if nm.get(k) else None
+            for k in ("image", "depth", "instances")
+        }
         if files["image"] is None:
             raise ValueError(f"scene.json: {what}: missing key 'image'")
         views.append(ViewInfo(start + ni, frame, cam, frames[frame].timestamp, c2w, **files, group=group))
@@ -134,7 +181,11 @@ def _novel_views(
 
 
 def load_scene(
-    path: str | Path, scale: float = 1.0, check_files: bool = True, validate: str = "headers"
+    path: str | Path,
+    scale: float = 1.0,
+    check_files: bool = True,
+    validate: str = "headers",
+    allow_outside: bool | None = None,
 ) -> Scene:
     """Load a scene in the benchmark format (``scene.json`` and its files).
 
@@ -148,6 +199,10 @@ def load_scene(
             dtypes, a non-empty LiDAR total, the test views' depth decoded), ``"full"`` (decode
             and check every file, as ``vadgs check --full``) or ``"none"``. The metadata
             (field types, ``K``, rigid poses, the split) is always checked.
+        allow_outside: read files that ``scene.json`` names outside the scene folder (an
+            absolute path or one with ``..``), which are refused otherwise; files that leave the
+            folder only through a symlink are read with a warning naming them unless this is
+            True. None (default): the environment variable :data:`ALLOW_OUTSIDE_ENV`.
 
     Returns:
         The :class:`Scene`, with per-view data loaded lazily. ``novel_views`` entries of
@@ -174,6 +229,7 @@ def load_scene(
     if not meta_path.is_file():
         raise FileNotFoundError(f"no scene.json in {root}")
     meta = read_json(meta_path, "scene.json")
+    files_of = _SceneFiles(root, allow_outside)
     check_scale(scale)
     check_validate_level(validate)
 
@@ -215,17 +271,17 @@ def load_scene(
                 raise ValueError(f"scene.json: {vwhat}.camera: unknown camera {cam!r}, have {list(cameras)}")
             c2w = _pose(_get(vm, "cam_to_world", vwhat), f"{vwhat}.cam_to_world")
             files = {
-                k: (root / _str(vm[k], f"{vwhat}.{k}")) if vm.get(k) else None
+                k: files_of(_str(vm[k], f"{vwhat}.{k}"), f"{vwhat}.{k}") if vm.get(k) else None
                 for k in ("image", "depth", "instances")
             }
             if files["image"] is None:
                 raise ValueError(f"scene.json: {vwhat}: missing key 'image'")
             views.append(ViewInfo(len(views), index, cam, ts, c2w, **files))
             ids.append(len(views) - 1)
-        lidar = root / _str(fm["lidar"], f"{what}.lidar") if fm.get("lidar") else None
+        lidar = files_of(_str(fm["lidar"], f"{what}.lidar"), f"{what}.lidar") if fm.get("lidar") else None
         frames.append(FrameInfo(index, ts, e2w, tuple(ids), lidar))
 
-    views += _novel_views(meta, root, cameras, {f.index: f for f in frames}, len(views))
+    views += _novel_views(meta, files_of, cameras, {f.index: f for f in frames}, len(views))
 
     instances = {}
     inst_meta = meta.get("instances", [])
@@ -264,7 +320,7 @@ def load_scene(
             lwh,
             poses,
             valid,
-            root / tm["mesh"] if tm.get("mesh") else None,
+            files_of(_str(tm["mesh"], f"{what}.mesh"), f"{what}.mesh") if tm.get("mesh") else None,
         )
 
     split = meta.get("split", {})
@@ -280,6 +336,7 @@ def load_scene(
     check_split(test_frames, all_frames, "scene.json: split.test_frames")
     check_split(train_frames, all_frames, "scene.json: split.train_frames")
 
+    files_of.warn()
     return assemble_scene(
         f"scene {root}",
         name=str(meta.get("name", root.name)),

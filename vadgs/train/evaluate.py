@@ -341,11 +341,15 @@ def save_test_panels(
     With ``appearance`` (the run's :class:`~vadgs.train.appearance.AppearanceModel`), the render
     is corrected by the transform of the view's camera, as in :func:`evaluate`.
 
+    The file names are ``view<index>_<camera>_<frame>.png``, the camera's name made safe
+    (:func:`vadgs.io.safe_filename`: a name with ``/`` or ``..`` cannot leave ``out_dir``).
+
     Returns:
         The written paths.
     """
     from tqdm import tqdm
 
+    from vadgs.io import safe_filename
     from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
     out_dir = Path(out_dir)
@@ -375,7 +379,6 @@ def save_test_panels(
             images.insert(4, colorize_depth(gtd, None, vmax))
             titles.insert(4, "ground-truth depth")
         vi = scene.views[v]
-        paths.append(
-            save_panel(images, titles, out_dir / f"view{v:03d}_{vi.camera}_{vi.frame:03d}.png", columns=3)
-        )
+        name = f"view{v:03d}_{safe_filename(vi.camera)}_{vi.frame:03d}.png"
+        paths.append(save_panel(images, titles, out_dir / name, columns=3))
     return paths
