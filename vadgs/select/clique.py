@@ -18,23 +18,37 @@ the bound of the next maximal clique cannot beat the best value found. The cost 
 number of k-subsets of the maximal cliques, ``O(C(n, k))`` for a complete graph on ``n`` nodes:
 callers cap ``n`` (:class:`vadgs.select.ViewSelectionConfig` ``max_candidates``, default 24,
 ``C(24, 4) = 10626`` subsets, well under a millisecond to score).
+
+**Bounded.** Before any subset is scored, the work is counted: the maximal cliques (at most
+:data:`MAX_CLIQUES`; their enumeration stops there) and the k-subsets they hold,
+``sum C(|c|, k)``. Beyond ``max_subsets`` (default :data:`MAX_SUBSETS`, 2 million: a few seconds
+at ``k = 10``, 1-3 µs per subset) the call raises a :class:`ValueError` naming the counts, within a
+second, instead of running for minutes (``n = 40, k = 10`` on a complete graph holds
+``8.5e8`` subsets: it used 21 GB before this check). The subsets are generated in chunks of
+65536, so memory stays at a few MB whatever the count. There is no approximate fallback: lower
+``k`` or the candidates, or pass a larger ``max_subsets`` knowingly.
 """
 
 from __future__ import annotations
 
 import itertools
-from functools import lru_cache
+import math
 from typing import NamedTuple
 
 import networkx as nx
 import numpy as np
 import torch
 
-from vadgs.checks import check_shape
+from vadgs.checks import check_finite, check_shape
 
-__all__ = ["Clique", "max_weight_clique"]
+__all__ = ["MAX_CLIQUES", "MAX_SUBSETS", "Clique", "max_weight_clique"]
 
 _CHUNK = 1 << 16  # k-subsets scored per numpy batch
+
+#: Default cap on the k-subsets :func:`max_weight_clique` scores (it refuses beyond).
+MAX_SUBSETS = 2_000_000
+#: Cap on the maximal cliques enumerated (a graph with more is refused).
+MAX_CLIQUES = 50_000
 
 
 class Clique(NamedTuple):
@@ -50,9 +64,14 @@ class Clique(NamedTuple):
     weight: float
 
 
-@lru_cache(maxsize=256)
-def _combinations(m: int, s: int) -> np.ndarray:
-    return np.array(list(itertools.combinations(range(m), s)), dtype=np.int64).reshape(-1, s)
+def _combination_chunks(m: int, s: int):
+    """The ``s``-subsets of ``range(m)`` as ``(<= _CHUNK, s)`` int64 arrays, in lexicographic order."""
+    it = itertools.combinations(range(m), s)
+    while True:
+        flat = np.fromiter(itertools.chain.from_iterable(itertools.islice(it, _CHUNK)), dtype=np.int64)
+        if flat.size == 0:
+            return
+        yield flat.reshape(-1, s)
 
 
 def _subset_weights(subsets: np.ndarray, w: np.ndarray, W: np.ndarray) -> np.ndarray:
@@ -67,6 +86,7 @@ def max_weight_clique(
     edge_weight: torch.Tensor,
     k: int,
     adjacency: torch.Tensor | None = None,
+    max_subsets: int = MAX_SUBSETS,
 ) -> Clique:
     """Find the k-clique maximising the sum of its node weights and its edge weights. Exact.
 
@@ -83,12 +103,15 @@ def max_weight_clique(
         k: the clique size wanted, ``>= 1``.
         adjacency: optional ``(n, n)`` bool, the graph (symmetrised with ``or``; diagonal
             ignored). ``None`` means the complete graph.
+        max_subsets: refuse a graph whose maximal cliques hold more k-subsets than this (the
+            work bound of the module docstring).
 
     Returns:
         A :class:`Clique`.
 
     Raises:
-        ValueError: on bad shapes or ``k < 1``.
+        ValueError: on bad shapes, ``k < 1``, non-finite weights (a value check), or a search
+            beyond ``max_subsets`` subsets or :data:`MAX_CLIQUES` maximal cliques.
 
     Example:
         >>> w = torch.tensor([1.0, 2.0, 1.0, 5.0])
@@ -107,6 +130,8 @@ def max_weight_clique(
         check_shape(adjacency, "adjacency", ("n", "n"), dims)
     if int(k) < 1:
         raise ValueError(f"k: expected a clique size >= 1, got {k}")
+    check_finite(node_weight, "node_weight")
+    check_finite(edge_weight, "edge_weight")
     n, device = dims["n"], node_weight.device
     empty = Clique(torch.zeros(0, dtype=torch.long, device=device), 0.0)
     if n == 0:
@@ -126,9 +151,23 @@ def max_weight_clique(
     graph.add_nodes_from(range(n))
     rows, cols = np.nonzero(np.triu(adj, 1))
     graph.add_edges_from(zip(rows.tolist(), cols.tolist()))
-    cliques = [np.array(sorted(c), dtype=np.int64) for c in nx.find_cliques(graph)]
+    cliques = []
+    for c in nx.find_cliques(graph):
+        if len(cliques) == MAX_CLIQUES:
+            raise ValueError(
+                f"max_weight_clique: the graph of {n} nodes has more than MAX_CLIQUES = {MAX_CLIQUES} "
+                "maximal cliques; the exact search is refused (fewer candidates or a sparser adjacency)"
+            )
+        cliques.append(np.array(sorted(c), dtype=np.int64))
     size = min(int(k), max(len(c) for c in cliques))
     cliques = [c for c in cliques if len(c) >= size]
+    work = sum(math.comb(len(c), size) for c in cliques)
+    if work > max_subsets:
+        raise ValueError(
+            f"max_weight_clique: k = {size} over {n} nodes ({len(cliques)} maximal clique(s), the largest "
+            f"of {max(len(c) for c in cliques)}) means {work:.3g} subsets to score, more than "
+            f"max_subsets = {max_subsets:.3g}; lower k or the number of candidates, or raise max_subsets"
+        )
 
     # upper bound on the best size-subset of each maximal clique: top node + top edge weights
     num_pairs = size * (size - 1) // 2
@@ -146,9 +185,8 @@ def max_weight_clique(
         if bounds[ci] <= best_val:
             break  # sorted by bound: no later clique can do better
         c = cliques[ci]
-        combos = _combinations(len(c), size)
-        for start in range(0, len(combos), _CHUNK):
-            subsets = c[combos[start : start + _CHUNK]]
+        for combos in _combination_chunks(len(c), size):
+            subsets = c[combos]
             vals = _subset_weights(subsets, w, W)
             i = int(np.argmax(vals))
             if vals[i] > best_val:

@@ -32,13 +32,14 @@ reason.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
 
 from vadgs.checks import check_shape
 from vadgs.select.baselines import colmap_scores, consecutive_views, mvsnet_scores, top_k_views
-from vadgs.select.clique import max_weight_clique
+from vadgs.select.clique import MAX_SUBSETS, max_weight_clique
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.score import diversity_scores
 
@@ -80,6 +81,12 @@ class ViewSelectionConfig:
             raise ValueError(f"k: expected >= 1, got {self.k}")
         if self.max_candidates < self.k:
             raise ValueError(f"max_candidates: expected >= k = {self.k}, got {self.max_candidates}")
+        subsets = math.comb(self.max_candidates, self.k)
+        if subsets > MAX_SUBSETS:
+            raise ValueError(
+                f"max_candidates, k: expected C(max_candidates, k) <= {MAX_SUBSETS:.3g} subsets (the clique "
+                f"search's bound), got C({self.max_candidates}, {self.k}) = {subsets:.3g}"
+            )
         if self.noise_std < 0 or self.eps <= 0 or self.lam < 0 or self.min_shared < 1:
             raise ValueError(
                 "expected noise_std >= 0, eps > 0, lam >= 0, min_shared >= 1, got "
