@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -168,13 +169,16 @@ class ExportCommand(Command):
 class ViewCommand(Command):
     """Open a run in the browser (viser): Gaussians, cars at a frame slider, camera frusta, VAD-GS additions.
 
-    Serves ``http://HOST:PORT`` until Ctrl+C (or ``--timeout`` seconds); see :mod:`vadgs.viewer`.
+    Serves ``http://HOST:PORT`` until Ctrl+C, SIGTERM (or ``--timeout`` seconds); see
+    :mod:`vadgs.viewer`. ``HOST`` is 127.0.0.1 unless ``--host`` says otherwise: the viewer has no
+    authentication, so listening on other interfaces (``--host 0.0.0.0``) is an explicit choice,
+    printed with a warning.
     """
 
     run: RunArg
     """run folder (or its checkpoint.pt)"""
-    host: str = "0.0.0.0"
-    """interface to listen on (0.0.0.0: all)"""
+    host: str = "127.0.0.1"
+    """interface to listen on (default this machine only; 0.0.0.0: every interface, no authentication)"""
     port: int = 8080
     """port (the next free one if taken)"""
     frame: int | None = None
@@ -196,6 +200,7 @@ class ViewCommand(Command):
             import viser
         except ImportError:
             raise ImportError("vadgs view needs viser: pip install 'vadgs[viewer]'") from None
+        from vadgs.train.session import stop_on_signals
         from vadgs.viewer import build_viewer
 
         run = load_run(self.run)
@@ -209,13 +214,30 @@ class ViewCommand(Command):
                 f"viewing {_run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
                 f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
             )
-            host = "localhost" if self.host in ("0.0.0.0", "::") else self.host
-            print(f"open http://{host}:{server.get_port()} (Ctrl+C to stop)", flush=True)
+            print(_listening(self.host, server.get_port()), flush=True)
             deadline = None if self.timeout is None else time.monotonic() + self.timeout
-            while deadline is None or time.monotonic() < deadline:
-                time.sleep(0.2)
+            stop = threading.Event()
+            with stop_on_signals(stop.set, stop.is_set):  # SIGINT / SIGTERM: stop serving, exit 0
+                while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                    stop.wait(0.2)
         except KeyboardInterrupt:
             pass
         finally:
             server.stop()
         return 0
+
+
+def _listening(host: str, port: int) -> str:
+    """The line saying where the viewer listens (a warning when that is more than this machine).
+
+    Example:
+        >>> _listening("127.0.0.1", 8080)
+        'open http://127.0.0.1:8080 (listening on 127.0.0.1 only; Ctrl+C or SIGTERM stops)'
+    """
+    if host in ("0.0.0.0", "::", ""):
+        return (
+            f"open http://127.0.0.1:{port} (listening on {host or '0.0.0.0'}: EVERY network interface, "
+            "without authentication; Ctrl+C or SIGTERM stops)"
+        )
+    shown = f"[{host}]" if ":" in host else host
+    return f"open http://{shown}:{port} (listening on {host} only; Ctrl+C or SIGTERM stops)"
