@@ -135,7 +135,7 @@ class TestArguments:
         [
             (["--max-minutes", "-1"], "--max-minutes: expected a finite number >= 0 (0 = no limit), got -1"),
             (["--max-minutes", "inf"], "--max-minutes: expected a finite number >= 0 (0 = no limit), got i"),
-            (["--iterations", "-5"], "--iterations: expected >= 0, got -5"),
+            (["--iterations", "-5"], "--iterations: expected >= 1, got -5"),
             (["--hard-every", "0"], "--sh-degree-interval, --log-every, --hard-every, --hard-stride: "),
             (["--lr.means", "fast"], "--lr.means: could not convert string to float: 'fast'"),
             (["--iterations", "x"], "--iterations: invalid literal for int() with base 10: 'x'"),

@@ -39,6 +39,7 @@ import torch
 __all__ = [
     "check_at_least",
     "check_finite",
+    "check_non_negative",
     "check_positive",
     "check_same_device",
     "check_shape",
@@ -216,6 +217,29 @@ def check_positive(config: object, *names: str) -> None:
     if bad:
         got = ", ".join(str(getattr(config, n)) for n in bad)
         raise ValueError(f"{', '.join(bad)}: expected a positive number, got {got}")
+
+
+def check_non_negative(config: object, *names: str) -> None:
+    """Raise ``ValueError`` unless every field ``names`` of ``config`` is a finite number >= 0.
+
+    For weights and learning rates, where 0 switches a term off and NaN, infinity or a negative
+    value would train silently wrong. Like :func:`check_positive` (None passes).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> check_non_negative(SimpleNamespace(lambda_lidar=float("nan"), ssim_weight=0.2), "lambda_lidar")
+        Traceback (most recent call last):
+        ...
+        ValueError: lambda_lidar: expected a finite number >= 0, got nan
+    """
+    bad = [n for n in names if not _non_negative_or_none(getattr(config, n))]
+    if bad:
+        got = ", ".join(str(getattr(config, n)) for n in bad)
+        raise ValueError(f"{', '.join(bad)}: expected a finite number >= 0, got {got}")
+
+
+def _non_negative_or_none(value: float | None) -> bool:
+    return value is None or (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0)
 
 
 def _positive_or_none(value: float | None) -> bool:

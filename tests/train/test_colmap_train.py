@@ -70,7 +70,7 @@ class TestColmapCli:
         root = tmp_path / "proj"
         write_sample_colmap(root, n_points=100)
         out = tmp_path / "a"
-        args = ["train", str(root / "sparse" / "0"), "--colmap-scene", "--out", str(out), "--iterations", "0"]
+        args = ["train", str(root / "sparse" / "0"), "--colmap-scene", "--out", str(out), "--iterations", "1"]
         assert (
             main([*args, "--test-every", "0", "--no-normalize", "--images", str(root / "images"), *FAST]) == 0
         )

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from vadgs.checks import check_at_least
+from vadgs.checks import check_at_least, check_non_negative, check_positive
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
 from vadgs.train.init import InitConfig
@@ -39,6 +39,10 @@ class LearningRates:
     sh_dc: float = 2.5e-3
     sh_rest: float = 2.5e-3 / 20
     sky: float = 1e-2
+
+    def __post_init__(self) -> None:
+        check_positive(self, "means", "means_final")  # the decay is exponential: log of both
+        check_non_negative(self, "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "sky")
 
 
 @dataclass(frozen=True)
@@ -123,7 +127,16 @@ class TrainConfig:
     diverge_loss_factor: float = 10.0
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "iterations")
+        check_at_least(self, 1, "iterations")
+        check_non_negative(
+            self, "ssim_weight", "lambda_lidar", "lambda_normal", "lambda_hard", "lambda_soft", "hard_until"
+        )
+        check_non_negative(
+            self, "checkpoint_minutes", "diverge_distance", "diverge_share", "diverge_loss_factor"
+        )
+        for name in ("ssim_weight", "hard_until"):
+            if getattr(self, name) > 1:
+                raise ValueError(f"{name}: expected a number in [0, 1], got {getattr(self, name)}")
         if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
             raise ValueError(
                 f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"

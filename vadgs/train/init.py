@@ -11,6 +11,7 @@ nearest neighbours as scale (3DGS).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,10 +59,15 @@ class InitConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.voxel_size < 0 or self.object_voxel_size < 0:
+        if not (0 <= self.voxel_size < math.inf and 0 <= self.object_voxel_size < math.inf):
             raise ValueError(
-                "voxel_size, object_voxel_size: expected >= 0, "
+                "voxel_size, object_voxel_size: expected finite numbers >= 0 (0 keeps every point), "
                 f"got {self.voxel_size}, {self.object_voxel_size}"
+            )
+        if not (0 < self.min_scale <= self.max_scale < math.inf):
+            raise ValueError(
+                f"min_scale, max_scale: expected 0 < min_scale <= max_scale (finite), "
+                f"got {self.min_scale}, {self.max_scale}"
             )
         if self.max_points < 1 or self.max_object_points < 0 or self.knn < 1:
             raise ValueError("max_points >= 1, max_object_points >= 0, knn >= 1 expected")
