@@ -84,7 +84,11 @@ def main(argv: list[str] | None = None) -> int:
         if cmd is None:  # --help
             return 0
         debug = cmd.debug  # as parsed (until then: "--debug" among the arguments)
-        threads = cmd.threads if isinstance(cmd, Command) else 0  # train: TrainConfig.threads
+        # the whole command runs on --threads: loading, initialisation, training, the final
+        # evaluation (train: TrainConfig.threads, also what a --resume keeps or changes)
+        threads = (
+            cmd.threads if isinstance(cmd, Command) else getattr(getattr(cmd, "train", None), "threads", 0)
+        )
         with _torch_threads(threads), _colmap_log_level(0 if debug else None):
             return cmd.main()
     except KeyboardInterrupt:

@@ -157,6 +157,16 @@ def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -
             raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is a file)")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is not writable)")
+        # os.access says yes to root everywhere (/proc, read-only mounts): try it, then undo
+        _check_out_dir(path, flag, create=True)
+        first = path
+        while first.parent != parent:
+            first = first.parent
+        for folder in [path, *path.parents]:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only the empty folders just created, up to ``first``
+            if folder == first:
+                break
         return path
     try:
         path.mkdir(parents=True, exist_ok=True)

@@ -33,9 +33,11 @@ from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = [
+    "MAX_IMAGE_PIXELS",
     "VALIDATE_LEVELS",
     "assemble_scene",
     "check_scale",
+    "check_scaled_sizes",
     "check_validate_level",
     "file_image_loader",
     "pinhole_camera",
@@ -69,6 +71,34 @@ def check_scale(scale: float) -> None:
     """
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ValueError(f"scale: expected a positive number, got {scale!r}")
+
+
+#: Largest image a loader makes (pixels, after ``scale``): 64 Mpx, 768 MB as float32 RGB.
+MAX_IMAGE_PIXELS = 1 << 26
+
+
+def check_scaled_sizes(cameras_info: dict[str, CameraInfo], scale: float) -> None:
+    """Raise a :class:`ValueError` naming ``scale`` when a camera's scaled image is empty or huge.
+
+    Every camera's ``image_size`` (already scaled) must be at least 1x1 and at most
+    :data:`MAX_IMAGE_PIXELS` pixels, so that ``scale=1e6`` fails at load with the sizes instead of
+    an allocation error of petabytes later.
+
+    Example:
+        >>> check_scaled_sizes({"cam": CameraInfo("cam", torch.eye(3), (9000, 9000))}, 100)
+        Traceback (most recent call last):
+        ...
+        ValueError: scale: 100 makes camera 'cam' 9000x9000 pixels; expected at most 67108864 pixels per image
+    """
+    for name, info in cameras_info.items():
+        h, w = info.image_size
+        if h < 1 or w < 1:
+            raise ValueError(f"scale: {scale:g} makes camera {name!r} {w}x{h} pixels; expected at least 1x1")
+        if h * w > MAX_IMAGE_PIXELS:
+            raise ValueError(
+                f"scale: {scale:g} makes camera {name!r} {w}x{h} pixels; expected at most "
+                f"{MAX_IMAGE_PIXELS} pixels per image"
+            )
 
 
 def pinhole_camera(
@@ -251,6 +281,7 @@ def assemble_scene(
     check_validate_level(validate)
     if read_lidar is not None and lidar_loader is not None:
         raise ValueError("assemble_scene: pass read_lidar or lidar_loader, not both")
+    check_scaled_sizes(cameras_info, scale)
     if check_files:
         missing = [
             p for v in views for p in (v.image, v.depth, v.instances) if p is not None and not p.is_file()
