@@ -39,8 +39,11 @@ import torch
 __all__ = [
     "check_at_least",
     "check_finite",
+    "check_intrinsics",
     "check_non_negative",
     "check_positive",
+    "check_quaternions",
+    "check_rigid_last_row",
     "check_same_device",
     "check_shape",
     "check_size",
@@ -155,6 +158,66 @@ def check_finite(x: torch.Tensor, name: str) -> None:
             raise ValueError(
                 f"{name}: expected finite values, got {int(bad.sum())} non-finite of {x.numel()}"
             )
+
+
+def check_intrinsics(K: torch.Tensor, name: str = "K") -> None:
+    """Value check of ``(*, 3, 3)`` pinhole intrinsics: finite, ``fx = K[..., 0, 0] > 0``, ``fy > 0``.
+
+    Example:
+        >>> check_intrinsics(torch.zeros(2, 3, 3))
+        Traceback (most recent call last):
+        ...
+        ValueError: K: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], got fx=0, fy=0 at (0,)
+    """
+    check_finite(K, name)
+    if _enabled:
+        f = K.detach()[..., [0, 1], [0, 1]]
+        bad = ~(f > 0).all(-1)
+        if bool(bad.any()):
+            at = tuple(int(i) for i in bad.nonzero()[0]) if bad.dim() else ()
+            fx, fy = (float(v) for v in f[at])
+            raise ValueError(
+                f"{name}: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], "
+                f"got fx={fx:g}, fy={fy:g} at {at}"
+            )
+
+
+def check_quaternions(q: torch.Tensor, name: str = "quats") -> None:
+    """Value check of ``(*, 4)`` quaternions: finite and of non-zero norm (a zero one has no rotation).
+
+    Example:
+        >>> check_quaternions(torch.tensor([[1.0, 0, 0, 0], [0, 0, 0, 0]]))
+        Traceback (most recent call last):
+        ...
+        ValueError: quats: expected non-zero quaternions, got 1 of norm 0 (first: row 1)
+    """
+    check_finite(q, name)
+    if _enabled and q.numel():
+        zero = q.detach().norm(dim=-1) < 1e-12
+        if bool(zero.any()):
+            first = int(zero.flatten().nonzero()[0, 0])
+            raise ValueError(
+                f"{name}: expected non-zero quaternions, got {int(zero.sum())} of norm 0 (first: row {first})"
+            )
+
+
+def check_rigid_last_row(T: torch.Tensor, name: str) -> None:
+    """Value check of ``(*, 4, 4)`` transforms: finite, last row ``(0, 0, 0, 1)`` (within 1e-5).
+
+    Example:
+        >>> check_rigid_last_row(torch.zeros(4, 4), "transform")
+        Traceback (most recent call last):
+        ...
+        ValueError: transform: expected a transform with last row (0, 0, 0, 1), got [0.0, 0.0, 0.0, 0.0]
+    """
+    check_finite(T, name)
+    if _enabled and T.numel():
+        row = T.detach()[..., 3, :].reshape(-1, 4)
+        want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=row.dtype, device=row.device)
+        bad = ((row - want).abs() > 1e-5).any(-1)
+        if bool(bad.any()):
+            got = row[int(bad.nonzero()[0, 0])].tolist()
+            raise ValueError(f"{name}: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 def check_size(size: Sequence[int], name: str = "image_size") -> tuple[int, int]:

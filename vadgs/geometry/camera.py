@@ -18,7 +18,7 @@ import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from kornia.geometry.linalg import transform_points
 
-from vadgs.checks import check_finite, check_shape, check_size
+from vadgs.checks import check_finite, check_intrinsics, check_rigid_last_row, check_shape, check_size
 
 __all__ = [
     "Cameras",
@@ -50,6 +50,7 @@ def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
         tensor([-1., -2., -3.])
     """
     check_shape(transform, "transform", ("*", 4, 4))
+    check_rigid_last_row(transform, "transform")
     rot = transform[..., :3, :3]
     trans = transform[..., :3, 3:]
     rot_t = rot.transpose(-1, -2)
@@ -109,8 +110,10 @@ def project_points(
     """
     dims = check_shape(points, "points", ("B", "N", 3))
     check_shape(K, "K", ("B", 3, 3), dims)
+    check_intrinsics(K)
     if world_to_cam is not None:
         check_shape(world_to_cam, "world_to_cam", ("B", 4, 4), dims)
+        check_rigid_last_row(world_to_cam, "world_to_cam")
         points = transform_points(world_to_cam, points)
     z = points[..., 2]
     xy = points[..., :2] / z.unsqueeze(-1)
@@ -154,6 +157,7 @@ def backproject_depth(
     """
     dims = check_shape(depth, "depth", ("B", 1, "H", "W"))
     check_shape(K, "K", ("B", 3, 3), dims)
+    check_intrinsics(K)
     pts = depth_to_3d_v2(depth[:, 0], K)  # (B, H, W, 3)
     if cam_to_world is not None:
         check_shape(cam_to_world, "cam_to_world", ("B", 4, 4), dims)

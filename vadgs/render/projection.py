@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_shape, check_size
+from vadgs.checks import check_quaternions, check_shape, check_size
 
 __all__ = ["ProjectedGaussians", "project_gaussians", "quaternion_to_rotation"]
 
@@ -55,6 +55,7 @@ def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
                  [0., 0., 1.]]])
     """
     check_shape(quats, "quats", ("*", 4))
+    check_quaternions(quats)
     q = quats / quats.norm(dim=-1, keepdim=True)
     w, x, y, z = q.unbind(-1)
     rows = [
