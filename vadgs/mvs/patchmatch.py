@@ -403,6 +403,25 @@ def _check_inputs(
         check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
     if src_masks is not None:
         check_shape(src_masks, "src_masks", ("B", "V", 1, "Hs", "Ws"), dims)
+    floats = {
+        name: t.dtype
+        for name, t in (
+            ("image", image),
+            ("src_images", src_images),
+            ("K", K),
+            ("src_K", src_K),
+            ("world_to_cam", world_to_cam),
+            ("src_world_to_cam", src_world_to_cam),
+            ("init_depth", init_depth),
+            ("init_normal", init_normal),
+        )
+        if t is not None and t.is_floating_point()
+    }
+    if len(set(floats.values())) > 1:
+        raise ValueError(
+            f"expected one floating dtype for the images, cameras and initial values, got {floats}; "
+            "convert with .float() (or .double() for all)"
+        )
     lo, hi = (float(x) for x in depth_range)
     if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
         raise ValueError(f"depth_range: expected finite 0 < near < far, got {tuple(depth_range)}")

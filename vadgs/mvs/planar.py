@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_shape
+from vadgs.checks import check_finite, check_shape, checks_enabled
 from vadgs.geometry import backproject_depth, project_points
 
 __all__ = ["PlanarCompletionConfig", "PlaneFit", "complete_planar", "fit_plane_ransac"]
@@ -81,6 +81,12 @@ def fit_plane_ransac(
     normals_in = normals
     if normals_in is not None:
         check_shape(normals_in, "normals", ("N", 3))
+    if int(iterations) < 1:
+        raise ValueError(f"iterations: expected >= 1, got {iterations}")
+    thr_in = torch.as_tensor(threshold)
+    check_finite(thr_in, "threshold")
+    if checks_enabled() and bool((thr_in <= 0).any()):
+        raise ValueError(f"threshold: expected positive inlier distances, got min {float(thr_in.min()):g}")
     n = points.shape[0]
     if n < 3:
         return None

@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from vadgs.checks import check_shape
+from vadgs.checks import check_finite, check_shape
 from vadgs.geometry.camera import camera_centers
 from vadgs.select.covisibility import Covisibility
 
@@ -177,6 +177,9 @@ def top_k_views(
     """
     dims = check_shape(scores, "scores", ("V",))
     ref = _check_ref(ref, dims["V"])
+    if int(k) < 0:
+        raise ValueError(f"k: expected a number of views >= 0, got {k}")
+    check_finite(scores, "scores")
     ok = scores > 0
     ok[ref] = False
     if allowed is not None:

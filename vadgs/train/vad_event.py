@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 
+from vadgs.checks import check_finite, check_shape
 from vadgs.train import ops
 from vadgs.train.incomplete import IncompleteConfig, find_incomplete
 from vadgs.train.inputs import VisibilityInputs
@@ -128,6 +129,8 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
         >>> torch.allclose(quaternion_to_rotation(normals_to_quats(n))[:, :, 2], n, atol=1e-6)
         True
     """
+    check_shape(normals, "normals", ("N", 3))
+    check_finite(normals, "normals")
     n = torch.nn.functional.normalize(normals, dim=-1)
     helper = torch.where(
         n[:, 2:3].abs() < 0.9,
