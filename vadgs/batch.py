@@ -212,7 +212,7 @@ class BatchSummary:
 def _read_json(path: Path) -> dict[str, Any] | None:
     try:
         d = json.loads(path.read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
     return d if isinstance(d, dict) else None
 

@@ -155,6 +155,8 @@ def _read_config_file(path: str) -> dict:
         data = json.loads(p.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"--config {p}: not valid JSON ({e})") from None
+    except RecursionError:
+        raise ValueError(f"--config {p}: nested too deeply to parse (over ~1000 levels)") from None
     config_from_dict(TrainConfig, data, where=f"--config {p}")
     return data
 

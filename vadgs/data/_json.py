@@ -48,6 +48,8 @@ def read_json(path: Path, what: str, top: type = dict) -> Any:
         out = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise ValueError(f"{what}: {path} is not valid JSON ({e})") from None
+    except RecursionError:
+        raise ValueError(f"{what}: {path} is nested too deeply to parse (over ~1000 levels)") from None
     if not isinstance(out, top):
         kind = "object" if top is dict else "list"
         raise ValueError(f"{what}: {path}: expected a JSON {kind} at the top level")

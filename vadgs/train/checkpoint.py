@@ -151,10 +151,26 @@ def _atomic_save(obj: Any, path: Path) -> None:
         if isinstance(e, OSError) and e.errno is not None:
             code, why = e.errno, e.strerror or str(e)
         else:  # torch's zip writer reports a full disk as RuntimeError("[enforce fail at ...")
-            free = shutil.disk_usage(path.parent).free
-            code = errno.ENOSPC if free < (1 << 20) else errno.EIO
-            why = os.strerror(code) if code == errno.ENOSPC else " ".join(str(e).split())[:200]
+            # the partial file is already removed: compare the free space with what was to be written
+            free, needed = shutil.disk_usage(path.parent).free, _tensor_bytes(obj)
+            code = errno.ENOSPC if free < needed + (1 << 20) else errno.EIO
+            if code == errno.ENOSPC:
+                mb = f"about {needed / 2**20:.0f} MB to write, {free / 2**20:.0f} MB free"
+                why = f"{os.strerror(code)}: {mb}"
+            else:
+                why = "write failed: " + " ".join(str(e).split())[:200]
         raise OSError(code, f"cannot write ({why}); {kept}", str(path)) from e
+
+
+def _tensor_bytes(obj: Any) -> int:
+    """The bytes of the tensors in a nested dict / list (what ``torch.save`` writes, roughly)."""
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(_tensor_bytes(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_tensor_bytes(v) for v in obj)
+    return 0
 
 
 def _remove_stale_tmp(folder: Path) -> list[Path]:

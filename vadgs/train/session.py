@@ -15,6 +15,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from vadgs.io import atomic_write
+
 __all__ = ["RunLog", "stop_on_signals"]
 
 
@@ -23,6 +25,10 @@ class RunLog:
 
     Args:
         folder: the run folder; None writes nothing.
+        keep_until: when given, the records of steps after it (written by a run that went on past
+            the checkpoint it is resumed from, e.g. killed before its next checkpoint) and any
+            line that is not a whole JSON object (cut by a kill) are removed before appending, so
+            that a resumed run's log holds every step once.
 
     Example:
         >>> import tempfile
@@ -33,7 +39,9 @@ class RunLog:
         ['{"step": 1, "loss": 0.5}']
     """
 
-    def __init__(self, folder: Path | None) -> None:
+    def __init__(self, folder: Path | None, keep_until: int | None = None) -> None:
+        if folder is not None and keep_until is not None:
+            _truncate_log(folder / "log.jsonl", keep_until)
         self._file = (folder / "log.jsonl").open("a") if folder is not None else None
 
     def write(self, record: dict[str, Any]) -> None:
@@ -53,6 +61,24 @@ class RunLog:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _truncate_log(path: Path, keep_until: int) -> None:
+    """Keep the lines of ``path`` that are JSON objects of step ``<= keep_until`` (atomically)."""
+    if not path.is_file():
+        return
+    kept, dropped = [], 0
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            record = None
+        if not isinstance(record, dict) or int(record.get("step", 0)) > keep_until:
+            dropped += 1
+            continue
+        kept.append(line)
+    if dropped:
+        atomic_write(path, "".join(line + "\n" for line in kept))
 
 
 @contextmanager

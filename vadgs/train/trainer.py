@@ -511,7 +511,10 @@ class Trainer:
         self._undo = None
         self._updating = False
         try:
-            with RunLog(self.out_dir) as log, stop_on_signals(self.request_stop, lambda: self._stop):
+            with (
+                RunLog(self.out_dir, keep_until=self.step) as log,
+                stop_on_signals(self.request_stop, lambda: self._stop),
+            ):
                 while self.step < cfg.iterations:
                     t0 = time.perf_counter()
                     res = self.train_step()
