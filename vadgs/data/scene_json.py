@@ -264,11 +264,18 @@ def load_scene(
         vms = _get(fm, "views", what)
         if not isinstance(vms, list):
             raise ValueError(f"scene.json: {what}.views: expected a list")
+        seen: dict[str, int] = {}
         for vi, vm in enumerate(vms):
             vwhat = f"{what}.views[{vi}]"
             cam = _str(_get(vm, "camera", vwhat), f"{vwhat}.camera")
             if cam not in cameras:
                 raise ValueError(f"scene.json: {vwhat}.camera: unknown camera {cam!r}, have {list(cameras)}")
+            if cam in seen:
+                raise ValueError(
+                    f"scene.json: {vwhat}.camera: camera {cam!r} already has a view in this frame "
+                    f"({what}.views[{seen[cam]}]); expected one view per camera and frame"
+                )
+            seen[cam] = vi
             c2w = _pose(_get(vm, "cam_to_world", vwhat), f"{vwhat}.cam_to_world")
             files = {
                 k: files_of(_str(vm[k], f"{vwhat}.{k}"), f"{vwhat}.{k}") if vm.get(k) else None
