@@ -18,7 +18,34 @@ import torch
 from vadgs.checks import check_finite, check_shape
 from vadgs.geometry.camera import Cameras, project_points
 
-__all__ = ["VoxelGrid", "observing_views", "voxelize"]
+__all__ = ["MAX_VOXEL_CELLS", "VoxelGrid", "check_voxel_size", "observing_views", "voxelize"]
+
+#: Most cells per axis a voxel size may make of a point set (integer coordinates stay exact).
+MAX_VOXEL_CELLS = 2**40
+
+
+def check_voxel_size(offsets: torch.Tensor, voxel_size: float, name: str = "voxel_size") -> None:
+    """Raise a :class:`ValueError` when ``voxel_size`` cuts ``offsets`` into too many cells per axis.
+
+    ``offsets`` are the points relative to the grid's origin (or the points themselves for a grid
+    at 0). Beyond :data:`MAX_VOXEL_CELLS` cells per axis the integer cell coordinates lose
+    precision and then overflow int64 (``voxel_size=1e-30`` merged distant points silently).
+
+    Example:
+        >>> check_voxel_size(torch.tensor([[50.0, 0.0, 0.0]]), 1e-30)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: voxel_size: 1e-30 makes 5e+31 cells along an axis (points up to 50 from the origin)...
+    """
+    if offsets.numel() == 0 or not voxel_size > 0:
+        return
+    reach = float(offsets.detach().abs().max())
+    cells = reach / voxel_size
+    if not cells <= MAX_VOXEL_CELLS:
+        raise ValueError(
+            f"{name}: {voxel_size:g} makes {cells:.3g} cells along an axis (points up to {reach:.3g} from "
+            f"the origin); expected at most {MAX_VOXEL_CELLS:.3g} ({name} >= {reach / MAX_VOXEL_CELLS:.3g})"
+        )
 
 
 @dataclass(frozen=True)
@@ -180,6 +207,7 @@ def voxelize(
     else:
         check_shape(origin, "origin", (3,))
         origin = origin.to(points)
+    check_voxel_size(points - origin, voxel_size)
     coords = torch.floor((points - origin) / voxel_size).long()
     cmin = coords.min(0).values
     c = coords - cmin

@@ -22,6 +22,7 @@ from vadgs.data.colmap import ColmapPoints
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import project_points
+from vadgs.geometry.voxel import check_voxel_size
 from vadgs.train.model import GaussianModel
 
 __all__ = ["InitConfig", "init_gaussians", "knn_scales", "voxel_downsample"]
@@ -97,6 +98,7 @@ def voxel_downsample(
     """
     if voxel_size <= 0 or points.shape[0] == 0:
         return points, colors
+    check_voxel_size(points, voxel_size)
     keys = torch.floor(points / voxel_size).long()
     _, inv = torch.unique(keys, dim=0, return_inverse=True)
     m = int(inv.max()) + 1
