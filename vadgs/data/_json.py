@@ -20,10 +20,64 @@ Example:
 from __future__ import annotations
 
 import json
-from pathlib import Path
+import os
+import warnings
+from pathlib import Path, PurePosixPath
 from typing import Any
 
-__all__ = ["read_json", "require_key"]
+__all__ = ["ALLOW_OUTSIDE_ENV", "DatasetFiles", "read_json", "require_key"]
+
+#: Environment variable: ``1`` lets every scene read files outside its folder (as
+#: ``load_scene(..., allow_outside=True)``; for the ``vadgs`` commands).
+ALLOW_OUTSIDE_ENV = "VADGS_ALLOW_OUTSIDE_SCENE"
+
+
+class DatasetFiles:
+    """The paths a dataset's metadata names, kept inside the dataset folder unless allowed.
+
+    Used by the readers of ``scene.json``, DGP scenes and nuScenes tables: ``files(rel, what)``
+    is ``root / rel``. A path written with ``..`` or as an absolute path is refused with one line
+    naming the entry (``allow_outside`` lets it through); a path that leaves the folder only
+    through a symlink on disk (a data folder linked from elsewhere) is read, and :meth:`warn`
+    then names those files in one :class:`UserWarning`.
+
+    Args:
+        root: the dataset folder.
+        allow_outside: read files outside ``root`` without a word; None: the environment
+            variable :data:`ALLOW_OUTSIDE_ENV`.
+        what: the metadata's name, first in the messages.
+    """
+
+    def __init__(self, root: Path, allow_outside: bool | None = None, what: str = "scene.json") -> None:
+        if allow_outside is None:
+            allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "").strip().lower() in ("1", "true", "yes")
+        self.root, self.real_root, self.allow = root, root.resolve(), bool(allow_outside)
+        self.linked: list[str] = []
+        self.what = what
+
+    def __call__(self, rel: str, what: str) -> Path:
+        path = self.root / rel
+        parts = PurePosixPath(rel.replace("\\", "/")).parts
+        if not self.allow and (PurePosixPath(rel).is_absolute() or ".." in parts):
+            raise ValueError(
+                f"{self.what}: {what}: expected a path inside the dataset folder {self.root}, got {rel!r} "
+                f"(to read files outside it: load_scene(..., allow_outside=True) or {ALLOW_OUTSIDE_ENV}=1)"
+            )
+        if not self.allow:
+            real = path.resolve()
+            if real != self.real_root and self.real_root not in real.parents:
+                self.linked.append(f"{what} {rel} -> {real}")
+        return path
+
+    def warn(self) -> None:
+        """One :class:`UserWarning` naming the files read through symlinks out of ``root``, if any."""
+        if self.linked:
+            warnings.warn(
+                f"{self.what} {self.root}: {len(self.linked)} file(s) outside the folder through symlinks, "
+                f"e.g. {self.linked[:2]} ({ALLOW_OUTSIDE_ENV}=1 silences this)",
+                UserWarning,
+                stacklevel=3,
+            )
 
 
 def read_json(path: Path, what: str, top: type = dict) -> Any:

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vadgs.data._json import read_json, require_key
+from vadgs.data._json import DatasetFiles, read_json, require_key
 from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
@@ -217,6 +217,7 @@ def load_dgp(
     check_scale(scale)
     check_validate_level(validate)
     meta = _read_json(scene_json, "scene")
+    files = DatasetFiles(scene_dir, what=f"DGP {scene_json.name}")
     samples = _key(meta, "samples", scene_json.name)
     data = _key(meta, "data", scene_json.name)
     if not isinstance(samples, list) or not samples:
@@ -230,7 +231,7 @@ def load_dgp(
         raise ValueError(
             f"DGP {scene_json.name}: samples use several calibrations; vadgs supports one per scene"
         )
-    calib = _read_json(scene_dir / "calibration" / f"{calib_key}.json", "calibration")
+    calib = _read_json(files(f"calibration/{calib_key}.json", "calibration_key"), "calibration")
     names = [str(n) for n in _key(calib, "names", "calibration")]
     intr = _key(calib, "intrinsics", "calibration")
     extr = _key(calib, "extrinsics", "calibration")
@@ -336,7 +337,7 @@ def load_dgp(
             vts = (
                 _time(per_sample[fi][n]["id"].get("timestamp", stamp), f"{what}.id.timestamp") - t0
             ).total_seconds()
-            path = scene_dir / str(_key(im, "filename", what))
+            path = files(str(_key(im, "filename", what)), f"{what}.filename")
             views.append(ViewInfo(len(views), fi, n, vts, c2w, path))
             ids.append(len(views) - 1)
         ref_datum = datum(fi, ref, ref_kind)
@@ -344,13 +345,19 @@ def load_dgp(
         e2w = as_tensor(ref_pose @ np.linalg.inv(sensor_to_ego[ref]), f"samples[{fi}].{ref}.pose")
         lidar_path = None
         if lidar is not None:
-            lidar_path = scene_dir / str(_key(ref_datum, "filename", f"samples[{fi}].{lidar}"))
+            lidar_path = files(
+                str(_key(ref_datum, "filename", f"samples[{fi}].{lidar}")), f"samples[{fi}].{lidar}"
+            )
             lidar_to_world[fi] = ref_pose
         frames.append(FrameInfo(fi, ts, e2w, tuple(ids), lidar_path))
 
         ann = ref_datum.get("annotations", {}).get(_BOX3D)
         if ann:
-            for ai, a in enumerate(_key(_read_json(scene_dir / ann, "3D boxes"), "annotations", ann)):
+            for ai, a in enumerate(
+                _key(
+                    _read_json(files(str(ann), f"samples[{fi}] annotations"), "3D boxes"), "annotations", ann
+                )
+            ):
                 what = f"{ann}: annotations[{ai}]"
                 box = _key(a, "box", what)
                 iid = int(_key(a, "instance_id", what))
@@ -364,7 +371,7 @@ def load_dgp(
     if raw_boxes:
         if onto_key is None:
             raise ValueError(f"DGP {scene_json.name}: ontologies: missing key {_BOX3D!r} (3D boxes)")
-        onto = _read_json(scene_dir / "ontology" / f"{onto_key}.json", "ontology")
+        onto = _read_json(files(f"ontology/{onto_key}.json", "ontologies"), "ontology")
         classes = {
             int(_key(it, "id", "ontology item")): _class_slug(str(_key(it, "name", "ontology item")))
             for it in _key(onto, "items", "ontology")
@@ -390,6 +397,7 @@ def load_dgp(
         world = raw[:, :3] @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
         return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 
+    files.warn()
     return assemble_scene(
         f"DGP scene {scene_dir}",
         name=scene_dir.name,

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vadgs.data._json import read_json, require_key
+from vadgs.data._json import DatasetFiles, read_json, require_key
 from vadgs.data._tracks import (
     BoxObservation,
     as_tensor,
@@ -210,6 +210,7 @@ def load_nuscenes(
         (234, (225, 400))
     """
     dataroot = Path(dataroot)
+    files = DatasetFiles(dataroot, what=f"nuScenes {version}")
     if not dataroot.is_dir():
         raise FileNotFoundError(f"dataroot: no such folder {dataroot}")
     meta_dir = dataroot / version
@@ -353,14 +354,14 @@ def load_nuscenes(
                 )
             c2w = to_world(ego_pose(sd, what)) @ sensor_to_ego(sd, what)[0]
             ts = (int(_key(sd, "timestamp", what)) - t0) * 1e-6
-            path = dataroot / str(_key(sd, "filename", what))
+            path = files(str(_key(sd, "filename", what)), f"{what}.filename")
             views.append(ViewInfo(len(views), fi, c, ts, as_tensor(c2w, f"{what} pose"), path))
             ids.append(len(views) - 1)
         sd = reading(fi, ref)
         e2w = to_world(ego_pose(sd, f"{ref} at frame {fi}"))
         lidar_path = None
         if lidar is not None:
-            lidar_path = dataroot / str(_key(sd, "filename", f"{lidar} at frame {fi}"))
+            lidar_path = files(str(_key(sd, "filename", f"{lidar} at frame {fi}")), f"{lidar} at frame {fi}")
             lidar_to_world[fi] = e2w @ sensor_to_ego(sd, f"{lidar} at frame {fi}")[0]
         ts = (int(_key(s, "timestamp", "sample")) - t0) * 1e-6
         frame_infos.append(
@@ -411,6 +412,7 @@ def load_nuscenes(
         world = local @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
         return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 
+    files.warn()
     return assemble_scene(
         f"nuScenes scene {scene_name}",
         name=scene_name,

@@ -8,65 +8,21 @@ referenced file exists before returning (and, by default, the files' headers: se
 
 from __future__ import annotations
 
-import os
-import warnings
 from collections.abc import Sequence
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from vadgs.checks import check_finite
-from vadgs.data._json import read_json, require_key
+from vadgs.data._json import DatasetFiles, read_json, require_key
 from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
 from vadgs.data.checks import check_intrinsics, check_rigid, check_split
 from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, _read_lidar
 from vadgs.geometry.camera import scale_intrinsics
 
-__all__ = ["ALLOW_OUTSIDE_ENV", "load_scene", "novel_view_group"]
-
-#: Environment variable: ``1`` lets every scene read files outside its folder (as
-#: ``load_scene(..., allow_outside=True)``; for the ``vadgs`` commands).
-ALLOW_OUTSIDE_ENV = "VADGS_ALLOW_OUTSIDE_SCENE"
-
-
-class _SceneFiles:
-    """The paths ``scene.json`` names, kept inside the scene folder unless allowed otherwise.
-
-    A path written with ``..`` or as an absolute path is refused (``allow_outside`` lets it
-    through); a path that leaves the folder only through a symlink on disk (a data folder linked
-    from elsewhere) is read, with one :class:`UserWarning` per scene naming the files.
-    """
-
-    def __init__(self, root: Path, allow_outside: bool | None) -> None:
-        if allow_outside is None:
-            allow_outside = os.environ.get(ALLOW_OUTSIDE_ENV, "").strip().lower() in ("1", "true", "yes")
-        self.root, self.real_root, self.allow = root, root.resolve(), bool(allow_outside)
-        self.linked: list[str] = []
-
-    def __call__(self, rel: str, what: str) -> Path:
-        path = self.root / rel
-        parts = PurePosixPath(rel.replace("\\", "/")).parts
-        if not self.allow and (PurePosixPath(rel).is_absolute() or ".." in parts):
-            raise ValueError(
-                f"scene.json: {what}: expected a path inside the scene folder {self.root}, got {rel!r} "
-                f"(to read files outside it: load_scene(..., allow_outside=True) or {ALLOW_OUTSIDE_ENV}=1)"
-            )
-        if not self.allow:
-            real = path.resolve()
-            if real != self.real_root and self.real_root not in real.parents:
-                self.linked.append(f"{what} {rel} -> {real}")
-        return path
-
-    def warn(self) -> None:
-        if self.linked:
-            warnings.warn(
-                f"scene {self.root}: {len(self.linked)} file(s) outside the scene folder through symlinks, "
-                f"e.g. {self.linked[:2]} ({ALLOW_OUTSIDE_ENV}=1 silences this)",
-                UserWarning,
-                stacklevel=3,
-            )
+__all__ = ["load_scene", "novel_view_group"]
 
 
 def _int(value: object, what: str) -> int:
@@ -147,7 +103,7 @@ def novel_view_group(shift_ego_m: Sequence[float]) -> str:
 
 
 def _novel_views(
-    meta: dict, root: _SceneFiles, cameras: dict[str, CameraInfo], frames: dict[int, FrameInfo], start: int
+    meta: dict, root: DatasetFiles, cameras: dict[str, CameraInfo], frames: dict[int, FrameInfo], start: int
 ) -> list[ViewInfo]:
     """The ``novel_views`` entries of ``scene.json`` as :class:`ViewInfo` (indices from ``start``)."""
     entries = meta.get("novel_views", [])
@@ -202,7 +158,7 @@ def load_scene(
         allow_outside: read files that ``scene.json`` names outside the scene folder (an
             absolute path or one with ``..``), which are refused otherwise; files that leave the
             folder only through a symlink are read with a warning naming them unless this is
-            True. None (default): the environment variable :data:`ALLOW_OUTSIDE_ENV`.
+            True. None (default): the environment variable ``VADGS_ALLOW_OUTSIDE_SCENE``.
 
     Returns:
         The :class:`Scene`, with per-view data loaded lazily. ``novel_views`` entries of
@@ -229,7 +185,7 @@ def load_scene(
     if not meta_path.is_file():
         raise FileNotFoundError(f"no scene.json in {root}")
     meta = read_json(meta_path, "scene.json")
-    files_of = _SceneFiles(root, allow_outside)
+    files_of = DatasetFiles(root, allow_outside)
     check_scale(scale)
     check_validate_level(validate)
 
