@@ -6,6 +6,7 @@ tool that reads :func:`~vadgs.data.load_scene` work on it (``vadgs convert`` on 
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,9 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
     ``scale`` it was loaded with), with ``K`` to match; loading the result with
     :func:`~vadgs.data.load_scene` (``scale=1``) gives the same cameras, poses, LiDAR (world
     points, instance ids, origin), instances, tracks (the valid frames of each) and split.
-    Depth and instance maps are not written (a converted real scene has none).
+    Depth and instance maps are not written (a converted real scene has none); the tracks' meshes are
+    copied to ``gt/`` so that the folder is self-contained. Camera names become folder names made
+    safe by :func:`vadgs.io.safe_filename`.
 
     Args:
         scene: the scene (e.g. from :func:`~vadgs.data.load_nuscenes`).
@@ -101,10 +104,19 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
                     for p in range(len(scene.frames))
                     if bool(t.valid[p])
                 },
-                **({"mesh": str(t.mesh)} if t.mesh is not None else {}),
+                **(
+                    {"mesh": _copy_mesh(t.mesh, out, t.id)} if t.mesh is not None and t.mesh.is_file() else {}
+                ),
             }
             for t in scene.tracks.values()
         ],
         "split": {"train_frames": list(scene.train_frames), "test_frames": list(scene.test_frames)},
     }
     return write_json(out / "scene.json", meta, indent=None)  # last: a folder with it is complete
+
+
+def _copy_mesh(mesh: Path, out: Path, track_id: int) -> str:
+    """Copy a track's mesh into ``out/gt/`` (the exported scene stays self-contained); its path there."""
+    rel = f"gt/object_{int(track_id)}{mesh.suffix}"
+    atomic_write(out / rel, lambda tmp: shutil.copyfile(mesh, tmp))
+    return rel
