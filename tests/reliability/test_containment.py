@@ -56,7 +56,7 @@ class TestNamesFromData:
         (tmp_path / "run").mkdir()
         (tmp_path / "run" / "link").symlink_to(tmp_path)
         assert check_inside(tmp_path / "run" / "a.png", tmp_path / "run", "x") == tmp_path / "run" / "a.png"
-        with pytest.raises(ValueError, match="x: .* resolves to .*, outside"):
+        with pytest.raises(ValueError, match=r"x: .* resolves to .*, outside"):
             check_inside(tmp_path / "run" / "link" / "a.png", tmp_path / "run", "x")
         with pytest.raises(ValueError, match="outside"):
             check_inside(tmp_path / "run" / ".." / "a.png", tmp_path / "run", "x")
@@ -65,12 +65,16 @@ class TestNamesFromData:
         """A camera named ``../../escaped`` wrote its panels two folders up (issue 33, case 2)."""
         root = copy_sample_scene(tmp_path / "data", _rename_camera)
         scene = load_scene(root, scale=0.25)
-        model = init_gaussians(scene, InitConfig(voxel_size=1.0, max_points=300, max_object_points=30, sh_degree=0))
+        model = init_gaussians(
+            scene, InitConfig(voxel_size=1.0, max_points=300, max_object_points=30, sh_degree=0)
+        )
         view = next(v.index for v in scene.views if v.camera == EVIL and v.frame in scene.test_frames)
         out = tmp_path / "run" / "renders"
         before = _tree(tmp_path)
         paths = save_test_panels(model, scene, out, [view])
-        assert [p.parent for p in paths] == [out] and paths[0].name.startswith(f"view{view:03d}___.._escaped_")
+        assert [p.parent for p in paths] == [out] and paths[0].name.startswith(
+            f"view{view:03d}___.._escaped_"
+        )
         assert _tree(tmp_path) - before == {"run", "run/renders", f"run/renders/{paths[0].name}"}
 
     def test_exported_scene_of_a_camera_named_dot_dot(self, tmp_path):
@@ -102,7 +106,9 @@ class TestSceneFilesOutsideTheScene:
             return "../outside.png" if kind == "dotdot" else str(outside)
 
         root = self._scene_reading(tmp_path, rel_of)
-        with pytest.raises(ValueError, match=r"scene.json: frames\[0\].views\[0\].image: expected a path inside"):
+        with pytest.raises(
+            ValueError, match=r"scene.json: frames\[0\].views\[0\].image: expected a path inside"
+        ):
             load_scene(root)
         assert load_scene(root, allow_outside=True).views[0].image.resolve() == outside.resolve()
         monkeypatch.setenv(ALLOW_OUTSIDE_ENV, "1")
@@ -123,8 +129,12 @@ class TestSceneFilesOutsideTheScene:
             load_scene(root, allow_outside=True)
 
     def test_a_view_listed_twice_in_a_frame(self, tmp_path):
-        root = copy_sample_scene(tmp_path, lambda m: m["frames"][1]["views"].append(m["frames"][1]["views"][0]))
-        with pytest.raises(ValueError, match=r"frames\[1\].views\[3\].camera: camera 'front' already has a view"):
+        root = copy_sample_scene(
+            tmp_path, lambda m: m["frames"][1]["views"].append(m["frames"][1]["views"][0])
+        )
+        with pytest.raises(
+            ValueError, match=r"frames\[1\].views\[3\].camera: camera 'front' already has a view"
+        ):
             load_scene(root)
 
     def test_deeply_nested_json_names_the_file(self, tmp_path):

@@ -204,10 +204,12 @@ def _walk_binary(path: Path) -> str | None:
                 r.cstring()
                 (num_points,) = r.take("<Q")
                 r.skip(24 * num_points)
-            else:  # points3D
-                r.take("<Q3d3Bd")
-                (track,) = r.take("<Q")
-                r.skip(8 * track)
+            else:  # points3D: id, xyz, rgb, error (43 bytes), the track's length, its (image, point2D) pairs
+                if r.pos + 51 > len(data):
+                    raise EOFError
+                r.pos += 51 + 8 * int.from_bytes(data[r.pos + 43 : r.pos + 51], "little")
+                if r.pos > len(data):
+                    raise EOFError
     except EOFError:
         if record < 0:
             return f"truncated: {len(data)} bytes, too short for the record count"

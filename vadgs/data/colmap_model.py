@@ -125,6 +125,9 @@ def _read_model(sparse_dir: Path, what: str) -> object:
             f"{what} {sparse_dir}: no COLMAP model (cameras, images, points3D as .bin or .txt; "
             f"missing {', '.join(missing)})"
         )
+    found = diagnose_model_files(sparse_dir)  # pycolmap may loop for minutes on a truncated file
+    if found is not None:
+        raise ValueError(f"{what} {sparse_dir}: cannot read the COLMAP model: {found}")
     try:
         rec = pycolmap.Reconstruction(str(sparse_dir))
     except Exception as e:  # pycolmap raises a bare RuntimeError / ValueError on corrupt files
