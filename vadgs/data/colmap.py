@@ -480,7 +480,12 @@ def open_colmap_project(
                 f"{model}: cameras {distorted} are distorted; give undistort_dir to undistort them"
             )
         model, images_dir = undistort_colmap(model, images_dir, undistort_dir)
-    colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
+    try:
+        colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
+    except BaseException:
+        if distorted:  # the undistorted copy of a project that cannot be loaded is no use: remove it
+            shutil.rmtree(undistort_dir, ignore_errors=True)
+        raise
     name = _project_name(source)
     colmap = colmap._replace(scene=dataclasses.replace(colmap.scene, name=name))
     transform = None
