@@ -166,3 +166,25 @@ def test_image_names_accepted(name):
 def test_image_names_refused(name):
     with pytest.raises(ValueError, match="image: expected a relative image path"):
         check_image_name(name, "image")
+
+
+def test_interrupted_undistortion_leaves_nothing_and_a_stale_partial_is_cleared(base, tmp_path, monkeypatch):
+    import pycolmap
+
+    project = _variant(base, tmp_path)
+    run = tmp_path / "run"
+    real = pycolmap.undistort_images
+
+    def killed(out, *args, **kwargs):  # some images written, then Ctrl+C
+        (Path(out) / "images").mkdir(parents=True)
+        (Path(out) / "images" / "half.png").write_bytes(b"x")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pycolmap, "undistort_images", killed)
+    with pytest.raises(KeyboardInterrupt):
+        _open(project, run)
+    assert sorted(p.name for p in run.iterdir()) == []
+    (run / ".undistorted.partial" / "images").mkdir(parents=True)  # what a kill -9 leaves
+    monkeypatch.setattr(pycolmap, "undistort_images", real)
+    colmap, _ = _open(project, run)
+    assert sorted(p.name for p in run.iterdir()) == ["undistorted"] and colmap.scene.num_views == 24

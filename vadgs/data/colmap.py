@@ -378,7 +378,11 @@ def undistort_colmap(
 
     Writes ``out_dir/sparse`` (PINHOLE cameras, the same poses and points) and ``out_dir/images``
     (same names). ``out_dir`` must be new or the output of an earlier call (it is replaced);
-    nothing is written next to the input.
+    nothing is written next to the input. Every registered image is first decoded in full and
+    measured against its camera (:func:`~vadgs.data.colmap_files.check_colmap_images`: pycolmap
+    aborts the process on a wrong size and grey-fills a truncated image). The output is written
+    to ``.<out_dir name>.partial`` beside ``out_dir`` and renamed when complete, so a failed or
+    killed call leaves no half-written ``out_dir``.
 
     Args:
         sparse_dir: the distorted model.
@@ -401,20 +405,25 @@ def undistort_colmap(
     # pycolmap's undistorter aborts the process on an image of the wrong size and grey-fills a
     # truncated one: every registered image is decoded and measured first, naming the file
     check_colmap_images(rec, images_dir, full=True)
-    if out_dir.exists():
-        if not _has_model(out_dir / "sparse"):
-            raise ValueError(
-                f"out_dir {out_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
-            )
-        shutil.rmtree(out_dir)
+    if out_dir.exists() and not _has_model(out_dir / "sparse"):
+        raise ValueError(
+            f"out_dir {out_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
+        )
+    # written beside out_dir and renamed when complete: a killed run leaves only the partial folder,
+    # which the next call removes
+    partial = out_dir.with_name(f".{out_dir.name}.partial")
+    shutil.rmtree(partial, ignore_errors=True)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     try:
         with _colmap_logging():
-            pycolmap.undistort_images(str(out_dir), str(sparse_dir), str(images_dir))
-        if not _has_model(out_dir / "sparse"):
+            pycolmap.undistort_images(str(partial), str(sparse_dir), str(images_dir))
+        if not _has_model(partial / "sparse"):
             raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        partial.rename(out_dir)
     except BaseException:
-        shutil.rmtree(out_dir, ignore_errors=True)  # no half-written copy left in the run folder
+        shutil.rmtree(partial, ignore_errors=True)  # no half-written copy left in the run folder
         raise
     return out_dir / "sparse", out_dir / "images"
 
