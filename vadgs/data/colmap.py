@@ -416,7 +416,13 @@ def undistort_colmap(
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     try:
         with _colmap_logging():
-            pycolmap.undistort_images(str(partial), str(sparse_dir), str(images_dir))
+            try:
+                pycolmap.undistort_images(str(partial), str(sparse_dir), str(images_dir))
+            except Exception as e:  # pycolmap's own text, as one line naming the inputs
+                first = " ".join(str(e).split())[:200]
+                raise ValueError(
+                    f"sparse_dir {sparse_dir}, images_dir {images_dir}: pycolmap.undistort_images: {first}"
+                ) from None
         if not _has_model(partial / "sparse"):
             raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
         if out_dir.exists():
