@@ -188,3 +188,35 @@ def test_interrupted_undistortion_leaves_nothing_and_a_stale_partial_is_cleared(
     monkeypatch.setattr(pycolmap, "undistort_images", real)
     colmap, _ = _open(project, run)
     assert sorted(p.name for p in run.iterdir()) == ["undistorted"] and colmap.scene.num_views == 24
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_a_track_observing_a_missing_image_names_the_point(base, tmp_path, binary):
+    """pycolmap said only "Image with ID 9999 does not exist"."""
+    import pycolmap
+
+    project = _variant(base, tmp_path, text=True)
+    _edit(
+        project,
+        "points3D.txt",
+        lambda t: re.sub(r"^(\d+ (?:\S+ ){7})\d+ ", r"\g<1>9999 ", t, count=1, flags=re.M),
+    )
+    model = project / "sparse" / "0"
+    first = next(ln for ln in (model / "points3D.txt").read_text().splitlines() if not ln.startswith("#"))
+    if binary:  # the same model as .bin files, written without pycolmap's checks
+        out = tmp_path / "bin"
+        out.mkdir()
+        rec_ok = pycolmap.Reconstruction(str(base[0] / "sparse" / "0"))
+        rec_ok.write_binary(str(out))
+        data = bytearray((out / "points3D.bin").read_bytes())
+        data[8 + 51 : 8 + 55] = (9999).to_bytes(4, "little")  # the first track element's image id
+        (out / "points3D.bin").write_bytes(bytes(data))
+        model = out
+        pid = int.from_bytes(data[8:16], "little")
+    else:
+        pid = int(first.split()[0])
+    with pytest.raises(
+        ValueError,
+        match=rf"points3D.(txt|bin): point {pid} observes image 9999, which images.(txt|bin) does not have",
+    ):
+        load_colmap(model)

@@ -206,24 +206,26 @@ class ViewCommand(Command):
         run = load_run(self.run)
         model, scene = run.model, run.scene
         _, position = frame_position(scene, self.frame, "--frame")
-        server = viser.ViserServer(host=self.host, port=self.port, verbose=False)
-        try:
-            viewer = build_viewer(model, scene, server, position, max_gaussians=self.max_gaussians)
-            shown = sum(int(g.rows.numel()) for g in viewer.groups)
-            print(
-                f"viewing {_run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
-                f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
-            )
-            print(_listening(self.host, server.get_port()), flush=True)
-            deadline = None if self.timeout is None else time.monotonic() + self.timeout
-            stop = threading.Event()
-            with stop_on_signals(stop.set, stop.is_set):  # SIGINT / SIGTERM: stop serving, exit 0
+        stop = threading.Event()
+        # SIGINT / SIGTERM stop serving (exit 0), from before the server starts: a signal that
+        # arrives while the scene is sent, or just after the address is printed, is not fatal
+        with stop_on_signals(stop.set, stop.is_set):
+            server = viser.ViserServer(host=self.host, port=self.port, verbose=False)
+            try:
+                viewer = build_viewer(model, scene, server, position, max_gaussians=self.max_gaussians)
+                shown = sum(int(g.rows.numel()) for g in viewer.groups)
+                print(
+                    f"viewing {_run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
+                    f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
+                )
+                print(_listening(self.host, server.get_port()), flush=True)
+                deadline = None if self.timeout is None else time.monotonic() + self.timeout
                 while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
                     stop.wait(0.2)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            server.stop()
+            except KeyboardInterrupt:
+                pass
+            finally:
+                server.stop()
         return 0
 
 

@@ -28,7 +28,13 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
-__all__ = ["check_colmap_images", "check_image_name", "check_reconstruction", "diagnose_model_files"]
+__all__ = [
+    "check_colmap_images",
+    "check_image_name",
+    "check_reconstruction",
+    "diagnose_model_files",
+    "diagnose_references",
+]
 
 _QUAT_TOLERANCE = 1e-3  # |‖q‖ - 1| accepted (COLMAP writes unit quaternions to 17 digits)
 
@@ -274,4 +280,73 @@ def diagnose_model_files(sparse_dir: Path) -> str | None:
             if problem is not None:
                 return f"{path}: {problem}"
             break
+    return None
+
+
+def _model_path(sparse_dir: Path, stem: str) -> Path | None:
+    for ext in ("bin", "txt"):
+        if (sparse_dir / f"{stem}.{ext}").is_file():
+            return sparse_dir / f"{stem}.{ext}"
+    return None
+
+
+def _image_points(path: Path) -> dict[int, int]:
+    """Image id -> its number of 2D points, from a structurally sound ``images`` file."""
+    out: dict[int, int] = {}
+    if path.suffix == ".bin":
+        r = _Reader(path.read_bytes())
+        (n,) = r.take("<Q")
+        for _ in range(n):
+            (iid, *_rest) = r.take("<I7dI")
+            r.cstring()
+            (num,) = r.take("<Q")
+            r.skip(24 * num)
+            out[iid] = num
+        return out
+    lines = [
+        ln for ln in path.read_text(errors="replace").splitlines() if ln.strip() and not ln.startswith("#")
+    ]
+    for head, pts in zip(lines[0::2], lines[1::2]):
+        out[int(head.split()[0])] = len(pts.split()) // 3
+    return out
+
+
+def _tracks(path: Path):
+    """``(point id, (K, 2) int64 array of (image id, point2D index))`` of a sound ``points3D`` file."""
+    if path.suffix == ".bin":
+        data = path.read_bytes()
+        (n,) = struct.unpack_from("<Q", data, 0)
+        pos = 8
+        for _ in range(n):
+            (pid,) = struct.unpack_from("<Q", data, pos)
+            (length,) = struct.unpack_from("<Q", data, pos + 43)
+            pairs = np.frombuffer(data, dtype="<u4", count=2 * length, offset=pos + 51).reshape(-1, 2)
+            yield pid, pairs.astype(np.int64)
+            pos += 51 + 8 * length
+        return
+    for ln in path.read_text(errors="replace").splitlines():
+        if ln.strip() and not ln.startswith("#"):
+            fields = ln.split()
+            yield int(fields[0]), np.asarray([int(v) for v in fields[8:]], dtype=np.int64).reshape(-1, 2)
+
+
+def diagnose_references(sparse_dir: Path) -> str | None:
+    """``"FILE: ..."`` for the first track that observes an image or a 2D point the model lacks, or None.
+
+    For a model whose files are each well formed (:func:`diagnose_model_files` found nothing) but
+    which pycolmap still refused (``Image with ID 9999 does not exist``).
+    """
+    images, points = _model_path(sparse_dir, "images"), _model_path(sparse_dir, "points3D")
+    if images is None or points is None:
+        return None
+    known = _image_points(images)
+    for pid, pairs in _tracks(points):
+        for iid, idx in pairs.tolist():
+            if iid not in known:
+                return f"{points}: point {pid} observes image {iid}, which {images.name} does not have"
+            if idx >= known[iid]:
+                return (
+                    f"{points}: point {pid} observes 2D point {idx} of image {iid}, which has "
+                    f"{known[iid]} in {images.name}"
+                )
     return None

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vadgs.data.colmap_files import check_reconstruction, diagnose_model_files
+from vadgs.data.colmap_files import check_reconstruction, diagnose_model_files, diagnose_references
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
 
@@ -142,7 +142,7 @@ def _pycolmap_error(sparse_dir: Path, error: Exception) -> str:
     """The error of pycolmap as one line naming the file at fault (found by :func:`diagnose_model_files`)."""
     first = " ".join(str(error).split())
     first = first.split("] ", 1)[-1] if first.startswith("[") else first  # "[file.cc:123] Check failed"
-    found = diagnose_model_files(sparse_dir)
+    found = diagnose_model_files(sparse_dir) or diagnose_references(sparse_dir)
     return f"{found} (pycolmap: {first[:200]})" if found else f"pycolmap: {first[:200]}"
 
 

@@ -202,6 +202,7 @@ def voxelize(
     if not voxel_size > 0:
         raise ValueError(f"voxel_size: expected a positive number, got {voxel_size}")
     device = points.device
+    check_voxel_size(points, voxel_size)  # the origin's cell first (points / voxel_size may overflow)
     if origin is None:
         origin = torch.floor(points.min(0).values / voxel_size) * voxel_size
     else:
