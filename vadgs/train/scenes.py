@@ -171,14 +171,14 @@ def scene_ref(path: str | Path, kind: str | None = None, **options: Any) -> Scen
     return cls(str(path), **options)
 
 
-def _detect_kind(path: Path) -> str:
+def _detect_kind(path: Path, what: str = "SCENE") -> str:
     from vadgs.data import find_colmap_model
 
     if (path / "scene.json").is_file() or path.name == "scene.json":
         return "benchmark"
     if find_colmap_model(path) is None:
         raise FileNotFoundError(
-            f"SCENE {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
+            f"{what} {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
             "(cameras, images, points3D as .bin or .txt in it, in sparse/0, sparse or 0); "
             "a DGP scene needs --dgp"
         )
@@ -338,6 +338,11 @@ def _scene_exists(kind: str, path: Path) -> bool:
     return find_colmap_model(path) is not None
 
 
+def _hint(flag: str) -> str:
+    """How to name a moved scene: ``pass --scene FOLDER`` (a flag) or ``give SCENE`` (an argument)."""
+    return f"pass {flag} FOLDER" if flag.startswith("--") else f"give {flag}"
+
+
 def locate_scene(
     ref: dict[str, Any], run_dir: str | Path, scene: str | Path | None = None, flag: str = "--scene"
 ) -> dict[str, Any]:
@@ -386,7 +391,7 @@ def locate_scene(
                 located[key] = str(run_dir.joinpath(*tail))
     if scene is not None:
         given = Path(scene)
-        found = "dgp" if kind == "dgp" and given.exists() else scene_ref(given).kind
+        found = "dgp" if kind == "dgp" and given.exists() else _detect_kind(given, flag)  # as scene_ref
         if found != kind:
             raise ValueError(
                 f"{flag} {given}: a {found} scene, but the run {run_dir} was trained on a {kind} scene"
@@ -414,7 +419,7 @@ def locate_scene(
                     warnings.warn(
                         f"run {run_dir}: its scene {key} {value!r} is relative (a run of an older vadgs) "
                         f"and its working folder is not recorded: taken as {located[key]} against the "
-                        f"current folder; pass {flag} FOLDER to name the scene",
+                        f"current folder; {_hint(flag)} to name the scene",
                         stacklevel=2,
                     )
     path = Path(located["path"])
@@ -422,12 +427,12 @@ def locate_scene(
         what = "--scene" if scene is not None else "recorded"
         raise FileNotFoundError(
             f"run {run_dir}: its {kind} scene is not at {path} ({what}; moved or deleted?); "
-            f"pass {flag} FOLDER to point the run at its data"
+            f"{_hint(flag)} to point the run at its data"
         )
     if kind == "colmap" and located.get("images") and not Path(located["images"]).is_dir():
         raise FileNotFoundError(
             f"run {run_dir}: the images of its COLMAP scene are not at {located['images']} (moved or "
-            f"deleted?); pass {flag} FOLDER (the project, with images/) to point the run at its data"
+            f"deleted?); {_hint(flag)} (the project, with images/) to point the run at its data"
         )
     return located
 
@@ -455,7 +460,7 @@ def open_run_scene(
         raise ValueError(
             f"scene {located['path']} (fingerprint {now}) is not the scene run {Path(run_dir)} was "
             f"trained on ({ref['path']}, fingerprint {recorded}): another scene or changed files; "
-            f"pass {flag} FOLDER with the run's own data"
+            f"{_hint(flag)} with the run's own data"
         )
     located["fingerprint"] = now
     return opened, located

@@ -114,16 +114,7 @@ class RunLock:
                 if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     raise
                 self._remove_created()
-                h = self._holder()
-                who = (
-                    f"{h.get('command', 'a vadgs process')} (pid {h.get('pid', '?')} on {h.get('host', '?')}"
-                )
-                raise RunInUseError(
-                    errno.EBUSY,
-                    f"in use by {who}, since {h.get('started', '?')}); one process writes a run folder at a "
-                    "time: wait for it to finish or stop it",
-                    str(self.folder),
-                ) from None
+                raise self._in_use() from None
             try:  # the file may have been removed by its previous holder between open and flock
                 same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
             except FileNotFoundError:
@@ -156,6 +147,40 @@ class RunLock:
             if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
                 self._sigterm = signal.signal(signal.SIGTERM, _terminate)
         return self
+
+    @classmethod
+    def check_free(cls, folder: str | Path) -> None:
+        """Raise :class:`RunInUseError` as :meth:`acquire` would when a live process holds the lock.
+
+        Takes nothing and writes nothing: a check before work that would fail anyway (a folder
+        that does not exist or has no lock file is free).
+        """
+        lock = cls(folder)
+        if not lock.path.is_file():
+            return
+        try:
+            fd = os.open(lock.path, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as e:
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise lock._in_use() from None
+        finally:
+            os.close(fd)
+
+    def _in_use(self) -> RunInUseError:
+        h = self._holder()
+        who = h.get("command", "a vadgs process")
+        who += f" (pid {h.get('pid', '?')} on {h.get('host', '?')}"
+        return RunInUseError(
+            errno.EBUSY,
+            f"in use by {who}, since {h.get('started', '?')}); one process writes a run folder at a "
+            "time: wait for it to finish or stop it",
+            str(self.folder),
+        )
 
     def _remove_created(self) -> None:
         for p in self._created:  # deepest first; only folders left empty
