@@ -21,7 +21,7 @@ import pytest
 
 from vadgs.cli import main as _main
 from vadgs.train.checkpoint import load_checkpoint, save_checkpoint
-from vadgs.train.run import load_run, scene_fingerprint, scene_ref, train_scene
+from vadgs.train.run import load_run, open_scene, scene_fingerprint, scene_ref, train_scene
 from vadgs.train.session import LOCK_NAME, RunInUseError, RunLock
 
 from ..data.sample_copy import copy_sample_scene
@@ -68,10 +68,16 @@ class TestRunKnowsItsScene:
         opened = load_run(run).scene
         assert ref["fingerprint"] == scene_fingerprint(ref, opened)
         # the fingerprint is of the content, not of the place: a copy has it, a changed scene not
-        copy = copy_sample_scene(home / "copy")
-        assert scene_fingerprint({**ref, "path": str(copy)}, opened) == ref["fingerprint"]
-        (copy / "images/front/016.png").write_bytes(b"x")
-        assert scene_fingerprint({**ref, "path": str(copy)}, opened) != ref["fingerprint"]
+        copy = {**ref, "path": str(copy_sample_scene(home / "copy"))}
+        assert scene_fingerprint(copy, open_scene(copy)) == ref["fingerprint"]
+        images = Path(copy["path"]) / "images/front"
+        assert (images / "017.png").stat().st_size != (images / "016.png").stat().st_size
+        shutil.copy(images / "017.png", images / "016.png")  # another image in its place
+        assert scene_fingerprint(copy, open_scene(copy)) != ref["fingerprint"]
+        shutil.copy(home / "scene/images/front/016.png", images / "016.png")
+        meta = json.loads((Path(copy["path"]) / "scene.json").read_text())
+        (Path(copy["path"]) / "scene.json").write_text(json.dumps({**meta, "description": "edited"}))
+        assert scene_fingerprint(copy, open_scene(copy)) != ref["fingerprint"]  # its metadata
 
     def test_eval_from_another_folder_with_a_decoy_uses_the_runs_scene(
         self, trained, tmp_path, monkeypatch, capsys
