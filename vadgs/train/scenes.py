@@ -194,7 +194,8 @@ def read_scene(ref: SceneRef, validate: str = "headers") -> Scene:
 
     Args:
         ref: the reference (:func:`scene_ref`).
-        validate: the loader's content checks: ``"headers"``, ``"full"`` or ``"none"``.
+        validate: the loader's content checks: ``"headers"``, ``"full"`` or ``"none"`` (then
+            missing files are not checked either: :func:`~vadgs.data.validate_scene` reports them).
 
     Raises:
         FileNotFoundError, ValueError: as the kind's loader.
@@ -206,11 +207,17 @@ def read_scene(ref: SceneRef, validate: str = "headers") -> Scene:
     """
     from vadgs.data import find_colmap_model, load_colmap, load_dgp, load_scene
 
+    files = validate != "none"
     if isinstance(ref, BenchmarkRef):
-        return load_scene(ref.path, scale=ref.scale, validate=validate)
+        return load_scene(ref.path, scale=ref.scale, check_files=files, validate=validate)
     if isinstance(ref, DGPRef):
         return load_dgp(
-            ref.path, ref.cameras, scale=ref.scale, test_frames=ref.test_frames, validate=validate
+            ref.path,
+            ref.cameras,
+            scale=ref.scale,
+            test_frames=ref.test_frames,
+            check_files=files,
+            validate=validate,
         )
     if not isinstance(ref, ColmapRef):
         raise TypeError(f"ref: expected a BenchmarkRef, DGPRef or ColmapRef, got {type(ref).__name__}")
@@ -218,7 +225,13 @@ def read_scene(ref: SceneRef, validate: str = "headers") -> Scene:
     if model is None:
         raise FileNotFoundError(f"{ref.path}: no COLMAP model (cameras, images, points3D as .bin or .txt)")
     colmap = load_colmap(
-        model, ref.images, ref.scale, validate=validate, test_every=ref.test_every, normalize=ref.normalize
+        model,
+        ref.images,
+        ref.scale,
+        check_files=files,
+        validate=validate,
+        test_every=ref.test_every,
+        normalize=ref.normalize,
     )
     return colmap.scene
 
