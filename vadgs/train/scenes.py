@@ -435,6 +435,7 @@ def locate_scene(
                         f"current folder; {_hint(flag)} to name the scene",
                         stacklevel=2,
                     )
+    located["run_dir"] = str(run_dir)  # where the paths above were found: a resumed run records it
     path = Path(located["path"])
     if not _scene_exists(kind, path):
         what = "--scene" if scene is not None else "recorded"
