@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import json
 import os
 import signal
@@ -24,7 +23,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: run folders are not locked
+    fcntl = None
+
 __all__ = ["LOCK_NAME", "RunInUseError", "RunLock", "RunLog", "stop_on_signals"]
+
+_BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
 
 LOCK_NAME = ".vadgs.lock"
 """The lock file of a run folder (JSON: ``pid``, ``host``, ``started``, ``command``)."""
@@ -50,7 +56,8 @@ class RunLock:
     The lock is an OS file lock (``flock``) on a file that records the holder (``pid``, ``host``,
     ``started``, ``command``): it is released on any exit of the block (return, exception,
     ``KeyboardInterrupt``), and by the OS when the process dies, so a crashed run's lock is stale:
-    the next writer takes it over, with a warning naming the dead pid. While the lock is held a
+    the next writer takes it over, with a warning naming the dead pid. Without ``fcntl`` (not
+    POSIX), or on a file system that refuses locks (said in a warning), the folder is not locked. While the lock is held a
     SIGTERM that nobody handles raises ``KeyboardInterrupt`` (the block exits through its
     ``finally``; inside the training loop :func:`stop_on_signals` handles it instead). A folder
     the lock created is removed again when the block leaves it empty.
@@ -108,11 +115,13 @@ class RunLock:
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                if fcntl is not None:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as e:
+                if e.errno not in _BUSY:  # a file system without locks: the run goes on unlocked
+                    self._warn(f"{self.path}: cannot lock ({e.strerror or e}); the run folder is not locked")
+                    break
                 os.close(fd)
-                if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    raise
                 self._remove_created()
                 raise self._in_use() from None
             try:  # the file may have been removed by its previous holder between open and flock
@@ -163,11 +172,11 @@ class RunLock:
         except OSError:
             return
         try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            if fcntl is not None:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except OSError as e:
-            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
-            raise lock._in_use() from None
+            if e.errno in _BUSY:
+                raise lock._in_use() from None
         finally:
             os.close(fd)
 
