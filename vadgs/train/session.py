@@ -56,11 +56,11 @@ class RunLock:
     The lock is an OS file lock (``flock``) on a file that records the holder (``pid``, ``host``,
     ``started``, ``command``): it is released on any exit of the block (return, exception,
     ``KeyboardInterrupt``), and by the OS when the process dies, so a crashed run's lock is stale:
-    the next writer takes it over, with a warning naming the dead pid. Without ``fcntl`` (not
-    POSIX), or on a file system that refuses locks (said in a warning), the folder is not locked. While the lock is held a
+    the next writer takes it over, with a warning naming the dead pid. While the lock is held a
     SIGTERM that nobody handles raises ``KeyboardInterrupt`` (the block exits through its
     ``finally``; inside the training loop :func:`stop_on_signals` handles it instead). A folder
-    the lock created is removed again when the block leaves it empty.
+    the lock created is removed again when the block leaves it empty. Without ``fcntl`` (not
+    POSIX), or on a file system that refuses locks (said in a warning), the folder is not locked.
 
     Args:
         folder: the run folder (created if missing).
