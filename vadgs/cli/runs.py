@@ -59,7 +59,7 @@ class EvalCommand(Command):
     split: Literal["test", "novel"] = "test"
     """test views (eval.json) or the novel views by group, e.g. shifted ±2 m (eval_novel.json)"""
     scene: SceneOpt = None
-    """the run's scene folder, if it moved (default: where the run recorded it; checked by fingerprint)"""
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
     """no progress bar"""
 
@@ -126,7 +126,7 @@ class RenderCommand(Command):
     frames_between: int = 0
     """poses interpolated between consecutive frames (slerp / linear; cars likewise)"""
     scene: SceneOpt = None
-    """the run's scene folder, if it moved (default: where the run recorded it; checked by fingerprint)"""
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
     """no progress bar"""
 
@@ -190,7 +190,7 @@ class ExportCommand(Command):
     inria: Flag = False
     """INRIA model layout (point_cloud/iteration_N/, cameras.json, cfg_args)"""
     scene: SceneOpt = None
-    """the run's scene folder, if it moved (default: where the run recorded it; checked by fingerprint)"""
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
 
     def main(self) -> int:
         """Write the PLY and the sky map; 0."""
@@ -225,7 +225,7 @@ class ViewCommand(Command):
     timeout: float | None = None
     """stop serving after this many seconds (default: at Ctrl+C)"""
     scene: SceneOpt = None
-    """the run's scene folder, if it moved (default: where the run recorded it; checked by fingerprint)"""
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
