@@ -46,7 +46,7 @@ from vadgs.train.scenes import (
     scene_fingerprint,
     scene_ref,
 )
-from vadgs.train.session import RunInUseError, RunLock
+from vadgs.train.session import RunInUseError, RunLock, reclaim_signals
 
 __all__ = [
     "BenchmarkRef",
@@ -299,8 +299,12 @@ def _start(
     from vadgs.train.trainer import Trainer
 
     say = log if log is not None else (lambda *_: None)
-    if resume:
-        ckpt = load_checkpoint(out)
+    ckpt = load_checkpoint(out) if resume else None
+    if isinstance(scene, ColmapRef) or (ckpt is not None and ckpt.scene_ref.get("kind") == "colmap"):
+        import pycolmap  # noqa: F401  (now: its glog takes SIGTERM over, given back before the work)
+
+        reclaim_signals()
+    if ckpt is not None:
         opened, located = open_run_scene(ckpt.scene_ref, out, scene_path, scene_flag)
         trainer = Trainer.from_checkpoint(
             out, scene=opened, scene_ref=located, progress=progress, config_changes=config_changes or None

@@ -28,7 +28,7 @@ try:
 except ImportError:  # not POSIX: run folders are not locked
     fcntl = None
 
-__all__ = ["LOCK_NAME", "RunInUseError", "RunLock", "RunLog", "stop_on_signals"]
+__all__ = ["LOCK_NAME", "RunInUseError", "RunLock", "RunLog", "reclaim_signals", "stop_on_signals"]
 
 _BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
 
@@ -109,6 +109,17 @@ class RunLock:
 
     def acquire(self) -> RunLock:
         """Take the lock (see the class); the lock itself."""
+        if threading.current_thread() is threading.main_thread():
+            if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:  # before the file exists
+                self._sigterm = signal.signal(signal.SIGTERM, _terminate)
+        try:
+            self._acquire()
+        except BaseException:  # refused, or interrupted on the way: leave nothing behind
+            self.release()
+            raise
+        return self
+
+    def _acquire(self) -> None:
         missing = [p for p in (self.folder, *self.folder.parents) if not p.exists()]
         self.folder.mkdir(parents=True, exist_ok=True)
         self._created = missing  # deepest first
@@ -122,7 +133,6 @@ class RunLock:
                     self._warn(f"{self.path}: cannot lock ({e.strerror or e}); the run folder is not locked")
                     break
                 os.close(fd)
-                self._remove_created()
                 raise self._in_use() from None
             try:  # the file may have been removed by its previous holder between open and flock
                 same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
@@ -131,6 +141,7 @@ class RunLock:
             if same:
                 break
             os.close(fd)
+        self._fd = fd
         old = {}
         with contextlib.suppress(OSError, ValueError):
             old = json.loads(os.pread(fd, 1 << 16, 0) or b"null") or {}
@@ -151,11 +162,6 @@ class RunLock:
         }
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(record).encode(), 0)
-        self._fd = fd
-        if threading.current_thread() is threading.main_thread():
-            if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-                self._sigterm = signal.signal(signal.SIGTERM, _terminate)
-        return self
 
     @classmethod
     def check_free(cls, folder: str | Path) -> None:
@@ -199,17 +205,16 @@ class RunLock:
 
     def release(self) -> None:
         """Remove the lock file and release the lock (idempotent)."""
-        if self._fd is None:
-            return
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None
+        self._remove_created()
         if self._sigterm is not None:
             with contextlib.suppress(ValueError):
                 signal.signal(signal.SIGTERM, self._sigterm)
             self._sigterm = None
-        with contextlib.suppress(OSError):
-            self.path.unlink()
-        os.close(self._fd)  # closing releases the flock
-        self._fd = None
-        self._remove_created()
 
     def __enter__(self) -> RunLock:
         return self.acquire()
@@ -220,6 +225,22 @@ class RunLock:
 
 def _terminate(_signum: int, _frame: Any) -> None:
     raise KeyboardInterrupt
+
+
+def reclaim_signals() -> None:
+    """Put Python's own SIGINT / SIGTERM handlers back at the C level (main thread only).
+
+    Importing ``pycolmap`` installs glog's failure handler for SIGTERM in C, over Python's: a
+    SIGTERM then prints a native stack and kills the process, skipping every ``finally``
+    (Python's :func:`signal.getsignal` still reports its own handler). Re-installing the handler
+    Python records undoes that.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        handler = signal.getsignal(sig)
+        if handler is not None:
+            signal.signal(sig, handler)
 
 
 class RunLog:
