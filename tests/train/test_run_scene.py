@@ -259,3 +259,24 @@ class TestOverwrite:
         assert "Trainer" not in line and "overwrite=True" not in line
         assert main([*args[:2], str(run), *args[3:], "--overwrite"]) == 0
         assert (run / "demo_panel.png").is_file()
+
+
+def test_sigterm_after_importing_pycolmap_reaches_python():
+    """pycolmap's glog takes SIGTERM over in C (native stack, no ``finally``); reclaim_signals undoes it."""
+    pytest.importorskip("pycolmap")
+    code = (
+        "import os, signal, sys\n"
+        "from vadgs.train.session import reclaim_signals\n"
+        "signal.signal(signal.SIGTERM, lambda *a: sys.exit(7))\n"
+        "import pycolmap\n"
+        "if sys.argv[1] == 'reclaim':\n"
+        "    reclaim_signals()\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+        "signal.pause()\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    run = [sys.executable, "-c", code]
+    done = subprocess.run([*run, "reclaim"], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 7 and "SIGTERM" not in done.stderr, done.stderr
+    glog = subprocess.run([*run, "no"], env=env, capture_output=True, text=True, timeout=300)
+    assert glog.returncode == -15 and "SIGTERM" in glog.stderr  # what a run without it did
