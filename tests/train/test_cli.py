@@ -51,7 +51,7 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
     """On ``--resume`` every ``vadgs train`` flag is of the session, applied, or refused by name.
 
     Otherwise it would be silently ignored when a run is resumed. Each flag is tried on a real
-    checkpoint: the run's own flags (SCENE, ``--scale``, ``--vad``, ...) and every TrainConfig field
+    checkpoint: the run's own flags (``--scale``, ``--vad``, ...) and every TrainConfig field
     outside ``RESUMABLE_CHANGES`` are refused naming the flag; the resumable ones are applied.
     """
     import dataclasses
@@ -68,15 +68,16 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
     stored = parse_train(["--out", str(out), "--resume"])
     assert stored.train.iterations == 1 and stored.train.init.max_points == 200  # the checkpoint's
     assert _resume_changes(stored, out) == {}
+    # SCENE on --resume is where a moved scene is now (checked by its fingerprint: test_run_scene.py)
     others = {
-        "scene": "x", "sample": True, "config": "c.json", "overwrite": True, "scale": 0.5, "dgp": True,
+        "sample": True, "config": "c.json", "overwrite": True, "scale": 0.5, "dgp": True,
         "cameras": "a", "test_frames": (1,), "colmap_scene": True, "images": "i", "test_every": 2,
         "no_normalize": True, "colmap": "m", "vad": True, "appearance": True,
     }  # fmt: skip
     fields = {f.name for f in dataclasses.fields(TrainCommand)}
     assert fields == set(others) | set(_SESSION), sorted(fields ^ (set(others) | set(_SESSION)))
     for name, value in others.items():
-        flag = "SCENE" if name == "scene" else "--" + name.replace("_", "-")
+        flag = "--" + name.replace("_", "-")
         with pytest.raises(ValueError, match=f"--resume: {flag} cannot be honoured"):
             _resume_changes(dataclasses.replace(stored, **{name: value}), out)
     changed = {"iterations": 5, "max_minutes": 1.0, "device": "cpu:0", "threads": 1,

@@ -87,7 +87,7 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
     import pytest
     import torch
 
-    from vadgs.train.run import load_run, scene_ref, train_scene
+    from vadgs.train.run import load_run, scene_fingerprint, scene_ref, train_scene
 
     config = dataclasses.replace(tiny_config, iterations=4, checkpoint_every=2)
     ref = scene_ref(tiny_scene.root, scale=0.25)
@@ -99,7 +99,11 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
     trainer = Trainer(tiny_scene, config, out_dir=tmp_path / "b", progress=False)
     trainer.train()
     run = load_run(tmp_path / "a")
-    assert run.checkpoint.scene_ref == ref.to_dict()
+    # the scene by its absolute path, the run folder and the content fingerprint of the scene
+    fingerprint = scene_fingerprint(ref.to_dict(), tiny_scene)
+    run_dir = str((tmp_path / "a").resolve())
+    assert run.checkpoint.scene_ref == {**ref.to_dict(), "run_dir": run_dir, "fingerprint": fingerprint}
+    assert run.scene_ref["fingerprint"] == fingerprint and run.scene.num_views == tiny_scene.num_views
     for k, v in trainer.model.params.items():
         assert torch.equal(run.model.params[k], v), k
     assert outcome.metrics["num_gaussians"] == trainer.model.num_gaussians

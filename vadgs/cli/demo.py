@@ -10,14 +10,21 @@ from pathlib import Path
 from vadgs.checks import check_at_least
 from vadgs.cli._common import Command, Flag, _check_out_dir, _scene_arg, _summary
 from vadgs.train.run import finish_run
+from vadgs.train.session import RunLock
 
 
 @dataclass(frozen=True)
 class DemoCommand(Command):
-    """Train briefly on the bundled sample scene; write metrics.json and a PNG panel."""
+    """Train briefly on the bundled sample scene; write metrics.json and a PNG panel.
+
+    Running it again replaces the previous demo in ``--out`` (said in one line); a folder holding
+    another run needs ``--overwrite``.
+    """
 
     out: str = "outputs/demo"
-    """output folder"""
+    """output folder (a previous demo there is replaced)"""
+    overwrite: Flag = False
+    """--out may hold a run that is not a demo's: its files are removed"""
     iterations: int | None = None
     """override the demo's iteration count (250)"""
     baseline: Flag = False
@@ -32,15 +39,32 @@ class DemoCommand(Command):
 
     def main(self) -> int:
         """Train, evaluate, write the figures; 0."""
-        from vadgs.data import load_scene
+        from vadgs.train.run import describe_run
+
+        out = _check_out_dir(self.out, create=False)
+        held = describe_run(out) if out.is_dir() else None
+        if held is not None:
+            demo = (out / "demo_panel.png").is_file()
+            if not (self.overwrite or demo):
+                raise ValueError(
+                    f"--out {out} holds a run ({held}) that is not a demo's; pass --overwrite to replace it "
+                    "or choose another --out"
+                )
+            print(f"replacing the previous {'demo' if demo else 'run'} in {out} ({held})")
+        with RunLock(out, "vadgs demo", log=print):
+            if held is not None:
+                for name in DEMO_FIGURES:
+                    (out / name).unlink(missing_ok=True)
+            return self._run(out, overwrite=held is not None)
+
+    def _run(self, out: Path, overwrite: bool) -> int:
         from vadgs.train.config import TrainConfig
         from vadgs.train.evaluate import render_test_view
+        from vadgs.train.run import BenchmarkRef, prepare_scene
         from vadgs.train.trainer import Trainer
         from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
-        out = _check_out_dir(self.out)
-        ref = {"kind": "benchmark", "path": str(_scene_arg(None)), "scale": DEMO_SCALE}
-        scene = load_scene(ref["path"], scale=DEMO_SCALE)
+        scene, ref = prepare_scene(BenchmarkRef(str(_scene_arg(None)), DEMO_SCALE), out)
         config = TrainConfig.from_dict(DEMO_CONFIG)
         if self.iterations is not None:
             config = config.replace(iterations=self.iterations)
@@ -51,7 +75,9 @@ class DemoCommand(Command):
             vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
             config = dataclasses.replace(config, vad=vad)
         t0 = time.perf_counter()
-        trainer = Trainer(scene, config, out_dir=out, scene_ref=ref, progress=not self.no_progress)
+        trainer = Trainer(
+            scene, config, out_dir=out, scene_ref=ref, progress=not self.no_progress, overwrite=overwrite
+        )
         strategy = trainer.strategy if config.vad is not None else None
         snapshots: list[dict] = []  # the largest addition only, for the completion figure
         if strategy is not None:
@@ -107,6 +133,9 @@ def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path
     ]
     return save_panel(images, titles, path, columns=2)
 
+
+#: The figures the demo writes besides the run's files (removed when a demo is replaced).
+DEMO_FIGURES = ("demo_panel.png", "demo_completion.png")
 
 #: The demo's configuration (merged into the TrainConfig defaults): the bundled sample at 120x72,
 #: about 14k Gaussians, 250 steps.

@@ -1,7 +1,14 @@
-"""Commands on a trained run: ``vadgs eval``, ``vadgs render``, ``vadgs export``, ``vadgs view``."""
+"""Commands on a trained run: ``vadgs eval``, ``vadgs render``, ``vadgs export``, ``vadgs view``.
+
+Each finds the run's scene where the run recorded it (absolute, from any current folder), checks
+its fingerprint, and takes ``--scene FOLDER`` for a run whose scene moved
+(:func:`~vadgs.train.run.load_run`). Those that write into the run folder hold its lock
+(:class:`~vadgs.train.session.RunLock`) while they run.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
@@ -14,12 +21,30 @@ import tyro
 from vadgs.checks import check_at_least, check_positive
 from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
 from vadgs.io import write_json
-from vadgs.train.run import frame_position, load_run
+from vadgs.train.run import RunLock, frame_position, load_run
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
 
 #: The run a command reads: its folder or its ``checkpoint.pt``.
 RunArg = Annotated[str, Positional, tyro.conf.arg(metavar="RUN")]
+
+#: ``--scene``: the run's scene folder when it moved.
+SceneOpt = Annotated[str | None, tyro.conf.arg(metavar="FOLDER")]
+
+
+def _writing(run: str | Path, into: Path, command: str) -> contextlib.AbstractContextManager:
+    """The run folder's lock while a command writes ``into`` it (nothing when it writes elsewhere)."""
+    folder = _run_dir(run).resolve()
+    into = Path(into).resolve()
+    if folder.is_dir() and (into == folder or into.is_relative_to(folder)):
+        return RunLock(folder, command)
+    return contextlib.nullcontext()
+
+
+def _scene_record(run) -> dict:
+    """What ``eval.json`` says of the scene it used: name, kind, path, fingerprint."""
+    ref = run.scene_ref or {}
+    return {"name": run.scene.name, **{k: ref.get(k) for k in ("kind", "path", "fingerprint")}}
 
 
 @dataclass(frozen=True)
@@ -34,6 +59,8 @@ class EvalCommand(Command):
     """run folder (or its checkpoint.pt)"""
     split: Literal["test", "novel"] = "test"
     """test views (eval.json) or the novel views by group, e.g. shifted ±2 m (eval_novel.json)"""
+    scene: SceneOpt = None
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
     """no progress bar"""
 
@@ -41,27 +68,31 @@ class EvalCommand(Command):
         """Evaluate the run and write the JSON; 0."""
         from vadgs.train.evaluate import evaluate_split
 
-        run = load_run(self.run)
-        groups = evaluate_split(
-            run.model,
-            run.scene,
-            self.split,
-            config=run.config.raster,
-            progress=not self.no_progress,
-            appearance=run.appearance,
-        )
-        if self.split == "test":
-            m = groups["test"].to_dict()
-            m["step"] = run.step
-            path = _run_dir(self.run) / "eval.json"
-            shown = {k: v for k, v in m.items() if k != "per_view"}
-            note = m["lpips_note"]
-        else:
-            m = {"split": self.split, "step": run.step, "groups": {k: g.to_dict() for k, g in groups.items()}}
-            path = _run_dir(self.run) / f"eval_{self.split}.json"
-            shown = {k: {kk: vv for kk, vv in g.items() if kk != "per_view"} for k, g in m["groups"].items()}
-            note = next(iter(m["groups"].values()))["lpips_note"]
-        write_json(path, m)
+        folder = _run_dir(self.run)
+        with _writing(self.run, folder, "vadgs eval"):
+            run = load_run(self.run, scene=self.scene)
+            groups = evaluate_split(
+                run.model,
+                run.scene,
+                self.split,
+                config=run.config.raster,
+                progress=not self.no_progress,
+                appearance=run.appearance,
+            )
+            if self.split == "test":
+                m = groups["test"].to_dict()
+                m["step"] = run.step
+                path = folder / "eval.json"
+                shown = {k: v for k, v in m.items() if k != "per_view"}
+                note = m["lpips_note"]
+            else:
+                groups_d = {k: g.to_dict() for k, g in groups.items()}
+                m = {"split": self.split, "step": run.step, "groups": groups_d}
+                path = folder / f"eval_{self.split}.json"
+                shown = {k: {kk: vv for kk, vv in g.items() if kk != "per_view"} for k, g in groups_d.items()}
+                note = next(iter(groups_d.values()))["lpips_note"]
+            m["scene"] = _scene_record(run)
+            write_json(path, m)
         print(json.dumps(shown, indent=2))
         if note:
             print(note)
@@ -95,6 +126,8 @@ class RenderCommand(Command):
     """frames per second of the video"""
     frames_between: int = 0
     """poses interpolated between consecutive frames (slerp / linear; cars likewise)"""
+    scene: SceneOpt = None
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
     """no progress bar"""
 
@@ -105,7 +138,12 @@ class RenderCommand(Command):
 
     def main(self) -> int:
         """Write the panels or the video; 0."""
-        run = load_run(self.run)
+        into = Path(self.video).parent if self.video else (self.out or _run_dir(self.run) / "renders")
+        with _writing(self.run, into, "vadgs render"):
+            return self._render()
+
+    def _render(self) -> int:
+        run = load_run(self.run, scene=self.scene)
         model, scene, config = run.model, run.scene, run.config
         if self.video:
             from vadgs.train.video import ego_trajectory, parse_trajectory, render_video
@@ -152,15 +190,18 @@ class ExportCommand(Command):
     """output folder (default RUN/export/frame<F>)"""
     inria: Flag = False
     """INRIA model layout (point_cloud/iteration_N/, cameras.json, cfg_args)"""
+    scene: SceneOpt = None
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
 
     def main(self) -> int:
         """Write the PLY and the sky map; 0."""
         from vadgs.train.export import export_world
 
-        run = load_run(self.run)
-        frame, _ = frame_position(run.scene, self.frame, "--frame")
-        out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
-        res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step)
+        with _writing(self.run, self.out or _run_dir(self.run), "vadgs export"):
+            run = load_run(self.run, scene=self.scene)
+            frame, _ = frame_position(run.scene, self.frame, "--frame")
+            out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
+            res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step)
         print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
         return 0
 
@@ -187,6 +228,8 @@ class ViewCommand(Command):
     """send at most this many Gaussians to the browser (a random subset)"""
     timeout: float | None = None
     """stop serving after this many seconds (default: at Ctrl+C)"""
+    scene: SceneOpt = None
+    """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -203,7 +246,7 @@ class ViewCommand(Command):
         from vadgs.train.session import stop_on_signals
         from vadgs.viewer import build_viewer
 
-        run = load_run(self.run)
+        run = load_run(self.run, scene=self.scene)
         model, scene = run.model, run.scene
         _, position = frame_position(scene, self.frame, "--frame")
         stop = threading.Event()

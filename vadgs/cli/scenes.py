@@ -1,11 +1,20 @@
-"""Commands on a scene's data: ``vadgs visibility``, ``vadgs convert``, ``vadgs check``."""
+"""Commands on a scene's data: ``vadgs visibility``, ``vadgs convert``, ``vadgs check``.
+
+``visibility`` and ``check`` take what ``vadgs train`` takes: a benchmark scene folder
+(``scene.json``), a COLMAP model or project folder (detected), or a DGP scene with ``--dgp``; one
+function decides the kind (:func:`vadgs.train.scenes.scene_ref`).
+"""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
+import shutil
 import time
+import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
@@ -20,12 +29,37 @@ __all__ = ["CheckCommand", "ConvertCommand", "VisibilityCommand"]
 SceneArg = Annotated[str | None, Positional, tyro.conf.arg(metavar="SCENE")]
 
 
+def _scene_ref(scene: str | None, dgp: bool, scale: float):
+    """The reference of SCENE (default: the bundled sample): its kind decided by ``scene_ref``."""
+    from vadgs.train.scenes import scene_ref
+
+    return scene_ref(_scene_arg(scene), "dgp" if dgp else None, scale=scale)
+
+
+@contextlib.contextmanager
+def _new_folder(path: Path):
+    """Remove ``path`` (and the parents made for it) again when the block fails, if it was new."""
+    made = [p for p in (path, *path.parents) if not p.exists()]
+    try:
+        yield
+    except BaseException:
+        if made:
+            shutil.rmtree(made[0], ignore_errors=True)  # the top folder made: nothing was there before
+        raise
+
+
 @dataclass(frozen=True)
 class VisibilityCommand(Command):
-    """Voxel visibility reasoning on a scene: voxelise LiDAR, z-buffer one view, write a PNG panel."""
+    """Voxel visibility reasoning on a scene: voxelise LiDAR or SfM points, z-buffer a view, write a panel.
+
+    SCENE is what ``vadgs train`` takes: a benchmark scene (LiDAR), a COLMAP model or project
+    (its SfM points and their observations; distorted cameras are read by their pinhole part), or
+    a DGP scene with ``--dgp``.
+    """
 
     scene: SceneArg = None
-    """scene folder (default: the bundled sample)"""
+    """scene folder: benchmark (scene.json), COLMAP model or project (detected), DGP with --dgp
+    (default: the bundled sample)"""
     out: str = "outputs/visibility"
     """output folder"""
     view: int | None = None
@@ -36,6 +70,8 @@ class VisibilityCommand(Command):
     """image resolution factor"""
     only_observed: Flag = False
     """rasterise only voxels observed by the view"""
+    dgp: Flag = False
+    """SCENE is a DGP scene folder"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -45,16 +81,33 @@ class VisibilityCommand(Command):
 
     def main(self) -> int:
         """Write the panel and visibility.json; 0."""
-        from vadgs.data import load_scene
+        from vadgs.train.scenes import read_scene
+
+        out = _check_out_dir(self.out, create=False)  # created once the scene has opened
+        scene = read_scene(_scene_ref(self.scene, self.dgp, self.scale))
+        if self.view is not None and self.view >= scene.num_views:
+            raise ValueError(
+                f"--view: expected < {scene.num_views} (the views of {scene.name}), got {self.view}"
+            )
+        with _new_folder(out):
+            return self._write(scene, _check_out_dir(out))
+
+    def _write(self, scene, out: Path) -> int:
         from vadgs.data.lidar import accumulate_lidar
         from vadgs.geometry import ZBufferConfig, rasterize_voxels, voxelize
+        from vadgs.train.inputs import sfm_observations
         from vadgs.viz import colorize_depth, colorize_index, image_to_uint8, save_panel
 
-        out = _check_out_dir(self.out)
-        scene = load_scene(_scene_arg(self.scene), scale=self.scale)
         t0 = time.perf_counter()
-        acc = accumulate_lidar(scene)
-        grid = voxelize(acc.points, self.voxel_size, acc.point_views, scene.num_views)
+        if scene.lidar_loader is not None:
+            acc = accumulate_lidar(scene)
+            points, point_views, source = acc.points, acc.point_views, "lidar"
+        elif scene.sfm_points is not None:
+            points, point_views = sfm_observations(scene)
+            source = "sfm"
+        else:
+            raise ValueError(f"scene {scene.name!r}: no LiDAR and no SfM points to voxelise")
+        grid = voxelize(points, self.voxel_size, point_views, scene.num_views)
         t1 = time.perf_counter()
         view = self.view if self.view is not None else scene.train_views[len(scene.train_views) // 2]
         raster = rasterize_voxels(
@@ -71,7 +124,8 @@ class VisibilityCommand(Command):
             "view": view,
             "camera": scene.views[view].camera,
             "frame": scene.views[view].frame,
-            "lidar_points": int(acc.points.shape[0]),
+            "points_from": source,
+            f"{source}_points": int(points.shape[0]),
             "voxels": len(grid),
             "voxel_view_pairs": int(grid.vis_views.numel()),
             "visible_voxels_in_view": int(raster.visible[0].numel()),
@@ -147,10 +201,15 @@ class ConvertCommand(Command):
 
 @dataclass(frozen=True)
 class CheckCommand(Command):
-    """Validate a scene's metadata and files; print a table (exit 1 when a check fails)."""
+    """Validate a scene's metadata and files; print a table (exit 1 when a check fails).
+
+    SCENE is what ``vadgs train`` takes: a benchmark scene, a COLMAP model or project (detected;
+    its distorted cameras are checked as they are, not undistorted) or a DGP scene with ``--dgp``.
+    """
 
     scene: SceneArg = None
-    """scene folder (default: the bundled sample)"""
+    """scene folder: benchmark (scene.json), COLMAP model or project (detected), DGP with --dgp
+    (default: the bundled sample)"""
     full: Flag = False
     """decode every image, depth map, instance map, sweep"""
     scale: float = 1.0
@@ -164,18 +223,28 @@ class CheckCommand(Command):
 
     def main(self) -> int:
         """Print the report; 0 when every check passes, else 1."""
-        from vadgs.data import load_dgp, validate_scene
+        from vadgs.data import validate_scene
+        from vadgs.data.checks import ValidationReport, ValidationRow
+        from vadgs.train.scenes import BenchmarkRef, read_scene
 
-        if self.dgp:
-            try:
-                scene = load_dgp(_scene_arg(self.scene), scale=self.scale, validate="none")
-            except (ValueError, FileNotFoundError) as e:
-                print(f"error  {self.scene}: {e}")
-                return 1
-            report = validate_scene(scene, full=self.full)
-        else:
-            report = validate_scene(_scene_arg(self.scene), full=self.full, scale=self.scale)
+        path = _scene_arg(self.scene)
+        notes: list[str] = []
+        try:
+            ref = _scene_ref(self.scene, self.dgp, self.scale)
+            if isinstance(ref, BenchmarkRef):  # a scene.json that does not parse is one row
+                report = validate_scene(ref.path, full=self.full, scale=self.scale)
+            else:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    scene = read_scene(ref, validate="none")
+                notes = list(dict.fromkeys(str(w.message) for w in caught))
+                report = validate_scene(scene, full=self.full)
+        except (ValueError, FileNotFoundError) as e:
+            row = ValidationRow("scene", str(path), "error", str(e))
+            report = ValidationReport(str(path), (row,), self.full)
         print(report.format_table())
+        for note in notes:
+            print(f"note: {note}")
         level = "every file decoded" if self.full else "headers only; --full decodes every file"
         n = len(report.errors)
         print(

@@ -45,7 +45,8 @@ class TrainCommand:
 
     scene: Annotated[str | None, Positional, tyro.conf.arg(metavar="SCENE")] = None
     """scene folder: benchmark format (scene.json), a COLMAP model or project folder (sparse/0;
-    detected), or DGP with --dgp"""
+    detected), or DGP with --dgp; with --resume only for a run whose scene moved (the folder it
+    moved to; checked by its fingerprint)"""
     out: Annotated[str, tyro.conf.arg(metavar="FOLDER")] = ""
     """run folder (checkpoints, metrics, PLY); required"""
     sample: Flag = False
@@ -103,16 +104,19 @@ class TrainCommand:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
         from vadgs.train.checkpoint import CHECKPOINT_NAME
         from vadgs.train.run import describe_run, train_scene
+        from vadgs.train.session import RunLock
 
         out = _check_out_dir(self.out, create=False)
+        RunLock.check_free(out)  # before the checks below: a run in use is named by its pid
         progress = not self.no_progress
         if self.resume:
             if not (out / CHECKPOINT_NAME).is_file():
                 raise FileNotFoundError(f"--resume: no checkpoint in {out}")
             changes = _resume_changes(self, out)
             outcome = train_scene(
-                None, None, out, resume=True, config_changes=changes, progress=progress, log=print
-            )
+                None, None, out, resume=True, config_changes=changes, progress=progress, log=print,
+                scene_path=self.scene, scene_flag="SCENE (the folder the scene moved to)",
+            )  # fmt: skip
         else:
             if self.scene is None and not self.sample:
                 raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
@@ -141,7 +145,7 @@ class TrainCommand:
 
 
 # TrainCommand fields of the session, not of the run (the others are refused on --resume)
-_SESSION = ("out", "resume", "no_progress", "debug", "train")
+_SESSION = ("scene", "out", "resume", "no_progress", "debug", "train")  # SCENE: where it moved
 
 
 def _read_config_file(path: str) -> dict:

@@ -276,8 +276,8 @@ def resumed_config(ckpt: Checkpoint, changes: dict[str, Any] | None = None) -> T
 # ---------------------------------------------------------------------------------------------------
 # the run folder
 
-_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json")
-_RUN_DIRS = ("ply", "renders")
+_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json", "eval_novel.json")
+_RUN_DIRS = ("ply", "renders", "export")  # not undistorted/: a new COLMAP run has just written it
 
 
 def describe_run(folder: str | Path) -> str | None:
@@ -302,7 +302,11 @@ def describe_run(folder: str | Path) -> str | None:
 
 
 def clear_run(folder: str | Path) -> list[Path]:
-    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/)."""
+    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/, export/).
+
+    The lock file (:class:`~vadgs.train.session.RunLock`) and files the run did not write by default
+    (videos named by the user, a COLMAP run's ``undistorted/``, which a new run replaces) stay.
+    """
     folder = Path(folder)
     removed = []
     for name in _RUN_FILES:

@@ -2,8 +2,9 @@
 
 A run is a folder (``--out``) holding ``checkpoint.pt`` (:mod:`vadgs.train.checkpoint`),
 ``log.jsonl``, ``config.json``, ``metrics.json`` and the exports; its checkpoint records the
-*scene reference* — ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}`` — that
-:func:`open_scene` reopens (``docs/design.md``, "A run").
+*scene reference* — ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``, by absolute
+paths and a content fingerprint — that :func:`open_run_scene` reopens from any current folder
+(``docs/design.md``, "A run"). One process writes a run folder at a time (:class:`RunLock`).
 
 - Scene references (:mod:`vadgs.train.scenes`, re-exported here), one typed dataclass per kind:
   :class:`BenchmarkRef`, :class:`DGPRef`, :class:`ColmapRef`; :func:`scene_ref` picks the kind of
@@ -11,8 +12,9 @@ A run is a folder (``--out``) holding ``checkpoint.pt`` (:mod:`vadgs.train.check
   undistorted into the run folder) and returns the reference the checkpoint stores.
 - :func:`train_scene`: open → train → :func:`finish_run` (evaluate, export, ``metrics.json``), or
   continue a run folder's checkpoint. ``vadgs train`` and ``vadgs batch`` are adapters over it.
-- :func:`load_run` reads a finished or running run back; :func:`describe_run` / :func:`clear_run`
-  (:mod:`vadgs.train.checkpoint`, re-exported) look after its folder.
+- :func:`load_run` reads a finished or running run back (``scene=``: the folder its scene moved
+  to); :func:`describe_run` / :func:`clear_run` (:mod:`vadgs.train.checkpoint`, re-exported) look
+  after its folder.
 
 Example::
 
@@ -32,13 +34,27 @@ import torch
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.train.checkpoint import CHECKPOINT_NAME, Checkpoint, clear_run, describe_run, load_checkpoint
-from vadgs.train.scenes import BenchmarkRef, ColmapRef, DGPRef, SceneRef, open_scene, prepare_scene, scene_ref
+from vadgs.train.scenes import (
+    BenchmarkRef,
+    ColmapRef,
+    DGPRef,
+    SceneRef,
+    locate_scene,
+    open_run_scene,
+    open_scene,
+    prepare_scene,
+    scene_fingerprint,
+    scene_ref,
+)
+from vadgs.train.session import RunInUseError, RunLock, reclaim_signals
 
 __all__ = [
     "BenchmarkRef",
     "ColmapRef",
     "DGPRef",
     "Run",
+    "RunInUseError",
+    "RunLock",
     "RunOutcome",
     "SceneRef",
     "clear_run",
@@ -46,8 +62,11 @@ __all__ = [
     "finish_run",
     "frame_position",
     "load_run",
+    "locate_scene",
+    "open_run_scene",
     "open_scene",
     "prepare_scene",
+    "scene_fingerprint",
     "scene_ref",
     "train_scene",
 ]
@@ -114,6 +133,8 @@ class Run(NamedTuple):
         appearance: its :class:`~vadgs.train.appearance.AppearanceModel`, or None.
         step: steps trained.
         checkpoint: the :class:`~vadgs.train.checkpoint.Checkpoint` it was read from.
+        scene_ref: the scene reference as used (:func:`open_run_scene`: the paths found, the
+            fingerprint of what was opened), or None with ``open=False``.
     """
 
     model: Any
@@ -122,17 +143,23 @@ class Run(NamedTuple):
     appearance: Any
     step: int
     checkpoint: Checkpoint
+    scene_ref: dict[str, Any] | None = None
 
 
-def load_run(path: str | Path, open: bool = True) -> Run:
+def load_run(path: str | Path, open: bool = True, scene: str | Path | None = None) -> Run:
     """Read a run folder (or its ``checkpoint.pt``): the model, its scene, config and appearance.
 
     Args:
         path: the run folder or its checkpoint.
-        open: reopen the scene of its scene reference (:func:`open_scene`).
+        open: reopen the scene of its scene reference (:func:`open_run_scene`: from any current
+            folder; a scene whose fingerprint differs from the recorded one is refused).
+        scene: the scene's folder when it moved (``--scene``); None: the recorded one.
 
     Raises:
-        FileNotFoundError, ValueError: from :func:`~vadgs.train.checkpoint.load_checkpoint`.
+        FileNotFoundError: no checkpoint, or the scene is not where the run recorded it (the
+            message says where it looked and names ``--scene``).
+        ValueError: from :func:`~vadgs.train.checkpoint.load_checkpoint`, or a scene that is not
+            the run's (its fingerprint differs).
     """
     from vadgs.train.appearance import AppearanceModel
     from vadgs.train.model import GaussianModel
@@ -143,8 +170,11 @@ def load_run(path: str | Path, open: bool = True) -> Run:
     appearance = None
     if config.appearance is not None and ckpt.appearance is not None:
         appearance = AppearanceModel.from_state_dict(ckpt.appearance["model"], config.appearance.centered)
-    scene = open_scene(ckpt.scene_ref) if open else None
-    return Run(model, scene, config, appearance, ckpt.step, ckpt)
+    opened, located = None, None
+    if open:
+        path = Path(path)
+        opened, located = open_run_scene(ckpt.scene_ref, path if path.is_dir() else path.parent, scene)
+    return Run(model, opened, config, appearance, ckpt.step, ckpt, located)
 
 
 def frame_position(scene: Scene, frame: int | None, name: str = "frame") -> tuple[int, int]:
@@ -194,15 +224,21 @@ def train_scene(
     init_points: Any = None,
     progress: bool = True,
     log: Any = None,
+    scene_path: str | Path | None = None,
+    scene_flag: str = "scene_path",
 ) -> RunOutcome:
     """A whole run as one call: open the scene, train, evaluate, export, write ``metrics.json``.
+
+    The run folder is locked for the whole call (:class:`RunLock`): a second process writing
+    into it fails at once, naming the first one's pid.
 
     Args:
         scene: the scene of a new run (:func:`scene_ref`); None with ``resume``.
         config: its :class:`~vadgs.train.config.TrainConfig` (default: the defaults).
         out_dir: the run folder.
         resume: continue the checkpoint in ``out_dir`` exactly; the scene and configuration are
-            the checkpoint's, save ``config_changes``.
+            the checkpoint's, save ``config_changes``. The scene is found from any current folder
+            and checked by its fingerprint (:func:`open_run_scene`).
         overwrite: a new run may replace a previous run in ``out_dir`` (else that is an error).
         config_changes: what a resumed run may change (:data:`~vadgs.train.checkpoint.RESUMABLE_CHANGES`).
         init_points: :class:`~vadgs.data.colmap.ColmapPoints` that initialise a new run (with
@@ -210,6 +246,9 @@ def train_scene(
             that returns them (e.g. after checking that a COLMAP model matches its views).
         progress: progress bars.
         log: a ``print``-like callable for what the run does (None: silent).
+        scene_path: with ``resume``: the folder the run's scene moved to (its fingerprint must
+            match); the resumed run records it.
+        scene_flag: how the messages name ``scene_path`` (the CLI's argument).
 
     Returns:
         :class:`RunOutcome`. A run stopped early (signal, ``max_minutes``) keeps its checkpoint
@@ -218,47 +257,82 @@ def train_scene(
     Raises:
         ValueError, FileNotFoundError: bad inputs, named; errors of training propagate (the
             checkpoint of the last good step stays).
+        RunInUseError: another live process writes into ``out_dir`` (its pid named).
     """
-    from vadgs.train.config import TrainConfig
-    from vadgs.train.trainer import Trainer
-
     started = time.perf_counter()
     out = Path(out_dir)
-    say = log if log is not None else (lambda *_: None)
     if resume:
         if scene is not None or config is not None:
             raise ValueError("train_scene(resume=True): the scene and config are the checkpoint's; pass None")
         if not (out / CHECKPOINT_NAME).is_file():
             raise FileNotFoundError(f"resume: no checkpoint in {out}")
-        trainer = Trainer.from_checkpoint(out, progress=progress, config_changes=config_changes or None)
-        kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
-        say(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
     else:
         if scene is None:
             raise ValueError("train_scene: give a scene reference (scene_ref(path)) or resume=True")
         if config_changes:
             raise ValueError("train_scene: config_changes are for resume=True; a new run takes config")
-        config = TrainConfig() if config is None else config
-        held = describe_run(out) if out.is_dir() else None
-        if held is not None and not overwrite:
-            # the Trainer says so too; before opening the scene, which may undistort into out_dir
-            raise ValueError(f"{out} holds a run ({held}): pass resume=True to continue or overwrite=True")
-        opened, stored = prepare_scene(scene, out, say)
-        if callable(init_points):
-            init_points = init_points(opened)
-        trainer = Trainer(
-            opened,
-            config,
-            out_dir=out,
-            scene_ref=stored,
-            colmap_points=init_points,
-            progress=progress,
-            overwrite=overwrite,
-        )
-        if held is not None:
-            say(f"overwrite: the previous run in {out} ({held}) is removed as training starts")
-        n = trainer.model.num_gaussians
-        say(f"{opened}: {len(opened.train_views)} training views, {n} initial Gaussians")
-    result = trainer.train()
-    metrics = finish_run(trainer, out, result, progress, started) if result.completed else None
+        if scene_path is not None:
+            raise ValueError("train_scene: scene_path is for resume=True; a new run takes scene")
+    with RunLock(out, "vadgs train", log=log):
+        trainer = _start(scene, config, out, resume, overwrite, config_changes, init_points, progress,
+                         log, scene_path, scene_flag)  # fmt: skip
+        result = trainer.train()
+        metrics = finish_run(trainer, out, result, progress, started) if result.completed else None
     return RunOutcome(out, bool(result.completed), str(result.reason), int(result.step), metrics)
+
+
+def _start(
+    scene: SceneRef | None,
+    config: Any,
+    out: Path,
+    resume: bool,
+    overwrite: bool,
+    config_changes: dict[str, Any] | None,
+    init_points: Any,
+    progress: bool,
+    log: Any,
+    scene_path: str | Path | None,
+    scene_flag: str,
+) -> Any:
+    """The :class:`~vadgs.train.trainer.Trainer` of :func:`train_scene`, new or resumed (the lock held)."""
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.trainer import Trainer
+
+    say = log if log is not None else (lambda *_: None)
+    ckpt = load_checkpoint(out) if resume else None
+    if isinstance(scene, ColmapRef) or (ckpt is not None and ckpt.scene_ref.get("kind") == "colmap"):
+        import pycolmap  # noqa: F401  (now: its glog takes SIGTERM over, given back before the work)
+
+        reclaim_signals()
+    if ckpt is not None:
+        opened, located = open_run_scene(ckpt.scene_ref, out, scene_path, scene_flag)
+        trainer = Trainer.from_checkpoint(
+            out, scene=opened, scene_ref=located, progress=progress, config_changes=config_changes or None
+        )
+        kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
+        say(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
+        if located.get("path") != ckpt.scene_ref.get("path"):
+            say(f"the run's scene is now {located['path']} (recorded: {ckpt.scene_ref.get('path')})")
+        return trainer
+    config = TrainConfig() if config is None else config
+    held = describe_run(out) if out.is_dir() else None
+    if held is not None and not overwrite:
+        # the Trainer says so too; before opening the scene, which may undistort into out_dir
+        raise ValueError(f"{out} holds a run ({held}): pass resume=True to continue or overwrite=True")
+    opened, stored = prepare_scene(scene, out, say)
+    if callable(init_points):
+        init_points = init_points(opened)
+    trainer = Trainer(
+        opened,
+        config,
+        out_dir=out,
+        scene_ref=stored,
+        colmap_points=init_points,
+        progress=progress,
+        overwrite=overwrite,
+    )
+    if held is not None:
+        say(f"overwrite: the previous run in {out} ({held}) is removed as training starts")
+    n = trainer.model.num_gaussians
+    say(f"{opened}: {len(opened.train_views)} training views, {n} initial Gaussians")
+    return trainer

@@ -9,6 +9,8 @@ folder), which :func:`prepare_scene` opens and turns into the dict to store.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -17,7 +19,19 @@ import torch
 
 from vadgs.data.scene import Scene
 
-__all__ = ["BenchmarkRef", "ColmapRef", "DGPRef", "SceneRef", "open_scene", "prepare_scene", "scene_ref"]
+__all__ = [
+    "BenchmarkRef",
+    "ColmapRef",
+    "DGPRef",
+    "SceneRef",
+    "locate_scene",
+    "open_run_scene",
+    "open_scene",
+    "prepare_scene",
+    "read_scene",
+    "scene_fingerprint",
+    "scene_ref",
+]
 
 
 def open_scene(ref: dict[str, Any]) -> Scene:
@@ -157,18 +171,69 @@ def scene_ref(path: str | Path, kind: str | None = None, **options: Any) -> Scen
     return cls(str(path), **options)
 
 
-def _detect_kind(path: Path) -> str:
+def _detect_kind(path: Path, what: str = "SCENE") -> str:
     from vadgs.data import find_colmap_model
 
     if (path / "scene.json").is_file() or path.name == "scene.json":
         return "benchmark"
     if find_colmap_model(path) is None:
         raise FileNotFoundError(
-            f"SCENE {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
+            f"{what} {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
             "(cameras, images, points3D as .bin or .txt in it, in sparse/0, sparse or 0); "
             "a DGP scene needs --dgp"
         )
     return "colmap"
+
+
+def read_scene(ref: SceneRef, validate: str = "headers") -> Scene:
+    """Open a scene reference as it is on disk, writing nothing (``vadgs check``, ``vadgs visibility``).
+
+    Unlike :func:`prepare_scene` a COLMAP model with distorted cameras is not undistorted: it is
+    read with its pinhole part (:func:`~vadgs.data.load_colmap` warns that the distortion is
+    ignored); its normalisation (``ref.normalize``) and split (``ref.test_every``) apply.
+
+    Args:
+        ref: the reference (:func:`scene_ref`).
+        validate: the loader's content checks: ``"headers"``, ``"full"`` or ``"none"`` (then
+            missing files are not checked either: :func:`~vadgs.data.validate_scene` reports them).
+
+    Raises:
+        FileNotFoundError, ValueError: as the kind's loader.
+
+    Example:
+        >>> from vadgs.data import sample_scene_path
+        >>> read_scene(scene_ref(sample_scene_path(), scale=0.25)).num_views
+        24
+    """
+    from vadgs.data import find_colmap_model, load_colmap, load_dgp, load_scene
+
+    files = validate != "none"
+    if isinstance(ref, BenchmarkRef):
+        return load_scene(ref.path, scale=ref.scale, check_files=files, validate=validate)
+    if isinstance(ref, DGPRef):
+        return load_dgp(
+            ref.path,
+            ref.cameras,
+            scale=ref.scale,
+            test_frames=ref.test_frames,
+            check_files=files,
+            validate=validate,
+        )
+    if not isinstance(ref, ColmapRef):
+        raise TypeError(f"ref: expected a BenchmarkRef, DGPRef or ColmapRef, got {type(ref).__name__}")
+    model = find_colmap_model(ref.path)
+    if model is None:
+        raise FileNotFoundError(f"{ref.path}: no COLMAP model (cameras, images, points3D as .bin or .txt)")
+    colmap = load_colmap(
+        model,
+        ref.images,
+        ref.scale,
+        check_files=files,
+        validate=validate,
+        test_every=ref.test_every,
+        normalize=ref.normalize,
+    )
+    return colmap.scene
 
 
 def prepare_scene(ref: SceneRef, out_dir: str | Path, log: Any = None) -> tuple[Scene, dict[str, Any]]:
@@ -177,14 +242,18 @@ def prepare_scene(ref: SceneRef, out_dir: str | Path, log: Any = None) -> tuple[
     A COLMAP project with distorted cameras is undistorted into ``out_dir/undistorted`` (the run
     reads it from there); its normalising similarity is recorded, so :func:`open_scene` reopens
     the same scene. ``log`` (a ``print``-like callable) hears what was done to the input.
+
+    ``stored`` names the scene by absolute paths and carries ``run_dir`` (the run folder,
+    absolute: paths inside it follow the run when it moves) and ``fingerprint``
+    (:func:`scene_fingerprint`), which :func:`open_run_scene` checks when the run is reopened.
     """
+    out = Path(out_dir)
     if isinstance(ref, ColmapRef):
         from vadgs.data import open_colmap_project
         from vadgs.data.normalize import similarity_scale
 
         if ref.images is not None and not Path(ref.images).is_dir():
             raise FileNotFoundError(f"--images {ref.images}: no such folder")
-        out = Path(out_dir)
         colmap, recipe = open_colmap_project(
             ref.path,
             ref.images,
@@ -205,8 +274,207 @@ def prepare_scene(ref: SceneRef, out_dir: str | Path, log: Any = None) -> tuple[
                 f"normalised the COLMAP frame: cameras centred, up on +z, scale x{s:.4g} (median "
                 "camera-to-point depth 10 units); --no-normalize keeps COLMAP's"
             )
-        return scene, {"kind": "colmap", **recipe}
-    if not isinstance(ref, (BenchmarkRef, DGPRef)):
+        stored = {"kind": "colmap", **recipe}
+    elif isinstance(ref, (BenchmarkRef, DGPRef)):
+        stored = ref.to_dict()
+        stored["path"] = str(Path(ref.path).resolve())
+        scene = open_scene(stored)
+    else:
         raise TypeError(f"ref: expected a BenchmarkRef, DGPRef or ColmapRef, got {type(ref).__name__}")
-    stored = ref.to_dict()
-    return open_scene(stored), stored
+    stored["run_dir"] = str(out.resolve())
+    stored["fingerprint"] = scene_fingerprint(stored, scene)
+    return scene, stored
+
+
+# ---------------------------------------------------------------------------------------------------
+# a run's scene: fingerprint, where it is, reopening it
+
+_COLMAP_FILES = ("cameras", "images", "points3D", "rigs", "frames")
+
+
+def _metadata_files(ref: dict[str, Any]) -> list[Path]:
+    """The files that describe a scene (hashed whole by :func:`scene_fingerprint`)."""
+    kind, path = ref.get("kind", "benchmark"), Path(ref["path"])
+    if kind == "benchmark":
+        return [path if path.name == "scene.json" else path / "scene.json"]
+    if kind == "dgp":
+        return [path] if path.is_file() else sorted(path.glob("scene*.json"))
+    return [path / f"{n}.{e}" for n in _COLMAP_FILES for e in ("bin", "txt") if (path / f"{n}.{e}").is_file()]
+
+
+def scene_fingerprint(ref: dict[str, Any], scene: Scene) -> str:
+    """A content fingerprint of a scene, wherever it lies: 16 hex digits of a SHA-256.
+
+    Cheap: the metadata files (``scene.json``, the DGP scene JSON, the COLMAP model files of
+    ``ref["path"]``) are hashed whole; the views' images, depth and instance maps and the frames'
+    LiDAR sweeps by file name and size only, not their bytes. Two copies of one scene have the
+    same fingerprint; another scene, or one whose metadata or files changed, another one.
+
+    Args:
+        ref: the scene's reference (``kind``, ``path``), as :func:`open_scene` takes it.
+        scene: the scene it opened.
+
+    Example:
+        >>> from vadgs.data import sample_scene_path
+        >>> ref = {"kind": "benchmark", "path": str(sample_scene_path()), "scale": 0.25}
+        >>> len(scene_fingerprint(ref, open_scene(ref)))
+        16
+    """
+    h = hashlib.sha256(str(ref.get("kind", "benchmark")).encode())
+    for f in _metadata_files(ref):
+        h.update(f"\n{f.name}\n".encode())
+        with f.open("rb") as fh:
+            h.update(hashlib.file_digest(fh, "sha256").digest())
+
+    def add(p: Path | None) -> None:
+        if p is None:
+            h.update(b"-;")
+            return
+        size = p.stat().st_size if p.is_file() else -1
+        h.update(f"{p.name}:{size};".encode())
+
+    for v in scene.views:
+        for p in (v.image, v.depth, v.instances):
+            add(p)
+    for f in scene.frames:
+        add(f.lidar)
+    return h.hexdigest()[:16]
+
+
+def _scene_exists(kind: str, path: Path) -> bool:
+    from vadgs.data import find_colmap_model
+
+    if kind == "benchmark":
+        return (path / "scene.json").is_file() or (path.name == "scene.json" and path.is_file())
+    if kind == "dgp":
+        return path.exists()
+    return find_colmap_model(path) is not None
+
+
+def _hint(flag: str) -> str:
+    """How to name a moved scene: ``pass --scene FOLDER`` (a flag) or ``give SCENE`` (an argument)."""
+    return f"pass {flag} FOLDER" if flag.startswith("--") else f"give {flag}"
+
+
+def locate_scene(
+    ref: dict[str, Any], run_dir: str | Path, scene: str | Path | None = None, flag: str = "--scene"
+) -> dict[str, Any]:
+    """A run's scene reference with its paths as they are now (checked to exist).
+
+    - Paths inside the run folder where it was trained (``ref["run_dir"]``: a COLMAP run's
+      undistorted copy) are taken inside ``run_dir``, where the run is now.
+    - ``scene`` (``--scene``): the scene's folder, for a run whose scene moved; it must be of the
+      run's kind (:func:`scene_ref` decides). A COLMAP run reads the model found there and the
+      ``images/`` next to it (an undistorted copy inside the run stays the run's).
+    - A relative path (runs of older vadgs) is taken against the folder recorded as ``cwd`` when
+      there is one, else against the current folder, with a warning.
+
+    Args:
+        ref: the stored reference (``Checkpoint.scene_ref``).
+        run_dir: the run folder now.
+        scene: the scene's folder now, or None (the recorded one).
+        flag: the argument that names the scene, for the messages.
+
+    Raises:
+        ValueError: no scene reference stored (a run of an in-memory scene), or ``scene`` of
+            another kind than the run's.
+        FileNotFoundError: the scene is not where the reference says; the message says where it
+            looked and names ``flag``.
+    """
+    run_dir = Path(run_dir).resolve()
+    if not ref.get("path"):
+        raise ValueError(
+            f"run {run_dir}: no scene reference stored (trained on an in-memory scene); "
+            "open it with Trainer.from_checkpoint(..., scene=)"
+        )
+    located = dict(ref)
+    kind = str(located.get("kind", "benchmark"))
+    was = Path(ref["run_dir"]) if ref.get("run_dir") else None
+    keys = ("path", "images")
+    for key in keys:
+        value = Path(located[key]) if located.get(key) else None
+        if value is None or not value.is_absolute():
+            continue
+        if was is not None and was != run_dir and value.is_relative_to(was):
+            located[key] = str(run_dir / value.relative_to(was))
+        elif was is None and not value.exists() and "undistorted" in value.parts:
+            # an older run (no run_dir recorded) moved with its undistorted copy
+            tail = value.parts[len(value.parts) - value.parts[::-1].index("undistorted") - 1 :]
+            if (run_dir.joinpath(*tail)).exists():
+                located[key] = str(run_dir.joinpath(*tail))
+    if scene is not None:
+        given = Path(scene)
+        found = "dgp" if kind == "dgp" and given.exists() else _detect_kind(given, flag)  # as scene_ref
+        if found != kind:
+            raise ValueError(
+                f"{flag} {given}: a {found} scene, but the run {run_dir} was trained on a {kind} scene"
+            )
+        given = given.resolve()
+        if kind != "colmap":
+            located["path"] = str(given)
+        else:
+            from vadgs.data import find_colmap_model
+            from vadgs.data.colmap import _find_images_dir
+
+            model = find_colmap_model(given)
+            located["source"] = str(model)
+            if not Path(located["path"]).is_relative_to(run_dir):  # not an undistorted copy in the run
+                located["path"] = str(model)
+                images = _find_images_dir(model)
+                located["images"] = str(images) if images is not None else located.get("images")
+    else:
+        for key in keys:
+            value = located.get(key)
+            if value and not Path(value).is_absolute():
+                base = Path(ref["cwd"]) if ref.get("cwd") else Path.cwd()
+                located[key] = str((base / value).resolve())
+                if not ref.get("cwd"):
+                    warnings.warn(
+                        f"run {run_dir}: its scene {key} {value!r} is relative (a run of an older vadgs) "
+                        f"and its working folder is not recorded: taken as {located[key]} against the "
+                        f"current folder; {_hint(flag)} to name the scene",
+                        stacklevel=2,
+                    )
+    located["run_dir"] = str(run_dir)  # where the paths above were found: a resumed run records it
+    path = Path(located["path"])
+    if not _scene_exists(kind, path):
+        what = "--scene" if scene is not None else "recorded"
+        raise FileNotFoundError(
+            f"run {run_dir}: its {kind} scene is not at {path} ({what}; moved or deleted?); "
+            f"{_hint(flag)} to point the run at its data"
+        )
+    if kind == "colmap" and located.get("images") and not Path(located["images"]).is_dir():
+        raise FileNotFoundError(
+            f"run {run_dir}: the images of its COLMAP scene are not at {located['images']} (moved or "
+            f"deleted?); {_hint(flag)} (the project, with images/) to point the run at its data"
+        )
+    return located
+
+
+def open_run_scene(
+    ref: dict[str, Any], run_dir: str | Path, scene: str | Path | None = None, flag: str = "--scene"
+) -> tuple[Scene, dict[str, Any]]:
+    """Reopen a run's scene, from any current folder: ``(scene, located)``.
+
+    :func:`locate_scene` finds it (``scene``: the folder it moved to); its fingerprint is then
+    compared with the one the run recorded (runs of older vadgs have none: not compared).
+    ``located`` is the reference as used, with the fingerprint of what was opened: what a
+    resumed run records and what ``eval.json`` names.
+
+    Raises:
+        ValueError: the scene found is not the run's (its fingerprint differs; the message names
+            both scenes and both fingerprints), or as :func:`locate_scene`.
+        FileNotFoundError: as :func:`locate_scene`.
+    """
+    located = locate_scene(ref, run_dir, scene, flag)
+    opened = open_scene(located)
+    now = scene_fingerprint(located, opened)
+    recorded = ref.get("fingerprint")
+    if recorded and now != recorded:
+        raise ValueError(
+            f"scene {located['path']} (fingerprint {now}) is not the scene run {Path(run_dir)} was "
+            f"trained on ({ref['path']}, fingerprint {recorded}): another scene or changed files; "
+            f"{_hint(flag)} with the run's own data"
+        )
+    located["fingerprint"] = now
+    return opened, located
