@@ -80,12 +80,47 @@ def render(c2w: np.ndarray, K: np.ndarray, size: tuple[int, int], textures: list
     return np.round(color * 255).astype(np.uint8)
 
 
+#: The photo stored sideways (EXIF orientation 6) and the one 1.5x larger.
+SIDEWAYS, LARGER = 5, 3
+
+
+def photo_cameras(num: int = 10, size: tuple[int, int] = (180, 240)) -> dict:
+    """The cameras of :func:`write_photo_set` (upright, as rendered): on the arc, looking at the box.
+
+    Returns:
+        ``{"cam_to_world" (N, 4, 4), "K" (N, 3, 3), "sizes" [(H, W)]}``, focal length ``0.9 W``.
+    """
+    c2ws, Ks, sizes = [], [], []
+    for i in range(num):
+        angle = np.deg2rad(-70 + 140 * i / max(num - 1, 1))
+        position = np.array([3.0 * np.cos(angle), 3.0 * np.sin(angle), 1.5 + 0.2 * np.sin(3 * angle)])
+        c2ws.append(look_at(position, np.array([0.0, 0.0, 0.7])))
+        h, w = size if i != LARGER else (int(size[0] * 1.5), int(size[1] * 1.5))
+        Ks.append(np.array([[0.9 * w, 0, (w - 1) / 2], [0, 0.9 * w, (h - 1) / 2], [0, 0, 1]]))
+        sizes.append((h, w))
+    return {"cam_to_world": np.stack(c2ws), "K": np.stack(Ks), "sizes": sizes}
+
+
+def sideways(c2w: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """The camera of an upright photo's pixel grid turned 90° counter-clockwise (``np.rot90``).
+
+    That grid is what a photo stored sideways with EXIF orientation 6 holds: ``(W, H)`` pixels,
+    ``raw[r, c] = upright[c, W - 1 - r]``; its camera is the upright one rolled about its z axis.
+    """
+    h, w = size
+    roll = np.eye(4)
+    roll[:3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # columns: raw axes in upright axes
+    K = np.array([[K[0, 0], 0, (h - 1) / 2], [0, K[1, 1], (w - 1) / 2], [0, 0, 1]])
+    return c2w @ roll, K, (w, h)
+
+
 def write_photo_set(folder: Path, num: int = 10, size: tuple[int, int] = (180, 240), seed: int = 0) -> dict:
     """Write ``num`` photos of the room into ``folder``; return their true cameras.
 
-    Photo 3 is 1.5x larger (its own camera), photo 5 a JPEG stored sideways with EXIF orientation 6
-    (rotate 90° clockwise to show it: its pixel grid is ``(W, H)``, its camera rolled), the others PNGs
-    of ``size`` ``(H, W)`` with the focal length ``0.9 W``.
+    Photo :data:`LARGER` is 1.5x larger (its own camera), photo :data:`SIDEWAYS` a JPEG stored
+    sideways with EXIF orientation 6 (rotate 90° clockwise to show it: its pixel grid is
+    ``(W, H)``, its camera rolled, :func:`sideways`), the others PNGs of ``size`` ``(H, W)``, all
+    with the focal length ``0.9 W`` (:func:`photo_cameras`).
 
     Returns:
         ``{"names", "cam_to_world" (N, 4, 4) of the stored pixel grids, "K" (N, 3, 3), "sizes" [(H, W)]}``.
@@ -94,31 +129,19 @@ def write_photo_set(folder: Path, num: int = 10, size: tuple[int, int] = (180, 2
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     textures = [_texture(rng) for _ in _FACES]
-    names, c2ws, Ks, sizes = [], [], [], []
+    cams = photo_cameras(num, size)
+    names = []
     for i in range(num):
-        angle = np.deg2rad(-70 + 140 * i / max(num - 1, 1))
-        position = np.array([3.0 * np.cos(angle), 3.0 * np.sin(angle), 1.5 + 0.2 * np.sin(3 * angle)])
-        c2w = look_at(position, np.array([0.0, 0.0, 0.7]))
-        h, w = size if i != 3 else (int(size[0] * 1.5), int(size[1] * 1.5))
-        K = np.array([[0.9 * w, 0, (w - 1) / 2], [0, 0.9 * w, (h - 1) / 2], [0, 0, 1]])
-        image = render(c2w, K, (h, w), textures)
-        if i == 5:  # stored sideways: the raw grid is the upright photo turned 90° counter-clockwise
-            raw = np.rot90(image)  # raw[r, c] = image[c, w - 1 - r]
+        image = render(cams["cam_to_world"][i], cams["K"][i], cams["sizes"][i], textures)
+        if i == SIDEWAYS:
             exif = Image.Exif()
             exif[0x0112] = 6
             name = f"photo_{i:02d}.jpg"
-            Image.fromarray(np.ascontiguousarray(raw)).save(folder / name, exif=exif, quality=95)
-            # the raw grid's camera: x_raw = -y, y_raw = x of the upright camera; K of a (W, H) grid
-            roll = np.eye(4)
-            roll[:3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # columns: raw axes in upright axes
-            c2w = c2w @ roll
-            K = np.array([[0.9 * w, 0, (h - 1) / 2], [0, 0.9 * w, (w - 1) / 2], [0, 0, 1]])
-            h, w = w, h
+            Image.fromarray(np.ascontiguousarray(np.rot90(image))).save(folder / name, exif=exif, quality=95)
+            c2w, K, hw = sideways(cams["cam_to_world"][i], cams["K"][i], cams["sizes"][i])
+            cams["cam_to_world"][i], cams["K"][i], cams["sizes"][i] = c2w, K, hw
         else:
             name = f"photo_{i:02d}.png"
             Image.fromarray(image).save(folder / name)
         names.append(name)
-        c2ws.append(c2w)
-        Ks.append(K)
-        sizes.append((h, w))
-    return {"names": names, "cam_to_world": np.stack(c2ws), "K": np.stack(Ks), "sizes": sizes}
+    return {"names": names, **cams}
