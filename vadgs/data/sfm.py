@@ -179,8 +179,11 @@ def photo_groups(folder: str | Path, names: Sequence[str], camera_mode: str = "a
     """
     if camera_mode not in CAMERA_MODES:
         raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
-    folder = Path(folder)
-    headers = {name: _read_header(folder / name) for name in names}
+    return _groups({name: _read_header(Path(folder) / name) for name in names}, camera_mode)
+
+
+def _groups(headers: dict[str, _PhotoHeader], camera_mode: str) -> list[list[str]]:
+    names = list(headers)
     if camera_mode == "per-image":
         return [[name] for name in names]
     if camera_mode == "single":
@@ -303,8 +306,10 @@ def run_sfm(
     if len(names) < 2:
         raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)} ({names[0]})")
     replaced = _check_project(out, photos, overwrite)
-    groups = photo_groups(photos, names, camera_mode)
+    if camera_mode not in CAMERA_MODES:
+        raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
     headers = {name: _read_header(photos / name) for name in names}
+    groups = _groups(headers, camera_mode)
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= EXHAUSTIVE_MAX else "sequential"
     nthreads = int(threads) or -1

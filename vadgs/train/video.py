@@ -476,8 +476,15 @@ def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:
     return up
 
 
-def _key_views(scene: Scene, camera: str) -> list[int]:
-    """One training view per training frame, in frame order: the frame's view of ``camera`` if any."""
+def _path_keys(scene: Scene, camera: str | None) -> tuple[str, list[int], torch.Tensor]:
+    """The keys of a path: ``(camera, views, (K, 4, 4) float64 cam_to_world)``.
+
+    The camera checked (default :func:`default_video_camera`); one training view per training
+    frame, in frame order: the frame's view of ``camera`` if it has one.
+    """
+    camera = camera or default_video_camera(scene)
+    if camera not in scene.cameras_info:
+        raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
     train = set(scene.train_views) or set(range(scene.num_views))
     keys = []
     for f in scene.frames:
@@ -486,7 +493,7 @@ def _key_views(scene: Scene, camera: str) -> list[int]:
             keys.append(next((v for v in ids if scene.views[v].camera == camera), ids[0]))
     if not keys:
         raise ValueError(f"scene {scene.name!r}: no training view to put a camera path through")
-    return keys
+    return camera, keys, torch.stack([scene.views[v].cam_to_world for v in keys]).double()
 
 
 def _focus_depth(scene: Scene, views: Sequence[int]) -> float:
@@ -498,10 +505,6 @@ def _focus_depth(scene: Scene, views: Sequence[int]) -> float:
     z = (w2c[pts.view_idx, 2, :3] * pts.points.double()[pts.point_idx]).sum(-1) + w2c[pts.view_idx, 2, 3]
     z = z[torch.isin(pts.view_idx, torch.tensor(list(views))) & (z > 0)]
     return float(z.median()) if z.numel() else 10.0
-
-
-def _frame_time(scene: Scene, view: int) -> float:
-    return float(scene.view_frame_position(view))
 
 
 def interpolated_trajectory(
@@ -520,22 +523,16 @@ def interpolated_trajectory(
         frames: every ``frames_between + 1``-th at a training camera's centre, looking where it
         looks, without its roll.
     """
-    camera = camera or default_video_camera(scene)
-    if camera not in scene.cameras_info:
-        raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
     if int(frames_between) < 0:
         raise ValueError(f"frames_between: expected >= 0, got {frames_between}")
-    keys = _key_views(scene, camera)
-    c2w = torch.stack([scene.views[v].cam_to_world for v in keys]).double()
+    camera, keys, c2w = _path_keys(scene, camera)
     depth = _focus_depth(scene, keys)
     centres, targets = c2w[:, :3, 3], c2w[:, :3, 3] + depth * c2w[:, :3, 2]
     n = int(frames_between) + 1
     t = torch.arange((len(keys) - 1) * n + 1, dtype=torch.float64) / n
     poses = look_at(catmull_rom(centres, t), catmull_rom(targets, t), scene_up(scene, keys))
-    key_times = torch.tensor([_frame_time(scene, v) for v in keys], dtype=torch.float64)
-    i = t.floor().long().clamp(max=max(len(keys) - 2, 0))
-    s = t - i
-    times = key_times[i] + s * (key_times[(i + 1).clamp(max=len(keys) - 1)] - key_times[i])
+    key_times = [float(scene.view_frame_position(v)) for v in keys]
+    times = torch.from_numpy(np.interp(t.numpy(), np.arange(len(keys)), key_times))
     return Trajectory(poses.float(), times, camera)
 
 
@@ -565,13 +562,9 @@ def orbit_trajectory(scene: Scene, camera: str | None = None, num_frames: int = 
     Returns:
         :class:`Trajectory` of ``num_frames`` poses, the frame time sweeping the scene's frames.
     """
-    camera = camera or default_video_camera(scene)
-    if camera not in scene.cameras_info:
-        raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
     if int(num_frames) < 1:
         raise ValueError(f"num_frames: expected >= 1, got {num_frames}")
-    keys = _key_views(scene, camera)
-    c2w = torch.stack([scene.views[v].cam_to_world for v in keys]).double()
+    camera, keys, c2w = _path_keys(scene, camera)
     centres, forward = c2w[:, :3, 3], c2w[:, :3, 2]
     up = scene_up(scene, keys)
     centre = _focus_point(centres, forward)
