@@ -354,7 +354,8 @@ def run_sfm(
                     bar.update(len(group[i : i + chunk]))
         t1 = time.perf_counter()
         seconds["features"] = round(t1 - t0, 1)
-        # -- 2. matching: the pairs in chunks (a progress bar), through pycolmap's imported pairs
+        # -- 2. matching: the pairs in chunks (a progress bar) through pycolmap's imported pairs,
+        # whose list file separates names by spaces: names with spaces go to pycolmap's own matchers
         if matcher == "exhaustive":
             pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
         else:
@@ -362,17 +363,27 @@ def run_sfm(
         say(f"matching: {len(pairs)} pairs ({matcher})")
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = nthreads
-        step = max(1, -(-len(pairs) // 20))
+        listable = not any(any(c.isspace() for c in name) for name in names)
+        step = max(1, -(-len(pairs) // 20)) if listable else len(pairs)
         bar = tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress)
         with _colmap_logging(), bar:
             for i in range(0, len(pairs), step):
-                listing = work / "pairs.txt"
-                listing.write_text("".join(f"{a} {b}\n" for a, b in pairs[i : i + step]))
-                pairing = pycolmap.ImportedPairingOptions()
-                pairing.match_list_path = str(listing)
-                pycolmap.match_image_pairs(
-                    db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
-                )
+                if not listable and matcher == "exhaustive":
+                    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+                elif not listable:
+                    pairing = pycolmap.SequentialPairingOptions()
+                    pairing.overlap, pairing.quadratic_overlap = SEQUENTIAL_OVERLAP, False
+                    pycolmap.match_sequential(
+                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+                    )
+                else:
+                    listing = work / "pairs.txt"
+                    listing.write_text("".join(f"{a} {b}\n" for a, b in pairs[i : i + step]))
+                    pairing = pycolmap.ImportedPairingOptions()
+                    pairing.match_list_path = str(listing)
+                    pycolmap.match_image_pairs(
+                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+                    )
                 bar.update(len(pairs[i : i + step]))
         t2 = time.perf_counter()
         seconds["matching"] = round(t2 - t1, 1)
