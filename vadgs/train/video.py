@@ -70,6 +70,7 @@ __all__ = [
     "ego_trajectory",
     "interpolate_rigid",
     "interpolated_trajectory",
+    "level_up",
     "look_at",
     "make_trajectory",
     "model_at_time",
@@ -445,8 +446,8 @@ def catmull_rom(points: torch.Tensor, t: torch.Tensor, alpha: float = 0.5) -> to
     return ((t2 - tt) * b1 + (tt - t1) * b2) / (t2 - t1)
 
 
-def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:
-    """The scene's up direction ``(3,)`` (unit, float64) from its cameras' image axes.
+def level_up(cam_to_world: torch.Tensor) -> torch.Tensor:
+    """The up direction ``(3,)`` (unit, float64) of cameras held level, from their image axes.
 
     A photo held level has a horizontal image row, whatever its pitch: the up is the direction
     normal to the cameras' horizontal image axes (the smallest eigenvector of their scatter),
@@ -454,26 +455,43 @@ def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:
     its ``y`` for a photo stored sideways (its EXIF orientation tag, which COLMAP and vadgs
     ignore, shows it upright): the one more normal to the current estimate, starting from the
     mean ``-y``; three rounds. Where the axes leave the up open (every camera turned the same
-    way) the estimate nearest to the previous one is kept.
+    way) the estimate nearest to the previous one is kept. Unlike the mean ``-y``, which leans
+    towards the object of cameras looking down at it, exact for level cameras.
+
+    Shape:
+        ``(V, 4, 4)`` (or ``(V, 3, 3)``) OpenCV camera-to-world → ``(3,)``, on the input's device.
+
+    Example:
+        >>> from vadgs.train.video import look_at
+        >>> pos = torch.tensor([[3.0, 0, 2], [0, 3, 2], [-3, 0, 2]])
+        >>> c2w = look_at(pos, torch.zeros(3), torch.tensor([0.0, 0, 1]))  # looking down at 0
+        >>> [round(v, 6) + 0.0 for v in level_up(c2w).tolist()], float(-c2w[:, 2, 1].mean()) < 0.95
+        ([0.0, 0.0, 1.0], True)
+    """
+    rot = cam_to_world[..., :3, :3].double()
+    x, y = rot[:, :, 0], rot[:, :, 1]
+    start = torch.nn.functional.normalize(-y.mean(0), dim=0)
+    up = start
+    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
+    for _ in range(3):
+        sideways = (x @ up).abs() > (y @ up).abs()
+        horizontal = torch.where(sideways[:, None], y, x)
+        scatter = horizontal.T @ horizontal / len(rot) + 1e-4 * (eye - up[:, None] * up[None])
+        up = torch.linalg.eigh(scatter).eigenvectors[:, 0]
+        ref = -y[~sideways].sum(0) if bool((~sideways).any()) else start  # the level photos' up
+        up = -up if float(up @ ref) < 0 else up
+    return up
+
+
+def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:
+    """The scene's up direction ``(3,)`` (unit, float64): :func:`level_up` of its cameras.
 
     Args:
         scene: the scene.
         views: the views (default: the training views, else all).
     """
     views = list(views) if views is not None else (scene.train_views or list(range(scene.num_views)))
-    rot = torch.stack([scene.views[v].cam_to_world[:3, :3].double() for v in views])
-    x, y = rot[:, :, 0], rot[:, :, 1]
-    start = torch.nn.functional.normalize(-y.mean(0), dim=0)
-    up = start
-    eye = torch.eye(3, dtype=torch.float64)
-    for _ in range(3):
-        sideways = (x @ up).abs() > (y @ up).abs()
-        horizontal = torch.where(sideways[:, None], y, x)
-        scatter = horizontal.T @ horizontal / len(views) + 1e-4 * (eye - up[:, None] * up[None])
-        up = torch.linalg.eigh(scatter).eigenvectors[:, 0]
-        ref = -y[~sideways].sum(0) if bool((~sideways).any()) else start  # the level photos' up
-        up = -up if float(up @ ref) < 0 else up
-    return up
+    return level_up(torch.stack([scene.views[v].cam_to_world for v in views]))
 
 
 def _path_keys(scene: Scene, camera: str | None) -> tuple[str, list[int], torch.Tensor]:
