@@ -192,6 +192,15 @@ class TestBadInput:
             err = capsys.readouterr().err
             assert message in err and err.count("\n") == 1, (argv, err)
             assert not (tmp_path / "p").exists()
+        # a project inside the photos folder: its images are not photos of a new run
+        (tmp_path / "one" / "proj" / "images").mkdir(parents=True)
+        for name in ("b.jpg", "c.jpg"):
+            Image.new("RGB", (40, 30)).save(tmp_path / "one" / "proj" / "images" / name)
+        argv = ["sfm", str(tmp_path / "one"), "--out", str(tmp_path / "one" / "proj"), "--overwrite"]
+        assert main(argv) == 2
+        assert "expected at least 2 photos, got 1 (a.jpg)" in capsys.readouterr().err
+        with pytest.raises(ValueError, match="camera_mode: expected one of"):
+            run_sfm(tmp_path / "one", tmp_path / "p", camera_mode="exif")
 
     def test_groups(self, tmp_path):
         for name, size in (("b.png", (40, 30)), ("a.png", (40, 30)), ("sub/c.jpg", (30, 40))):

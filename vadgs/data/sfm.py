@@ -228,6 +228,21 @@ def _remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
+@contextlib.contextmanager
+def _quiet_colmap():
+    """The pycolmap log off but for fatal errors (ours are one line each); all of it with ``--debug``."""
+    import pycolmap
+
+    from vadgs.data import colmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(before, 3 if colmap.COLMAP_LOG_LEVEL > 0 else 0)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
+
 def _sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
     return [
         (a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + overlap, len(names)))
@@ -281,33 +296,25 @@ def run_sfm(
     import pycolmap
     from tqdm import tqdm
 
-    from vadgs.data import colmap
-
-    @contextlib.contextmanager
-    def _colmap_logging():  # errors are ours to report in one line: pycolmap's only with --debug
-        before = pycolmap.logging.minloglevel
-        pycolmap.logging.minloglevel = max(before, 3 if colmap.COLMAP_LOG_LEVEL > 0 else 0)
-        try:
-            yield
-        finally:
-            pycolmap.logging.minloglevel = before
-
     say = log or (lambda _s: None)
     photos, out = Path(photos), Path(out)
     if matcher not in MATCHERS:
         raise ValueError(f"matcher: expected one of {list(MATCHERS)}, got {matcher!r}")
+    if camera_mode not in CAMERA_MODES:
+        raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model: expected one of {list(CAMERA_MODELS)}, got {camera_model!r}")
-    if int(max_image_size) < 0:
+    if not isinstance(max_image_size, int) or max_image_size < 0:
         raise ValueError(f"max_image_size: expected >= 0 (0: the photos' size), got {max_image_size}")
     if int(threads) < 0:
         raise ValueError(f"threads: expected >= 0 (0: all cores), got {threads}")
     names = find_photos(photos)
+    if out.resolve().is_relative_to(photos.resolve()):  # OUT inside PHOTOS: not its own photos
+        names = [n for n in names if not (photos / n).resolve().is_relative_to(out.resolve())]
     if len(names) < 2:
-        raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)} ({names[0]})")
+        shown = f" ({names[0]})" if names else ""
+        raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)}{shown}")
     replaced = _check_project(out, photos, overwrite)
-    if camera_mode not in CAMERA_MODES:
-        raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
     headers = {name: _read_header(photos / name) for name in names}
     groups = _groups(headers, camera_mode)
     if matcher == "auto":
@@ -333,7 +340,7 @@ def run_sfm(
             f"{', ...' if len(groups) > 4 else ''})"
         )
         bar = tqdm(total=len(names), desc="features", unit="photo", disable=not progress)
-        with _colmap_logging(), bar:
+        with _quiet_colmap(), bar:
             for group in groups:
                 camera_id = -1
                 for i in range(0, len(group), chunk):
@@ -366,7 +373,7 @@ def run_sfm(
         listable = not any(any(c.isspace() for c in name) for name in names)
         step = max(1, -(-len(pairs) // 20)) if listable else len(pairs)
         bar = tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress)
-        with _colmap_logging(), bar:
+        with _quiet_colmap(), bar:
             for i in range(0, len(pairs), step):
                 if not listable and matcher == "exhaustive":
                     pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
@@ -394,7 +401,7 @@ def run_sfm(
         options.random_seed = int(seed)
         (work / "models").mkdir()
         bar = tqdm(total=len(names), desc="registering", unit="photo", disable=not progress)
-        with _colmap_logging(), bar:
+        with _quiet_colmap(), bar:
             models = pycolmap.incremental_mapping(
                 db, photos, work / "models", options, next_image_callback=lambda: bar.update(1)
             )
