@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import imageio.v2 as imageio
@@ -270,6 +271,11 @@ class TestPhotoPaths:
                 make_trajectory(scene, spec)
         with pytest.raises(ValueError, match=re.escape(offered)):
             ego_trajectory(scene, "camera_1")
+        # one camera in every frame (a one-camera photo collection): ego is offered, not the default
+        one = dataclasses.replace(scene, cameras_info={"camera_1": scene.cameras_info["camera_1"]})
+        one.views = [dataclasses.replace(v, camera="camera_1") for v in scene.views]
+        assert trajectory_choices(one) == ["interpolate", "ego", "orbit", "orbit:FRAMES"]
+        assert len(make_trajectory(one, "ego").time) == 10
         # a rig with ego poses keeps the ego path as its default
         assert make_trajectory(tiny_scene).time.tolist() == list(range(8))
         assert trajectory_choices(tiny_scene)[:3] == ["ego", "shift:METRES", "shift:X,Y,Z"]

@@ -308,7 +308,9 @@ def trajectory_choices(scene: Scene, camera: str | None = None) -> list[str]:
     """The trajectories ``scene`` offers for ``camera`` (default :func:`default_video_camera`).
 
     ``ego`` when the rig has ego poses or the camera a view at every frame, ``shift:...`` with ego
-    poses only; ``interpolate`` and ``orbit`` always. The first is the default.
+    poses only; ``interpolate`` and ``orbit`` always. The first is the default: ``ego`` with ego
+    poses, else ``interpolate`` (a photo collection of one camera has a view of it at every
+    frame, but its ``ego`` path is a jump from photo to photo, test photos included).
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
@@ -318,12 +320,10 @@ def trajectory_choices(scene: Scene, camera: str | None = None) -> list[str]:
     camera = camera or default_video_camera(scene)
     if camera not in scene.cameras_info:
         raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
-    out = []
     if _has_ego_poses(scene, camera):
-        out += ["ego", "shift:METRES", "shift:X,Y,Z"]
-    elif all(_has_view(scene, f, camera) for f in scene.frames):
-        out.append("ego")
-    return [*out, "interpolate", "orbit", "orbit:FRAMES"]
+        return ["ego", "shift:METRES", "shift:X,Y,Z", "interpolate", "orbit", "orbit:FRAMES"]
+    ego = ["ego"] if all(_has_view(scene, f, camera) for f in scene.frames) else []
+    return ["interpolate", *ego, "orbit", "orbit:FRAMES"]
 
 
 def make_trajectory(
@@ -334,7 +334,7 @@ def make_trajectory(
     Args:
         scene: the scene.
         spec: ``ego``, ``shift:METRES``, ``shift:X,Y,Z``, ``interpolate``, ``orbit`` or
-            ``orbit:FRAMES``; None: ``ego`` where offered, else ``interpolate``.
+            ``orbit:FRAMES``; None: ``ego`` with ego poses, else ``interpolate``.
         camera: the camera (default :func:`default_video_camera`).
         frames_between: poses between consecutive frames (``ego``, ``shift``; default 0) or
             training cameras (``interpolate``; default :data:`INTERPOLATE_BETWEEN`).
