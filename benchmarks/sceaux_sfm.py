@@ -1,9 +1,12 @@
 """Structure from motion on the sceaux castle photos with pycolmap: the COLMAP project for the benchmark.
 
 Downscales the 11 photos (2832x2128) by ``--factor`` (default 4: 708x532, area filter) into
-``OUT/images``, then runs pycolmap's SIFT extraction (one shared SIMPLE_RADIAL camera), exhaustive
-matching and incremental mapping into ``OUT/sparse/0`` (the largest model). Deterministic up to
-COLMAP's own RANSAC seeding, which pycolmap fixes (``random_seed``), on one thread.
+``OUT/images`` (smaller images for the benchmark's training runs), then runs
+:func:`vadgs.data.sfm.run_sfm` on them in place (what ``vadgs sfm OUT/images --out OUT`` does: SIFT
+with one shared SIMPLE_RADIAL camera, exhaustive matching, incremental mapping into
+``OUT/sparse/0``, the largest model). Deterministic up to COLMAP's own RANSAC seeding, which
+pycolmap fixes (``random_seed``), on one thread. For your own photos, at their own sizes and
+unchanged, use ``vadgs sfm PHOTOS --out PROJECT`` instead.
 
 Run (from the repository root; ../shared present; about a minute on one CPU core):
 
@@ -20,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
-import time
 from pathlib import Path
 
 from PIL import Image
@@ -52,57 +53,39 @@ def downscale_images(src: Path, dst: Path, factor: int, mixed: bool = False) -> 
     return names
 
 
-def run_sfm(out: Path, threads: int = 1, seed: int = 0, per_image: bool = False) -> dict:
-    """pycolmap SfM on ``out/images`` into ``out/sparse/0``; returns a summary.
+def run_benchmark_sfm(out: Path, threads: int = 1, seed: int = 0, per_image: bool = False) -> dict:
+    """:func:`vadgs.data.sfm.run_sfm` on ``out/images`` in place (exhaustive matching); a summary.
 
-    ``per_image``: one camera per photo (``CameraMode.PER_IMAGE``), else one shared camera.
+    ``per_image``: one camera per photo, else one shared camera. The features are detected on
+    the downscaled photos as they are (no further limit).
     """
     import pycolmap
 
-    db = out / "database.db"
-    db.unlink(missing_ok=True)
-    t0 = time.perf_counter()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = threads
-    pycolmap.extract_features(
-        db, out / "images", extraction_options=extraction,
-        camera_mode=pycolmap.CameraMode.PER_IMAGE if per_image else pycolmap.CameraMode.SINGLE,
-        device=pycolmap.Device.cpu,
-    )  # fmt: skip
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
-    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
-    t1 = time.perf_counter()
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = threads
-    options.random_seed = seed
-    sparse = out / "sparse"
-    if sparse.exists():
-        shutil.rmtree(sparse)
-    sparse.mkdir()
-    models = pycolmap.incremental_mapping(db, out / "images", sparse, options)
-    t2 = time.perf_counter()
-    best = max(models.values(), key=lambda r: r.num_reg_images())
-    # keep the largest model as sparse/0 (pycolmap numbers them by creation)
-    tmp = out / "sparse_best"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    best.write(tmp)
-    shutil.rmtree(sparse)
-    sparse.mkdir()
-    tmp.rename(sparse / "0")
+    from vadgs.data.sfm import run_sfm
+
+    res = run_sfm(
+        out / "images",
+        out,
+        matcher="exhaustive",
+        camera_mode="per-image" if per_image else "single",
+        max_image_size=0,
+        overwrite=True,
+        threads=threads,
+        seed=seed,
+        progress=False,
+    )
+    best = pycolmap.Reconstruction(str(res.model))
     return {
-        "images": len(list((out / "images").iterdir())),
-        "registered": best.num_reg_images(),
-        "points": best.num_points3D(),
+        "images": res.num_photos,
+        "registered": res.registered,
+        "points": res.num_points,
         "mean_track_length": round(best.compute_mean_track_length(), 2),
-        "mean_reprojection_error_px": round(best.compute_mean_reprojection_error(), 3),
-        "cameras": len(best.cameras),
+        "mean_reprojection_error_px": round(res.mean_reprojection_error, 3),
+        "cameras": res.num_cameras,
         "image_sizes": sorted({(c.width, c.height) for c in best.cameras.values()}),
         "camera": str(next(iter(best.cameras.values()))),
-        "features_and_matching_s": round(t1 - t0, 1),
-        "mapping_s": round(t2 - t1, 1),
+        "features_and_matching_s": round(res.seconds["features"] + res.seconds["matching"], 1),
+        "mapping_s": res.seconds["mapping"],
     }
 
 
@@ -116,7 +99,7 @@ def main() -> None:
     p.add_argument("--mixed-sizes", action="store_true", help="photos of different sizes, one camera each")
     args = p.parse_args()
     names = downscale_images(args.images, args.out / "images", args.factor, args.mixed_sizes)
-    sfm = run_sfm(args.out, args.threads, args.seed, per_image=args.mixed_sizes)
+    sfm = run_benchmark_sfm(args.out, args.threads, args.seed, per_image=args.mixed_sizes)
     summary = {"factor": args.factor, "mixed_sizes": args.mixed_sizes, "names": names, **sfm}
     (args.out / "sfm.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))

@@ -18,8 +18,8 @@ from vadgs.data import sample_scene_path
 
 TINY = ["--scale", "0.25", "--no-progress", "--init.max-points", "300", "--init.voxel-size", "1.0"]
 TINY += ["--init.sh-degree", "0"]
-NO_COMMAND = "vadgs: error: expected a command (check, visibility, train, eval, render, export, view, demo, "
-NO_COMMAND += "convert, batch)"
+NO_COMMAND = "vadgs: error: expected a command (sfm, check, visibility, train, eval, render, export, view, "
+NO_COMMAND += "demo, convert, batch)"
 
 
 def _error_line(capsys) -> str:
@@ -111,6 +111,8 @@ class TestArguments:
                 [],
                 f"{NO_COMMAND}, got none",
             ),
+            (["--threads", "2", "frobnicate"], f"{NO_COMMAND}, got 'frobnicate'"),  # not the flag's '2'
+            (["--debug", "--threads", "2"], f"{NO_COMMAND}, got none"),
         ],
     )
     def test_rejected_by_the_parser(self, argv, line, tmp_path, monkeypatch, capsys):

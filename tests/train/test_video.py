@@ -1,21 +1,37 @@
 from __future__ import annotations
 
+import dataclasses
+import re
+
 import imageio.v2 as imageio
 import numpy as np
 import pytest
 import torch
 
+from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
 from vadgs.render import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.video import (
+    INTERPOLATE_BETWEEN,
+    ORBIT_FRAMES,
     TIMELINE_ROWS,
+    catmull_rom,
+    default_video_camera,
     ego_trajectory,
     interpolate_rigid,
+    interpolated_trajectory,
+    look_at,
+    make_trajectory,
     model_at_time,
     object_poses_at,
+    orbit_trajectory,
     parse_trajectory,
     render_video,
+    scene_up,
+    trajectory_choices,
 )
+
+from ..data.photo_sample import SIDEWAYS, photo_cameras, sideways
 
 
 @pytest.fixture(scope="module")
@@ -148,3 +164,164 @@ class TestRenderVideo:
             render_video(tiny_model, tiny_scene, path, traj, fps=5, progress=False)
         assert len(calls) == 3
         assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"] and path.read_bytes() == b"previous"
+
+
+# -- camera paths of photo collections ---------------------------------------------------------------
+
+
+def _photo_scene() -> Scene:
+    """The room's 10 photo cameras (one rolled 90°, one larger) as a scene: a photo per frame."""
+    cams = photo_cameras()
+    c2w, K, size = sideways(cams["cam_to_world"][SIDEWAYS], cams["K"][SIDEWAYS], cams["sizes"][SIDEWAYS])
+    cams["cam_to_world"][SIDEWAYS], cams["K"][SIDEWAYS], cams["sizes"][SIDEWAYS] = c2w, K, size
+    info, frames, views = {}, [], []
+    for i, (m, k, hw) in enumerate(zip(cams["cam_to_world"], cams["K"], cams["sizes"])):
+        name = f"camera_{i + 1}"
+        info[name] = CameraInfo(name, torch.tensor(k, dtype=torch.float32), hw, None)
+        views.append(ViewInfo(i, i, name, float(i), torch.tensor(m, dtype=torch.float32)))
+        frames.append(FrameInfo(i, float(i), None, (i,)))
+    return Scene("room", None, info, frames, views, train_frames=list(range(10)))
+
+
+UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+
+class TestPhotoPaths:
+    def test_catmull_rom(self):
+        pts = torch.tensor([[0.0, 0.0], [1.0, 2.0], [4.0, 2.5], [5.0, 0.0]], dtype=torch.float64)
+        torch.testing.assert_close(catmull_rom(pts, torch.arange(4.0, dtype=torch.float64)), pts)
+        h = 1e-5  # smooth at the inner points: the tangents from both sides point the same way
+        for k in (1.0, 2.0):
+            t = torch.tensor([k - h, k, k + h], dtype=torch.float64)
+            a, b, c = catmull_rom(pts, t)
+            cos = torch.nn.functional.cosine_similarity(b - a, c - b, dim=0)
+            assert float(cos) > 1 - 1e-6, (k, float(cos))
+        # a straight run of uneven steps: no overshoot, monotone
+        line = torch.tensor([[0.0], [0.1], [3.0], [3.2]], dtype=torch.float64)
+        x = catmull_rom(line, torch.linspace(0, 3, 301, dtype=torch.float64))[:, 0]
+        assert bool((x.diff() >= 0).all()) and float(x.min()) == 0.0 and float(x.max()) == 3.2
+        with pytest.raises(ValueError, match="t: expected parameters in"):
+            catmull_rom(pts, torch.tensor([3.5]))
+
+    def test_look_at(self):
+        pos, target = torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([[4.0, -2.0, 3.5]])
+        c2w = look_at(pos, target, UP.float())[0]
+        torch.testing.assert_close(c2w[:3, 2], (target - pos)[0] / (target - pos).norm())
+        assert abs(float(c2w[:3, 0] @ UP.float())) < 1e-6 and float(c2w[:3, 1] @ UP.float()) < 0  # y down
+        assert float(torch.linalg.det(c2w[:3, :3])) == pytest.approx(1.0)
+        down = look_at(torch.zeros(3), torch.tensor([0.0, 0.0, -1.0]), UP.float())  # along up: still a pose
+        assert float(torch.linalg.det(down[:3, :3])) == pytest.approx(1.0)
+
+    def test_scene_up_ignores_a_sideways_photo(self, tiny_scene):
+        scene = _photo_scene()
+        torch.testing.assert_close(scene_up(scene), UP, atol=1e-6, rtol=0)
+        # the mean of the cameras' -y alone would lean towards the sideways camera's
+        mean = torch.stack([-v.cam_to_world[:3, 1].double() for v in scene.views]).mean(0)
+        assert float(torch.rad2deg(torch.acos(mean @ UP / mean.norm()))) > 3
+        # a street rig: up is the ego frame's z (the sample's cameras look level)
+        up = scene_up(tiny_scene)
+        ez = tiny_scene.frames[0].ego_to_world[:3, 2].double()
+        assert float(up @ ez) > 0.999
+
+    def test_interpolated_path_through_the_cameras(self):
+        scene = _photo_scene()
+        traj = interpolated_trajectory(scene, frames_between=3)
+        assert traj.cam_to_world.shape == (37, 4, 4) and traj.camera == "camera_1"
+        torch.testing.assert_close(traj.time, torch.arange(37, dtype=torch.float64) / 4)
+        for i, v in enumerate(scene.views):
+            pose = traj.cam_to_world[4 * i]
+            torch.testing.assert_close(pose[:3, 3], v.cam_to_world[:3, 3], atol=1e-5, rtol=0)
+            torch.testing.assert_close(pose[:3, 2], v.cam_to_world[:3, 2], atol=1e-5, rtol=0)
+        # never rolled, not even at the sideways photo: x stays horizontal, y points down
+        assert float((traj.cam_to_world[:, :3, 0] @ UP.float()).abs().max()) < 1e-5
+        assert bool((traj.cam_to_world[:, :3, 1] @ UP.float() < 0).all())
+        # between the cameras: on the arc's side of the box (radius ~3), looking at it
+        r = traj.cam_to_world[:, :2, 3].norm(dim=-1)
+        assert float(r.min()) > 2.9 and float(r.max()) < 3.05
+
+    def test_orbit_around_the_centre(self):
+        scene = _photo_scene()
+        traj = orbit_trajectory(scene, num_frames=24)
+        centre = torch.tensor([0.0, 0.0, 0.7])
+        pos = traj.cam_to_world[:, :3, 3]
+        torch.testing.assert_close(pos[:, :2].norm(dim=-1), torch.full((24,), 3.0), atol=1e-4, rtol=0)
+        heights = torch.stack([v.cam_to_world[2, 3] for v in scene.views])
+        torch.testing.assert_close(pos[:, 2], torch.full((24,), float(heights.mean())), atol=1e-4, rtol=0)
+        forward = torch.nn.functional.normalize(centre - pos, dim=-1)
+        torch.testing.assert_close(traj.cam_to_world[:, :3, 2], forward, atol=1e-4, rtol=0)
+        azimuth = torch.rad2deg(torch.atan2(pos[:, 1], pos[:, 0]))
+        assert float(azimuth[0]) == pytest.approx(-70.0, abs=1e-3)  # at the first photo
+        assert float(azimuth[1] - azimuth[0]) == pytest.approx(15.0, abs=1e-3)  # turning as they do
+        assert traj.time.tolist() == pytest.approx(torch.linspace(0, 9, 24).tolist())
+
+    def test_choices_and_errors(self, tiny_scene):
+        scene = _photo_scene()
+        assert default_video_camera(scene) == "camera_1"
+        assert trajectory_choices(scene) == ["interpolate", "orbit", "orbit:FRAMES"]
+        assert len(make_trajectory(scene).time) == 9 * (INTERPOLATE_BETWEEN + 1) + 1  # the default
+        assert len(make_trajectory(scene, "orbit").time) == ORBIT_FRAMES
+        offered = "it offers ['interpolate', 'orbit', 'orbit:FRAMES']"
+        for spec, message in [
+            ("ego", "has no ego path for camera 'camera_1' (no ego poses, no view of it at every frame)"),
+            ("shift:2", "has no ego path for camera 'camera_1' (no ego poses)"),
+            ("orbit:0", "expected orbit:FRAMES with FRAMES >= 1"),
+            ("spiral", "trajectory: expected one of ['interpolate', 'orbit', 'orbit:FRAMES'], got 'spiral'"),
+        ]:
+            with pytest.raises(ValueError, match=re.escape(message)):
+                make_trajectory(scene, spec)
+        with pytest.raises(ValueError, match=re.escape(offered)):
+            ego_trajectory(scene, "camera_1")
+        # one camera in every frame (a one-camera photo collection): ego is offered, not the default
+        one = dataclasses.replace(scene, cameras_info={"camera_1": scene.cameras_info["camera_1"]})
+        one.views = [dataclasses.replace(v, camera="camera_1") for v in scene.views]
+        assert trajectory_choices(one) == ["interpolate", "ego", "orbit", "orbit:FRAMES"]
+        assert len(make_trajectory(one, "ego").time) == 10
+        # a rig with ego poses keeps the ego path as its default
+        assert make_trajectory(tiny_scene).time.tolist() == list(range(8))
+        assert trajectory_choices(tiny_scene)[:3] == ["ego", "shift:METRES", "shift:X,Y,Z"]
+
+
+@pytest.fixture(scope="module")
+def colmap_run(tmp_path_factory):
+    """A 2-step run on the sample as a COLMAP project (24 photos, 3 cameras, every 8th held out)."""
+    from vadgs.cli import main
+
+    from ..data.colmap_sample import write_sample_colmap
+
+    pytest.importorskip("pycolmap")
+    root = tmp_path_factory.mktemp("colmap_video")
+    write_sample_colmap(root / "proj", n_points=300)
+    fast = ["--scale", "0.25", "--no-progress", "--init.sh-degree", "0", "--init.max-points", "300"]
+    argv = ["--threads", "1", "train", str(root / "proj"), "--out", str(root / "run"), "--iterations", "2"]
+    assert main([*argv, *fast]) == 0
+    return root / "run"
+
+
+class TestColmapRunVideo:
+    def test_render_video_of_a_photo_collection(self, colmap_run, capsys):
+        from vadgs.cli import main
+
+        out = colmap_run / "v.mp4"
+        argv = ["--threads", "1", "render", str(colmap_run), "--no-progress"]
+        assert main([*argv, "--video", str(out), "--frames-between", "1"]) == 0  # the default: interpolate
+        said = capsys.readouterr().out
+        assert (
+            "41 frames" in said and "(trajectory interpolate, camera camera_1)" in said
+        )  # 21 training photos
+        with imageio.get_reader(out, format="FFMPEG") as reader:
+            frames = [f for f in reader]
+        assert len(frames) == 41 and frames[0].shape == (36 + TIMELINE_ROWS, 3 * 60, 3)
+        assert main([*argv, "--video", str(out), "--trajectory", "orbit:6", "--camera", "camera_2"]) == 0
+        assert "6 frames" in capsys.readouterr().out
+        assert main([*argv, "--trajectory", "list"]) == 0
+        said = capsys.readouterr().out
+        assert "trajectories of scene 'proj', camera camera_1: interpolate, orbit, orbit:FRAMES" in said
+        assert "default: interpolate" in said
+        for flags, message in [
+            (["--trajectory", "ego"], "--trajectory: scene 'proj' has no ego path for camera 'camera_1'"),
+            (["--trajectory", "shift:1"], "--trajectory: scene 'proj' has no ego path"),
+            (["--camera", "front"], "--camera: expected one of ['camera_1', 'camera_2', 'camera_3']"),
+        ]:
+            assert main([*argv, "--video", str(out), *flags]) == 2
+            err = capsys.readouterr().err
+            assert message in err and err.count("\n") == 1, err

@@ -7,6 +7,7 @@ shows a command's flags. ``--threads`` and ``--debug`` go before or after the co
 
 - :mod:`vadgs.cli.train`: ``train`` (every TrainConfig field a flag), ``batch``
 - :mod:`vadgs.cli.runs`: ``eval``, ``render``, ``export``, ``view``
+- :mod:`vadgs.cli.sfm`: ``sfm`` (photos → a COLMAP project)
 - :mod:`vadgs.cli.scenes`: ``check``, ``visibility``, ``convert``
 - :mod:`vadgs.cli.demo`: ``demo``
 
@@ -27,6 +28,7 @@ from vadgs.cli._common import Command, _plain
 from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, DemoCommand  # noqa: F401 (DEMO_*: documented here)
 from vadgs.cli.runs import EvalCommand, ExportCommand, RenderCommand, ViewCommand
 from vadgs.cli.scenes import CheckCommand, ConvertCommand, VisibilityCommand
+from vadgs.cli.sfm import SfmCommand
 from vadgs.cli.train import BatchCommand, TrainCommand
 
 __all__ = [
@@ -39,6 +41,7 @@ __all__ = [
     "EvalCommand",
     "ExportCommand",
     "RenderCommand",
+    "SfmCommand",
     "TrainCommand",
     "ViewCommand",
     "VisibilityCommand",
@@ -48,6 +51,7 @@ __all__ = [
 #: The commands by name: a :class:`Command` dataclass each (``vadgs train``'s is
 #: :class:`TrainCommand`, whose ``--threads`` is the run's ``TrainConfig.threads``).
 COMMANDS: dict[str, type] = {
+    "sfm": SfmCommand,
     "check": CheckCommand,
     "visibility": VisibilityCommand,
     "train": TrainCommand,
@@ -72,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         if any(a in ("-h", "--help") for a in argv):
             print(_usage())
             return 0
-        given = next((a for a in argv if not a.startswith("-")), None)
+        given = _first_name(argv)
         what = f"got {given!r}" if given else "got none"
         print(f"vadgs: error: expected a command ({', '.join(COMMANDS)}), {what}", file=sys.stderr)
         return 2
@@ -116,6 +120,16 @@ def _command_at(argv: list[str]) -> int | None:
         if argv[i] not in _GLOBAL_FLAGS:
             return None
         i += 1 + _GLOBAL_FLAGS[argv[i]]
+    return None
+
+
+def _first_name(argv: list[str]) -> str | None:
+    """The first argument that is neither a flag nor a global flag's value (the mistyped command)."""
+    i = 0
+    while i < len(argv):
+        if not argv[i].startswith("-"):
+            return argv[i]
+        i += 1 + _GLOBAL_FLAGS.get(argv[i], 0)
     return None
 
 

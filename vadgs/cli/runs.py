@@ -102,12 +102,15 @@ class EvalCommand(Command):
 
 @dataclass(frozen=True)
 class RenderCommand(Command):
-    """Render a run's test views as PNG panels, or a video along the ego path (``--video``).
+    """Render a run's test views as PNG panels, or a video along a camera path (``--video``).
 
-    Panels: image, GT, error, depth, GT depth, normals per view. ``--video OUT.mp4``: one rig
-    camera along the ego path (``--trajectory ego``) or shifted in the ego frame
-    (``shift:METRES``, + = left; ``shift:X,Y,Z``), colour | depth | normals side by side, moving
-    cars at their poses (interpolated between frames with ``--frames-between``).
+    Panels: image, GT, error, depth, GT depth, normals per view. ``--video OUT.mp4``: colour |
+    depth | normals side by side along ``--trajectory``: one rig camera along the ego path
+    (``ego``) or shifted in the ego frame (``shift:METRES``, + = left; ``shift:X,Y,Z``), moving
+    cars at their poses (interpolated between frames with ``--frames-between``); or, on any
+    scene (a photo collection has no ego path), a smooth path through the training cameras
+    (``interpolate``) or a circle around the scene's centre (``orbit``, ``orbit:FRAMES``).
+    ``--trajectory list`` prints what the run's scene offers.
     """
 
     run: RunArg
@@ -118,14 +121,17 @@ class RenderCommand(Command):
     """view indices (default: the test views)"""
     video: str | None = None
     """write a video (.mp4) along --trajectory instead of panels"""
-    trajectory: str = "ego"
-    """ego (the rig's path), shift:METRES (sideways in the ego frame, + = left) or shift:X,Y,Z"""
+    trajectory: str | None = None
+    """ego (the rig's path), shift:METRES (sideways in the ego frame, + = left), shift:X,Y,Z,
+    interpolate (through the training cameras), orbit or orbit:FRAMES (around the centre);
+    list: print those the scene offers (default: ego where there is one, else interpolate)"""
     camera: str | None = None
-    """rig camera of the video (default front)"""
+    """camera of the video (default front, else the camera of the most training views)"""
     fps: float = 10.0
     """frames per second of the video"""
-    frames_between: int = 0
-    """poses interpolated between consecutive frames (slerp / linear; cars likewise)"""
+    frames_between: int | None = None
+    """poses between consecutive frames (ego, shift; default 0) or training cameras
+    (interpolate; default 8)"""
     scene: SceneOpt = None
     """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
@@ -134,7 +140,8 @@ class RenderCommand(Command):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive(self, "fps")
-        check_at_least(self, 0, "frames_between")
+        if self.frames_between is not None:
+            check_at_least(self, 0, "frames_between")
 
     def main(self) -> int:
         """Write the panels or the video; 0."""
@@ -145,11 +152,27 @@ class RenderCommand(Command):
     def _render(self) -> int:
         run = load_run(self.run, scene=self.scene)
         model, scene, config = run.model, run.scene, run.config
-        if self.video:
-            from vadgs.train.video import ego_trajectory, parse_trajectory, render_video
+        if self.video or self.trajectory == "list":
+            from vadgs.train.video import (
+                default_video_camera,
+                make_trajectory,
+                render_video,
+                trajectory_choices,
+            )
 
-            camera = self.camera or ("front" if "front" in scene.cameras_info else scene.camera_names[0])
-            traj = ego_trajectory(scene, camera, parse_trajectory(self.trajectory), self.frames_between)
+            try:  # the library names its arguments; here they are flags
+                camera = self.camera or default_video_camera(scene)
+                choices = trajectory_choices(scene, camera)
+                spec = self.trajectory or choices[0]
+                if spec == "list":
+                    print(f"trajectories of scene {scene.name!r}, camera {camera}: {', '.join(choices)}")
+                    print(f"default: {choices[0]}")
+                    return 0
+                traj = make_trajectory(scene, spec, camera, self.frames_between)
+            except ValueError as e:
+                raise ValueError(
+                    f"--{e}" if str(e).startswith(("trajectory:", "camera:")) else str(e)
+                ) from None
             info = render_video(
                 model,
                 scene,
@@ -160,7 +183,10 @@ class RenderCommand(Command):
                 progress=not self.no_progress,
             )
             size = f"{info.size[1]}x{info.size[0]}"
-            print(f"wrote {info.path}: {info.num_frames} frames of {size} at {self.fps} fps")
+            print(
+                f"wrote {info.path}: {info.num_frames} frames of {size} at {self.fps} fps "
+                f"(trajectory {spec}, camera {camera})"
+            )
             return 0
         from vadgs.train.evaluate import save_test_panels
 

@@ -1,5 +1,7 @@
 """Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
 
+A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``).
+
 Every loader returns a :class:`~vadgs.data.scene.Scene`; per-view images, depth and instance
 maps are read lazily.
 """
@@ -29,6 +31,7 @@ from vadgs.data.scene import (
     ViewInfo,
 )
 from vadgs.data.scene_json import load_scene
+from vadgs.data.sfm import SfmResult, run_sfm
 from vadgs.data.validate import validate_scene
 from vadgs.data.waymo import load_waymo
 
@@ -40,6 +43,7 @@ __all__ = [
     "InstanceInfo",
     "LidarFrame",
     "Scene",
+    "SfmResult",
     "Track",
     "ValidationReport",
     "ValidationRow",
@@ -54,6 +58,7 @@ __all__ = [
     "match_colmap_views",
     "open_colmap_project",
     "reopen_colmap_project",
+    "run_sfm",
     "sample_scene_path",
     "validate_scene",
 ]

@@ -18,7 +18,7 @@ from vadgs.train.ops import add_gaussians, duplicate, make_optimizer, remove_gau
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
 from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, Trainer, TrainResult
-from vadgs.train.video import ego_trajectory, render_video
+from vadgs.train.video import ego_trajectory, make_trajectory, render_video
 
 __all__ = [
     "AppearanceConfig",
@@ -53,6 +53,7 @@ __all__ = [
     "geometric_weights",
     "init_gaussians",
     "make_optimizer",
+    "make_trajectory",
     "normal_loss",
     "remove_gaussians",
     "render_video",

@@ -1,0 +1,228 @@
+"""``vadgs sfm`` (:func:`vadgs.data.sfm.run_sfm`): photos → a COLMAP project, against the true cameras."""
+
+from __future__ import annotations
+
+import filecmp
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from vadgs.cli import main
+from vadgs.data import open_colmap_project
+from vadgs.data.colmap_model import _cam_from_world
+from vadgs.data.sfm import _sequential_pairs, find_photos, photo_groups, run_sfm
+from vadgs.train.scenes import scene_ref
+
+from .photo_sample import write_photo_set
+
+pycolmap = pytest.importorskip("pycolmap")
+
+SCEAUX = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "sceaux_castle" / "images"
+
+
+LAYOUT = ["database.db", "images", "sfm.json", "sparse"]
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """The 10-photo room (three sizes, one stored sideways) reconstructed once (about 10 s of CPU)."""
+    root = tmp_path_factory.mktemp("sfm")
+    truth = write_photo_set(root / "photos")
+    (root / "photos" / "notes.txt").write_text("not a photo")  # skipped
+    res = run_sfm(root / "photos", root / "proj", threads=1, log=None, progress=False)
+    return root, truth, res
+
+
+def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares ``s, R, t`` with ``dst ≈ s R src + t`` (Umeyama)."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    u, d, vt = np.linalg.svd(b.T @ a / len(src))
+    e = np.eye(3)
+    e[2, 2] = np.sign(np.linalg.det(u @ vt))
+    R = u @ e @ vt
+    s = float((d * np.diag(e)).sum() / (a**2).sum(1).mean())
+    return s, R, md - s * R @ ms
+
+
+class TestRunSfm:
+    def test_every_photo_registers_with_its_true_camera(self, made):
+        _, truth, res = made
+        assert (res.num_photos, res.registered, res.unregistered) == (10, 10, ())
+        assert res.matcher == "exhaustive" and res.num_cameras == 3  # one per size
+        assert res.mean_reprojection_error < 0.5
+        rec = pycolmap.Reconstruction(str(res.model))
+        images = {im.name: im for im in rec.images.values()}
+        # intrinsics: every camera has its photo's stored size and its true focal length (within 1 %)
+        for i, name in enumerate(truth["names"]):
+            cam = rec.cameras[images[name].camera_id]
+            h, w = truth["sizes"][i]
+            assert (cam.height, cam.width) == (h, w), name
+            assert cam.focal_length == pytest.approx(truth["K"][i][0, 0], rel=0.01), name
+        # poses: the camera centres match the truth up to a similarity within 0.5 % of the arc's radius
+        c2w = [np.linalg.inv(_cam_from_world(images[n])) for n in truth["names"]]
+        centres = np.stack([m[:3, 3] for m in c2w])
+        s, R, t = _similarity(centres, truth["cam_to_world"][:, :3, 3])
+        err = np.linalg.norm(s * centres @ R.T + t - truth["cam_to_world"][:, :3, 3], axis=1)
+        assert err.max() < 0.015, err
+        # orientations, the sideways photo's included: rotation error below 0.5 degree
+        for i, m in enumerate(c2w):
+            rel = truth["cam_to_world"][i, :3, :3].T @ R @ m[:3, :3]
+            angle = np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1)))
+            assert angle < 0.5, (truth["names"][i], angle)
+
+    def test_project_layout_and_photos_unchanged(self, made):
+        root, truth, res = made
+        assert sorted(p.name for p in res.project.iterdir()) == [
+            "database.db",
+            "images",
+            "sfm.json",
+            "sparse",
+        ]
+        assert sorted(p.name for p in res.images.iterdir()) == truth["names"]  # notes.txt left out
+        for name in truth["names"]:
+            assert filecmp.cmp(root / "photos" / name, res.images / name, shallow=False)
+        assert Image.open(res.images / "photo_05.jpg").getexif()[0x0112] == 6
+        summary = json.loads((res.project / "sfm.json").read_text())
+        assert summary["registered"] == 10 and summary["exif_rotated"] == ["photo_05.jpg"]
+        assert not list((root / "photos").glob("*.db"))  # nothing written next to the photos
+
+    def test_vadgs_reads_the_project(self, made):
+        root, truth, res = made
+        assert scene_ref(res.project).kind == "colmap"
+        colmap, recipe = open_colmap_project(res.project, undistort_dir=root / "undistorted")
+        scene = colmap.scene
+        assert scene.num_views == 10 and scene.name == "proj"
+        assert sorted(v.image.name for v in scene.views) == truth["names"]
+        assert len(recipe["undistorted"]) == 3  # SIMPLE_RADIAL: undistorted for training
+
+    def test_overwrite(self, made, tmp_path, capsys):
+        root, truth, res = made
+
+        def sfm(photos, out, *flags):
+            return main(["--threads", "1", "sfm", str(photos), "--out", str(out), "--no-progress", *flags])
+
+        before = (res.model / "points3D.bin").read_bytes()
+        argv = ["--threads", "1", "sfm", str(root / "photos"), "--out", str(res.project), "--no-progress"]
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "already holds images, sparse, database.db, sfm.json; --overwrite replaces them" in err
+        assert err.count("\n") == 1
+        # a failing --overwrite (nothing registers) leaves the old project as it was
+        noise = tmp_path / "noise"
+        noise.mkdir()
+        rng = np.random.default_rng(0)
+        for i in range(3):
+            Image.fromarray(rng.integers(0, 255, (90, 120, 3), dtype=np.uint8)).save(noise / f"n{i}.png")
+        assert (
+            main(
+                [
+                    "--threads",
+                    "1",
+                    "sfm",
+                    str(noise),
+                    "--out",
+                    str(res.project),
+                    "--overwrite",
+                    "--no-progress",
+                ]
+            )
+            == 2
+        )
+        err = capsys.readouterr().err
+        assert "COLMAP registered none of the 3 photos" in err and err.count("\n") == 1
+        assert (res.model / "points3D.bin").read_bytes() == before
+        assert sorted(p.name for p in res.project.iterdir()) == [
+            "database.db",
+            "images",
+            "sfm.json",
+            "sparse",
+        ]
+        # a new project from nothing that registers: no folder left behind
+        assert sfm(noise, tmp_path / "new") == 2
+        assert not (tmp_path / "new").exists()
+        capsys.readouterr()
+        # a successful --overwrite with four photos, in place (PHOTOS is the project's images/), linked;
+        # a name with a space goes to pycolmap's own matchers (the pair list separates by spaces)
+        proj = tmp_path / "small"
+        (proj / "images").mkdir(parents=True)
+        names = ["photo 00.png", *truth["names"][1:4]]
+        for name, src in zip(names, truth["names"]):
+            (proj / "images" / name).write_bytes((root / "photos" / src).read_bytes())
+        assert sfm(proj / "images", proj) == 0
+        out = capsys.readouterr().out
+        # the larger photo 3, its own camera, does not connect to the three others: left out, said so
+        assert "registered 3 of 4 photos" in out and "mean reprojection error" in out
+        assert "not registered: photo_03.png" in out
+        assert sfm(proj / "images", proj) == 2
+        assert "--overwrite" in capsys.readouterr().err
+        t0 = time.time()
+        assert sfm(proj / "images", proj, "--overwrite") == 0
+        assert time.time() - t0 < 120
+        assert sorted(p.name for p in (proj / "images").iterdir()) == names  # never removed
+        link = tmp_path / "linked"
+        assert sfm(proj / "images", link, "--link", "--matcher", "sequential") == 0
+        out = capsys.readouterr().out
+        assert "matching: 6 pairs (sequential)" in out and "registered 3 of 4 photos" in out
+        assert (link / "images" / names[0]).resolve() == (proj / "images" / names[0]).resolve()
+
+
+class TestBadInput:
+    def test_messages(self, tmp_path, capsys):
+        (tmp_path / "empty").mkdir()
+        (tmp_path / "empty" / "K.txt").write_text("1 0 0")
+        (tmp_path / "one").mkdir()
+        Image.new("RGB", (40, 30)).save(tmp_path / "one" / "a.jpg")
+        cases = [
+            ([str(tmp_path / "nope")], "PHOTOS " + str(tmp_path / "nope") + ": no such folder"),
+            (
+                [str(tmp_path / "empty")],
+                "expected photos (.jpg, .jpeg, .png, .tif, .tiff, .bmp), got none (1 other file(s))",
+            ),
+            ([str(tmp_path / "one")], "expected at least 2 photos, got 1 (a.jpg)"),
+            ([str(tmp_path / "one"), "--matcher", "vocab"], "--matcher"),
+            ([str(tmp_path / "one"), "--max-image-size", "-1"], "--max-image-size: expected >= 0, got -1"),
+        ]
+        for argv, message in cases:
+            assert main(["sfm", *argv, "--out", str(tmp_path / "p")]) == 2, argv
+            err = capsys.readouterr().err
+            assert message in err and err.count("\n") == 1, (argv, err)
+            assert not (tmp_path / "p").exists()
+        # a project inside the photos folder: its images are not photos of a new run
+        (tmp_path / "one" / "proj" / "images").mkdir(parents=True)
+        for name in ("b.jpg", "c.jpg"):
+            Image.new("RGB", (40, 30)).save(tmp_path / "one" / "proj" / "images" / name)
+        argv = ["sfm", str(tmp_path / "one"), "--out", str(tmp_path / "one" / "proj"), "--overwrite"]
+        assert main(argv) == 2
+        assert "expected at least 2 photos, got 1 (a.jpg)" in capsys.readouterr().err
+        with pytest.raises(ValueError, match="camera_mode: expected one of"):
+            run_sfm(tmp_path / "one", tmp_path / "p", camera_mode="exif")
+
+    def test_groups(self, tmp_path):
+        for name, size in (("b.png", (40, 30)), ("a.png", (40, 30)), ("sub/c.jpg", (30, 40))):
+            (tmp_path / name).parent.mkdir(exist_ok=True)
+            Image.new("RGB", size).save(tmp_path / name)
+        (tmp_path / ".hidden.png").write_bytes(b"")
+        assert _sequential_pairs("abcd", 2) == [("a", "b"), ("a", "c"), ("b", "c"), ("b", "d"), ("c", "d")]
+        names = find_photos(tmp_path)
+        assert names == ["a.png", "b.png", "sub/c.jpg"]
+        assert photo_groups(tmp_path, names) == [["a.png", "b.png"], ["sub/c.jpg"]]
+        assert photo_groups(tmp_path, names, "per-image") == [["a.png"], ["b.png"], ["sub/c.jpg"]]
+        with pytest.raises(ValueError, match="camera_mode: 'single' needs photos of one size, got 2 sizes"):
+            photo_groups(tmp_path, names, "single")
+
+
+@pytest.mark.shared
+@pytest.mark.slow
+@pytest.mark.skipif(not SCEAUX.is_dir(), reason="needs ../shared/data/real/sceaux_castle")
+def test_sceaux_castle(tmp_path):
+    """The 11 castle photos (2832x2128) at features of 800 px: all register, focal within 4 % of K.txt."""
+    res = run_sfm(SCEAUX, tmp_path / "castle", max_image_size=800, threads=1, log=None, progress=False)
+    assert res.num_photos == 11 and res.registered == 11 and res.mean_reprojection_error < 1.0
+    focal = float(SCEAUX.joinpath("K.txt").read_text().split()[0])
+    rec = pycolmap.Reconstruction(str(res.model))
+    assert [c.focal_length for c in rec.cameras.values()] == [pytest.approx(focal, rel=0.04)]

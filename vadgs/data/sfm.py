@@ -1,0 +1,514 @@
+"""Structure from motion with pycolmap: a folder of photos → a COLMAP project that ``vadgs train`` reads.
+
+:func:`run_sfm` is what ``vadgs sfm PHOTOS --out PROJECT`` runs (nerfstudio's ``ns-process-data
+images``, COLMAP's automatic reconstructor), in four pycolmap steps:
+
+1. **Features.** SIFT (:func:`pycolmap.extract_features`), at most ``max_image_size`` pixels on the
+   longest side *for the detection only* (keypoints are in the photo's own pixels). Cameras
+   (``camera_mode``): ``"auto"`` makes one camera per group of photos with the same pixel size
+   and EXIF camera (make, model, focal length), so that photos of one camera share their
+   intrinsics; ``"single"``: one for all (one size needed); ``"per-image"``: one each.
+2. **Matching** (``matcher``): ``"exhaustive"`` matches every pair, ``"sequential"`` each photo
+   with its :data:`SEQUENTIAL_OVERLAP` successors in name order (video frames); ``"auto"`` is
+   exhaustive up to :data:`EXHAUSTIVE_MAX` photos, sequential beyond.
+3. **Incremental mapping** (:func:`pycolmap.incremental_mapping`); the largest model is kept.
+4. **The project**: ``PROJECT/sparse/0`` (the model), ``PROJECT/images`` (the photos, byte for byte
+   under their own names: copied, or symlinked with ``link=True``), ``PROJECT/database.db``
+   (COLMAP's features and matches, e.g. for COLMAP's GUI) and ``PROJECT/sfm.json`` (the summary).
+
+**Orientation.** COLMAP and vadgs both read a photo's stored pixel grid and ignore its EXIF
+orientation tag, so a photo stored sideways (tag 6 or 8) gets a camera of the stored size rolled by
+90°: the model is consistent and trains as it is; only its renders are sideways as the file is.
+:func:`run_sfm` checks that every registered camera has its photo's stored size.
+
+Nothing is written next to the photos; the work happens in a temporary folder inside ``PROJECT``
+and moves into place only when a model was made, so a failed run leaves ``PROJECT`` as it was.
+An existing project is replaced only with ``overwrite=True``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+from PIL import Image
+
+__all__ = [
+    "CAMERA_MODES",
+    "EXHAUSTIVE_MAX",
+    "MATCHERS",
+    "PHOTO_SUFFIXES",
+    "SEQUENTIAL_OVERLAP",
+    "SfmResult",
+    "find_photos",
+    "photo_groups",
+    "run_sfm",
+]
+
+#: The photo files :func:`find_photos` takes (case-insensitive): what both COLMAP and PIL read.
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+
+#: ``matcher="auto"`` matches every pair up to this many photos, else sequentially.
+EXHAUSTIVE_MAX = 100
+
+#: ``matcher="sequential"``: each photo is matched with this many successors in name order.
+SEQUENTIAL_OVERLAP = 10
+
+#: The ways to make cameras (see the module docstring).
+CAMERA_MODES = ("auto", "single", "per-image")
+
+#: The matchers (see the module docstring).
+MATCHERS = ("auto", "exhaustive", "sequential")
+
+#: The camera models COLMAP may fit that vadgs reads (``vadgs train`` undistorts the distorted ones).
+CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
+
+#: What :func:`run_sfm` writes into the project (and ``overwrite`` replaces).
+PROJECT_ENTRIES = ("images", "sparse", "database.db", "sfm.json")
+
+_EXIF_ORIENTATION = 0x0112
+_EXIF_CAMERA = (0x010F, 0x0110)  # Make, Model (IFD0)
+_EXIF_FOCAL = 0x920A  # FocalLength (Exif IFD)
+
+
+class SfmResult(NamedTuple):
+    """What :func:`run_sfm` made.
+
+    Attributes:
+        project: the project folder (``vadgs train PROJECT`` reads it).
+        model: its model folder, ``project/sparse/0``.
+        images: its photos, ``project/images``.
+        num_photos: photos found.
+        registered: photos with a pose in the model.
+        num_points: 3D points of the model.
+        mean_reprojection_error: in pixels.
+        num_cameras: cameras of the model.
+        unregistered: the names of the photos left out.
+        matcher: the matcher used (``"exhaustive"`` or ``"sequential"``).
+        seconds: ``{"features", "matching", "mapping"}`` wall-clock times.
+    """
+
+    project: Path
+    model: Path
+    images: Path
+    num_photos: int
+    registered: int
+    num_points: int
+    mean_reprojection_error: float
+    num_cameras: int
+    unregistered: tuple[str, ...]
+    matcher: str
+    seconds: dict[str, float]
+
+    def summary(self) -> str:
+        """One line: registered/total photos, points, the mean reprojection error."""
+        return (
+            f"registered {self.registered} of {self.num_photos} photos, {self.num_points} points, "
+            f"{self.num_cameras} camera(s), mean reprojection error {self.mean_reprojection_error:.3f} px"
+        )
+
+
+def find_photos(folder: str | Path) -> list[str]:
+    """The photos in ``folder`` and its subfolders: names relative to it (``/``-separated), sorted.
+
+    Files of other kinds (``.txt``, ``.mov``, ...) and hidden files are skipped.
+
+    Raises:
+        FileNotFoundError: if ``folder`` is not a folder.
+        ValueError: if it holds no photo (naming the suffixes taken and what else it holds).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"PHOTOS {folder}: no such folder")
+    names, other = [], 0
+    for path in sorted(folder.rglob("*")):
+        rel = path.relative_to(folder)
+        if any(part.startswith(".") for part in rel.parts) or not path.is_file():
+            continue
+        if path.suffix.lower() in PHOTO_SUFFIXES:
+            names.append(rel.as_posix())
+        else:
+            other += 1
+    if not names:
+        raise ValueError(
+            f"PHOTOS {folder}: expected photos ({', '.join(PHOTO_SUFFIXES)}), got none "
+            f"({other} other file(s))"
+        )
+    return names
+
+
+class _PhotoHeader(NamedTuple):
+    size: tuple[int, int]  # stored pixel grid (W, H)
+    camera: tuple  # EXIF make, model, focal length (empty strings when absent)
+    orientation: int  # EXIF orientation tag (1: as stored)
+
+
+def _read_header(path: Path) -> _PhotoHeader:
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            focal = exif.get_ifd(0x8769).get(_EXIF_FOCAL, "")
+            camera = (*(str(exif.get(tag, "")).strip() for tag in _EXIF_CAMERA), str(focal))
+            return _PhotoHeader(im.size, camera, int(exif.get(_EXIF_ORIENTATION, 1) or 1))
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        raise ValueError(f"PHOTOS: {path} is not a readable photo ({type(e).__name__}: {e})") from None
+
+
+def photo_groups(folder: str | Path, names: Sequence[str], camera_mode: str = "auto") -> list[list[str]]:
+    """The photos that share a camera: ``names`` in groups (see the module docstring, ``camera_mode``).
+
+    Raises:
+        ValueError: for an unknown ``camera_mode``, an unreadable photo, or ``"single"`` with photos
+            of several sizes.
+
+    Example:
+        >>> import tempfile
+        >>> from PIL import Image
+        >>> d = Path(tempfile.mkdtemp())
+        >>> for name, size in (("a.png", (40, 30)), ("b.png", (40, 30)), ("c.png", (30, 40))):
+        ...     Image.new("RGB", size).save(d / name)
+        >>> photo_groups(d, ["a.png", "b.png", "c.png"])
+        [['a.png', 'b.png'], ['c.png']]
+    """
+    if camera_mode not in CAMERA_MODES:
+        raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
+    return _groups({name: _read_header(Path(folder) / name) for name in names}, camera_mode)
+
+
+def _groups(headers: dict[str, _PhotoHeader], camera_mode: str) -> list[list[str]]:
+    names = list(headers)
+    if camera_mode == "per-image":
+        return [[name] for name in names]
+    if camera_mode == "single":
+        sizes = sorted({h.size for h in headers.values()})
+        if len(sizes) > 1:
+            shown = ", ".join(f"{w}x{h}" for w, h in sizes[:4])
+            raise ValueError(
+                f"camera_mode: 'single' needs photos of one size, got {len(sizes)} sizes ({shown}); "
+                "use 'auto' (one camera per size)"
+            )
+        return [list(names)]
+    groups: dict[tuple, list[str]] = {}
+    for name in names:
+        groups.setdefault((headers[name].size, headers[name].camera), []).append(name)
+    return list(groups.values())
+
+
+def _check_project(project: Path, photos: Path, overwrite: bool) -> list[Path]:
+    """The entries of ``project`` to replace; refuses an existing project without ``overwrite``."""
+    if project.exists() and not project.is_dir():
+        raise ValueError(f"--out {project}: expected a folder, got an existing file")
+    in_place = (project / "images").resolve() == photos.resolve()
+    held = [
+        project / e
+        for e in PROJECT_ENTRIES
+        if (project / e).exists() or (project / e).is_symlink()
+        if not (e == "images" and in_place)
+    ]
+    if held and not overwrite:
+        names = ", ".join(p.name for p in held)
+        raise ValueError(f"--out {project}: already holds {names}; --overwrite replaces them")
+    for entry in held:
+        if photos.resolve().is_relative_to(entry.resolve()):
+            raise ValueError(f"PHOTOS {photos}: is inside {entry}, which --overwrite would replace")
+    return held
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def _quiet_colmap():
+    """The pycolmap log off but for fatal errors (ours are one line each); all of it with ``--debug``."""
+    import pycolmap
+
+    from vadgs.data import colmap
+
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(before, 3 if colmap.COLMAP_LOG_LEVEL > 0 else 0)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
+
+def _sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
+    return [
+        (a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + overlap, len(names)))
+    ]
+
+
+def run_sfm(
+    photos: str | Path,
+    out: str | Path,
+    *,
+    matcher: str = "auto",
+    camera_mode: str = "auto",
+    camera_model: str = "SIMPLE_RADIAL",
+    max_image_size: int = 1600,
+    link: bool = False,
+    overwrite: bool = False,
+    threads: int = 0,
+    seed: int = 0,
+    log: Callable[[str], None] | None = print,
+    progress: bool = True,
+) -> SfmResult:
+    """Reconstruct the cameras of a folder of photos with pycolmap; write a COLMAP project.
+
+    See the module docstring for the steps and what is written.
+
+    Args:
+        photos: the folder of photos (subfolders included; other files skipped).
+        out: the project folder to write (created; an existing project needs ``overwrite``).
+        matcher: ``"auto"``, ``"exhaustive"`` or ``"sequential"``.
+        camera_mode: ``"auto"`` (one camera per size and EXIF camera), ``"single"``, ``"per-image"``.
+        camera_model: the COLMAP model fitted: ``SIMPLE_RADIAL`` (default), ``RADIAL``, ``OPENCV``,
+            ``SIMPLE_PINHOLE``, ``PINHOLE``.
+        max_image_size: longest side (pixels) at which features are detected (the photos are not
+            changed); ``0``: the photos' own size.
+        link: symlink the photos into ``out/images`` instead of copying them.
+        overwrite: replace the ``images``, ``sparse``, ``database.db``, ``sfm.json`` of an
+            existing project.
+        threads: CPU threads of pycolmap (0: all).
+        seed: pycolmap's random seed (RANSAC, mapping).
+        log: where the step lines go (``print``-like; None: nowhere).
+        progress: tqdm bars for the features, the matching and the registration.
+
+    Returns:
+        :class:`SfmResult`.
+
+    Raises:
+        FileNotFoundError: if ``photos`` is not a folder.
+        ValueError: no or fewer than two photos, an unreadable photo, a bad option, an existing
+            project without ``overwrite``, or no photo registered (one line each, naming it).
+    """
+    import pycolmap
+    from tqdm import tqdm
+
+    say = log or (lambda _s: None)
+    photos, out = Path(photos), Path(out)
+    if matcher not in MATCHERS:
+        raise ValueError(f"matcher: expected one of {list(MATCHERS)}, got {matcher!r}")
+    if camera_mode not in CAMERA_MODES:
+        raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model: expected one of {list(CAMERA_MODELS)}, got {camera_model!r}")
+    if not isinstance(max_image_size, int) or max_image_size < 0:
+        raise ValueError(f"max_image_size: expected >= 0 (0: the photos' size), got {max_image_size}")
+    if int(threads) < 0:
+        raise ValueError(f"threads: expected >= 0 (0: all cores), got {threads}")
+    names = find_photos(photos)
+    if out.resolve().is_relative_to(photos.resolve()):  # OUT inside PHOTOS: not its own photos
+        names = [n for n in names if not (photos / n).resolve().is_relative_to(out.resolve())]
+    if len(names) < 2:
+        shown = f" ({names[0]})" if names else ""
+        raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)}{shown}")
+    replaced = _check_project(out, photos, overwrite)
+    headers = {name: _read_header(photos / name) for name in names}
+    groups = _groups(headers, camera_mode)
+    if matcher == "auto":
+        matcher = "exhaustive" if len(names) <= EXHAUSTIVE_MAX else "sequential"
+    nthreads = int(threads) or -1
+
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".vadgs-sfm-", dir=out))
+    try:
+        db = work / "database.db"
+        seconds = {}
+        t0 = time.perf_counter()
+        # -- 1. features, one camera per group (a new camera per call; chunks reuse the group's)
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = nthreads
+        extraction.max_image_size = int(max_image_size) or -1
+        chunk = max(2, os.cpu_count() or 1) if nthreads < 0 else max(2, nthreads)
+        size = f"longest side {max_image_size} px" if max_image_size else "full size"
+        say(
+            f"features: SIFT on {len(names)} photos ({size}), {len(groups)} camera(s) "
+            f"({camera_mode}: {', '.join(_group_label(headers[g[0]]) for g in groups[:4])}"
+            f"{', ...' if len(groups) > 4 else ''})"
+        )
+        bar = tqdm(total=len(names), desc="features", unit="photo", disable=not progress)
+        with _quiet_colmap(), bar:
+            for group in groups:
+                camera_id = -1
+                for i in range(0, len(group), chunk):
+                    reader = pycolmap.ImageReaderOptions()
+                    reader.camera_model = camera_model
+                    reader.existing_camera_id = camera_id
+                    pycolmap.extract_features(
+                        db,
+                        photos,
+                        image_names=group[i : i + chunk],
+                        camera_mode=pycolmap.CameraMode.SINGLE,
+                        reader_options=reader,
+                        extraction_options=extraction,
+                        device=pycolmap.Device.cpu,
+                    )
+                    if camera_id < 0:
+                        camera_id = _camera_of(db, group[0])
+                    bar.update(len(group[i : i + chunk]))
+        t1 = time.perf_counter()
+        seconds["features"] = round(t1 - t0, 1)
+        # -- 2. matching: the pairs in chunks (a progress bar) through pycolmap's imported pairs,
+        # whose list file separates names by spaces: names with spaces go to pycolmap's own matchers
+        if matcher == "exhaustive":
+            pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
+        else:
+            pairs = _sequential_pairs(names, SEQUENTIAL_OVERLAP)
+        say(f"matching: {len(pairs)} pairs ({matcher})")
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = nthreads
+        listable = not any(any(c.isspace() for c in name) for name in names)
+        step = max(1, -(-len(pairs) // 20)) if listable else len(pairs)
+        bar = tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress)
+        with _quiet_colmap(), bar:
+            for i in range(0, len(pairs), step):
+                if not listable and matcher == "exhaustive":
+                    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+                elif not listable:
+                    pairing = pycolmap.SequentialPairingOptions()
+                    pairing.overlap, pairing.quadratic_overlap = SEQUENTIAL_OVERLAP, False
+                    pycolmap.match_sequential(
+                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+                    )
+                else:
+                    listing = work / "pairs.txt"
+                    listing.write_text("".join(f"{a} {b}\n" for a, b in pairs[i : i + step]))
+                    pairing = pycolmap.ImportedPairingOptions()
+                    pairing.match_list_path = str(listing)
+                    pycolmap.match_image_pairs(
+                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+                    )
+                bar.update(len(pairs[i : i + step]))
+        t2 = time.perf_counter()
+        seconds["matching"] = round(t2 - t1, 1)
+        # -- 3. incremental mapping
+        say(f"mapping: incremental, {len(names)} photos")
+        options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads = nthreads
+        options.random_seed = int(seed)
+        (work / "models").mkdir()
+        bar = tqdm(total=len(names), desc="registering", unit="photo", disable=not progress)
+        with _quiet_colmap(), bar:
+            models = pycolmap.incremental_mapping(
+                db, photos, work / "models", options, next_image_callback=lambda: bar.update(1)
+            )
+            bar.n = max((r.num_reg_images() for r in models.values()), default=0)  # + the initial pair
+            bar.refresh()
+        seconds["mapping"] = round(time.perf_counter() - t2, 1)
+        if not models or max(r.num_reg_images() for r in models.values()) == 0:
+            raise ValueError(
+                f"PHOTOS {photos}: COLMAP registered none of the {len(names)} photos (too little "
+                "overlap or texture between them?); photos from nearby viewpoints of a textured "
+                "scene register best" + ("; try --matcher exhaustive" if matcher == "sequential" else "")
+            )
+        best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+        registered = {im.name for im in best.images.values() if im.has_pose}
+        _check_sizes(best, photos, headers)
+        if len(models) > 1:
+            say(
+                f"COLMAP made {len(models)} separate models; kept the largest "
+                f"({len(registered)} photos), the others did not connect to it"
+            )
+        in_place = (out / "images").resolve() == photos.resolve()
+        if not in_place:
+            _place_photos(photos, names, work / "images", link)
+        (work / "sparse" / "0").mkdir(parents=True)
+        best.write(work / "sparse" / "0")
+        # -- 4. the project: the old entries replaced, the new ones moved in
+        for entry in replaced:
+            _remove(entry)
+        for entry in ("database.db", "sparse", "images"):
+            if (work / entry).exists():
+                os.replace(work / entry, out / entry)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+    shutil.rmtree(work, ignore_errors=True)
+    result = SfmResult(
+        project=out,
+        model=out / "sparse" / "0",
+        images=out / "images",
+        num_photos=len(names),
+        registered=len(registered),
+        num_points=best.num_points3D(),
+        mean_reprojection_error=float(best.compute_mean_reprojection_error()),
+        num_cameras=len({best.images[i].camera_id for i in best.reg_image_ids()}),
+        unregistered=tuple(n for n in names if n not in registered),
+        matcher=matcher,
+        seconds=seconds,
+    )
+    rotated = sorted(n for n in registered if headers[n].orientation != 1)
+    summary = {
+        "photos": str(photos.resolve()),
+        **{k: v for k, v in result._asdict().items() if k not in ("project", "model", "images")},
+        "camera_mode": camera_mode,
+        "camera_model": camera_model,
+        "max_image_size": int(max_image_size),
+        "seed": int(seed),
+        "exif_rotated": rotated,
+    }
+    summary["unregistered"] = list(result.unregistered)
+    (out / "sfm.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if rotated:
+        say(
+            f"{len(rotated)} photo(s) carry an EXIF rotation (e.g. {rotated[0]}): COLMAP and vadgs use "
+            "the stored pixel grid, so those views render as stored"
+        )
+    return result
+
+
+def _group_label(header: _PhotoHeader) -> str:
+    make, model, _ = header.camera
+    label = f"{header.size[0]}x{header.size[1]}"
+    return f"{label} {make} {model}".strip() if (make or model) else label
+
+
+def _camera_of(db: Path, name: str) -> int:
+    """The camera id the database gave photo ``name``."""
+    import pycolmap
+
+    database = pycolmap.Database.open(str(db))
+    try:
+        return int(database.read_image_with_name(name).camera_id)
+    finally:
+        database.close()
+
+
+def _check_sizes(rec: object, photos: Path, headers: dict[str, _PhotoHeader]) -> None:
+    """Every registered camera has its photo's stored size (what vadgs reads), else a ValueError."""
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        cam = rec.cameras[im.camera_id]
+        if (cam.width, cam.height) != headers[im.name].size:
+            w, h = headers[im.name].size
+            raise ValueError(
+                f"PHOTOS: {photos / im.name}: COLMAP's camera is {cam.width}x{cam.height}, the stored "
+                f"photo {w}x{h} (this pycolmap applies the EXIF orientation; vadgs does not)"
+            )
+
+
+def _place_photos(photos: Path, names: Sequence[str], images: Path, link: bool) -> None:
+    """The photos under ``images`` with their names: copies (bytes and times) or absolute symlinks."""
+    for name in names:
+        dst = images / name
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if link:
+            dst.symlink_to((photos / name).resolve())
+        else:
+            shutil.copy2(photos / name, dst)
