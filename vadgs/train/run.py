@@ -230,7 +230,9 @@ def train_scene(
             raise ValueError("train_scene(resume=True): the scene and config are the checkpoint's; pass None")
         if not (out / CHECKPOINT_NAME).is_file():
             raise FileNotFoundError(f"resume: no checkpoint in {out}")
-        trainer = Trainer.from_checkpoint(out, progress=progress, config_changes=config_changes or None)
+        trainer = Trainer.from_checkpoint(
+            out, progress=progress, config_changes=config_changes or None, log=log
+        )
         kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
         say(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
     else:
@@ -254,6 +256,7 @@ def train_scene(
             colmap_points=init_points,
             progress=progress,
             overwrite=overwrite,
+            log=log,
         )
         if held is not None:
             say(f"overwrite: the previous run in {out} ({held}) is removed as training starts")

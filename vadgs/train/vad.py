@@ -121,6 +121,9 @@ class VisibilityAwareDensification:
         on_addition: optional callback, called with ``{"instance", "view", "step", "added",
             "depth", "alpha"}`` (the reference's render just before) each time an instance gets new
             Gaussians (for figures; nothing is kept by the strategy).
+        on_progress: optional callback, called with one line while an event runs (``"VAD-GS event
+            2: instance 3/5 (sign 12), 41 s so far"``): a loop's progress bar shows it (vadgs's
+            trainer does), so that a long event does not look like a frozen run.
         log_size: at most this many events are kept in ``state["pending_log"]`` for the loop to
             pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
         the others: see :class:`VisibilityDensifyConfig`.
@@ -140,6 +143,7 @@ class VisibilityAwareDensification:
 
     base: Any = field(default_factory=DefaultStrategy)
     on_addition: Callable[[dict[str, Any]], None] | None = field(default=None, repr=False)
+    on_progress: Callable[[str], None] | None = field(default=None, repr=False)
     log_size: int = _MAX_PENDING
     inputs: VisibilityInputs | None = field(default=None, init=False, repr=False)
     context: StrategyContext | None = field(default=None, init=False, repr=False)
@@ -430,11 +434,13 @@ class VisibilityAwareDensification:
         index = self.prepare()
         renders = _Renders(context.render, state.get("vad_renders"))
         t0 = time.perf_counter()
+        event = len(state["vad_events"])
+        say = self.on_progress or (lambda _line: None)
+        say(f"VAD-GS event {event + 1}: testing {len(inputs.train_views)} views")
         tests = state.get("vad_tests") or {}
         rows, views = self.detect(renders=renders, tests=tests)
         t1 = time.perf_counter()
         classes = index.classes()  # incl. derived instances (scenes without maps)
-        event = len(state["vad_events"])
         has_nodes = "node_ids" in getattr(params, "params", params)
 
         def skip_reason(inst: int) -> str | None:
@@ -466,7 +472,11 @@ class VisibilityAwareDensification:
             budget = cfg.time_budget * float(state.get("vad_train_s", 0.0))
         occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
         done = repaired = 0
-        for inst in ranked:
+        for k, inst in enumerate(ranked):
+            say(
+                f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
+                f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
+            )
             if cfg.max_instances is not None and done >= cfg.max_instances:
                 skipped["max_instances"] = skipped.get("max_instances", 0) + 1
                 continue
