@@ -61,7 +61,8 @@ class TrainCommand:
     no_progress: Flag = False
     """no progress bar"""
     scale: float | None = None
-    """image resolution factor (default 0.5 = 240x144 for the benchmark; 1.0 for COLMAP)"""
+    """image resolution factor (default: the working resolution, the largest 1/2^k that brings the
+    longest image side to <= 1024 px; 0.5 for a rendered benchmark scene, 240x144 for street_a)"""
     dgp: Flag = False
     """SCENE is a DGP scene folder"""
     cameras: str | None = None
@@ -336,7 +337,14 @@ def _scene(cmd: TrainCommand) -> Any:
         raise ValueError("--colmap: not with a COLMAP scene, whose own SfM points initialise it")
     elif cmd.cameras or cmd.test_frames:
         raise ValueError("--cameras / --test-frames: DGP only; a COLMAP scene's split is --test-every")
-    scale = cmd.scale if cmd.scale is not None else 1.0 if kind == "colmap" else 0.5
+    scale = cmd.scale
+    if scale is None:  # the working resolution: photos to a longest side <= 1024 px
+        from vadgs.data.resolution import working_resolution
+
+        cameras = cmd.cameras.split(",") if (kind == "dgp" and cmd.cameras) else None
+        chosen = working_resolution(path, kind, cameras)
+        print(chosen.describe())
+        scale = chosen.scale
     if kind == "colmap":
         test_every = 8 if cmd.test_every is None else cmd.test_every
         return scene_ref(path, kind, images=cmd.images, scale=scale, test_every=test_every,

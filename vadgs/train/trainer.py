@@ -64,7 +64,13 @@ from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
 from vadgs.train.session import RunLog, stop_on_signals
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
-from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification
+from vadgs.train.vad import (
+    StrategyContext,
+    ViewRender,
+    VisibilityAwareDensification,
+    pack_state,
+    unpack_state,
+)
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -316,7 +322,7 @@ class Trainer:
                 raise ValueError(f"checkpoint {path}: config.appearance is set but no appearance is stored")
             trainer.appearance.load_state_dict(ckpt.appearance["model"])
             trainer.appearance_optimizer.load_state_dict(ckpt.appearance["optimizer"])
-        trainer.state = ckpt.strategy_state
+        trainer.state = unpack_state(ckpt.strategy_state)
         trainer.sampler.load_state_dict(ckpt.sampler)
         restore_rng(ckpt.rng, trainer.generator)
         trainer.step = ckpt.step
@@ -339,7 +345,7 @@ class Trainer:
             model=self.model.state_dict(),
             model_extra=self.model.extra_state(),
             optimizer=self.optimizer.state_dict(),
-            strategy_state=self.state,
+            strategy_state=pack_state(self.state),
             sampler=self.sampler.state_dict(),
             rng=capture_rng(self.generator),
             train_s=self.train_s,

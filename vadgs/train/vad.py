@@ -43,6 +43,7 @@ from __future__ import annotations
 import inspect
 import math
 import time
+import zlib
 from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -85,8 +86,10 @@ __all__ = [
     "VisibilityInputs",
     "flat_gaussians",
     "normals_to_quats",
+    "pack_state",
     "pick_references",
     "rank_instances",
+    "unpack_state",
 ]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
@@ -282,7 +285,11 @@ class VisibilityAwareDensification:
         if not self.visibility:
             return
         context = self._context()
-        self._observe(state, info)
+        if step < self.last_event_fraction * context.total_steps:
+            self._observe(state, info)
+        elif state.get("vad_renders") or state.get("vad_tests"):
+            # no event can follow (each is at a later step): their tests and renders are never used
+            state["vad_tests"], state["vad_renders"] = {}, {}
         cycle = (step + 1) // context.steps_per_cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
@@ -623,3 +630,49 @@ class VisibilityAwareDensification:
         depth = depth[..., :h, :w]
         normal = None if normal is None else normal[..., :h, :w]
         return GeometryTargets(depth=depth[None], normal=normal if normal is None else normal[None])
+
+
+# -- the state in checkpoints ------------------------------------------------------------------------
+
+
+def _pack_tensor(x: torch.Tensor) -> dict[str, Any]:
+    raw = x.detach().cpu().contiguous().view(torch.uint8).reshape(-1).numpy().tobytes()
+    return {"zlib": torch.frombuffer(bytearray(zlib.compress(raw, 1)), dtype=torch.uint8),
+            "shape": list(x.shape), "dtype": str(x.dtype).removeprefix("torch.")}  # fmt: skip
+
+
+def _unpack_tensor(packed: dict[str, Any]) -> torch.Tensor:
+    raw = bytearray(zlib.decompress(packed["zlib"].numpy().tobytes()))
+    return torch.frombuffer(raw, dtype=getattr(torch, packed["dtype"])).reshape(packed["shape"]).clone()
+
+
+def pack_state(state: dict[str, Any]) -> dict[str, Any]:
+    """The strategy's state for a checkpoint: the MVS priors (``vad_priors``) zlib-compressed.
+
+    The priors are zero outside the instances an event reconstructed (and piecewise constant where
+    MVS ran at a coarser scale), so they compress several times; the other entries are kept as
+    they are. Lossless: :func:`unpack_state` gives back the same bits, so a resumed run stays
+    exact. A state without priors (the standard strategy's, gsplat's) is returned unchanged.
+
+    Example:
+        >>> prior = (torch.zeros(1, 4, 6), torch.zeros(3, 4, 6))
+        >>> prior[0][0, 1, 2] = 7.5
+        >>> back = unpack_state(pack_state({"vad_priors": {3: prior}, "count": 1}))
+        >>> torch.equal(back["vad_priors"][3][0], prior[0]), back["count"]
+        (True, 1)
+    """
+    priors = state.get("vad_priors")
+    if not priors:
+        return state
+    packed = {v: {"packed": [_pack_tensor(x) for x in prior]} for v, prior in priors.items()}
+    return {**state, "vad_priors": packed}
+
+
+def unpack_state(state: dict[str, Any]) -> dict[str, Any]:
+    """The inverse of :func:`pack_state` (a state stored without packing is returned as it is)."""
+    priors = state.get("vad_priors")
+    if not priors or not any(isinstance(p, dict) for p in priors.values()):
+        return state
+    out = {v: tuple(_unpack_tensor(x) for x in p["packed"]) if isinstance(p, dict) else p
+           for v, p in priors.items()}  # fmt: skip
+    return {**state, "vad_priors": out}
