@@ -16,8 +16,11 @@ from vadgs.data import export_scene, load_scene, sample_scene_path
 from vadgs.data.resolution import working_resolution, working_scale
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from vadgs.train.config import TrainConfig, refine_steps, scale_schedule
+from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig, pack_state, unpack_state
+
+FAST_MVS = ReconstructConfig(max_crop=40)  # small crops: an event in seconds
 
 
 def _colmap_model(folder, sizes):
@@ -111,7 +114,7 @@ def vad_run(tmp_path_factory, tiny_scene):
     cfg = TrainConfig(
         iterations=2 * cycle + 4,
         init=dataclasses.replace(TrainConfig().init, voxel_size=0.6, max_points=1500, max_object_points=150),
-        vad=VisibilityDensifyConfig(every_cycles=1, time_budget=None, max_instances=2),
+        vad=VisibilityDensifyConfig(every_cycles=1, time_budget=None, max_instances=2, reconstruct=FAST_MVS),
         checkpoint_every=0,
         checkpoint_minutes=0.0,
     )
@@ -213,7 +216,7 @@ def test_vad_resume_with_packed_priors_and_render_cache_is_exact(tmp_path, tiny_
     cfg = TrainConfig(
         iterations=2 * cycle + 4,
         init=dataclasses.replace(TrainConfig().init, voxel_size=0.6, max_points=1500, max_object_points=150),
-        vad=VisibilityDensifyConfig(every_cycles=1, time_budget=None, max_instances=1),
+        vad=VisibilityDensifyConfig(every_cycles=1, time_budget=None, max_instances=1, reconstruct=FAST_MVS),
         checkpoint_every=0,
         checkpoint_minutes=0.0,
     )

@@ -480,16 +480,16 @@ class VisibilityAwareDensification:
         occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
         done = repaired = 0
         for k, inst in enumerate(ranked):
-            say(
-                f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
-                f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
-            )
             if cfg.max_instances is not None and done >= cfg.max_instances:
                 skipped["max_instances"] = skipped.get("max_instances", 0) + 1
                 continue
             if log and time.perf_counter() - t0 > budget:
                 skipped["time_budget"] = skipped.get("time_budget", 0) + 1
                 continue
+            say(
+                f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
+                f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
+            )
             whole = (
                 [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
                 if cfg.whole_reference
