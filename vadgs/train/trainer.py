@@ -248,13 +248,13 @@ class Trainer:
             return
         s = cfg.strategy
         msg = (
-            f"WARNING: no densification in {cfg.iterations} steps: refine_start_iter "
+            f"no densification in {cfg.iterations} steps: refine_start_iter "
             f"{s.refine_start_iter}, refine_every {s.refine_every}, refine_stop_iter {s.refine_stop_iter}; "
             "scale the schedule to the run (vadgs.train.config.scale_schedule, what vadgs train does for "
             "short runs) or lower --strategy.refine-start-iter"
         )
         if self.log is not None:
-            self.log(msg)
+            self.log(f"WARNING: {msg}")
         else:
             warnings.warn(msg, UserWarning, stacklevel=3)
 
