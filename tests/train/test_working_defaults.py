@@ -107,20 +107,26 @@ class TestShortRunSchedule:
             Trainer(tiny_scene, scale_schedule(cfg), progress=False)
 
 
-@pytest.fixture(scope="module")
-def vad_run(tmp_path_factory, tiny_scene):
-    """A short VAD-GS run on the sample at 60x36 with two events, its messages and event lines."""
-    cycle = len(tiny_scene.train_views)
+def _vad_config(scene, max_instances: int) -> TrainConfig:
+    """Two sampling cycles and 4 steps: VAD-GS events after each cycle, small MVS crops."""
     cfg = TrainConfig(
-        iterations=2 * cycle + 4,
+        iterations=2 * len(scene.train_views) + 4,
         init=dataclasses.replace(TrainConfig().init, voxel_size=0.6, max_points=1500, max_object_points=150),
-        vad=VisibilityDensifyConfig(every_cycles=1, time_budget=None, max_instances=2, reconstruct=FAST_MVS),
+        vad=VisibilityDensifyConfig(
+            every_cycles=1, time_budget=None, max_instances=max_instances, reconstruct=FAST_MVS
+        ),
         checkpoint_every=0,
         checkpoint_minutes=0.0,
     )
+    return scale_schedule(cfg)
+
+
+@pytest.fixture(scope="module")
+def vad_run(tmp_path_factory, tiny_scene):
+    """A short VAD-GS run on the sample at 60x36 with two events, its messages and event lines."""
     out = tmp_path_factory.mktemp("vad")
     lines: list[str] = []
-    trainer = Trainer(tiny_scene, scale_schedule(cfg), out_dir=out, progress=False, log=lines.append)
+    trainer = Trainer(tiny_scene, _vad_config(tiny_scene, 2), out_dir=out, progress=False, log=lines.append)
     progress: list[str] = []
     hook = trainer.strategy.on_progress
     trainer.strategy.on_progress = lambda line: progress.append(line) or hook(line)
@@ -213,14 +219,7 @@ class TestCheckpointSize:
 
 def test_vad_resume_with_packed_priors_and_render_cache_is_exact(tmp_path, tiny_scene):
     cycle = len(tiny_scene.train_views)
-    cfg = TrainConfig(
-        iterations=2 * cycle + 4,
-        init=dataclasses.replace(TrainConfig().init, voxel_size=0.6, max_points=1500, max_object_points=150),
-        vad=VisibilityDensifyConfig(every_cycles=1, time_budget=None, max_instances=1, reconstruct=FAST_MVS),
-        checkpoint_every=0,
-        checkpoint_minutes=0.0,
-    )
-    cfg = scale_schedule(cfg)
+    cfg = _vad_config(tiny_scene, 1)
     full = Trainer(tiny_scene, cfg, progress=False)
     full.train()
 
