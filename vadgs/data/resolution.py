@@ -41,11 +41,12 @@ class WorkingResolution(NamedTuple):
     def describe(self) -> str:
         """One line: what was chosen, why, and how to change it."""
         (h, w), (fh, fw) = self.size, self.full
-        full = "full resolution" if self.scale != 1.0 else "another resolution"
-        return (
-            f"resolution: {w}x{h} (--scale {self.scale:g} of {fw}x{fh}: {self.why}); "
-            f"--scale S trains at {full} (--scale 1: {fw}x{fh})"
+        change = (
+            f"--scale 1 trains at full resolution ({fw}x{fh}), --scale S at S times it"
+            if self.scale != 1.0
+            else "--scale S (e.g. 0.5) trains at S times it"
         )
+        return f"resolution: {w}x{h} (--scale {self.scale:g} of {fw}x{fh}: {self.why}); {change}"
 
 
 def working_scale(longest: int, side: int = WORKING_SIDE) -> float:
