@@ -375,7 +375,13 @@ def run_scene(
         if (run / CHECKPOINT_NAME).is_file():
             outcome = train_scene(None, None, run, resume=True, progress=False)
         else:
-            ref = scene_ref(scene, scene_kind, **(scene_options or {}))
+            options = dict(scene_options or {})
+            if "scale" not in options:  # vadgs train's default: the scene's working resolution
+                from vadgs.data.resolution import working_resolution
+
+                kind = scene_ref(scene, scene_kind).kind
+                options["scale"] = working_resolution(scene, kind, options.get("cameras")).scale
+            ref = scene_ref(scene, scene_kind, **options)
             outcome = train_scene(ref, config, run, progress=False)
     except Exception as e:
         text = " ".join(str(e).split())

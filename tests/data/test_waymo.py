@@ -478,7 +478,10 @@ class TestConvertWaymo:
         out = tmp_path / "conv"
         args = ["convert", "waymo", str(wod), "--scene", SEG, "--out", str(out), "--frames", "0:2"]
         assert main(args) != 0
-        assert "Waymo component 'lidar': missing file" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert "Waymo component 'lidar': missing file" in err and "--no-lidar" in err
+        with pytest.raises(FileNotFoundError, match="a segment without LiDAR loads with lasers=None"):
+            load_waymo(wod, SEG, frames=range(2))
         assert main([*args, "--no-lidar"]) == 0
         scene = load_scene(out)
         assert scene.num_views == 4 and scene.lidar_loader is None

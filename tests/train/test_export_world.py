@@ -134,7 +134,13 @@ class TestExportWorld:
         assert out.ply == tmp_path / "point_cloud" / "iteration_7" / "point_cloud.ply"
         assert load_ply(out.ply).sh.shape[1] == 4
         cams = json.loads(out.cameras_json.read_text())
-        assert len(cams) == 3 and {"position", "rotation", "fx", "fy", "width", "height"} <= set(cams[0])
+        recorded = [v for f in tiny_scene.frames for v in f.view_ids]
+        assert len(cams) == len(recorded) == 24  # every camera, the rig's of the frame first
+        assert {"position", "rotation", "fx", "fy", "width", "height"} <= set(cams[0])
+        assert [c["img_name"] for c in cams[:3]] == [
+            tiny_scene.views[v].image.stem for v in tiny_scene.frames[2].view_ids
+        ]
+        assert f"source_path={str(tiny_scene.root)!r}" in out.cfg_args.read_text()
         view = tiny_scene.views[tiny_scene.frames[2].view_ids[0]]
         np.testing.assert_allclose(cams[0]["position"], view.cam_to_world[:3, 3].numpy(), atol=1e-6)
         assert "sh_degree=1" in out.cfg_args.read_text()

@@ -152,5 +152,6 @@ class TestInit:
         assert bool((obj.abs().max(0).values <= lwh.max()).all())
 
     def test_no_lidar_no_colmap_raises(self, tiny_scene):
-        with pytest.raises(ValueError, match="nothing to initialise"):
+        with pytest.raises(ValueError, match="nothing to initialise") as e:
             init_gaussians(tiny_scene, InitConfig(use_lidar=False))
+        assert "`vadgs train SCENE --colmap MODEL`" in str(e.value)  # says what to pass

@@ -116,8 +116,7 @@ def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path
     after = trainer.render_view(view)
     mask = (scene.load_instances([view])[0] == snap["instance"]).float()
     image = scene.load_images([view])[0]
-    name = scene.instances.get(snap["instance"])
-    label = name.name if name else str(snap["instance"])
+    label, total = _completion_label(snap, trainer.state.get("vad_events", []))
     gt = scene.load_depths([view])[0, 0]
     images = [
         image_to_uint8(image * (0.35 + 0.65 * mask)),
@@ -129,13 +128,31 @@ def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path
         f"flagged: {label} (view {view})",
         "ground-truth depth",
         f"rendered depth at step {snap['step']}",
-        f"after: +{snap['added']} MVS Gaussians",
+        f"after: +{total} MVS Gaussians"
+        + (f" ({snap['added']} from this view)" if total != snap["added"] else ""),
     ]
     return save_panel(images, titles, path, columns=2)
 
 
 #: The figures the demo writes besides the run's files (removed when a demo is replaced).
 DEMO_FIGURES = ("demo_panel.png", "demo_completion.png")
+
+
+def _completion_label(snap: dict, events: list[dict]) -> tuple[str, int]:
+    """The figure's name of an addition and its instance's total, as the console's event line says them.
+
+    ``("tree 50", 2217)`` for the line's ``tree 50 (+2217)``: the class and instance id of the
+    event's log, and the Gaussians the instance got at that event (all its references together;
+    ``snap`` is one reference's addition).
+    """
+    for event in events:
+        if event["step"] != snap["step"]:
+            continue
+        for entry in event["instances"]:
+            if entry["instance"] == snap["instance"]:
+                return f"{entry['class']} {entry['instance']}", int(entry["added"])
+    return f"instance {snap['instance']}", int(snap["added"])
+
 
 #: The demo's configuration (merged into the TrainConfig defaults): the bundled sample at 120x72,
 #: about 14k Gaussians, 250 steps.

@@ -227,7 +227,8 @@ class ExportCommand(Command):
             run = load_run(self.run, scene=self.scene)
             frame, _ = frame_position(run.scene, self.frame, "--frame")
             out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
-            res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step)
+            res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step,
+                               scene_ref=run.scene_ref)  # fmt: skip
         print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
         return 0
 

@@ -62,7 +62,8 @@ class TrainCommand:
     no_progress: Flag = False
     """no progress bar"""
     scale: float | None = None
-    """image resolution factor (default 0.5 = 240x144 for the benchmark; 1.0 for COLMAP)"""
+    """image resolution factor (default: the working resolution, the largest 1/2^k that brings the
+    longest image side to <= 1024 px; 0.5 for a rendered benchmark scene, 240x144 for street_a)"""
     dgp: Flag = False
     """SCENE is a DGP scene folder"""
     cameras: str | None = None
@@ -217,10 +218,45 @@ def parse_train(argv: list[str]) -> TrainCommand | None:
     backend_given = any(a.startswith("--raster.backend") for a in argv) or "backend" in (
         data.get("raster") or {}
     )
+    if not cmd.resume:
+        cmd = dataclasses.replace(cmd, train=_short_run_schedule(cmd.train, argv, data))
     if str(cmd.train.device).startswith("cuda") and not backend_given and not cmd.resume:
         raster = dataclasses.replace(cmd.train.raster, backend="gsplat")  # gsplat's CUDA rasterizer on GPUs
         cmd = dataclasses.replace(cmd, train=dataclasses.replace(cmd.train, raster=raster))
     return cmd
+
+
+def _short_run_schedule(config: TrainConfig, argv: list[str], data: dict) -> TrainConfig:
+    """The schedule of a run shorter than the defaults' 3000 steps, scaled to ``--iterations``.
+
+    :func:`~vadgs.train.config.scale_schedule` (gsplat's ``steps_scaler``) on the step counts that
+    neither a flag nor the ``--config`` file sets; said in one line.
+    """
+    from vadgs.train.config import SCHEDULE_FIELDS, SCHEDULE_ITERATIONS, scale_schedule
+
+    scaled = scale_schedule(config)
+    if scaled == config:
+        return config
+    given_flags = {a.split("=")[0].replace("_", "-") for a in argv if a.startswith("--")}
+    keep: dict[str, Any] = {}
+    for key in SCHEDULE_FIELDS:
+        if f"--strategy.{key.replace('_', '-')}" in given_flags or key in (data.get("strategy") or {}):
+            keep[key] = getattr(config.strategy, key)
+    strategy = dataclasses.replace(scaled.strategy, **keep)
+    sh = config.sh_degree_interval
+    if "--sh-degree-interval" not in given_flags and "sh_degree_interval" not in data:
+        sh = scaled.sh_degree_interval
+    out = dataclasses.replace(scaled, strategy=strategy, sh_degree_interval=sh)
+    if out != config:
+        s, f = out.strategy, config.iterations / SCHEDULE_ITERATIONS
+        print(
+            f"short run: the schedule follows --iterations {config.iterations} (x{f:.3g} of "
+            f"{SCHEDULE_ITERATIONS}): densify from step {s.refine_start_iter} every {s.refine_every} "
+            f"steps, opacity reset every {s.reset_every or 'never'}, SH degree up every "
+            f"{out.sh_degree_interval} steps (--strategy.refine-start-iter, --strategy.refine-every, "
+            "... set them)"
+        )
+    return out
 
 
 def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -307,7 +343,14 @@ def _scene(cmd: TrainCommand) -> Any:
         raise ValueError("--colmap: not with a COLMAP scene, whose own SfM points initialise it")
     elif cmd.cameras or cmd.test_frames:
         raise ValueError("--cameras / --test-frames: DGP only; a COLMAP scene's split is --test-every")
-    scale = cmd.scale if cmd.scale is not None else 1.0 if kind == "colmap" else 0.5
+    scale = cmd.scale
+    if scale is None:  # the working resolution: photos to a longest side <= 1024 px
+        from vadgs.data.resolution import working_resolution
+
+        cameras = cmd.cameras.split(",") if (kind == "dgp" and cmd.cameras) else None
+        chosen = working_resolution(path, kind, cameras)
+        print(chosen.describe())
+        scale = chosen.scale
     if kind == "colmap":
         test_every = 8 if cmd.test_every is None else cmd.test_every
         return scene_ref(path, kind, images=cmd.images, scale=scale, test_every=test_every,

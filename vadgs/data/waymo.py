@@ -299,7 +299,8 @@ def load_waymo(
         frames: frame positions to keep (default all ~199), renumbered 0, 1, ...
         test_frames: frame indices to hold out (default every fourth from 2; ``()`` for none).
         min_motion_m: motion threshold (metres) for a vehicle to be a track; None: every vehicle.
-        lasers: laser names whose first return forms the LiDAR (default the TOP laser), or None.
+        lasers: laser names whose first return forms the LiDAR (default the TOP laser), or None
+            (no LiDAR: a segment without the ``lidar`` component needs None).
         recenter: translate the world so that the vehicle at frame 0 sits at the origin.
 
     Returns:
@@ -461,6 +462,12 @@ def load_waymo(
     # -- LiDAR (range images read per frame on demand) -----------------------------------------------
     lidar_loader = None
     if lasers is not None:
+        for comp in ("lidar_calibration", "lidar"):
+            if not (dataset_dir / comp / f"{segment}.parquet").is_file():
+                raise FileNotFoundError(
+                    f"Waymo component {comp!r}: missing file {dataset_dir / comp / f'{segment}.parquet'}; "
+                    "a segment without LiDAR loads with lasers=None (vadgs convert waymo --no-lidar)"
+                )
         laser_id = {n: k for k, n in WAYMO_LASERS.items()}
         lc = _Component(pq, dataset_dir, "lidar_calibration", segment).read(
             [_LASER, *_columns(_LC, "extrinsic.transform", "beam_inclination.min", "beam_inclination.max")],

@@ -21,7 +21,14 @@ from vadgs.train.init import InitConfig
 from vadgs.train.strategy import DefaultStrategyConfig
 from vadgs.train.vad import VisibilityDensifyConfig
 
-__all__ = ["LearningRates", "TrainConfig"]
+__all__ = [
+    "SCHEDULE_FIELDS",
+    "SCHEDULE_ITERATIONS",
+    "LearningRates",
+    "TrainConfig",
+    "refine_steps",
+    "scale_schedule",
+]
 
 
 @dataclass(frozen=True)
@@ -183,3 +190,71 @@ class TrainConfig:
                 raise ValueError(f"config: unknown field {k!r}")
             target[parts[-1]] = v
         return TrainConfig.from_dict(flat)
+
+
+SCHEDULE_ITERATIONS = 3000
+"""The run length the step counts of the default schedule are set for (``TrainConfig.iterations``):
+densification from step 500 every 100 steps, an opacity reset every 3000, the SH degree up every 1000."""
+
+SCHEDULE_FIELDS = (
+    "refine_start_iter",
+    "refine_stop_iter",
+    "refine_every",
+    "reset_every",
+    "pause_refine_after_reset",
+)
+"""The step counts of the strategy's config (:class:`~vadgs.train.strategy.DefaultStrategyConfig`)
+that :func:`scale_schedule` scales."""
+
+
+def scale_schedule(config: TrainConfig, reference: int = SCHEDULE_ITERATIONS) -> TrainConfig:
+    """The schedule's step counts scaled to a run shorter than ``reference`` (gsplat's ``steps_scaler``).
+
+    With ``f = config.iterations / reference < 1``, ``strategy.refine_start_iter``,
+    ``refine_stop_iter``, ``refine_every``, ``reset_every``, ``pause_refine_after_reset`` and
+    ``sh_degree_interval`` are multiplied by ``f`` (rounded; at least 1, and 0 stays 0;
+    ``refine_every`` at least 10, or its own value if smaller, so that a refinement sees some
+    gradient statistics), so a 300-step run densifies from step 50 every 10 steps as a 3000-step
+    run does from 500 every 100.
+    A run of ``reference`` steps or more is returned unchanged (the defaults are its schedule).
+
+    Example:
+        >>> c = scale_schedule(TrainConfig(iterations=300))
+        >>> s = c.strategy
+        >>> s.refine_start_iter, s.refine_every, s.reset_every, c.sh_degree_interval
+        (50, 10, 300, 100)
+        >>> scale_schedule(TrainConfig()) == TrainConfig()
+        True
+    """
+    if reference < 1:
+        raise ValueError(f"reference: expected >= 1, got {reference}")
+    f = config.iterations / reference
+    if f >= 1:
+        return config
+
+    def scaled(n: int) -> int:
+        return max(1, round(n * f)) if n else 0
+
+    changes = {k: scaled(getattr(config.strategy, k)) for k in SCHEDULE_FIELDS}
+    # at least 10 steps of gradient statistics between refinements (or the configured count if fewer)
+    changes["refine_every"] = max(changes["refine_every"], min(config.strategy.refine_every, 10))
+    strategy = dataclasses.replace(config.strategy, **changes)
+    sh = scaled(config.sh_degree_interval)
+    return dataclasses.replace(config, strategy=strategy, sh_degree_interval=sh)
+
+
+def refine_steps(config: TrainConfig) -> range:
+    """The steps at which the standard densification refines (before any pause after a reset).
+
+    ``range(first, last, refine_every)``, empty when the run is too short to refine at all
+    (e.g. ``iterations`` 300 with ``refine_start_iter`` 500).
+
+    Example:
+        >>> len(refine_steps(TrainConfig(iterations=300)))
+        0
+        >>> refine_steps(TrainConfig())[:3]
+        range(600, 900, 100)
+    """
+    s = config.strategy
+    first = (s.refine_start_iter // s.refine_every + 1) * s.refine_every
+    return range(first, min(config.iterations, s.refine_stop_iter), s.refine_every)

@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 
@@ -233,6 +233,7 @@ def export_world(
     inria: bool = False,
     iteration: int = 0,
     sky_size: tuple[int, int] = (128, 256),
+    scene_ref: dict[str, Any] | None = None,
 ) -> WorldExport:
     """Write the world at one frame as one standard 3DGS PLY, and the sky as an environment map.
 
@@ -245,11 +246,16 @@ def export_world(
         frame: the scene's frame index (``scene.frames[i].index``).
         out_dir: output folder.
         inria: the INRIA layout: ``point_cloud/iteration_<iteration>/point_cloud.ply``,
-            ``cameras.json`` (the rig's views of ``frame``: ``position`` = camera centre,
-            ``rotation`` = camera-to-world rotation rows, OpenCV axes as in 3DGS) and ``cfg_args``;
-            otherwise ``world_frame<frame>.ply``.
+            ``cameras.json`` (every recorded view of the scene, the rig's views of ``frame``
+            first, in the PLY's frame: ``position`` = camera centre, ``rotation`` =
+            camera-to-world rotation rows, OpenCV axes as in 3DGS) and ``cfg_args``, whose
+            ``source_path`` is in the PLY's frame too: the scene's folder, or for a normalised
+            COLMAP scene the model mapped by the run's similarity, written to ``out_dir/sparse/0``
+            (``images`` then the absolute images folder); otherwise ``world_frame<frame>.ply``.
         iteration: the ``iteration_N`` of the INRIA layout (e.g. the checkpoint's step).
         sky_size: ``(H, W)`` of ``sky.png``.
+        scene_ref: the run's scene reference (:func:`~vadgs.train.scenes.open_scene`): with
+            ``inria``, a COLMAP reference's ``transform`` and ``images`` give the source model.
 
     Returns:
         :class:`WorldExport`.
@@ -297,14 +303,16 @@ def export_world(
     cameras_json = cfg_args = None
     if inria:
         cams = []
-        for vid in scene.frames[fpos].view_ids:
+        rig = list(scene.frames[fpos].view_ids)
+        others = [vid for f in scene.frames for vid in f.view_ids if vid not in rig]
+        for vid in rig + others:
             v = scene.views[vid]
             info = scene.cameras_info[v.camera]
             c2w = v.cam_to_world.double()
             cams.append(
                 {
                     "id": len(cams),
-                    "img_name": f"{v.camera}_{v.frame:03d}",
+                    "img_name": Path(v.image).stem if v.image is not None else f"{v.camera}_{v.frame:03d}",
                     "width": info.image_size[1],
                     "height": info.image_size[0],
                     "position": c2w[:3, 3].tolist(),
@@ -314,10 +322,28 @@ def export_world(
                 }
             )
         cameras_json = atomic_write(out_dir / "cameras.json", json.dumps(cams, indent=1))
+        source, images = str(scene.root or ""), "images"
+        ref = scene_ref or {}
+        if ref.get("kind") == "colmap" and ref.get("transform") is not None:
+            source, images = str(out_dir.resolve()), str(Path(ref["images"]).resolve())
+            _normalised_colmap_model(ref["path"], ref["transform"], out_dir / "sparse" / "0")
         args = (
-            f"Namespace(data_device='cuda', eval=True, images='images', model_path={str(out_dir)!r}, "
+            f"Namespace(data_device='cuda', eval=True, images={images!r}, model_path={str(out_dir)!r}, "
             f"resolution=-1, sh_degree={model.active_sh_degree}, "
-            f"source_path={str(scene.root or '')!r}, white_background=False)"
+            f"source_path={source!r}, white_background=False)"
         )
         cfg_args = atomic_write(out_dir / "cfg_args", args)
     return WorldExport(ply, sky_png, sky_json, cameras_json, cfg_args, int(w["means"].shape[0]))
+
+
+def _normalised_colmap_model(model: str | Path, transform: list, out: Path) -> Path:
+    """The COLMAP model mapped by a run's normalising similarity (pycolmap), written to ``out``."""
+    import numpy as np
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(model))
+    T = np.asarray(transform, dtype=np.float64)
+    rec.transform(pycolmap.Sim3d(T[:3, :4]))
+    out.mkdir(parents=True, exist_ok=True)
+    rec.write(str(out))
+    return out

@@ -229,7 +229,10 @@ def init_gaussians(
         raise ValueError(
             f"scene {scene.name!r}: nothing to initialise from: no LiDAR"
             + (" (use_lidar=False)" if scene.lidar_loader is not None else "")
-            + " and no SfM points (colmap_points / scene.sfm_points)"
+            + " and no SfM points (colmap_points / scene.sfm_points); give it points: a COLMAP model "
+            "of the scene's images in its world frame (e.g. triangulated with its known poses, COLMAP's "
+            "point_triangulator) as `vadgs train SCENE --colmap MODEL` (colmap_points= in Python), "
+            "or convert the scene with its LiDAR (vadgs convert without --no-lidar)"
         )
     p = torch.cat(static_p)
     c = torch.cat(static_c)

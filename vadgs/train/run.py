@@ -307,7 +307,12 @@ def _start(
     if ckpt is not None:
         opened, located = open_run_scene(ckpt.scene_ref, out, scene_path, scene_flag)
         trainer = Trainer.from_checkpoint(
-            out, scene=opened, scene_ref=located, progress=progress, config_changes=config_changes or None
+            out,
+            scene=opened,
+            scene_ref=located,
+            progress=progress,
+            config_changes=config_changes or None,
+            log=log,
         )
         kind = "VAD-GS" if trainer.config.vad is not None else "standard densification"
         say(f"resuming {out} at step {trainer.step}/{trainer.config.iterations} ({kind})")
@@ -330,6 +335,7 @@ def _start(
         colmap_points=init_points,
         progress=progress,
         overwrite=overwrite,
+        log=log,
     )
     if held is not None:
         say(f"overwrite: the previous run in {out} ({held}) is removed as training starts")

@@ -26,6 +26,7 @@ import math
 import random
 import resource
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -51,7 +52,7 @@ from vadgs.train.checkpoint import (
     resumed_config,
     save_checkpoint,
 )
-from vadgs.train.config import LearningRates, TrainConfig
+from vadgs.train.config import LearningRates, TrainConfig, refine_steps
 from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
 from vadgs.train.inputs import VisibilityInputs
@@ -63,7 +64,13 @@ from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
 from vadgs.train.session import RunLog, stop_on_signals
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
-from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification
+from vadgs.train.vad import (
+    StrategyContext,
+    ViewRender,
+    VisibilityAwareDensification,
+    pack_state,
+    unpack_state,
+)
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -104,6 +111,9 @@ class TrainResult(NamedTuple):
     num_gaussians: int
 
 
+_BAR_STEPS = 10  # the progress bar's loss and PSNR: the mean of this many last steps
+
+
 def _scene_scale(scene: Scene, views: list[int]) -> float:
     centres = torch.stack([scene.views[v].cam_to_world[:3, 3] for v in views])
     return float((centres - centres.mean(0)).norm(dim=-1).max() * 1.1) or 1.0
@@ -128,7 +138,11 @@ class Trainer:
         extra_losses: ``(step, render, view) -> {name: scalar}`` added to the loss as given.
         colmap_points: SfM points for the initialisation.
         model: start from this model instead of :func:`~vadgs.train.init.init_gaussians`.
-        progress: show a tqdm progress bar.
+        progress: show a tqdm progress bar (ETA, loss and PSNR of the last steps, and a line while a
+            VAD-GS event runs).
+        log: a ``print``-like callable for the run's messages when there is no bar: one line per
+            VAD-GS event (its summary; with the bar they are written above it), and the warning
+            when the schedule can never densify (else a :class:`UserWarning`). None: silent.
         callback: ``(trainer, step)`` called after every step (tests use it to interrupt).
         overwrite: ``out_dir`` may hold a previous run (a checkpoint or ``metrics.json``): its
             files (checkpoint, log, config, metrics, eval, ``ply/``, ``renders/``) are removed when
@@ -159,6 +173,7 @@ class Trainer:
         progress: bool = True,
         callback: Callable[[Trainer, int], None] | None = None,
         overwrite: bool = False,
+        log: Callable[[str], None] | None = None,
         _resuming: bool = False,
     ) -> None:
         self.scene = scene
@@ -180,7 +195,9 @@ class Trainer:
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"device: {self.config.device!r} requested but CUDA is not available")
         self.progress = progress
+        self.log = log
         self.callback = callback
+        self._bar: Any = None
         self.train_views = list(scene.train_views)
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
@@ -200,6 +217,8 @@ class Trainer:
             self.appearance = AppearanceModel(len(scene.camera_names), frames, app.centered).to(self.device)
             self.appearance_optimizer = torch.optim.Adam(self.appearance.parameters(), lr=app.lr)
         self.strategy = strategy if strategy is not None else self._configured_strategy()
+        if strategy is None and not _resuming:
+            self._check_schedule()
         self.state = self.strategy.initialize_state(self.scene_scale)
         if geometry_targets is None and isinstance(self.strategy, GeometryPriors):
             geometry_targets = self._strategy_priors
@@ -217,9 +236,32 @@ class Trainer:
         if self.config.vad is None:
             return base
         strategy = VisibilityAwareDensification.from_config(self.config.vad, base=base)
+        strategy.on_progress = self._event_progress
         # the scene as data, the loop's context; the visibility index, built once, before the first step
         strategy.prepare(VisibilityInputs.from_scene(self.scene), self.strategy_context())
         return strategy
+
+    def _check_schedule(self) -> None:
+        """Say when the configured schedule can never densify in ``iterations`` steps."""
+        cfg = self.config
+        if cfg.iterations == 0 or len(refine_steps(cfg)):
+            return
+        s = cfg.strategy
+        msg = (
+            f"no densification in {cfg.iterations} steps: refine_start_iter "
+            f"{s.refine_start_iter}, refine_every {s.refine_every}, refine_stop_iter {s.refine_stop_iter}; "
+            "scale the schedule to the run (vadgs.train.config.scale_schedule, what vadgs train does for "
+            "short runs) or lower --strategy.refine-start-iter"
+        )
+        if self.log is not None:
+            self.log(f"WARNING: {msg}")
+        else:
+            warnings.warn(msg, UserWarning, stacklevel=3)
+
+    def _event_progress(self, message: str) -> None:
+        """The VAD-GS strategy's ``on_progress`` hook: the bar says what the event is doing."""
+        if self._bar is not None and self.progress:
+            self._bar.set_description_str(message, refresh=True)
 
     def _strategy_priors(self, view: int) -> GeometryTargets | None:
         return self.strategy.geometry_targets(self.state, view)
@@ -280,7 +322,7 @@ class Trainer:
                 raise ValueError(f"checkpoint {path}: config.appearance is set but no appearance is stored")
             trainer.appearance.load_state_dict(ckpt.appearance["model"])
             trainer.appearance_optimizer.load_state_dict(ckpt.appearance["optimizer"])
-        trainer.state = ckpt.strategy_state
+        trainer.state = unpack_state(ckpt.strategy_state)
         trainer.sampler.load_state_dict(ckpt.sampler)
         restore_rng(ckpt.rng, trainer.generator)
         trainer.step = ckpt.step
@@ -303,7 +345,7 @@ class Trainer:
             model=self.model.state_dict(),
             model_extra=self.model.extra_state(),
             optimizer=self.optimizer.state_dict(),
-            strategy_state=self.state,
+            strategy_state=pack_state(self.state),
             sampler=self.sampler.state_dict(),
             rng=capture_rng(self.generator),
             train_s=self.train_s,
@@ -507,7 +549,10 @@ class Trainer:
             disable=not self.progress,
             desc="train",
             dynamic_ncols=True,
+            smoothing=0.05,  # the ETA: the rate of the recent steps, VAD-GS events averaged in
         )
+        self._bar = bar
+        recent: list[tuple[float, float]] = []  # (loss, PSNR) of the last steps, shown on the bar
         self._undo = None
         self._updating = False
         try:
@@ -519,14 +564,24 @@ class Trainer:
                     t0 = time.perf_counter()
                     res = self.train_step()
                     self.train_s += time.perf_counter() - t0
-                    bar.update(1)
-                    for event in self.state.pop("pending_log", None) or []:
+                    events = self.state.pop("pending_log", None) or []
+                    for event in events:
                         log.write({"step": self.step, "event": event})
-                        if self.progress and "summary" in event:
-                            bar.write(f"step {self.step}: {event['summary']}")
+                        if "summary" in event:
+                            if self.progress:
+                                bar.write(f"step {self.step}: {event['summary']}")
+                            elif self.log is not None:
+                                self.log(f"step {self.step}: {event['summary']}")
+                    if events and self.progress:
+                        bar.set_description_str("train", refresh=False)
+                    recent = [*recent[-(_BAR_STEPS - 1) :], (res["total"], res["psnr"])]
+                    if self.progress:  # the mean of the last steps: one view's PSNR is noisy
+                        loss, psnr = (sum(x) / len(recent) for x in zip(*recent))
+                        n = self.model.num_gaussians
+                        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", n=n, refresh=False)
+                    bar.update(1)
                     if self.step % cfg.log_every == 0 or self.step == 1:
                         n = self.model.num_gaussians
-                        bar.set_postfix(loss=f"{res['total']:.4f}", psnr=f"{res['psnr']:.2f}", n=n)
                         log.write(
                             {
                                 "step": self.step,
@@ -554,6 +609,7 @@ class Trainer:
             raise
         finally:
             bar.close()
+            self._bar = None
         if self.out_dir is not None:
             self.save_checkpoint()
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -43,6 +43,7 @@ from __future__ import annotations
 import inspect
 import math
 import time
+import zlib
 from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -85,8 +86,10 @@ __all__ = [
     "VisibilityInputs",
     "flat_gaussians",
     "normals_to_quats",
+    "pack_state",
     "pick_references",
     "rank_instances",
+    "unpack_state",
 ]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
@@ -121,6 +124,9 @@ class VisibilityAwareDensification:
         on_addition: optional callback, called with ``{"instance", "view", "step", "added",
             "depth", "alpha"}`` (the reference's render just before) each time an instance gets new
             Gaussians (for figures; nothing is kept by the strategy).
+        on_progress: optional callback, called with one line while an event runs (``"VAD-GS event
+            2: instance 3/5 (sign 12), 41 s so far"``): a loop's progress bar shows it (vadgs's
+            trainer does), so that a long event does not look like a frozen run.
         log_size: at most this many events are kept in ``state["pending_log"]`` for the loop to
             pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
         the others: see :class:`VisibilityDensifyConfig`.
@@ -140,6 +146,7 @@ class VisibilityAwareDensification:
 
     base: Any = field(default_factory=DefaultStrategy)
     on_addition: Callable[[dict[str, Any]], None] | None = field(default=None, repr=False)
+    on_progress: Callable[[str], None] | None = field(default=None, repr=False)
     log_size: int = _MAX_PENDING
     inputs: VisibilityInputs | None = field(default=None, init=False, repr=False)
     context: StrategyContext | None = field(default=None, init=False, repr=False)
@@ -278,7 +285,11 @@ class VisibilityAwareDensification:
         if not self.visibility:
             return
         context = self._context()
-        self._observe(state, info)
+        if step < self.last_event_fraction * context.total_steps:
+            self._observe(state, info)
+        elif state.get("vad_renders") or state.get("vad_tests"):
+            # no event can follow (each is at a later step): their tests and renders are never used
+            state["vad_tests"], state["vad_renders"] = {}, {}
         cycle = (step + 1) // context.steps_per_cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
@@ -430,11 +441,13 @@ class VisibilityAwareDensification:
         index = self.prepare()
         renders = _Renders(context.render, state.get("vad_renders"))
         t0 = time.perf_counter()
+        event = len(state["vad_events"])
+        say = self.on_progress or (lambda _line: None)
+        say(f"VAD-GS event {event + 1}: testing {len(inputs.train_views)} views")
         tests = state.get("vad_tests") or {}
         rows, views = self.detect(renders=renders, tests=tests)
         t1 = time.perf_counter()
         classes = index.classes()  # incl. derived instances (scenes without maps)
-        event = len(state["vad_events"])
         has_nodes = "node_ids" in getattr(params, "params", params)
 
         def skip_reason(inst: int) -> str | None:
@@ -466,13 +479,17 @@ class VisibilityAwareDensification:
             budget = cfg.time_budget * float(state.get("vad_train_s", 0.0))
         occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
         done = repaired = 0
-        for inst in ranked:
+        for k, inst in enumerate(ranked):
             if cfg.max_instances is not None and done >= cfg.max_instances:
                 skipped["max_instances"] = skipped.get("max_instances", 0) + 1
                 continue
             if log and time.perf_counter() - t0 > budget:
                 skipped["time_budget"] = skipped.get("time_budget", 0) + 1
                 continue
+            say(
+                f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
+                f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
+            )
             whole = (
                 [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
                 if cfg.whole_reference
@@ -613,3 +630,57 @@ class VisibilityAwareDensification:
         depth = depth[..., :h, :w]
         normal = None if normal is None else normal[..., :h, :w]
         return GeometryTargets(depth=depth[None], normal=normal if normal is None else normal[None])
+
+
+# -- the state in checkpoints ------------------------------------------------------------------------
+
+
+def _pack_tensor(x: torch.Tensor) -> dict[str, Any]:
+    raw = x.detach().cpu().contiguous().view(torch.uint8).reshape(-1).numpy().tobytes()
+    return {"zlib": torch.frombuffer(bytearray(zlib.compress(raw, 1)), dtype=torch.uint8),
+            "shape": list(x.shape), "dtype": str(x.dtype).removeprefix("torch.")}  # fmt: skip
+
+
+def _unpack_tensor(packed: dict[str, Any]) -> torch.Tensor:
+    raw = bytearray(zlib.decompress(packed["zlib"].numpy().tobytes()))
+    return torch.frombuffer(raw, dtype=getattr(torch, packed["dtype"])).reshape(packed["shape"]).clone()
+
+
+def pack_state(state: dict[str, Any]) -> dict[str, Any]:
+    """The strategy's state for a checkpoint: its per-view maps zlib-compressed, losslessly.
+
+    The MVS priors (``vad_priors``) are zero outside the instances an event reconstructed (and
+    piecewise constant where MVS ran at a coarser scale), so they compress several times (6x on
+    the bundled sample); the loop's kept renders (``vad_renders``, float16, only while an event
+    can still follow) about 1.4x. The other entries are kept as they are. :func:`unpack_state`
+    gives back the same bits, so a resumed run stays exact. A state without them (the standard
+    strategy's, gsplat's) is returned unchanged.
+
+    Example:
+        >>> prior = (torch.zeros(1, 4, 6), torch.zeros(3, 4, 6))
+        >>> prior[0][0, 1, 2] = 7.5
+        >>> back = unpack_state(pack_state({"vad_priors": {3: prior}, "count": 1}))
+        >>> torch.equal(back["vad_priors"][3][0], prior[0]), back["count"]
+        (True, 1)
+    """
+    out = dict(state)
+    for key in _PACKED:
+        maps = state.get(key)
+        if maps:
+            out[key] = {v: {"packed": [_pack_tensor(x) for x in m]} for v, m in maps.items()}
+    return out
+
+
+def unpack_state(state: dict[str, Any]) -> dict[str, Any]:
+    """The inverse of :func:`pack_state` (a state stored without packing is returned as it is)."""
+    out = state
+    for key in _PACKED:
+        maps = state.get(key)
+        if maps and any(isinstance(m, dict) for m in maps.values()):
+            out = out if out is not state else dict(state)
+            out[key] = {v: tuple(_unpack_tensor(x) for x in m["packed"]) if isinstance(m, dict) else m
+                        for v, m in maps.items()}  # fmt: skip
+    return out
+
+
+_PACKED = ("vad_priors", "vad_renders")  # per view: a tuple of maps
