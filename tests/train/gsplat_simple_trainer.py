@@ -60,9 +60,9 @@ def prepare_data(colmap_root: Path, factor: int) -> None:
     import numpy as np
     from PIL import Image
 
-    if factor == 1:
-        return
     src, dst = colmap_root / "images", colmap_root / f"images_{factor}"
+    if factor == 1 or dst.exists():
+        return
     for path in sorted(p for p in src.rglob("*") if p.is_file()):
         out = dst / path.relative_to(src).with_suffix(".png")
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -368,14 +368,28 @@ class VisibilityAwareDensification:
         if context is not None:
             self.context = context
         if self.index is None and self.visibility:
-            self.index = build_visibility_index(self._inputs(), self.voxel_size)
+            self.index = self._build_index()
         return self.index
+
+    def _build_index(self) -> VisibilityIndex:
+        return build_visibility_index(
+            self._inputs(), self.voxel_size, cell_size=self.cell_size, scene_depth=self.scene_depth
+        )
 
     def visibility_index(self) -> VisibilityIndex:
         """The :class:`~vadgs.train.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
         if self.index is None:
-            self.index = build_visibility_index(self._inputs(), self.voxel_size)
+            self.index = self._build_index()
         return self.index
+
+    @property
+    def lengths(self) -> dict[str, Any]:
+        """The lengths in use (world units): ``scene_depth``, ``voxel_size``, ``cell_size`` of the
+        visibility index (empty before :meth:`prepare`)."""
+        if self.index is None:
+            return {}
+        i = self.index
+        return {"scene_depth": i.scene_depth, "voxel_size": i.grid.voxel_size, "cell_size": i.cell_size}
 
     @torch.no_grad()
     def detect(
