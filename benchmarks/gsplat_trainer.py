@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.train.gsplat_simple_trainer import prepare_data, prepare_examples, run_trainer  # noqa: E402
+from tests.train.gsplat_simple_trainer import prepare_data, prepare_examples, run_trainer
 
 
 def run_pair(data: Path, factor: int, steps: int, vad_args: list[str], both: list[str], tmp: Path) -> dict:
@@ -60,7 +60,10 @@ def report(runs: dict) -> str:
     )
     cfg = v.get("config", {})
     if "voxels" in cfg:
-        lines.append(f"vad: {cfg['voxels']} voxels, scene_scale {cfg['scene_scale']:.3f}, lengths {cfg.get('lengths')}")
+        lines.append(
+            f"vad: {cfg['voxels']} voxels, gsplat scene_scale {cfg['scene_scale']:.3f}, "
+            f"lengths {cfg.get('lengths')}"
+        )
     for e in v["events"]:
         what = ", ".join(
             f"#{i['instance']} ({i['class']}) +{i['added']} [{i['reason']}]" for i in e["instances"]

@@ -171,7 +171,7 @@ class VisibilityInputs:
         elif self.sfm is not None:
             points, pi, vi = self.sfm.points, self.sfm.point_idx, self.sfm.view_idx
         else:
-            raise ValueError(f"inputs {self.name!r}: no LiDAR and no SfM observations to measure the depth of")
+            raise ValueError(f"inputs {self.name!r}: no LiDAR and no SfM observations to measure depth on")
         w2c = self.cameras.world_to_cam.to(points)
         z = (w2c[vi, 2, :3] * points[pi]).sum(-1) + w2c[vi, 2, 3]
         z = z[z > 0]
@@ -350,7 +350,7 @@ def _undistortion(parser: Any, camera_id: int) -> tuple[Any, Any, tuple[int, int
     if params is None or len(params) == 0:
         return None
     if getattr(parser, "mask_dict", {}).get(camera_id) is not None:
-        raise ValueError(f"parser camera {camera_id}: expected a perspective camera, got a fisheye (masked) one")
+        raise ValueError(f"parser camera {camera_id}: expected a perspective camera, got a fisheye one")
     try:
         maps = parser.mapx_dict[camera_id], parser.mapy_dict[camera_id], parser.roi_undist_dict[camera_id]
     except (AttributeError, KeyError):

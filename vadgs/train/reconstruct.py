@@ -454,7 +454,9 @@ def reconstruct_instance(
     """
     cfg = config or ReconstructConfig()
     unit = index.scene_depth / REFERENCE_DEPTH  # the lengths follow the scene (scene_lengths)
-    lengths = scene_lengths(index.scene_depth, fallback_depth_range=cfg.fallback_depth_range, min_depth=cfg.min_depth)
+    lengths = scene_lengths(
+        index.scene_depth, fallback_depth_range=cfg.fallback_depth_range, min_depth=cfg.min_depth
+    )
     cfg = replace(cfg, selection=replace(cfg.selection, eps=cfg.selection.eps * unit))
     inputs = index.inputs
     if not 0 <= ref < inputs.num_views:

@@ -384,8 +384,10 @@ class VisibilityAwareDensification:
 
     @property
     def lengths(self) -> dict[str, Any]:
-        """The lengths in use (world units): ``scene_depth``, ``voxel_size``, ``cell_size`` of the
-        visibility index (empty before :meth:`prepare`)."""
+        """The lengths in use (world units; empty before :meth:`prepare`).
+
+        ``scene_depth``, ``voxel_size`` and ``cell_size`` of the visibility index.
+        """
         if self.index is None:
             return {}
         i = self.index
