@@ -17,7 +17,11 @@ import math
 
 import pytest
 
+from vadgs.train.reconstruct import build_visibility_index
+from vadgs.train.vad import VisibilityInputs
+
 from ..data.colmap_sample import write_sample_colmap
+from .gsplat_parser import sample_parser
 from .gsplat_simple_trainer import GSPLAT_EXAMPLES, prepare_data, prepare_examples, run_trainer
 
 pytestmark = [
@@ -45,7 +49,11 @@ def runs(tmp_path_factory):
     write_sample_colmap(root, n_points=1500)
     prepare_data(root, FACTOR)
     examples = prepare_examples(tmp)
-    out = {}
+    out = {
+        "metric_voxels": len(
+            build_visibility_index(VisibilityInputs.from_gsplat_parser(sample_parser(root, 2))).grid
+        )
+    }
     for name, extra in (("default", []), ("vad", ["--vad.every-cycles", "1"])):
         res = tmp / f"results_{name}"
         out[name] = run_trainer(examples, _argv(name, root, res) + extra, tmp / f"{name}.json")
@@ -63,6 +71,10 @@ def test_default_trains_through_the_harness(runs):
 
 def test_vad_events_flag_add_and_keep_every_row(runs):
     rec = runs["vad"]
+    # VAD-GS's lengths follow gsplat's normalised world (median view depth 0.8, not 11.3 m): as
+    # many voxels as in the sample's own metres
+    assert rec["config"]["lengths"]["scene_depth"] == pytest.approx(0.80, abs=0.01)
+    assert abs(rec["config"]["voxels"] - runs["metric_voxels"]) <= 0.02 * runs["metric_voxels"]
     assert [s for s, _ in rec["steps"]] == list(range(STEPS))
     events = rec["events"]
     assert [e["step"] for e in events] == [CYCLE - 1, 2 * CYCLE - 1]

@@ -312,7 +312,7 @@ class VisibilityInputs:
             from PIL import Image
 
             with Image.open(paths[view]) as im:
-                arr = np.asarray(im.convert("RGB"))
+                arr = np.array(im.convert("RGB"))
             remap = undistort[cam_ids[view]]
             if remap is not None:  # as gsplat's Dataset: remap, then the ROI
                 import cv2
