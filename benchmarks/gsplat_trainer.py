@@ -10,13 +10,16 @@ VAD-GS event (step, flagged instances, what was reconstructed, Gaussians added):
     python benchmarks/gsplat_trainer.py                       # the tests' COLMAP sample
     python benchmarks/gsplat_trainer.py --data DIR --factor 4 --steps 300 -- --vad.every-cycles 2
 
-Arguments after ``--`` go to the ``vad`` run only (``--vad.*`` flags); ``--both`` flags go to both.
+Arguments after ``--`` go to the ``vad`` run only (``--vad.*`` flags); ``--both="..."`` to both
+(e.g. an earlier densification schedule for a short run:
+``--both="--strategy.refine-start-iter 100 --strategy.refine-every 50"``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -85,7 +88,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None, help="COLMAP project (default: the tests' sample)")
     ap.add_argument("--factor", type=int, default=2, help="gsplat's --data_factor")
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--both", nargs="*", default=[], help="simple_trainer flags for both runs")
+    ap.add_argument("--both", default="", help='flags for both runs: --both="--flag value"')
     ap.add_argument("--keep", type=Path, default=None, help="work folder to keep (default: a temporary one)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as t:
@@ -98,7 +101,7 @@ def main() -> None:
             data = tmp / "colmap"
             write_sample_colmap(data, n_points=1500)
         prepare_data(data, args.factor)
-        runs = run_pair(data.resolve(), args.factor, args.steps, vad_args, args.both, tmp)
+        runs = run_pair(data.resolve(), args.factor, args.steps, vad_args, shlex.split(args.both), tmp)
         print(report(runs))
 
 
