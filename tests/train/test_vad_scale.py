@@ -5,8 +5,8 @@ The scene is the COLMAP sample seen through the Parser-like namespace of
 :mod:`tests.train.gsplat_parser` (half resolution), with dense Gaussians of its surfaces and one
 10 m ground cell deleted (:func:`~tests.train.gsplat_parser.facade_splats`); one event runs on it.
 VAD-GS is given no length: its lengths follow the inputs' median view depth
-(``VisibilityInputs.scene_depth``), 11.3 m here, 0.56 at 1/20, and about 1.4 in gsplat's
-normalised world (gsplat's ``scene_scale``, the cameras' spread, is 0.4 there).
+(``VisibilityInputs.scene_depth``), 11.3 m here, 0.56 at 1/20, and 0.80 in gsplat's
+normalised world (gsplat's ``scene_scale``, the cameras' spread, is 0.38 there).
 """
 
 from __future__ import annotations
