@@ -20,6 +20,7 @@ the training views, the event must flag that cell and re-populate it.
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 from typing import Optional
 
 import pytest
@@ -46,6 +47,7 @@ class Runner:
 
     def __init__(self, parser, vad: VisibilityDensifyConfig, max_steps: int) -> None:
         self.device = "cpu"
+        self.cfg = SimpleNamespace(sh_degree=0)  # the splats' shN is of degree 0
         self.parser = parser
         self.trainset = [i for i in range(len(parser.image_names)) if i % parser.test_every != 0]
         self.scene_scale = 1.0
@@ -60,8 +62,10 @@ class Runner:
         self.vad.prepare(inputs, StrategyContext(self.render_for_vad, max_steps, len(self.trainset)))
         self.strategy_state = self.vad.initialize_state(scene_scale=self.scene_scale)
 
-    def rasterize_splats(self, camtoworlds, Ks, width, height, render_mode="RGB", **kwargs):
+    def rasterize_splats(self, camtoworlds, Ks, width, height, render_mode="RGB", sh_degree=None, **kwargs):
         """gsplat's outputs and ``info`` from vadgs's renderer (``K``: gsplat's pixel convention)."""
+        if sh_degree is None:  # gsplat's rasterization then takes the SH coefficients as colours
+            raise AssertionError("sh_degree is required with [N, K, 3] SH coefficients")
         K = Ks.clone()
         K[:, :2, 2] -= 0.5  # gsplat: pixel centres at i + 0.5; vadgs: at i
         s = self.splats
@@ -83,7 +87,9 @@ class Runner:
         c2w = torch.from_numpy(self.parser.camtoworlds[view : view + 1]).float().to(self.device)
         K = torch.from_numpy(self.parser.Ks_dict[cid][None]).float().to(self.device)
         w, h = self.parser.imsize_dict[cid]
-        rgbd, alphas, _ = self.rasterize_splats(c2w, K, w, h, render_mode="RGB+ED")
+        rgbd, alphas, _ = self.rasterize_splats(
+            c2w, K, w, h, sh_degree=self.cfg.sh_degree, render_mode="RGB+ED"
+        )
         depth, alpha = rgbd[0, ..., 3:].permute(2, 0, 1), alphas[0].permute(2, 0, 1)
         return ViewRender(depth, alpha, torch.zeros_like(rgbd[0, ..., :3]).permute(2, 0, 1))
 
@@ -110,7 +116,9 @@ class Runner:
             data = self.data(order.pop(0))
             pixels = data["image"] / 255.0
             height, width = pixels.shape[1:3]
-            renders, _, info = self.rasterize_splats(data["camtoworld"], data["K"], width, height)
+            renders, _, info = self.rasterize_splats(
+                data["camtoworld"], data["K"], width, height, sh_degree=0
+            )
             (self.vad or self.strategy).step_pre_backward(
                 params=self.splats,
                 optimizers=self.optimizers,
@@ -143,9 +151,10 @@ def parser(tmp_path_factory):
 
 
 def test_simple_trainer_shape_repopulates_a_deleted_facade(parser):
-    vad = VisibilityDensifyConfig(
-        every_cycles=1, max_instances=1, time_budget=None, reconstruct=ReconstructConfig(max_crop=64)
-    )
+    vad = VisibilityDensifyConfig(  # the sample's world is street metres: vadgs's lengths (10 m cells)
+        every_cycles=1, max_instances=1, time_budget=None, reconstruct=ReconstructConfig(max_crop=64),
+        scene_depth=10.0,
+    )  # fmt: skip
     cycle = 21  # 24 images, every 8th held out
     steps = cycle + 3  # the event after the first cycle, then three steps with the new Gaussians
     runner = Runner(parser, vad, steps)
@@ -197,7 +206,7 @@ def test_the_documented_diff_is_this_loop():
     source = inspect.getsource(Runner)
     body = [ln.strip() for ln in added if ln.strip()]
     start = body.index("def render_for_vad(self, view: int) -> ViewRender:")
-    for line in body[start : start + 8]:  # render_for_vad, line for line
+    for line in body[start : start + 10]:  # render_for_vad, line for line
         assert line in source, line
     for call in ("VisibilityAwareDensification.from_config(", ".check_sanity(self.splats, self.optimizers)"):
         assert any(call in ln for ln in body) and call in source

@@ -133,7 +133,9 @@ class TestInputsFromParser:
         assert ours.cameras.image_size == theirs.cameras.image_size == (72, 120)
         torch.testing.assert_close(ours.load_image(order[5], None), theirs.load_image(5, None))
         assert ours.sfm.points.shape == theirs.sfm.points.shape
-        a, b = build_visibility_index(ours, 0.5), build_visibility_index(theirs, 0.5)
+        # the same lengths (a vadgs scene is in its units, depth 10; the parser's depth is measured)
+        assert theirs.scene_depth == 10.0 and ours.scene_depth == pytest.approx(11.27, abs=0.01)
+        a, b = build_visibility_index(ours, 0.5, scene_depth=10.0), build_visibility_index(theirs, 0.5)
         torch.testing.assert_close(a.grid.centers, b.grid.centers)
         for m in range(len(a.grid)):
             assert {order.index(v) for v in a.grid.views_of(m).tolist()} == set(b.grid.views_of(m).tolist())
@@ -160,6 +162,7 @@ def _gsplat_run(parser, base, steps, post_kwargs, packed=False, monkeypatch=None
         max_instances=1,
         time_budget=None,
         reconstruct=ReconstructConfig(max_crop=64),
+        scene_depth=10.0,  # the sample's world is street metres: vadgs's lengths (10 m cells)
     )
     train = list(inputs.train_views)
 

@@ -20,8 +20,9 @@ both constructors).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -87,6 +88,11 @@ class VisibilityInputs:
         native_factor: how many times finer than ``sizes`` the image files are (``1 / scale`` of
             a vadgs scene; 1: no finer images).
         name: the dataset's name, for messages.
+        scene_depth: the scene's typical view depth (the median camera-to-point depth of its
+            observations), the unit VAD-GS's lengths follow (its defaults are for a depth of 10:
+            :class:`~vadgs.train.vad.VisibilityDensifyConfig`). ``from_scene``: 10 (vadgs's scenes
+            are street metres, or normalised to a median depth of 10); ``from_gsplat_parser``:
+            measured; None: measured when needed (:meth:`median_view_depth`).
     """
 
     cameras: Cameras
@@ -104,9 +110,12 @@ class VisibilityInputs:
     frame_positions: tuple[int, ...] | None = None
     native_factor: int = 1
     name: str = ""
+    scene_depth: float | None = None
 
     def __post_init__(self) -> None:
         v = self.num_views
+        if self.scene_depth is not None and not (math.isfinite(self.scene_depth) and self.scene_depth > 0):
+            raise ValueError(f"scene_depth: expected None or a finite depth > 0, got {self.scene_depth}")
         if self.cameras.world_to_cam.shape[0] != v:
             got = self.cameras.world_to_cam.shape[0]
             raise ValueError(f"cameras: expected K and world_to_cam of {v} views, got {got}")
@@ -144,6 +153,31 @@ class VisibilityInputs:
         if self.load_instances is None:
             return False
         return self.instance_views is None or view in self.instance_views
+
+    def median_view_depth(self) -> float:
+        """The median camera-to-point depth (``z``) of the observations the visibility is built from.
+
+        ``scene_depth`` when set; else measured over the LiDAR's static points or the SfM TRACK
+        table (each observation: its point in its view's camera).
+
+        Raises:
+            ValueError: when there are no observations in front of a camera.
+        """
+        if self.scene_depth is not None:
+            return float(self.scene_depth)
+        if self.lidar is not None:
+            acc = self.lidar(None)
+            points, (pi, vi) = acc.points, acc.point_views
+        elif self.sfm is not None:
+            points, pi, vi = self.sfm.points, self.sfm.point_idx, self.sfm.view_idx
+        else:
+            raise ValueError(f"inputs {self.name!r}: no LiDAR and no SfM observations to measure depth on")
+        w2c = self.cameras.world_to_cam.to(points)
+        z = (w2c[vi, 2, :3] * points[pi]).sum(-1) + w2c[vi, 2, 3]
+        z = z[z > 0]
+        if z.numel() == 0:
+            raise ValueError(f"inputs {self.name!r}: no observation in front of its camera")
+        return float(z.median())
 
     # -- constructors ----------------------------------------------------------------------------------
 
@@ -206,6 +240,7 @@ class VisibilityInputs:
             frame_positions=tuple(scene.view_frame_position(v) for v in range(scene.num_views)),
             native_factor=int(1.0 / scene.scale + 1e-6),
             name=scene.name,
+            scene_depth=10.0,
         )
 
     @classmethod
@@ -220,9 +255,14 @@ class VisibilityInputs:
         table). ``K`` is moved to vadgs's pixel convention (centres at integers: ``cx, cy`` minus
         0.5; gsplat's and COLMAP's centres are at ``i + 0.5``). Each image is its own frame; there
         are no instance maps (derived ground cells stand in) and no moving objects. Images are read
-        with PIL on demand and resized (area) to the parser's size; lens distortion is not
-        modelled (use undistorted images / a PINHOLE model, as gsplat's ``Dataset`` does with
-        ``mapx_dict``).
+        with PIL on demand and resized (area) to the parser's size.
+
+        Distorted cameras (``params_dict`` not empty: SIMPLE_RADIAL, RADIAL, OPENCV): the Parser's
+        ``Ks_dict`` and ``imsize_dict`` are already those of the undistorted images, and each image
+        is undistorted as gsplat's ``Dataset`` does it — ``cv2.remap`` with ``mapx_dict`` /
+        ``mapy_dict``, then the ``roi_undist_dict`` crop. Fisheye cameras (a ``mask_dict`` entry)
+        are refused. ``scene_depth`` is the median depth of the observations
+        (:meth:`median_view_depth`): VAD-GS's lengths follow gsplat's normalised world.
 
         Args:
             parser: the parser (or any object with those attributes).
@@ -266,12 +306,20 @@ class VisibilityInputs:
         new_id = torch.cumsum(used.long(), 0) - 1  # only the observed points, renumbered
         paths = list(parser.image_paths)
         unique_cams = sorted(set(cam_ids))
+        undistort = {c: _undistortion(parser, c) for c in unique_cams}
 
         def load_image(view: int, size: tuple[int, int] | None = None) -> torch.Tensor:
             from PIL import Image
 
             with Image.open(paths[view]) as im:
-                img = torch.from_numpy(np.asarray(im.convert("RGB")).copy()).permute(2, 0, 1).float() / 255.0
+                arr = np.array(im.convert("RGB"))
+            remap = undistort[cam_ids[view]]
+            if remap is not None:  # as gsplat's Dataset: remap, then the ROI
+                import cv2
+
+                mapx, mapy, (x, y, w, h) = remap
+                arr = cv2.remap(arr, mapx, mapy, cv2.INTER_LINEAR)[y : y + h, x : x + w]
+            img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).float() / 255.0
             h, w = size or (sizes[view] if sizes is not None else big)
             if img.shape[-2:] != (h, w):
                 mode = "bilinear" if h > img.shape[-2] or w > img.shape[-1] else "area"
@@ -279,7 +327,7 @@ class VisibilityInputs:
                 img = F.interpolate(img[None], size=(h, w), mode=mode, **kw)[0]
             return img
 
-        return cls(
+        out = cls(
             cameras=cameras,
             train_views=tuple(sorted(train)),
             load_image=load_image,
@@ -289,6 +337,28 @@ class VisibilityInputs:
             sfm=TrackTable(points[used], new_id[pi_t], vi_t),
             name=str(getattr(parser, "data_dir", "gsplat parser")),
         )
+        return replace(out, scene_depth=out.median_view_depth()) if vi_t.numel() else out
+
+
+def _undistortion(parser: Any, camera_id: int) -> tuple[Any, Any, tuple[int, int, int, int]] | None:
+    """``(mapx, mapy, roi)`` of a distorted camera of gsplat's Parser, None for a pinhole one.
+
+    Raises:
+        ValueError: a fisheye camera, or distortion parameters without the Parser's maps.
+    """
+    params = getattr(parser, "params_dict", {}).get(camera_id)
+    if params is None or len(params) == 0:
+        return None
+    if getattr(parser, "mask_dict", {}).get(camera_id) is not None:
+        raise ValueError(f"parser camera {camera_id}: expected a perspective camera, got a fisheye one")
+    try:
+        maps = parser.mapx_dict[camera_id], parser.mapy_dict[camera_id], parser.roi_undist_dict[camera_id]
+    except (AttributeError, KeyError):
+        raise ValueError(
+            f"parser camera {camera_id}: expected mapx_dict / mapy_dict / roi_undist_dict for its distortion "
+            f"params {list(params)}, got none (undistort the images, or use gsplat's Parser)"
+        ) from None
+    return maps[0], maps[1], tuple(int(v) for v in maps[2])
 
 
 def sfm_observations(

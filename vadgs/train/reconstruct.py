@@ -31,6 +31,7 @@ crops and the matching scale (:func:`match_scale`, ``_crop_group``) in
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import NamedTuple
 
 import torch
@@ -55,7 +56,14 @@ from vadgs.train.instance_crops import (
     match_scale,
 )
 from vadgs.train.reconstruct_config import ReconstructConfig
-from vadgs.train.visibility import ViewCache, VisibilityIndex, build_visibility_index, derive_instance_map
+from vadgs.train.visibility import (
+    REFERENCE_DEPTH,
+    ViewCache,
+    VisibilityIndex,
+    build_visibility_index,
+    derive_instance_map,
+    scene_lengths,
+)
 
 __all__ = [
     "InstanceReconstruction",
@@ -198,15 +206,17 @@ def _select_supports(
     return select_views(ref, covis, cfg.selection, generator, frame.allowed)
 
 
-def _depth_range(frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig) -> tuple[float, float]:
+def _depth_range(
+    frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig, lengths: dict
+) -> tuple[float, float]:
     """PatchMatch's depth range from the instance's voxels as the reference sees them."""
     cen = frame.covis.voxel_centers[frame.voxels]
     z = cen @ w2c_ref[2, :3] + w2c_ref[2, 3]
-    z = z[z > 0.1]
+    z = z[z > lengths["min_voxel_depth"]]
     near, far = cfg.depth_margin
-    lo, hi = (float(z.min()) * near, float(z.max()) * far) if z.numel() else cfg.fallback_depth_range
-    lo = max(lo, cfg.min_depth)
-    return lo, max(hi, lo * 4, 1.0)
+    lo, hi = (float(z.min()) * near, float(z.max()) * far) if z.numel() else lengths["fallback_depth_range"]
+    lo = max(lo, lengths["min_depth"])
+    return lo, max(hi, lo * 4, lengths["min_depth_span"])
 
 
 def _renders(
@@ -443,6 +453,11 @@ def reconstruct_instance(
         :class:`InstanceReconstruction` (possibly empty, with the reason).
     """
     cfg = config or ReconstructConfig()
+    unit = index.scene_depth / REFERENCE_DEPTH  # the lengths follow the scene (scene_lengths)
+    lengths = scene_lengths(
+        index.scene_depth, fallback_depth_range=cfg.fallback_depth_range, min_depth=cfg.min_depth
+    )
+    cfg = replace(cfg, selection=replace(cfg.selection, eps=cfg.selection.eps * unit))
     inputs = index.inputs
     if not 0 <= ref < inputs.num_views:
         raise ValueError(f"ref: expected a view in [0, {inputs.num_views}), got {ref}")
@@ -470,7 +485,7 @@ def reconstruct_instance(
     if isinstance(crops, str):
         return nothing(crops, group)
     w2c = frame.world_to_cam[group]
-    depth_range = _depth_range(frame, w2c[0], cfg)
+    depth_range = _depth_range(frame, w2c[0], cfg, lengths)
     w2c = w2c.to(dev)
     matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
     planar = cfg.planar is not None and track is None  # a car is not planar

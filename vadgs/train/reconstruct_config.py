@@ -22,7 +22,8 @@ class ReconstructConfig:
 
     Attributes:
         selection: view selection (``k = 4`` supporting views by default; ``method="consecutive"``
-            is the paper's "w/o view selection" ablation).
+            is the paper's "w/o view selection" ablation). Its ``eps`` (metres) is read at a scene
+            depth of 10 and scaled with the scene (``VisibilityIndex.scene_depth / 10``).
         patchmatch: PatchMatch settings.
         margin: pixels added around each instance's bounding box for the crops.
         max_crop: crops are limited to this many pixels per side (larger instances are
@@ -55,8 +56,11 @@ class ReconstructConfig:
         max_downsample: the coarsest matching scale, ``1 / max_downsample`` (1, 2, 4 or 8).
         depth_margin: ``(near, far)`` factors on the nearest and farthest instance voxel depth in
             the reference view: PatchMatch's random depths are drawn in ``[near z_min, far z_max]``.
-        fallback_depth_range: the depth range when the reference sees none of the voxels.
-        min_depth: lower bound of the depth range.
+        fallback_depth_range: the depth range when the reference sees none of the voxels; None
+            (default): ``(0.5, 150)`` at a scene depth of 10, scaled with the scene
+            (:func:`~vadgs.train.visibility.scene_lengths`); a value: absolute.
+        min_depth: lower bound of the depth range; None (default): 0.2 at a scene depth of 10,
+            scaled; a value: absolute.
         explained_alpha: a consistent pixel is *explained* (gives no point) where the member's
             render has at least this opacity and a depth in front of, or within
             ``explained_tolerance`` (relative) of, the MVS depth; it still gives a depth prior.
@@ -94,8 +98,8 @@ class ReconstructConfig:
     max_match_pixels: int | None = 2048
     max_downsample: int = 4
     depth_margin: tuple[float, float] = (0.5, 2.0)
-    fallback_depth_range: tuple[float, float] = (0.5, 150.0)
-    min_depth: float = 0.2
+    fallback_depth_range: tuple[float, float] | None = None
+    min_depth: float | None = None
     explained_alpha: float = 0.7
     explained_tolerance: float = 0.05
     thin_points: bool = True
@@ -114,8 +118,8 @@ class ReconstructConfig:
         if self.max_downsample not in (1, 2, 4, 8):
             raise ValueError(f"max_downsample: expected 1, 2, 4 or 8, got {self.max_downsample}")
         near, far = self.depth_margin
-        lo, hi = self.fallback_depth_range
-        if not (0 < near <= 1 <= far and 0 < lo < hi and self.min_depth > 0):
+        lo, hi = self.fallback_depth_range or (1.0, 2.0)
+        if not (0 < near <= 1 <= far and 0 < lo < hi and (self.min_depth is None or self.min_depth > 0)):
             raise ValueError(
                 "depth_margin, fallback_depth_range, min_depth: expected 0 < near <= 1 <= far, "
                 f"0 < lo < hi and min_depth > 0, got {self.depth_margin}, {self.fallback_depth_range}, "

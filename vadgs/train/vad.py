@@ -84,7 +84,9 @@ __all__ = [
     "VisibilityAwareDensification",
     "VisibilityDensifyConfig",
     "VisibilityInputs",
+    "check_info",
     "flat_gaussians",
+    "info_requirements",
     "normals_to_quats",
     "pack_state",
     "pick_references",
@@ -93,6 +95,65 @@ __all__ = [
 ]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
+
+_GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
+
+
+def info_requirements(base: Any, packed: bool = False) -> list[dict[str, str]]:
+    """What a base strategy reads from the loop's ``info``: alternatives of ``{key: where it comes from}``.
+
+    vadgs's ``DefaultStrategy``: vadgs's render (``raster``, ``image_size``) or gsplat's meta
+    (``means2d``, ``width``, ``height``, ``radii``); gsplat's ``DefaultStrategy``: its
+    ``key_for_gradient`` (``means2d``), ``width``, ``height``, ``n_cameras``, ``radii`` and
+    ``gaussian_ids`` (None unless ``packed``); gsplat's ``MCMCStrategy``: nothing (it takes
+    ``lr=``). Other bases: nothing is known (an empty list).
+
+    Example:
+        >>> [sorted(a) for a in info_requirements(DefaultStrategy())]
+        [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
+    """
+    if isinstance(base, DefaultStrategy):
+        return [
+            {
+                "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
+                "image_size": "the view's (H, W)",
+            },
+            {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")},
+        ]
+    cls = type(base)
+    if not cls.__module__.startswith("gsplat.") or not hasattr(base, "key_for_gradient"):
+        return []  # gsplat's MCMCStrategy reads nothing; unknown bases: not checked
+    req = {k: _GSPLAT_META for k in (base.key_for_gradient, "width", "height", "n_cameras", "radii")}
+    req["gaussian_ids"] = _GSPLAT_META + (" with packed=True" if packed else " (None when packed=False)")
+    return [req]
+
+
+def check_info(base: Any, info: Mapping[str, Any], packed: bool = False) -> None:
+    """Check the loop's ``info`` against what ``base`` reads (:func:`info_requirements`).
+
+    Raises:
+        ValueError: naming the missing key, the base that reads it and where it comes from.
+    """
+    alternatives = info_requirements(base, packed)
+    if not alternatives:
+        return
+    if not isinstance(info, Mapping):
+        raise ValueError(f"info: expected a dict (the renderer's meta), got {type(info).__name__}")
+    missing = [[k for k in alt if k not in info] for alt in alternatives]
+    if any(not m for m in missing):
+        if packed and info.get("gaussian_ids", 0) is None and "gaussian_ids" in alternatives[-1]:
+            raise ValueError(
+                "info['gaussian_ids']: expected the ids of gsplat's rasterization(packed=True) with "
+                "packed=True, got None"
+            )
+        return
+    best = min(range(len(missing)), key=lambda i: (len(missing[i]) - len(alternatives[i]), len(missing[i])))
+    key = missing[best][0]
+    name = f"{type(base).__module__.split('.')[0]}'s {type(base).__name__}"
+    raise ValueError(
+        f"info: expected key {key!r} (read by {name}; from {alternatives[best][key]}), "
+        f"got keys {sorted(info)}"
+    )
 
 
 @dataclass(eq=False)
@@ -259,7 +320,17 @@ class VisibilityAwareDensification:
         )
         return state
 
-    def step_pre_backward(self, params, optimizers, state, step, info, **kwargs) -> None:  # noqa: D102
+    def step_pre_backward(self, params, optimizers, state, step, info, **kwargs) -> None:
+        """The base's ``step_pre_backward``; at the first step, checks ``info`` for the base.
+
+        (``step_post_backward`` checks it again at its first call, with its ``packed=``.)
+
+        Raises:
+            ValueError: a key the base reads is missing from ``info`` (see :func:`check_info`).
+        """
+        if not getattr(self, "_info_checked", False):
+            check_info(self.base, info)
+            self._info_checked = True
         self.base.step_pre_backward(params, optimizers, state, step, info, **kwargs)
 
     def step_post_backward(
@@ -281,6 +352,9 @@ class VisibilityAwareDensification:
         if self._last_call is not None:
             state["vad_train_s"] = state.get("vad_train_s", 0.0) + (now - self._last_call)
         self._last_call = now
+        if not getattr(self, "_post_info_checked", False):  # with packed= now known
+            check_info(self.base, info, bool(kwargs.get("packed", False)))
+            self._post_info_checked = True
         self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
         if not self.visibility:
             return
@@ -379,14 +453,30 @@ class VisibilityAwareDensification:
         if context is not None:
             self.context = context
         if self.index is None and self.visibility:
-            self.index = build_visibility_index(self._inputs(), self.voxel_size)
+            self.index = self._build_index()
         return self.index
+
+    def _build_index(self) -> VisibilityIndex:
+        return build_visibility_index(
+            self._inputs(), self.voxel_size, cell_size=self.cell_size, scene_depth=self.scene_depth
+        )
 
     def visibility_index(self) -> VisibilityIndex:
         """The :class:`~vadgs.train.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
         if self.index is None:
-            self.index = build_visibility_index(self._inputs(), self.voxel_size)
+            self.index = self._build_index()
         return self.index
+
+    @property
+    def lengths(self) -> dict[str, Any]:
+        """The lengths in use (world units; empty before :meth:`prepare`).
+
+        ``scene_depth``, ``voxel_size`` and ``cell_size`` of the visibility index.
+        """
+        if self.index is None:
+            return {}
+        i = self.index
+        return {"scene_depth": i.scene_depth, "voxel_size": i.grid.voxel_size, "cell_size": i.cell_size}
 
     @torch.no_grad()
     def detect(

@@ -10,6 +10,7 @@ of the loop (a render function, step counts, a generator). Both are importable f
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 
@@ -32,7 +33,20 @@ class VisibilityDensifyConfig:
             camera, the "w/o view selection" ablation).
         geometric_losses: normal and hard/soft depth losses on the priors.
         every_cycles: detection and densification every this many complete sampling cycles.
-        voxel_size: voxel edge (m) of the visibility grids.
+        scene_depth: the scene's length unit, its typical view depth: every length left unset
+            below (``voxel_size``, ``cell_size``, ``reconstruct.fallback_depth_range`` /
+            ``min_depth``, and the internal ones of :data:`~vadgs.train.visibility.LENGTHS`) is its
+            value for a scene of depth 10 times ``scene_depth / 10``, so that VAD-GS does the same
+            on a scene at any scale. None (default): the inputs'
+            (:meth:`~vadgs.train.inputs.VisibilityInputs.median_view_depth`: 10 for vadgs's
+            scenes; for gsplat's Parser, the median depth of its SfM observations in its
+            normalised world). Not gsplat's ``scene_scale`` (the cameras' spread, which is not a
+            depth: a street drive spreads its cameras far beyond what they see).
+        voxel_size: voxel edge of the visibility grids; None (default): 0.2 at a scene depth of 10
+            (0.02 ``scene_depth``); a value: absolute (world units).
+        cell_size: ground-cell edge of the derived instances of scenes without instance maps
+            (COLMAP, gsplat's Parser): None (default): 10 at a scene depth of 10 (one
+            ``scene_depth``); a value: absolute.
         incomplete: thresholds of the incompleteness test.
         reconstruct: view selection / PatchMatch / consistency settings.
         max_instances: at most this many instances reconstructed per event, in the order of
@@ -76,7 +90,9 @@ class VisibilityDensifyConfig:
     view_selection: bool = True
     geometric_losses: bool = True
     every_cycles: int = 5
-    voxel_size: float = 0.2
+    scene_depth: float | None = None
+    voxel_size: float | None = None
+    cell_size: float | None = None
     incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
     max_instances: int | None = None
@@ -106,6 +122,10 @@ class VisibilityDensifyConfig:
                 f"references, max_instances: expected >= 1 and None or >= 0, got {self.references}, "
                 f"{self.max_instances}"
             )
+        for name in ("scene_depth", "voxel_size", "cell_size"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: expected None or a finite length > 0, got {value}")
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError(f"time_budget: expected None or > 0, got {self.time_budget}")
 

@@ -14,6 +14,7 @@ VAD-GS strategy (:mod:`vadgs.train.vad`) read it.
 from __future__ import annotations
 
 import itertools
+import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -30,7 +31,66 @@ from vadgs.select.covisibility import Covisibility
 from vadgs.train.incomplete import voxel_labels
 from vadgs.train.inputs import VisibilityInputs
 
-__all__ = ["ViewCache", "VisibilityIndex", "build_visibility_index", "derive_instance_map"]
+__all__ = [
+    "LENGTHS",
+    "REFERENCE_DEPTH",
+    "ViewCache",
+    "VisibilityIndex",
+    "build_visibility_index",
+    "derive_instance_map",
+    "scene_lengths",
+]
+
+#: The scene depth VAD-GS's default lengths are written for: vadgs's scenes (street metres, or SfM
+#: normalised to a median view depth of 10).
+REFERENCE_DEPTH = 10.0
+
+#: VAD-GS's lengths at :data:`REFERENCE_DEPTH`; each scales with ``scene_depth / REFERENCE_DEPTH``
+#: unless set explicitly (absolute): the voxel edge of the visibility grids, the ground cell of
+#: derived instances, the z-buffer's near plane, PatchMatch's fallback depth range and its lower
+#: bound, the smallest voxel depth and depth span of an instance (``reconstruct``), and the nearest
+#: depth a track's box is painted at. (The view selection's ``ε``, ``ReconstructConfig.selection.eps``,
+#: is scaled the same way: it is always read at :data:`REFERENCE_DEPTH`.)
+LENGTHS = {
+    "voxel_size": 0.2,
+    "cell_size": 10.0,
+    "zbuffer_near": 0.1,
+    "fallback_depth_range": (0.5, 150.0),
+    "min_depth": 0.2,
+    "min_voxel_depth": 0.1,
+    "min_depth_span": 1.0,
+    "box_near": 0.1,
+}
+
+
+def scene_lengths(scene_depth: float = REFERENCE_DEPTH, **absolute: Any) -> dict[str, Any]:
+    """VAD-GS's lengths for a scene of ``scene_depth``: :data:`LENGTHS` scaled, ``absolute`` kept.
+
+    ``None`` values of ``absolute`` mean "relative" (scaled). At :data:`REFERENCE_DEPTH` the values
+    are :data:`LENGTHS` exactly.
+
+    Example:
+        >>> scene_lengths(5.0)["voxel_size"], scene_lengths(5.0, voxel_size=0.02)["voxel_size"]
+        (0.1, 0.02)
+        >>> scene_lengths()["cell_size"]
+        10.0
+    """
+    unknown = set(absolute) - set(LENGTHS)
+    if unknown:
+        raise ValueError(f"absolute: expected keys of {sorted(LENGTHS)}, got {sorted(unknown)}")
+    if not (math.isfinite(scene_depth) and scene_depth > 0):
+        raise ValueError(f"scene_depth: expected a finite depth > 0, got {scene_depth}")
+    unit = scene_depth / REFERENCE_DEPTH
+    out = {}
+    for key, value in LENGTHS.items():
+        given = absolute.get(key)
+        if given is not None:
+            out[key] = given
+        elif isinstance(value, tuple):
+            out[key] = tuple(v * unit for v in value)
+        else:
+            out[key] = value * unit
+    return out
 
 
 class ViewCache:
@@ -110,6 +170,8 @@ class VisibilityIndex:
         cell_size: ground-cell edge of derived instances (scenes without instance maps).
         grow: pixels a derived instance map grows beyond the voxels.
         view_cache: the per-view cache.
+        scene_depth: the scene's length unit (``VisibilityInputs.median_view_depth``; 10 for
+            vadgs's scenes) that the lengths left unset were derived from (:data:`LENGTHS`).
     """
 
     inputs: VisibilityInputs
@@ -125,6 +187,7 @@ class VisibilityIndex:
     cell_size: float = 10.0
     grow: int = 6
     view_cache: ViewCache = field(default_factory=ViewCache, repr=False)
+    scene_depth: float = REFERENCE_DEPTH
     _cells: torch.Tensor | None = field(default=None, repr=False)
     _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
 
@@ -313,6 +376,7 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
     cam = index.camera(view)
     own = index.valid(view).numpy()
     lab = np.where(own, lab, 0)  # nothing grows into the padding of a smaller view
+    box_near = scene_lengths(index.scene_depth)["box_near"]
     boxes = []
     for tid, t in inputs.tracks.items():
         if not bool(t.valid[pos]):
@@ -321,7 +385,7 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
         o2w = t.object_to_world[pos].float()
         world = corners @ o2w[:3, :3].T + o2w[:3, 3]
         uv, z = project_points(world[None], cam.K, cam.world_to_cam)
-        if bool((z < 0.1).any()):  # a box across the image plane: skip rather than mis-project
+        if bool((z < box_near).any()):  # a box across the image plane: skip rather than mis-project
             continue
         boxes.append((float(z.mean()), tid, uv[0].numpy()))
     for _, tid, uv in sorted(boxes, reverse=True):  # far first: near boxes paint over them
@@ -336,9 +400,11 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
 
 def build_visibility_index(
     source: VisibilityInputs | Any,
-    voxel_size: float = 0.2,
+    voxel_size: float | None = None,
     frames: Sequence[int] | None = None,
     zbuffer: ZBufferConfig | None = None,
+    cell_size: float | None = None,
+    scene_depth: float | None = None,
 ) -> VisibilityIndex:
     """Voxelise the LiDAR (static in world, each track in its frame) or SfM points with visibility sets.
 
@@ -352,11 +418,15 @@ def build_visibility_index(
     Args:
         source: :class:`~vadgs.train.inputs.VisibilityInputs`, or a vadgs
             :class:`~vadgs.data.scene.Scene` (then ``VisibilityInputs.from_scene(scene, frames)``).
-        voxel_size: voxel edge (m).
+        voxel_size: voxel edge; None: 0.2 at a scene depth of 10 (:func:`scene_lengths`).
         frames: for a scene, frames whose LiDAR (or whose views' SfM observations) are used
             (default: the training frames, or every frame without a split); must be None for
             inputs (their observations are already chosen).
-        zbuffer: z-buffer settings for the per-view voxel depth.
+        zbuffer: z-buffer settings for the per-view voxel depth (None: the defaults, with the near
+            plane 0.1 at a scene depth of 10).
+        cell_size: ground-cell edge of derived instances; None: 10 at a scene depth of 10.
+        scene_depth: the scene's length unit; None: the inputs'
+            (:meth:`~vadgs.train.inputs.VisibilityInputs.median_view_depth`).
 
     Returns:
         The :class:`VisibilityIndex`.
@@ -392,6 +462,9 @@ def build_visibility_index(
         )
     if points.shape[0] == 0:
         raise ValueError(f"scene {inputs.name!r}: no {what} of frames {frames}")
+    depth = float(scene_depth) if scene_depth is not None else inputs.median_view_depth()
+    lengths = scene_lengths(depth, voxel_size=voxel_size, cell_size=cell_size)
+    voxel_size = lengths["voxel_size"]
     grid = voxelize(points, voxel_size, point_views, inputs.num_views)
     labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
     cameras, sizes = inputs.cameras, inputs.sizes
@@ -406,8 +479,10 @@ def build_visibility_index(
         {},
         {},
         allowed,
-        zbuffer or ZBufferConfig(),
+        zbuffer or ZBufferConfig(near=lengths["zbuffer_near"]),
         sizes,
+        cell_size=lengths["cell_size"],
+        scene_depth=depth,
     )
     for tid in inputs.tracks if has_lidar else ():
         tacc = inputs.lidar(tid)

@@ -1,0 +1,55 @@
+"""What the loop's ``info`` must contain for each base strategy, checked at VAD-GS's first step
+(docs/vad.md, "What `info` must contain")."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from vadgs.train.strategy import DefaultStrategy
+from vadgs.train.vad import VisibilityAwareDensification, check_info
+
+gsplat_strategy = pytest.importorskip("gsplat.strategy")
+
+
+def _gsplat_meta(packed: bool = False) -> dict:
+    means2d = torch.zeros(1, 5, 2, requires_grad=True) * 1.0  # a non-leaf, as the rasterizer's
+    return {"means2d": means2d, "width": 8, "height": 6, "n_cameras": 1, "radii": torch.ones(1, 5, 2),
+            "gaussian_ids": torch.arange(5) if packed else None}  # fmt: skip
+
+
+def _first_step(base, info, **kwargs) -> None:
+    """The first step's calls up to the base's: pre-backward, then post-backward with ``kwargs``."""
+    vad = VisibilityAwareDensification(base=base, visibility=False)
+    vad.step_pre_backward({}, {}, {}, 0, info)
+    base.step_post_backward = lambda *a, **k: None  # what is tested is the check before it
+    vad.step_post_backward({}, {}, {}, 0, info, **kwargs)
+
+
+def test_gsplat_default_strategy_names_the_missing_key():
+    info = _gsplat_meta()
+    _first_step(gsplat_strategy.DefaultStrategy(), info)  # gsplat's meta: fine
+    del info["gaussian_ids"]  # a hand-written loop's info (the issue's AssertionError in gsplat)
+    msg = r"info: expected key 'gaussian_ids' \(read by gsplat's DefaultStrategy; from the meta dict gsplat"
+    with pytest.raises(ValueError, match=msg):
+        _first_step(gsplat_strategy.DefaultStrategy(), info)
+    with pytest.raises(
+        ValueError, match=r"info\['gaussian_ids'\]: expected the ids of .*packed=True, got None"
+    ):
+        _first_step(gsplat_strategy.DefaultStrategy(), _gsplat_meta(), packed=True)
+    _first_step(gsplat_strategy.DefaultStrategy(), _gsplat_meta(packed=True), packed=True)
+    custom = gsplat_strategy.DefaultStrategy(key_for_gradient="gradient_2dgs")
+    with pytest.raises(ValueError, match="expected key 'gradient_2dgs'"):
+        _first_step(custom, _gsplat_meta())
+
+
+def test_vadgs_default_and_gsplat_mcmc():
+    with pytest.raises(ValueError, match=r"expected key 'width' \(read by vadgs's DefaultStrategy"):
+        _first_step(DefaultStrategy(), {"means2d": torch.zeros(1, 5, 2)})
+    with pytest.raises(
+        ValueError, match=r"expected key 'image_size' \(read by vadgs's DefaultStrategy; from the"
+    ):
+        check_info(DefaultStrategy(), {"raster": object()})
+    check_info(DefaultStrategy(), {k: v for k, v in _gsplat_meta().items() if k != "gaussian_ids"})
+    _first_step(gsplat_strategy.MCMCStrategy(), {})  # MCMC reads nothing from info (it takes lr=)
+    check_info(object(), {})  # an unknown base: nothing is known, nothing checked
