@@ -186,6 +186,14 @@ class TestEventReusesTheLoopsRenders:
         assert kept[trained[-1]][0].dtype == torch.float16
 
 
+def _slow_clock(monkeypatch) -> None:
+    """The VAD-GS strategy's clock reads 1000 s more at every call (a very loaded machine)."""
+    import vadgs.train.vad as vad_module
+
+    ticks = iter(range(10**9))
+    monkeypatch.setattr(vad_module.time, "perf_counter", lambda: 1000.0 * next(ticks))
+
+
 class TestEventLog:
     def test_log_counts_and_time_budget(self, scene, index, gt_points):
         pts, col, ins, spc = gt_points
@@ -214,7 +222,6 @@ class TestEventLog:
 
     def test_work_budget_counts_patchmatch_work(self, scene, index, gt_points, monkeypatch):
         """The budget is PatchMatch pixel-sweeps per training pixel so far, whatever the clock says."""
-        import vadgs.train.vad as vad_module
 
         pts, col, ins, spc = gt_points
         keep = (ins != BUILDING) & (ins != 10)
@@ -222,10 +229,13 @@ class TestEventLog:
         events = []
         for clock in (None, "slow"):
             if clock == "slow":  # every reading 1000 s after the last: a very loaded machine
-                ticks = iter(range(10**9))
-                monkeypatch.setattr(vad_module.time, "perf_counter", lambda: 1000.0 * next(ticks))
+                _slow_clock(monkeypatch)
             trainer = _trainer(
-                scene, copy.deepcopy(model), index, work_budget=0.1, skip_classes=("road", "car"),
+                scene,
+                copy.deepcopy(model),
+                index,
+                work_budget=0.1,
+                skip_classes=("road", "car"),
                 reconstruct=ReconstructConfig(max_crop=64),
             )
             st = trainer.state
@@ -245,18 +255,17 @@ class TestEventLog:
 
     def test_same_model_under_a_slow_clock(self, monkeypatch):
         """One config and seed, one model: training with a clock 1000x slower gives the same bits."""
-        import vadgs.train.vad as vad_module
         from vadgs.data import load_scene, sample_scene_path
         from vadgs.train.trainer import TrainConfig, Trainer
 
         scene = load_scene(sample_scene_path(), scale=0.5)  # 120x72: 18 views, the event after step 17
-        vad = VisibilityDensifyConfig(every_cycles=1, work_budget=0.2, reconstruct=ReconstructConfig(max_crop=32))
+        small = ReconstructConfig(max_crop=32)
+        vad = VisibilityDensifyConfig(every_cycles=1, work_budget=0.2, reconstruct=small)
         cfg = TrainConfig(iterations=40, checkpoint_every=10**6, vad=vad)
         runs = []
         for slow in (False, True):
             if slow:  # each reading 1000 s after the last: the event and every step take "hours"
-                ticks = iter(range(10**9))
-                monkeypatch.setattr(vad_module.time, "perf_counter", lambda: 1000.0 * next(ticks))
+                _slow_clock(monkeypatch)
             trainer = Trainer(scene, cfg, progress=False)
             for _ in range(19):
                 trainer.train_step()
@@ -266,7 +275,9 @@ class TestEventLog:
         assert 2 <= plain["attempted"] < plain["candidates"]  # the budget cut this event
         assert plain["skipped"].get("work_budget") == plain["candidates"] - plain["attempted"]
         assert (late["attempted"], late["skipped"], late["work"]) == (
-            plain["attempted"], plain["skipped"], plain["work"]
+            plain["attempted"],
+            plain["skipped"],
+            plain["work"],
         )
         a, b = (t.model.params for t in runs)
         assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

@@ -424,7 +424,7 @@ def match_work(masks: torch.Tensor, sources: int, config: PatchMatchConfig) -> f
     """
     levels = max(int(config.pyramid_levels), 1)
     sweeps = config.iterations * 4.0 ** -(levels - 1)
-    sweeps += config.fine_iterations * sum(4.0**-l for l in range(levels - 1))
+    sweeps += config.fine_iterations * sum(4.0**-k for k in range(levels - 1))
     return float(masks.sum()) * sources * sweeps
 
 
