@@ -284,7 +284,7 @@ class TestEventLog:
 
     def test_no_cap_by_default(self):
         cfg = VisibilityDensifyConfig()
-        assert cfg.max_instances is None and cfg.time_budget is None and cfg.work_budget == 0.5
+        assert cfg.max_instances is None and cfg.time_budget is None and cfg.work_budget == 0.1
         for name in ("work_budget", "time_budget"):
             with pytest.raises(ValueError, match=f"{name}: expected None or > 0, got 0"):
                 VisibilityDensifyConfig(**{name: 0})

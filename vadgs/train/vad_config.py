@@ -43,9 +43,9 @@ class VisibilityDensifyConfig:
             views' mean pixel count); the instances left are logged as skipped
             (``"work_budget"``) and tried at the next event. The first instance is always tried.
             A count of work, not of seconds: one config and seed give one model on any machine,
-            under any load, and on exact resume. 0.5 by default: street_a's first event (step
-            449, 240×144) needs 0.3 and attempts all its instances, as the former 20 %
-            wall-clock budget let it (docs/vad.md). ``None``: no limit.
+            under any load, and on exact resume. 0.1 by default: street_a's first event (step
+            449, 240×144) needs 0.077 for all its 29 candidate instances, which the former 20 %
+            wall-clock budget let it attempt (docs/vad.md). ``None``: no limit.
         time_budget: opt-in wall-clock safety cap (off by default): an event also stops starting
             instances once it has taken this fraction of the training time so far (the time
             between the strategy's calls, events excluded), logged as skipped (``"time_budget"``)
@@ -90,7 +90,7 @@ class VisibilityDensifyConfig:
     incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
     max_instances: int | None = None
-    work_budget: float | None = 0.5
+    work_budget: float | None = 0.1
     time_budget: float | None = None
     render_cache_mb: float = 256.0
     references: int = 3
