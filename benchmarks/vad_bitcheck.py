@@ -11,7 +11,8 @@ parameters and the last loss. Run it at two commits; equal fingerprints mean ide
 Reproducibility: ``--busy 2`` runs two busy-looping processes beside the training (a loaded
 machine), ``--threads 2`` trains on two torch threads, ``--all-instances`` lets the event's work
 budget (not ``max_instances``) decide where it stops; the fingerprint must not depend on the
-first (the event's budget counts work, not seconds).
+first (the event's budget counts work, not seconds). ``--no-budget``: no work budget (as the
+fingerprints before it were taken, with ``time_budget=None``).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--busy", type=int, default=0, help="busy-looping processes beside the run")
     ap.add_argument("--all-instances", action="store_true", help="no max_instances: the work budget decides")
+    ap.add_argument("--no-budget", action="store_true", help="work_budget None (the fingerprints before it)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cfg = TrainConfig.from_dict(json.loads((Path(__file__).parent / "street_config.json").read_text()))
@@ -47,7 +49,11 @@ def main() -> None:
         iterations=args.steps,
         strategy=dataclasses.replace(cfg.strategy, refine_start_iter=10, refine_every=10),
         checkpoint_every=0,
-        vad=VisibilityDensifyConfig(every_cycles=1, max_instances=None if args.all_instances else 2),
+        vad=VisibilityDensifyConfig(
+            every_cycles=1,
+            max_instances=None if args.all_instances else 2,
+            work_budget=None if args.no_budget else VisibilityDensifyConfig.work_budget,
+        ),
     )
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     try:
