@@ -122,3 +122,26 @@ def test_chunk_growth(benchmark, trainer, what, growth, monkeypatch):
             trainer.optimizer.zero_grad(set_to_none=True)
 
     benchmark.pedantic(render if what == "render" else hard, rounds=7, warmup_rounds=1)
+
+
+@pytest.mark.parametrize("path", ["colour only", "two renders, stride 2", "two renders, stride 1", "fused"])
+def test_hard_depth_fused(benchmark, trainer, path):
+    """The step's render with the hard depth: composited in the same pass (``hard_depth=True``,
+    ``TrainConfig.hard_fused``: every pixel) against a second render (the default: stride 2, or
+    every pixel), and the colour render alone (a step without the hard loss); forward and
+    backward of 4 training views (every 12th), 240x144."""
+    benchmark.group = "hard depth: fused pass vs second render, + backward, street_a 240x144"
+    views = trainer.train_views[::12][:4]
+
+    def run():
+        for v in views:
+            out = trainer.render_view(v, hard_depth=path == "fused")
+            loss = out.color.sum() + out.raster.depth.sum()
+            if path == "fused":
+                loss = loss + out.raster.hard_depth.sum()
+            elif path != "colour only":
+                loss = loss + trainer.render_hard_depth(v, 2 if path.endswith("2") else 1).sum()
+            loss.backward()
+            trainer.optimizer.zero_grad(set_to_none=True)
+
+    benchmark.pedantic(run, rounds=7, warmup_rounds=1)

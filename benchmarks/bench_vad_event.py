@@ -123,7 +123,7 @@ def test_event(benchmark, prepared, path):
         else:
             strategy = trainer.strategy
             strategy.index = index
-            strategy.config = dataclasses.replace(strategy.config, time_budget=None)
+            strategy.config = dataclasses.replace(strategy.config, work_budget=None, time_budget=None)
         return (trainer, strategy), {}
 
     def run(trainer, strategy):

@@ -49,7 +49,7 @@ def profile(scene_dir: str, path: str) -> dict[str, float]:
     else:
         strategy = trainer.strategy
         strategy.index = index
-        strategy.config = dataclasses.replace(strategy.config, time_budget=None)
+        strategy.config = dataclasses.replace(strategy.config, work_budget=None, time_budget=None)
     st = trainer.state
     prof = cProfile.Profile()
     prof.enable()

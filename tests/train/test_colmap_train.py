@@ -190,7 +190,7 @@ class TestSfmScene:
         }
         assert sizes == {(120, 200), (144, 240)}
         argv = ["train", str(root), "--out", str(out), "--iterations", "24", "--vad"]
-        argv += ["--vad.every-cycles", "1", "--vad.references", "2", "--vad.time-budget", "None"]
+        argv += ["--vad.every-cycles", "1", "--vad.references", "2", "--vad.work-budget", "None"]
         argv += ["--vad.reconstruct.max-crop", "48", *FAST]
         assert main(argv) == 0
         (event,) = json.loads((out / "metrics.json").read_text())["vad_events"]

@@ -1,6 +1,8 @@
 """The steps of a VAD-GS event on their own: matching scale, point thinning, what is already
-explained, the reuse of the loop's renders, the event log and its time budget."""
+explained, the reuse of the loop's renders, the event log and its budgets (work, and the opt-in
+wall-clock cap)."""
 
+import copy
 import dataclasses
 
 import pytest
@@ -184,6 +186,14 @@ class TestEventReusesTheLoopsRenders:
         assert kept[trained[-1]][0].dtype == torch.float16
 
 
+def _slow_clock(monkeypatch) -> None:
+    """The VAD-GS strategy's clock reads 1000 s more at every call (a very loaded machine)."""
+    import vadgs.train.vad as vad_module
+
+    ticks = iter(range(10**9))
+    monkeypatch.setattr(vad_module.time, "perf_counter", lambda: 1000.0 * next(ticks))
+
+
 class TestEventLog:
     def test_log_counts_and_time_budget(self, scene, index, gt_points):
         pts, col, ins, spc = gt_points
@@ -192,7 +202,8 @@ class TestEventLog:
             scene,
             _model(scene, pts[keep], col[keep], spc[keep]),
             index,
-            time_budget=1e-9,  # the first instance only, then cut
+            work_budget=None,
+            time_budget=1e-9,  # the opt-in wall-clock cap: the first instance only, then cut
             reconstruct=ReconstructConfig(max_crop=64),
         )
         st = trainer.state
@@ -202,17 +213,95 @@ class TestEventLog:
         assert event["candidates"] >= 2
         assert event["skipped"].get("time_budget", 0) == event["candidates"] - 1
         assert event["budget_s"] == pytest.approx(1e-7)
+        assert event["work_budget"] is None
         log = st["pending_log"][-1]
-        assert "time budget" in log["summary"] and "skipped" in log["summary"]
+        assert "wall-clock cap" in log["summary"] and "skipped" in log["summary"]
         assert event["flagged_instances"] >= event["candidates"]
         assert event["repaired"] <= event["attempted"]
         assert event["total_s"] >= event["mvs_s"] > 0
 
+    def test_work_budget_counts_patchmatch_work(self, scene, index, gt_points, monkeypatch):
+        """The budget is PatchMatch pixel-sweeps per training pixel so far, whatever the clock says."""
+
+        pts, col, ins, spc = gt_points
+        keep = (ins != BUILDING) & (ins != 10)
+        model = _model(scene, pts[keep], col[keep], spc[keep])
+        events = []
+        for clock in (None, "slow"):
+            if clock == "slow":  # every reading 1000 s after the last: a very loaded machine
+                _slow_clock(monkeypatch)
+            trainer = _trainer(
+                scene,
+                copy.deepcopy(model),
+                index,
+                work_budget=0.1,
+                skip_classes=("road", "car"),
+                reconstruct=ReconstructConfig(max_crop=64),
+            )
+            st = trainer.state
+            events.append(trainer.strategy.densify(trainer.model.params, trainer.optimizer, st, 9))
+        plain, slow = events
+        pixels = 10 * 144 * 240  # steps 0..9 of the sample's 240x144 views
+        assert plain["work_budget"] == pytest.approx(0.1 * pixels)
+        # cut by work, mid-event: every instance started within the budget, the last one went over
+        assert 2 <= plain["attempted"] < plain["candidates"]
+        assert plain["skipped"]["work_budget"] == plain["candidates"] - plain["attempted"]
+        work = [e["work"] for e in plain["instances"]]
+        assert sum(work[:-1]) <= plain["work_budget"] < sum(work) == plain["work"]
+        assert "work budget" in trainer.state["pending_log"][-1]["summary"]
+        assert slow["total_s"] >= 1000 and slow["budget_s"] is None  # no wall-clock cap by default
+        same = ("attempted", "skipped", "added", "work", "instances")
+        assert {k: plain[k] for k in same} == {k: slow[k] for k in same}
+
+    def test_same_model_under_a_slow_clock(self, monkeypatch):
+        """One config and seed, one model: training with a clock 1000x slower gives the same bits."""
+        from vadgs.data import load_scene, sample_scene_path
+        from vadgs.train.trainer import TrainConfig, Trainer
+
+        scene = load_scene(sample_scene_path(), scale=0.5)  # 120x72: 18 views, the event after step 17
+        small = ReconstructConfig(max_crop=32)
+        vad = VisibilityDensifyConfig(every_cycles=1, work_budget=0.2, reconstruct=small)
+        cfg = TrainConfig(iterations=40, checkpoint_every=10**6, vad=vad)
+        runs = []
+        for slow in (False, True):
+            if slow:  # each reading 1000 s after the last: the event and every step take "hours"
+                _slow_clock(monkeypatch)
+            trainer = Trainer(scene, cfg, progress=False)
+            for _ in range(19):
+                trainer.train_step()
+            runs.append(trainer)
+        (plain,), (late,) = (t.state["vad_events"] for t in runs)
+        assert late["total_s"] >= 1000 and runs[1].state["vad_train_s"] >= 10_000
+        assert 2 <= plain["attempted"] < plain["candidates"]  # the budget cut this event
+        assert plain["skipped"].get("work_budget") == plain["candidates"] - plain["attempted"]
+        assert (late["attempted"], late["skipped"], late["work"]) == (
+            plain["attempted"],
+            plain["skipped"],
+            plain["work"],
+        )
+        a, b = (t.model.params for t in runs)
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
     def test_no_cap_by_default(self):
         cfg = VisibilityDensifyConfig()
-        assert cfg.max_instances is None and cfg.time_budget == 0.2
-        with pytest.raises(ValueError, match="time_budget"):
-            VisibilityDensifyConfig(time_budget=0)
+        assert cfg.max_instances is None and cfg.time_budget is None and cfg.work_budget == 0.1
+        for name in ("work_budget", "time_budget"):
+            with pytest.raises(ValueError, match=f"{name}: expected None or > 0, got 0"):
+                VisibilityDensifyConfig(**{name: 0})
+
+    def test_match_work(self):
+        from vadgs.mvs import PatchMatchConfig
+        from vadgs.train.reconstruct import match_work
+
+        masks = torch.zeros(2, 1, 8, 8, dtype=torch.bool)
+        masks[0, 0, :4] = True  # 32 + 10 reference pixels
+        masks[1, 0, 0] = True
+        masks[1, 0, 1, :2] = True
+        one_level = PatchMatchConfig(iterations=3, pyramid_levels=1)
+        assert match_work(masks, 4, one_level) == 42 * 4 * 3
+        # three levels: 5 sweeps at 1/16 of the pixels, then 2 at 1/4 and 2 at full
+        three = PatchMatchConfig(iterations=5, pyramid_levels=3, fine_iterations=2)
+        assert match_work(masks, 1, three) == 42 * (5 / 16 + 2 / 4 + 2)
 
 
 class TestViewCache:
@@ -244,7 +333,7 @@ class TestViewsOfDifferentSizes:
         sizes = {sc.image_size(v) for v in range(sc.num_views)}
         assert sizes == {(120, 200), (144, 240)}
         vad = VisibilityDensifyConfig(
-            every_cycles=1, time_budget=None, reconstruct=ReconstructConfig(max_crop=48)
+            every_cycles=1, work_budget=None, reconstruct=ReconstructConfig(max_crop=48)
         )
         trainer = Trainer(sc, TrainConfig(iterations=20, checkpoint_every=10**6, vad=vad), progress=False)
         index = trainer.strategy.prepare()

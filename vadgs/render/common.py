@@ -102,6 +102,9 @@ class RenderOutput(NamedTuple):
         visible: ``(B, N)`` bool, ``radii > 0``: in front of the camera, inside the near/far
             range, opaque enough and overlapping the image.
         depths: ``(B, N)`` camera-frame z of the means.
+        hard_depth: ``(B, 1, H, W)`` with ``hard_depth=True``: the expected depth with every
+            opacity fixed to 1 (the paper's hard depth), composited in the same tile pass as the
+            rest; None otherwise.
     """
 
     color: torch.Tensor
@@ -115,6 +118,7 @@ class RenderOutput(NamedTuple):
     radii: torch.Tensor
     visible: torch.Tensor
     depths: torch.Tensor
+    hard_depth: torch.Tensor | None = None
 
 
 def _check_inputs(

@@ -85,6 +85,8 @@ class ProjectedGaussians(NamedTuple):
             camera (``n · mean_cam <= 0``).
         radii: ``(B, N, 2)`` int32 half sizes (x, y) in pixels of the screen box; ``0`` where
             culled (behind the near plane, beyond the far plane, too transparent, off screen).
+        opaque_radii: with ``opaque=True``, the ``radii`` every Gaussian would have at opacity 1
+            (the box of a render with every opacity fixed to 1, e.g. the hard depth); else None.
     """
 
     means2d: torch.Tensor
@@ -93,6 +95,7 @@ class ProjectedGaussians(NamedTuple):
     opacities: torch.Tensor
     normals: torch.Tensor
     radii: torch.Tensor
+    opaque_radii: torch.Tensor | None = None
 
 
 def project_gaussians(
@@ -108,6 +111,7 @@ def project_gaussians(
     eps2d: float = 0.3,
     antialiased: bool = False,
     alpha_min: float = 1.0 / 255.0,
+    opaque: bool = False,
 ) -> ProjectedGaussians:
     """Project 3D Gaussians into each camera (EWA splatting, see the module docstring).
 
@@ -127,6 +131,7 @@ def project_gaussians(
         eps2d: screen-space low-pass variance added to the covariance, px².
         antialiased: Mip-Splatting opacity compensation.
         alpha_min: the compositor's alpha threshold; sets the screen box.
+        opaque: also return ``opaque_radii``, the boxes at opacity 1 (no antialiasing).
 
     Returns:
         The :class:`ProjectedGaussians`.
@@ -195,14 +200,19 @@ def project_gaussians(
     normals = torch.where(facing, -normals, normals)
 
     with torch.no_grad():
-        ok = ok & (opac >= alpha_min)
-        extend = torch.sqrt(2.0 * torch.log(torch.clamp_min(opac / alpha_min, 1.0)))
-        rx = torch.ceil(extend * torch.sqrt(torch.clamp_min(cov_xx, 0.0)))
-        ry = torch.ceil(extend * torch.sqrt(torch.clamp_min(cov_yy, 0.0)))
-        ok = ok & (u + rx >= 0) & (u - rx <= w - 1) & (v + ry >= 0) & (v - ry <= h - 1)
-        ok = ok & (rx > 0) & (ry > 0) & torch.isfinite(u) & torch.isfinite(v)
-        radii = torch.stack([rx.clamp_max(2.0**30), ry.clamp_max(2.0**30)], dim=-1)
-        radii = torch.where(ok[..., None], radii, torch.zeros_like(radii)).to(torch.int32)
+
+        def box(o: torch.Tensor) -> torch.Tensor:
+            keep = ok & (o >= alpha_min)
+            extend = torch.sqrt(2.0 * torch.log(torch.clamp_min(o / alpha_min, 1.0)))
+            rx = torch.ceil(extend * torch.sqrt(torch.clamp_min(cov_xx, 0.0)))
+            ry = torch.ceil(extend * torch.sqrt(torch.clamp_min(cov_yy, 0.0)))
+            keep = keep & (u + rx >= 0) & (u - rx <= w - 1) & (v + ry >= 0) & (v - ry <= h - 1)
+            keep = keep & (rx > 0) & (ry > 0) & torch.isfinite(u) & torch.isfinite(v)
+            radii = torch.stack([rx.clamp_max(2.0**30), ry.clamp_max(2.0**30)], dim=-1)
+            return torch.where(keep[..., None], radii, torch.zeros_like(radii)).to(torch.int32)
+
+        radii = box(opac)
+        opaque_radii = box(torch.ones_like(opac)) if opaque else None
 
     means2d = torch.stack([u, v], dim=-1)
-    return ProjectedGaussians(means2d, conics, p_cam[..., 2], opac, normals, radii)
+    return ProjectedGaussians(means2d, conics, p_cam[..., 2], opac, normals, radii, opaque_radii)

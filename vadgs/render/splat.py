@@ -22,7 +22,7 @@ from torch import nn
 from vadgs.checks import check_size, checks_enabled
 from vadgs.geometry.camera import Cameras, camera_centers
 from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs, _check_no_sh_degree
-from vadgs.render.composite import composite_gaussians
+from vadgs.render.composite import CompositeOutput, composite_gaussians
 from vadgs.render.projection import project_gaussians
 from vadgs.render.sh import eval_sh
 from vadgs.render.tiles import bin_gaussians
@@ -42,6 +42,7 @@ def rasterize_gaussians(
     background: torch.Tensor | None = None,
     sh_degree: int | None = None,
     config: RasterConfig | None = None,
+    hard_depth: bool = False,
 ) -> RenderOutput:
     """Render 3D Gaussians into a batch of pinhole cameras.
 
@@ -67,6 +68,12 @@ def rasterize_gaussians(
         background: ``(D,)`` or ``(B, D)`` colour behind the Gaussians; black when None.
         sh_degree: SH degree to use, ``None`` for all coefficients given.
         config: :class:`RasterConfig`; defaults when None.
+        hard_depth: also composite the *hard* depth (every opacity fixed to 1, no gradient to the
+            opacities; ``hard_depth`` of the output) in the same pass: the same projection, and
+            each camera's tiles walked a second time as a camera of their own (boxes at opacity
+            1) in the same chunk loop, forward and backward. Equals a second render with
+            ``opacities`` of ones (up to rounding), whose ``means2d`` gradient it leaves out of
+            ``means2d.grad`` (the densification statistic). Torch backend, no antialiasing.
 
     Returns:
         The :class:`RenderOutput`. N = 0 renders the background (alpha and depth 0); Gaussians
@@ -95,6 +102,8 @@ def rasterize_gaussians(
     """
     cfg = config or RasterConfig()
     if cfg.backend == "gsplat":
+        if hard_depth:
+            raise ValueError("hard_depth: expected RasterConfig(backend='torch'), got backend='gsplat'")
         from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
 
         return rasterize_gaussians_gsplat(
@@ -103,6 +112,8 @@ def rasterize_gaussians(
     h, w = check_size(image_size)
     dims = _check_inputs(means, quats, scales, opacities, colors, world_to_cam, K, background)
     b, n, d = dims["B"], dims["N"], dims["D"]
+    if hard_depth and cfg.antialiased:
+        raise ValueError("hard_depth: expected RasterConfig(antialiased=False), got antialiased=True")
 
     proj = project_gaussians(
         means,
@@ -117,6 +128,7 @@ def rasterize_gaussians(
         eps2d=cfg.eps2d,
         antialiased=cfg.antialiased,
         alpha_min=cfg.alpha_min,
+        opaque=hard_depth,
     )
     if checks_enabled() and n:
         shown = proj.radii.detach().amax(-1) > 0
@@ -136,24 +148,36 @@ def rasterize_gaussians(
         rgb = colors.expand(b, n, d)
     features = torch.cat([rgb, proj.depths[..., None], proj.normals], dim=-1)
     means2d = proj.means2d
+    opac = torch.clamp_min(proj.opacities, torch.finfo(means.dtype).tiny)
+    conics, depths, radii = proj.conics, proj.depths, proj.radii
+    absgrad = torch.zeros_like(means2d.detach()) if cfg.absgrad else None
+    composited = means2d
+    if hard_depth:
+        # the hard pass: cameras B..2B-1, the same screen Gaussians at opacity 1 (only depth is
+        # read); means2d is a node of its own so that its gradient is the colour pass's only
+        means2d = means2d.clone()
+        composited = torch.cat([means2d, proj.means2d])
+        opac = torch.cat([opac, torch.ones_like(opac)])
+        conics, depths = conics.repeat(2, 1, 1), depths.repeat(2, 1)
+        radii = torch.cat([radii, proj.opaque_radii])
+        features = features.repeat(2, 1, 1)
+        absgrad = None if absgrad is None else absgrad.repeat(2, 1, 1)
     if means2d.requires_grad:
         means2d.retain_grad()
-    absgrad = torch.zeros_like(means2d.detach()) if cfg.absgrad else None
 
-    opac = torch.clamp_min(proj.opacities, torch.finfo(means.dtype).tiny)
     bins = bin_gaussians(
-        means2d.detach(),
-        proj.radii,
-        proj.depths.detach(),
+        composited.detach(),
+        radii,
+        depths.detach(),
         (h, w),
         cfg.tile_size,
-        conics=proj.conics.detach(),
+        conics=conics.detach(),
         opacities=opac.detach(),
         alpha_min=cfg.alpha_min,
     )
     comp = composite_gaussians(
-        means2d,
-        proj.conics,
+        composited,
+        conics,
         opac,
         features,
         bins,
@@ -165,6 +189,12 @@ def rasterize_gaussians(
         absgrad=absgrad,
         backward=cfg.backward,
     )
+    hard = None
+    if hard_depth:
+        t_hard = comp.transmittance[b:]
+        hard = comp.features[b:, d : d + 1] / torch.clamp_min(1.0 - t_hard, 1e-10)
+        comp = CompositeOutput(comp.features[:b], comp.transmittance[:b], comp.median_ids[:b])
+        absgrad = None if absgrad is None else absgrad[:b]
     t = comp.transmittance
     alpha = 1.0 - t
     color = comp.features[:, :d]
@@ -178,7 +208,7 @@ def rasterize_gaussians(
     median = torch.gather(F.pad(proj.depths, (1, 0)), 1, (ids + 1).reshape(b, h * w)).reshape(b, 1, h, w)
     visible = (proj.radii > 0).all(-1)
     return RenderOutput(
-        color, alpha, depth, median, normals, ids, means2d, absgrad, proj.radii, visible, proj.depths
+        color, alpha, depth, median, normals, ids, means2d, absgrad, proj.radii, visible, proj.depths, hard
     )
 
 

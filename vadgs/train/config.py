@@ -80,6 +80,10 @@ class TrainConfig:
             (a camera with ``fx, fy, cx, cy`` divided by it) and compared with the target depth
             there, to bound its cost further (1: every pixel). 2 by default: on street_a PSNR
             29.64 dB against 29.59 at 1, the other metrics equal (docs/results.md).
+        hard_fused: composite the hard depth in the step's own render pass (the same projection
+            and tile lists, forward and backward: ``rasterize_gaussians(hard_depth=True)``)
+            instead of a second render. Needs ``hard_stride`` 1, the torch backend and no
+            antialiasing. Off by default (docs/benchmarks.md: the measured trade).
         vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
             visibility-aware densification (extending ``strategy``); None: standard ADC only.
             Stored in checkpoints: a resumed run continues with the same strategy.
@@ -121,6 +125,7 @@ class TrainConfig:
     hard_until: float = 0.8
     hard_every: int = 8
     hard_stride: int = 2
+    hard_fused: bool = False
     vad: VisibilityDensifyConfig | None = None
     appearance: AppearanceConfig | None = None
     device: str = "cpu"
@@ -150,6 +155,14 @@ class TrainConfig:
             )
         check_at_least(self, 0, "threads", "checkpoint_every", note=" (0 = off)")
         check_at_least(self, 1, "sh_degree_interval", "log_every", "hard_every", "hard_stride")
+        if self.hard_fused and (
+            self.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased
+        ):
+            raise ValueError(
+                "hard_fused: expected hard_stride 1, raster.backend 'torch' and no antialiasing, got "
+                f"hard_stride {self.hard_stride}, backend {self.raster.backend!r}, "
+                f"antialiased {self.raster.antialiased}"
+            )
         try:
             torch.device(self.device)
         except (RuntimeError, TypeError):

@@ -366,6 +366,7 @@ class GaussianModel(nn.Module):
         frame: int,
         config: RasterConfig | None = None,
         opacity_override: float | None = None,
+        hard_depth: bool = False,
     ) -> ModelRender:
         """Render one view of a frame: the frame's Gaussians over the sky.
 
@@ -381,6 +382,8 @@ class GaussianModel(nn.Module):
             opacity_override: when given, every Gaussian is rendered with this *fixed* opacity
                 (no gradient to the opacity logits), e.g. ``1.0`` for the "hard" depth of
                 :func:`vadgs.train.losses.depth_loss_hard`.
+            hard_depth: also the hard depth (every opacity 1) in the same pass, as
+                ``raster.hard_depth`` (:func:`~vadgs.render.rasterize_gaussians`).
 
         Returns:
             :class:`ModelRender`.
@@ -391,8 +394,9 @@ class GaussianModel(nn.Module):
         dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)
         colors = eval_sh(g.sh, dirs_local, self.active_sh_degree)
         raster = rasterize_gaussians(
-            g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config
-        )
+            g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config,
+            hard_depth=hard_depth,
+        )  # fmt: skip
         sky = self.sky_color(world_to_cam, K, image_size)
         color = raster.color + (1.0 - raster.alpha) * sky
         return ModelRender(color, raster, sky, g.ids)

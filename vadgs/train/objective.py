@@ -78,6 +78,26 @@ class Objective:
         """A render's colour ``(1, 3, H, W)`` after the view's appearance transform, if any."""
         return correct_view(self.appearance, self.scene, view, color, held_out=False)
 
+    def _weights(self, step: int) -> dict[str, float]:
+        cfg = self.config
+        return L.geometric_weights(
+            step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
+        )
+
+    def _hard_applies(self, step: int, w: dict[str, float], targets: GeometryTargets | None) -> bool:
+        return (
+            targets is not None
+            and w["hard"] > 0
+            and targets.depth is not None
+            and step % self.config.hard_every == 0
+        )
+
+    def wants_hard(self, step: int, view: int) -> bool:
+        """Whether the step's loss includes the hard depth term (so its render may composite it)."""
+        if self.geometry_targets is None or not self._weights(step)["hard"] > 0:
+            return False
+        return self._hard_applies(step, self._weights(step), self.geometry_targets(view))
+
     def __call__(
         self, step: int, view: int, out: ModelRender, render_hard: Callable[[int, int], torch.Tensor]
     ) -> dict[str, torch.Tensor]:
@@ -107,11 +127,9 @@ class Objective:
         targets = self.geometry_targets(view) if self.geometry_targets is not None else None
         if targets is not None:
             targets = targets.to(self.device)
-            w = L.geometric_weights(
-                step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
-            )
+            w = self._weights(step)
             hard = None
-            if w["hard"] > 0 and targets.depth is not None and step % cfg.hard_every == 0:
+            if self._hard_applies(step, w, targets):
                 hard = render_hard(view, cfg.hard_stride)
             terms.update(
                 L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, cfg.hard_stride)

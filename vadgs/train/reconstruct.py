@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from vadgs.geometry.camera import invert_rigid
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.patchmatch import PatchMatchResult, patchmatch
+from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
 from vadgs.mvs.planar import complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
@@ -75,6 +75,7 @@ __all__ = [
     "build_visibility_index",
     "derive_instance_map",
     "match_scale",
+    "match_work",
     "reconstruct_instance",
     "sfm_observations",
     "thin_points",
@@ -95,6 +96,8 @@ class InstanceReconstruction(NamedTuple):
             usable as a depth prior.
         normal: per group member, ``(3, H, W)`` MVS normals (camera frame), zeros elsewhere.
         reason: ``"ok"`` or why nothing (or little) was reconstructed.
+        work: the PatchMatch work done, in pixel-sweeps (:func:`match_work`; 0 when nothing was
+            matched): a count that does not depend on the machine, for the event's budget.
     """
 
     points: torch.Tensor
@@ -106,6 +109,7 @@ class InstanceReconstruction(NamedTuple):
     depth: list[torch.Tensor]
     normal: list[torch.Tensor]
     reason: str
+    work: float = 0.0
 
 
 class ViewRender(NamedTuple):
@@ -413,6 +417,27 @@ def _depth_priors(cons: _Consistent, crops: _Crops, size: tuple[int, int]) -> tu
     return full_depth, full_normal
 
 
+def match_work(masks: torch.Tensor, sources: int, config: PatchMatchConfig) -> float:
+    """PatchMatch's work on the given reference masks, in pixel-sweeps (machine-independent).
+
+    Reference pixels scored (the ``True`` pixels of ``masks``, at the matching scale) × source
+    views × sweeps, a sweep at a pyramid level ``l`` levels coarser counting ``4^-l`` of one at the
+    matching scale: ``iterations`` at the coarsest level and ``fine_iterations`` at each finer one
+    (:class:`~vadgs.mvs.PatchMatchConfig`). An exact function of the crops (no timing): the unit of
+    the VAD-GS event's ``work_budget``.
+
+    Example:
+        >>> from vadgs.mvs import PatchMatchConfig
+        >>> m = torch.ones(1, 1, 10, 20, dtype=torch.bool)  # 200 pixels, 4 sources
+        >>> match_work(m, 4, PatchMatchConfig(iterations=3, pyramid_levels=2, fine_iterations=1))
+        1400.0
+    """
+    levels = max(int(config.pyramid_levels), 1)
+    sweeps = config.iterations * 4.0 ** -(levels - 1)
+    sweeps += config.fine_iterations * sum(4.0**-k for k in range(levels - 1))
+    return float(masks.sum()) * sources * sweeps
+
+
 @torch.no_grad()
 def reconstruct_instance(
     index: VisibilityIndex,
@@ -488,6 +513,7 @@ def reconstruct_instance(
     depth_range = _depth_range(frame, w2c[0], cfg, lengths)
     w2c = w2c.to(dev)
     matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
+    work = match_work(matched.masks, len(group) - 1, cfg.patchmatch)
     planar = cfg.planar is not None and track is None  # a car is not planar
     cons = _consistent(matched, crops, group, w2c, planar, cfg, generator)  # 4.
     new = cons.keep & ~_explained(index, cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
@@ -512,5 +538,5 @@ def reconstruct_instance(
     views = [group[i] for i in crops.members]
     reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
     return InstanceReconstruction(
-        points, normals, colors, spacing, track, views, full_depth, full_normal, reason
+        points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work
     )

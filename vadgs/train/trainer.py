@@ -437,7 +437,8 @@ class Trainer:
             g["lr"] = self._lrs(step)[g["name"]]
         self.model.active_sh_degree = min(step // cfg.sh_degree_interval, self.model.sh_degree)
         view = self.sampler.next()
-        out = self.render_view(view)
+        fused = cfg.hard_fused and self.objective.wants_hard(step, view)  # the hard depth in this pass
+        out = self.render_view(view, hard_depth=True) if fused else self.render_view(view)
         info = {
             "raster": out.raster,
             "ids": out.ids,
@@ -448,7 +449,8 @@ class Trainer:
         }
         params = self.model.params
         self.strategy.step_pre_backward(params, self.optimizer, self.state, step, info)
-        terms = self.objective(step, view, out, self.render_hard_depth)
+        render_hard = (lambda _v, _s: out.raster.hard_depth) if fused else self.render_hard_depth
+        terms = self.objective(step, view, out, render_hard)
         total = torch.stack([t.reshape(()) for t in terms.values()]).sum()
         if checks_enabled() and not bool(torch.isfinite(total)):
             bad = {k: float(v.detach()) for k, v in terms.items()}

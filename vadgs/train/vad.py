@@ -396,6 +396,18 @@ class VisibilityAwareDensification:
             int(self.render_cache_mb * 2**20),
         )
 
+    def trained_pixels(self, step: int) -> float:
+        """Training pixels up to and including ``step``: ``(step + 1)`` × the training views' mean size.
+
+        The scale of the event's ``work_budget`` (a function of the step, hence the same on any
+        machine and on resume).
+        """
+        if getattr(self, "_mean_pixels", None) is None:
+            inputs = self._inputs()
+            sizes = [inputs.size(v) for v in inputs.train_views]
+            self._mean_pixels = sum(h * w for h, w in sizes) / max(len(sizes), 1)
+        return (step + 1) * self._mean_pixels
+
     def _train_set(self) -> set[int]:
         if getattr(self, "_train_views", None) is None:
             self._train_views = set(self._inputs().train_views)
@@ -447,9 +459,9 @@ class VisibilityAwareDensification:
         if index is not None:
             self.index = index
             self.inputs = inputs if inputs is not None else index.inputs
-            self._train_views = None
+            self._train_views = self._mean_pixels = None
         elif inputs is not None and inputs is not self.inputs:
-            self.inputs, self.index, self._train_views = inputs, None, None
+            self.inputs, self.index, self._train_views, self._mean_pixels = inputs, None, None, None
         if context is not None:
             self.context = context
         if self.index is None and self.visibility:
@@ -564,16 +576,21 @@ class VisibilityAwareDensification:
         ranked = rank_instances(best, classes, cfg.ranking)
         added, log = 0, []
         t_mvs = 0.0
-        budget = math.inf
+        work_budget = math.inf if cfg.work_budget is None else cfg.work_budget * self.trained_pixels(step)
+        time_cap = math.inf
         if cfg.time_budget is not None:
-            budget = cfg.time_budget * float(state.get("vad_train_s", 0.0))
+            time_cap = cfg.time_budget * float(state.get("vad_train_s", 0.0))
+        work = 0.0  # PatchMatch pixel-sweeps of this event so far (match_work)
         occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
         done = repaired = 0
         for k, inst in enumerate(ranked):
             if cfg.max_instances is not None and done >= cfg.max_instances:
                 skipped["max_instances"] = skipped.get("max_instances", 0) + 1
                 continue
-            if log and time.perf_counter() - t0 > budget:
+            if log and work > work_budget:
+                skipped["work_budget"] = skipped.get("work_budget", 0) + 1
+                continue
+            if log and time.perf_counter() - t0 > time_cap:
                 skipped["time_budget"] = skipped.get("time_budget", 0) + 1
                 continue
             say(
@@ -586,7 +603,7 @@ class VisibilityAwareDensification:
                 else None
             )
             refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
-            entry_views, points, n_new_total, reasons = [], 0, 0, []
+            entry_views, points, n_new_total, reasons, work0 = [], 0, 0, [], work
             frame_key = inst if inst in inputs.tracks else None
             for ref in refs:
                 ta = time.perf_counter()
@@ -596,6 +613,7 @@ class VisibilityAwareDensification:
                     occupied=torch.cat(taken) if taken else None,
                 )  # fmt: skip
                 t_mvs += time.perf_counter() - ta
+                work += rec.work
                 n_new = int(rec.points.shape[0])
                 if n_new:
                     self._add(params, optimizers, state, rec, event=event + 1)
@@ -630,6 +648,7 @@ class VisibilityAwareDensification:
                     "views": entry_views,
                     "points": points,
                     "added": n_new_total,
+                    "work": work - work0,
                     "reason": "; ".join(dict.fromkeys(reasons)),
                 }
             )
@@ -650,13 +669,15 @@ class VisibilityAwareDensification:
             "added": added,
             "views_rendered": renders.rendered,
             "tests_reused": sum(v in tests for v in views),
-            "budget_s": None if math.isinf(budget) else budget,
+            "work": work,
+            "work_budget": None if math.isinf(work_budget) else work_budget,
+            "budget_s": None if math.isinf(time_cap) else time_cap,
             "detect_s": t1 - t0,
             "mvs_s": t_mvs,
             "total_s": t2 - t0,
         }
         state["vad_events"].append(entry)
-        summary = _event_summary(entry, cfg.time_budget)
+        summary = _event_summary(entry, cfg)
         log_list = state.setdefault("pending_log", [])
         log_list.append({"kind": "visibility_densification", "summary": summary, **entry})
         del log_list[: -self.log_size]  # bounded when the loop does not pop it

@@ -206,8 +206,11 @@ def flat_gaussians(
     return new
 
 
-def _event_summary(entry: Mapping[str, Any], time_budget: float | None) -> str:
-    """The one-line summary of an event's log ``entry`` (``summary`` in ``state["pending_log"]``)."""
+def _event_summary(entry: Mapping[str, Any], config: Any) -> str:
+    """The one-line summary of an event's log ``entry`` (``summary`` in ``state["pending_log"]``).
+
+    ``config``: the strategy's :class:`~vadgs.train.vad_config.VisibilityDensifyConfig` (its budgets).
+    """
     added = [f"{e['class']} {e['instance']} (+{e['added']})" for e in entry["instances"] if e["added"]]
     cut = ", ".join(f"{n} {why}" for why, n in entry["skipped"].items()) or "none"
     summary = (
@@ -215,8 +218,16 @@ def _event_summary(entry: Mapping[str, Any], time_budget: float | None) -> str:
         f"{entry['attempted']} attempted, {entry['repaired']} repaired (+{entry['added']} Gaussians), "
         f"skipped: {cut}; {entry['total_s']:.1f} s; added to {', '.join(added) or 'none'}"
     )
+    if "work_budget" in entry["skipped"]:
+        summary += (
+            f" (work budget {entry['work_budget']:.3g} PatchMatch pixel-sweeps = {config.work_budget:g}"
+            " x training pixels so far; the instances left are tried at the next event)"
+        )
     if "time_budget" in entry["skipped"]:
-        summary += f" (time budget {entry['budget_s']:.1f} s = {time_budget:g} x training time so far)"
+        summary += (
+            f" (wall-clock cap {entry['budget_s']:.1f} s = {config.time_budget:g} x training time so far"
+            " reached: this run now depends on the machine's speed and load)"
+        )
     return summary
 
 
