@@ -31,7 +31,7 @@ from vadgs.data import load_scene
 # those of vadgs at commit 274c932 (bench_vad_event.legacy_package), the current path's today's
 STEPS = {
     "selection": (("select/selector.py",), "select_views"),
-    "crops": (("reconstruct.py",), "_crop_group"),
+    "crops": (("reconstruct.py", "instance_crops.py", "vad/crops.py"), "_crop_group"),
     "patchmatch": (("patchmatch.py",), "patchmatch"),
     "consistency": (("reconstruct.py",), "_consistent"),
     "fusion": (("mvs/fusion.py",), "fuse_depth_maps"),
