@@ -12,9 +12,14 @@ The checkpoint is written once to ``runs/bench_vad_event/`` and reloaded before 
 
 Each round runs one event on a fresh copy of that checkpoint:
 
-- ``legacy``: a frozen copy of the event before issue 21 (``benchmarks/legacy_event``: render
-  every view for detection, at most 8 instances, 2 references each, PatchMatch on full crops at
-  the scene's resolution or finer, re-render after every addition);
+- ``legacy``: the event before issue 21, as of commit ``274c932`` (render every view for
+  detection, at most 8 instances, 2 references each, PatchMatch on full crops at the scene's
+  resolution or finer, re-render after every addition). Its code is not kept in the tree: the
+  ``vadgs`` package of that commit is read from the git history (``git archive``) into
+  ``runs/bench_vad_event/vadgs_274c932/`` once, imported as ``vadgs_274c932`` (its own scene
+  loader, visibility index, PatchMatch and densification ops), and given today's trainer state,
+  optimizer, render function and base strategy. Without that commit in the history (a shallow
+  clone: ``git fetch --unshallow``) the legacy case is skipped with that message;
 - ``current``: :class:`vadgs.train.vad.VisibilityAwareDensification` with its defaults, every
   flagged instance (no time budget, for a fixed amount of work).
 
@@ -26,10 +31,17 @@ prints the ratios of the two paths' median per-instance costs.
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import io
 import json
 import os
+import re
+import shutil
 import statistics
+import subprocess
 import sys
+import tarfile
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -41,11 +53,13 @@ from vadgs.train.vad import VisibilityDensifyConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = Path(os.environ.get("VADGS_SHARED", ROOT.parent / "shared")) / "data"
 CACHE = ROOT / "runs" / "bench_vad_event"
 ROUNDS = int(os.environ.get("VADGS_BENCH_ROUNDS", "3"))
 PREP_STEPS = 300
 RESULTS: dict[tuple[str, str], list[dict]] = {}
+LEGACY_REV = "274c932"  # the last commit before issue 21 (docs/benchmarks.md)
+LEGACY_PKG = f"vadgs_{LEGACY_REV}"
 
 
 def _config() -> TrainConfig:
@@ -80,15 +94,55 @@ def _fresh(scene, ckpt: Path) -> Trainer:
     return trainer
 
 
-def _legacy_strategy(trainer: Trainer, index):
-    from benchmarks.legacy_event.vad import StrategyContext
-    from benchmarks.legacy_event.vad import VisibilityAwareDensification as Legacy
-    from benchmarks.legacy_event.vad import VisibilityDensifyConfig as LegacyConfig
+def legacy_package():
+    """``vadgs`` as of :data:`LEGACY_REV`, imported as ``vadgs_274c932`` from the git history.
 
-    ctx = trainer.strategy.context
-    ctx = StrategyContext(ctx.render, ctx.total_steps, ctx.steps_per_cycle, ctx.generator, ctx.track_nodes)
-    legacy = Legacy(trainer.scene, ctx, LegacyConfig(), base=trainer.strategy.base, index=index)
-    return legacy
+    Its ``.py`` files are extracted once (``git archive``) into ``runs/bench_vad_event/`` with
+    their ``vadgs`` imports renamed, so the old event runs on its own code beside today's package.
+
+    Raises:
+        RuntimeError: when the commit is not in this checkout's history (e.g. a shallow clone).
+    """
+    if LEGACY_PKG in sys.modules:
+        return sys.modules[LEGACY_PKG]
+    dest = CACHE / LEGACY_PKG
+    if not (dest / LEGACY_PKG / "__init__.py").is_file():
+        git = ["git", "-C", str(ROOT)]
+        known = subprocess.run([*git, "cat-file", "-e", f"{LEGACY_REV}^{{commit}}"], capture_output=True)
+        if known.returncode:
+            raise RuntimeError(
+                f"the legacy event needs commit {LEGACY_REV} in the git history of {ROOT} "
+                "(a shallow clone lacks it: git fetch --unshallow)"
+            )
+        sources = [*git, "archive", "--format=tar", LEGACY_REV, ":(glob)vadgs/**/*.py"]
+        tar = subprocess.run(sources, capture_output=True, check=True).stdout
+        CACHE.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=CACHE))
+        with tarfile.open(fileobj=io.BytesIO(tar)) as tf:
+            tf.extractall(tmp, filter="data")
+        (tmp / "vadgs").rename(tmp / LEGACY_PKG)
+        for f in (tmp / LEGACY_PKG).rglob("*.py"):
+            text = re.sub(r"^(\s*)(from|import) vadgs\b", rf"\1\2 {LEGACY_PKG}", f.read_text(), flags=re.M)
+            f.write_text(text)
+        shutil.rmtree(dest, ignore_errors=True)
+        tmp.rename(dest)
+    sys.path.insert(0, str(dest))
+    return importlib.import_module(LEGACY_PKG)
+
+
+def _legacy_scene(name: str):
+    """The scene as the legacy path loads it (its strategy takes its own ``Scene`` type)."""
+    return importlib.import_module(f"{LEGACY_PKG}.data").load_scene(SHARED / name, scale=0.5)
+
+
+def _legacy_strategy(trainer: Trainer, index):
+    """The legacy strategy on ``trainer``'s loop (render, steps, generator, base) and ``index``."""
+    legacy_package()
+    old = importlib.import_module(f"{LEGACY_PKG}.train.vad")
+    c = trainer.strategy.context
+    ctx = old.StrategyContext(c.render, c.total_steps, c.steps_per_cycle, c.generator, c.track_nodes)
+    config = old.VisibilityDensifyConfig()
+    return old.VisibilityAwareDensification(index.scene, ctx, config, base=trainer.strategy.base, index=index)
 
 
 _INDEX: dict[str, object] = {}
@@ -99,7 +153,11 @@ def _warm_index(name: str, scene, legacy: bool):
     key = f"{name}:{legacy}"
     if key not in _INDEX:
         if legacy:
-            from benchmarks.legacy_event.reconstruct import build_visibility_index
+            legacy_package()
+            build_visibility_index = importlib.import_module(
+                f"{LEGACY_PKG}.train.reconstruct"
+            ).build_visibility_index
+            scene = _legacy_scene(name)  # the legacy strategy takes its own Scene type
         else:
             from vadgs.train.reconstruct import build_visibility_index
         index = build_visibility_index(scene, 0.2)
@@ -113,6 +171,11 @@ def _warm_index(name: str, scene, legacy: bool):
 @pytest.mark.parametrize("path", ["legacy", "current"])
 def test_event(benchmark, prepared, path):
     name, scene, ckpt = prepared
+    if path == "legacy":
+        try:
+            legacy_package()
+        except RuntimeError as e:
+            pytest.skip(str(e))
     index = _warm_index(name, scene, path == "legacy")
     logs: list[dict] = []
 

@@ -2,8 +2,10 @@
 
     python benchmarks/profile_vad_event.py ../shared/data/street_a [--path legacy|current]
 
-Uses the checkpoint of ``benchmarks/bench_vad_event.py`` (300 street-config steps with the strategy
-attached, no event; trained and written to ``runs/bench_vad_event/`` if absent), runs one event
+The legacy path is vadgs at commit 274c932, read from the git history
+(``bench_vad_event.legacy_package``). Uses the checkpoint of ``benchmarks/bench_vad_event.py``
+(300 street-config steps with the strategy attached, no event; trained and written to
+``runs/bench_vad_event/`` if absent), runs one event
 under cProfile on one torch thread and prints the seconds and shares of its steps: detection
 (renders + incompleteness test), view selection, crops, PatchMatch, consistency (+ planar
 completion), fusion, adding the Gaussians, and the renders made during reconstruction.
@@ -25,15 +27,16 @@ from bench_vad_event import _checkpoint, _fresh, _legacy_strategy, _warm_index
 
 from vadgs.data import load_scene
 
-# step -> (file suffix, function name) whose cumulative time it is
+# step -> (file suffixes, function name) whose cumulative time it is; the legacy path's files are
+# those of vadgs at commit 274c932 (bench_vad_event.legacy_package), the current path's today's
 STEPS = {
-    "selection": ("select/selector.py", "select_views"),
-    "crops": ("reconstruct.py", "_crop_group"),
-    "patchmatch": ("patchmatch.py", "patchmatch"),
-    "consistency": ("reconstruct.py", "_consistent"),
-    "fusion": ("mvs/fusion.py", "fuse_depth_maps"),
-    "add": ("vad.py", "_add"),
-    "renders": ("trainer.py", "render_geometry"),
+    "selection": (("select/selector.py",), "select_views"),
+    "crops": (("reconstruct.py", "instance_crops.py", "vad/crops.py"), "_crop_group"),
+    "patchmatch": (("patchmatch.py",), "patchmatch"),
+    "consistency": (("reconstruct.py",), "_consistent"),
+    "fusion": (("mvs/fusion.py",), "fuse_depth_maps"),
+    "add": (("vad.py", "vad/strategy.py"), "_add"),
+    "renders": (("trainer.py",), "render_geometry"),
 }
 
 
