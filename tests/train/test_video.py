@@ -321,6 +321,7 @@ class TestColmapRunVideo:
             (["--trajectory", "ego"], "--trajectory: scene 'proj' has no ego path for camera 'camera_1'"),
             (["--trajectory", "shift:1"], "--trajectory: scene 'proj' has no ego path"),
             (["--camera", "front"], "--camera: expected one of ['camera_1', 'camera_2', 'camera_3']"),
+            (["--trajectory", "orbit", "--frames-between", "2"], "--frames-between: not used by orbit"),
         ]:
             assert main([*argv, "--video", str(out), *flags]) == 2
             err = capsys.readouterr().err

@@ -170,9 +170,9 @@ class RenderCommand(Command):
                     return 0
                 traj = make_trajectory(scene, spec, camera, self.frames_between)
             except ValueError as e:
-                raise ValueError(
-                    f"--{e}" if str(e).startswith(("trajectory:", "camera:")) else str(e)
-                ) from None
+                text = str(e).replace("frames_between:", "frames-between:", 1)
+                flags = ("trajectory:", "camera:", "frames-between:")
+                raise ValueError(f"--{text}" if text.startswith(flags) else text) from None
             info = render_video(
                 model,
                 scene,

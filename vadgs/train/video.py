@@ -337,7 +337,8 @@ def make_trajectory(
             ``orbit:FRAMES``; None: ``ego`` with ego poses, else ``interpolate``.
         camera: the camera (default :func:`default_video_camera`).
         frames_between: poses between consecutive frames (``ego``, ``shift``; default 0) or
-            training cameras (``interpolate``; default :data:`INTERPOLATE_BETWEEN`).
+            training cameras (``interpolate``; default :data:`INTERPOLATE_BETWEEN`); not with
+            ``orbit`` (``orbit:FRAMES`` sets its poses).
 
     Raises:
         ValueError: for a name the scene does not offer (the message lists those it does).
@@ -368,6 +369,10 @@ def make_trajectory(
         between = INTERPOLATE_BETWEEN if frames_between is None else frames_between
         return interpolated_trajectory(scene, camera, between)
     if spec == "orbit" or spec.startswith("orbit:"):
+        if frames_between is not None:
+            raise ValueError(
+                f"frames_between: not used by {spec} (orbit:FRAMES sets its poses), got {frames_between}"
+            )
         count = spec[len("orbit:") :] if spec.startswith("orbit:") else str(ORBIT_FRAMES)
         if not count.isdigit() or int(count) < 1:
             raise ValueError(f"trajectory: expected orbit:FRAMES with FRAMES >= 1, got {spec!r}")
