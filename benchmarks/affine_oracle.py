@@ -19,7 +19,7 @@ import json
 import torch
 from kornia.metrics import psnr
 
-from vadgs.train.evaluate import render_test_view
+from vadgs.train.results.evaluate import render_test_view
 from vadgs.train.run import load_run
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from vadgs.geometry import project_points
-from vadgs.train.evaluate import render_test_view
+from vadgs.train.results.evaluate import render_test_view
 from vadgs.train.run import load_run
 
 

@@ -2,7 +2,7 @@
 
 Loads each variant's checkpoint, evaluates it on the test split and on every group of the scene's
 novel views (street_a: the test frames seen again from the rig shifted 2 m left, ``shift+2.0``, and
-2 m right, ``shift-2.0``), with the metrics of :mod:`vadgs.train.evaluate`: PSNR, SSIM, PSNR*
+2 m right, ``shift-2.0``), with the metrics of :mod:`vadgs.train.results.evaluate`: PSNR, SSIM, PSNR*
 (moving cars), depth AbsRel and δ<1.05 on all pixels, the traffic sign and facades above 5 m.
 Prints two markdown tables (the metrics per view set; the loss from the test views to each shift
 and the mean of the shifts) and writes them with the JSON of every variant, and a figure of one
@@ -37,8 +37,8 @@ from vadgs.data import load_scene
 from vadgs.data.scene import Scene
 from vadgs.geometry import backproject_depth
 from vadgs.render import RasterConfig
-from vadgs.train.evaluate import evaluate_split, render_test_view
 from vadgs.train.model import GaussianModel
+from vadgs.train.results.evaluate import evaluate_split, render_test_view
 from vadgs.train.run import load_run
 
 LABELS = {"baseline": "baseline", "vadgs": "VAD-GS"}

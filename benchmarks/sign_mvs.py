@@ -2,7 +2,7 @@
 
 Loads a trained model (e.g. the baseline's, where the sign is missing), runs the incompleteness
 test, picks the sign's reference views as the strategy does and reconstructs it with
-:func:`vadgs.train.reconstruct.reconstruct_instance` per setting. Reports the points, their
+:func:`vadgs.train.vad.reconstruct.reconstruct_instance` per setting. Reports the points, their
 accuracy (share within 5 cm / 10 cm of the true surface) and the sign's completeness (share of its
 true surface within 10 cm of a point; "board": above 4.5 m). No training.
 
@@ -23,9 +23,9 @@ from scipy.spatial import cKDTree
 from vad_ablation import sign_surface
 
 from vadgs.data import load_scene
-from vadgs.train.reconstruct import ReconstructConfig, reconstruct_instance
 from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityAwareDensification, VisibilityInputs, pick_references
+from vadgs.train.vad.reconstruct import ReconstructConfig, reconstruct_instance
 
 SETTINGS = {
     "training resolution": ReconstructConfig(max_upsample=1, planar=None),

@@ -5,7 +5,7 @@ What a gsplat ``simple_trainer`` user keeps: parameters in a ``ParameterDict`` w
 parameter in a dict, their own render call and their own loss. What they add: a
 :class:`~vadgs.train.vad.VisibilityAwareDensification` strategy (a dataclass, called like gsplat's
 ``DefaultStrategy``: ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` /
-``step_post_backward``), the data it reads as a :class:`~vadgs.train.inputs.VisibilityInputs`
+``step_post_backward``), the data it reads as a :class:`~vadgs.train.vad.inputs.VisibilityInputs`
 (cameras, image loader, LiDAR or TRACK observations; the loop below sees only that, no vadgs
 ``Scene``), a :class:`~vadgs.train.vad.StrategyContext` that tells it how to render a view, and the
 geometric losses on its priors through :func:`vadgs.train.losses.geometric_losses`.
@@ -36,9 +36,9 @@ from vadgs.geometry import invert_rigid
 from vadgs.render import rasterize_gaussians, rgb_to_sh
 from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
 from vadgs.train import losses as L
-from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityDensifyConfig
+from vadgs.train.vad.inputs import VisibilityInputs
 
 BACKGROUND = 0.7  # a grey sky behind the Gaussians
 

@@ -13,7 +13,7 @@ import torch
 
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.train import DefaultStrategy, DefaultStrategyConfig, InitConfig, TrainConfig, Trainer, evaluate
-from vadgs.train.export import export_model
+from vadgs.train.results.export import export_model
 
 
 def main() -> None:

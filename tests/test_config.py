@@ -10,9 +10,9 @@ import pytest
 
 from vadgs.config import config_from_dict
 from vadgs.mvs import PatchMatchConfig
-from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.trainer import TrainConfig
 from vadgs.train.vad import VisibilityDensifyConfig
+from vadgs.train.vad.reconstruct import ReconstructConfig
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,8 @@ from vadgs.data import load_scene
 from vadgs.data._json import ALLOW_OUTSIDE_ENV
 from vadgs.data.export import export_scene
 from vadgs.io import check_inside, safe_filename
-from vadgs.train.evaluate import save_test_panels
 from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.results.evaluate import save_test_panels
 
 EVIL = "../../escaped"
 

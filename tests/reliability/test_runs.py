@@ -72,7 +72,7 @@ def test_threads_cover_loading_and_the_final_evaluation(tmp_path, monkeypatch):
     """metrics.json said "threads": 2 under --threads 1: only the loop ran on 1 thread."""
     import vadgs.cli.train as cli_train
 
-    evaluate_module = sys.modules["vadgs.train.evaluate"]
+    evaluate_module = sys.modules["vadgs.train.results.evaluate"]
 
     seen = {}
     real_scene, real_evaluate = cli_train._scene, evaluate_module.evaluate

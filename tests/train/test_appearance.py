@@ -17,7 +17,7 @@ from vadgs.train.appearance import (
     identity_deviation,
     view_camera,
 )
-from vadgs.train.evaluate import evaluate
+from vadgs.train.results.evaluate import evaluate
 from vadgs.train.trainer import TrainConfig, Trainer
 
 TINY = ["--sample", "--scale", "0.25", "--no-progress", "--init.max-points", "400"]

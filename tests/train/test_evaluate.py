@@ -5,8 +5,8 @@ import dataclasses
 import pytest
 import torch
 
-from vadgs.train.evaluate import evaluate, evaluate_split, split_views
 from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.results.evaluate import evaluate, evaluate_split, split_views
 
 
 @pytest.fixture(scope="module")

@@ -9,14 +9,14 @@ import torch.nn.functional as F
 from plyfile import PlyData
 
 from vadgs.render import eval_sh, load_ply, quaternion_to_rotation, sh_basis
-from vadgs.train.export import (
+from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.results.export import (
     equirect_directions,
     export_world,
     rotate_sh,
     sh_rotation,
     sky_equirect,
 )
-from vadgs.train.init import InitConfig, init_gaussians
 
 
 def random_rotation(gen: torch.Generator) -> torch.Tensor:

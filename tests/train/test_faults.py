@@ -242,7 +242,7 @@ class TestRunFolder:
 
 class TestExports:
     def test_poses_json_written_atomically(self, tiny_scene, tiny_config, tmp_path, monkeypatch):
-        from vadgs.train.export import export_model
+        from vadgs.train.results.export import export_model
 
         tr = Trainer(tiny_scene, dataclasses.replace(tiny_config, iterations=1), progress=False)
         export_model(tr.model, tmp_path)

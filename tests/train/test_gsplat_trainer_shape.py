@@ -27,7 +27,6 @@ import pytest
 import torch
 
 from vadgs.render import rasterize_gaussians
-from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,
@@ -35,6 +34,7 @@ from vadgs.train.vad import (
     VisibilityDensifyConfig,
     VisibilityInputs,
 )
+from vadgs.train.vad.reconstruct import ReconstructConfig
 
 from ..data.colmap_sample import write_sample_colmap
 from .gsplat_parser import FACADE_CELL, facade_splats, sample_parser

@@ -3,8 +3,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from vadgs.train import ops
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel
+from vadgs.train.strategy import ops
 
 
 def _setup(n=6, tracks=1):
@@ -229,8 +229,8 @@ class TestUnknownKeys:
 
     def test_vad_adds_with_defaults(self):
         """New VAD-GS Gaussians: ``colors`` = logit of the MVS colour, ``features`` (unknown) = 0."""
-        from vadgs.train.reconstruct import InstanceReconstruction
         from vadgs.train.vad import VisibilityAwareDensification
+        from vadgs.train.vad.reconstruct import InstanceReconstruction
 
         splats, opts = _appearance()
         old = {k: v.detach().clone() for k, v in splats.items()}

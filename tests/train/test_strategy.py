@@ -3,9 +3,8 @@ from __future__ import annotations
 import torch
 
 from vadgs.render import RenderOutput
-from vadgs.train import ops
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel
-from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
+from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy, ops
 
 
 def _fake_info(n, grad_rows, h=10, w=20):

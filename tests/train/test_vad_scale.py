@@ -19,9 +19,9 @@ import pytest
 import torch
 
 from vadgs.render import RasterConfig, rasterize_gaussians
-from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.strategy import DefaultStrategy
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityInputs
+from vadgs.train.vad.reconstruct import ReconstructConfig
 
 from ..data.colmap_sample import write_sample_colmap
 from .gsplat_parser import facade_splats, sample_parser

@@ -11,7 +11,7 @@ import torch
 from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
 from vadgs.render import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians
-from vadgs.train.video import (
+from vadgs.train.results.video import (
     INTERPOLATE_BETWEEN,
     ORBIT_FRAMES,
     TIMELINE_ROWS,
@@ -145,7 +145,7 @@ class TestRenderVideo:
 
     def test_interrupted_video_keeps_the_previous_file(self, tiny_model, tiny_scene, tmp_path, monkeypatch):
         """A failure mid-video (here at the third frame) leaves the previous file and no temporary."""
-        import vadgs.train.video as video
+        import vadgs.train.results.video as video
 
         path = tmp_path / "v.mp4"
         path.write_bytes(b"previous")

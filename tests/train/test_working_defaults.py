@@ -16,9 +16,9 @@ from vadgs.data import export_scene, load_scene, sample_scene_path
 from vadgs.data.resolution import working_resolution, working_scale
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from vadgs.train.config import TrainConfig, refine_steps, scale_schedule
-from vadgs.train.reconstruct import ReconstructConfig
 from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig, pack_state, unpack_state
+from vadgs.train.vad.reconstruct import ReconstructConfig
 
 FAST_MVS = ReconstructConfig(max_crop=40)  # small crops: an event in seconds
 

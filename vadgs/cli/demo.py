@@ -59,7 +59,7 @@ class DemoCommand(Command):
 
     def _run(self, out: Path, overwrite: bool) -> int:
         from vadgs.train.config import TrainConfig
-        from vadgs.train.evaluate import render_test_view
+        from vadgs.train.results.evaluate import render_test_view
         from vadgs.train.run import BenchmarkRef, prepare_scene
         from vadgs.train.trainer import Trainer
         from vadgs.viz import colorize_depth, image_to_uint8, save_panel
@@ -69,8 +69,8 @@ class DemoCommand(Command):
         if self.iterations is not None:
             config = config.replace(iterations=self.iterations)
         if not self.baseline:
-            from vadgs.train.reconstruct import ReconstructConfig
             from vadgs.train.vad import VisibilityDensifyConfig
+            from vadgs.train.vad.reconstruct import ReconstructConfig
 
             vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
             config = dataclasses.replace(config, vad=vad)

@@ -51,7 +51,7 @@ def _scene_record(run) -> dict:
 class EvalCommand(Command):
     """Evaluate a run's checkpoint on the test split or the novel views (PSNR, PSNR*, SSIM, depth, #G).
 
-    ``--split test`` writes ``RUN/eval.json`` (one :class:`~vadgs.train.evaluate.EvalMetrics`);
+    ``--split test`` writes ``RUN/eval.json`` (one :class:`~vadgs.train.results.evaluate.EvalMetrics`);
     ``--split novel`` writes ``RUN/eval_novel.json``: ``{"split", "step", "groups": {group: metrics}}``.
     """
 
@@ -66,7 +66,7 @@ class EvalCommand(Command):
 
     def main(self) -> int:
         """Evaluate the run and write the JSON; 0."""
-        from vadgs.train.evaluate import evaluate_split
+        from vadgs.train.results.evaluate import evaluate_split
 
         folder = _run_dir(self.run)
         with _writing(self.run, folder, "vadgs eval"):
@@ -153,7 +153,7 @@ class RenderCommand(Command):
         run = load_run(self.run, scene=self.scene)
         model, scene, config = run.model, run.scene, run.config
         if self.video or self.trajectory == "list":
-            from vadgs.train.video import (
+            from vadgs.train.results.video import (
                 default_video_camera,
                 make_trajectory,
                 render_video,
@@ -188,7 +188,7 @@ class RenderCommand(Command):
                 f"(trajectory {spec}, camera {camera})"
             )
             return 0
-        from vadgs.train.evaluate import save_test_panels
+        from vadgs.train.results.evaluate import save_test_panels
 
         out = _check_out_dir(self.out if self.out else _run_dir(self.run) / "renders")
         views = list(self.views) or None
@@ -205,7 +205,7 @@ class ExportCommand(Command):
 
     Writes ``OUT/world_frame<F>.ply`` (or with ``--inria`` the INRIA model layout
     ``OUT/point_cloud/iteration_<step>/point_cloud.ply``, ``cameras.json``, ``cfg_args``) and
-    ``OUT/sky.png`` / ``sky.json``; see :func:`vadgs.train.export.export_world`.
+    ``OUT/sky.png`` / ``sky.json``; see :func:`vadgs.train.results.export.export_world`.
     """
 
     run: RunArg
@@ -221,7 +221,7 @@ class ExportCommand(Command):
 
     def main(self) -> int:
         """Write the PLY and the sky map; 0."""
-        from vadgs.train.export import export_world
+        from vadgs.train.results.export import export_world
 
         with _writing(self.run, self.out or _run_dir(self.run), "vadgs export"):
             run = load_run(self.run, scene=self.scene)

@@ -14,7 +14,7 @@ that brings one into a street-like frame:
 - **centre** ``c``: the mean of the camera centres (they move to the origin);
 - **up** ``R``: the smallest rotation taking the cameras' mean "up" direction (``-y`` of the OpenCV
   camera axes, in world) to ``+z`` — as in the street scenes, whose derived instances are ground
-  cells in ``xy`` (:meth:`vadgs.train.reconstruct.VisibilityIndex.cell_ids`);
+  cells in ``xy`` (:meth:`vadgs.train.vad.reconstruct.VisibilityIndex.cell_ids`);
 - **scale** ``s``: the median camera-to-point depth of the observations (``z`` of each observed
   point in the camera of each observation, the TRACK table) becomes ``target_depth`` (default 10
   units, "about 10 m", a typical street depth). Without observations, the median distance of the

@@ -20,7 +20,7 @@ to become new Gaussians (position, normal for the orientation, colour for the DC
 With ``deduplicate=False`` (and ``min_views=0``) the cross-view test is skipped: every valid pixel
 of every view becomes one point — for depth maps already filtered by
 :func:`~vadgs.mvs.geometric_consistency`, when every observation should seed a Gaussian (the VAD-GS
-pipeline, :func:`vadgs.train.reconstruct.reconstruct_instance`).
+pipeline, :func:`vadgs.train.vad.reconstruct.reconstruct_instance`).
 """
 
 from __future__ import annotations

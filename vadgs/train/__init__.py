@@ -2,8 +2,6 @@
 
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affine
 from vadgs.train.config import TrainConfig
-from vadgs.train.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
-from vadgs.train.export import export_model, export_world, rotate_sh
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.losses import (
     color_loss,
@@ -14,11 +12,20 @@ from vadgs.train.losses import (
     normal_loss,
 )
 from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_at
-from vadgs.train.ops import add_gaussians, duplicate, make_optimizer, remove_gaussians, reset_opacity, split
+from vadgs.train.results.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
+from vadgs.train.results.export import export_model, export_world, rotate_sh
+from vadgs.train.results.video import ego_trajectory, make_trajectory, render_video
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
+from vadgs.train.strategy.ops import (
+    add_gaussians,
+    duplicate,
+    make_optimizer,
+    remove_gaussians,
+    reset_opacity,
+    split,
+)
 from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, Trainer, TrainResult
-from vadgs.train.video import ego_trajectory, make_trajectory, render_video
 
 __all__ = [
     "AppearanceConfig",

@@ -5,7 +5,7 @@ opacity logits, SH coefficients) in one flat :class:`~torch.nn.ParameterDict`, w
 ``node_ids`` entry (not trainable) saying where each Gaussian lives: ``-1`` for the static
 background (world frame), ``k >= 0`` for the ``k``-th track node (its object frame, posed per frame
 by ``object_to_world``). Every entry of ``params`` is per Gaussian (gsplat's convention), so the
-densification helpers of :mod:`vadgs.train.ops` add or remove Gaussians of any node with one
+densification helpers of :mod:`vadgs.train.strategy.ops` add or remove Gaussians of any node with one
 optimizer, and a strategy written for gsplat's params dict sees the same structure; a node is just
 an index set. A second integer entry, ``provenance``, records where each Gaussian came from: ``0``
 for the initial ones (and their clones and splits), ``k >= 1`` for those added by the ``k``-th
@@ -291,7 +291,7 @@ class GaussianModel(nn.Module):
     def provenance(self) -> torch.Tensor:
         """``(N,)`` int64 origin of each Gaussian: ``0`` initial, ``k >= 1`` added by VAD-GS event ``k``.
 
-        Clones and splits inherit their parent's value (:mod:`vadgs.train.ops` copies integer rows).
+        Clones and splits inherit their parent's value (:mod:`vadgs.train.strategy.ops` copies integer rows).
         """
         return self.params["provenance"]
 

@@ -87,11 +87,11 @@ def finish_run(
 
     Returns:
         The metrics written: steps, time, memory, Gaussians (per node), threads, ``test`` (the
-        :func:`~vadgs.train.evaluate.evaluate` metrics, when the scene has test views),
+        :func:`~vadgs.train.results.evaluate.evaluate` metrics, when the scene has test views),
         ``vad_events`` (VAD-GS runs), ``wall_s`` (with ``started``). Written once, atomically.
     """
-    from vadgs.train.evaluate import evaluate
-    from vadgs.train.export import export_model
+    from vadgs.train.results.evaluate import evaluate
+    from vadgs.train.results.export import export_model
 
     out = Path(out)
     scene = trainer.scene

@@ -55,15 +55,14 @@ from vadgs.train.checkpoint import (
 from vadgs.train.config import LearningRates, TrainConfig, refine_steps
 from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
-from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
 from vadgs.train.objective import Objective
-from vadgs.train.ops import make_optimizer
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
 from vadgs.train.session import RunLog, stop_on_signals
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
+from vadgs.train.strategy.ops import make_optimizer
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,
@@ -71,6 +70,7 @@ from vadgs.train.vad import (
     pack_state,
     unpack_state,
 )
+from vadgs.train.vad.inputs import VisibilityInputs
 
 __all__ = [
     "CHECKPOINT_NAME",

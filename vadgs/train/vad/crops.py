@@ -1,11 +1,11 @@
 """An instance's crops at its matching scale: step 3a of reconstructing it by multi-view stereo.
 
-:func:`~vadgs.train.reconstruct.reconstruct_instance` matches an instance on crops around it in
+:func:`~vadgs.train.vad.reconstruct.reconstruct_instance` matches an instance on crops around it in
 each group view, at a scale of its own (:func:`match_scale`): finer than the scene's resolution
 for small instances (a sign), coarser for large ones (a facade). ``_crop_group`` makes the
 crops; the helpers resample maps between the scene's resolution and the matching scale (nearest
 upsampling, means of the valid pixels of each block) and shift intrinsics to a crop. Importable
-from :mod:`vadgs.train.reconstruct`.
+from :mod:`vadgs.train.vad.reconstruct`.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.geometry.camera import scale_intrinsics
-from vadgs.train.reconstruct_config import ReconstructConfig
-from vadgs.train.visibility import VisibilityIndex
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
+from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = ["MatchScale", "match_scale"]
 

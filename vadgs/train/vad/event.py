@@ -15,12 +15,12 @@ from typing import Any
 import torch
 
 from vadgs.checks import check_finite, check_shape
-from vadgs.train import ops
-from vadgs.train.incomplete import IncompleteConfig, find_incomplete
-from vadgs.train.inputs import VisibilityInputs
 from vadgs.train.model import rotation_to_quat
-from vadgs.train.reconstruct import InstanceReconstruction, ViewRender, VisibilityIndex
-from vadgs.train.vad_config import RANKINGS
+from vadgs.train.strategy import ops
+from vadgs.train.vad.config import RANKINGS
+from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete
+from vadgs.train.vad.inputs import VisibilityInputs
+from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender, VisibilityIndex
 
 __all__ = ["flat_gaussians", "normals_to_quats", "pick_references", "rank_instances"]
 
@@ -38,7 +38,7 @@ def pick_references(
 
     Args:
         candidates: ``(view, pixels)`` of the views where the instance was flagged.
-        scene: :class:`~vadgs.train.inputs.VisibilityInputs` or a vadgs :class:`~vadgs.data.Scene`
+        scene: :class:`~vadgs.train.vad.inputs.VisibilityInputs` or a vadgs :class:`~vadgs.data.Scene`
             (for each view's camera and frame).
         count: how many references at most.
         min_frame_gap: a further reference must come from a camera not chosen yet, or be at
@@ -163,8 +163,9 @@ def flat_gaussians(
     model's tracks). Not differentiable (new leaf values).
 
     Args:
-        params: the per-Gaussian tensors (vadgs's or gsplat's names, :func:`~vadgs.train.ops.param_names`).
-        rec: the instance's :class:`~vadgs.train.reconstruct.InstanceReconstruction`.
+        params: the per-Gaussian tensors (vadgs's or gsplat's names,
+            :func:`~vadgs.train.strategy.ops.param_names`).
+        rec: the instance's :class:`~vadgs.train.vad.reconstruct.InstanceReconstruction`.
         keep: boolean mask ``(M,)`` of the points to use (default all).
         new_opacity: opacity of the new Gaussians, in (0, 1).
         flatness: thickness along the normal relative to the width.
@@ -209,7 +210,7 @@ def flat_gaussians(
 def _event_summary(entry: Mapping[str, Any], config: Any) -> str:
     """The one-line summary of an event's log ``entry`` (``summary`` in ``state["pending_log"]``).
 
-    ``config``: the strategy's :class:`~vadgs.train.vad_config.VisibilityDensifyConfig` (its budgets).
+    ``config``: the strategy's :class:`~vadgs.train.vad.config.VisibilityDensifyConfig` (its budgets).
     """
     added = [f"{e['class']} {e['instance']} (+{e['added']})" for e in entry["instances"] if e["added"]]
     cut = ", ".join(f"{n} {why}" for why, n in entry["skipped"].items()) or "none"
@@ -272,7 +273,7 @@ def _view_test(
     """The incompleteness test of one view, on the render's device.
 
     The view's instance map and voxel depth move to the render (the render does not move).
-    Returns the fields of its :class:`~vadgs.train.incomplete.IncompleteInstances` (``view`` = 0).
+    Returns the fields of its :class:`~vadgs.train.vad.incomplete.IncompleteInstances` (``view`` = 0).
     """
     dev = depth.device
     h, w = depth.shape[-2:]  # the view's own size (the index's maps may be padded)

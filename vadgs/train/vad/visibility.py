@@ -6,8 +6,8 @@ LiDAR frames, or COLMAP's TRACK table), and the cameras of every view, as
 :class:`~vadgs.select.Covisibility` objects for view selection; per-view maps (voxel depth,
 pixel → voxel index, instance masks) are computed on demand and kept in a :class:`ViewCache` with
 an explicit bound. :func:`build_visibility_index` builds it from
-:class:`~vadgs.train.inputs.VisibilityInputs` (or a vadgs scene); :func:`derive_instance_map`
-stands in for instance masks a dataset does not have. :mod:`vadgs.train.reconstruct` and the
+:class:`~vadgs.train.vad.inputs.VisibilityInputs` (or a vadgs scene); :func:`derive_instance_map`
+stands in for instance masks a dataset does not have. :mod:`vadgs.train.vad.reconstruct` and the
 VAD-GS strategy (:mod:`vadgs.train.vad`) read it.
 """
 
@@ -28,8 +28,8 @@ from vadgs.geometry.camera import Cameras, project_points
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
-from vadgs.train.incomplete import voxel_labels
-from vadgs.train.inputs import VisibilityInputs
+from vadgs.train.vad.incomplete import voxel_labels
+from vadgs.train.vad.inputs import VisibilityInputs
 
 __all__ = [
     "LENGTHS",
@@ -152,7 +152,7 @@ class VisibilityIndex:
     an explicit byte bound.
 
     Attributes:
-        inputs: the :class:`~vadgs.train.inputs.VisibilityInputs` it was built from (loaders,
+        inputs: the :class:`~vadgs.train.vad.inputs.VisibilityInputs` it was built from (loaders,
             tracks, classes, per-view camera and frame).
         cameras: all views' cameras (world frame).
         grid: static voxel grid (world frame).
@@ -408,15 +408,15 @@ def build_visibility_index(
 ) -> VisibilityIndex:
     """Voxelise the LiDAR (static in world, each track in its frame) or SfM points with visibility sets.
 
-    Inputs without LiDAR but with SfM points (:class:`~vadgs.train.inputs.TrackTable`: a COLMAP
+    Inputs without LiDAR but with SfM points (:class:`~vadgs.train.vad.inputs.TrackTable`: a COLMAP
     scene, gsplat's ``Parser``) are voxelised from those, and a voxel's visibility set is the union
     of its points' TRACK table views (supplement, "Visibility Reasoning"); only observations by
-    training views count (:meth:`~vadgs.train.inputs.VisibilityInputs.from_scene` keeps those of
+    training views count (:meth:`~vadgs.train.vad.inputs.VisibilityInputs.from_scene` keeps those of
     ``frames``), and points observed by none of them are left out. SfM inputs are static: no track
     grids.
 
     Args:
-        source: :class:`~vadgs.train.inputs.VisibilityInputs`, or a vadgs
+        source: :class:`~vadgs.train.vad.inputs.VisibilityInputs`, or a vadgs
             :class:`~vadgs.data.scene.Scene` (then ``VisibilityInputs.from_scene(scene, frames)``).
         voxel_size: voxel edge; None: 0.2 at a scene depth of 10 (:func:`scene_lengths`).
         frames: for a scene, frames whose LiDAR (or whose views' SfM observations) are used
@@ -426,7 +426,7 @@ def build_visibility_index(
             plane 0.1 at a scene depth of 10).
         cell_size: ground-cell edge of derived instances; None: 10 at a scene depth of 10.
         scene_depth: the scene's length unit; None: the inputs'
-            (:meth:`~vadgs.train.inputs.VisibilityInputs.median_view_depth`).
+            (:meth:`~vadgs.train.vad.inputs.VisibilityInputs.median_view_depth`).
 
     Returns:
         The :class:`VisibilityIndex`.

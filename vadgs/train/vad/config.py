@@ -16,8 +16,8 @@ from dataclasses import dataclass, field, fields
 
 import torch
 
-from vadgs.train.incomplete import IncompleteConfig
-from vadgs.train.reconstruct import ReconstructConfig, ViewRender
+from vadgs.train.vad.incomplete import IncompleteConfig
+from vadgs.train.vad.reconstruct import ReconstructConfig, ViewRender
 
 __all__ = ["RANKINGS", "StrategyContext", "VisibilityDensifyConfig"]
 
@@ -35,10 +35,10 @@ class VisibilityDensifyConfig:
         every_cycles: detection and densification every this many complete sampling cycles.
         scene_depth: the scene's length unit, its typical view depth: every length left unset
             below (``voxel_size``, ``cell_size``, ``reconstruct.fallback_depth_range`` /
-            ``min_depth``, and the internal ones of :data:`~vadgs.train.visibility.LENGTHS`) is its
+            ``min_depth``, and the internal ones of :data:`~vadgs.train.vad.visibility.LENGTHS`) is its
             value for a scene of depth 10 times ``scene_depth / 10``, so that VAD-GS does the same
             on a scene at any scale. None (default): the inputs'
-            (:meth:`~vadgs.train.inputs.VisibilityInputs.median_view_depth`: 10 for vadgs's
+            (:meth:`~vadgs.train.vad.inputs.VisibilityInputs.median_view_depth`: 10 for vadgs's
             scenes; for gsplat's Parser, the median depth of its SfM observations in its
             normalised world). Not gsplat's ``scene_scale`` (the cameras' spread, which is not a
             depth: a street drive spreads its cameras far beyond what they see).
@@ -52,7 +52,7 @@ class VisibilityDensifyConfig:
         max_instances: at most this many instances reconstructed per event, in the order of
             ``ranking`` (``None``, the default: every flagged instance, within ``work_budget``).
         work_budget: an event stops starting new instances once its PatchMatch has done this
-            many pixel-sweeps (:func:`~vadgs.train.reconstruct.match_work`: reference pixels ×
+            many pixel-sweeps (:func:`~vadgs.train.vad.reconstruct.match_work`: reference pixels ×
             source views × sweeps) per training pixel so far (the steps so far × the training
             views' mean pixel count); the instances left are logged as skipped
             (``"work_budget"``) and tried at the next event. The first instance is always tried.
@@ -83,7 +83,7 @@ class VisibilityDensifyConfig:
             (default 0: an instance still flagged at the next event is tried again; what the
             Gaussians already explain gives no new points, so a repeat adds only what is missing).
         whole_reference: at least one reference in which the instance is whole when it was
-            flagged in such a view (``whole`` of :func:`~vadgs.train.vad_event.pick_references`); with
+            flagged in such a view (``whole`` of :func:`~vadgs.train.vad.event.pick_references`); with
             ``reconstruct.whole_supports`` its supporting views show all of it too.
         skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
         explained_tolerance: an MVS pixel is "explained" (gives no new Gaussian) where its view's

@@ -1,8 +1,8 @@
 """Settings of the reconstruction of one flagged instance by multi-view stereo.
 
-:class:`ReconstructConfig` is the settings of :func:`~vadgs.train.reconstruct.reconstruct_instance`
+:class:`ReconstructConfig` is the settings of :func:`~vadgs.train.vad.reconstruct.reconstruct_instance`
 (view selection, crops and matching scale, PatchMatch, consistency, planar completion, fusion);
-importable from :mod:`vadgs.train.reconstruct`.
+importable from :mod:`vadgs.train.vad.reconstruct`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ __all__ = ["ReconstructConfig"]
 
 @dataclass(frozen=True)
 class ReconstructConfig:
-    """Settings of :func:`~vadgs.train.reconstruct.reconstruct_instance`.
+    """Settings of :func:`~vadgs.train.vad.reconstruct.reconstruct_instance`.
 
     Attributes:
         selection: view selection (``k = 4`` supporting views by default; ``method="consecutive"``
@@ -58,7 +58,7 @@ class ReconstructConfig:
             the reference view: PatchMatch's random depths are drawn in ``[near z_min, far z_max]``.
         fallback_depth_range: the depth range when the reference sees none of the voxels; None
             (default): ``(0.5, 150)`` at a scene depth of 10, scaled with the scene
-            (:func:`~vadgs.train.visibility.scene_lengths`); a value: absolute.
+            (:func:`~vadgs.train.vad.visibility.scene_lengths`); a value: absolute.
         min_depth: lower bound of the depth range; None (default): 0.2 at a scene depth of 10,
             scaled; a value: absolute.
         explained_alpha: a consistent pixel is *explained* (gives no point) where the member's

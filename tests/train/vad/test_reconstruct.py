@@ -8,11 +8,12 @@ import dataclasses
 import pytest
 import torch
 
-from tests.train.test_vad import BUILDING, _model, _trainer
-from tests.train.test_vad import gt_points as gt_points
-from tests.train.test_vad import index as index
-from tests.train.test_vad import scene as scene
-from vadgs.train.reconstruct import (
+from tests.train.vad.test_vad import BUILDING, _model, _trainer
+from tests.train.vad.test_vad import gt_points as gt_points
+from tests.train.vad.test_vad import index as index
+from tests.train.vad.test_vad import scene as scene
+from vadgs.train.vad import VisibilityDensifyConfig
+from vadgs.train.vad.reconstruct import (
     MatchScale,
     ReconstructConfig,
     ViewRender,
@@ -20,7 +21,6 @@ from vadgs.train.reconstruct import (
     reconstruct_instance,
     thin_points,
 )
-from vadgs.train.vad import VisibilityDensifyConfig
 
 
 class TestMatchScale:
@@ -291,7 +291,7 @@ class TestEventLog:
 
     def test_match_work(self):
         from vadgs.mvs import PatchMatchConfig
-        from vadgs.train.reconstruct import match_work
+        from vadgs.train.vad.reconstruct import match_work
 
         masks = torch.zeros(2, 1, 8, 8, dtype=torch.bool)
         masks[0, 0, :4] = True  # 32 + 10 reference pixels
@@ -307,7 +307,7 @@ class TestEventLog:
 class TestViewCache:
     def test_bounded_index_gives_the_same_maps(self, scene, index):
         """A tiny byte budget drops views and recomputes them identically."""
-        from vadgs.train.reconstruct import ViewCache, build_visibility_index
+        from vadgs.train.vad.reconstruct import ViewCache, build_visibility_index
 
         small = build_visibility_index(scene)
         small.view_cache = ViewCache(max_bytes=3 * 120 * 72 * 12)
@@ -353,8 +353,8 @@ class TestViewsOfDifferentSizes:
         targets = trainer.strategy.geometry_targets(trainer.state, small)
         assert targets.depth.shape[-2:] == (120, 200)
         # evaluation and video render every view at its own size
-        from vadgs.train.evaluate import evaluate
-        from vadgs.train.video import ego_trajectory, render_video
+        from vadgs.train.results.evaluate import evaluate
+        from vadgs.train.results.video import ego_trajectory, render_video
 
         big = next(v for v in range(sc.num_views) if sc.image_size(v) == (144, 240))
         metrics = evaluate(trainer.model, sc, views=[small, big], with_lpips=False)

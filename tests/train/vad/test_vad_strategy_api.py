@@ -12,7 +12,6 @@ import pytest
 import torch
 
 from vadgs.data import load_colmap
-from vadgs.train.reconstruct import ReconstructConfig, build_visibility_index
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,
@@ -20,9 +19,10 @@ from vadgs.train.vad import (
     VisibilityDensifyConfig,
     VisibilityInputs,
 )
+from vadgs.train.vad.reconstruct import ReconstructConfig, build_visibility_index
 
-from ..data.colmap_sample import write_sample_colmap
-from .gsplat_parser import facade_splats, sample_parser
+from ...data.colmap_sample import write_sample_colmap
+from ..gsplat_parser import facade_splats, sample_parser
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")
 

@@ -5,7 +5,7 @@ with ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` / ``step_po
 ``params``, ``optimizers``, ``state``, ``step``, ``info`` — that wraps a standard one (adaptive
 density control: vadgs's or gsplat's ``DefaultStrategy``, gsplat's ``MCMCStrategy``) and never sees
 the training loop nor a vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it the
-data as a :class:`~vadgs.train.inputs.VisibilityInputs` (``from_scene`` / ``from_gsplat_parser``)
+data as a :class:`~vadgs.train.vad.inputs.VisibilityInputs` (``from_scene`` / ``from_gsplat_parser``)
 and, in a frozen :class:`StrategyContext`, the three things of the loop it needs — a function
 that renders a view's depth, opacity and normals with the current Gaussians, the total number of
 steps and the number of steps of a sampling cycle — plus the generator of its selection noise.
@@ -13,20 +13,20 @@ Every ``every_cycles`` complete sampling cycles of the training views it runs on
 flow:
 
 1. **visibility index** (built once): voxel grids of the initial points with per-voxel view
-   visibility (:func:`~vadgs.train.reconstruct.build_visibility_index`: LiDAR, or COLMAP tracks);
+   visibility (:func:`~vadgs.train.vad.reconstruct.build_visibility_index`: LiDAR, or COLMAP tracks);
 2. **incompleteness test**: for every training view, the rendered depth and opacity against the
    voxel depth of the z-buffer (static grid in world, each moving object's grid in its own frame);
    per instance, flag when the rendered depth is absent or more than 1.1× the voxel depth, or when
    more than 25 % of its pixels are below 0.7 opacity
-   (:func:`~vadgs.train.incomplete.find_incomplete`);
+   (:func:`~vadgs.train.vad.incomplete.find_incomplete`);
 3. **selection and MVS**: each flagged instance (:func:`rank_instances`, :func:`pick_references`) is
    reconstructed from its reference views: diversity-aware k-clique view selection, PatchMatch
    initialised from the rendered depth and normals and restricted to the instance (a moving object
-   in its own frame), consistency and fusion (:func:`~vadgs.train.reconstruct.reconstruct_instance`);
+   in its own frame), consistency and fusion (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`);
 4. **new Gaussians**: the fused points that the current Gaussians do not already explain (no opaque
    surface within ``explained_tolerance`` in front of them in the reference view) become flat
    Gaussians oriented by the MVS normals — static, or in the object's frame for moving ones — added
-   with :func:`~vadgs.train.ops.add_gaussians` (optimizer moments and state rows follow);
+   with :func:`~vadgs.train.strategy.ops.add_gaussians` (optimizer moments and state rows follow);
 5. **priors**: the MVS depth and normals of the group views are kept in ``state`` and returned by
    :meth:`VisibilityAwareDensification.geometry_targets` (voxel depth where no MVS depth exists),
    which the loop turns into the normal and hard/soft depth losses with
@@ -50,22 +50,11 @@ from typing import Any
 
 import torch
 
-from vadgs.train import ops
-from vadgs.train.incomplete import IncompleteInstances
-from vadgs.train.inputs import TrackTable, VisibilityInputs
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.reconstruct import (
-    InstanceReconstruction,
-    ReconstructConfig,
-    ViewRender,
-    VisibilityIndex,
-    build_visibility_index,
-    reconstruct_instance,
-)
-from vadgs.train.strategy import DefaultStrategy
-from vadgs.train.vad_config import RANKINGS as RANKINGS
-from vadgs.train.vad_config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
-from vadgs.train.vad_event import (
+from vadgs.train.strategy import DefaultStrategy, ops
+from vadgs.train.vad.config import RANKINGS as RANKINGS
+from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
+from vadgs.train.vad.event import (
     _chw,
     _event_summary,
     _keep_render,
@@ -75,6 +64,16 @@ from vadgs.train.vad_event import (
     normals_to_quats,
     pick_references,
     rank_instances,
+)
+from vadgs.train.vad.incomplete import IncompleteInstances
+from vadgs.train.vad.inputs import TrackTable, VisibilityInputs
+from vadgs.train.vad.reconstruct import (
+    InstanceReconstruction,
+    ReconstructConfig,
+    ViewRender,
+    VisibilityIndex,
+    build_visibility_index,
+    reconstruct_instance,
 )
 
 __all__ = [
@@ -166,7 +165,7 @@ class VisibilityAwareDensification:
     from it, written once), then ``base``, ``on_addition`` and ``log_size``; :meth:`from_config`
     builds one from a :class:`VisibilityDensifyConfig` (vadgs's trainer and ``vadgs train
     --vad.KEY VALUE``). It holds no
-    dataset: :meth:`prepare` gives it a :class:`~vadgs.train.inputs.VisibilityInputs` (per-view
+    dataset: :meth:`prepare` gives it a :class:`~vadgs.train.vad.inputs.VisibilityInputs` (per-view
     cameras, loaders, LiDAR or TRACK observations, tracks) and the loop's
     :class:`StrategyContext`, and builds the visibility index once. Use::
 
@@ -293,7 +292,7 @@ class VisibilityAwareDensification:
     def check_sanity(self, params: Mapping[str, torch.Tensor], optimizers: Any) -> None:
         """Check ``params`` and ``optimizers`` before training (gsplat's ``check_sanity``).
 
-        :func:`~vadgs.train.ops.check_params`, then the base's own ``check_sanity`` when it has
+        :func:`~vadgs.train.strategy.ops.check_params`, then the base's own ``check_sanity`` when it has
         one.
 
         Raises:
@@ -439,10 +438,10 @@ class VisibilityAwareDensification:
         arguments return the index; the index is built only when ``visibility`` is on.
 
         Args:
-            inputs: :class:`~vadgs.train.inputs.VisibilityInputs` (e.g.
+            inputs: :class:`~vadgs.train.vad.inputs.VisibilityInputs` (e.g.
                 ``VisibilityInputs.from_scene(scene)`` or ``.from_gsplat_parser(parser)``).
             context: :class:`StrategyContext`: the loop's render function, step counts, generator.
-            index: a prebuilt :class:`~vadgs.train.reconstruct.VisibilityIndex` of these inputs
+            index: a prebuilt :class:`~vadgs.train.vad.reconstruct.VisibilityIndex` of these inputs
                 (its own inputs are used when ``inputs`` is None).
 
         Returns:
@@ -474,7 +473,7 @@ class VisibilityAwareDensification:
         )
 
     def visibility_index(self) -> VisibilityIndex:
-        """The :class:`~vadgs.train.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
+        """The :class:`~vadgs.train.vad.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
         if self.index is None:
             self.index = self._build_index()
         return self.index
@@ -503,11 +502,11 @@ class VisibilityAwareDensification:
             views: view indices.
             renders: the render function (default the context's).
             tests: per view, a test already made from the loop's render (``state["vad_tests"]``:
-                the fields of its one-view :class:`~vadgs.train.incomplete.IncompleteInstances`);
+                the fields of its one-view :class:`~vadgs.train.vad.incomplete.IncompleteInstances`);
                 those views are not rendered again.
 
         Returns:
-            ``(rows, views)``: :class:`~vadgs.train.incomplete.IncompleteInstances` (``rows.view``
+            ``(rows, views)``: :class:`~vadgs.train.vad.incomplete.IncompleteInstances` (``rows.view``
             indexes ``views``) and the views tested.
         """
         index = self.prepare()
@@ -692,9 +691,9 @@ class VisibilityAwareDensification:
         keep: torch.Tensor | None = None,
         event: int = 1,
     ) -> None:
-        """Add the :func:`~vadgs.train.vad_event.flat_gaussians` of the (kept) points.
+        """Add the :func:`~vadgs.train.vad.event.flat_gaussians` of the (kept) points.
 
-        Through :func:`~vadgs.train.ops.add_gaussians`, with ``node_ids`` (when ``params`` has
+        Through :func:`~vadgs.train.strategy.ops.add_gaussians`, with ``node_ids`` (when ``params`` has
         them) the node of the instance's track, or -1 for a static instance.
         """
         cfg = self.config

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from vadgs.train.incomplete import IncompleteConfig, find_incomplete, voxel_labels
+from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete, voxel_labels
 
 
 def _naive(ins, vox, ren, alpha, cfg, vindex=None, vlabels=None):

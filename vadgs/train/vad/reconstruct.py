@@ -1,8 +1,8 @@
 r"""Reconstruct one flagged instance by multi-view stereo (paper, Fig. 2 and 4).
 
-:func:`reconstruct_instance`, given the scene's :class:`~vadgs.train.visibility.VisibilityIndex`
-(:mod:`vadgs.train.visibility`; re-exported here with :func:`build_visibility_index`), a
-reference view and an instance flagged by :func:`~vadgs.train.incomplete.find_incomplete`:
+:func:`reconstruct_instance`, given the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex`
+(:mod:`vadgs.train.vad.visibility`; re-exported here with :func:`build_visibility_index`), a
+reference view and an instance flagged by :func:`~vadgs.train.vad.incomplete.find_incomplete`:
 
 1. takes the instance's voxels (their visibility sets are the candidate views) — or, when the
    instance has almost no voxels of its own (the LiDAR missed it), the voxels the z-buffer sees
@@ -23,9 +23,9 @@ reference view and an instance flagged by :func:`~vadgs.train.incomplete.find_in
 
 Each step is a small function (``_instance_frame``, :func:`~vadgs.select.select_views`,
 ``_crop_group`` and ``_match``, ``_consistent``, fusion, ``_depth_priors``) on the device of the
-index. The settings, :class:`ReconstructConfig`, live in :mod:`vadgs.train.reconstruct_config`; the
+index. The settings, :class:`ReconstructConfig`, live in :mod:`vadgs.train.vad.reconstruct_config`; the
 crops and the matching scale (:func:`match_scale`, ``_crop_group``) in
-:mod:`vadgs.train.instance_crops`; both are re-exported here.
+:mod:`vadgs.train.vad.crops`; both are re-exported here.
 """
 
 from __future__ import annotations
@@ -44,8 +44,7 @@ from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
 from vadgs.mvs.planar import complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
-from vadgs.train.inputs import sfm_observations
-from vadgs.train.instance_crops import (
+from vadgs.train.vad.crops import (
     MatchScale,
     _crop_group,
     _Crops,
@@ -55,8 +54,9 @@ from vadgs.train.instance_crops import (
     _to_scale,
     match_scale,
 )
-from vadgs.train.reconstruct_config import ReconstructConfig
-from vadgs.train.visibility import (
+from vadgs.train.vad.inputs import sfm_observations
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
+from vadgs.train.vad.visibility import (
     REFERENCE_DEPTH,
     ViewCache,
     VisibilityIndex,

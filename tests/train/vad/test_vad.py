@@ -8,7 +8,6 @@ from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth, project_points
 from vadgs.mvs import PlanarCompletionConfig
 from vadgs.train.model import GaussianModel
-from vadgs.train.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
 from vadgs.train.trainer import TrainConfig, Trainer
 from vadgs.train.vad import (
     StrategyContext,
@@ -19,6 +18,7 @@ from vadgs.train.vad import (
     pick_references,
     rank_instances,
 )
+from vadgs.train.vad.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
 
 BUILDING = 9  # a large facade of the sample scene with LiDAR on its lower part
 CAR = 65  # the overtaken moving car
@@ -334,7 +334,7 @@ class TestWholeViews:
 
     def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
         from vadgs.select import ViewSelectionConfig
-        from vadgs.train.reconstruct import _instance_frame, _select_supports
+        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
 
         # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
         selection = ViewSelectionConfig(min_shared=1, k=2)

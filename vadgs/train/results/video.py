@@ -467,7 +467,7 @@ def level_up(cam_to_world: torch.Tensor) -> torch.Tensor:
         ``(V, 4, 4)`` (or ``(V, 3, 3)``) OpenCV camera-to-world → ``(3,)``, on the input's device.
 
     Example:
-        >>> from vadgs.train.video import look_at
+        >>> from vadgs.train.results.video import look_at
         >>> pos = torch.tensor([[3.0, 0, 2], [0, 3, 2], [-3, 0, 2]])
         >>> c2w = look_at(pos, torch.zeros(3), torch.tensor([0.0, 0, 1]))  # looking down at 0
         >>> [round(v, 6) + 0.0 for v in level_up(c2w).tolist()], float(-c2w[:, 2, 1].mean()) < 0.95

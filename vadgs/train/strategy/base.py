@@ -1,0 +1,88 @@
+"""The interface of a densification strategy (gsplat's ``Strategy``) and of a priors provider.
+
+A strategy follows gsplat's ``Strategy``: an object with settings and *no hidden state*; its state
+lives in a dict that the training loop owns, checkpoints and passes back. Any loop calls
+
+.. code-block:: python
+
+    state = strategy.initialize_state(scene_scale)
+    for step in ...:
+        out = render(params, view)                 # info: what the rasterizer reports
+        strategy.step_pre_backward(params, optimizers, state, step, info)
+        loss.backward()
+        for opt in optimizers.values(): opt.step()  # or one optimizer with named groups
+        strategy.step_post_backward(params, optimizers, state, step, info)  # may add / remove rows
+
+``params`` is gsplat's mapping of per-Gaussian tensors (``means``, ``quats``, ``scales``,
+``opacities``, ``sh0``, ``shN``) or vadgs's ``GaussianModel.params`` (``log_scales``,
+``opacity_logits``, ``sh_dc``, ``sh_rest`` and the integer ``node_ids``); ``optimizers`` is gsplat's
+``{name: optimizer}`` or one optimizer with a named group per parameter
+(:func:`vadgs.train.strategy.ops.make_optimizer`). Strategies change the set of Gaussians only through
+:mod:`vadgs.train.strategy.ops`, which keeps the optimizer moments and every per-Gaussian tensor of
+``state`` consistent. A strategy never sees the training loop: what else it needs is given to it
+explicitly (e.g. :class:`~vadgs.train.vad.StrategyContext` for the visibility-aware one).
+
+``info`` is either vadgs's (``raster``: the :class:`~vadgs.render.RenderOutput`, ``ids``: the model
+rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with its gradient,
+``radii``, ``width``, ``height``, ``n_cameras``; :func:`gsplat.rasterization`'s ``meta``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import MutableMapping
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+
+from vadgs.train.losses import GeometryTargets
+
+__all__ = ["GeometryPriors", "Strategy"]
+
+
+@runtime_checkable
+class Strategy(Protocol):
+    """The interface every densification strategy implements (gsplat's ``Strategy``).
+
+    A strategy may append JSON-serialisable dicts to ``state["pending_log"]``: vadgs's trainer
+    writes each as an ``{"step": ..., "event": ...}`` line of ``log.jsonl`` right after the step
+    and removes them from the state.
+    """
+
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        """A fresh state dict (per-Gaussian tensors are allocated lazily, at their first use)."""
+        ...
+
+    def step_pre_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+    ) -> None:
+        """Called after the render, before ``loss.backward()``."""
+        ...
+
+    def step_post_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+    ) -> None:
+        """Called after ``loss.backward()`` and the optimizer step; may add or remove Gaussians."""
+        ...
+
+
+@runtime_checkable
+class GeometryPriors(Protocol):
+    """A strategy that also provides geometric priors (VAD-GS's MVS and voxel depth, normals).
+
+    A training loop turns them into loss terms with :func:`vadgs.train.losses.geometric_losses`;
+    vadgs's trainer does so for every strategy that implements this protocol.
+    """
+
+    def geometry_targets(self, state: dict[str, Any], view: int) -> GeometryTargets | None:
+        """The priors of a view (None: no geometric loss for it)."""
+        ...
