@@ -11,10 +11,9 @@ import torch
 from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
 from vadgs.render import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians
-from vadgs.train.results.video import (
+from vadgs.train.results.trajectory import (
     INTERPOLATE_BETWEEN,
     ORBIT_FRAMES,
-    TIMELINE_ROWS,
     catmull_rom,
     default_video_camera,
     ego_trajectory,
@@ -22,14 +21,12 @@ from vadgs.train.results.video import (
     interpolated_trajectory,
     look_at,
     make_trajectory,
-    model_at_time,
-    object_poses_at,
     orbit_trajectory,
     parse_trajectory,
-    render_video,
     scene_up,
     trajectory_choices,
 )
+from vadgs.train.results.video import TIMELINE_ROWS, model_at_time, object_poses_at, render_video
 
 from ..data.photo_sample import SIDEWAYS, photo_cameras, sideways
 

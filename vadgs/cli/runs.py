@@ -153,12 +153,12 @@ class RenderCommand(Command):
         run = load_run(self.run, scene=self.scene)
         model, scene, config = run.model, run.scene, run.config
         if self.video or self.trajectory == "list":
-            from vadgs.train.results.video import (
+            from vadgs.train.results.trajectory import (
                 default_video_camera,
                 make_trajectory,
-                render_video,
                 trajectory_choices,
             )
+            from vadgs.train.results.video import render_video
 
             try:  # the library names its arguments; here they are flags
                 camera = self.camera or default_video_camera(scene)

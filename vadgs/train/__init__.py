@@ -14,7 +14,8 @@ from vadgs.train.losses import (
 from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_at
 from vadgs.train.results.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
 from vadgs.train.results.export import export_model, export_world, rotate_sh
-from vadgs.train.results.video import ego_trajectory, make_trajectory, render_video
+from vadgs.train.results.trajectory import ego_trajectory, make_trajectory
+from vadgs.train.results.video import render_video
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
 from vadgs.train.strategy.ops import (

@@ -354,7 +354,8 @@ class TestViewsOfDifferentSizes:
         assert targets.depth.shape[-2:] == (120, 200)
         # evaluation and video render every view at its own size
         from vadgs.train.results.evaluate import evaluate
-        from vadgs.train.results.video import ego_trajectory, render_video
+        from vadgs.train.results.trajectory import ego_trajectory
+        from vadgs.train.results.video import render_video
 
         big = next(v for v in range(sc.num_views) if sc.image_size(v) == (144, 240))
         metrics = evaluate(trainer.model, sc, views=[small, big], with_lpips=False)

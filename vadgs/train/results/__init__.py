@@ -1,7 +1,9 @@
 """What a finished run is turned into, one module per output (``vadgs eval / render / export``).
 
 - :mod:`~vadgs.train.results.evaluate`: test and novel-view metrics, test panels;
-- :mod:`~vadgs.train.results.video`: videos along the ego path or a camera path;
+- :mod:`~vadgs.train.results.video`: videos (colour | depth | normals) along a camera path;
+- :mod:`~vadgs.train.results.trajectory`: the camera paths: the ego path (shifted), through the
+  training cameras, or an orbit;
 - :mod:`~vadgs.train.results.export`: the model, or the world at a frame, as a viewer-ready PLY.
 
 Their functions are also importable from :mod:`vadgs.train`.

@@ -1,0 +1,538 @@
+r"""Camera paths for videos: the ego path (shifted), or a path through a photo collection.
+
+A **trajectory** is one camera of the rig following the ego vehicle through the scene's frames,
+optionally shifted in the ego frame (``shift_ego_m = (0, 2, 0)``: 2 m to the left, a lane change,
+as the scene's novel views):
+
+.. math::
+
+    T_{cam \to world}(t) = T_{ego \to world}(t)\, T(\text{shift})\, T_{cam \to ego}
+
+With ``frames_between = n > 0``, ``n`` poses are inserted between consecutive frames: rotations are
+slerped, translations interpolated linearly (:func:`interpolate_rigid`). The moving objects are
+interpolated the same way between the two frames when their track is valid at both, else they take
+the pose (and validity) of the nearest frame (:func:`object_poses_at`). Time ``t`` is measured in
+frame positions (``t = 2.5`` is half-way between ``scene.frames[2]`` and ``scene.frames[3]``).
+
+Without ``ego_to_world`` or ``cam_to_ego`` the camera's own poses are interpolated instead (when it
+has a view at every frame) and only ``shift_ego_m = (0, 0, 0)`` is accepted.
+
+A **photo collection** (a COLMAP scene: one photo per frame, cameras of several sizes) has no ego
+path. Two trajectories need none, every scene offers them (:func:`trajectory_choices`;
+:func:`make_trajectory` builds one from its name, ``vadgs render --video --trajectory``):
+
+- ``interpolate`` (:func:`interpolated_trajectory`): a smooth path through the training cameras
+  in frame (name) order, as gsplat's ``generate_interpolated_path``. The camera centres and
+  look-at points (``focus`` ahead of each camera: the median depth of the SfM points) follow a
+  centripetal Catmull-Rom spline, which passes through every camera without overshoot or
+  cusps; every pose looks at its look-at point with the scene's up (:func:`scene_up`), so the
+  path does not roll with a photo taken sideways.
+- ``orbit`` (:func:`orbit_trajectory`): a circle around the scene's centre (the point nearest to
+  every training camera's optical axis, as multinerf's ``focus_point_fn``) in the plane normal to
+  the up, at the cameras' median distance and mean height, looking at the centre, starting at the
+  first training camera and turning the way the cameras do, as nerfstudio's orbit.
+
+Both render with the intrinsics and image size of one camera (:func:`default_video_camera`: the
+one with the most training views) and sweep the frame time from the first frame to the last.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from vadgs.checks import check_shape
+from vadgs.data.scene import Scene
+from vadgs.geometry.camera import invert_rigid
+from vadgs.render import quaternion_to_rotation
+from vadgs.train.model import rotation_to_quat
+
+__all__ = [
+    "INTERPOLATE_BETWEEN",
+    "ORBIT_FRAMES",
+    "Trajectory",
+    "catmull_rom",
+    "default_video_camera",
+    "ego_trajectory",
+    "interpolate_rigid",
+    "interpolated_trajectory",
+    "level_up",
+    "look_at",
+    "make_trajectory",
+    "orbit_trajectory",
+    "parse_trajectory",
+    "scene_up",
+    "trajectory_choices",
+]
+
+#: ``interpolate``: poses between consecutive training cameras unless ``frames_between`` says.
+INTERPOLATE_BETWEEN = 8
+
+#: ``orbit``: the number of poses of the circle unless ``orbit:FRAMES`` says.
+ORBIT_FRAMES = 60
+
+
+def interpolate_rigid(a: torch.Tensor, b: torch.Tensor, t: float) -> torch.Tensor:
+    """Rigid transform between ``a`` (``t = 0``) and ``b`` (``t = 1``): slerped rotation, linear translation.
+
+    Not differentiable (poses are fixed).
+
+    Shape:
+        ``(*, 4, 4)`` and ``(*, 4, 4)`` → ``(*, 4, 4)``.
+
+    Example:
+        >>> a = torch.eye(4); b = torch.eye(4); b[:3, :3] = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+        >>> b[0, 3] = 2.0
+        >>> m = interpolate_rigid(a, b, 0.5)  # 45° about z, half-way
+        >>> [round(v, 4) for v in (m[0, 0].item(), m[1, 0].item(), m[0, 3].item())]
+        [0.7071, 0.7071, 1.0]
+    """
+    qa = rotation_to_quat(a[..., :3, :3].double())
+    qb = rotation_to_quat(b[..., :3, :3].double())
+    dot = (qa * qb).sum(-1, keepdim=True)
+    qb = torch.where(dot < 0, -qb, qb)  # the short way round
+    dot = dot.abs().clamp(max=1.0)
+    theta = torch.acos(dot)
+    sin = torch.sin(theta)
+    near = sin < 1e-6  # (almost) the same rotation: linear interpolation is exact enough
+    wa = torch.where(near, 1.0 - t, torch.sin((1.0 - t) * theta) / sin.clamp(min=1e-12))
+    wb = torch.where(near, torch.full_like(theta, t), torch.sin(t * theta) / sin.clamp(min=1e-12))
+    out = a.double().clone()
+    out[..., :3, :3] = quaternion_to_rotation(wa * qa + wb * qb)
+    out[..., :3, 3] = (1.0 - t) * a[..., :3, 3].double() + t * b[..., :3, 3].double()
+    return out.to(a.dtype)
+
+
+class Trajectory(NamedTuple):
+    """Camera poses of a video.
+
+    Attributes:
+        cam_to_world: ``(P, 4, 4)``.
+        time: ``(P,)`` float64 frame positions (see the module docstring).
+        camera: the rig camera (its intrinsics and image size are used).
+    """
+
+    cam_to_world: torch.Tensor
+    time: torch.Tensor
+    camera: str
+
+
+def parse_trajectory(spec: str) -> tuple[float, float, float]:
+    """Ego-frame shift of a trajectory: ``"ego"``, ``"shift:M"`` (``(0, M, 0)``, + = left), ``"shift:X,Y,Z"``.
+
+    Example:
+        >>> parse_trajectory("ego"), parse_trajectory("shift:-2"), parse_trajectory("shift:1,0,0.5")
+        ((0.0, 0.0, 0.0), (0.0, -2.0, 0.0), (1.0, 0.0, 0.5))
+    """
+    if spec == "ego":
+        return (0.0, 0.0, 0.0)
+    if spec.startswith("shift:"):
+        try:
+            parts = [float(p) for p in spec[len("shift:") :].split(",")]
+        except ValueError:
+            parts = []
+        if len(parts) == 1:
+            return (0.0, parts[0], 0.0)
+        if len(parts) == 3:
+            return (parts[0], parts[1], parts[2])
+    raise ValueError(f"trajectory: expected 'ego', 'shift:METRES' or 'shift:X,Y,Z', got {spec!r}")
+
+
+def ego_trajectory(
+    scene: Scene,
+    camera: str = "front",
+    shift_ego_m: Sequence[float] = (0.0, 0.0, 0.0),
+    frames_between: int = 0,
+) -> Trajectory:
+    """The poses of one rig camera along the ego path (see the module docstring).
+
+    Args:
+        scene: the scene.
+        camera: a camera of the rig.
+        shift_ego_m: ``(3,)`` shift in the ego frame (x forward, y left, z up), metres.
+        frames_between: poses inserted between consecutive frames.
+
+    Returns:
+        :class:`Trajectory` with ``(len(frames) - 1) * (frames_between + 1) + 1`` poses.
+
+    Raises:
+        ValueError: for an unknown camera, a negative ``frames_between``, or a shift on a scene
+            without ego poses.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> traj = ego_trajectory(scene, "front", (0, 2, 0), frames_between=1)
+        >>> traj.cam_to_world.shape, traj.time[:3].tolist()
+        (torch.Size([15, 4, 4]), [0.0, 0.5, 1.0])
+    """
+    if camera not in scene.cameras_info:
+        raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
+    if int(frames_between) < 0:
+        raise ValueError(f"frames_between: expected >= 0, got {frames_between}")
+    shift = torch.eye(4)
+    shift[:3, 3] = torch.as_tensor([float(c) for c in shift_ego_m])
+    c2e = scene.cameras_info[camera].cam_to_ego
+    if c2e is not None and all(f.ego_to_world is not None for f in scene.frames):
+        keys = torch.stack([f.ego_to_world @ shift @ c2e for f in scene.frames])
+    else:
+        if bool(shift[:3, 3].any()):
+            raise ValueError(
+                f"shift_ego_m: scene {scene.name!r} has no ego poses (ego_to_world, cam_to_ego); "
+                "only the 'ego' trajectory (no shift) is available"
+            )
+        missing = next((f.index for f in scene.frames if not _has_view(scene, f, camera)), None)
+        if missing is not None:
+            raise ValueError(
+                f"camera: scene {scene.name!r} has no ego poses and no view of {camera!r} at frame "
+                f"{missing}, so no ego path; it offers {trajectory_choices(scene, camera)}"
+            )
+        keys = torch.stack([scene.views[scene.view_id(f.index, camera)].cam_to_world for f in scene.frames])
+    n = int(frames_between) + 1
+    poses, times = [], []
+    for i in range(len(keys)):
+        for j in range(n if i + 1 < len(keys) else 1):
+            s = j / n
+            poses.append(keys[i] if j == 0 else interpolate_rigid(keys[i], keys[i + 1], s))
+            times.append(i + s)
+    return Trajectory(torch.stack(poses), torch.tensor(times, dtype=torch.float64), camera)
+
+
+def _has_view(scene: Scene, frame: object, camera: str) -> bool:
+    return any(scene.views[v].camera == camera for v in frame.view_ids)
+
+
+def _has_ego_poses(scene: Scene, camera: str) -> bool:
+    return scene.cameras_info[camera].cam_to_ego is not None and all(
+        f.ego_to_world is not None for f in scene.frames
+    )
+
+
+def default_video_camera(scene: Scene) -> str:
+    """The camera whose intrinsics and size a video takes.
+
+    ``front`` if the rig has one, else the camera of the most training views (the first of the
+    rig on a tie).
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> default_video_camera(load_scene(sample_scene_path()))
+        'front'
+    """
+    if "front" in scene.cameras_info:
+        return "front"
+    counts = {name: 0 for name in scene.camera_names}
+    for v in scene.train_views or range(scene.num_views):
+        counts[scene.views[v].camera] += 1
+    return max(counts, key=lambda name: counts[name])  # the first of the maximal ones
+
+
+def trajectory_choices(scene: Scene, camera: str | None = None) -> list[str]:
+    """The trajectories ``scene`` offers for ``camera`` (default :func:`default_video_camera`).
+
+    ``ego`` when the rig has ego poses or the camera a view at every frame, ``shift:...`` with ego
+    poses only; ``interpolate`` and ``orbit`` always. The first is the default: ``ego`` with ego
+    poses, else ``interpolate`` (a photo collection of one camera has a view of it at every
+    frame, but its ``ego`` path is a jump from photo to photo, test photos included).
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> trajectory_choices(load_scene(sample_scene_path()))
+        ['ego', 'shift:METRES', 'shift:X,Y,Z', 'interpolate', 'orbit', 'orbit:FRAMES']
+    """
+    camera = camera or default_video_camera(scene)
+    if camera not in scene.cameras_info:
+        raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
+    if _has_ego_poses(scene, camera):
+        return ["ego", "shift:METRES", "shift:X,Y,Z", "interpolate", "orbit", "orbit:FRAMES"]
+    ego = ["ego"] if all(_has_view(scene, f, camera) for f in scene.frames) else []
+    return ["interpolate", *ego, "orbit", "orbit:FRAMES"]
+
+
+def make_trajectory(
+    scene: Scene, spec: str | None = None, camera: str | None = None, frames_between: int | None = None
+) -> Trajectory:
+    """The trajectory named ``spec`` (one of :func:`trajectory_choices`; None: the scene's default).
+
+    Args:
+        scene: the scene.
+        spec: ``ego``, ``shift:METRES``, ``shift:X,Y,Z``, ``interpolate``, ``orbit`` or
+            ``orbit:FRAMES``; None: ``ego`` with ego poses, else ``interpolate``.
+        camera: the camera (default :func:`default_video_camera`).
+        frames_between: poses between consecutive frames (``ego``, ``shift``; default 0) or
+            training cameras (``interpolate``; default :data:`INTERPOLATE_BETWEEN`); not with
+            ``orbit`` (``orbit:FRAMES`` sets its poses).
+
+    Raises:
+        ValueError: for a name the scene does not offer (the message lists those it does).
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> len(make_trajectory(scene).time), len(make_trajectory(scene, "orbit:12").time)
+        (8, 12)
+    """
+    camera = camera or default_video_camera(scene)
+    choices = trajectory_choices(scene, camera)
+    spec = choices[0] if spec is None else spec.strip()
+    if spec == "ego" or spec.startswith("shift:"):
+        no_ego = "ego" not in choices if spec == "ego" else "shift:METRES" not in choices
+        if no_ego:
+            raise ValueError(
+                f"trajectory: scene {scene.name!r} has no ego path for camera {camera!r} (no ego "
+                f"poses{'' if spec.startswith('shift:') else ', no view of it at every frame'}); "
+                f"it offers {choices}"
+            )
+        try:
+            shift = parse_trajectory(spec)
+        except ValueError:
+            raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}") from None
+        return ego_trajectory(scene, camera, shift, frames_between or 0)
+    if spec == "interpolate":
+        between = INTERPOLATE_BETWEEN if frames_between is None else frames_between
+        return interpolated_trajectory(scene, camera, between)
+    if spec == "orbit" or spec.startswith("orbit:"):
+        if frames_between is not None:
+            raise ValueError(
+                f"frames_between: not used by {spec} (orbit:FRAMES sets its poses), got {frames_between}"
+            )
+        count = spec[len("orbit:") :] if spec.startswith("orbit:") else str(ORBIT_FRAMES)
+        if not count.isdigit() or int(count) < 1:
+            raise ValueError(f"trajectory: expected orbit:FRAMES with FRAMES >= 1, got {spec!r}")
+        return orbit_trajectory(scene, camera, int(count))
+    raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}")
+
+
+def look_at(position: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """Camera-to-world poses looking from ``position`` at ``target``, no roll about ``up``.
+
+    OpenCV axes: z towards the target, x right (normal to ``up``), y down. Where the view is
+    along ``up`` (no right direction), x is taken normal to the nearest world axis instead.
+
+    Shape:
+        ``(*, 3)``, ``(*, 3)``, ``(3,)`` → ``(*, 4, 4)``, on the inputs' device and dtype.
+
+    Example:
+        >>> c2w = look_at(torch.zeros(3), torch.tensor([0.0, 1, 0]), torch.tensor([0.0, 0, 1]))
+        >>> c2w[:3, :3].tolist()  # right = +x, down = -z, forward = +y
+        [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
+    """
+    z = torch.nn.functional.normalize(target - position, dim=-1)
+    up = up.to(z).expand_as(z)
+    x = torch.linalg.cross(z, up)
+    flat = x.norm(dim=-1, keepdim=True) < 1e-6
+    if bool(flat.any()):  # looking along up: any axis not along z gives a right direction
+        axis = torch.eye(3, dtype=z.dtype, device=z.device)[z.abs().argmin(-1)]
+        x = torch.where(flat, torch.linalg.cross(z, axis), x)
+    x = torch.nn.functional.normalize(x, dim=-1)
+    out = torch.zeros(*z.shape[:-1], 4, 4, dtype=z.dtype, device=z.device)
+    out[..., :3, 0], out[..., :3, 1], out[..., :3, 2] = x, torch.linalg.cross(z, x), z
+    out[..., :3, 3] = position
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def catmull_rom(points: torch.Tensor, t: torch.Tensor, alpha: float = 0.5) -> torch.Tensor:
+    """A Catmull-Rom spline through ``points`` at parameters ``t`` (point ``i`` at ``t = i``).
+
+    ``alpha = 0.5`` is the centripetal spline: no cusp or self-intersection within a segment,
+    no overshoot on a straight run. The ends are extended by reflecting their neighbour.
+
+    Shape:
+        ``(N, D)``, ``(P,)`` in ``[0, N - 1]`` → ``(P, D)``.
+
+    Example:
+        >>> pts = torch.tensor([[0.0, 0], [1, 1], [2, 0], [3, 1]])
+        >>> catmull_rom(pts, torch.tensor([0.0, 1.0, 2.5])).tolist()[:2]
+        [[0.0, 0.0], [1.0, 1.0]]
+    """
+    check_shape(points, "points", ("N", "D"))
+    n = points.shape[0]
+    t = torch.as_tensor(t, dtype=points.dtype, device=points.device)
+    if n == 1:
+        return points.expand(t.shape[0], -1).clone()
+    if bool(((t < 0) | (t > n - 1)).any()):
+        raise ValueError(f"t: expected parameters in [0, {n - 1}], got {t.min().item()}..{t.max().item()}")
+    ext = torch.cat([2 * points[:1] - points[1:2], points, 2 * points[-1:] - points[-2:-1]])
+    i = t.floor().long().clamp(max=n - 2)
+    u = (t - i)[:, None]
+    p0, p1, p2, p3 = ext[i], ext[i + 1], ext[i + 2], ext[i + 3]
+
+    def knot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return (b - a).norm(dim=-1, keepdim=True).pow(alpha).clamp(min=1e-9)
+
+    t0 = torch.zeros_like(u)
+    t1 = t0 + knot(p0, p1)
+    t2 = t1 + knot(p1, p2)
+    t3 = t2 + knot(p2, p3)
+    tt = t1 + u * (t2 - t1)
+    a1 = ((t1 - tt) * p0 + (tt - t0) * p1) / (t1 - t0)
+    a2 = ((t2 - tt) * p1 + (tt - t1) * p2) / (t2 - t1)
+    a3 = ((t3 - tt) * p2 + (tt - t2) * p3) / (t3 - t2)
+    b1 = ((t2 - tt) * a1 + (tt - t0) * a2) / (t2 - t0)
+    b2 = ((t3 - tt) * a2 + (tt - t1) * a3) / (t3 - t1)
+    return ((t2 - tt) * b1 + (tt - t1) * b2) / (t2 - t1)
+
+
+def level_up(cam_to_world: torch.Tensor) -> torch.Tensor:
+    """The up direction ``(3,)`` (unit, float64) of cameras held level, from their image axes.
+
+    A photo held level has a horizontal image row, whatever its pitch: the up is the direction
+    normal to the cameras' horizontal image axes (the smallest eigenvector of their scatter),
+    signed as the ``-y`` of the photos not sideways. A camera's horizontal axis is its ``x``, or
+    its ``y`` for a photo stored sideways (its EXIF orientation tag, which COLMAP and vadgs
+    ignore, shows it upright): the one more normal to the current estimate, starting from the
+    mean ``-y``; three rounds. Where the axes leave the up open (every camera turned the same
+    way) the estimate nearest to the previous one is kept. Unlike the mean ``-y``, which leans
+    towards the object of cameras looking down at it, exact for level cameras.
+
+    Shape:
+        ``(V, 4, 4)`` (or ``(V, 3, 3)``) OpenCV camera-to-world → ``(3,)``, on the input's device.
+
+    Example:
+        >>> from vadgs.train.results.trajectory import look_at
+        >>> pos = torch.tensor([[3.0, 0, 2], [0, 3, 2], [-3, 0, 2]])
+        >>> c2w = look_at(pos, torch.zeros(3), torch.tensor([0.0, 0, 1]))  # looking down at 0
+        >>> [round(v, 6) + 0.0 for v in level_up(c2w).tolist()], float(-c2w[:, 2, 1].mean()) < 0.95
+        ([0.0, 0.0, 1.0], True)
+    """
+    rot = cam_to_world[..., :3, :3].double()
+    x, y = rot[:, :, 0], rot[:, :, 1]
+    start = torch.nn.functional.normalize(-y.mean(0), dim=0)
+    up = start
+    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
+    for _ in range(3):
+        sideways = (x @ up).abs() > (y @ up).abs()
+        horizontal = torch.where(sideways[:, None], y, x)
+        scatter = horizontal.T @ horizontal / len(rot) + 1e-4 * (eye - up[:, None] * up[None])
+        up = torch.linalg.eigh(scatter).eigenvectors[:, 0]
+        ref = -y[~sideways].sum(0) if bool((~sideways).any()) else start  # the level photos' up
+        up = -up if float(up @ ref) < 0 else up
+    return up
+
+
+def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:
+    """The scene's up direction ``(3,)`` (unit, float64): :func:`level_up` of its cameras.
+
+    Args:
+        scene: the scene.
+        views: the views (default: the training views, else all).
+    """
+    views = list(views) if views is not None else (scene.train_views or list(range(scene.num_views)))
+    return level_up(torch.stack([scene.views[v].cam_to_world for v in views]))
+
+
+def _path_keys(scene: Scene, camera: str | None) -> tuple[str, list[int], torch.Tensor]:
+    """The keys of a path: ``(camera, views, (K, 4, 4) float64 cam_to_world)``.
+
+    The camera checked (default :func:`default_video_camera`); one training view per training
+    frame, in frame order: the frame's view of ``camera`` if it has one.
+    """
+    camera = camera or default_video_camera(scene)
+    if camera not in scene.cameras_info:
+        raise ValueError(f"camera: expected one of {scene.camera_names}, got {camera!r}")
+    train = set(scene.train_views) or set(range(scene.num_views))
+    keys = []
+    for f in scene.frames:
+        ids = [v for v in f.view_ids if v in train]
+        if ids:
+            keys.append(next((v for v in ids if scene.views[v].camera == camera), ids[0]))
+    if not keys:
+        raise ValueError(f"scene {scene.name!r}: no training view to put a camera path through")
+    return camera, keys, torch.stack([scene.views[v].cam_to_world for v in keys]).double()
+
+
+def _focus_depth(scene: Scene, views: Sequence[int]) -> float:
+    """The median depth of the SfM points in ``views`` (10 scene units without SfM points)."""
+    pts = scene.sfm_points
+    if pts is None or pts.point_idx.numel() == 0:
+        return 10.0
+    w2c = invert_rigid(torch.stack([v.cam_to_world for v in scene.views]).double())
+    z = (w2c[pts.view_idx, 2, :3] * pts.points.double()[pts.point_idx]).sum(-1) + w2c[pts.view_idx, 2, 3]
+    z = z[torch.isin(pts.view_idx, torch.tensor(list(views))) & (z > 0)]
+    return float(z.median()) if z.numel() else 10.0
+
+
+def interpolated_trajectory(
+    scene: Scene, camera: str | None = None, frames_between: int = INTERPOLATE_BETWEEN
+) -> Trajectory:
+    """A smooth path through the training cameras (see the module docstring, ``interpolate``).
+
+    Args:
+        scene: the scene.
+        camera: the camera whose intrinsics the video takes and whose views a rig's path follows
+            (default :func:`default_video_camera`).
+        frames_between: poses between consecutive training cameras.
+
+    Returns:
+        :class:`Trajectory` with ``(K - 1) * (frames_between + 1) + 1`` poses for ``K`` training
+        frames: every ``frames_between + 1``-th at a training camera's centre, looking where it
+        looks, without its roll.
+    """
+    if int(frames_between) < 0:
+        raise ValueError(f"frames_between: expected >= 0, got {frames_between}")
+    camera, keys, c2w = _path_keys(scene, camera)
+    depth = _focus_depth(scene, keys)
+    centres, targets = c2w[:, :3, 3], c2w[:, :3, 3] + depth * c2w[:, :3, 2]
+    n = int(frames_between) + 1
+    t = torch.arange((len(keys) - 1) * n + 1, dtype=torch.float64) / n
+    poses = look_at(catmull_rom(centres, t), catmull_rom(targets, t), scene_up(scene, keys))
+    key_times = [float(scene.view_frame_position(v)) for v in keys]
+    times = torch.from_numpy(np.interp(t.numpy(), np.arange(len(keys)), key_times))
+    return Trajectory(poses.float(), times, camera)
+
+
+def _focus_point(centres: torch.Tensor, forward: torch.Tensor) -> torch.Tensor | None:
+    """The point nearest (least squares) to every optical axis.
+
+    None when the axes are about parallel or the point lies behind most cameras.
+    """
+    proj = torch.eye(3, dtype=centres.dtype) - forward[:, :, None] * forward[:, None, :]  # (V, 3, 3)
+    A, b = proj.sum(0), (proj @ centres[:, :, None]).sum(0)[:, 0]
+    eig = torch.linalg.eigvalsh(A)
+    if float(eig[0]) < 0.02 * float(eig[-1]):
+        return None
+    point = torch.linalg.solve(A, b)
+    ahead = ((point - centres) * forward).sum(-1) > 0
+    return point if float(ahead.double().mean()) > 0.5 else None
+
+
+def orbit_trajectory(scene: Scene, camera: str | None = None, num_frames: int = ORBIT_FRAMES) -> Trajectory:
+    """A circle around the scene's centre, looking at it (see the module docstring, ``orbit``).
+
+    Args:
+        scene: the scene.
+        camera: the camera whose intrinsics the video takes (default :func:`default_video_camera`).
+        num_frames: poses on the circle (the last one short of the first: the video loops).
+
+    Returns:
+        :class:`Trajectory` of ``num_frames`` poses, the frame time sweeping the scene's frames.
+    """
+    if int(num_frames) < 1:
+        raise ValueError(f"num_frames: expected >= 1, got {num_frames}")
+    camera, keys, c2w = _path_keys(scene, camera)
+    centres, forward = c2w[:, :3, 3], c2w[:, :3, 2]
+    up = scene_up(scene, keys)
+    centre = _focus_point(centres, forward)
+    if centre is None:  # cameras looking the same way (a street): the middle of what they look at
+        centre = (centres + _focus_depth(scene, keys) * forward).mean(0)
+    offset = centres - centre
+    height = float((offset @ up).mean())
+    flat = offset - (offset @ up)[:, None] * up
+    radius = float(flat.norm(dim=-1).median())
+    e1 = flat[0] if float(flat[0].norm()) > 1e-9 * max(radius, 1e-9) else torch.linalg.cross(up, forward[0])
+    e1 = torch.nn.functional.normalize(e1 - (e1 @ up) * up, dim=0)
+    e2 = torch.linalg.cross(up, e1)
+    azimuth = torch.atan2(flat @ e2, flat @ e1)
+    turn = torch.remainder(azimuth.diff() + torch.pi, 2 * torch.pi) - torch.pi  # steps in (-pi, pi]
+    sense = -1.0 if float(turn.sum()) < 0 else 1.0
+    angle = sense * 2 * torch.pi * torch.arange(int(num_frames), dtype=torch.float64) / int(num_frames)
+    radius = radius if radius > 0 else 1.0
+    positions = centre + radius * (angle.cos()[:, None] * e1 + angle.sin()[:, None] * e2) + height * up
+    poses = look_at(positions, centre.expand_as(positions), up)
+    last = len(scene.frames) - 1
+    times = torch.linspace(0.0, float(last), int(num_frames), dtype=torch.float64)
+    return Trajectory(poses.float(), times, camera)
