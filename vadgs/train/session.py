@@ -4,7 +4,7 @@
 and ``eval`` / ``render`` / ``export`` writing into a run take it); :class:`RunLog` appends JSON
 lines to a run folder's ``log.jsonl``; :func:`stop_on_signals` turns SIGINT / SIGTERM into a
 request to stop at the end of the current step (a second SIGINT raises ``KeyboardInterrupt`` at
-once). :class:`~vadgs.train.trainer.Trainer` uses the last two.
+once). The training loop (:func:`~vadgs.train.loop.run_loop`) uses the last two.
 """
 
 from __future__ import annotations

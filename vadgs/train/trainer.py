@@ -7,7 +7,9 @@ losses on a strategy's or a provider's priors, extra terms from a hook), with a 
 :class:`~vadgs.train.strategy.Strategy`: the standard one, VAD-GS's when ``TrainConfig.vad`` is set,
 or any given one. The trainer hands strategies gsplat's arguments (``model.params``, the optimizer,
 the state, the step, the render's ``info``) and, for VAD-GS, a
-:class:`~vadgs.train.vad.StrategyContext`; strategies never see the trainer.
+:class:`~vadgs.train.vad.StrategyContext`; strategies never see the trainer. This module holds the
+trainer's state and one step (:meth:`Trainer.train_step`); :mod:`vadgs.train.loop` drives the steps
+(progress bar, log, signals, checkpoints on the way, failure path) and defines :class:`TrainResult`.
 
 Checkpoints (:class:`~vadgs.train.checkpoint.Checkpoint`, ``checkpoint.pt`` in the run folder)
 hold everything the run depends on, so ``resume`` continues *exactly*. They are written atomically
@@ -24,25 +26,22 @@ from __future__ import annotations
 
 import math
 import random
-import resource
 import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
 from vadgs.checks import checks_enabled
 from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
-from vadgs.io import write_json
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     RESUMABLE_CHANGES,
     Checkpoint,
-    _remove_stale_tmp,
     capture_rng,
     checkpoint_checksum,
     clear_run,
@@ -55,12 +54,12 @@ from vadgs.train.checkpoint import (
 from vadgs.train.config import LearningRates, TrainConfig, refine_steps
 from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
+from vadgs.train.loop import TrainResult, run_loop
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
 from vadgs.train.objective import Objective
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
-from vadgs.train.session import RunLog, stop_on_signals
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
 from vadgs.train.strategy.ops import make_optimizer
 from vadgs.train.vad import (
@@ -89,29 +88,6 @@ __all__ = [
     "load_checkpoint",
     "open_scene",
 ]
-
-
-class TrainResult(NamedTuple):
-    """What :meth:`Trainer.train` returns.
-
-    Attributes:
-        step: steps done in total.
-        completed: True when ``iterations`` were reached, False when interrupted / out of time.
-        reason: ``"done"``, ``"interrupted"`` or ``"time limit"``.
-        train_s: training seconds, all sessions of the run together.
-        peak_rss_mb: peak resident memory of the process (MiB).
-        num_gaussians: final count.
-    """
-
-    step: int
-    completed: bool
-    reason: str
-    train_s: float
-    peak_rss_mb: float
-    num_gaussians: int
-
-
-_BAR_STEPS = 10  # the progress bar's loss and PSNR: the mean of this many last steps
 
 
 def _scene_scale(scene: Scene, views: list[int]) -> float:
@@ -526,141 +502,6 @@ class Trainer:
         if self.config.threads:
             torch.set_num_threads(self.config.threads)
         try:
-            return self._train()
+            return run_loop(self)
         finally:
             torch.set_num_threads(before)  # the process's thread count is the caller's
-
-    def _train(self) -> TrainResult:
-        from tqdm import tqdm
-
-        cfg = self.config
-        if self.out_dir is not None:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            if self._clear_previous:
-                clear_run(self.out_dir)
-                self._clear_previous = False
-            _remove_stale_tmp(self.out_dir)
-            if self.step == 0:  # a new run: a log left by a run killed before any checkpoint goes
-                (self.out_dir / "log.jsonl").unlink(missing_ok=True)
-            write_json(self.out_dir / "config.json", {"config": cfg.to_dict(), "scene": self.scene_ref})
-        self._saved_at = time.monotonic()
-        reason = "done"
-        bar = tqdm(
-            total=cfg.iterations,
-            initial=self.step,
-            disable=not self.progress,
-            desc="train",
-            dynamic_ncols=True,
-            smoothing=0.05,  # the ETA: the rate of the recent steps, VAD-GS events averaged in
-        )
-        self._bar = bar
-        recent: list[tuple[float, float]] = []  # (loss, PSNR) of the last steps, shown on the bar
-        self._undo = None
-        self._updating = False
-        try:
-            with (
-                RunLog(self.out_dir, keep_until=self.step) as log,
-                stop_on_signals(self.request_stop, lambda: self._stop),
-            ):
-                while self.step < cfg.iterations:
-                    t0 = time.perf_counter()
-                    res = self.train_step()
-                    self.train_s += time.perf_counter() - t0
-                    events = self.state.pop("pending_log", None) or []
-                    for event in events:
-                        log.write({"step": self.step, "event": event})
-                        if "summary" in event:
-                            if self.progress:
-                                bar.write(f"step {self.step}: {event['summary']}")
-                            elif self.log is not None:
-                                self.log(f"step {self.step}: {event['summary']}")
-                    if events and self.progress:
-                        bar.set_description_str("train", refresh=False)
-                    recent = [*recent[-(_BAR_STEPS - 1) :], (res["total"], res["psnr"])]
-                    if self.progress:  # the mean of the last steps: one view's PSNR is noisy
-                        loss, psnr = (sum(x) / len(recent) for x in zip(*recent))
-                        n = self.model.num_gaussians
-                        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}", n=n, refresh=False)
-                    bar.update(1)
-                    if self.step % cfg.log_every == 0 or self.step == 1:
-                        n = self.model.num_gaussians
-                        log.write(
-                            {
-                                "step": self.step,
-                                "n": n,
-                                "train_s": round(self.train_s, 2),
-                                "refine": self.state.get("last_refine", {}),
-                                **{k: round(v, 6) for k, v in res.items()},
-                            }
-                        )
-                    self._updating = True  # a diverged state is not saved
-                    self.check_divergence(res)
-                    self._updating = False
-                    if self.callback is not None:
-                        self.callback(self, self.step)
-                    if self._stop:
-                        reason = "interrupted"
-                        break
-                    if cfg.max_minutes and self.train_s > cfg.max_minutes * 60:
-                        reason = "time limit"
-                        break
-                    if self.out_dir is not None and self.step < cfg.iterations and self._checkpoint_due():
-                        self.save_checkpoint()
-        except Exception as e:
-            self._save_after_failure(e)
-            raise
-        finally:
-            bar.close()
-            self._bar = None
-        if self.out_dir is not None:
-            self.save_checkpoint()
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-        return TrainResult(
-            self.step, self.step >= cfg.iterations, reason, self.train_s, peak, self.model.num_gaussians
-        )
-
-    def _checkpoint_due(self) -> bool:
-        """Every ``checkpoint_every`` steps, every ``checkpoint_minutes``, and after the first cycle."""
-        cfg = self.config
-        return bool(
-            (cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0)
-            or self.step == len(self.sampler)
-            or (cfg.checkpoint_minutes and time.monotonic() - self._saved_at > cfg.checkpoint_minutes * 60)
-        )
-
-    def _save_after_failure(self, e: Exception) -> None:
-        """Checkpoint the last completed step when an exception stops the loop, and say so on ``e``.
-
-        A step that failed before its optimizer update is undone (the sampler and generators are
-        put back), so the saved state is exactly the previous step's; a failure during or after
-        the update, a divergence or a non-finite value keeps the previous checkpoint. A failing
-        write (disk full) keeps it too.
-        """
-        if self.out_dir is None:
-            return
-        path = self.out_dir / CHECKPOINT_NAME
-        saved = False
-        failed_write = isinstance(e, OSError) and e.filename == str(path)
-        if not self._updating and not isinstance(e, FloatingPointError) and not failed_write:
-            if self._undo is not None:
-                sampler, rng = self._undo
-                self.sampler.load_state_dict(sampler)
-                restore_rng(rng, self.generator)
-                self._undo = None
-            if self._saved_step != self.step:
-                try:
-                    self.save_checkpoint()
-                    saved = True
-                except OSError as se:
-                    e.add_note(f"(saving the checkpoint failed too: {se})")
-            else:
-                saved = True
-        if saved:
-            note = f"checkpoint of step {self.step} in {path}"
-        elif self._saved_step is not None:
-            note = f"last good checkpoint: step {self._saved_step} in {path}"
-        else:
-            note = f"no checkpoint was written before step {self.step}"
-            e.add_note(note)
-            return
-        e.add_note(f"{note}; continue with: vadgs train --out {self.out_dir} --resume")
