@@ -66,7 +66,7 @@ class TestCliNovel:
         with imageio.get_reader(video, format="FFMPEG") as reader:
             frames = [f for f in reader]
         assert len(frames) == 15 and frames[0].shape == (36 + 4, 180, 3)  # + the timeline bar
-        assert main(["render", str(run), "--video", str(video), "--trajectory", "orbit"]) == 2
+        assert main(["render", str(run), "--video", str(video), "--trajectory", "spiral"]) == 2  # no such one
 
     def test_export(self, run, tmp_path):
         scene = load_scene(sample_scene_path(), scale=0.25)
