@@ -33,9 +33,9 @@ def test_inria_export_of_a_colmap_run_is_in_one_frame(tmp_path, capsys):
     # the source model, read as 3DGS reads it, has every camera where cameras.json puts it
     scene, _ = load_colmap(f"{source}/sparse/0", images)
     assert len(cams) == scene.num_views == 24
-    by_name = {v.image.stem: v for v in scene.views}
-    for cam in cams:
-        c2w = by_name[cam["img_name"]].cam_to_world.double().numpy()
+    for cam, view in zip(cams, scene.views):  # one image per frame: frame 0's first, then in order
+        assert cam["img_name"] == view.image.stem  # 3DGS's image_name (the file name, no extension)
+        c2w = view.cam_to_world.double().numpy()
         np.testing.assert_allclose(cam["position"], c2w[:3, 3], atol=1e-4)
         np.testing.assert_allclose(cam["rotation"], c2w[:3, :3], atol=1e-5)
     # and differs from the COLMAP-frame model the run was trained from
