@@ -46,7 +46,7 @@ class TestDataclass:
         assert "scene" not in params and "context" not in params
         assert not any("Scene" in str(p.annotation) for p in params.values())
         settings = {f.name for f in dataclasses.fields(VisibilityDensifyConfig)}
-        assert settings | {"base", "on_addition", "log_size"} == set(params)
+        assert settings | {"base", "on_addition", "on_progress", "log_size"} == set(params)
 
     def test_init_does_not_rewrite_its_settings(self):
         s = VisibilityAwareDensification(view_selection=False)

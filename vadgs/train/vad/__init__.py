@@ -3,7 +3,9 @@
 - :mod:`~vadgs.train.vad.strategy`: :class:`VisibilityAwareDensification`, the gsplat-style strategy;
 - :mod:`~vadgs.train.vad.config`: its settings (:class:`VisibilityDensifyConfig`) and what the loop
   gives it (:class:`StrategyContext`);
-- :mod:`~vadgs.train.vad.event`: one event: ranking, references, the new flat Gaussians;
+- :mod:`~vadgs.train.vad.event`: one event: detection, ranking, references, the work budget, the
+  new flat Gaussians, the priors (the strategy's ``densify`` / ``detect`` delegate to it);
+- :mod:`~vadgs.train.vad.state`: the strategy's state in checkpoints (packed losslessly);
 - :mod:`~vadgs.train.vad.inputs`: the data it sees (:class:`VisibilityInputs`, from a vadgs scene or
   gsplat's COLMAP parser);
 - :mod:`~vadgs.train.vad.visibility`: the visibility index (voxel grids, voxel depth, covisibility);
@@ -23,13 +25,8 @@ from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, fi
 from vadgs.train.vad.inputs import TrackTable, VisibilityInputs
 from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender, reconstruct_instance
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
-from vadgs.train.vad.strategy import (
-    VisibilityAwareDensification,
-    check_info,
-    info_requirements,
-    pack_state,
-    unpack_state,
-)
+from vadgs.train.vad.state import pack_state, unpack_state
+from vadgs.train.vad.strategy import VisibilityAwareDensification, check_info, info_requirements
 from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = [

@@ -1,16 +1,21 @@
-"""The pure steps of a VAD-GS event, used by :class:`~vadgs.train.vad.VisibilityAwareDensification`.
+"""A VAD-GS event, run by :class:`~vadgs.train.vad.VisibilityAwareDensification`.
 
-Which flagged instances to reconstruct and from which views (:func:`rank_instances`,
-:func:`pick_references`), the flat Gaussians made of an instance's fused points
-(:func:`flat_gaussians`, oriented by :func:`normals_to_quats`), and the store of the loop's
-renders reused by the event (kept in the strategy's state between events). All are importable
-from :mod:`vadgs.train.vad`.
+The event itself (:func:`run_event`: detection with :func:`detect`, ranking, references, the work
+budget, reconstruction, :func:`add_reconstruction` and :func:`merge_priors`, the event's log), as
+functions of the strategy's parts (its methods ``densify``, ``detect`` and ``_add`` delegate here),
+and its pure steps: which flagged instances to reconstruct and from which views
+(:func:`rank_instances`, :func:`pick_references`), the flat Gaussians made of an instance's fused
+points (:func:`flat_gaussians`, oriented by :func:`normals_to_quats`), and the store of the loop's
+renders reused by the event (kept in the strategy's state between events). The pure steps are
+importable from :mod:`vadgs.train.vad`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Mapping
-from typing import Any
+import math
+import time
+from collections.abc import Callable, Collection, Mapping, MutableMapping
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -18,11 +23,29 @@ from vadgs.checks import check_finite, check_shape
 from vadgs.train.model import rotation_to_quat
 from vadgs.train.strategy import ops
 from vadgs.train.vad.config import RANKINGS
-from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete
+from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
 from vadgs.train.vad.inputs import VisibilityInputs
-from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender, VisibilityIndex
+from vadgs.train.vad.reconstruct import (
+    InstanceReconstruction,
+    ViewRender,
+    VisibilityIndex,
+    reconstruct_instance,
+)
 
-__all__ = ["flat_gaussians", "normals_to_quats", "pick_references", "rank_instances"]
+if TYPE_CHECKING:  # the strategy imports this module: its type only for the hints
+    from vadgs.train.vad.config import VisibilityDensifyConfig
+    from vadgs.train.vad.strategy import VisibilityAwareDensification
+
+__all__ = [
+    "add_reconstruction",
+    "detect",
+    "flat_gaussians",
+    "merge_priors",
+    "normals_to_quats",
+    "pick_references",
+    "rank_instances",
+    "run_event",
+]
 
 _C0 = 0.28209479177387814
 
@@ -286,3 +309,232 @@ def _view_test(
         config,
     )
     return tuple(rows)
+
+
+@torch.no_grad()
+def detect(
+    index: VisibilityIndex,
+    views: list[int],
+    render: Callable[[int], ViewRender],
+    tests: Mapping[int, tuple[torch.Tensor, ...]],
+    incomplete: IncompleteConfig,
+) -> tuple[IncompleteInstances, list[int]]:
+    """The incompleteness test of ``views`` (``VisibilityAwareDensification.detect``'s body).
+
+    A view in ``tests`` (the fields of its one-view test, from the loop's render) is not rendered
+    again; the others are rendered with ``render``. Returns ``(rows, views)``, ``rows.view``
+    indexing ``views``, on the device of the first view's test.
+    """
+    parts = []
+    for k, v in enumerate(views):
+        if v in tests:
+            fields = tests[v]
+        else:
+            out = render(v)
+            fields = _view_test(index, v, out.depth, out.alpha, incomplete)
+        one = IncompleteInstances(*fields)
+        parts.append(one._replace(view=torch.full_like(one.view, k)))
+    dev = parts[0].view.device
+    rows = IncompleteInstances(
+        *(torch.cat([getattr(p, f).to(dev) for p in parts]) for f in IncompleteInstances._fields)
+    )
+    return rows, views
+
+
+def merge_priors(priors: dict[int, tuple[torch.Tensor, torch.Tensor]], rec: InstanceReconstruction) -> None:
+    """Keep the MVS depth and normals of ``rec``'s views in ``priors`` (``state["vad_priors"]``).
+
+    Where a view already has priors, the new ones replace them only where the new depth exists.
+    """
+    for v, d, n in zip(rec.views, rec.depth, rec.normal):
+        old = priors.get(v)
+        if old is not None:
+            has = d > 0
+            d = torch.where(has, d, old[0])
+            n = torch.where(has, n, old[1])
+        priors[v] = (d, n)
+
+
+def add_reconstruction(
+    params: MutableMapping[str, torch.Tensor],
+    optimizers: Any,
+    state: dict[str, Any] | None,
+    rec: InstanceReconstruction,
+    keep: torch.Tensor | None,
+    event: int,
+    config: VisibilityDensifyConfig,
+    track_nodes: Callable[[], Mapping[int, int]],
+) -> None:
+    """Add the :func:`flat_gaussians` of ``rec``'s (kept) points (``VisibilityAwareDensification._add``).
+
+    Through :func:`~vadgs.train.strategy.ops.add_gaussians`, with ``node_ids`` (when ``params`` has
+    them) the node of the instance's track (``track_nodes()``: track id → node, asked only then),
+    or -1 for a static instance.
+    """
+    new = flat_gaussians(params, rec, keep, config.new_opacity, config.flatness, event)
+    p = getattr(params, "params", params)
+    node_ids = None
+    if "node_ids" in p:
+        node = -1 if rec.track is None else track_nodes()[rec.track]
+        m = new[ops.param_names(params).means].shape[0]
+        node_ids = torch.full((m,), node, dtype=torch.int64, device=p["node_ids"].device)
+    ops.add_gaussians(params, optimizers, state, new, node_ids)
+
+
+def run_event(
+    strategy: VisibilityAwareDensification,
+    params: MutableMapping[str, torch.Tensor],
+    optimizers: Any,
+    state: dict[str, Any],
+    step: int,
+) -> dict[str, Any]:
+    """One event of ``strategy`` (``VisibilityAwareDensification.densify``'s body); returns its log.
+
+    Detection (``strategy.detect``, reusing the loop's tests and renders kept in ``state``), the
+    candidates (flagged, not skipped by class, model or cooldown) ranked by :func:`rank_instances`,
+    then per instance, within ``max_instances`` and the budgets (PatchMatch work against
+    ``work_budget`` x ``strategy.trained_pixels(step)``; the opt-in wall-clock ``time_budget``):
+    :func:`pick_references`, :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` per
+    reference, ``strategy._add`` of the new points, :func:`merge_priors`. The log entry is appended
+    to ``state["vad_events"]`` and, with its summary, to ``state["pending_log"]`` (at most
+    ``strategy.log_size`` kept).
+    """
+    cfg = strategy.config
+    inputs = strategy._inputs()
+    context = strategy._context()
+    index = strategy.prepare()
+    renders = _Renders(context.render, state.get("vad_renders"))
+    t0 = time.perf_counter()
+    event = len(state["vad_events"])
+    say = strategy.on_progress or (lambda _line: None)
+    say(f"VAD-GS event {event + 1}: testing {len(inputs.train_views)} views")
+    tests = state.get("vad_tests") or {}
+    rows, views = strategy.detect(renders=renders, tests=tests)
+    t1 = time.perf_counter()
+    classes = index.classes()  # incl. derived instances (scenes without maps)
+    has_nodes = "node_ids" in getattr(params, "params", params)
+
+    def skip_reason(inst: int) -> str | None:
+        if classes.get(inst, "") in cfg.skip_classes:
+            return "skip_class"
+        if inst in inputs.tracks and not has_nodes:
+            return "static_model"  # a static model (no node_ids) cannot hold a moving object
+        if event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
+            return "cooldown"
+        return None
+
+    # the flagged views of each candidate instance, with its pixel count there
+    flagged: dict[int, list[tuple[int, int]]] = {}
+    skipped: dict[str, int] = {}
+    for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
+        inst = int(rows.instance[k])
+        if skip_reason(inst) is None:
+            flagged.setdefault(inst, []).append((views[int(rows.view[k])], int(rows.pixels[k])))
+    flagged_ids = set(rows.instance[rows.flagged].tolist())
+    for inst in flagged_ids - set(flagged):
+        why = skip_reason(inst)
+        skipped[why] = skipped.get(why, 0) + 1
+    best = {i: max(c, key=lambda vp: vp[1])[1] for i, c in flagged.items()}
+    ranked = rank_instances(best, classes, cfg.ranking)
+    added, log = 0, []
+    t_mvs = 0.0
+    work_budget = math.inf if cfg.work_budget is None else cfg.work_budget * strategy.trained_pixels(step)
+    time_cap = math.inf
+    if cfg.time_budget is not None:
+        time_cap = cfg.time_budget * float(state.get("vad_train_s", 0.0))
+    work = 0.0  # PatchMatch pixel-sweeps of this event so far (match_work)
+    occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
+    done = repaired = 0
+    for k, inst in enumerate(ranked):
+        if cfg.max_instances is not None and done >= cfg.max_instances:
+            skipped["max_instances"] = skipped.get("max_instances", 0) + 1
+            continue
+        if log and work > work_budget:
+            skipped["work_budget"] = skipped.get("work_budget", 0) + 1
+            continue
+        if log and time.perf_counter() - t0 > time_cap:
+            skipped["time_budget"] = skipped.get("time_budget", 0) + 1
+            continue
+        say(
+            f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
+            f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
+        )
+        whole = (
+            [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
+            if cfg.whole_reference
+            else None
+        )
+        refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
+        entry_views, points, n_new_total, reasons, work0 = [], 0, 0, [], work
+        frame_key = inst if inst in inputs.tracks else None
+        for ref in refs:
+            ta = time.perf_counter()
+            taken = occupied.get(frame_key)
+            rec = reconstruct_instance(
+                index, ref, inst, strategy._reconstruct_config(), context.generator, renders,
+                occupied=torch.cat(taken) if taken else None,
+            )  # fmt: skip
+            t_mvs += time.perf_counter() - ta
+            work += rec.work
+            n_new = int(rec.points.shape[0])
+            if n_new:
+                strategy._add(params, optimizers, state, rec, event=event + 1)
+                occupied.setdefault(frame_key, []).append(rec.points)
+                if strategy.on_addition is not None:
+                    before = renders(ref)
+                    strategy.on_addition(
+                        {"instance": inst, "view": ref, "step": step, "added": n_new,
+                         "depth": before.depth[0], "alpha": before.alpha[0]}
+                    )  # fmt: skip
+            if cfg.geometric_losses:
+                merge_priors(state["vad_priors"], rec)
+            entry_views.append(rec.views)
+            points += n_new
+            n_new_total += n_new
+            reasons.append(rec.reason)
+        added += n_new_total
+        done += points > 0
+        repaired += n_new_total > 0
+        state["vad_last_done"][inst] = event
+        log.append(
+            {
+                "instance": inst,
+                "class": classes.get(inst, "?"),
+                "references": refs,
+                "views": entry_views,
+                "points": points,
+                "added": n_new_total,
+                "work": work - work0,
+                "reason": "; ".join(dict.fromkeys(reasons)),
+            }
+        )
+    t2 = time.perf_counter()
+    state["vad_tests"] = {}  # the next event tests (and renders) the views trained after this one
+    state["vad_renders"] = {}
+    entry = {
+        "step": step,
+        "cycle": state["vad_cycle"],
+        "flagged": int(rows.flagged.sum()),
+        "tested": int(rows.flagged.numel()),
+        "flagged_instances": len(flagged_ids),
+        "candidates": len(best),
+        "attempted": len(log),
+        "repaired": repaired,
+        "skipped": skipped,
+        "instances": log,
+        "added": added,
+        "views_rendered": renders.rendered,
+        "tests_reused": sum(v in tests for v in views),
+        "work": work,
+        "work_budget": None if math.isinf(work_budget) else work_budget,
+        "budget_s": None if math.isinf(time_cap) else time_cap,
+        "detect_s": t1 - t0,
+        "mvs_s": t_mvs,
+        "total_s": t2 - t0,
+    }
+    state["vad_events"].append(entry)
+    summary = _event_summary(entry, cfg)
+    log_list = state.setdefault("pending_log", [])
+    log_list.append({"kind": "visibility_densification", "summary": summary, **entry})
+    del log_list[: -strategy.log_size]  # bounded when the loop does not pop it
+    return entry

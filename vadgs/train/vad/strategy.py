@@ -41,9 +41,7 @@ strategy (plain ADC), ``view_selection=False`` uses consecutive frames of the re
 from __future__ import annotations
 
 import inspect
-import math
 import time
-import zlib
 from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -52,13 +50,12 @@ import torch
 
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import DefaultStrategy, ops
+from vadgs.train.vad import event as vad_event
 from vadgs.train.vad.config import RANKINGS as RANKINGS
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
 from vadgs.train.vad.event import (
     _chw,
-    _event_summary,
     _keep_render,
-    _Renders,
     _view_test,
     flat_gaussians,
     normals_to_quats,
@@ -73,8 +70,8 @@ from vadgs.train.vad.reconstruct import (
     ViewRender,
     VisibilityIndex,
     build_visibility_index,
-    reconstruct_instance,
 )
+from vadgs.train.vad.state import pack_state, unpack_state
 
 __all__ = [
     "StrategyContext",
@@ -509,24 +506,13 @@ class VisibilityAwareDensification:
             ``(rows, views)``: :class:`~vadgs.train.vad.incomplete.IncompleteInstances` (``rows.view``
             indexes ``views``) and the views tested.
         """
-        index = self.prepare()
-        render = renders or self._context().render
-        views = views if views is not None else list(self._inputs().train_views)
-        tests = tests or {}
-        parts = []
-        for k, v in enumerate(views):
-            if v in tests:
-                fields = tests[v]
-            else:
-                out = render(v)
-                fields = _view_test(index, v, out.depth, out.alpha, self.incomplete)
-            one = IncompleteInstances(*fields)
-            parts.append(one._replace(view=torch.full_like(one.view, k)))
-        dev = parts[0].view.device
-        rows = IncompleteInstances(
-            *(torch.cat([getattr(p, f).to(dev) for p in parts]) for f in IncompleteInstances._fields)
+        return vad_event.detect(
+            self.prepare(),
+            views if views is not None else list(self._inputs().train_views),
+            renders or self._context().render,
+            tests or {},
+            self.incomplete,
         )
-        return rows, views
 
     def densify(
         self,
@@ -535,152 +521,11 @@ class VisibilityAwareDensification:
         state: dict[str, Any],
         step: int,
     ) -> dict[str, Any]:
-        """One visibility-aware densification event (detect, reconstruct, add); returns its log."""
-        cfg = self.config
-        inputs = self._inputs()
-        context = self._context()
-        index = self.prepare()
-        renders = _Renders(context.render, state.get("vad_renders"))
-        t0 = time.perf_counter()
-        event = len(state["vad_events"])
-        say = self.on_progress or (lambda _line: None)
-        say(f"VAD-GS event {event + 1}: testing {len(inputs.train_views)} views")
-        tests = state.get("vad_tests") or {}
-        rows, views = self.detect(renders=renders, tests=tests)
-        t1 = time.perf_counter()
-        classes = index.classes()  # incl. derived instances (scenes without maps)
-        has_nodes = "node_ids" in getattr(params, "params", params)
+        """One visibility-aware densification event (detect, reconstruct, add); returns its log.
 
-        def skip_reason(inst: int) -> str | None:
-            if classes.get(inst, "") in cfg.skip_classes:
-                return "skip_class"
-            if inst in inputs.tracks and not has_nodes:
-                return "static_model"  # a static model (no node_ids) cannot hold a moving object
-            if event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
-                return "cooldown"
-            return None
-
-        # the flagged views of each candidate instance, with its pixel count there
-        flagged: dict[int, list[tuple[int, int]]] = {}
-        skipped: dict[str, int] = {}
-        for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
-            inst = int(rows.instance[k])
-            if skip_reason(inst) is None:
-                flagged.setdefault(inst, []).append((views[int(rows.view[k])], int(rows.pixels[k])))
-        flagged_ids = set(rows.instance[rows.flagged].tolist())
-        for inst in flagged_ids - set(flagged):
-            why = skip_reason(inst)
-            skipped[why] = skipped.get(why, 0) + 1
-        best = {i: max(c, key=lambda vp: vp[1])[1] for i, c in flagged.items()}
-        ranked = rank_instances(best, classes, cfg.ranking)
-        added, log = 0, []
-        t_mvs = 0.0
-        work_budget = math.inf if cfg.work_budget is None else cfg.work_budget * self.trained_pixels(step)
-        time_cap = math.inf
-        if cfg.time_budget is not None:
-            time_cap = cfg.time_budget * float(state.get("vad_train_s", 0.0))
-        work = 0.0  # PatchMatch pixel-sweeps of this event so far (match_work)
-        occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
-        done = repaired = 0
-        for k, inst in enumerate(ranked):
-            if cfg.max_instances is not None and done >= cfg.max_instances:
-                skipped["max_instances"] = skipped.get("max_instances", 0) + 1
-                continue
-            if log and work > work_budget:
-                skipped["work_budget"] = skipped.get("work_budget", 0) + 1
-                continue
-            if log and time.perf_counter() - t0 > time_cap:
-                skipped["time_budget"] = skipped.get("time_budget", 0) + 1
-                continue
-            say(
-                f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
-                f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
-            )
-            whole = (
-                [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
-                if cfg.whole_reference
-                else None
-            )
-            refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
-            entry_views, points, n_new_total, reasons, work0 = [], 0, 0, [], work
-            frame_key = inst if inst in inputs.tracks else None
-            for ref in refs:
-                ta = time.perf_counter()
-                taken = occupied.get(frame_key)
-                rec = reconstruct_instance(
-                    index, ref, inst, self._reconstruct_config(), context.generator, renders,
-                    occupied=torch.cat(taken) if taken else None,
-                )  # fmt: skip
-                t_mvs += time.perf_counter() - ta
-                work += rec.work
-                n_new = int(rec.points.shape[0])
-                if n_new:
-                    self._add(params, optimizers, state, rec, event=event + 1)
-                    occupied.setdefault(frame_key, []).append(rec.points)
-                    if self.on_addition is not None:
-                        before = renders(ref)
-                        self.on_addition(
-                            {"instance": inst, "view": ref, "step": step, "added": n_new,
-                             "depth": before.depth[0], "alpha": before.alpha[0]}
-                        )  # fmt: skip
-                if cfg.geometric_losses:
-                    for v, d, n in zip(rec.views, rec.depth, rec.normal):
-                        old = state["vad_priors"].get(v)
-                        if old is not None:
-                            has = d > 0
-                            d = torch.where(has, d, old[0])
-                            n = torch.where(has, n, old[1])
-                        state["vad_priors"][v] = (d, n)
-                entry_views.append(rec.views)
-                points += n_new
-                n_new_total += n_new
-                reasons.append(rec.reason)
-            added += n_new_total
-            done += points > 0
-            repaired += n_new_total > 0
-            state["vad_last_done"][inst] = event
-            log.append(
-                {
-                    "instance": inst,
-                    "class": classes.get(inst, "?"),
-                    "references": refs,
-                    "views": entry_views,
-                    "points": points,
-                    "added": n_new_total,
-                    "work": work - work0,
-                    "reason": "; ".join(dict.fromkeys(reasons)),
-                }
-            )
-        t2 = time.perf_counter()
-        state["vad_tests"] = {}  # the next event tests (and renders) the views trained after this one
-        state["vad_renders"] = {}
-        entry = {
-            "step": step,
-            "cycle": state["vad_cycle"],
-            "flagged": int(rows.flagged.sum()),
-            "tested": int(rows.flagged.numel()),
-            "flagged_instances": len(flagged_ids),
-            "candidates": len(best),
-            "attempted": len(log),
-            "repaired": repaired,
-            "skipped": skipped,
-            "instances": log,
-            "added": added,
-            "views_rendered": renders.rendered,
-            "tests_reused": sum(v in tests for v in views),
-            "work": work,
-            "work_budget": None if math.isinf(work_budget) else work_budget,
-            "budget_s": None if math.isinf(time_cap) else time_cap,
-            "detect_s": t1 - t0,
-            "mvs_s": t_mvs,
-            "total_s": t2 - t0,
-        }
-        state["vad_events"].append(entry)
-        summary = _event_summary(entry, cfg)
-        log_list = state.setdefault("pending_log", [])
-        log_list.append({"kind": "visibility_densification", "summary": summary, **entry})
-        del log_list[: -self.log_size]  # bounded when the loop does not pop it
-        return entry
+        See :func:`vadgs.train.vad.event.run_event`.
+        """
+        return vad_event.run_event(self, params, optimizers, state, step)
 
     def _add(
         self,
@@ -691,20 +536,10 @@ class VisibilityAwareDensification:
         keep: torch.Tensor | None = None,
         event: int = 1,
     ) -> None:
-        """Add the :func:`~vadgs.train.vad.event.flat_gaussians` of the (kept) points.
-
-        Through :func:`~vadgs.train.strategy.ops.add_gaussians`, with ``node_ids`` (when ``params`` has
-        them) the node of the instance's track, or -1 for a static instance.
-        """
-        cfg = self.config
-        new = flat_gaussians(params, rec, keep, cfg.new_opacity, cfg.flatness, event)
-        p = getattr(params, "params", params)
-        node_ids = None
-        if "node_ids" in p:
-            node = -1 if rec.track is None else self._track_nodes()[rec.track]
-            m = new[ops.param_names(params).means].shape[0]
-            node_ids = torch.full((m,), node, dtype=torch.int64, device=p["node_ids"].device)
-        ops.add_gaussians(params, optimizers, state, new, node_ids)
+        """Add the flat Gaussians of the (kept) points (:func:`~vadgs.train.vad.event.add_reconstruction`)."""
+        vad_event.add_reconstruction(
+            params, optimizers, state, rec, keep, event, self.config, self._track_nodes
+        )
 
     def _track_nodes(self) -> Mapping[int, int]:
         if self.context is not None and self.context.track_nodes is not None:
@@ -740,57 +575,3 @@ class VisibilityAwareDensification:
         depth = depth[..., :h, :w]
         normal = None if normal is None else normal[..., :h, :w]
         return GeometryTargets(depth=depth[None], normal=normal if normal is None else normal[None])
-
-
-# -- the state in checkpoints ------------------------------------------------------------------------
-
-
-def _pack_tensor(x: torch.Tensor) -> dict[str, Any]:
-    raw = x.detach().cpu().contiguous().view(torch.uint8).reshape(-1).numpy().tobytes()
-    return {"zlib": torch.frombuffer(bytearray(zlib.compress(raw, 1)), dtype=torch.uint8),
-            "shape": list(x.shape), "dtype": str(x.dtype).removeprefix("torch.")}  # fmt: skip
-
-
-def _unpack_tensor(packed: dict[str, Any]) -> torch.Tensor:
-    raw = bytearray(zlib.decompress(packed["zlib"].numpy().tobytes()))
-    return torch.frombuffer(raw, dtype=getattr(torch, packed["dtype"])).reshape(packed["shape"]).clone()
-
-
-def pack_state(state: dict[str, Any]) -> dict[str, Any]:
-    """The strategy's state for a checkpoint: its per-view maps zlib-compressed, losslessly.
-
-    The MVS priors (``vad_priors``) are zero outside the instances an event reconstructed (and
-    piecewise constant where MVS ran at a coarser scale), so they compress several times (6x on
-    the bundled sample); the loop's kept renders (``vad_renders``, float16, only while an event
-    can still follow) about 1.4x. The other entries are kept as they are. :func:`unpack_state`
-    gives back the same bits, so a resumed run stays exact. A state without them (the standard
-    strategy's, gsplat's) is returned unchanged.
-
-    Example:
-        >>> prior = (torch.zeros(1, 4, 6), torch.zeros(3, 4, 6))
-        >>> prior[0][0, 1, 2] = 7.5
-        >>> back = unpack_state(pack_state({"vad_priors": {3: prior}, "count": 1}))
-        >>> torch.equal(back["vad_priors"][3][0], prior[0]), back["count"]
-        (True, 1)
-    """
-    out = dict(state)
-    for key in _PACKED:
-        maps = state.get(key)
-        if maps:
-            out[key] = {v: {"packed": [_pack_tensor(x) for x in m]} for v, m in maps.items()}
-    return out
-
-
-def unpack_state(state: dict[str, Any]) -> dict[str, Any]:
-    """The inverse of :func:`pack_state` (a state stored without packing is returned as it is)."""
-    out = state
-    for key in _PACKED:
-        maps = state.get(key)
-        if maps and any(isinstance(m, dict) for m in maps.values()):
-            out = out if out is not state else dict(state)
-            out[key] = {v: tuple(_unpack_tensor(x) for x in m["packed"]) if isinstance(m, dict) else m
-                        for v, m in maps.items()}  # fmt: skip
-    return out
-
-
-_PACKED = ("vad_priors", "vad_renders")  # per view: a tuple of maps
