@@ -83,14 +83,21 @@ class TestShortRunSchedule:
         s = scale_schedule(TrainConfig(iterations=30)).strategy
         assert (s.refine_start_iter, s.refine_every) == (5, 10)  # at least 10 steps of statistics
 
-    def test_cli_scales_what_no_flag_sets(self, tmp_path, capsys):
+    def test_cli_scales_unless_a_flag_sets_it(self, tmp_path, capsys):
         out = tmp_path / "r"
         args = ["train", "--sample", "--scale", "0.25", "--out", str(out), "--iterations", "300",
-                "--strategy.refine-every", "25", "--max-minutes", "1e-9", "--no-progress"]  # fmt: skip
+                "--max-minutes", "1e-9", "--no-progress"]  # fmt: skip
         main(args)
         assert "short run: the schedule follows --iterations 300 (x0.1 of 3000)" in capsys.readouterr().out
         s = json.loads((out / "config.json").read_text())["config"]["strategy"]
-        assert (s["refine_start_iter"], s["refine_every"], s["reset_every"]) == (50, 25, 300)
+        assert (s["refine_start_iter"], s["refine_every"], s["reset_every"]) == (50, 10, 300)
+        # a schedule flag: the schedule is the caller's, as given
+        main([*args[:5], str(tmp_path / "own"), *args[6:], "--strategy.refine-every", "25"])
+        said = capsys.readouterr().out
+        assert "short run: the schedule" not in said
+        assert "WARNING: no densification in 300 steps: refine_start_iter 500, refine_every 25" in said
+        s = json.loads((tmp_path / "own" / "config.json").read_text())["config"]["strategy"]
+        assert (s["refine_start_iter"], s["refine_every"], s["reset_every"]) == (500, 25, 3000)
         # --resume keeps the checkpoint's schedule, says nothing
         assert main(["train", "--out", str(out), "--resume", "--max-minutes", "1e-9", "--no-progress"]) == 0
         assert "short run" not in capsys.readouterr().out

@@ -229,24 +229,18 @@ def parse_train(argv: list[str]) -> TrainCommand | None:
 def _short_run_schedule(config: TrainConfig, argv: list[str], data: dict) -> TrainConfig:
     """The schedule of a run shorter than the defaults' 3000 steps, scaled to ``--iterations``.
 
-    :func:`~vadgs.train.config.scale_schedule` (gsplat's ``steps_scaler``) on the step counts that
-    neither a flag nor the ``--config`` file sets; said in one line.
+    :func:`~vadgs.train.config.scale_schedule` (gsplat's ``steps_scaler``), said in one line;
+    unless a flag or the ``--config`` file sets one of its step counts: the schedule is then the
+    caller's, as given.
     """
     from vadgs.train.config import SCHEDULE_FIELDS, SCHEDULE_ITERATIONS, scale_schedule
 
-    scaled = scale_schedule(config)
-    if scaled == config:
-        return config
     given_flags = {a.split("=")[0].replace("_", "-") for a in argv if a.startswith("--")}
-    keep: dict[str, Any] = {}
-    for key in SCHEDULE_FIELDS:
-        if f"--strategy.{key.replace('_', '-')}" in given_flags or key in (data.get("strategy") or {}):
-            keep[key] = getattr(config.strategy, key)
-    strategy = dataclasses.replace(scaled.strategy, **keep)
-    sh = config.sh_degree_interval
-    if "--sh-degree-interval" not in given_flags and "sh_degree_interval" not in data:
-        sh = scaled.sh_degree_interval
-    out = dataclasses.replace(scaled, strategy=strategy, sh_degree_interval=sh)
+    flags = {f"--strategy.{k.replace('_', '-')}" for k in SCHEDULE_FIELDS} | {"--sh-degree-interval"}
+    in_file = set(data.get("strategy") or {}) & set(SCHEDULE_FIELDS) or "sh_degree_interval" in data
+    if given_flags & flags or in_file:
+        return config
+    out = scale_schedule(config)
     if out != config:
         s, f = out.strategy, config.iterations / SCHEDULE_ITERATIONS
         print(
