@@ -95,7 +95,7 @@ class TestBatchConfig:
         from vadgs.cli.train import _batch_train
 
         config, kind, options = _batch_train(" ".join(train_args) + " --vad --dgp --cameras a,b")
-        # the config file sets part of the schedule: it is not scaled to the 60 iterations (vadgs train's rule)
+        # the config file sets part of the schedule: not scaled to the 60 iterations (vadgs train's rule)
         assert config == TrainConfig.from_dict({**TINY, "vad": {}})
         assert (kind, options) == ("dgp", {"scale": 0.25, "cameras": ["a", "b"]})
         # a bad argument fails the whole batch at once, before Ray starts, in one line
