@@ -90,15 +90,38 @@ def dense_points(parser: SimpleNamespace, views: list[int], step: int = 4):
     return pts[valid], img[valid], spacing[valid]
 
 
-#: The deleted facade: the 10 m ground cell x in [30, 40) m, y in [-20, -10) m of the sample
+#: The deleted facade: the 10 m ground cell around this point (x, y in metres) of the sample
 #: (buildings 9 and 10 and their sidewalk), one derived instance of the COLMAP path.
-FACADE_CELL = (3, -2)
+FACADE_POINT = (35.0, -15.0)
 
 
-def facade_splats(parser: SimpleNamespace, inputs, cell_size: float = 10.0, cell=FACADE_CELL):
+def facade_cell(inputs, cell_size: float = 10.0, at=FACADE_POINT):
+    """``in_cell(points (Q, 3)) -> (Q,) bool``: the ``cell_size`` ground cell around ``at``, in the
+    ground frame VAD-GS derives its instances in (:func:`~vadgs.train.vad.visibility.ground_frame`
+    of the inputs' SfM points and the views' cameras, as ``build_visibility_index``)."""
+    import torch
+
+    from vadgs.geometry import invert_rigid
+    from vadgs.train.vad.visibility import ground_frame
+
+    rotation, origin = ground_frame(inputs.sfm.points, invert_rigid(inputs.cameras.world_to_cam))
+
+    def cell_of(p: torch.Tensor) -> torch.Tensor:
+        local = (p.double() - origin) @ rotation.T
+        return torch.floor(local[:, :2] / cell_size + 0.5).long()
+
+    target = cell_of(torch.tensor([[*at, 0.0]]))[0]
+
+    def in_cell(p: torch.Tensor) -> torch.Tensor:
+        return (cell_of(p) == target).all(1)
+
+    return in_cell
+
+
+def facade_splats(parser: SimpleNamespace, inputs, cell_size: float = 10.0, at=FACADE_POINT):
     """gsplat-layout splats (``ParameterDict``; ``shN`` of degree 0) and one Adam per key, from the
-    dense points of the training views with every point of ``cell`` deleted, opaque (so that the
-    complete instances pass the incompleteness test).
+    dense points of the training views with every point of the ground cell around ``at`` deleted
+    (:func:`facade_cell`), opaque (so that the complete instances pass the incompleteness test).
 
     Returns:
         ``(splats, optimizers, in_cell)``: ``in_cell(points (Q, 3)) -> (Q,) bool``.
@@ -108,10 +131,7 @@ def facade_splats(parser: SimpleNamespace, inputs, cell_size: float = 10.0, cell
     from vadgs.render import rgb_to_sh
 
     pts, col, spc = dense_points(parser, list(inputs.train_views))
-    target = torch.tensor(cell, dtype=torch.float32)
-
-    def in_cell(p: torch.Tensor) -> torch.Tensor:
-        return (torch.floor(p[:, :2] / cell_size) == target).all(1)
+    in_cell = facade_cell(inputs, cell_size, at)
 
     keep = ~in_cell(pts)
     assert int((~keep).sum()) > 1000  # a real facade is deleted

@@ -13,8 +13,9 @@ keyword arguments, a ``Dataset``-like shuffled loader of the training split (eve
 ``rasterization`` (no GPU here). ``render_for_vad`` is the diff's method, line for line.
 
 The scene: dense Gaussians of the sample's surfaces, opaque, with one derived instance of the COLMAP
-path deleted — the 10 m ground cell of buildings 9 and 10 (:data:`FACADE_CELL`). After one cycle of
-the training views, the event must flag that cell and re-populate it.
+path deleted — the 10 m ground cell of buildings 9 and 10
+(:data:`~tests.train.gsplat_parser.FACADE_POINT`). After one cycle of the training views, the event
+must flag that cell and re-populate it.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from vadgs.train.vad import (
 from vadgs.train.vad.reconstruct import ReconstructConfig
 
 from ..data.colmap_sample import write_sample_colmap
-from .gsplat_parser import FACADE_CELL, facade_splats, sample_parser
+from .gsplat_parser import facade_splats, sample_parser
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")
 
@@ -163,9 +164,9 @@ def test_simple_trainer_shape_repopulates_a_deleted_facade(parser):
     index = runner.vad.index
     assert index is not None and index.derives_instances  # built by prepare, before the loop
     # the deleted cell is one derived instance of the visibility index
-    cells = index.cell_ids()
-    cell_xy = torch.floor(index.grid.centers[:, :2] / index.cell_size)
-    facade = int(cells[(cell_xy == torch.tensor(FACADE_CELL, dtype=torch.float32)).all(1)][0])
+    cells = index.cell_ids()[runner.in_cell(index.grid.centers)]
+    facade = int(cells.mode().values)
+    assert (cells == facade).float().mean() > 0.95  # the deleted cell is (nearly) one derived cell
     losses = runner.train(steps)
     assert all(torch.isfinite(torch.tensor(losses)))
     (event,) = runner.strategy_state["vad_events"]
@@ -176,7 +177,7 @@ def test_simple_trainer_shape_repopulates_a_deleted_facade(parser):
     new = runner.splats["means"][n0:].detach()
     assert new.shape[0] == event["added"]
     inside = int(runner.in_cell(new).sum())
-    assert inside > 500, f"{inside} of {new.shape[0]} new Gaussians inside the deleted cell"
+    assert inside > 300, f"{inside} of {new.shape[0]} new Gaussians inside the deleted cell"
     assert inside > 0.8 * new.shape[0]
     # gsplat's optimizers and the base's running statistics follow the new rows
     n = runner.splats["means"].shape[0]

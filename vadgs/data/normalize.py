@@ -13,8 +13,9 @@ that brings one into a street-like frame:
 
 - **centre** ``c``: the mean of the camera centres (they move to the origin);
 - **up** ``R``: the smallest rotation taking the cameras' mean "up" direction (``-y`` of the OpenCV
-  camera axes, in world) to ``+z`` — as in the street scenes, whose derived instances are ground
-  cells in ``xy`` (:meth:`vadgs.train.vad.reconstruct.VisibilityIndex.cell_ids`);
+  camera axes, in world) to ``+z`` — as in the street scenes (the voxel grid's cubes then lie
+  level; derived instances follow the scene's own ground frame in any case,
+  :meth:`vadgs.train.vad.visibility.VisibilityIndex.ground_frame`);
 - **scale** ``s``: the median camera-to-point depth of the observations (``z`` of each observed
   point in the camera of each observation, the TRACK table) becomes ``target_depth`` (default 10
   units, "about 10 m", a typical street depth). Without observations, the median distance of the

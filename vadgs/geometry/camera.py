@@ -26,6 +26,7 @@ __all__ = [
     "camera_centers",
     "cameras_in_object_frame",
     "invert_rigid",
+    "level_up",
     "pixel_grid",
     "project_points",
     "relative_pose",
@@ -281,3 +282,44 @@ class Cameras:
     def in_object_frame(self, object_to_world: torch.Tensor) -> Cameras:
         """These cameras in a rigid object's frame (see :func:`cameras_in_object_frame`)."""
         return Cameras(self.K, cameras_in_object_frame(self.world_to_cam, object_to_world), self.image_size)
+
+
+def level_up(cam_to_world: torch.Tensor) -> torch.Tensor:
+    """The up direction ``(3,)`` (unit, float64) of cameras held level, from their image axes.
+
+    A photo held level has a horizontal image row, whatever its pitch: the up is the direction
+    normal to the cameras' horizontal image axes (the smallest eigenvector of their scatter),
+    signed as the ``-y`` of the photos not sideways. A camera's horizontal axis is its ``x``, or
+    its ``y`` for a photo stored sideways (its EXIF orientation tag, which COLMAP and vadgs
+    ignore, shows it upright): the one more normal to the current estimate, starting from the
+    mean ``-y``; three rounds. Where the axes leave the up open (every camera turned the same
+    way) the estimate nearest to the previous one is kept. Unlike the mean ``-y``, which leans
+    towards the object of cameras looking down at it, exact for level cameras.
+
+    Shape:
+        ``(V, 4, 4)`` (or ``(V, 3, 3)``) OpenCV camera-to-world → ``(3,)``, on the input's device.
+
+    Example:
+        >>> import math
+        >>> def cam(yaw, pitch):  # OpenCV axes (x right, y down, z forward) in a z-up world
+        ...     c, s = math.cos(pitch), math.sin(pitch)
+        ...     f = torch.tensor([c * math.cos(yaw), c * math.sin(yaw), -s])
+        ...     r = torch.tensor([math.sin(yaw), -math.cos(yaw), 0.0])
+        ...     return torch.stack([r, torch.linalg.cross(f, r), f], 1)
+        >>> c2w = torch.stack([cam(a, 0.6) for a in (0.0, 2.0, 4.0)])  # looking down
+        >>> [round(v, 6) + 0.0 for v in level_up(c2w).tolist()], float(-c2w[:, 2, 1].mean()) < 0.95
+        ([0.0, 0.0, 1.0], True)
+    """
+    rot = cam_to_world[..., :3, :3].double()
+    x, y = rot[:, :, 0], rot[:, :, 1]
+    start = torch.nn.functional.normalize(-y.mean(0), dim=0)
+    up = start
+    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
+    for _ in range(3):
+        sideways = (x @ up).abs() > (y @ up).abs()
+        horizontal = torch.where(sideways[:, None], y, x)
+        scatter = horizontal.T @ horizontal / len(rot) + 1e-4 * (eye - up[:, None] * up[None])
+        up = torch.linalg.eigh(scatter).eigenvectors[:, 0]
+        ref = -y[~sideways].sum(0) if bool((~sideways).any()) else start  # the level photos' up
+        up = -up if float(up @ ref) < 0 else up
+    return up

@@ -46,7 +46,7 @@ import torch
 
 from vadgs.checks import check_shape
 from vadgs.data.scene import Scene
-from vadgs.geometry.camera import invert_rigid
+from vadgs.geometry.camera import invert_rigid, level_up
 from vadgs.render import quaternion_to_rotation
 from vadgs.train.model import rotation_to_quat
 
@@ -375,43 +375,6 @@ def catmull_rom(points: torch.Tensor, t: torch.Tensor, alpha: float = 0.5) -> to
     b1 = ((t2 - tt) * a1 + (tt - t0) * a2) / (t2 - t0)
     b2 = ((t3 - tt) * a2 + (tt - t1) * a3) / (t3 - t1)
     return ((t2 - tt) * b1 + (tt - t1) * b2) / (t2 - t1)
-
-
-def level_up(cam_to_world: torch.Tensor) -> torch.Tensor:
-    """The up direction ``(3,)`` (unit, float64) of cameras held level, from their image axes.
-
-    A photo held level has a horizontal image row, whatever its pitch: the up is the direction
-    normal to the cameras' horizontal image axes (the smallest eigenvector of their scatter),
-    signed as the ``-y`` of the photos not sideways. A camera's horizontal axis is its ``x``, or
-    its ``y`` for a photo stored sideways (its EXIF orientation tag, which COLMAP and vadgs
-    ignore, shows it upright): the one more normal to the current estimate, starting from the
-    mean ``-y``; three rounds. Where the axes leave the up open (every camera turned the same
-    way) the estimate nearest to the previous one is kept. Unlike the mean ``-y``, which leans
-    towards the object of cameras looking down at it, exact for level cameras.
-
-    Shape:
-        ``(V, 4, 4)`` (or ``(V, 3, 3)``) OpenCV camera-to-world → ``(3,)``, on the input's device.
-
-    Example:
-        >>> from vadgs.train.results.trajectory import look_at
-        >>> pos = torch.tensor([[3.0, 0, 2], [0, 3, 2], [-3, 0, 2]])
-        >>> c2w = look_at(pos, torch.zeros(3), torch.tensor([0.0, 0, 1]))  # looking down at 0
-        >>> [round(v, 6) + 0.0 for v in level_up(c2w).tolist()], float(-c2w[:, 2, 1].mean()) < 0.95
-        ([0.0, 0.0, 1.0], True)
-    """
-    rot = cam_to_world[..., :3, :3].double()
-    x, y = rot[:, :, 0], rot[:, :, 1]
-    start = torch.nn.functional.normalize(-y.mean(0), dim=0)
-    up = start
-    eye = torch.eye(3, dtype=torch.float64, device=rot.device)
-    for _ in range(3):
-        sideways = (x @ up).abs() > (y @ up).abs()
-        horizontal = torch.where(sideways[:, None], y, x)
-        scatter = horizontal.T @ horizontal / len(rot) + 1e-4 * (eye - up[:, None] * up[None])
-        up = torch.linalg.eigh(scatter).eigenvectors[:, 0]
-        ref = -y[~sideways].sum(0) if bool((~sideways).any()) else start  # the level photos' up
-        up = -up if float(up @ ref) < 0 else up
-    return up
 
 
 def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:

@@ -56,8 +56,14 @@ def pick_references(
     count: int,
     min_frame_gap: int = 3,
     whole: Collection[int] | None = None,
+    tie: float = 0.05,
 ) -> list[int]:
     """Reference views of one instance: the largest first, then diverse ones.
+
+    Views within ``tie`` of the largest pixel count are taken as equally large and ordered by
+    view index: neighbouring frames often see an instance at a few percent of each other, and
+    that difference follows the voxels' discretisation (another world frame, e.g. gsplat's
+    normalised one, flips it), not the views.
 
     Args:
         candidates: ``(view, pixels)`` of the views where the instance was flagged.
@@ -70,6 +76,7 @@ def pick_references(
             given and no chosen view is one of them, the last reference is replaced by the
             largest of them that keeps the rule above (the close views with the most pixels may
             all cut off the same part, e.g. the top of a sign).
+        tie: relative band below the largest count whose views count as equally large.
 
     Returns:
         View indices, largest first.
@@ -81,6 +88,8 @@ def pick_references(
         [('front', 16), ('front_left', 16), ('front', 17)]
         >>> pick_references([(0, 500), (3, 450), (1, 100)], sc, 2)  # view 3: same camera, 1 frame on
         [0, 1]
+        >>> pick_references([(3, 500), (0, 490), (1, 100)], sc, 2)  # 0 and 3 tie (2 %): the first view
+        [0, 1]
     """
     if isinstance(scene, VisibilityInputs):
         cam, frame = scene.view_cameras, scene.view_frames
@@ -90,7 +99,14 @@ def pick_references(
     def apart(view: int, chosen: list[int]) -> bool:
         return all(cam[c] != cam[view] or abs(frame[c] - frame[view]) >= min_frame_gap for c in chosen)
 
-    order = [v for v, _px in sorted(candidates, key=lambda vp: (-vp[1], vp[0]))]
+    top = max((px for _v, px in candidates), default=0)
+    tied = {v for v, px in candidates if px >= (1 - tie) * top}
+    order = [
+        v
+        for v, _px in sorted(
+            candidates, key=lambda vp: (vp[0] not in tied, -vp[1] * (vp[0] not in tied), vp[0])
+        )
+    ]
     chosen: list[int] = []
     for view in order:
         if len(chosen) >= count:

@@ -528,7 +528,12 @@ def reconstruct_instance(
         cfg.thin_points and points.shape[0]
     ):  # one point per cell of the scene resolution's spacing, or coarser
         spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
-        keep = thin_points(points, float(spacing.median()), None if occupied is None else occupied.to(dev))
+        local, taken = points, None if occupied is None else occupied.to(dev)
+        if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
+            rotation, origin = (x.to(dev) for x in index.ground_frame())
+            local = (points.double() - origin) @ rotation.T
+            taken = None if taken is None else (taken.double() - origin) @ rotation.T
+        keep = thin_points(local, float(spacing.median()), taken)
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)

@@ -69,7 +69,8 @@ class ReconstructConfig:
             surface: without it, each surface patch becomes one point per member), at the scene's
             resolution or at the coarser matching scale; the points' ``spacing`` (the new Gaussians'
             width) is that of the cell. Finer matching of small instances then gives more accurate
-            points, not more of them.
+            points, not more of them. The cells lie on the axes of the static voxel grid's frame
+            (``VisibilityIndex.ground_frame``; a moving object's own frame), not the world's.
         thin_factor: for an instance matched below the scene's resolution (a large one, such as a
             facade: ``max_match_pixels``), the cell of ``thin_points`` is this many times the
             point spacing and the new Gaussians are as much wider: fewer, larger Gaussians on

@@ -24,7 +24,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from vadgs.geometry.camera import Cameras, project_points
+from vadgs.geometry.camera import Cameras, invert_rigid, level_up, project_points
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
@@ -38,6 +38,8 @@ __all__ = [
     "VisibilityIndex",
     "build_visibility_index",
     "derive_instance_map",
+    "ground_cells",
+    "ground_frame",
     "scene_lengths",
 ]
 
@@ -155,7 +157,9 @@ class VisibilityIndex:
         inputs: the :class:`~vadgs.train.vad.inputs.VisibilityInputs` it was built from (loaders,
             tracks, classes, per-view camera and frame).
         cameras: all views' cameras (world frame).
-        grid: static voxel grid (world frame).
+        grid: static voxel grid, in the scene's own ground frame (``static_to_world``): its cubes
+            and cells turn with the scene, so a rotated, shifted or rescaled copy of a scene
+            (gsplat's normalised world) gets the same voxels.
         labels: ``(M,)`` instance label of each static voxel.
         covis: view selection input over the static voxels.
         track_grids: track id → voxel grid in the object's frame.
@@ -170,6 +174,9 @@ class VisibilityIndex:
         cell_size: ground-cell edge of derived instances (scenes without instance maps).
         grow: pixels a derived instance map grows beyond the voxels.
         view_cache: the per-view cache.
+        static_to_world: ``(4, 4)`` rigid transform of the static grid's frame to the world
+            (:func:`ground_frame`: the cameras' up, the points' principal ground axes, their
+            median); the identity for a grid built in the world.
         scene_depth: the scene's length unit (``VisibilityInputs.median_view_depth``; 10 for
             vadgs's scenes) that the lengths left unset were derived from (:data:`LENGTHS`).
     """
@@ -188,6 +195,7 @@ class VisibilityIndex:
     grow: int = 6
     view_cache: ViewCache = field(default_factory=ViewCache, repr=False)
     scene_depth: float = REFERENCE_DEPTH
+    static_to_world: torch.Tensor = field(default_factory=lambda: torch.eye(4))
     _cells: torch.Tensor | None = field(default=None, repr=False)
     _corners: dict[int, torch.Tensor] = field(default_factory=dict, repr=False)
 
@@ -264,19 +272,38 @@ class VisibilityIndex:
         return self._corners[track]
 
     def cell_ids(self) -> torch.Tensor:
-        """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell."""
+        """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell.
+
+        The cells are :func:`ground_cells` of the voxel centres in the static grid's ground frame
+        (:meth:`ground_frame`): they move with the scene, so a rotated, shifted or rescaled copy of
+        it (gsplat's Parser normalisation) is cut into the same cells.
+        """
         if self._cells is None:
-            xy = torch.floor(self.grid.centers[:, :2] / self.cell_size).long()
-            _, cell = torch.unique(xy, dim=0, return_inverse=True)
+            eye = torch.eye(3, dtype=torch.float64, device=self.grid.centers.device)
+            cell = ground_cells(self.grid.centers, None, self.cell_size, (eye, eye[0] * 0))  # in the frame
             first = max([0, *self.inputs.tracks, *self.inputs.classes]) + 1
             self._cells = cell + first
         return self._cells
+
+    def ground_frame(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The static grid's frame in the world: :func:`ground_frame` of the static points and cameras.
+
+        Returns ``(rotation, origin)`` (float64): ``local = (x - origin) @ rotation.T``.
+        """
+        rot = self.static_to_world[:3, :3].double()
+        return rot.T, self.static_to_world[:3, 3].double()
+
+    def static_cameras(self) -> torch.Tensor:
+        """``(V, 4, 4)`` every view's world-to-camera in the static grid's frame."""
+        return self.cameras.world_to_cam @ self.static_to_world.to(self.cameras.world_to_cam)
 
     def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
 
         def make() -> tuple[torch.Tensor, torch.Tensor]:
-            r = rasterize_voxels(self.grid, self.camera(view), [view], self.zbuffer)
+            cam = self.camera(view)
+            cam = Cameras(cam.K, self.static_cameras()[view : view + 1], cam.image_size)
+            r = rasterize_voxels(self.grid, cam, [view], self.zbuffer)
             return self.pad(r.depth[0]), self.pad(r.index[0], -1)
 
         return self.view_cache.get(("raster", view), make)
@@ -319,12 +346,160 @@ class VisibilityIndex:
         return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
 
 
-def _covis(grid: VoxelGrid, world_to_cam: torch.Tensor, inputs: VisibilityInputs) -> Covisibility:
+def ground_frame(
+    points: torch.Tensor, cam_to_world: torch.Tensor, walls: float | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The scene's own ground frame: the cameras' up, the points' principal ground axes, their median.
+
+    The up is :func:`~vadgs.geometry.camera.level_up` of the cameras (the world's ``z`` without
+    cameras); the two ground axes are the principal axes of the points projected on the ground
+    plane (the larger first); the origin is the points' median along each of the three axes (the
+    middle two averaged). A rotated, shifted or uniformly scaled copy of the scene has the same
+    frame, moved with it, up to the sign of each axis (an eigen-solver's choice): what is built on
+    it (:func:`ground_cells`, the thinning of new points) is symmetric about the origin.
+
+    With ``walls``, the ground axes are then turned about the up onto the scene's walls (a
+    Manhattan alignment): the turn, searched over a quarter turn from the principal axes, that
+    gives the points' coordinates the sharpest histogram at a bin of ``walls`` (walls are thin
+    peaks along their normal). A street's principal axis can lie a degree or two off its facades;
+    voxels on the facades' axes give their z-buffer flat faces.
+
+    Args:
+        points: ``(M, 3)`` points (voxel centres), world frame; ``M >= 1``.
+        cam_to_world: ``(V, 4, 4)`` OpenCV camera-to-world of the views that saw them.
+        walls: histogram bin of the wall alignment (a voxel edge), or None for the principal axes.
+
+    Returns:
+        ``(rotation, origin)``, float64 on the points' device: ``local = (x - origin) @ rotation.T``,
+        the rows of ``rotation`` the major ground axis, the minor one and the up.
+
+    Example:
+        >>> pts = torch.tensor([[0.0, 0, 0], [4, 3, 0], [8, 6, 0], [12, 9, 1]])
+        >>> rot, origin = ground_frame(pts, torch.empty(0, 4, 4))  # no cameras: z up
+        >>> [round(abs(v), 3) for v in rot[0].tolist()], [round(v, 6) for v in origin.tolist()]
+        ([0.8, 0.6, 0.0], [6.0, 4.5, 0.0])
+    """
+    p = points.double()
+    up = level_up(cam_to_world.to(p.device)) if len(cam_to_world) else p.new_tensor([0.0, 0.0, 1.0])
+    flat = p - (p @ up)[:, None] * up  # in the ground plane
+    centred = flat - flat.mean(0)
+    eye = torch.eye(3, dtype=p.dtype, device=p.device)
+    scatter = centred.T @ centred / len(p) + 1e-9 * (eye - up[:, None] * up[None])
+    axes = torch.linalg.eigh(scatter).eigenvectors[:, 1:]  # the two ground axes (up's value is ~0)
+    rotation = torch.stack([axes[:, 1], axes[:, 0], up])
+    if walls is not None and len(p) > 1:
+        rotation = _align_walls(p, rotation, walls)
+    ranked = (p @ rotation.T).sort(0).values
+    middle = 0.5 * (ranked[(len(p) - 1) // 2] + ranked[len(p) // 2])
+    return rotation, middle @ rotation
+
+
+def _align_walls(
+    p: torch.Tensor, rotation: torch.Tensor, bin_size: float, max_points: int = 200_000
+) -> torch.Tensor:
+    """``rotation`` turned about its up (third row) onto the walls of ``p`` (:func:`ground_frame`).
+
+    The candidates are turns from the principal axes (a quarter turn in 0.5° steps, then ±0.5°
+    in 0.05° steps), so a rotated copy of the points meets the same candidates.
+    """
+    sub = p[:: max(1, len(p) // max_points)]
+    uv0 = sub @ rotation[:2].T
+
+    def score(angles: torch.Tensor) -> torch.Tensor:
+        c, s = torch.cos(angles), torch.sin(angles)
+        out = []
+        for ci, si in zip(c.tolist(), s.tolist()):
+            u = uv0[:, 0] * ci + uv0[:, 1] * si
+            v = -uv0[:, 0] * si + uv0[:, 1] * ci
+            total = 0.0
+            for x in (u, v):
+                q = torch.floor((x - x.min()) / bin_size).long()
+                total += float(torch.bincount(q).double().pow(2).sum())
+            out.append(total)
+        return torch.tensor(out, dtype=torch.float64)
+
+    coarse = torch.arange(180, dtype=torch.float64) * (math.pi / 360)
+    best = float(coarse[int(score(coarse).argmax())])
+    fine = best + torch.arange(-10, 11, dtype=torch.float64) * (math.pi / 3600)
+    angle = float(fine[int(score(fine).argmax())])
+    c, s = math.cos(angle), math.sin(angle)
+    a, b = rotation[0], rotation[1]
+    return torch.stack([c * a + s * b, -s * a + c * b, rotation[2]])
+
+
+def ground_cells(
+    points: torch.Tensor,
+    cam_to_world: torch.Tensor | None,
+    cell_size: float,
+    frame: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Cell index of each point in a grid of ``cell_size`` ground squares that moves with the scene.
+
+    The squares lie in the ground plane of :func:`ground_frame`, along its axes, one centred on
+    its origin (the points' median): a rotated, shifted or uniformly scaled copy of a scene
+    (``cell_size`` scaled with it) is cut into the same cells, where square cells fixed to the
+    world's axes would cut it elsewhere. Cells are numbered by their number of points, most first
+    (ties: nearest to the origin, then lowest, first).
+
+    Args:
+        points: ``(M, 3)`` points (voxel centres), world frame.
+        cam_to_world: ``(V, 4, 4)`` OpenCV camera-to-world of the views that saw them (unused
+            when ``frame`` is given).
+        cell_size: the squares' edge, in world units (> 0).
+        frame: :func:`ground_frame` of these points and cameras, when already computed.
+
+    Returns:
+        ``(M,)`` int64 cell index in ``[0, number of cells)``, on the points' device.
+
+    Example:
+        >>> import math
+        >>> pts = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([40.0, 8, 3])
+        >>> c2w = torch.eye(4)[None].repeat(2, 1, 1)
+        >>> c2w[:, :3, :3] = torch.tensor([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # level, z up
+        >>> a = ground_cells(pts, c2w, 10.0)
+        >>> c, s = math.cos(1.0), math.sin(1.0)
+        >>> R = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        >>> moved = c2w.clone()
+        >>> moved[:, :3, :3] = R @ c2w[:, :3, :3]
+        >>> b = ground_cells(0.05 * (pts @ R.T) + 3.0, moved, 0.5)  # turned, shifted, 1/20
+        >>> int(a.max()) + 1, bool((a == b).all())
+        (5, True)
+    """
+    if not cell_size > 0:
+        raise ValueError(f"cell_size: expected > 0, got {cell_size}")
+    if len(points) == 0:
+        return torch.zeros(0, dtype=torch.long, device=points.device)
+    rotation, origin = frame if frame is not None else ground_frame(points, cam_to_world)
+    local = (points.double() - origin) @ rotation.T
+    ij = torch.floor(local[:, :2] / cell_size + 0.5).long()  # the origin in a cell's centre
+    _, cell, count = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
+    centre = ij.double().norm(dim=1)  # a cell's distance from the origin, in cells
+    dist = torch.zeros(len(count), dtype=local.dtype, device=local.device)
+    dist = dist.scatter_reduce(0, cell, centre, "amax", include_self=False)
+    height = torch.zeros_like(dist).index_add_(0, cell, local[:, 2] / cell_size) / count  # mean height
+    key = [(-int(n), round(float(d), 6), round(float(h), 6)) for n, d, h in zip(count, dist, height)]
+    order = sorted(range(len(count)), key=lambda c: (*key[c], c))
+    rank = torch.empty_like(count)
+    rank[torch.tensor(order, device=count.device)] = torch.arange(len(count), device=count.device)
+    return rank[cell]
+
+
+def _covis(
+    grid: VoxelGrid,
+    world_to_cam: torch.Tensor,
+    inputs: VisibilityInputs,
+    to_world: torch.Tensor | None = None,
+) -> Covisibility:
+    """Covisibility of a grid's voxels in the frame of ``world_to_cam``.
+
+    ``to_world`` takes the grid's frame to that one, when the grid is in another.
+    """
     cam_ids = torch.tensor(inputs.view_cameras)
     frame_ids = torch.tensor(inputs.view_frames)
-    return Covisibility.from_csr(
-        grid.vis_indptr, grid.vis_views, grid.centers, world_to_cam, cam_ids, frame_ids
-    )
+    centers = grid.centers
+    if to_world is not None:
+        centers = centers @ to_world[:3, :3].T.to(centers) + to_world[:3, 3].to(centers)
+    return Covisibility.from_csr(grid.vis_indptr, grid.vis_views, centers, world_to_cam, cam_ids, frame_ids)
 
 
 def _box_corners(track) -> torch.Tensor:
@@ -465,9 +640,17 @@ def build_visibility_index(
     depth = float(scene_depth) if scene_depth is not None else inputs.median_view_depth()
     lengths = scene_lengths(depth, voxel_size=voxel_size, cell_size=cell_size)
     voxel_size = lengths["voxel_size"]
-    grid = voxelize(points, voxel_size, point_views, inputs.num_views)
-    labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
     cameras, sizes = inputs.cameras, inputs.sizes
+    # the static grid in the scene's own ground frame: the same voxels in any world frame
+    rotation, origin = ground_frame(points, invert_rigid(cameras.world_to_cam), walls=voxel_size)
+    if torch.linalg.det(rotation) < 0:  # right-handed (the sign of an axis is free)
+        rotation = rotation * rotation.new_tensor([1.0, -1.0, 1.0])[:, None]
+    static_to_world = torch.eye(4, dtype=torch.float64, device=rotation.device)
+    static_to_world[:3, :3], static_to_world[:3, 3] = rotation.T, origin
+    static_to_world = static_to_world.to(dtype=points.dtype, device=cameras.K.device)
+    local = ((points.double().to(rotation.device) - origin) @ rotation.T).to(points)
+    grid = voxelize(local, voxel_size, point_views, inputs.num_views)
+    labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
     allowed = torch.zeros(inputs.num_views, dtype=torch.bool, device=cameras.K.device)
     allowed[list(inputs.train_views)] = True
     index = VisibilityIndex(
@@ -475,7 +658,7 @@ def build_visibility_index(
         cameras,
         grid,
         labels,
-        _covis(grid, cameras.world_to_cam, inputs),
+        _covis(grid, cameras.world_to_cam, inputs, static_to_world),
         {},
         {},
         allowed,
@@ -483,6 +666,7 @@ def build_visibility_index(
         sizes,
         cell_size=lengths["cell_size"],
         scene_depth=depth,
+        static_to_world=static_to_world,
     )
     for tid in inputs.tracks if has_lidar else ():
         tacc = inputs.lidar(tid)
