@@ -1,4 +1,4 @@
-"""Geometry: cameras, poses, plane homographies, voxel grids and the voxel z-buffer.
+"""Geometry: cameras, poses, plane homographies, voxel grids, the voxel z-buffer, normal codes.
 
 Knows nothing about Gaussians or scenes: every function takes tensors and small dataclasses.
 """
@@ -21,6 +21,7 @@ from vadgs.geometry.homography import (
     plane_homography,
     warp_patches,
 )
+from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
 from vadgs.geometry.voxel import VoxelGrid, observing_views, voxelize
 from vadgs.geometry.zbuffer import VoxelRaster, VoxelRasterizer, ZBufferConfig, rasterize_voxels
 
@@ -37,6 +38,8 @@ __all__ = [
     "homography_warp",
     "invert_rigid",
     "observing_views",
+    "octahedral_decode",
+    "octahedral_encode",
     "pixel_grid",
     "plane_distance",
     "plane_homography",
