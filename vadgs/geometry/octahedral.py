@@ -14,7 +14,6 @@ keeps between its events (:mod:`vadgs.train.vad.state`).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 __all__ = ["octahedral_decode", "octahedral_encode"]
 
@@ -85,8 +84,11 @@ def octahedral_decode(codes: torch.Tensor, dim: int = -3, dtype: torch.dtype = t
     if codes.dtype != torch.int8:
         raise ValueError(f"octahedral_decode: codes must be int8, got {codes.dtype}")
     _check_components(codes, "codes", 2, dim)
-    u, v = (codes.to(dtype) / 127).unbind(dim)
+    cu, cv = codes.unbind(dim)
+    u, v = cu.to(dtype) / 127, cv.to(dtype) / 127
     z = 1 - u.abs() - v.abs()
     t = (-z).clamp(min=0)  # the folded hemisphere: back to the octahedron's lower half
-    n = F.normalize(torch.stack([u - t * _sign(u), v - t * _sign(v), z], dim), dim=dim)
-    return n.masked_fill((codes == _ZERO).all(dim, keepdim=True), 0.0)
+    x, y = u - t * _sign(u), v - t * _sign(v)
+    r = (x * x + y * y + z * z).rsqrt()  # |x| + |y| + |z| = 1: the length is at least 1/sqrt(3)
+    n = torch.stack([x * r, y * r, z * r], dim)
+    return n.masked_fill(((cu == _ZERO) & (cv == _ZERO)).unsqueeze(dim), 0.0)  # +0, not -0
