@@ -1,4 +1,4 @@
-"""Geometry: cameras, poses, plane homographies, voxel grids and the voxel z-buffer.
+"""Geometry: cameras, poses, plane homographies, voxel grids, the voxel z-buffer, normal codes.
 
 Knows nothing about Gaussians or scenes: every function takes tensors and small dataclasses.
 """
@@ -22,6 +22,7 @@ from vadgs.geometry.homography import (
     plane_homography,
     warp_patches,
 )
+from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
 from vadgs.geometry.voxel import VoxelGrid, observing_views, voxelize
 from vadgs.geometry.zbuffer import VoxelRaster, VoxelRasterizer, ZBufferConfig, rasterize_voxels
 
@@ -39,6 +40,8 @@ __all__ = [
     "invert_rigid",
     "level_up",
     "observing_views",
+    "octahedral_decode",
+    "octahedral_encode",
     "pixel_grid",
     "plane_distance",
     "plane_homography",

@@ -168,7 +168,7 @@ class TestEventReusesTheLoopsRenders:
     def test_render_cache_is_bounded(self, scene, index, gt_points):
         pts, col, _, spc = gt_points
         h, w = scene.cameras([0]).image_size
-        one_view = 5 * 2 * h * w  # float16 depth, alpha and normals
+        one_view = 5 * h * w  # float16 depth, uint8 alpha, two int8 octahedral codes per normal
         trainer = _trainer(
             scene,
             _model(scene, pts, col, spc),
@@ -183,7 +183,11 @@ class TestEventReusesTheLoopsRenders:
         kept = trainer.state["vad_renders"]
         assert list(kept) == trained[-2:]  # the two most recent views
         assert len(trainer.state["vad_tests"]) == 6  # tests are small: all kept
-        assert kept[trained[-1]][0].dtype == torch.float16
+        assert [(x.dtype, x.shape) for x in kept[trained[-1]]] == [
+            (torch.float16, (1, h, w)),
+            (torch.uint8, (1, h, w)),
+            (torch.int8, (2, h, w)),
+        ]
 
 
 def _slow_clock(monkeypatch) -> None:

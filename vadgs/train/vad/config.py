@@ -65,11 +65,13 @@ class VisibilityDensifyConfig:
             between the strategy's calls, events excluded), logged as skipped (``"time_budget"``)
             with a note in the event's summary. A run it cuts depends on the machine's speed and
             load. ``None`` (default): no cap.
-        render_cache_mb: the loop's renders of the views trained since the last event (depth,
-            opacity, normals; float16, in the strategy's state, so checkpoints hold them and a
-            resumed run stays exact) are kept up to this size and reused by the event for
-            detection, PatchMatch initialisation and the test of what is already explained; the
-            views beyond it are rendered at the event. ``0``: render every view at the event.
+        render_cache_mb: the loop's renders of the views trained since the last event (depth
+            float16, opacity uint8, normals as two int8 octahedral codes: 5 bytes a pixel, see
+            :func:`~vadgs.train.vad.state.compact_render`; in the strategy's state, so checkpoints
+            hold them and a resumed run stays exact) are kept up to this size and reused by the
+            event for detection, PatchMatch initialisation and the test of what is already
+            explained; the views beyond it are rendered at the event. ``0``: render every view at
+            the event.
         references: reference views per instance: its flagged view with the most pixels, then
             the next largest ones from another camera or at least ``min_frame_gap`` frames away
             from those already chosen (another side of the object, e.g. the back of a sign).

@@ -31,6 +31,7 @@ from vadgs.train.vad.reconstruct import (
     VisibilityIndex,
     reconstruct_instance,
 )
+from vadgs.train.vad.state import compact_render, expand_render
 
 if TYPE_CHECKING:  # the strategy imports this module: its type only for the hints
     from vadgs.train.vad.config import VisibilityDensifyConfig
@@ -281,7 +282,7 @@ class _Renders:
     def __call__(self, view: int) -> ViewRender:
         if view not in self.cache:
             if view in self.kept:
-                self.cache[view] = ViewRender(*(x.float() for x in self.kept[view]))
+                self.cache[view] = ViewRender(*expand_render(self.kept[view]))
             else:
                 self.cache[view] = self.render(view)
                 self.rendered += 1
@@ -295,11 +296,11 @@ def _chw(x: torch.Tensor) -> torch.Tensor:
 
 
 def _keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> None:
-    """Keep a view's render (float16) in ``store``, the oldest dropped beyond ``max_bytes``."""
+    """Keep a view's render (:func:`compact_render`) in ``store``, the oldest dropped beyond ``max_bytes``."""
     store.pop(view, None)
     if max_bytes <= 0:
         return
-    store[view] = tuple(x.half() for x in render)
+    store[view] = compact_render(*render)
     total = sum(sum(x.numel() * x.element_size() for x in r) for r in store.values())
     while total > max_bytes and len(store) > 1:
         oldest = next(iter(store))
