@@ -305,7 +305,7 @@ def _recording(cls) -> None:
         RECORD["steps"].append([int(step), n])
         for ev in state.get("vad_events", [])[before:]:
             keep = ("step", "flagged", "tested", "flagged_instances", "candidates", "attempted", "repaired",
-                    "skipped", "added", "views_rendered", "total_s")  # fmt: skip
+                    "skipped", "added", "views_rendered", "tests_reused", "total_s")  # fmt: skip
             entry = {k: ev[k] for k in keep}
             entry["instances"] = [
                 {k: i[k] for k in ("instance", "class", "references", "points", "added", "reason")}

@@ -164,7 +164,7 @@ def test_simple_trainer_shape_repopulates_a_deleted_facade(parser):
     index = runner.vad.index
     assert index is not None and index.derives_instances  # built by prepare, before the loop
     # the deleted cell is one derived instance of the visibility index
-    cells = index.cell_ids()[runner.in_cell(index.grid.centers)]
+    cells = index.cell_ids()[runner.in_cell(index.covis.voxel_centers)]  # the voxels' world centres
     facade = int(cells.mode().values)
     assert (cells == facade).float().mean() > 0.95  # the deleted cell is (nearly) one derived cell
     losses = runner.train(steps)

@@ -222,7 +222,14 @@ class TestFinerMatchingOfSmallInstances:
         g, zz = gt[v[ok], u[ok]], z[0][ok]
         return ((zz - g).abs() / g)[g > 0]
 
-    def test_sign_gets_more_and_better_points(self, half, scene):
+    def test_sign_gets_more_points_as_accurate(self, half, scene):
+        """Matching the sign at twice the scene's resolution gives many more points, as accurate.
+
+        Measured: 12 → 253 points, median depth error 2.0 % → 2.2 % (supports 11, 15, 17, 23). With
+        the voxels on the world's axes (before issue 31's ground frame) the sign had 15 voxels,
+        view 0 was a support too, and the finer matching also halved the error (1.7 % → 0.75 %):
+        on an instance of a dozen voxels the supports follow the voxels' discretisation.
+        """
         half_scene, index = half
         ref = max(half_scene.train_views, key=lambda v: int((index.instances(v) == SIGN).sum()))
         recs = {
@@ -234,8 +241,8 @@ class TestFinerMatchingOfSmallInstances:
         n1, n2 = recs[1].points.shape[0], recs[2].points.shape[0]
         e1, e2 = self._rel_error(recs[1], scene), self._rel_error(recs[2], scene)
         assert n2 > 4 * max(n1, 1)
-        assert float(e2.median()) < 0.01
-        assert float(e2.median()) < 0.5 * float(e1.median())
+        assert float(e2.median()) < 0.03
+        assert float(e2.median()) < 1.2 * float(e1.median())
         # depth priors stay at the scene's resolution, with depth where points came from
         assert recs[2].depth[0].shape == (1, *half_scene.image_size(ref))
         assert int((recs[2].depth[0] > 0).sum()) > 0
@@ -358,8 +365,8 @@ class TestWholeViews:
                     ).views.tolist()
                     for whole in (False, True)
                 }
-                if sel[True] == sel[False]:  # no cut support chosen, or too few whole views
-                    continue
+                if sel[True] == sel[False] or len(sel[True]) < 2:  # no cut support chosen, or too
+                    continue  # few whole views (then the selection among all views, its own draws)
                 changed += 1
                 assert len(sel[True]) == 2 and not any(index.cut_by_border(v, inst) for v in sel[True])
                 assert any(index.cut_by_border(v, inst) for v in sel[False])

@@ -210,7 +210,7 @@ class TestGsplatBases:
 
     def _check(self, splats, optimizers, state, n0):
         (event,) = state["vad_events"]
-        assert event["step"] == 3 and event["added"] > 500
+        assert event["step"] == 3 and event["added"] > 300  # one instance of the deleted facade repaired
         n = splats["means"].shape[0]
         assert n >= n0 + event["added"]
         for name, opt in optimizers.items():

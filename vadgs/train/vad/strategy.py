@@ -381,6 +381,8 @@ class VisibilityAwareDensification:
             return
         view = int(view)
         depth, alpha = _chw(depth), _chw(alpha)
+        if tuple(depth.shape[-2:]) != tuple(self._inputs().size(view)):
+            return  # a crop or another scale of the view (gsplat's patch_size): not the view's render
         state.setdefault("vad_tests", {})[view] = _view_test(
             self.prepare(), view, depth, alpha, self.incomplete
         )
