@@ -28,3 +28,21 @@ def tiny_config():
         checkpoint_every=0,
         log_every=1,
     )
+
+
+@pytest.fixture(scope="module")
+def colmap_sample(tmp_path_factory):
+    """The tests' COLMAP sample (24 images of the bundled scene, 1,500 SfM points), one per module."""
+    from ..data.colmap_sample import write_sample_colmap
+
+    root = tmp_path_factory.mktemp("colmap") / "proj"
+    write_sample_colmap(root, n_points=1500)
+    return root
+
+
+@pytest.fixture(scope="module")
+def colmap_sample_parser(colmap_sample):
+    """gsplat's ``Parser`` of :func:`colmap_sample` (duck-typed): half size, every 8th image held out."""
+    from .gsplat_parser import sample_parser
+
+    return sample_parser(colmap_sample, factor=2, test_every=8)

@@ -37,8 +37,7 @@ from vadgs.train.vad import (
 )
 from vadgs.train.vad.reconstruct import ReconstructConfig
 
-from ..data.colmap_sample import write_sample_colmap
-from .gsplat_parser import facade_splats, sample_parser
+from .gsplat_parser import facade_splats
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")
 
@@ -145,10 +144,8 @@ class Runner:
 
 
 @pytest.fixture(scope="module")
-def parser(tmp_path_factory):
-    root = tmp_path_factory.mktemp("gsplat") / "proj"
-    write_sample_colmap(root, n_points=1500)
-    return sample_parser(root, factor=2, test_every=8)
+def parser(colmap_sample_parser):
+    return colmap_sample_parser
 
 
 def test_simple_trainer_shape_repopulates_a_deleted_facade(parser):

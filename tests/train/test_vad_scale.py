@@ -25,20 +25,17 @@ from vadgs.train.strategy import DefaultStrategy
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityInputs
 from vadgs.train.vad.reconstruct import ReconstructConfig
 
-from ..data.colmap_sample import write_sample_colmap
-from .gsplat_parser import facade_splats, sample_parser
+from .gsplat_parser import facade_splats
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory):
-    root = tmp_path_factory.mktemp("scale") / "proj"
-    write_sample_colmap(root, n_points=1500)
-    return root
+def project(colmap_sample):
+    return colmap_sample
 
 
 @pytest.fixture(scope="module")
-def parser(project):
-    return sample_parser(project, factor=2, test_every=8)
+def parser(colmap_sample_parser):
+    return colmap_sample_parser
 
 
 def _transformed(parser, transform: np.ndarray):

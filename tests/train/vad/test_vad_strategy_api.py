@@ -21,22 +21,19 @@ from vadgs.train.vad import (
 )
 from vadgs.train.vad.reconstruct import ReconstructConfig, build_visibility_index
 
-from ...data.colmap_sample import write_sample_colmap
-from ..gsplat_parser import facade_splats, sample_parser
+from ..gsplat_parser import facade_splats
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory):
-    root = tmp_path_factory.mktemp("api") / "proj"
-    write_sample_colmap(root, n_points=1500)
-    return root
+def project(colmap_sample):
+    return colmap_sample
 
 
 @pytest.fixture(scope="module")
-def parser(project):
-    return sample_parser(project, factor=2, test_every=8)
+def parser(colmap_sample_parser):
+    return colmap_sample_parser
 
 
 class TestDataclass:
