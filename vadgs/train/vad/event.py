@@ -102,12 +102,11 @@ def pick_references(
 
     top = max((px for _v, px in candidates), default=0)
     tied = {v for v, px in candidates if px >= (1 - tie) * top}
-    order = [
-        v
-        for v, _px in sorted(
-            candidates, key=lambda vp: (vp[0] not in tied, -vp[1] * (vp[0] not in tied), vp[0])
-        )
-    ]
+
+    def rank(vp: tuple[int, int]) -> tuple[int, ...]:  # the tied views first, by index; then by size
+        return (0, vp[0]) if vp[0] in tied else (1, -vp[1], vp[0])
+
+    order = [v for v, _px in sorted(candidates, key=rank)]
     chosen: list[int] = []
     for view in order:
         if len(chosen) >= count:

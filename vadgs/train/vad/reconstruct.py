@@ -530,9 +530,7 @@ def reconstruct_instance(
         spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
         local, taken = points, None if occupied is None else occupied.to(dev)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
-            rotation, origin = (x.to(dev) for x in index.ground_frame())
-            local = (points.double() - origin) @ rotation.T
-            taken = None if taken is None else (taken.double() - origin) @ rotation.T
+            local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
         keep = thin_points(local, float(spacing.median()), taken)
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:

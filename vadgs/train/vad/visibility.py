@@ -293,16 +293,17 @@ class VisibilityIndex:
         rot = self.static_to_world[:3, :3].double()
         return rot.T, self.static_to_world[:3, 3].double()
 
-    def static_cameras(self) -> torch.Tensor:
-        """``(V, 4, 4)`` every view's world-to-camera in the static grid's frame."""
-        return self.cameras.world_to_cam @ self.static_to_world.to(self.cameras.world_to_cam)
+    def to_ground(self, points: torch.Tensor) -> torch.Tensor:
+        """``(N, 3)`` world points in the static grid's frame (float64, on the points' device)."""
+        rotation, origin = (x.to(points.device) for x in self.ground_frame())
+        return _in_frame(points, rotation, origin)
 
     def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
 
         def make() -> tuple[torch.Tensor, torch.Tensor]:
             cam = self.camera(view)
-            cam = Cameras(cam.K, self.static_cameras()[view : view + 1], cam.image_size)
+            cam = cam.in_object_frame(self.static_to_world.to(cam.world_to_cam)[None])  # the grid's frame
             r = rasterize_voxels(self.grid, cam, [view], self.zbuffer)
             return self.pad(r.depth[0]), self.pad(r.index[0], -1)
 
@@ -344,6 +345,11 @@ class VisibilityIndex:
         t = self.inputs.tracks[track]
         pos = torch.tensor([self.inputs.frame_position(v) for v in range(self.inputs.num_views)])
         return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
+
+
+def _in_frame(points: torch.Tensor, rotation: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """``(N, 3)`` points in the frame ``(rotation, origin)`` of :func:`ground_frame` (float64)."""
+    return (points.double() - origin) @ rotation.T
 
 
 def ground_frame(
@@ -469,8 +475,7 @@ def ground_cells(
         raise ValueError(f"cell_size: expected > 0, got {cell_size}")
     if len(points) == 0:
         return torch.zeros(0, dtype=torch.long, device=points.device)
-    rotation, origin = frame if frame is not None else ground_frame(points, cam_to_world)
-    local = (points.double() - origin) @ rotation.T
+    local = _in_frame(points, *(frame if frame is not None else ground_frame(points, cam_to_world)))
     ij = torch.floor(local[:, :2] / cell_size + 0.5).long()  # the origin in a cell's centre
     _, cell, count = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
     centre = ij.double().norm(dim=1)  # a cell's distance from the origin, in cells
@@ -648,7 +653,7 @@ def build_visibility_index(
     static_to_world = torch.eye(4, dtype=torch.float64, device=rotation.device)
     static_to_world[:3, :3], static_to_world[:3, 3] = rotation.T, origin
     static_to_world = static_to_world.to(dtype=points.dtype, device=cameras.K.device)
-    local = ((points.double().to(rotation.device) - origin) @ rotation.T).to(points)
+    local = _in_frame(points.to(rotation.device), rotation, origin).to(points)
     grid = voxelize(local, voxel_size, point_views, inputs.num_views)
     labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
     allowed = torch.zeros(inputs.num_views, dtype=torch.bool, device=cameras.K.device)
