@@ -102,7 +102,12 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
     # the scene by its absolute path, the run folder and the content fingerprint of the scene
     fingerprint = scene_fingerprint(ref.to_dict(), tiny_scene)
     run_dir = str((tmp_path / "a").resolve())
-    assert run.checkpoint.scene_ref == {**ref.to_dict(), "run_dir": run_dir, "fingerprint": fingerprint}
+    assert run.checkpoint.scene_ref == {
+        **ref.to_dict(),
+        "run_dir": run_dir,
+        "fingerprint": fingerprint,
+        "fingerprint_method": 2,
+    }
     assert run.scene_ref["fingerprint"] == fingerprint and run.scene.num_views == tiny_scene.num_views
     for k, v in trainer.model.params.items():
         assert torch.equal(run.model.params[k], v), k

@@ -66,7 +66,8 @@ class TestWorkingResolution:
         assert "resolution: 120x72 (--scale 1 of 120x72" in capsys.readouterr().out
         assert load_checkpoint(tmp_path / "a").scene_ref["scale"] == 1.0
         assert main(["train", str(scene), "--out", str(tmp_path / "b"), "--scale", "0.5", *tiny]) == 0
-        assert "resolution:" not in capsys.readouterr().out
+        # an explicit --scale chooses nothing, but the line still gives the pixel size (issue 39)
+        assert "resolution: 60x36 (--scale 0.5 of 120x72: as given)" in capsys.readouterr().out
         assert load_checkpoint(tmp_path / "b").scene_ref["scale"] == 0.5
 
 

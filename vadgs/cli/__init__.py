@@ -73,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     at = _command_at(argv)
     if at is None:
+        if any(a in ("-V", "--version") for a in argv):
+            print(_version())
+            return 0
         if any(a in ("-h", "--help") for a in argv):
             print(_usage())
             return 0
@@ -147,9 +150,22 @@ def _usage() -> str:
         "  --threads N  torch CPU threads (0: torch's own count, all cores)",
         "  --debug      show the traceback of an error",
         "",
+        "vadgs --version prints the versions of vadgs, torch and python.",
         "vadgs COMMAND --help shows the command's flags.",
     ]
     return "\n".join(lines)
+
+
+def _version() -> str:
+    """``vadgs --version``: vadgs's version, and the torch and Python it runs on (as ``pip`` prints)."""
+    import platform
+
+    import vadgs
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    return (
+        f"vadgs {vadgs.__version__} (torch {torch.__version__}, {device}; python {platform.python_version()})"
+    )
 
 
 @contextlib.contextmanager

@@ -199,7 +199,9 @@ def _summary(metrics: dict) -> str:
         f"{metrics['num_gaussians']} Gaussians",
     ]
     if t:
-        parts.append(f"test PSNR {t['psnr']:.2f} dB, PSNR* {t['psnr_star']}, SSIM {t['ssim']:.3f}")
+        star = t["psnr_star"]
+        star = f"{star:.2f} dB" if star is not None else "n/a (no moving-object pixels in the test views)"
+        parts.append(f"test PSNR {t['psnr']:.2f} dB, PSNR* {star}, SSIM {t['ssim']:.3f}")
         raw = t.get("uncorrected")
         if raw:
             parts.append(

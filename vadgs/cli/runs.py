@@ -22,6 +22,7 @@ from vadgs.checks import check_at_least, check_positive
 from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
 from vadgs.io import write_json
 from vadgs.train.run import RunLock, frame_position, load_run
+from vadgs.train.scenes import FINGERPRINT_METHODS
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
 
@@ -42,9 +43,19 @@ def _writing(run: str | Path, into: Path, command: str) -> contextlib.AbstractCo
 
 
 def _scene_record(run) -> dict:
-    """What ``eval.json`` says of the scene it used: name, kind, path, fingerprint."""
+    """What ``eval.json`` says of the scene it used: name, kind, path, fingerprint and what it checked."""
     ref = run.scene_ref or {}
-    return {"name": run.scene.name, **{k: ref.get(k) for k in ("kind", "path", "fingerprint")}}
+    method = ref.get("fingerprint_method", 1)
+    return {
+        "name": run.scene.name,
+        **{k: ref.get(k) for k in ("kind", "path", "fingerprint")},
+        "fingerprint_checks": FINGERPRINT_METHODS.get(method, f"method {method}"),
+    }
+
+
+def _checked(record: dict) -> str:
+    """The line ``vadgs eval`` prints on the scene it checked against the run's fingerprint."""
+    return f"{record['path']} (fingerprint {record['fingerprint']}: {record['fingerprint_checks']})"
 
 
 @dataclass(frozen=True)
@@ -96,6 +107,12 @@ class EvalCommand(Command):
         print(json.dumps(shown, indent=2))
         if note:
             print(note)
+        metrics = [shown] if self.split == "test" else list(shown.values())
+        if any(g.get("psnr_star") is None for g in metrics):
+            print(
+                "psnr_star: null: PSNR* (moving objects only) needs moving-object pixels; the views have none"
+            )
+        print(f"scene checked: {_checked(m['scene'])}")
         print(f"wrote {path}")
         return 0
 

@@ -337,14 +337,20 @@ def _scene(cmd: TrainCommand) -> Any:
         raise ValueError("--colmap: not with a COLMAP scene, whose own SfM points initialise it")
     elif cmd.cameras or cmd.test_frames:
         raise ValueError("--cameras / --test-frames: DGP only; a COLMAP scene's split is --test-every")
-    scale = cmd.scale
-    if scale is None:  # the working resolution: photos to a longest side <= 1024 px
-        from vadgs.data.resolution import working_resolution
+    # the working resolution (photos to a longest side <= 1024 px), or the pixel size at --scale
+    from vadgs.data.resolution import working_resolution
 
-        cameras = cmd.cameras.split(",") if (kind == "dgp" and cmd.cameras) else None
+    cameras = cmd.cameras.split(",") if (kind == "dgp" and cmd.cameras) else None
+    if cmd.scale is None:
         chosen = working_resolution(path, kind, cameras)
+    else:  # only the line: a scene whose metadata cannot say is reported by its loader, by field
+        try:
+            chosen = working_resolution(path, kind, cameras, scale=cmd.scale)
+        except (ValueError, KeyError, TypeError, OSError):
+            chosen = None
+    if chosen is not None:
         print(chosen.describe())
-        scale = chosen.scale
+    scale = cmd.scale if chosen is None else chosen.scale
     if kind == "colmap":
         test_every = 8 if cmd.test_every is None else cmd.test_every
         return scene_ref(path, kind, images=cmd.images, scale=scale, test_every=test_every,

@@ -93,27 +93,36 @@ def _sizes(path: Path, kind: str, cameras: list[str] | None) -> tuple[list[tuple
 
 
 def working_resolution(
-    path: str | Path, kind: str, cameras: list[str] | None = None, side: int = WORKING_SIDE
+    path: str | Path,
+    kind: str,
+    cameras: list[str] | None = None,
+    side: int = WORKING_SIDE,
+    scale: float | None = None,
 ) -> WorkingResolution:
-    """The default resolution factor of a scene (see the module docstring).
+    """The default resolution factor of a scene (see the module docstring), or the size at ``scale``.
 
     Args:
         path: the scene folder (a COLMAP model or project folder for ``kind="colmap"``).
         kind: ``"benchmark"``, ``"colmap"`` or ``"dgp"``.
         cameras: DGP: the cameras used (None: all).
         side: the working resolution's longest side.
+        scale: a factor chosen by the user (``--scale``): the sizes at it, nothing chosen.
 
     Example:
         >>> from vadgs.data import sample_scene_path
         >>> r = working_resolution(sample_scene_path(), "benchmark")
         >>> r.scale, r.size
         (0.5, (72, 120))
+        >>> working_resolution(sample_scene_path(), "benchmark", scale=0.25)[:2]
+        (0.25, (36, 60))
     """
     sizes, rendered = _sizes(Path(path), kind, cameras)
     if not sizes:
         raise ValueError(f"{path}: no camera with an image size")
     full = max(sizes, key=max)
-    if rendered:
+    if scale is not None:
+        why = "as given"
+    elif rendered:
         scale, why = BENCHMARK_SCALE, "a rendered benchmark scene trains at half its resolution"
     else:
         scale = working_scale(max(full), side)

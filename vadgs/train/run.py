@@ -164,6 +164,7 @@ def load_run(path: str | Path, open: bool = True, scene: str | Path | None = Non
     from vadgs.train.appearance import AppearanceModel
     from vadgs.train.model import GaussianModel
 
+    _check_is_run(Path(path))
     ckpt = load_checkpoint(path)
     config = ckpt.train_config()
     model = GaussianModel.from_state(ckpt.model, ckpt.model_extra)
@@ -175,6 +176,29 @@ def load_run(path: str | Path, open: bool = True, scene: str | Path | None = Non
         path = Path(path)
         opened, located = open_run_scene(ckpt.scene_ref, path if path.is_dir() else path.parent, scene)
     return Run(model, opened, config, appearance, ckpt.step, ckpt, located)
+
+
+def _check_is_run(path: Path) -> None:
+    """Refuse a scene, a COLMAP project or a folder of photos given where a run goes, saying what it is."""
+    from vadgs.data import find_colmap_model
+
+    if not path.is_dir() or (path / CHECKPOINT_NAME).is_file():
+        return
+    what = None
+    if (path / "scene.json").is_file():
+        what = "a benchmark scene"
+    elif find_colmap_model(path) is not None:
+        what = "a COLMAP project"
+    if what is not None:
+        raise FileNotFoundError(
+            f"RUN {path}: is {what}, not a run (no {CHECKPOINT_NAME}): train it first, "
+            f"vadgs train {path} --out RUN, then give RUN"
+        )
+    if (path / "metrics.json").is_file():
+        raise FileNotFoundError(
+            f"RUN {path}: a finished run whose {CHECKPOINT_NAME} is missing (its metrics.json is "
+            "there): the model is gone, nothing to evaluate, render or export"
+        )
 
 
 def frame_position(scene: Scene, frame: int | None, name: str = "frame") -> tuple[int, int]:

@@ -20,6 +20,8 @@ import torch
 from vadgs.data.scene import Scene
 
 __all__ = [
+    "FINGERPRINT_METHOD",
+    "FINGERPRINT_METHODS",
     "BenchmarkRef",
     "ColmapRef",
     "DGPRef",
@@ -177,12 +179,32 @@ def _detect_kind(path: Path, what: str = "SCENE") -> str:
     if (path / "scene.json").is_file() or path.name == "scene.json":
         return "benchmark"
     if find_colmap_model(path) is None:
-        raise FileNotFoundError(
-            f"{what} {path}: neither a benchmark scene (no scene.json) nor a COLMAP model "
-            "(cameras, images, points3D as .bin or .txt in it, in sparse/0, sparse or 0); "
-            "a DGP scene needs --dgp"
-        )
+        raise FileNotFoundError(f"{what} {path}: " + _not_a_scene(path))
     return "colmap"
+
+
+#: File endings of photos (what ``vadgs sfm`` takes).
+_PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".heic", ".webp", ".bmp")
+
+
+def _not_a_scene(path: Path) -> str:
+    """Why ``path`` is no scene, and what it looks like instead (photos, a run) with what to run."""
+    if (path / "checkpoint.pt").is_file() or (path / "metrics.json").is_file():
+        return (
+            "is a vadgs run, not a scene (vadgs eval / render / export take it; "
+            "vadgs train --resume continues it)"
+        )
+    photos = [p for p in path.iterdir() if p.suffix.lower() in _PHOTO_SUFFIXES] if path.is_dir() else []
+    if photos:
+        return (
+            f"a folder of {len(photos)} photos, not a scene: make a COLMAP project of them first, "
+            f"vadgs sfm {path} --out PROJECT, then vadgs train PROJECT"
+        )
+    return (
+        "neither a benchmark scene (no scene.json) nor a COLMAP model "
+        "(cameras, images, points3D as .bin or .txt in it, in sparse/0, sparse or 0); "
+        "a DGP scene needs --dgp"
+    )
 
 
 def read_scene(ref: SceneRef, validate: str = "headers") -> Scene:
@@ -283,6 +305,7 @@ def prepare_scene(ref: SceneRef, out_dir: str | Path, log: Any = None) -> tuple[
         raise TypeError(f"ref: expected a BenchmarkRef, DGPRef or ColmapRef, got {type(ref).__name__}")
     stored["run_dir"] = str(out.resolve())
     stored["fingerprint"] = scene_fingerprint(stored, scene)
+    stored["fingerprint_method"] = FINGERPRINT_METHOD
     return scene, stored
 
 
@@ -302,17 +325,34 @@ def _metadata_files(ref: dict[str, Any]) -> list[Path]:
     return [path / f"{n}.{e}" for n in _COLMAP_FILES for e in ("bin", "txt") if (path / f"{n}.{e}").is_file()]
 
 
-def scene_fingerprint(ref: dict[str, Any], scene: Scene) -> str:
+#: What :func:`scene_fingerprint` reads of a scene, by method (``ref["fingerprint_method"]``;
+#: runs of vadgs before method 2 recorded none: method 1).
+FINGERPRINT_METHODS = {
+    1: "the metadata files whole; every image, depth map, instance map and LiDAR sweep by name and size",
+    2: "the metadata files and the test views' image, depth and instance files whole; the other "
+    "files by name, size and 12 KiB of their bytes (start, middle, end)",
+}
+FINGERPRINT_METHOD = 2
+"""The method new runs record (:data:`FINGERPRINT_METHODS`)."""
+
+_SAMPLE = 4096  # bytes read at each of a file's start, middle and end (method 2)
+
+
+def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRINT_METHOD) -> str:
     """A content fingerprint of a scene, wherever it lies: 16 hex digits of a SHA-256.
 
     Cheap: the metadata files (``scene.json``, the DGP scene JSON, the COLMAP model files of
-    ``ref["path"]``) are hashed whole; the views' images, depth and instance maps and the frames'
-    LiDAR sweeps by file name and size only, not their bytes. Two copies of one scene have the
-    same fingerprint; another scene, or one whose metadata or files changed, another one.
+    ``ref["path"]``) are hashed whole, and so are the test views' images, depth and instance
+    maps (what an evaluation scores); the training views' files and the frames' LiDAR sweeps by
+    name, size and 12 KiB of their bytes (method 2, :data:`FINGERPRINT_METHODS`; method 1,
+    of runs by older vadgs, by name and size only). Two copies of one scene have the same
+    fingerprint (modification times are not read); another scene, or one whose metadata or
+    files changed, another one.
 
     Args:
         ref: the scene's reference (``kind``, ``path``), as :func:`open_scene` takes it.
         scene: the scene it opened.
+        method: what is read (:data:`FINGERPRINT_METHODS`): the one the run recorded.
 
     Example:
         >>> from vadgs.data import sample_scene_path
@@ -320,22 +360,33 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene) -> str:
         >>> len(scene_fingerprint(ref, open_scene(ref)))
         16
     """
+    if method not in FINGERPRINT_METHODS:
+        raise ValueError(f"method: expected one of {sorted(FINGERPRINT_METHODS)}, got {method!r}")
     h = hashlib.sha256(str(ref.get("kind", "benchmark")).encode())
     for f in _metadata_files(ref):
         h.update(f"\n{f.name}\n".encode())
         with f.open("rb") as fh:
             h.update(hashlib.file_digest(fh, "sha256").digest())
 
-    def add(p: Path | None) -> None:
+    def add(p: Path | None, whole: bool = False) -> None:
         if p is None:
             h.update(b"-;")
             return
         size = p.stat().st_size if p.is_file() else -1
         h.update(f"{p.name}:{size};".encode())
+        if method >= 2 and size > 0:
+            with p.open("rb") as fh:
+                if whole or size <= 3 * _SAMPLE:
+                    h.update(hashlib.file_digest(fh, "sha256").digest())
+                    return
+                for at in (0, size // 2 - _SAMPLE // 2, size - _SAMPLE):
+                    fh.seek(at)
+                    h.update(fh.read(_SAMPLE))
 
+    test = set(scene.test_views)
     for v in scene.views:
         for p in (v.image, v.depth, v.instances):
-            add(p)
+            add(p, whole=v.index in test)
     for f in scene.frames:
         add(f.lidar)
     return h.hexdigest()[:16]
@@ -468,7 +519,8 @@ def open_run_scene(
     """
     located = locate_scene(ref, run_dir, scene, flag)
     opened = open_scene(located)
-    now = scene_fingerprint(located, opened)
+    method = int(ref.get("fingerprint_method", 1))
+    now = scene_fingerprint(located, opened, method)
     recorded = ref.get("fingerprint")
     if recorded and now != recorded:
         raise ValueError(
@@ -477,4 +529,5 @@ def open_run_scene(
             f"{_hint(flag)} with the run's own data"
         )
     located["fingerprint"] = now
+    located["fingerprint_method"] = method
     return opened, located

@@ -52,6 +52,7 @@ __all__ = [
     "render_test_view",
     "save_test_panels",
     "split_views",
+    "view_name",
 ]
 
 #: The splits :func:`evaluate_split` knows: the test views, and the novel (extrapolated) views by group.
@@ -68,8 +69,8 @@ class EvalMetrics:
         num_gaussians: the model's size; ``num_views``: test views evaluated.
         depth: ``{region: {"absrel", "delta_1.05", "pixels"}}`` for ``all``, ``sign``,
             ``upper_facade`` (regions without pixels are left out); empty without ground truth.
-        per_view: ``[{"view", "psnr", "ssim"}]`` (and ``"psnr_uncorrected"``,
-            ``"ssim_uncorrected"`` with an appearance model).
+        per_view: ``[{"view", "image", "psnr", "ssim"}]`` (``image``: :func:`view_name`; and
+            ``"psnr_uncorrected"``, ``"ssim_uncorrected"`` with an appearance model).
         uncorrected: with an appearance model, ``psnr``, ``psnr_pooled``, ``psnr_star`` and
             ``ssim`` of the renders *without* its colour transform (the fields above are of the
             corrected renders); empty without one.
@@ -90,6 +91,22 @@ class EvalMetrics:
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON."""
         return asdict(self)
+
+
+def view_name(scene: Scene, view: int) -> str:
+    """A view's image as a person finds it: its path relative to the scene folder, or its camera and frame.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> view_name(load_scene(sample_scene_path()), 0)
+        'images/front/016.png'
+    """
+    vi = scene.views[view]
+    if vi.image is None:
+        return f"{vi.camera}/{vi.frame}"
+    if scene.root is not None and Path(vi.image).is_relative_to(scene.root):
+        return Path(vi.image).relative_to(scene.root).as_posix()
+    return Path(vi.image).name
 
 
 def lpips_available() -> tuple[bool, str]:
@@ -221,7 +238,7 @@ def evaluate(
         color = correct_view(appearance, scene, v, out.color)
         pred = color.clamp(0, 1)
         p, s = stats.add(pred, gt, dynamic)
-        per_view.append({"view": v, "psnr": round(p, 4), "ssim": round(s, 4)})
+        per_view.append({"view": v, "image": view_name(scene, v), "psnr": round(p, 4), "ssim": round(s, 4)})
         if appearance is not None:
             p, s = raw_stats.add(out.color.clamp(0, 1), gt, dynamic)
             per_view[-1].update(psnr_uncorrected=round(p, 4), ssim_uncorrected=round(s, 4))

@@ -256,7 +256,8 @@ def _event_summary(entry: Mapping[str, Any], config: Any) -> str:
     summary = (
         f"visibility-aware densification: {entry['flagged_instances']} instances flagged, "
         f"{entry['attempted']} attempted, {entry['repaired']} repaired (+{entry['added']} Gaussians), "
-        f"skipped: {cut}; {entry['total_s']:.1f} s; added to {', '.join(added) or 'none'}"
+        f"{_failed(entry['instances'])}skipped: {cut}; {entry['total_s']:.1f} s; "
+        f"added to {', '.join(added) or 'none'}"
     )
     if "work_budget" in entry["skipped"]:
         summary += (
@@ -269,6 +270,20 @@ def _event_summary(entry: Mapping[str, Any], config: Any) -> str:
             " reached: this run now depends on the machine's speed and load)"
         )
     return summary
+
+
+def _failed(instances: list[Mapping[str, Any]]) -> str:
+    """``"N added nothing (class id: reason; ...), "`` of the attempted instances, or ``""`` when all added.
+
+    The reasons are :class:`~vadgs.train.vad.reconstruct.InstanceReconstruction`'s (``explained``: the
+    model already explains the points; ``no_consistent_pixels``; ``selection:...``).
+    """
+    failed = [e for e in instances if not e["added"]]
+    if not failed:
+        return ""
+    why = "; ".join(f"{e['class']} {e['instance']}: {e['reason'] or 'no new points'}" for e in failed[:4])
+    more = f"; {len(failed) - 4} more in the log" if len(failed) > 4 else ""
+    return f"{len(failed)} added nothing ({why}{more}), "
 
 
 class _Renders:
