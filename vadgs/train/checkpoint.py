@@ -242,6 +242,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 RESUMABLE_CHANGES = (
     "iterations",
     "max_minutes",
+    "cache_gb",
     "device",
     "threads",
     "checkpoint_every",

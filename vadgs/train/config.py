@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from vadgs.checks import check_at_least, check_non_negative, check_positive
+from vadgs.data.cache import DEFAULT_CACHE_GB
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
 from vadgs.train.init import InitConfig
@@ -98,6 +99,12 @@ class TrainConfig:
             last checkpoint (0 = off). The end of the first sampling cycle always checkpoints.
         log_every: steps between log lines in ``log.jsonl``.
         max_minutes: stop (and checkpoint) after this much training time (0 = no limit).
+        cache_gb: host memory for the training views' images and LiDAR depth maps, in GB (2^30
+            bytes; default 2): they are read from disk when a view is first trained and kept as
+            uint8 images and sparse depth in a :class:`~vadgs.data.cache.ByteCache`, the least
+            recently trained dropped first and read again. 2 GB hold ~1000 views at 960×640, all
+            views of the street scenes; it does not change what is trained, only how often files
+            are read.
         threads: ``torch.set_num_threads`` while :meth:`Trainer.train` runs, restored afterwards
             (0 = leave torch's count: all cores unless the caller set it).
         diverge_distance, diverge_share: at step 1, every ``log_every`` steps and at the end of
@@ -133,6 +140,7 @@ class TrainConfig:
     checkpoint_minutes: float = 5.0
     log_every: int = 50
     max_minutes: float = 0.0
+    cache_gb: float = DEFAULT_CACHE_GB
     threads: int = 0
     diverge_distance: float = 100.0
     diverge_share: float = 0.2
@@ -154,6 +162,8 @@ class TrainConfig:
                 f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"
             )
         check_at_least(self, 0, "threads", "checkpoint_every", note=" (0 = off)")
+        if not (math.isfinite(self.cache_gb) and self.cache_gb > 0):
+            raise ValueError(f"cache_gb: expected a finite number of GB > 0, got {self.cache_gb}")
         check_at_least(self, 1, "sh_degree_interval", "log_every", "hard_every", "hard_stride")
         if self.hard_fused and (
             self.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from vadgs.data.cache import DEFAULT_CACHE_GB, ByteCache
 from vadgs.data.colmap import ColmapPoints
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
@@ -144,7 +145,7 @@ def _point_colors(
     point_idx: torch.Tensor,
     view_idx: torch.Tensor,
     allowed_views: set[int],
-    cache: dict[int, torch.Tensor],
+    cache: ByteCache,
 ) -> torch.Tensor:
     """Colour of each point from the first allowed view that sees it (grey otherwise)."""
     n = world_points.shape[0]
@@ -161,9 +162,7 @@ def _point_colors(
     pi, vi = pi[first], vi[first]
     for v in vi.unique().tolist():
         sel = pi[vi == v]
-        if v not in cache:
-            cache[v] = scene.load_images([v])[0]
-        img = cache[v]
+        img = cache.get(v, lambda v=v: scene.load_images([v])[0])
         cams = scene.cameras([v])
         uv, _ = project_points(world_points[sel][None], cams.K, cams.world_to_cam)
         h, w = img.shape[-2:]
@@ -213,7 +212,7 @@ def init_gaussians(
     gen = torch.Generator().manual_seed(config.seed)
     train_frames = scene.train_frames or [f.index for f in scene.frames]
     train_views = set(scene.train_views or range(scene.num_views))
-    cache: dict[int, torch.Tensor] = {}
+    cache = ByteCache(int(DEFAULT_CACHE_GB * 2**30))  # the views' images, bounded: read again if dropped
     has_lidar = config.use_lidar and scene.lidar_loader is not None
     static_p, static_c = [], []
     if has_lidar:

@@ -1,8 +1,10 @@
 """The loss of a training step: every term, by name, from a render of one view.
 
 :class:`Objective` holds what the terms need besides the render (the scene's images and LiDAR
-sweeps, cached on the training device; the appearance model; the priors of the paper's geometric
-losses; extra terms from a hook) and returns the weighted terms of a step: the colour loss of
+depth maps, read when a view is trained and kept on the host in a byte-bounded
+:class:`~vadgs.data.cache.ByteCache`, uint8 images and sparse depth, moved to the training device
+per step; the appearance model; the priors of the paper's geometric losses; extra terms from a
+hook) and returns the weighted terms of a step: the colour loss of
 the appearance-corrected render, the appearance regulariser, the sparse LiDAR depth term and
 :func:`~vadgs.train.losses.geometric_losses` (normal, hard and soft depth) on the view's
 :class:`~vadgs.train.losses.GeometryTargets`. :class:`~vadgs.train.trainer.Trainer` sums them.
@@ -14,6 +16,7 @@ from collections.abc import Callable
 
 import torch
 
+from vadgs.data.cache import DEFAULT_CACHE_GB, ByteCache, SparseDepth, from_uint8, to_uint8
 from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
 from vadgs.train import losses as L
@@ -31,10 +34,12 @@ class Objective:
     Args:
         scene: the scene whose views are trained.
         config: the run's :class:`~vadgs.train.config.TrainConfig` (weights, schedule, hard stride).
-        device: where images and LiDAR depth are cached.
+        device: where the loss is computed (images and LiDAR depth are moved there per step).
         appearance: the appearance model, or None.
         geometry_targets: ``view -> GeometryTargets | None``, the geometric losses' priors, or None.
         extra_losses: ``(step, render, view) -> {name: scalar}`` added as given, or None.
+        cache_gb: the host memory the images and LiDAR depth maps are kept in (GB, 2^30 bytes;
+            None: ``config.cache_gb``); the least recently trained views are read again.
     """
 
     def __init__(
@@ -45,6 +50,7 @@ class Objective:
         appearance: AppearanceModel | None = None,
         geometry_targets: Callable[[int], GeometryTargets | None] | None = None,
         extra_losses: Callable[[int, ModelRender, int], dict[str, torch.Tensor]] | None = None,
+        cache_gb: float | None = None,
     ) -> None:
         self.scene = scene
         self.config = config
@@ -52,27 +58,27 @@ class Objective:
         self.appearance = appearance
         self.geometry_targets = geometry_targets
         self.extra_losses = extra_losses
-        self._images: dict[int, torch.Tensor] = {}
-        self._lidar: dict[int, tuple[torch.Tensor, bool]] = {}
+        gb = getattr(config, "cache_gb", DEFAULT_CACHE_GB) if cache_gb is None else cache_gb
+        self.cache = ByteCache(max(1, int(gb * 2**30)))
 
     def image(self, view: int) -> torch.Tensor:
-        """Training image ``(1, 3, H, W)`` (cached)."""
-        if view not in self._images:
-            self._images[view] = self.scene.load_images([view]).to(self.device)
-        return self._images[view]
+        """Training image ``(1, 3, H, W)`` float32 on the device (kept as uint8 on the host)."""
+        return from_uint8(self.cache.get(("image", view), lambda: to_uint8(self.scene.load_images([view]))),
+                          self.device)  # fmt: skip
 
     def lidar_depth(self, view: int) -> torch.Tensor | None:
-        """Sparse LiDAR depth of a view (cached), None without a LiDAR point there."""
+        """Sparse LiDAR depth ``(1, 1, H, W)`` of a view on the device, None without a LiDAR point there."""
         if self.scene.lidar_loader is None:
             return None
-        if view not in self._lidar:
+
+        def read() -> SparseDepth:
             try:
-                d = lidar_depth_map(self.scene, view)
+                return SparseDepth.from_dense(lidar_depth_map(self.scene, view))
             except FileNotFoundError:
-                d = torch.zeros(1, 1, *self.scene.image_size(view))
-            self._lidar[view] = (d.to(self.device), bool((d > 0).any()))  # decided once, not per step
-        depth, any_point = self._lidar[view]
-        return depth if any_point else None
+                return SparseDepth.from_dense(torch.zeros(1, 1, *self.scene.image_size(view)))
+
+        sparse = self.cache.get(("lidar", view), read)
+        return sparse.to_dense(self.device) if sparse.points else None
 
     def corrected_color(self, view: int, color: torch.Tensor) -> torch.Tensor:
         """A render's colour ``(1, 3, H, W)`` after the view's appearance transform, if any."""

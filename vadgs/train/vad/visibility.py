@@ -15,8 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from vadgs.data.cache import ByteCache
 from vadgs.geometry.camera import Cameras, invert_rigid, level_up, project_points
 from vadgs.geometry.voxel import VoxelGrid, voxelize
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
@@ -95,54 +95,9 @@ def scene_lengths(scene_depth: float = REFERENCE_DEPTH, **absolute: Any) -> dict
     return out
 
 
-class ViewCache:
-    """Per-view tensors kept up to a byte budget; the least recently used are dropped first.
-
-    The visibility index computes a view's voxel z-buffer, voxel depth, instance map and image
-    on demand and keeps them here, so a long run on a large scene holds at most ``max_bytes``
-    of them (1 GiB by default: every view of the street scenes at 240×144; some hundred views at
-    1920×1280), and recomputes what was dropped.
-
-    Example:
-        >>> cache = ViewCache(max_bytes=100)
-        >>> a = cache.get(("image", 0), lambda: torch.zeros(10))  # 40 bytes
-        >>> b = cache.get(("image", 1), lambda: torch.zeros(10))
-        >>> c = cache.get(("image", 2), lambda: torch.zeros(10))  # 120 > 100: view 0 dropped
-        >>> sorted(k[1] for k in cache.keys()), cache.nbytes
-        ([1, 2], 80)
-    """
-
-    def __init__(self, max_bytes: int = 1 << 30) -> None:
-        self.max_bytes = int(max_bytes)
-        self._items: OrderedDict = OrderedDict()
-        self.nbytes = 0
-
-    @staticmethod
-    def _size(value) -> int:
-        items = value if isinstance(value, tuple) else (value,)
-        return sum(x.numel() * x.element_size() for x in items if isinstance(x, torch.Tensor))
-
-    def get(self, key, make: Callable[[], object]):
-        """The cached value of ``key``, made by ``make()`` (and kept) when absent."""
-        if key in self._items:
-            self._items.move_to_end(key)
-            return self._items[key]
-        value = make()
-        self._items[key] = value
-        self.nbytes += self._size(value)
-        while self.nbytes > self.max_bytes and len(self._items) > 1:
-            _, old = self._items.popitem(last=False)
-            self.nbytes -= self._size(old)
-        return value
-
-    def keys(self):
-        """The keys held, least recently used first."""
-        return list(self._items)
-
-    def clear(self) -> None:
-        """Drop everything."""
-        self._items.clear()
-        self.nbytes = 0
+ViewCache = ByteCache
+"""The visibility index's per-view cache: a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default:
+every view of the street scenes at 240×144; some hundred views at 1920×1280)."""
 
 
 @dataclass
