@@ -64,6 +64,7 @@ from vadgs.data.colmap_model import (
     find_colmap_model,
     match_colmap_views,
 )
+from vadgs.data.images import exif_orientation
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
@@ -82,6 +83,7 @@ __all__ = [
     "reopen_colmap_project",
     "transform_colmap",
     "undistort_colmap",
+    "warn_exif_rotated",
 ]
 
 COLMAP_LOG_LEVEL = 1
@@ -279,10 +281,39 @@ def load_colmap(
         missing_noun="registered image(s)",
         validate=validate,
     )
+    if check_files and images_dir is not None:
+        warn_exif_rotated(images_dir, [im.name for im in registered])
     out = ColmapScene(scene, points)
     if normalize is True:
         transform = colmap_normalization(out)
     return transform_colmap(out, transform) if transform is not None else out
+
+
+def warn_exif_rotated(images_dir: str | Path, names: list[str], stacklevel: int = 3) -> int:
+    """Warn when images of a COLMAP project carry an EXIF rotation (COLMAP ignores it); how many do.
+
+    COLMAP fits each camera to the stored pixel grid, and vadgs reads that grid too
+    (:func:`vadgs.data.images.read_image`), so such a project is consistent but sideways: the up
+    direction, videos and exports are rolled. ``vadgs sfm`` writes its images upright, so its
+    projects never warn.
+    """
+    turned = {}
+    for name in names:
+        path = Path(images_dir) / name
+        if path.is_file() and (o := exif_orientation(path)) != 1:
+            turned[name] = o
+    if turned:
+        first = next(iter(turned))
+        warnings.warn(
+            f"{images_dir}: {len(turned)} of {len(names)} image(s) carry an EXIF orientation tag that "
+            f"COLMAP ignores (e.g. {first}: orientation {turned[first]}); vadgs reads them as stored, as "
+            "their cameras were fitted, so the up direction, renders and exports follow the stored "
+            "(sideways) pixels; for upright results rerun `vadgs sfm` on the original photos (it turns "
+            "them upright), or rotate their pixels and drop the tags before running COLMAP",
+            UserWarning,
+            stacklevel=stacklevel,
+        )
+    return len(turned)
 
 
 def _project_name(sparse_dir: Path) -> str:
@@ -489,14 +520,20 @@ def open_colmap_project(
         raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
     distorted = distorted_cameras(model)
     source = model
+    rotated = 0
     if distorted:
         if undistort_dir is None:
             raise ValueError(
                 f"{model}: cameras {distorted} are distorted; give undistort_dir to undistort them"
             )
+        names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
+        rotated = warn_exif_rotated(images_dir, names)  # the photos themselves, not the undistorted copies
         model, images_dir = undistort_colmap(model, images_dir, undistort_dir)
     try:
-        colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
+        with warnings.catch_warnings():
+            if distorted and rotated:  # said above
+                warnings.filterwarnings("ignore", message=".*EXIF orientation tag that COLMAP ignores")
+            colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
     except BaseException:
         if distorted:  # the undistorted copy of a project that cannot be loaded is no use: remove it
             shutil.rmtree(undistort_dir, ignore_errors=True)
