@@ -280,3 +280,58 @@ def test_sceaux_castle(tmp_path):
     focal = float(SCEAUX.joinpath("K.txt").read_text().split()[0])
     rec = pycolmap.Reconstruction(str(res.model))
     assert [c.focal_length for c in rec.cameras.values()] == [pytest.approx(focal, rel=0.04)]
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not SCEAUX.is_dir(), reason="needs ../shared/data/real/sceaux_castle")
+def test_phone_photos_stored_sideways(tmp_path):
+    """Real photos stored as a phone stores them: pixels turned 90° with EXIF orientation 6 (a viewer
+    shows them upright), four of six, as in the trial (19 of 23). ``vadgs sfm`` writes them upright
+    into the project, and the up direction it recovers is the one of the same photos stored upright.
+
+    Six castle photos at 1/4 size (708x532), about 5 s of CPU per run.
+    """
+    import torch
+
+    from vadgs.geometry import level_up
+
+    names = sorted(p.name for p in SCEAUX.glob("*.JPG"))[:6]
+    (tmp_path / "upright").mkdir()
+    (tmp_path / "phone").mkdir()
+    for i, name in enumerate(names):
+        with Image.open(SCEAUX / name) as im:
+            small = im.reduce(4)
+        small.save(tmp_path / "upright" / name, quality=95)
+        if i in (0, 5):  # two stored upright
+            small.save(tmp_path / "phone" / name, quality=95)
+            continue
+        exif = Image.Exif()
+        exif[0x0112] = 6  # "rotate 90° clockwise to show": the stored grid is the upright one turned back
+        stored = np.ascontiguousarray(np.rot90(np.asarray(small)))
+        Image.fromarray(stored).save(tmp_path / "phone" / name, quality=95, exif=exif)
+
+    def up_in_cameras(photos, out):
+        res = run_sfm(photos, out, max_image_size=0, threads=1, log=None, progress=False)
+        assert res.registered == 6, res.summary()
+        rec = pycolmap.Reconstruction(str(res.model))
+        ims = sorted(rec.images.values(), key=lambda im: im.name)
+        c2w = torch.tensor(np.stack([np.linalg.inv(_cam_from_world(im)) for im in ims]))
+        up = level_up(c2w)
+        # the up in each camera's own axes: free of the reconstructions' arbitrary world frames
+        return res, {im.name: (c2w[i, :3, :3].T @ up).numpy() for i, im in enumerate(ims)}
+
+    _, want = up_in_cameras(tmp_path / "upright", tmp_path / "p_upright")
+    res, got = up_in_cameras(tmp_path / "phone", tmp_path / "p_phone")
+    summary = json.loads((res.project / "sfm.json").read_text())
+    assert summary["exif_rotated"] == {name: 6 for name in names[1:5]}
+    for name in names:
+        # the project's image is upright: the upright photo within JPEG error, no orientation tag
+        with Image.open(res.images / name) as im:
+            assert im.size == (708, 532) and im.getexif().get(0x0112, 1) == 1, name
+            image = np.asarray(im, dtype=np.float64)
+        with Image.open(tmp_path / "upright" / name) as im:
+            assert np.abs(image - np.asarray(im, dtype=np.float64)).mean() < 3.0, name
+        # the up agrees with the upright run's (within 1°), and points up in the photo (-y, level)
+        angle = np.degrees(np.arccos(np.clip(want[name] @ got[name], -1.0, 1.0)))
+        assert angle < 1.0, (name, angle)
+        assert got[name][1] < -0.95, (name, got[name])
