@@ -67,7 +67,7 @@ def _as_rgb(im: Image.Image, path: object) -> np.ndarray:
         arr = np.asarray(im.getchannel(0), dtype=np.float32) / 255.0
     elif mode == "1":
         arr = np.asarray(im, dtype=np.float32)
-    elif mode.startswith("I;16"):
+    elif mode in ("I;16", "I;16B", "I;16L", "I;16N"):
         arr = np.asarray(im).astype(np.float32) / 65535.0
     elif mode == "I":
         raw = np.asarray(im)
