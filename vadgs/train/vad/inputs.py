@@ -317,7 +317,12 @@ class VisibilityInputs:
                 import cv2
 
                 mapx, mapy, (x, y, w, h) = remap
-                arr = cv2.remap(arr, mapx, mapy, cv2.INTER_LINEAR)[y : y + h, x : x + w]
+                u8 = np.round(arr * 255.0).astype(np.uint8)
+                if np.array_equal(u8.astype(np.float32) / 255.0, arr):  # 8-bit: on uint8, as gsplat
+                    arr = cv2.remap(u8, mapx, mapy, cv2.INTER_LINEAR).astype(np.float32) / 255.0
+                else:  # 16-bit and float images keep their precision
+                    arr = cv2.remap(arr, mapx, mapy, cv2.INTER_LINEAR)
+                arr = arr[y : y + h, x : x + w]
             img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).float()
             h, w = size or (sizes[view] if sizes is not None else big)
             if img.shape[-2:] != (h, w):
