@@ -51,6 +51,13 @@ _CONVERTED = ("CMYK", "YCbCr", "LAB", "HSV", "RGBX", "RGBa")
 _DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, Image.DecompressionBombError)
 
 
+def _unit8(a: np.ndarray) -> np.ndarray:
+    """uint8 → float32 ``/ 255`` (one copy; the same values as ``torch``'s ``x.float() / 255``)."""
+    out = a.astype(np.float32)
+    out /= 255.0
+    return out
+
+
 def _as_rgb(im: Image.Image, path: object) -> np.ndarray:
     mode = im.mode
     if mode == "P":
@@ -60,11 +67,11 @@ def _as_rgb(im: Image.Image, path: object) -> np.ndarray:
         im = im.convert("RGBA")
         mode = "RGBA"
     if mode in _CONVERTED:
-        arr = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        arr = _unit8(np.asarray(im.convert("RGB")))
     elif mode in ("RGB", "RGBA"):
-        arr = np.asarray(im, dtype=np.float32)[..., :3] / 255.0
+        arr = _unit8(np.asarray(im)[..., :3])
     elif mode in ("L", "LA", "La"):
-        arr = np.asarray(im.getchannel(0), dtype=np.float32) / 255.0
+        arr = _unit8(np.asarray(im.getchannel(0)))
     elif mode == "1":
         arr = np.asarray(im, dtype=np.float32)
     elif mode in ("I;16", "I;16B", "I;16L", "I;16N"):
