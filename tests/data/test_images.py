@@ -147,6 +147,15 @@ class TestModes:
         stored = read_image(tmp_path / "r.jpg")
         assert read_image(tmp_path / "u.jpg").shape == (40, 24, 3)
         assert np.abs(read_image(tmp_path / "u.jpg") - np.rot90(stored, -1)).mean() < 2 / 255
+        # a phone's MPO (a JPEG with a second picture): written as a JPEG of its first picture
+        second = Image.fromarray(smooth[::-1].copy())
+        Image.fromarray(smooth).save(
+            tmp_path / "m.jpg", "MPO", save_all=True, append_images=[second], exif=exif
+        )
+        assert Image.open(tmp_path / "m.jpg").format == "MPO"
+        assert upright_image(tmp_path / "m.jpg", tmp_path / "n.jpg") == 6
+        assert Image.open(tmp_path / "n.jpg").format == "JPEG" and exif_orientation(tmp_path / "n.jpg") == 1
+        assert np.abs(read_image(tmp_path / "n.jpg") - np.rot90(smooth / 255.0, -1)).mean() < 2 / 255
         Image.fromarray(U8).save(tmp_path / "p.png", exif=exif)
         assert upright_image(tmp_path / "p.png", tmp_path / "q.png") == 6  # lossless
         np.testing.assert_array_equal(

@@ -212,7 +212,8 @@ def upright_image(src: str | Path, dst: str | Path) -> int:
         kw: dict = {"exif": exif.tobytes()}
         if icc:
             kw["icc_profile"] = icc
-        if fmt == "JPEG":
+        if fmt in ("JPEG", "MPO"):  # MPO: a phone's JPEG with extra pictures (depth); the first kept
+            fmt = "JPEG"
             kw.update(quality=95, subsampling=_subsampling(im))
         out.save(dst, format=fmt, **kw)
     return orientation
