@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from vadgs.cli import main
@@ -80,7 +81,7 @@ class TestRunSfm:
 
     def test_project_layout_and_photos_unchanged(self, made):
         root, truth, res = made
-        assert sorted(p.name for p in res.project.iterdir()) == [
+        assert sorted(p.name for p in res.project.iterdir() if not p.name.startswith(".")) == [
             "database.db",
             "images",
             "sfm.json",
@@ -109,6 +110,38 @@ class TestRunSfm:
         assert scene.num_views == 10 and scene.name == "proj"
         assert sorted(v.image.name for v in scene.views) == truth["names"]
         assert len(recipe["undistorted"]) == 2  # SIMPLE_RADIAL: undistorted for training
+
+    def test_undistorted_once_per_project(self, made, tmp_path, monkeypatch):
+        """The second run of a project links to the undistorted copy the first one left in it."""
+        import os
+
+        _, truth, res = made
+        first, _ = open_colmap_project(res.project, undistort_dir=tmp_path / "a")
+        cache = res.project / ".vadgs-undistorted"
+        (entry,) = list(cache.iterdir())
+
+        def again(*_a, **_k):
+            raise AssertionError("undistorted again")
+
+        monkeypatch.setattr(pycolmap, "undistort_images", again)
+        second, recipe = open_colmap_project(res.project, undistort_dir=tmp_path / "b")
+        assert recipe["images"] == str((tmp_path / "b" / "images").resolve())  # the run's own copy
+        for name in truth["names"]:
+            assert os.path.samefile(tmp_path / "b" / "images" / name, entry / "images" / name)
+        for v1, v2 in zip(first.scene.views, second.scene.views):
+            assert torch.equal(v1.cam_to_world, v2.cam_to_world)
+        assert torch.equal(first.scene.load_images([3]), second.scene.load_images([3]))
+        monkeypatch.undo()
+        # a photo changed: undistorted again, the old copy replaced by the new one
+        photo = res.images / truth["names"][0]
+        st = photo.stat()
+        os.utime(photo, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        try:
+            open_colmap_project(res.project, undistort_dir=tmp_path / "c")
+            assert [p.name for p in cache.iterdir()] not in ([], [entry.name])
+            assert len(list(cache.iterdir())) == 1
+        finally:
+            os.utime(photo, ns=(st.st_atime_ns, st.st_mtime_ns))
 
     def test_overwrite(self, made, tmp_path, capsys):
         root, truth, res = made
@@ -146,7 +179,7 @@ class TestRunSfm:
         err = capsys.readouterr().err
         assert "COLMAP registered none of the 3 photos" in err and err.count("\n") == 1
         assert (res.model / "points3D.bin").read_bytes() == before
-        assert sorted(p.name for p in res.project.iterdir()) == [
+        assert sorted(p.name for p in res.project.iterdir() if not p.name.startswith(".")) == [
             "database.db",
             "images",
             "sfm.json",

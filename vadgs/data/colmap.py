@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -465,6 +467,87 @@ def undistort_colmap(
     return out_dir / "sparse", out_dir / "images"
 
 
+UNDISTORT_CACHE = ".vadgs-undistorted"
+"""The folder of a ``vadgs sfm`` project (one with ``sfm.json``) where its undistorted copy is kept."""
+
+
+def _undistort_key(sparse_dir: Path, images_dir: Path, names: list[str]) -> str:
+    """The model's files (bytes) and its registered images (name, size, modification time)."""
+    h = hashlib.sha1()
+    for f in sorted(sparse_dir.iterdir()):
+        if f.is_file():
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+    for name in sorted(names):
+        st = (images_dir / name).stat()
+        h.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()[:20]
+
+
+def _link_tree(src: Path, dst: Path, partial: Path) -> None:
+    """``dst`` a copy of ``src`` of hard links (copies across file systems).
+
+    Written to ``partial`` and renamed when complete.
+    """
+    shutil.rmtree(partial, ignore_errors=True)
+    try:
+        for root, _dirs, files in os.walk(src):
+            rel = Path(root).relative_to(src)
+            (partial / rel).mkdir(parents=True, exist_ok=True)
+            for f in files:
+                try:
+                    os.link(Path(root) / f, partial / rel / f)
+                except OSError:
+                    shutil.copy2(Path(root) / f, partial / rel / f)
+        if dst.exists():
+            shutil.rmtree(dst)
+        partial.rename(dst)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+
+
+def _undistort_cached(model: Path, images_dir: Path, undistort_dir: Path) -> tuple[Path, Path]:
+    """:func:`undistort_colmap`, once per ``vadgs sfm`` project: its copy kept in the project.
+
+    A project that ``vadgs sfm`` wrote (``PROJECT/sparse/0``, ``PROJECT/images``, ``sfm.json``)
+    keeps the undistorted model and images in ``PROJECT/.vadgs-undistorted/<key>`` (the key: the
+    model's bytes and the images' names, sizes and times; one entry, the last). A run then gets
+    hard links to it in ``undistort_dir`` (copies across file systems): no undistortion, no second
+    200 MB. Projects made elsewhere are never written to: undistorted into ``undistort_dir`` each time.
+    """
+    project = model.parent.parent
+    owned = (
+        model.parent.name == "sparse"
+        and (project / "sfm.json").is_file()
+        and images_dir.resolve() == (project / "images").resolve()
+    )
+    if not owned:
+        return undistort_colmap(model, images_dir, undistort_dir)
+    if undistort_dir.exists() and not _has_model(undistort_dir / "sparse"):
+        raise ValueError(
+            f"out_dir {undistort_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
+        )
+    names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
+    entry = project / UNDISTORT_CACHE / _undistort_key(model, images_dir, names)
+    if _has_model(entry / "sparse") and (entry / "images").is_dir():
+        undistort_dir.parent.mkdir(parents=True, exist_ok=True)
+        _link_tree(entry, undistort_dir, undistort_dir.with_name(f".{undistort_dir.name}.partial"))
+        return undistort_dir / "sparse", undistort_dir / "images"
+    out = undistort_colmap(model, images_dir, undistort_dir)
+    try:  # the cache is an optimisation: a project that cannot be written to just has none
+        for old in entry.parent.glob("*") if entry.parent.is_dir() else ():
+            if old.name != entry.name and not old.name.startswith("."):
+                shutil.rmtree(old, ignore_errors=True)
+        entry.parent.mkdir(exist_ok=True)
+        _link_tree(undistort_dir, entry, entry.with_name(f".{entry.name}.partial-{os.getpid()}"))
+    except OSError as e:
+        warnings.warn(
+            f"{entry.parent}: cannot keep the undistorted copy ({e}); undistorted again next run",
+            stacklevel=3,
+        )
+    return out
+
+
 def open_colmap_project(
     path: str | Path,
     images_dir: str | Path | None = None,
@@ -528,7 +611,7 @@ def open_colmap_project(
             )
         names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
         rotated = warn_exif_rotated(images_dir, names)  # the photos themselves, not the undistorted copies
-        model, images_dir = undistort_colmap(model, images_dir, undistort_dir)
+        model, images_dir = _undistort_cached(model, images_dir, Path(undistort_dir))
     try:
         with warnings.catch_warnings():
             if distorted and rotated:  # said above

@@ -36,6 +36,10 @@ refused; photos with identical pixels are named and all but the first left out (
 have no baseline: COLMAP cannot place them). One process writes a project at a time: the run holds
 the project's lock (:class:`vadgs.train.session.RunLock`, ``PROJECT/.vadgs.lock``).
 
+``vadgs train PROJECT`` keeps the undistorted copy of a distorted model in
+``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap.open_colmap_project`), so later runs link
+to it instead of undistorting again; a new model (``overwrite``) removes it.
+
 Nothing is written next to the photos; the work happens in a temporary folder inside ``PROJECT``
 and moves into place only when a model was made, so a failed run leaves ``PROJECT`` as it was.
 An existing project is replaced only with ``overwrite=True``.
@@ -523,6 +527,9 @@ def _run_sfm_locked(
         # -- 4. the project: the old entries replaced, the new ones moved in
         for entry in replaced:
             _remove(entry)
+        from vadgs.data.colmap import UNDISTORT_CACHE
+
+        _remove(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
         for entry in ("database.db", "sparse", "images"):
             if (work / entry).exists():
                 os.replace(work / entry, out / entry)
