@@ -539,7 +539,8 @@ def _undistort_cached(model: Path, images_dir: Path, undistort_dir: Path) -> tup
             if old.name != entry.name and not old.name.startswith("."):
                 shutil.rmtree(old, ignore_errors=True)
         entry.parent.mkdir(exist_ok=True)
-        _link_tree(undistort_dir, entry, entry.with_name(f".{entry.name}.partial-{os.getpid()}"))
+        if not entry.exists():  # another run may have stored it meanwhile: never replaced
+            _link_tree(undistort_dir, entry, entry.with_name(f".{entry.name}.partial-{os.getpid()}"))
     except OSError as e:
         warnings.warn(
             f"{entry.parent}: cannot keep the undistorted copy ({e}); undistorted again next run",
