@@ -10,7 +10,7 @@
 #         ITERATIONS=1000 SCALE=0.125 examples/photos_to_video.sh ~/photos/castle runs/castle \
 #             --vad.every-cycles 25
 #
-# Writes OUT/project (images/ = the photos unchanged, sparse/0, database.db, sfm.json) and
+# Writes OUT/project (images/ = the photos, rotated ones upright, sparse/0, database.db, sfm.json) and
 # OUT/run (checkpoint.pt, metrics.json, eval.json, video.mp4, export/frame000/world_frame000.ply).
 #
 # Settings, as environment variables:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from vadgs.cli import main
@@ -17,7 +18,7 @@ from vadgs.data.colmap_model import _cam_from_world
 from vadgs.data.sfm import _sequential_pairs, find_photos, photo_groups, run_sfm
 from vadgs.train.scenes import scene_ref
 
-from .photo_sample import write_photo_set
+from .photo_sample import SIDEWAYS, photo_cameras, write_photo_set
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -32,6 +33,9 @@ def made(tmp_path_factory):
     """The 10-photo room (three sizes, one stored sideways) reconstructed once (about 10 s of CPU)."""
     root = tmp_path_factory.mktemp("sfm")
     truth = write_photo_set(root / "photos")
+    upright = photo_cameras()  # the sideways photo is turned upright into the project: its upright camera
+    for key in ("cam_to_world", "K", "sizes"):
+        truth[key][SIDEWAYS] = upright[key][SIDEWAYS]
     (root / "photos" / "notes.txt").write_text("not a photo")  # skipped
     res = run_sfm(root / "photos", root / "proj", threads=1, log=None, progress=False)
     return root, truth, res
@@ -53,7 +57,7 @@ class TestRunSfm:
     def test_every_photo_registers_with_its_true_camera(self, made):
         _, truth, res = made
         assert (res.num_photos, res.registered, res.unregistered) == (10, 10, ())
-        assert res.matcher == "exhaustive" and res.num_cameras == 3  # one per size
+        assert res.matcher == "exhaustive" and res.num_cameras == 2  # one per size (photo 5 upright)
         assert res.mean_reprojection_error < 0.5
         rec = pycolmap.Reconstruction(str(res.model))
         images = {im.name: im for im in rec.images.values()}
@@ -77,7 +81,7 @@ class TestRunSfm:
 
     def test_project_layout_and_photos_unchanged(self, made):
         root, truth, res = made
-        assert sorted(p.name for p in res.project.iterdir()) == [
+        assert sorted(p.name for p in res.project.iterdir() if not p.name.startswith(".")) == [
             "database.db",
             "images",
             "sfm.json",
@@ -85,10 +89,17 @@ class TestRunSfm:
         ]
         assert sorted(p.name for p in res.images.iterdir()) == truth["names"]  # notes.txt left out
         for name in truth["names"]:
-            assert filecmp.cmp(root / "photos" / name, res.images / name, shallow=False)
-        assert Image.open(res.images / "photo_05.jpg").getexif()[0x0112] == 6
+            if name != "photo_05.jpg":
+                assert filecmp.cmp(root / "photos" / name, res.images / name, shallow=False)
+        # the sideways photo: upright under its own name, its tag gone, the pixels within JPEG error
+        assert Image.open(root / "photos" / "photo_05.jpg").getexif()[0x0112] == 6  # the original kept
+        turned = Image.open(res.images / "photo_05.jpg")
+        assert turned.format == "JPEG" and 0x0112 not in turned.getexif()
+        stored = np.asarray(Image.open(root / "photos" / "photo_05.jpg"), dtype=np.float64)
+        assert np.abs(np.asarray(turned, dtype=np.float64) - np.rot90(stored, -1)).mean() < 2.0
         summary = json.loads((res.project / "sfm.json").read_text())
-        assert summary["registered"] == 10 and summary["exif_rotated"] == ["photo_05.jpg"]
+        assert summary["registered"] == 10 and summary["exif_rotated"] == {"photo_05.jpg": 6}
+        assert summary["duplicates"] == {}
         assert not list((root / "photos").glob("*.db"))  # nothing written next to the photos
 
     def test_vadgs_reads_the_project(self, made):
@@ -98,7 +109,39 @@ class TestRunSfm:
         scene = colmap.scene
         assert scene.num_views == 10 and scene.name == "proj"
         assert sorted(v.image.name for v in scene.views) == truth["names"]
-        assert len(recipe["undistorted"]) == 3  # SIMPLE_RADIAL: undistorted for training
+        assert len(recipe["undistorted"]) == 2  # SIMPLE_RADIAL: undistorted for training
+
+    def test_undistorted_once_per_project(self, made, tmp_path, monkeypatch):
+        """The second run of a project links to the undistorted copy the first one left in it."""
+        import os
+
+        _, truth, res = made
+        first, _ = open_colmap_project(res.project, undistort_dir=tmp_path / "a")
+        cache = res.project / ".vadgs-undistorted"
+        (entry,) = list(cache.iterdir())
+
+        def again(*_a, **_k):
+            raise AssertionError("undistorted again")
+
+        monkeypatch.setattr(pycolmap, "undistort_images", again)
+        second, recipe = open_colmap_project(res.project, undistort_dir=tmp_path / "b")
+        assert recipe["images"] == str((tmp_path / "b" / "images").resolve())  # the run's own copy
+        for name in truth["names"]:
+            assert os.path.samefile(tmp_path / "b" / "images" / name, entry / "images" / name)
+        for v1, v2 in zip(first.scene.views, second.scene.views):
+            assert torch.equal(v1.cam_to_world, v2.cam_to_world)
+        assert torch.equal(first.scene.load_images([3]), second.scene.load_images([3]))
+        monkeypatch.undo()
+        # a photo changed: undistorted again, the old copy replaced by the new one
+        photo = res.images / truth["names"][0]
+        st = photo.stat()
+        os.utime(photo, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        try:
+            open_colmap_project(res.project, undistort_dir=tmp_path / "c")
+            assert [p.name for p in cache.iterdir()] not in ([], [entry.name])
+            assert len(list(cache.iterdir())) == 1
+        finally:
+            os.utime(photo, ns=(st.st_atime_ns, st.st_mtime_ns))
 
     def test_overwrite(self, made, tmp_path, capsys):
         root, truth, res = made
@@ -136,7 +179,7 @@ class TestRunSfm:
         err = capsys.readouterr().err
         assert "COLMAP registered none of the 3 photos" in err and err.count("\n") == 1
         assert (res.model / "points3D.bin").read_bytes() == before
-        assert sorted(p.name for p in res.project.iterdir()) == [
+        assert sorted(p.name for p in res.project.iterdir() if not p.name.startswith(".")) == [
             "database.db",
             "images",
             "sfm.json",
@@ -192,15 +235,59 @@ class TestBadInput:
             err = capsys.readouterr().err
             assert message in err and err.count("\n") == 1, (argv, err)
             assert not (tmp_path / "p").exists()
-        # a project inside the photos folder: its images are not photos of a new run
+        # a project inside the photos folder, or the photos folder itself: refused (F12b, F13)
         (tmp_path / "one" / "proj" / "images").mkdir(parents=True)
         for name in ("b.jpg", "c.jpg"):
             Image.new("RGB", (40, 30)).save(tmp_path / "one" / "proj" / "images" / name)
         argv = ["sfm", str(tmp_path / "one"), "--out", str(tmp_path / "one" / "proj"), "--overwrite"]
         assert main(argv) == 2
-        assert "expected at least 2 photos, got 1 (a.jpg)" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert "is inside PHOTOS" in err and "give a folder outside PHOTOS" in err and err.count("\n") == 1
+        assert main(["sfm", str(tmp_path / "one"), "--out", str(tmp_path / "one")]) == 2
+        err = capsys.readouterr().err
+        assert "is PHOTOS itself" in err and err.count("\n") == 1
+        # PHOTOS a file (F21)
+        assert main(["sfm", str(tmp_path / "one" / "a.jpg"), "--out", str(tmp_path / "p")]) == 2
+        err = capsys.readouterr().err
+        assert "expected a folder of photos, got a file" in err and err.count("\n") == 1
+        assert not (tmp_path / "p").exists()
         with pytest.raises(ValueError, match="camera_mode: expected one of"):
             run_sfm(tmp_path / "one", tmp_path / "p", camera_mode="exif")
+
+    def test_corrupt_duplicate_locked(self, tmp_path, capsys):
+        """F5b: a truncated JPEG is named and the run refused; F3: identical photos are said to be
+        identical; two runs into one project: the second is refused by the project's lock."""
+        rng = np.random.default_rng(0)
+        photos = tmp_path / "photos"
+        photos.mkdir()
+        for name in ("a.jpg", "b.jpg", "c.jpg"):
+            Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)).save(photos / name, quality=95)
+        data = (photos / "b.jpg").read_bytes()
+        (photos / "b.jpg").write_bytes(data[: len(data) // 2])
+
+        def sfm(out):
+            return main(["--threads", "1", "sfm", str(photos), "--out", str(out), "--no-progress"])
+
+        assert sfm(tmp_path / "p") == 2
+        err = capsys.readouterr().err
+        assert f"{photos / 'b.jpg'}: not a decodable image" in err and "remove or replace" in err
+        assert err.count("\n") == 1 and not (tmp_path / "p").exists()
+        # b.jpg an exact copy of a.jpg (and c.jpg gone): two photos, one distinct
+        (photos / "b.jpg").write_bytes((photos / "a.jpg").read_bytes())
+        (photos / "c.jpg").unlink()
+        assert sfm(tmp_path / "p") == 2
+        out, err = capsys.readouterr()
+        assert "b.jpg is identical to a.jpg (same pixels): left out" in out
+        assert "expected at least 2 distinct photos, got 1 (a.jpg; b.jpg is identical to it" in err
+        assert not (tmp_path / "p").exists()
+        # a project another process is writing
+        from vadgs.train.session import RunLock
+
+        with RunLock(tmp_path / "busy", "vadgs sfm"):
+            assert sfm(tmp_path / "busy") != 0
+        err = capsys.readouterr().err
+        assert "in use by vadgs sfm" in err and err.count("\n") == 1
+        assert not (tmp_path / "busy").exists()
 
     def test_groups(self, tmp_path):
         for name, size in (("b.png", (40, 30)), ("a.png", (40, 30)), ("sub/c.jpg", (30, 40))):
@@ -226,3 +313,58 @@ def test_sceaux_castle(tmp_path):
     focal = float(SCEAUX.joinpath("K.txt").read_text().split()[0])
     rec = pycolmap.Reconstruction(str(res.model))
     assert [c.focal_length for c in rec.cameras.values()] == [pytest.approx(focal, rel=0.04)]
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not SCEAUX.is_dir(), reason="needs ../shared/data/real/sceaux_castle")
+def test_phone_photos_stored_sideways(tmp_path):
+    """Real photos stored as a phone stores them: pixels turned 90° with EXIF orientation 6 (a viewer
+    shows them upright), four of six, as in the trial (19 of 23). ``vadgs sfm`` writes them upright
+    into the project, and the up direction it recovers is the one of the same photos stored upright.
+
+    Six castle photos at 1/4 size (708x532), about 5 s of CPU per run.
+    """
+    import torch
+
+    from vadgs.geometry import level_up
+
+    names = sorted(p.name for p in SCEAUX.glob("*.JPG"))[:6]
+    (tmp_path / "upright").mkdir()
+    (tmp_path / "phone").mkdir()
+    for i, name in enumerate(names):
+        with Image.open(SCEAUX / name) as im:
+            small = im.reduce(4)
+        small.save(tmp_path / "upright" / name, quality=95)
+        if i in (0, 5):  # two stored upright
+            small.save(tmp_path / "phone" / name, quality=95)
+            continue
+        exif = Image.Exif()
+        exif[0x0112] = 6  # "rotate 90° clockwise to show": the stored grid is the upright one turned back
+        stored = np.ascontiguousarray(np.rot90(np.asarray(small)))
+        Image.fromarray(stored).save(tmp_path / "phone" / name, quality=95, exif=exif)
+
+    def up_in_cameras(photos, out):
+        res = run_sfm(photos, out, max_image_size=0, threads=1, log=None, progress=False)
+        assert res.registered == 6, res.summary()
+        rec = pycolmap.Reconstruction(str(res.model))
+        ims = sorted(rec.images.values(), key=lambda im: im.name)
+        c2w = torch.tensor(np.stack([np.linalg.inv(_cam_from_world(im)) for im in ims]))
+        up = level_up(c2w)
+        # the up in each camera's own axes: free of the reconstructions' arbitrary world frames
+        return res, {im.name: (c2w[i, :3, :3].T @ up).numpy() for i, im in enumerate(ims)}
+
+    _, want = up_in_cameras(tmp_path / "upright", tmp_path / "p_upright")
+    res, got = up_in_cameras(tmp_path / "phone", tmp_path / "p_phone")
+    summary = json.loads((res.project / "sfm.json").read_text())
+    assert summary["exif_rotated"] == {name: 6 for name in names[1:5]}
+    for name in names:
+        # the project's image is upright: the upright photo within JPEG error, no orientation tag
+        with Image.open(res.images / name) as im:
+            assert im.size == (708, 532) and im.getexif().get(0x0112, 1) == 1, name
+            image = np.asarray(im, dtype=np.float64)
+        with Image.open(tmp_path / "upright" / name) as im:
+            assert np.abs(image - np.asarray(im, dtype=np.float64)).mean() < 3.0, name
+        # the up agrees with the upright run's (within 1°), and points up in the photo (-y, level)
+        angle = np.degrees(np.arccos(np.clip(want[name] @ got[name], -1.0, 1.0)))
+        assert angle < 1.0, (name, angle)
+        assert got[name][1] < -0.95, (name, got[name])

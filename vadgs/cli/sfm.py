@@ -17,10 +17,12 @@ __all__ = ["SfmCommand"]
 class SfmCommand(Command):
     """Reconstruct the cameras of a folder of photos with pycolmap into a COLMAP project for ``vadgs train``.
 
-    Writes ``OUT/images`` (the photos unchanged, under their own names), ``OUT/sparse/0`` (the
-    largest model), ``OUT/database.db`` and ``OUT/sfm.json``; prints the photos registered and the
-    mean reprojection error. ``--threads N`` sets pycolmap's threads too (0: all cores). Then:
-    ``vadgs train OUT --out RUN``.
+    Writes ``OUT/images`` (the photos under their own names: unchanged, but those with an EXIF
+    rotation written upright, as a viewer shows them), ``OUT/sparse/0`` (the largest model),
+    ``OUT/database.db`` and ``OUT/sfm.json``; prints the photos registered and the mean reprojection
+    error. Refuses an ``OUT`` inside PHOTOS, a photo that does not decode, and an ``OUT`` another
+    process is writing; leaves out photos identical to an earlier one. ``--threads N`` sets
+    pycolmap's threads too (0: all cores). Then: ``vadgs train OUT --out RUN``.
     """
 
     photos: Annotated[str, Positional, tyro.conf.arg(metavar="PHOTOS")]
@@ -35,9 +37,9 @@ class SfmCommand(Command):
     camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"] = "SIMPLE_RADIAL"
     """COLMAP camera model fitted (vadgs train undistorts the distorted ones)"""
     max_image_size: int = 1600
-    """longest side in pixels at which features are detected (the photos are not changed); 0: full size"""
+    """longest side in pixels at which features are detected (the photos are not scaled); 0: full size"""
     link: Flag = False
-    """symlink the photos into OUT/images instead of copying them"""
+    """symlink the photos into OUT/images instead of copying them (rotated ones are written upright)"""
     overwrite: Flag = False
     """replace the images/, sparse/, database.db and sfm.json of an existing project in OUT"""
     seed: int = 0

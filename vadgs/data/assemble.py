@@ -27,7 +27,7 @@ from vadgs.data.scene import (
     Scene,
     Track,
     ViewInfo,
-    _read_png,
+    _read_rgb,
 )
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
@@ -173,7 +173,7 @@ def file_image_loader(
         return None
 
     def image_loader(view: ViewInfo) -> torch.Tensor:
-        img = torch.from_numpy(_read_png(view.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+        img = _read_rgb(view.image)
         und = undistort.get(view.camera)
         if und is None:
             return img

@@ -37,6 +37,7 @@ from typing import NamedTuple
 import torch
 from PIL import Image
 
+from vadgs.data.images import SUPPORTED_MODES, read_image
 from vadgs.data.scene import Scene, npz_headers, read_depth
 
 __all__ = [
@@ -204,12 +205,16 @@ def _size_matches(file_wh: tuple[int, int], size: tuple[int, int], scale: float)
 def _check_png(
     path: Path, size: tuple[int, int], scale: float, modes: tuple[str, ...] | None, full: bool
 ) -> None:
+    """An image file's size and mode; ``full``: decoded (colour images as the loaders decode them).
+
+    ``modes=None``: a colour image, of any mode :func:`read_image` reads.
+    """
     if not path.is_file():
         raise FileNotFoundError(path)
     try:
         with Image.open(path) as im:
             wh, mode = im.size, im.mode
-            if full:
+            if full and modes is not None:
                 im.load()
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         nbytes = path.stat().st_size
@@ -219,6 +224,13 @@ def _check_png(
         raise ValueError(f"expected size {_expected_file_size(size, scale)} (W x H), got {wh[0]}x{wh[1]}")
     if modes is not None and mode not in modes:
         raise ValueError(f"expected an image of mode {'/'.join(modes)}, got mode {mode}")
+    if modes is None and mode not in SUPPORTED_MODES:
+        raise ValueError(f"image mode {mode!r} is not read; expected one of {', '.join(SUPPORTED_MODES)}")
+    if full and modes is None:
+        try:
+            read_image(path)  # the colour image as training reads it (16-bit, palette, alpha, ...)
+        except ValueError as e:
+            raise ValueError(str(e).removeprefix(f"{path}: ")) from None
 
 
 def _check_depth(path: Path, size: tuple[int, int], scale: float, full: bool) -> None:

@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -64,6 +66,7 @@ from vadgs.data.colmap_model import (
     find_colmap_model,
     match_colmap_views,
 )
+from vadgs.data.images import exif_orientation
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
@@ -82,6 +85,7 @@ __all__ = [
     "reopen_colmap_project",
     "transform_colmap",
     "undistort_colmap",
+    "warn_exif_rotated",
 ]
 
 COLMAP_LOG_LEVEL = 1
@@ -279,10 +283,39 @@ def load_colmap(
         missing_noun="registered image(s)",
         validate=validate,
     )
+    if check_files and images_dir is not None:
+        warn_exif_rotated(images_dir, [im.name for im in registered])
     out = ColmapScene(scene, points)
     if normalize is True:
         transform = colmap_normalization(out)
     return transform_colmap(out, transform) if transform is not None else out
+
+
+def warn_exif_rotated(images_dir: str | Path, names: list[str], stacklevel: int = 3) -> int:
+    """Warn when images of a COLMAP project carry an EXIF rotation (COLMAP ignores it); how many do.
+
+    COLMAP fits each camera to the stored pixel grid, and vadgs reads that grid too
+    (:func:`vadgs.data.images.read_image`), so such a project is consistent but sideways: the up
+    direction, videos and exports are rolled. ``vadgs sfm`` writes its images upright, so its
+    projects never warn.
+    """
+    turned = {}
+    for name in names:
+        path = Path(images_dir) / name
+        if path.is_file() and (o := exif_orientation(path)) != 1:
+            turned[name] = o
+    if turned:
+        first = next(iter(turned))
+        warnings.warn(
+            f"{images_dir}: {len(turned)} of {len(names)} image(s) carry an EXIF orientation tag that "
+            f"COLMAP ignores (e.g. {first}: orientation {turned[first]}); vadgs reads them as stored, as "
+            "their cameras were fitted, so the up direction, renders and exports follow the stored "
+            "(sideways) pixels; for upright results rerun `vadgs sfm` on the original photos (it turns "
+            "them upright), or rotate their pixels and drop the tags before running COLMAP",
+            UserWarning,
+            stacklevel=stacklevel,
+        )
+    return len(turned)
 
 
 def _project_name(sparse_dir: Path) -> str:
@@ -434,6 +467,88 @@ def undistort_colmap(
     return out_dir / "sparse", out_dir / "images"
 
 
+UNDISTORT_CACHE = ".vadgs-undistorted"
+"""The folder of a ``vadgs sfm`` project (one with ``sfm.json``) where its undistorted copy is kept."""
+
+
+def _undistort_key(sparse_dir: Path, images_dir: Path, names: list[str]) -> str:
+    """The model's files (bytes) and its registered images (name, size, modification time)."""
+    h = hashlib.sha1()
+    for f in sorted(sparse_dir.iterdir()):
+        if f.is_file():
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+    for name in sorted(names):
+        st = (images_dir / name).stat()
+        h.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()[:20]
+
+
+def _link_tree(src: Path, dst: Path, partial: Path) -> None:
+    """``dst`` a copy of ``src`` of hard links (copies across file systems).
+
+    Written to ``partial`` and renamed when complete.
+    """
+    shutil.rmtree(partial, ignore_errors=True)
+    try:
+        for root, _dirs, files in os.walk(src):
+            rel = Path(root).relative_to(src)
+            (partial / rel).mkdir(parents=True, exist_ok=True)
+            for f in files:
+                try:
+                    os.link(Path(root) / f, partial / rel / f)
+                except OSError:
+                    shutil.copy2(Path(root) / f, partial / rel / f)
+        if dst.exists():
+            shutil.rmtree(dst)
+        partial.rename(dst)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+
+
+def _undistort_cached(model: Path, images_dir: Path, undistort_dir: Path) -> tuple[Path, Path]:
+    """:func:`undistort_colmap`, once per ``vadgs sfm`` project: its copy kept in the project.
+
+    A project that ``vadgs sfm`` wrote (``PROJECT/sparse/0``, ``PROJECT/images``, ``sfm.json``)
+    keeps the undistorted model and images in ``PROJECT/.vadgs-undistorted/<key>`` (the key: the
+    model's bytes and the images' names, sizes and times; one entry, the last). A run then gets
+    hard links to it in ``undistort_dir`` (copies across file systems): no undistortion, no second
+    200 MB. Projects made elsewhere are never written to: undistorted into ``undistort_dir`` each time.
+    """
+    project = model.parent.parent
+    owned = (
+        model.parent.name == "sparse"
+        and (project / "sfm.json").is_file()
+        and images_dir.resolve() == (project / "images").resolve()
+    )
+    if not owned:
+        return undistort_colmap(model, images_dir, undistort_dir)
+    if undistort_dir.exists() and not _has_model(undistort_dir / "sparse"):
+        raise ValueError(
+            f"out_dir {undistort_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
+        )
+    names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
+    entry = project / UNDISTORT_CACHE / _undistort_key(model, images_dir, names)
+    if _has_model(entry / "sparse") and (entry / "images").is_dir():
+        undistort_dir.parent.mkdir(parents=True, exist_ok=True)
+        _link_tree(entry, undistort_dir, undistort_dir.with_name(f".{undistort_dir.name}.partial"))
+        return undistort_dir / "sparse", undistort_dir / "images"
+    out = undistort_colmap(model, images_dir, undistort_dir)
+    try:  # the cache is an optimisation: a project that cannot be written to just has none
+        for old in entry.parent.glob("*") if entry.parent.is_dir() else ():
+            if old.name != entry.name and not old.name.startswith("."):
+                shutil.rmtree(old, ignore_errors=True)
+        entry.parent.mkdir(exist_ok=True)
+        if not entry.exists():  # another run may have stored it meanwhile: never replaced
+            _link_tree(undistort_dir, entry, entry.with_name(f".{entry.name}.partial-{os.getpid()}"))
+    except OSError as e:
+        warnings.warn(
+            f"{entry.parent}: cannot keep the undistorted copy ({e}); undistorted again next run",
+            stacklevel=3,
+        )
+    return out
+
+
 def open_colmap_project(
     path: str | Path,
     images_dir: str | Path | None = None,
@@ -489,14 +604,20 @@ def open_colmap_project(
         raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
     distorted = distorted_cameras(model)
     source = model
+    rotated = 0
     if distorted:
         if undistort_dir is None:
             raise ValueError(
                 f"{model}: cameras {distorted} are distorted; give undistort_dir to undistort them"
             )
-        model, images_dir = undistort_colmap(model, images_dir, undistort_dir)
+        names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
+        rotated = warn_exif_rotated(images_dir, names)  # the photos themselves, not the undistorted copies
+        model, images_dir = _undistort_cached(model, images_dir, Path(undistort_dir))
     try:
-        colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
+        with warnings.catch_warnings():
+            if distorted and rotated:  # said above
+                warnings.filterwarnings("ignore", message=".*EXIF orientation tag that COLMAP ignores")
+            colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
     except BaseException:
         if distorted:  # the undistorted copy of a project that cannot be loaded is no use: remove it
             shutil.rmtree(undistort_dir, ignore_errors=True)

@@ -5,7 +5,8 @@ of rigidly moving objects, the train/test split and (COLMAP scenes) sparse point
 images, depth maps and instance maps are loaded lazily from disk (or from memory for scenes built
 in code) with the readers at the end of this module.
 
-This module imports no other module of :mod:`vadgs.data`: the loaders
+This module imports no other module of :mod:`vadgs.data` but the image decoder
+(:func:`vadgs.data.images.read_image`, which imports none): the loaders
 (:func:`~vadgs.data.load_scene`, :func:`~vadgs.data.load_dgp`, ...) and the checks
 (:mod:`vadgs.data.checks`) build on it.
 """
@@ -23,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from vadgs.data.images import read_image
 from vadgs.geometry.camera import Cameras, invert_rigid
 
 __all__ = [
@@ -364,7 +366,7 @@ class Scene:
             else:
                 if v.image is None:
                     raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no image")
-                img = torch.from_numpy(_read_png(v.image, expect_rgb=True)).permute(2, 0, 1).float() / 255.0
+                img = _read_rgb(v.image)
             out.append(self._resize(img[None], i, "area", size)[0])
         return torch.stack(out)
 
@@ -449,13 +451,17 @@ class Scene:
 # readers of the files a scene references
 
 
-def _read_png(path: Path, expect_rgb: bool = False) -> np.ndarray:
+def _read_rgb(path: Path) -> torch.Tensor:
+    """A colour image ``(3, H, W)`` float32 in ``[0, 1]`` (:func:`vadgs.data.images.read_image`)."""
+    return torch.from_numpy(read_image(path)).permute(2, 0, 1)
+
+
+def _read_png(path: Path) -> np.ndarray:
+    """A PNG's stored values (instance maps; colour images: :func:`_read_rgb`)."""
     if not path.is_file():
         raise FileNotFoundError(f"missing file {path}")
     try:
         with Image.open(path) as im:
-            if expect_rgb:
-                im = im.convert("RGB")
             return np.asarray(im).copy()
     except (OSError, SyntaxError, ValueError) as e:
         raise ValueError(f"{path}: not a decodable image ({type(e).__name__}: {e})") from None

@@ -12,14 +12,33 @@ images``, COLMAP's automatic reconstructor), in four pycolmap steps:
    with its :data:`SEQUENTIAL_OVERLAP` successors in name order (video frames); ``"auto"`` is
    exhaustive up to :data:`EXHAUSTIVE_MAX` photos, sequential beyond.
 3. **Incremental mapping** (:func:`pycolmap.incremental_mapping`); the largest model is kept.
-4. **The project**: ``PROJECT/sparse/0`` (the model), ``PROJECT/images`` (the photos, byte for byte
-   under their own names: copied, or symlinked with ``link=True``), ``PROJECT/database.db``
-   (COLMAP's features and matches, e.g. for COLMAP's GUI) and ``PROJECT/sfm.json`` (the summary).
+4. **The project**: ``PROJECT/sparse/0`` (the model), ``PROJECT/images`` (the photos under their
+   own names: byte for byte, copied or symlinked with ``link=True``, but for the rotated ones, see
+   below), ``PROJECT/database.db`` (COLMAP's features and matches, e.g. for COLMAP's GUI) and
+   ``PROJECT/sfm.json`` (the summary).
 
 **Orientation.** COLMAP and vadgs both read a photo's stored pixel grid and ignore its EXIF
-orientation tag, so a photo stored sideways (tag 6 or 8) gets a camera of the stored size rolled by
-90°: the model is consistent and trains as it is; only its renders are sideways as the file is.
-:func:`run_sfm` checks that every registered camera has its photo's stored size.
+orientation tag; a phone photo is often stored sideways with a tag (6 or 8) that a viewer applies.
+So :func:`run_sfm` first writes each rotated photo *upright* into ``PROJECT/images``
+(:func:`vadgs.data.images.upright_image`: the pixels transposed, the tag removed, the other EXIF
+fields kept; JPEGs re-encoded at quality 95, other formats lossless), **under its original name**
+(so the model's image names are the user's file names), and runs SfM on those copies. The cameras,
+the up direction vadgs finds (:func:`vadgs.geometry.level_up`), videos and exports then agree with
+what a viewer shows. ``sfm.json``'s ``exif_rotated`` maps each turned photo to its tag; the
+originals are never changed (a rotated photo is a real file even with ``link=True``, and a run whose
+``images/`` is ``PHOTOS`` itself is refused when a photo is rotated). :func:`run_sfm` checks that
+every registered camera has its photo's upright size.
+
+**Checks before the work** (one line each): ``PHOTOS`` must be a folder; ``--out`` must not be
+``PHOTOS`` or inside it (its copies would be taken as photos by the next run); every photo is
+decoded (:func:`vadgs.data.images.read_image`), so a truncated or corrupt one is named and the run
+refused; photos with identical pixels are named and all but the first left out (identical photos
+have no baseline: COLMAP cannot place them). One process writes a project at a time: the run holds
+the project's lock (:class:`vadgs.train.session.RunLock`, ``PROJECT/.vadgs.lock``).
+
+``vadgs train PROJECT`` keeps the undistorted copy of a distorted model in
+``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap.open_colmap_project`), so later runs link
+to it instead of undistorting again; a new model (``overwrite``) removes it.
 
 Nothing is written next to the photos; the work happens in a temporary folder inside ``PROJECT``
 and moves into place only when a model was made, so a failed run leaves ``PROJECT`` as it was.
@@ -29,6 +48,7 @@ An existing project is replaced only with ``overwrite=True``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -39,6 +59,8 @@ from pathlib import Path
 from typing import NamedTuple
 
 from PIL import Image
+
+from vadgs.data.images import read_image, upright_image
 
 __all__ = [
     "CAMERA_MODES",
@@ -121,10 +143,12 @@ def find_photos(folder: str | Path) -> list[str]:
     Files of other kinds (``.txt``, ``.mov``, ...) and hidden files are skipped.
 
     Raises:
-        FileNotFoundError: if ``folder`` is not a folder.
-        ValueError: if it holds no photo (naming the suffixes taken and what else it holds).
+        FileNotFoundError: if ``folder`` does not exist.
+        ValueError: if it is a file, or holds no photo (naming the suffixes taken and what else it holds).
     """
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"PHOTOS {folder}: expected a folder of photos, got a file")
     if not folder.is_dir():
         raise FileNotFoundError(f"PHOTOS {folder}: no such folder")
     names, other = [], 0
@@ -276,8 +300,9 @@ def run_sfm(
         camera_model: the COLMAP model fitted: ``SIMPLE_RADIAL`` (default), ``RADIAL``, ``OPENCV``,
             ``SIMPLE_PINHOLE``, ``PINHOLE``.
         max_image_size: longest side (pixels) at which features are detected (the photos are not
-            changed); ``0``: the photos' own size.
-        link: symlink the photos into ``out/images`` instead of copying them.
+            scaled); ``0``: the photos' own size.
+        link: symlink the photos into ``out/images`` instead of copying them (but the rotated ones,
+            written upright).
         overwrite: replace the ``images``, ``sparse``, ``database.db``, ``sfm.json`` of an
             existing project.
         threads: CPU threads of pycolmap (0: all).
@@ -289,13 +314,12 @@ def run_sfm(
         :class:`SfmResult`.
 
     Raises:
-        FileNotFoundError: if ``photos`` is not a folder.
-        ValueError: no or fewer than two photos, an unreadable photo, a bad option, an existing
-            project without ``overwrite``, or no photo registered (one line each, naming it).
+        FileNotFoundError: if ``photos`` does not exist.
+        ValueError: ``photos`` a file, no or fewer than two (distinct) photos, an unreadable photo,
+            a bad option, ``out`` equal to or inside ``photos``, an existing project without
+            ``overwrite``, or no photo registered (one line each, naming it).
+        vadgs.train.session.RunInUseError: another process is writing ``out``.
     """
-    import pycolmap
-    from tqdm import tqdm
-
     say = log or (lambda _s: None)
     photos, out = Path(photos), Path(out)
     if matcher not in MATCHERS:
@@ -309,22 +333,98 @@ def run_sfm(
     if int(threads) < 0:
         raise ValueError(f"threads: expected >= 0 (0: all cores), got {threads}")
     names = find_photos(photos)
-    if out.resolve().is_relative_to(photos.resolve()):  # OUT inside PHOTOS: not its own photos
-        names = [n for n in names if not (photos / n).resolve().is_relative_to(out.resolve())]
+    _check_out_outside(photos, out)
     if len(names) < 2:
-        shown = f" ({names[0]})" if names else ""
-        raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)}{shown}")
+        raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)} ({names[0]})")
+    from vadgs.train.session import RunLock
+
+    created = not out.exists()
+    with RunLock(out, "vadgs sfm", log=log):
+        return _run_sfm_locked(
+            photos, out, names, created, matcher, camera_mode, camera_model, max_image_size, link,
+            overwrite, threads, seed, say, progress,
+        )  # fmt: skip
+
+
+def _check_out_outside(photos: Path, out: Path) -> None:
+    """``--out`` is neither ``PHOTOS`` nor inside it (a project's copies are no photos of a next run)."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: expected a folder, got an existing file")
+    if out.resolve() == photos.resolve():
+        raise ValueError(
+            f"--out {out}: is PHOTOS itself; give the project its own folder (e.g. {out}_project)"
+        )
+    if out.resolve().is_relative_to(photos.resolve()):
+        raise ValueError(
+            f"--out {out}: is inside PHOTOS {photos}, where its copies of the photos would be taken as "
+            "photos by the next run; give a folder outside PHOTOS"
+        )
+
+
+def _distinct_photos(photos: Path, names: Sequence[str]) -> tuple[list[str], dict[str, str]]:
+    """Every photo decoded (a corrupt one named); ``(names kept, {duplicate: the photo it repeats})``."""
+    seen: dict[str, str] = {}
+    kept, duplicates = [], {}
+    for name in names:
+        try:
+            pixels = read_image(photos / name)
+        except ValueError as e:
+            raise ValueError(f"PHOTOS: {e}; remove or replace that photo") from None
+        key = hashlib.sha1(repr(pixels.shape).encode() + pixels.tobytes()).hexdigest()
+        if key in seen:
+            duplicates[name] = seen[key]
+        else:
+            seen[key] = name
+            kept.append(name)
+    return kept, duplicates
+
+
+def _run_sfm_locked(
+    photos, out, names, created, matcher, camera_mode, camera_model, max_image_size, link, overwrite,
+    threads, seed, say, progress,
+) -> SfmResult:  # fmt: skip
+    import pycolmap
+    from tqdm import tqdm
+
     replaced = _check_project(out, photos, overwrite)
-    headers = {name: _read_header(photos / name) for name in names}
-    groups = _groups(headers, camera_mode)
+    in_place = (out / "images").resolve() == photos.resolve()
+    turned = {n: o for n in names if (o := _read_header(photos / n).orientation) != 1}
+    if in_place and turned:
+        first = next(iter(turned))
+        raise ValueError(
+            f"PHOTOS {photos}: {len(turned)} photo(s) carry an EXIF rotation (e.g. {first}: orientation "
+            f"{turned[first]}) and PHOTOS is the project's images/, where vadgs sfm would write them "
+            "upright over the originals; give --out another folder"
+        )
+    names, duplicates = _distinct_photos(photos, names)
+    for dup, first in duplicates.items():
+        say(f"{dup} is identical to {first} (same pixels): left out")
+    if len(names) < 2:
+        dup = next(iter(duplicates))
+        raise ValueError(
+            f"PHOTOS {photos}: expected at least 2 distinct photos, got 1 ({names[0]}; {dup} is "
+            "identical to it: same pixels, no baseline between them)"
+        )
+    turned = {n: o for n, o in turned.items() if n in names}
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= EXHAUSTIVE_MAX else "sequential"
     nthreads = int(threads) or -1
 
-    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=".vadgs-sfm-", dir=out))
     try:
+        # -- 0. the photos in place, the rotated ones upright: SfM runs on what the project holds
+        if not in_place:
+            _place_photos(photos, names, work / "images", link)
+        images_dir = photos if in_place else work / "images"
+        headers = {name: _read_header(images_dir / name) for name in names}
+        groups = _groups(headers, camera_mode)
+        if turned:
+            first = next(iter(turned))
+            say(
+                f"turned {len(turned)} photo(s) upright by their EXIF orientation (e.g. {first}: "
+                f"{turned[first]}) into {out / 'images'}, under their own names; the originals are unchanged"
+            )
         db = work / "database.db"
         seconds = {}
         t0 = time.perf_counter()
@@ -349,7 +449,7 @@ def run_sfm(
                     reader.existing_camera_id = camera_id
                     pycolmap.extract_features(
                         db,
-                        photos,
+                        images_dir,
                         image_names=group[i : i + chunk],
                         camera_mode=pycolmap.CameraMode.SINGLE,
                         reader_options=reader,
@@ -403,7 +503,7 @@ def run_sfm(
         bar = tqdm(total=len(names), desc="registering", unit="photo", disable=not progress)
         with _quiet_colmap(), bar:
             models = pycolmap.incremental_mapping(
-                db, photos, work / "models", options, next_image_callback=lambda: bar.update(1)
+                db, images_dir, work / "models", options, next_image_callback=lambda: bar.update(1)
             )
             bar.n = max((r.num_reg_images() for r in models.values()), default=0)  # + the initial pair
             bar.refresh()
@@ -422,14 +522,14 @@ def run_sfm(
                 f"COLMAP made {len(models)} separate models; kept the largest "
                 f"({len(registered)} photos), the others did not connect to it"
             )
-        in_place = (out / "images").resolve() == photos.resolve()
-        if not in_place:
-            _place_photos(photos, names, work / "images", link)
         (work / "sparse" / "0").mkdir(parents=True)
         best.write(work / "sparse" / "0")
         # -- 4. the project: the old entries replaced, the new ones moved in
         for entry in replaced:
             _remove(entry)
+        from vadgs.data.colmap import UNDISTORT_CACHE
+
+        _remove(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
         for entry in ("database.db", "sparse", "images"):
             if (work / entry).exists():
                 os.replace(work / entry, out / entry)
@@ -452,7 +552,6 @@ def run_sfm(
         matcher=matcher,
         seconds=seconds,
     )
-    rotated = sorted(n for n in registered if headers[n].orientation != 1)
     summary = {
         "photos": str(photos.resolve()),
         **{k: v for k, v in result._asdict().items() if k not in ("project", "model", "images")},
@@ -460,15 +559,11 @@ def run_sfm(
         "camera_model": camera_model,
         "max_image_size": int(max_image_size),
         "seed": int(seed),
-        "exif_rotated": rotated,
+        "exif_rotated": turned,
+        "duplicates": duplicates,
     }
     summary["unregistered"] = list(result.unregistered)
     (out / "sfm.json").write_text(json.dumps(summary, indent=2) + "\n")
-    if rotated:
-        say(
-            f"{len(rotated)} photo(s) carry an EXIF rotation (e.g. {rotated[0]}): COLMAP and vadgs use "
-            "the stored pixel grid, so those views render as stored"
-        )
     return result
 
 
@@ -498,16 +593,21 @@ def _check_sizes(rec: object, photos: Path, headers: dict[str, _PhotoHeader]) ->
         if (cam.width, cam.height) != headers[im.name].size:
             w, h = headers[im.name].size
             raise ValueError(
-                f"PHOTOS: {photos / im.name}: COLMAP's camera is {cam.width}x{cam.height}, the stored "
-                f"photo {w}x{h} (this pycolmap applies the EXIF orientation; vadgs does not)"
+                f"PHOTOS: {photos / im.name}: COLMAP's camera is {cam.width}x{cam.height}, the photo "
+                f"vadgs reads {w}x{h}"
             )
 
 
 def _place_photos(photos: Path, names: Sequence[str], images: Path, link: bool) -> None:
-    """The photos under ``images`` with their names: copies (bytes and times) or absolute symlinks."""
+    """The photos under ``images`` with their names: copies (bytes and times) or absolute symlinks.
+
+    A photo with an EXIF rotation is written upright (:func:`upright_image`), a file even with ``link``.
+    """
     for name in names:
         dst = images / name
         dst.parent.mkdir(parents=True, exist_ok=True)
+        if upright_image(photos / name, dst) != 1:
+            continue
         if link:
             dst.symlink_to((photos / name).resolve())
         else:

@@ -55,14 +55,12 @@ How Waymo maps to vadgs:
 from __future__ import annotations
 
 import functools
-import io
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import torch
-from PIL import Image
 
 from vadgs.data._tracks import (
     BoxObservation,
@@ -76,6 +74,7 @@ from vadgs.data._tracks import (
     select_positions,
 )
 from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
+from vadgs.data.images import decode_image
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_range_image_to_points
@@ -419,15 +418,14 @@ def load_waymo(
 
     def image_loader(view: ViewInfo) -> torch.Tensor:
         rg, r = image_rows[(view.frame, cam_id[view.camera])]
-        with Image.open(io.BytesIO(row_group_images(rg)[r])) as im:
-            arr = np.asarray(im.convert("RGB")).copy()
+        arr = decode_image(row_group_images(rg)[r], f"Waymo {view.camera} image at frame {view.frame}")
         w, h = full_size[view.camera]
         if arr.shape[:2] != (h, w):
             raise ValueError(
                 f"Waymo {view.camera} image at frame {view.frame}: decoded size "
                 f"{arr.shape[1]}x{arr.shape[0]} differs from the calibration's {w}x{h}"
             )
-        img = torch.from_numpy(arr).permute(2, 0, 1).float() / 255.0
+        img = torch.from_numpy(arr).permute(2, 0, 1)
         return undistort[view.camera](img[None])[0].clamp(0.0, 1.0)
 
     # -- boxes → instances and tracks ---------------------------------------------------------------

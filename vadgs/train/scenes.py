@@ -286,9 +286,11 @@ def prepare_scene(ref: SceneRef, out_dir: str | Path, log: Any = None) -> tuple[
         )
         scene = colmap.scene
         if log is not None and recipe["undistorted"]:
+            kept = Path(recipe["source"]).parent.parent / ".vadgs-undistorted"  # a vadgs sfm project's
+            kept_note = f"; pycolmap's copy kept in {kept} for the next runs" if kept.is_dir() else ""
             log(
                 f"COLMAP cameras {recipe['undistorted']} are distorted: undistorted {scene.num_views} "
-                f"images with pycolmap into {out / 'undistorted'} (the run reads them from there)"
+                f"images with pycolmap into {out / 'undistorted'} (the run reads them from there{kept_note})"
             )
         if log is not None and recipe["transform"] is not None:
             s = similarity_scale(torch.tensor(recipe["transform"]))

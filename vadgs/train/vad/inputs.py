@@ -309,17 +309,21 @@ class VisibilityInputs:
         undistort = {c: _undistortion(parser, c) for c in unique_cams}
 
         def load_image(view: int, size: tuple[int, int] | None = None) -> torch.Tensor:
-            from PIL import Image
+            from vadgs.data.images import read_image
 
-            with Image.open(paths[view]) as im:
-                arr = np.array(im.convert("RGB"))
+            arr = read_image(paths[view])  # float [0, 1], as every vadgs loader decodes a photo
             remap = undistort[cam_ids[view]]
             if remap is not None:  # as gsplat's Dataset: remap, then the ROI
                 import cv2
 
                 mapx, mapy, (x, y, w, h) = remap
-                arr = cv2.remap(arr, mapx, mapy, cv2.INTER_LINEAR)[y : y + h, x : x + w]
-            img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).float() / 255.0
+                u8 = np.round(arr * 255.0).astype(np.uint8)
+                if np.array_equal(u8.astype(np.float32) / 255.0, arr):  # 8-bit: on uint8, as gsplat
+                    arr = cv2.remap(u8, mapx, mapy, cv2.INTER_LINEAR).astype(np.float32) / 255.0
+                else:  # 16-bit and float images keep their precision
+                    arr = cv2.remap(arr, mapx, mapy, cv2.INTER_LINEAR)
+                arr = arr[y : y + h, x : x + w]
+            img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).float()
             h, w = size or (sizes[view] if sizes is not None else big)
             if img.shape[-2:] != (h, w):
                 mode = "bilinear" if h > img.shape[-2] or w > img.shape[-1] else "area"
