@@ -105,7 +105,7 @@ class TestReconstructSteps:
             for f in (1.0, 2.0)
         )  # fmt: skip
         assert torch.equal(a.points, b.points) and torch.equal(a.spacing, b.spacing)
-        with pytest.raises(ValueError, match="thin_factor: expected >= 1"):
+        with pytest.raises(ValueError, match="thin_factor: expected a finite number >= 1"):
             ReconstructConfig(thin_factor=0.5)
 
     def test_explained_pixels_give_no_points(self, scene, index, gt_points):
