@@ -439,7 +439,7 @@ def bool_field() -> FieldCheck:
     def check(name: str, value: Any) -> Any:
         if isinstance(value, bool):
             return value
-        if type(value).__name__ == "bool_" and type(value).__module__ == "numpy":
+        if type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_"):
             return bool(value)
         raise ValueError(f"{name}: expected True or False, got {value!r}")
 
