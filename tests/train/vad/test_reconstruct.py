@@ -290,7 +290,7 @@ class TestEventLog:
         cfg = VisibilityDensifyConfig()
         assert cfg.max_instances is None and cfg.time_budget is None and cfg.work_budget == 0.1
         for name in ("work_budget", "time_budget"):
-            with pytest.raises(ValueError, match=f"{name}: expected None or > 0, got 0"):
+            with pytest.raises(ValueError, match=f"{name}: expected None or a finite number > 0, got 0"):
                 VisibilityDensifyConfig(**{name: 0})
 
     def test_match_work(self):
