@@ -147,7 +147,7 @@ class TestArguments:
                 "--init.max-points: invalid literal for int() with base 10: 'many'",
             ),
             (["--raster.backend", "vulkan"], "--raster.backend: expected 'torch' or 'gsplat', got 'vulkan'"),
-            (["--vad", "--vad.every-cycles", "0"], "--vad.every-cycles: expected >= 1, got 0"),
+            (["--vad", "--vad.every-cycles", "0"], "--vad.every-cycles: expected an integer >= 1, got 0"),
             (["--bogus", "1"], "Unrecognized options: --bogus, 1"),
             (["--vad.max-instances", "3"], "Unrecognized options: --vad.max-instances, 3"),  # needs --vad
         ],

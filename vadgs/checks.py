@@ -31,13 +31,19 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
+import operator
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 import torch
 
 __all__ = [
+    "FieldCheck",
+    "bool_field",
     "check_at_least",
+    "check_fields",
     "check_finite",
     "check_intrinsics",
     "check_non_negative",
@@ -49,6 +55,13 @@ __all__ = [
     "check_size",
     "checking",
     "checks_enabled",
+    "choice_field",
+    "float_field",
+    "instance_field",
+    "int_field",
+    "ints_field",
+    "names_field",
+    "pair_field",
     "set_checks_enabled",
 ]
 
@@ -307,3 +320,247 @@ def _non_negative_or_none(value: float | None) -> bool:
 
 def _positive_or_none(value: float | None) -> bool:
     return value is None or (math.isfinite(value) and value > 0)
+
+
+# -- per-field checks of config dataclasses ------------------------------------------------------------
+
+FieldCheck = Callable[[str, Any], Any]
+"""A field's check: ``check(name, value)`` returns the value (normalised: a numpy int becomes an
+``int``, a list a tuple) or raises :class:`ValueError` naming ``name``, the expected and the actual."""
+
+
+def check_fields(obj: object, checks: Mapping[str, FieldCheck]) -> None:
+    """Run the check of every field ``checks`` names on ``obj``, storing the normalised values.
+
+    For the ``__post_init__`` of a (frozen) config dataclass: one table of field → check, which a
+    mutable holder of the same settings (:class:`~vadgs.train.vad.VisibilityAwareDensification`)
+    also runs on a field set after construction.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> check_fields(SimpleNamespace(every=0), {"every": int_field(1)})
+        Traceback (most recent call last):
+        ...
+        ValueError: every: expected an integer >= 1, got 0
+    """
+    for name, check in checks.items():
+        value = getattr(obj, name)
+        checked = check(name, value)
+        if checked is not value:
+            object.__setattr__(obj, name, checked)
+
+
+def _bounds(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f" {'<' if hi_open else '<='} {hi:g}"
+    return ""
+
+
+def _within(v: float, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> bool:
+    if lo is not None and not (v > lo if lo_open else v >= lo):
+        return False
+    return hi is None or (v < hi if hi_open else v <= hi)
+
+
+def int_field(
+    lo: int | None = None, hi: int | None = None, optional: bool = False, note: str = ""
+) -> FieldCheck:
+    """An integer field (a numpy int passes; ``bool``, ``2.5`` and ``3.0`` do not) in ``[lo, hi]``.
+
+    Example:
+        >>> int_field(1)("every_cycles", 2.5)
+        Traceback (most recent call last):
+        ...
+        ValueError: every_cycles: expected an integer >= 1, got 2.5
+    """
+    want = ("None or " if optional else "") + "an integer" + _bounds(lo, hi, False, False) + note
+
+    def check(name: str, value: Any) -> Any:
+        if value is None and optional:
+            return None
+        try:
+            out = None if isinstance(value, bool) else operator.index(value)
+        except TypeError:
+            out = None
+        if out is None or not _within(out, lo, hi, False, False):
+            raise ValueError(f"{name}: expected {want}, got {value!r}")
+        return out
+
+    return check
+
+
+def float_field(
+    lo: float | None = None,
+    hi: float | None = None,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    optional: bool = False,
+    note: str = "",
+) -> FieldCheck:
+    """A finite real number (an ``int`` or numpy scalar passes, as a ``float``; not a ``bool``).
+
+    ``lo`` / ``hi`` bound it (``lo_open`` / ``hi_open``: strictly).
+
+    Example:
+        >>> float_field(0, 1, lo_open=True, hi_open=True)("new_opacity", float("nan"))
+        Traceback (most recent call last):
+        ...
+        ValueError: new_opacity: expected a finite number in (0, 1), got nan
+    """
+    want = ("None or " if optional else "") + "a finite number" + _bounds(lo, hi, lo_open, hi_open) + note
+
+    def check(name: str, value: Any) -> Any:
+        if value is None and optional:
+            return None
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"{name}: expected {want}, got {type(value).__name__} {value!r}")
+        out = float(value)
+        if not (math.isfinite(out) and _within(out, lo, hi, lo_open, hi_open)):
+            raise ValueError(f"{name}: expected {want}, got {value!r}")
+        return out
+
+    return check
+
+
+def bool_field() -> FieldCheck:
+    """``True`` or ``False`` (a numpy bool passes; ``0`` / ``1`` / ``"yes"`` do not).
+
+    Example:
+        >>> bool_field()("visibility", "no")
+        Traceback (most recent call last):
+        ...
+        ValueError: visibility: expected True or False, got 'no'
+    """
+
+    def check(name: str, value: Any) -> Any:
+        if isinstance(value, bool):
+            return value
+        if type(value).__module__ == "numpy" and type(value).__name__ in ("bool", "bool_"):
+            return bool(value)
+        raise ValueError(f"{name}: expected True or False, got {value!r}")
+
+    return check
+
+
+def choice_field(choices: Sequence[Any]) -> FieldCheck:
+    """One of ``choices``.
+
+    Example:
+        >>> choice_field(("a", "b"))("ranking", "c")
+        Traceback (most recent call last):
+        ...
+        ValueError: ranking: expected one of ('a', 'b'), got 'c'
+    """
+    choices = tuple(choices)
+
+    def check(name: str, value: Any) -> Any:
+        if isinstance(value, bool) or value not in choices:
+            raise ValueError(f"{name}: expected one of {choices}, got {value!r}")
+        return value
+
+    return check
+
+
+def instance_field(cls: type, optional: bool = False) -> FieldCheck:
+    """An instance of ``cls`` (a nested config dataclass), or None when ``optional``."""
+    want = ("None or " if optional else "") + f"a {cls.__name__}"
+
+    def check(name: str, value: Any) -> Any:
+        if (value is None and optional) or isinstance(value, cls):
+            return value
+        raise ValueError(f"{name}: expected {want}, got {type(value).__name__} {value!r}")
+
+    return check
+
+
+def _sequence(name: str, value: Any, what: str, example: str) -> tuple:
+    if isinstance(value, (str, bytes)):
+        raise ValueError(
+            f"{name}: expected a sequence of {what}, got the string {value!r} (write ({value!r},))"
+        )
+    if not isinstance(value, (Sequence, set, frozenset)) or isinstance(value, Mapping):
+        raise ValueError(
+            f"{name}: expected a sequence of {what} such as {example}, got {type(value).__name__} {value!r}"
+        )
+    return tuple(value)
+
+
+def names_field(what: str = "names") -> FieldCheck:
+    """A sequence of strings (returned as a tuple); a bare string is refused, not split into letters.
+
+    Example:
+        >>> names_field("class names")("skip_classes", "road")
+        Traceback (most recent call last):
+        ...
+        ValueError: skip_classes: expected a sequence of class names, got the string 'road' (write ('road',))
+    """
+
+    def check(name: str, value: Any) -> Any:
+        items = _sequence(name, value, what, "('road', 'sky')")
+        bad = [v for v in items if not isinstance(v, str)]
+        if bad:
+            raise ValueError(f"{name}: expected a sequence of {what} (strings), got {bad[0]!r} in {value!r}")
+        return items
+
+    return check
+
+
+def ints_field(what: str = "integers") -> FieldCheck:
+    """A sequence of integers (returned as a tuple of ``int``).
+
+    Example:
+        >>> ints_field("instance ids")("ignore_ids", (0, 1.5))
+        Traceback (most recent call last):
+        ...
+        ValueError: ignore_ids: expected a sequence of instance ids (integers), got 1.5 in (0, 1.5)
+    """
+    item = int_field()
+
+    def check(name: str, value: Any) -> Any:
+        items = _sequence(name, value, what, "(0, 1)")
+        out = []
+        for v in items:
+            try:
+                out.append(item(name, v))
+            except ValueError:
+                raise ValueError(
+                    f"{name}: expected a sequence of {what} (integers), got {v!r} in {value!r}"
+                ) from None
+        return tuple(out)
+
+    return check
+
+
+def pair_field(
+    item: FieldCheck,
+    optional: bool = False,
+    rule: Callable[[float, float], bool] | None = None,
+    note: str = "",
+) -> FieldCheck:
+    """A pair ``(a, b)`` whose items pass ``item`` and, with ``rule``, satisfy ``rule(a, b)``.
+
+    ``note`` says the rule in the message.
+
+    Example:
+        >>> pair_field(float_field(0, lo_open=True), rule=lambda a, b: a < b, note="lo < hi")("range", (2, 1))
+        Traceback (most recent call last):
+        ...
+        ValueError: range: expected a pair (lo < hi), got (2, 1)
+    """
+    want = ("None or " if optional else "") + "a pair" + (f" ({note})" if note else "")
+
+    def check(name: str, value: Any) -> Any:
+        if value is None and optional:
+            return None
+        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != 2:
+            raise ValueError(f"{name}: expected {want}, got {value!r}")
+        a, b = (item(f"{name}[{i}]", v) for i, v in enumerate(value))
+        if rule is not None and not rule(a, b):
+            raise ValueError(f"{name}: expected {want}, got {value!r}")
+        return (a, b)
+
+    return check

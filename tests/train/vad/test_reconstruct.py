@@ -105,7 +105,7 @@ class TestReconstructSteps:
             for f in (1.0, 2.0)
         )  # fmt: skip
         assert torch.equal(a.points, b.points) and torch.equal(a.spacing, b.spacing)
-        with pytest.raises(ValueError, match="thin_factor: expected >= 1"):
+        with pytest.raises(ValueError, match="thin_factor: expected a finite number >= 1"):
             ReconstructConfig(thin_factor=0.5)
 
     def test_explained_pixels_give_no_points(self, scene, index, gt_points):
@@ -290,7 +290,7 @@ class TestEventLog:
         cfg = VisibilityDensifyConfig()
         assert cfg.max_instances is None and cfg.time_budget is None and cfg.work_budget == 0.1
         for name in ("work_budget", "time_budget"):
-            with pytest.raises(ValueError, match=f"{name}: expected None or > 0, got 0"):
+            with pytest.raises(ValueError, match=f"{name}: expected None or a finite number > 0, got 0"):
                 VisibilityDensifyConfig(**{name: 0})
 
     def test_match_work(self):

@@ -56,9 +56,9 @@ class TestDataclass:
         cfg = VisibilityDensifyConfig(every_cycles=3, references=2, skip_classes=("road", "sky"))
         s = VisibilityAwareDensification.from_config(cfg)
         assert s.config == cfg and s.every_cycles == 3 and s.index is None and s.inputs is None
-        with pytest.raises(ValueError, match="every_cycles: expected >= 1, got 0"):
+        with pytest.raises(ValueError, match="every_cycles: expected an integer >= 1, got 0"):
             VisibilityAwareDensification(every_cycles=0)
-        with pytest.raises(ValueError, match="log_size: expected >= 1, got 0"):
+        with pytest.raises(ValueError, match="log_size: expected an integer >= 1, got 0"):
             VisibilityAwareDensification(log_size=0)
 
     def test_needs_prepare(self):

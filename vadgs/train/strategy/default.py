@@ -11,6 +11,7 @@ from typing import Any
 
 import torch
 
+from vadgs.checks import float_field
 from vadgs.train.strategy import ops
 
 __all__ = ["DefaultStrategy", "DefaultStrategyConfig"]
@@ -85,7 +86,12 @@ class DefaultStrategy:
         self.config = config or DefaultStrategyConfig()
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
-        """Statistics allocated at the first update; the scene scale for the size thresholds."""
+        """Statistics allocated at the first update; the scene scale for the size thresholds.
+
+        Raises:
+            ValueError: ``scene_scale`` is not a finite number > 0.
+        """
+        scene_scale = float_field(0, lo_open=True)("scene_scale", scene_scale)
         return {
             "grad2d": None,
             "count": None,

@@ -10,12 +10,21 @@ of the loop (a render function, step counts, a generator). Both are importable f
 from __future__ import annotations
 
 import inspect
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 
 import torch
 
+from vadgs.checks import (
+    FieldCheck,
+    bool_field,
+    check_fields,
+    choice_field,
+    float_field,
+    instance_field,
+    int_field,
+    names_field,
+)
 from vadgs.train.vad.incomplete import IncompleteConfig
 from vadgs.train.vad.reconstruct import ReconstructConfig, ViewRender
 
@@ -124,28 +133,40 @@ class VisibilityDensifyConfig:
     last_event_fraction: float = 0.9
 
     def __post_init__(self) -> None:
-        if self.every_cycles < 1:
-            raise ValueError(f"every_cycles: expected >= 1, got {self.every_cycles}")
-        if not 0 < self.new_opacity < 1:
-            raise ValueError(f"new_opacity: expected in (0, 1), got {self.new_opacity}")
-        if self.ranking not in RANKINGS:
-            raise ValueError(f"ranking: expected one of {RANKINGS}, got {self.ranking!r}")
-        if self.references < 1 or (self.max_instances is not None and self.max_instances < 0):
-            raise ValueError(
-                f"references, max_instances: expected >= 1 and None or >= 0, got {self.references}, "
-                f"{self.max_instances}"
-            )
-        for name in ("scene_depth", "voxel_size", "cell_size"):
-            value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name}: expected None or a finite length > 0, got {value}")
-        for name in ("work_budget", "time_budget"):
-            value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"{name}: expected None or > 0, got {value}")
+        check_fields(self, _FIELDS)
 
 
 RANKINGS = ("class_round_robin", "pixels")
+
+_FIELDS: dict[str, FieldCheck] = {
+    "visibility": bool_field(),
+    "view_selection": bool_field(),
+    "geometric_losses": bool_field(),
+    "every_cycles": int_field(1),
+    "scene_depth": float_field(0, lo_open=True, optional=True),
+    "voxel_size": float_field(0, lo_open=True, optional=True),
+    "cell_size": float_field(0, lo_open=True, optional=True),
+    "incomplete": instance_field(IncompleteConfig),
+    "reconstruct": instance_field(ReconstructConfig),
+    "max_instances": int_field(0, optional=True),
+    "work_budget": float_field(0, lo_open=True, optional=True),
+    "time_budget": float_field(0, lo_open=True, optional=True),
+    "render_cache_mb": float_field(0),
+    "references": int_field(1),
+    "min_frame_gap": int_field(0),
+    "ranking": choice_field(RANKINGS),
+    "cooldown_events": int_field(0),
+    "whole_reference": bool_field(),
+    "skip_classes": names_field("class names"),
+    "explained_tolerance": float_field(0),
+    "new_opacity": float_field(0, 1, lo_open=True, hi_open=True),
+    "flatness": float_field(0, lo_open=True),
+    "voxel_depth_prior": bool_field(),
+    "last_event_fraction": float_field(0, 1),
+}
+"""The check of each :class:`VisibilityDensifyConfig` field (:func:`vadgs.checks.check_fields`), run
+by its ``__post_init__`` and by :class:`~vadgs.train.vad.VisibilityAwareDensification` on a setting
+assigned after construction."""
 
 
 @dataclass(frozen=True)
@@ -178,11 +199,11 @@ class StrategyContext:
     track_nodes: Mapping[int, int] | None = None
 
     def __post_init__(self) -> None:
-        if self.total_steps < 0 or self.steps_per_cycle < 1:
+        if not callable(self.render):
             raise ValueError(
-                f"total_steps, steps_per_cycle: expected >= 0 and >= 1, got {self.total_steps}, "
-                f"{self.steps_per_cycle}"
+                f"render: expected a function view -> ViewRender, got {type(self.render).__name__}"
             )
+        check_fields(self, {"total_steps": int_field(0), "steps_per_cycle": int_field(1)})
 
 
 def _with_settings_of(config_cls: type) -> Callable[[type], type]:

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_shape
+from vadgs.checks import check_fields, check_shape, float_field, int_field, ints_field
 
 __all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "voxel_labels"]
 
@@ -53,6 +53,20 @@ class IncompleteConfig:
     min_alpha_for_depth: float = 0.05
     foreign_fraction: float | None = None
     ignore_ids: tuple[int, ...] = (0,)
+
+    def __post_init__(self) -> None:
+        check_fields(self, _FIELDS)
+
+
+_FIELDS = {
+    "depth_ratio": float_field(0, lo_open=True),
+    "alpha_threshold": float_field(0, 1),
+    "low_alpha_fraction": float_field(0, 1),
+    "min_pixels": int_field(0),
+    "min_alpha_for_depth": float_field(0, 1),
+    "foreign_fraction": float_field(0, 1, optional=True),
+    "ignore_ids": ints_field("instance ids"),
+}
 
 
 class IncompleteInstances(NamedTuple):

@@ -9,6 +9,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from vadgs.checks import (
+    bool_field,
+    check_fields,
+    choice_field,
+    float_field,
+    instance_field,
+    int_field,
+    pair_field,
+)
 from vadgs.mvs.patchmatch import PatchMatchConfig
 from vadgs.mvs.planar import PlanarCompletionConfig
 from vadgs.select.selector import ViewSelectionConfig
@@ -108,21 +117,32 @@ class ReconstructConfig:
     whole_supports: bool = True
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.max_upsample, int) and self.max_upsample >= 1):
-            raise ValueError(f"max_upsample: expected an integer >= 1, got {self.max_upsample!r}")
-        if self.max_crop < 8:
-            raise ValueError(f"max_crop: expected >= 8 pixels, got {self.max_crop}")
-        if self.max_match_pixels is not None and self.max_match_pixels < 64:
-            raise ValueError(f"max_match_pixels: expected None or >= 64, got {self.max_match_pixels}")
-        if not self.thin_factor >= 1:
-            raise ValueError(f"thin_factor: expected >= 1, got {self.thin_factor}")
-        if self.max_downsample not in (1, 2, 4, 8):
-            raise ValueError(f"max_downsample: expected 1, 2, 4 or 8, got {self.max_downsample}")
-        near, far = self.depth_margin
-        lo, hi = self.fallback_depth_range or (1.0, 2.0)
-        if not (0 < near <= 1 <= far and 0 < lo < hi and (self.min_depth is None or self.min_depth > 0)):
-            raise ValueError(
-                "depth_margin, fallback_depth_range, min_depth: expected 0 < near <= 1 <= far, "
-                f"0 < lo < hi and min_depth > 0, got {self.depth_margin}, {self.fallback_depth_range}, "
-                f"{self.min_depth}"
-            )
+        check_fields(self, _FIELDS)
+
+
+_LENGTH = float_field(0, lo_open=True)
+_DOWNSAMPLE = choice_field((1, 2, 4, 8))
+_FIELDS = {
+    "selection": instance_field(ViewSelectionConfig),
+    "patchmatch": instance_field(PatchMatchConfig),
+    "margin": int_field(0),
+    "max_crop": int_field(8, note=" pixels"),
+    "max_reproj_error": float_field(0, lo_open=True),
+    "max_rel_depth": float_field(0, lo_open=True),
+    "min_consistent_views": int_field(0),
+    "min_instance_voxels": int_field(0),
+    "min_pixels": int_field(0),
+    "max_points": int_field(1),
+    "max_upsample": int_field(1),
+    "planar": instance_field(PlanarCompletionConfig, optional=True),
+    "max_match_pixels": int_field(64, optional=True),
+    "max_downsample": lambda name, value: _DOWNSAMPLE(name, int_field()(name, value)),
+    "depth_margin": pair_field(_LENGTH, rule=lambda near, far: near <= 1 <= far, note="near <= 1 <= far"),
+    "fallback_depth_range": pair_field(_LENGTH, optional=True, rule=lambda lo, hi: lo < hi, note="lo < hi"),
+    "min_depth": float_field(0, lo_open=True, optional=True),
+    "explained_alpha": float_field(0, 1),
+    "explained_tolerance": float_field(0),
+    "thin_points": bool_field(),
+    "thin_factor": float_field(1),
+    "whole_supports": bool_field(),
+}

@@ -48,9 +48,11 @@ from typing import Any
 
 import torch
 
+from vadgs.checks import check_size, float_field, int_field
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import DefaultStrategy, ops
 from vadgs.train.vad import event as vad_event
+from vadgs.train.vad.config import _FIELDS as _CONFIG_FIELDS
 from vadgs.train.vad.config import RANKINGS as RANKINGS
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
 from vadgs.train.vad.event import (
@@ -91,6 +93,11 @@ __all__ = [
 ]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
+
+_SETTINGS = {**_CONFIG_FIELDS, "log_size": int_field(1)}
+"""The check of each setting of the strategy (:meth:`VisibilityAwareDensification.__setattr__`)."""
+
+_SCENE_SCALE = float_field(0, lo_open=True)
 
 _GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
 
@@ -152,6 +159,64 @@ def check_info(base: Any, info: Mapping[str, Any], packed: bool = False) -> None
     )
 
 
+def _check_info_values(info: Mapping[str, Any], num_views: int | None) -> None:
+    """Check the values ``info`` carries for the strategy: metadata only (no tensor value is read).
+
+    ``view`` an integer in ``[0, num_views)`` (when known), ``image_size`` a positive ``(H, W)``,
+    ``width`` / ``height`` positive integers, and the render's ``depth`` / ``alpha`` (of
+    ``info["raster"]`` or ``info``) tensors of shape ``(1, H, W)``, ``(H, W)`` or ``(1, 1, H, W)``
+    of one ``(H, W)``, that of ``image_size`` or ``height``, ``width`` when given.
+
+    Raises:
+        ValueError: naming the key, the expected and the actual value or shape.
+    """
+    if not isinstance(info, Mapping):
+        return  # check_info names it when the base reads info; otherwise nothing is read
+    view = info.get("view")
+    if view is not None:
+        hi = None if num_views is None else num_views - 1
+        note = "" if num_views is None else f" (a view of the inputs' {num_views})"
+        int_field(0, hi, note=note)("info['view']", view)
+    size = None
+    if info.get("image_size") is not None:
+        size = check_size(info["image_size"], "info['image_size']")
+    for key in ("height", "width"):
+        if info.get(key) is not None:
+            int_field(1)(f"info[{key!r}]", info[key])
+    if size is None and info.get("height") is not None and info.get("width") is not None:
+        size = (int(info["height"]), int(info["width"]))
+    raster = info.get("raster")
+    maps = {}
+    for key in ("depth", "alpha"):
+        name, value = f"info[{key!r}]", info.get(key)
+        if raster is not None:
+            name, value = f"info['raster'].{key}", getattr(raster, key, None)
+        if value is None:
+            continue
+        if not isinstance(value, torch.Tensor):
+            raise ValueError(
+                f"{name}: expected a torch.Tensor (the view's rendered {key}), got {type(value).__name__}"
+            )
+        shape = tuple(value.shape)
+        ok = (
+            (len(shape) == 2)
+            or (len(shape) == 3 and shape[0] == 1)
+            or (len(shape) == 4 and shape[:2] == (1, 1))
+        )
+        hw = shape[-2:]
+        want = (
+            "(1, H, W), (H, W) or (1, 1, H, W)"
+            if size is None
+            else f"(1, {size[0]}, {size[1]}) or (H, W) = {size}"
+        )
+        if not ok or (size is not None and hw != size):
+            raise ValueError(f"{name}: expected the view's {key} of shape {want}, got {shape}")
+        maps[name] = hw
+    if len(set(maps.values())) > 1:
+        (a, ha), (b, hb) = maps.items()
+        raise ValueError(f"{a}, {b}: expected maps of one size (H, W), got {ha} and {hb}")
+
+
 @dataclass(eq=False)
 @_with_settings_of(VisibilityDensifyConfig)
 class VisibilityAwareDensification:
@@ -210,10 +275,20 @@ class VisibilityAwareDensification:
     index: VisibilityIndex | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self.config  # noqa: B018  (the settings' checks: VisibilityDensifyConfig.__post_init__)
-        if self.log_size < 1:
-            raise ValueError(f"log_size: expected >= 1, got {self.log_size}")
         self._last_call: float | None = None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Set an attribute; a setting is checked first (its check in :data:`_SETTINGS`).
+
+        Each setting is checked once, when it is set (by ``__init__`` or later), with the check of
+        :class:`VisibilityDensifyConfig`'s own field: ``strategy.every_cycles = 0`` raises as
+        ``VisibilityDensifyConfig(every_cycles=0)`` does.
+        """
+        check = _SETTINGS.get(name)
+        if check is not None:
+            value = check(name, value)
+            self.__dict__.pop("_config", None)  # the cached config of the settings
+        object.__setattr__(self, name, value)
 
     @classmethod
     def from_config(
@@ -268,9 +343,13 @@ class VisibilityAwareDensification:
     @property
     def config(self) -> VisibilityDensifyConfig:
         """The settings as a :class:`VisibilityDensifyConfig` (assignable: sets every field)."""
-        return VisibilityDensifyConfig(
-            **{f.name: getattr(self, f.name) for f in fields(VisibilityDensifyConfig)}
-        )
+        config = self.__dict__.get("_config")
+        if config is None:  # built again only after a setting changed
+            config = VisibilityDensifyConfig(
+                **{f.name: getattr(self, f.name) for f in fields(VisibilityDensifyConfig)}
+            )
+            self.__dict__["_config"] = config
+        return config
 
     @config.setter
     def config(self, value: VisibilityDensifyConfig) -> None:
@@ -304,7 +383,11 @@ class VisibilityAwareDensification:
 
         The base gets ``scene_scale`` when its ``initialize_state`` takes an argument (gsplat's
         ``MCMCStrategy`` takes none).
+
+        Raises:
+            ValueError: ``scene_scale`` is not a finite number > 0.
         """
+        scene_scale = _SCENE_SCALE("scene_scale", scene_scale)
         init = self.base.initialize_state
         try:
             takes = len(inspect.signature(init).parameters) > 0
@@ -343,6 +426,12 @@ class VisibilityAwareDensification:
         Also tests the trained view for incompleteness when ``info`` carries its render.
         ``kwargs`` (e.g. ``packed=True`` for gsplat's ``DefaultStrategy``, ``lr=`` for its
         ``MCMCStrategy``) go to the base.
+
+        Raises:
+            ValueError: a key the base reads is missing from ``info`` (:func:`check_info`), or a
+                value in it is out of range: ``view`` not a view of the inputs, ``image_size``,
+                ``width`` or ``height`` not positive, a ``depth`` / ``alpha`` of the wrong shape
+                (naming the key, the expected and the actual).
         """
         now = time.perf_counter()
         if self._last_call is not None:
@@ -351,6 +440,8 @@ class VisibilityAwareDensification:
         if not getattr(self, "_post_info_checked", False):  # with packed= now known
             check_info(self.base, info, bool(kwargs.get("packed", False)))
             self._post_info_checked = True
+        has_inputs = self.inputs is not None or self.index is not None
+        _check_info_values(info, self._inputs().num_views if has_inputs else None)
         self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
         if not self.visibility:
             return
@@ -559,10 +650,27 @@ class VisibilityAwareDensification:
         ``None`` when the strategy or its losses are off, or the view has no prior. Tensors
         ``(1, 1, H, W)`` / ``(1, 3, H, W)`` on the device of the MVS priors (the render's), or of
         the visibility index for a view without them: move them to the render's device.
+
+        Raises:
+            ValueError: before :meth:`prepare` or with a ``state`` not made by
+                :meth:`initialize_state`, or a ``view`` that is not one of the inputs'.
         """
         cfg = self.config
         if not (cfg.visibility and cfg.geometric_losses):
             return None
+        if self.inputs is None and self.index is None:
+            raise ValueError(
+                "geometry_targets: expected a prepared strategy, got none: call prepare(inputs, "
+                "context) and initialize_state() first"
+            )
+        if not isinstance(state, Mapping) or "vad_priors" not in state:
+            got = f"keys {sorted(state)}" if isinstance(state, Mapping) else type(state).__name__
+            raise ValueError(
+                "state: expected the strategy's state (from initialize_state(), with 'vad_priors'), "
+                f"got {got}"
+            )
+        n = self._inputs().num_views
+        view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
         depth, normal = None, None
         if view in state["vad_priors"]:
             depth, normal = state["vad_priors"][view]
