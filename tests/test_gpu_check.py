@@ -73,3 +73,14 @@ def test_cpu_mode_writes_every_section(tmp_path, stand_in_segment):
     assert stand_in_segment == [gc.SIZES["tiny"]["seg"]]
     assert seg["steps"] == gc.SIZES["tiny"]["seg_steps"] and seg["peak_host_rss_gib"] > 0
     assert "peak_gpu_gib" not in seg and seg["event_s"] > 0
+
+
+def test_compare_renderers_on_the_cpu():
+    """The comparison of ``gsplat_vs_torch`` with gsplat's pure-torch reference (CPU): agreement
+    at float32 round-off, every gradient compared."""
+    gc = _gpu_check()
+    res = gc.compare_renderers(gc.SIZES["tiny"], "cpu", "torch")
+    assert res["covered_fraction"] > 0.05 and res["torch_ms"] > 0 and res["gsplat_ms"] > 0
+    assert set(res["gradients"]) == {"means", "quats", "scales", "opacities", "colors"}
+    for name, e in {**res["images"], **res["gradients"]}.items():
+        assert e["max_rel"] < 1e-3, (name, e)
