@@ -4,7 +4,7 @@
     python benchmarks/gpu_check.py --cpu --out /tmp/gpu_check_cpu.json  # the CPU sections, reduced
 
 (On the device, ``bash benchmarks/gpu_check.sh "$OUT"`` installs the wheels of
-``benchmarks/gpu_wheels.sh`` first and runs this under a hard overall timeout; ``docs/benchmarks.md``,
+``benchmarks/gpu_wheels.sh`` first and runs this under a hard overall timeout (450 s); ``docs/benchmarks.md``,
 "The GPU check".)
 
 Sections, in the order they run, each a function returning a dict; each records ``status``
@@ -13,7 +13,8 @@ Sections, in the order they run, each a function returning a dict; each records 
 - ``environment``: torch / CUDA versions, the device and its memory, nvcc, CPU count. Then gsplat's
   CUDA extension starts compiling (JIT, as on first use) in a background subprocess.
 - ``vad_ops``: one VAD-GS event on the bundled sample scene (torch renderer), its z-buffers, view
-  selections, PatchMatch runs and instance reconstructions timed as they happen (synchronised),
+  selections, PatchMatch runs and ``reconstruct_instance`` calls (one per instance and reference
+  view: crops, selection, PatchMatch, consistency, fusion) timed as they happen (synchronised),
   then the first call of each replayed (median after a warm-up): ms per operation, next to the
   paper's ~48 ms per operation (RTX 4090).
 - ``segment_memory``: ``vadgs.data.synthetic.make_segment`` (when importable) generates a segment
@@ -69,10 +70,10 @@ PAPER_MS_PER_OP = 48.0  # the paper's time per operation on an RTX 4090
 BUDGET_S = {
     "environment": 30,
     "vad_ops": 75,
-    "segment_memory": 150,
-    "gsplat_build": 270,  # from its start (in the background, after environment) to the end of the wait
-    "cuda_tests": 100,
-    "gsplat_vs_torch": 40,
+    "segment_memory": 120,
+    "gsplat_build": 240,  # from its start (in the background, after environment) to the end of the wait
+    "cuda_tests": 90,
+    "gsplat_vs_torch": 35,
     "train_step": 60,
 }
 # sizes per mode: "cuda" (the device), "cpu" (--cpu), "tiny" (--cpu --tiny, the test)
@@ -130,6 +131,7 @@ class Check:
         self.build: subprocess.Popen | None = None
         self.build_t0 = 0.0
         self.gsplat_cuda = False  # gsplat's CUDA extension compiled and loaded
+        self.partial: dict[str, Any] = {}  # what the running section has so far (kept on a timeout)
 
     def write(self) -> None:
         self.data["elapsed_s"] = round(time.monotonic() - self.t0, 2)
@@ -150,13 +152,19 @@ class Check:
         else:
             old = signal.signal(signal.SIGALRM, _alarm)
             signal.setitimer(signal.ITIMER_REAL, budget)
+            self.partial = {}
             try:
                 res = fn(self, budget)
                 res.setdefault("status", "ok")
             except SectionTimeout:
-                res = {"status": "failed", "reason": f"timeout: ran past its budget of {budget:.0f} s"}
+                res = {
+                    **self.partial,
+                    "status": "failed",
+                    "reason": f"timeout: ran past its budget of {budget:.0f} s",
+                }
             except Exception as e:  # a failed section is recorded; the others run
                 res = {
+                    **self.partial,
                     "status": "failed",
                     "reason": f"{type(e).__name__}: {e}"[:2000],
                     "traceback": traceback.format_exc()[-4000:],
@@ -452,7 +460,7 @@ _OPS = [
     ("vadgs.train.vad.visibility", "rasterize_voxels", "zbuffer"),
     ("vadgs.train.vad.reconstruct", "select_views", "selection"),
     ("vadgs.train.vad.reconstruct", "patchmatch", "patchmatch"),
-    ("vadgs.train.vad.event", "reconstruct_instance", "instance"),
+    ("vadgs.train.vad.event", "reconstruct_instance", "reconstruct"),
 ]
 
 
@@ -541,14 +549,14 @@ def vad_ops(chk: Check, budget: float) -> dict[str, Any]:
         row: dict[str, Any] = {"calls": len(calls)}
         if calls:
             row.update(in_event_median_ms=statistics.median(calls), in_event_total_ms=sum(calls))
-            if label != "instance":  # the replay: the first call again, median after a warm-up
+            if label != "reconstruct":  # the replay: the first call again, median after a warm-up
                 fn, args, kwargs = rec["first"]
                 call = lambda fn=fn, args=args, kwargs=kwargs: fn(*args, **kwargs)  # noqa: E731
                 row["replay_median_ms"] = _median_ms(call, s["ops_reps"], chk.device)
             if label == "zbuffer":
                 row["views_in_first_call"] = len(args[1]) if len(args) > 1 else None
         res["ops"][label] = row
-    if not record.get("instance", {}).get("calls_ms"):
+    if not record.get("reconstruct", {}).get("calls_ms"):
         res.update(status="failed", reason="the event reconstructed no instance (nothing flagged)")
     return res
 
@@ -557,7 +565,8 @@ def vad_ops(chk: Check, budget: float) -> dict[str, Any]:
 def train_step(chk: Check, budget: float) -> dict[str, Any]:
     s = chk.sizes
     backends = ["torch"] + (["gsplat"] if chk.gsplat_cuda else [])
-    res: dict[str, Any] = {"backends": {}}
+    res = chk.partial
+    res["backends"] = {}
     if chk.cuda and not chk.gsplat_cuda:
         res["note"] = "gsplat's CUDA extension not available: torch backend only"
     for backend in backends:
@@ -600,7 +609,8 @@ def segment_memory(chk: Check, budget: float) -> dict[str, Any]:
 
     s = chk.sizes
     seg = s["seg"]
-    res: dict[str, Any] = {"segment": seg}
+    res = chk.partial
+    res["segment"] = seg
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "segment"
         t = time.perf_counter()

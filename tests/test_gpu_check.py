@@ -65,7 +65,7 @@ def test_cpu_mode_writes_every_section(tmp_path, stand_in_segment):
     assert dry["counts"]["skipped"] > 0 and dry["counts"]["failed"] == dry["counts"]["errors"] == 0
     assert sections["environment"]["torch"] == torch.__version__
     ops = sections["vad_ops"]["ops"]
-    for op in ("zbuffer", "selection", "patchmatch", "instance"):
+    for op in ("zbuffer", "selection", "patchmatch", "reconstruct"):
         assert ops[op]["calls"] > 0 and ops[op]["in_event_median_ms"] > 0, op
     assert ops["zbuffer"]["replay_median_ms"] > 0 and ops["patchmatch"]["replay_median_ms"] > 0
     assert sections["train_step"]["backends"]["torch"]["step_ms_median"] > 0
