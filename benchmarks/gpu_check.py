@@ -555,6 +555,7 @@ def vad_ops(chk: Check, budget: float) -> dict[str, Any]:
                 row["replay_median_ms"] = _median_ms(call, s["ops_reps"], chk.device)
             if label == "zbuffer":
                 row["views_in_first_call"] = len(args[1]) if len(args) > 1 else None
+                row["voxels_in_first_call"] = len(args[0]) if args and hasattr(args[0], "__len__") else None
         res["ops"][label] = row
     if not record.get("reconstruct", {}).get("calls_ms"):
         res.update(status="failed", reason="the event reconstructed no instance (nothing flagged)")
