@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from vadgs.checks import check_at_least, check_positive
+from vadgs.checks import check_at_least, check_at_most, check_positive
 from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
 from vadgs.io import write_json
 from vadgs.train.results.trajectory import MAX_FRAMES
@@ -304,6 +304,7 @@ class ViewCommand(Command):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_at_least(self, 1, "port")
+        check_at_most(self, 65535, "port")
         check_at_least(self, 1, "max_gaussians")
         check_positive(self, "timeout")
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from vadgs.checks import check_at_least, check_non_negative, check_positive
+from vadgs.checks import MAX_THREADS, check_at_least, check_at_most, check_non_negative, check_positive
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
 from vadgs.train.init import InitConfig
@@ -154,6 +154,7 @@ class TrainConfig:
                 f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"
             )
         check_at_least(self, 0, "threads", "checkpoint_every", note=" (0 = off)")
+        check_at_most(self, MAX_THREADS, "threads")
         check_at_least(self, 1, "sh_degree_interval", "log_every", "hard_every", "hard_stride")
         if self.hard_fused and (
             self.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased
