@@ -208,3 +208,31 @@ class TestStreamedVideo:
         with pytest.raises(RuntimeError, match="stop"):
             write_video(tmp_path / "v.mp4", frames(), progress=False)
         assert list(tmp_path.iterdir()) == []
+
+
+class TestTrajectoryLength:
+    """The library's bound: counted before a pose is built, the same errors as make_trajectory."""
+
+    def test_counts_without_building(self, tiny_scene):
+        from vadgs.train.results.trajectory import make_trajectory, trajectory_length
+
+        for spec, between in [
+            ("ego", 3),
+            ("shift:2", None),
+            ("interpolate", 2),
+            ("orbit:7", None),
+            ("orbit", None),
+        ]:
+            n = trajectory_length(tiny_scene, spec, frames_between=between)
+            assert n == len(make_trajectory(tiny_scene, spec, frames_between=between).time)
+        assert trajectory_length(tiny_scene, "orbit:" + "9" * 5000) == 10**18
+        assert trajectory_length(tiny_scene, "orbit:" + "0" * 30 + "5") == 5
+
+    def test_max_frames(self, tiny_scene):
+        from vadgs.train.results.trajectory import make_trajectory
+
+        with pytest.raises(ValueError, match=r"max_frames: expected at most 4 frames, got 5 \(orbit:5\)"):
+            make_trajectory(tiny_scene, "orbit:5", max_frames=4)
+        assert len(make_trajectory(tiny_scene, "orbit:5", max_frames=None).time) == 5
+        with pytest.raises(ValueError, match="expected finite metres"):
+            make_trajectory(tiny_scene, "shift:1,nan,0")

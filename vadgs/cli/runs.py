@@ -164,7 +164,8 @@ class RenderCommand(Command):
             raise ValueError(f"--frames-between {n}: {_too_many(self.max_frames, n)}")
         spec = (self.trajectory or "").strip()
         count = spec[len("orbit:") :] if spec.startswith("orbit:") else ""
-        if count.isascii() and count.isdigit() and (len(count) > 18 or int(count) > self.max_frames):
+        digits = count.lstrip("0")
+        if count.isascii() and count.isdigit() and (len(digits) > 18 or int(digits or 0) > self.max_frames):
             raise ValueError(f"--trajectory {spec}: {_too_many(self.max_frames, count)}")
         if self.video is not None:
             from vadgs.train.results.video import check_video_path

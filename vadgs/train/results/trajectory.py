@@ -309,10 +309,12 @@ def _plan(
                 f"frames_between: not used by {spec} (orbit:FRAMES sets its poses), got {frames_between}"
             )
         count = spec[len("orbit:") :] if spec.startswith("orbit:") else str(ORBIT_FRAMES)
-        # ASCII digits only (int() takes '²' and refuses over 4300 digits): a count past 10**18 is 10**18
-        if not (count.isascii() and count.isdigit()) or int(count[:19]) < 1:
+        # ASCII digits only (int() takes '²', and refuses a string of over 4300 digits)
+        digits = count.lstrip("0")
+        if not (count.isascii() and count.isdigit()) or not digits:
             raise ValueError(f"trajectory: expected orbit:FRAMES with FRAMES >= 1, got {spec!r}")
-        return camera, "orbit", int(count[:19]) if len(count) <= 18 else 10**18, 0
+        frames = int(digits) if len(digits) <= 18 else 10**18  # past 10**18: over any bound
+        return camera, "orbit", frames, frames
     raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}")
 
 
@@ -330,8 +332,7 @@ def trajectory_length(
         >>> trajectory_length(scene, "orbit:100000000"), trajectory_length(scene, "ego", frames_between=9)
         (100000000, 71)
     """
-    _, kind, arg, poses = _plan(scene, spec, camera, frames_between)
-    return int(arg) if kind == "orbit" else poses
+    return _plan(scene, spec, camera, frames_between)[3]
 
 
 def make_trajectory(
@@ -368,8 +369,7 @@ def make_trajectory(
         ...
         ValueError: max_frames: expected at most 100000 frames, got 100000000 (orbit:100000000)
     """
-    camera, kind, arg, _ = _plan(scene, spec, camera, frames_between)
-    count = trajectory_length(scene, spec, camera, frames_between)
+    camera, kind, arg, count = _plan(scene, spec, camera, frames_between)
     if max_frames is not None and count > max_frames:
         shown = spec if spec is not None else trajectory_choices(scene, camera)[0]
         between = "" if frames_between is None else f", frames_between {frames_between}"
