@@ -40,9 +40,11 @@ from typing import Any
 import torch
 
 __all__ = [
+    "MAX_THREADS",
     "FieldCheck",
     "bool_field",
     "check_at_least",
+    "check_at_most",
     "check_fields",
     "check_finite",
     "check_intrinsics",
@@ -64,6 +66,10 @@ __all__ = [
     "pair_field",
     "set_checks_enabled",
 ]
+
+#: The most torch CPU threads a command or a training takes (``--threads``): ``torch.set_num_threads``
+#: of 100 000 000 crashes the process (a segmentation fault) at the first parallel operation.
+MAX_THREADS = 1024
 
 _OFF = {"0", "false", "off", "no"}
 _enabled: bool = os.environ.get("VADGS_CHECKS", "1").strip().lower() not in _OFF
@@ -274,6 +280,25 @@ def check_at_least(config: object, minimum: float, *names: str, note: str = "") 
     if not all(v >= minimum for v in values):
         got = ", ".join(str(v) for v in values)
         raise ValueError(f"{', '.join(names)}: expected >= {minimum:g}{note}, got {got}")
+
+
+def check_at_most(config: object, maximum: float, *names: str, note: str = "") -> None:
+    """Raise ``ValueError`` unless every field ``names`` of ``config`` is ``<= maximum`` (NaN fails).
+
+    The upper bound of a count a user types (threads, ports, frames), checked before any work; the
+    message names the fields, the bound (``note`` follows it: how to raise it) and the values.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> check_at_most(SimpleNamespace(port=70000), 65535, "port")
+        Traceback (most recent call last):
+        ...
+        ValueError: port: expected <= 65535, got 70000
+    """
+    values = [getattr(config, name) for name in names]
+    if not all(v <= maximum for v in values):
+        got = ", ".join(str(v) for v in values)
+        raise ValueError(f"{', '.join(names)}: expected <= {maximum:g}{note}, got {got}")
 
 
 def check_positive(config: object, *names: str) -> None:

@@ -21,7 +21,7 @@ from typing import Annotated, TypeVar
 
 import tyro
 
-from vadgs.checks import check_at_least
+from vadgs.checks import MAX_THREADS, check_at_least, check_at_most
 
 #: A flag that is off unless given (``--no-progress``; no ``--no-no-progress`` pair).
 Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]
@@ -48,6 +48,7 @@ class Command:
 
     def __post_init__(self) -> None:
         check_at_least(self, 0, "threads")
+        check_at_most(self, MAX_THREADS, "threads")
 
     @classmethod
     def parse(cls: type[C], argv: list[str], prog: str) -> C | None:

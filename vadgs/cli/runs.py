@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -18,9 +19,10 @@ from typing import Annotated, Literal
 
 import tyro
 
-from vadgs.checks import check_at_least, check_positive
+from vadgs.checks import check_at_least, check_at_most, check_positive
 from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
 from vadgs.io import write_json
+from vadgs.train.results.trajectory import MAX_FRAMES
 from vadgs.train.run import RunLock, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_METHODS
 
@@ -128,6 +130,11 @@ class RenderCommand(Command):
     scene (a photo collection has no ego path), a smooth path through the training cameras
     (``interpolate``) or a circle around the scene's centre (``orbit``, ``orbit:FRAMES``).
     ``--trajectory list`` prints what the run's scene offers.
+
+    Before any rendering: the video's name (``.mp4``, ``.mov`` or ``.mkv``, at most 241 bytes), its
+    folder (writable), and its length: at most ``--max-frames`` frames (``orbit:FRAMES``,
+    ``--frames-between``). A camera path from which no Gaussian is in view (``shift:1e30``) is
+    rendered with a one-line warning.
     """
 
     run: RunArg
@@ -137,7 +144,7 @@ class RenderCommand(Command):
     views: tuple[int, ...] = ()
     """view indices (default: the test views)"""
     video: str | None = None
-    """write a video (.mp4) along --trajectory instead of panels"""
+    """write a video (.mp4, .mov or .mkv) along --trajectory instead of panels"""
     trajectory: str | None = None
     """ego (the rig's path), shift:METRES (sideways in the ego frame, + = left), shift:X,Y,Z,
     interpolate (through the training cameras), orbit or orbit:FRAMES (around the centre);
@@ -149,6 +156,8 @@ class RenderCommand(Command):
     frames_between: int | None = None
     """poses between consecutive frames (ego, shift; default 0) or training cameras
     (interpolate; default 8)"""
+    max_frames: int = MAX_FRAMES
+    """the most frames a video may have (orbit:FRAMES, --frames-between), checked before rendering"""
     scene: SceneOpt = None
     """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
@@ -157,11 +166,37 @@ class RenderCommand(Command):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive(self, "fps")
+        check_at_least(self, 1, "max_frames")
         if self.frames_between is not None:
             check_at_least(self, 0, "frames_between")
 
+    def _check_video(self) -> None:
+        """The video's name, folder and the counts that need no scene, before the run is loaded.
+
+        Here rather than in ``__post_init__``: tyro wraps that message to its box's width, which
+        would break a long path or count in two.
+        """
+        if self.frames_between is not None and self.frames_between >= self.max_frames:
+            n = self.frames_between  # the whole video is longer still
+            raise ValueError(f"--frames-between {n}: {_too_many(self.max_frames, n)}")
+        spec = (self.trajectory or "").strip()
+        count = spec[len("orbit:") :] if spec.startswith("orbit:") else ""
+        digits = count.lstrip("0")
+        if count.isascii() and count.isdigit() and (len(digits) > 18 or int(digits or 0) > self.max_frames):
+            raise ValueError(f"--trajectory {spec}: {_too_many(self.max_frames, count)}")
+        if self.video is not None:
+            from vadgs.train.results.video import check_video_path
+
+            try:
+                check_video_path(self.video)
+            except ValueError as e:
+                raise ValueError(f"--video {e}") from None
+            # nothing rendered for a folder that cannot take the video
+            _check_out_dir(Path(self.video).parent, "--video", create=False)
+
     def main(self) -> int:
         """Write the panels or the video; 0."""
+        self._check_video()
         into = Path(self.video).parent if self.video else (self.out or _run_dir(self.run) / "renders")
         with _writing(self.run, into, "vadgs render"):
             return self._render()
@@ -174,6 +209,7 @@ class RenderCommand(Command):
                 default_video_camera,
                 make_trajectory,
                 trajectory_choices,
+                trajectory_length,
             )
             from vadgs.train.results.video import render_video
 
@@ -185,11 +221,19 @@ class RenderCommand(Command):
                     print(f"trajectories of scene {scene.name!r}, camera {camera}: {', '.join(choices)}")
                     print(f"default: {choices[0]}")
                     return 0
-                traj = make_trajectory(scene, spec, camera, self.frames_between)
+                count = trajectory_length(scene, spec, camera, self.frames_between)
+                if count <= self.max_frames:  # checked before a pose is built
+                    traj = make_trajectory(scene, spec, camera, self.frames_between, max_frames=None)
             except ValueError as e:
                 text = str(e).replace("frames_between:", "frames-between:", 1)
                 flags = ("trajectory:", "camera:", "frames-between:")
                 raise ValueError(f"--{text}" if text.startswith(flags) else text) from None
+            if count > self.max_frames:
+                given = f"--trajectory {spec}"
+                if self.frames_between is not None:
+                    given += f" --frames-between {self.frames_between}"
+                raise ValueError(f"{given}: {_too_many(self.max_frames, count)}")
+            _warn_out_of_view(model, scene, traj, spec)
             info = render_video(
                 model,
                 scene,
@@ -278,6 +322,7 @@ class ViewCommand(Command):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_at_least(self, 1, "port")
+        check_at_most(self, 65535, "port")
         check_at_least(self, 1, "max_gaussians")
         check_positive(self, "timeout")
 
@@ -314,6 +359,47 @@ class ViewCommand(Command):
             finally:
                 server.stop()
         return 0
+
+
+def _too_many(limit: int, count: object) -> str:
+    """The message of a video longer than ``--max-frames``.
+
+    Example:
+        >>> _too_many(100000, 100000000)
+        'expected at most 100000 frames (--max-frames raises it), got 100000000'
+    """
+    return f"expected at most {limit} frames (--max-frames raises it), got {count}"
+
+
+def _warn_out_of_view(model, scene, traj, spec: str, sample: int = 256) -> bool:
+    """Print one warning line when no Gaussian is in view of any frame of ``traj`` (True then).
+
+    Up to ``sample`` poses, evenly spaced, are checked against the static Gaussians' centres (all
+    of them on a model without static ones): ``shift:1e30`` would render only the sky.
+    """
+    import torch
+
+    from vadgs.train.results.video import gaussians_in_view
+
+    means = model.params["means"].detach()
+    static = model.node_ids < 0
+    means = means[static] if bool(static.any()) else means
+    if means.shape[0] == 0:
+        return False
+    pick = torch.linspace(0, len(traj.time) - 1, min(sample, len(traj.time))).round().long().unique()
+    info = scene.cameras_info[traj.camera]
+    poses = traj.cam_to_world[pick]
+    if int(gaussians_in_view(means, poses, info.K, info.image_size).sum()) > 0:
+        return False
+    centre = means.double().median(0).values
+    far = float((poses[:, :3, 3].double() - centre).norm(dim=-1).min())
+    print(
+        f"vadgs render: warning: --trajectory {spec}: no Gaussian in view of any of its {len(traj.time)} "
+        f"frames (the camera path passes {far:.3g} m from the scene's centre at the nearest); "
+        "the video shows only the background",
+        file=sys.stderr,
+    )
+    return True
 
 
 def _listening(host: str, port: int) -> str:

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from vadgs.checks import check_at_least, check_non_negative, check_positive
+from vadgs.checks import MAX_THREADS, check_at_least, check_at_most, check_non_negative, check_positive
 from vadgs.data.cache import DEFAULT_CACHE_GB
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
@@ -164,6 +164,7 @@ class TrainConfig:
         check_at_least(self, 0, "threads", "checkpoint_every", note=" (0 = off)")
         if not (math.isfinite(self.cache_gb) and self.cache_gb > 0):
             raise ValueError(f"cache_gb: expected a finite number of GB > 0, got {self.cache_gb}")
+        check_at_most(self, MAX_THREADS, "threads")
         check_at_least(self, 1, "sh_degree_interval", "log_every", "hard_every", "hard_stride")
         if self.hard_fused and (
             self.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased

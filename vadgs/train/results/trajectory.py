@@ -38,6 +38,7 @@ one with the most training views) and sweep the frame time from the first frame 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -52,6 +53,7 @@ from vadgs.train.model import rotation_to_quat
 
 __all__ = [
     "INTERPOLATE_BETWEEN",
+    "MAX_FRAMES",
     "ORBIT_FRAMES",
     "Trajectory",
     "catmull_rom",
@@ -66,6 +68,7 @@ __all__ = [
     "parse_trajectory",
     "scene_up",
     "trajectory_choices",
+    "trajectory_length",
 ]
 
 #: ``interpolate``: poses between consecutive training cameras unless ``frames_between`` says.
@@ -73,6 +76,10 @@ INTERPOLATE_BETWEEN = 8
 
 #: ``orbit``: the number of poses of the circle unless ``orbit:FRAMES`` says.
 ORBIT_FRAMES = 60
+
+#: The most poses :func:`make_trajectory` builds unless its ``max_frames`` says (``vadgs render
+#: --max-frames``): 100 000 frames are 2.8 hours at 10 fps; ``orbit:100000000`` would fill memory.
+MAX_FRAMES = 100_000
 
 
 def interpolate_rigid(a: torch.Tensor, b: torch.Tensor, t: float) -> torch.Tensor:
@@ -123,9 +130,16 @@ class Trajectory(NamedTuple):
 def parse_trajectory(spec: str) -> tuple[float, float, float]:
     """Ego-frame shift of a trajectory: ``"ego"``, ``"shift:M"`` (``(0, M, 0)``, + = left), ``"shift:X,Y,Z"``.
 
+    Raises:
+        ValueError: for another spec, or a shift that is not finite (``shift:nan``, ``shift:inf``).
+
     Example:
         >>> parse_trajectory("ego"), parse_trajectory("shift:-2"), parse_trajectory("shift:1,0,0.5")
         ((0.0, 0.0, 0.0), (0.0, -2.0, 0.0), (1.0, 0.0, 0.5))
+        >>> parse_trajectory("shift:nan")
+        Traceback (most recent call last):
+        ...
+        ValueError: trajectory: expected finite metres in shift:METRES or shift:X,Y,Z, got 'shift:nan'
     """
     if spec == "ego":
         return (0.0, 0.0, 0.0)
@@ -134,6 +148,10 @@ def parse_trajectory(spec: str) -> tuple[float, float, float]:
             parts = [float(p) for p in spec[len("shift:") :].split(",")]
         except ValueError:
             parts = []
+        if len(parts) in (1, 3) and not all(math.isfinite(p) for p in parts):
+            raise ValueError(
+                f"trajectory: expected finite metres in shift:METRES or shift:X,Y,Z, got {spec!r}"
+            )
         if len(parts) == 1:
             return (0.0, parts[0], 0.0)
         if len(parts) == 3:
@@ -252,8 +270,77 @@ def trajectory_choices(scene: Scene, camera: str | None = None) -> list[str]:
     return ["interpolate", *ego, "orbit", "orbit:FRAMES"]
 
 
-def make_trajectory(
+def _plan(
+    scene: Scene, spec: str | None, camera: str | None, frames_between: int | None
+) -> tuple[str, str, object, int]:
+    """``(camera, kind, argument, poses)`` of the trajectory ``spec``, checked, nothing built.
+
+    ``kind`` is ``ego`` (argument: the shift), ``interpolate`` (poses between the keys) or
+    ``orbit`` (its pose count); ``poses`` is the number of poses it will have.
+    """
+    camera = camera or default_video_camera(scene)
+    choices = trajectory_choices(scene, camera)
+    spec = choices[0] if spec is None else spec.strip()
+    if frames_between is not None and int(frames_between) < 0:
+        raise ValueError(f"frames_between: expected >= 0, got {frames_between}")
+    if spec == "ego" or spec.startswith("shift:"):
+        no_ego = "ego" not in choices if spec == "ego" else "shift:METRES" not in choices
+        if no_ego:
+            raise ValueError(
+                f"trajectory: scene {scene.name!r} has no ego path for camera {camera!r} (no ego "
+                f"poses{'' if spec.startswith('shift:') else ', no view of it at every frame'}); "
+                f"it offers {choices}"
+            )
+        try:
+            shift = parse_trajectory(spec)
+        except ValueError as e:
+            if "finite" in str(e):
+                raise
+            raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}") from None
+        between = int(frames_between or 0)
+        return camera, "ego", shift, (len(scene.frames) - 1) * (between + 1) + 1
+    if spec == "interpolate":
+        between = INTERPOLATE_BETWEEN if frames_between is None else int(frames_between)
+        _, keys, _ = _path_keys(scene, camera)
+        return camera, "interpolate", between, (len(keys) - 1) * (between + 1) + 1
+    if spec == "orbit" or spec.startswith("orbit:"):
+        if frames_between is not None:
+            raise ValueError(
+                f"frames_between: not used by {spec} (orbit:FRAMES sets its poses), got {frames_between}"
+            )
+        count = spec[len("orbit:") :] if spec.startswith("orbit:") else str(ORBIT_FRAMES)
+        # ASCII digits only (int() takes '²', and refuses a string of over 4300 digits)
+        digits = count.lstrip("0")
+        if not (count.isascii() and count.isdigit()) or not digits:
+            raise ValueError(f"trajectory: expected orbit:FRAMES with FRAMES >= 1, got {spec!r}")
+        frames = int(digits) if len(digits) <= 18 else 10**18  # past 10**18: over any bound
+        return camera, "orbit", frames, frames
+    raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}")
+
+
+def trajectory_length(
     scene: Scene, spec: str | None = None, camera: str | None = None, frames_between: int | None = None
+) -> int:
+    """The number of poses :func:`make_trajectory` would build, computed without building them.
+
+    Checks the arguments as :func:`make_trajectory` does (the same errors), so a caller can bound a
+    video's length before any work.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> trajectory_length(scene, "orbit:100000000"), trajectory_length(scene, "ego", frames_between=9)
+        (100000000, 71)
+    """
+    return _plan(scene, spec, camera, frames_between)[3]
+
+
+def make_trajectory(
+    scene: Scene,
+    spec: str | None = None,
+    camera: str | None = None,
+    frames_between: int | None = None,
+    max_frames: int | None = MAX_FRAMES,
 ) -> Trajectory:
     """The trajectory named ``spec`` (one of :func:`trajectory_choices`; None: the scene's default).
 
@@ -265,45 +352,33 @@ def make_trajectory(
         frames_between: poses between consecutive frames (``ego``, ``shift``; default 0) or
             training cameras (``interpolate``; default :data:`INTERPOLATE_BETWEEN`); not with
             ``orbit`` (``orbit:FRAMES`` sets its poses).
+        max_frames: the most poses it may have (default :data:`MAX_FRAMES`; None: no bound),
+            checked before any pose is built (:func:`trajectory_length`).
 
     Raises:
-        ValueError: for a name the scene does not offer (the message lists those it does).
+        ValueError: for a name the scene does not offer (the message lists those it does), a shift
+            that is not finite, or more poses than ``max_frames``.
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
         >>> scene = load_scene(sample_scene_path())
         >>> len(make_trajectory(scene).time), len(make_trajectory(scene, "orbit:12").time)
         (8, 12)
+        >>> make_trajectory(scene, "orbit:100000000")
+        Traceback (most recent call last):
+        ...
+        ValueError: max_frames: expected at most 100000 frames, got 100000000 (orbit:100000000)
     """
-    camera = camera or default_video_camera(scene)
-    choices = trajectory_choices(scene, camera)
-    spec = choices[0] if spec is None else spec.strip()
-    if spec == "ego" or spec.startswith("shift:"):
-        no_ego = "ego" not in choices if spec == "ego" else "shift:METRES" not in choices
-        if no_ego:
-            raise ValueError(
-                f"trajectory: scene {scene.name!r} has no ego path for camera {camera!r} (no ego "
-                f"poses{'' if spec.startswith('shift:') else ', no view of it at every frame'}); "
-                f"it offers {choices}"
-            )
-        try:
-            shift = parse_trajectory(spec)
-        except ValueError:
-            raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}") from None
-        return ego_trajectory(scene, camera, shift, frames_between or 0)
-    if spec == "interpolate":
-        between = INTERPOLATE_BETWEEN if frames_between is None else frames_between
-        return interpolated_trajectory(scene, camera, between)
-    if spec == "orbit" or spec.startswith("orbit:"):
-        if frames_between is not None:
-            raise ValueError(
-                f"frames_between: not used by {spec} (orbit:FRAMES sets its poses), got {frames_between}"
-            )
-        count = spec[len("orbit:") :] if spec.startswith("orbit:") else str(ORBIT_FRAMES)
-        if not count.isdigit() or int(count) < 1:
-            raise ValueError(f"trajectory: expected orbit:FRAMES with FRAMES >= 1, got {spec!r}")
-        return orbit_trajectory(scene, camera, int(count))
-    raise ValueError(f"trajectory: expected one of {choices}, got {spec!r}")
+    camera, kind, arg, count = _plan(scene, spec, camera, frames_between)
+    if max_frames is not None and count > max_frames:
+        shown = spec if spec is not None else trajectory_choices(scene, camera)[0]
+        between = "" if frames_between is None else f", frames_between {frames_between}"
+        raise ValueError(f"max_frames: expected at most {max_frames} frames, got {count} ({shown}{between})")
+    if kind == "ego":
+        return ego_trajectory(scene, camera, arg, frames_between or 0)
+    if kind == "interpolate":
+        return interpolated_trajectory(scene, camera, arg)
+    return orbit_trajectory(scene, camera, arg)
 
 
 def look_at(position: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:

@@ -8,13 +8,18 @@ The moving objects are interpolated between frames as the ego poses are
 Every video frame (:func:`video_frame`) is colour | depth | normals over a thin timeline bar
 (:data:`TIMELINE_ROWS` rows: white up to the frame's position in the video). Videos are written
 with imageio's ffmpeg plugin (the ``imageio-ffmpeg`` wheel bundles ffmpeg):
-H.264 in ``yuv420p``, the frame padded with black to even sizes, written to a temporary file
-and renamed, so a partial video never takes the output's name.
+H.264 in ``yuv420p``, the frame padded with black to even sizes (:func:`write_video`). Frames go
+to the encoder one by one as they are rendered, so memory does not grow with the video's length;
+they are written to a temporary file and renamed, so a partial video never takes the output's
+name. :func:`check_video_path` checks the output's name (suffix, length) before any rendering, and
+:func:`gaussians_in_view` finds a camera path that sees nothing.
 """
 
 from __future__ import annotations
 
 import copy
+import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -30,16 +35,68 @@ from vadgs.train.model import GaussianModel, ModelRender
 from vadgs.train.results.trajectory import Trajectory, interpolate_rigid, make_trajectory
 
 __all__ = [
+    "NAME_MAX",
     "TIMELINE_ROWS",
+    "VIDEO_SUFFIXES",
     "VideoInfo",
+    "check_video_path",
+    "gaussians_in_view",
     "model_at_time",
     "object_poses_at",
     "render_video",
     "video_frame",
+    "write_video",
 ]
 
 #: Height in pixels of the timeline bar under each video frame.
 TIMELINE_ROWS = 4
+
+#: The containers :func:`write_video` writes (H.264 in each, by ffmpeg).
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv")
+
+#: The longest file name (bytes) of the usual file systems (ext4, APFS, NTFS, tmpfs).
+NAME_MAX = 255
+
+# atomic_write's temporary name is ".STEM.XXXXXXXX.tmpSUFFIX": 14 bytes more than the name
+_TMP_EXTRA = len(".") + len(".12345678.tmp")
+
+
+def check_video_path(path: str | Path) -> Path:
+    """Check a video's output path before any rendering: its suffix, its name's length, its folder.
+
+    Args:
+        path: the output video.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ValueError: one line naming ``path`` (never the temporary file) and what was expected: a
+            suffix of :data:`VIDEO_SUFFIXES`, a name of at most :data:`NAME_MAX` bytes less the
+            temporary file's 14, a folder that is not a file.
+
+    Example:
+        >>> check_video_path("runs/a/ego.mp4")
+        PosixPath('runs/a/ego.mp4')
+        >>> check_video_path("runs/a/ego.xyz")
+        Traceback (most recent call last):
+        ...
+        ValueError: runs/a/ego.xyz: expected a video name ending in .mp4, .mov or .mkv, got suffix '.xyz'
+    """
+    given, path = str(path), Path(path)
+    expected = ", ".join(VIDEO_SUFFIXES[:-1]) + f" or {VIDEO_SUFFIXES[-1]}"
+    if path.name in ("", ".", "..") or given.endswith(("/", os.sep)):
+        raise ValueError(f"{given}: expected a video file name ending in {expected}, got a folder")
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        got = f"suffix {path.suffix!r}" if path.suffix else "no suffix"
+        raise ValueError(f"{path}: expected a video name ending in {expected}, got {got}")
+    size = len(os.fsencode(path.name))
+    if size + _TMP_EXTRA > NAME_MAX:
+        raise ValueError(
+            f"{path}: expected a file name of at most {NAME_MAX - _TMP_EXTRA} bytes (the file system's "
+            f"{NAME_MAX} less {_TMP_EXTRA} for the temporary file), got {size}"
+        )
+    return path
 
 
 def object_poses_at(
@@ -129,6 +186,109 @@ def video_frame(
     return np.concatenate([frame, bar], axis=0)
 
 
+def gaussians_in_view(
+    means: torch.Tensor, cam_to_world: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
+) -> torch.Tensor:
+    """How many of ``means`` each camera sees: in front of it and projected inside its image.
+
+    Not differentiable (a count). Rows of non-finite poses see nothing.
+
+    Args:
+        means: ``(N, 3)`` points in the world.
+        cam_to_world: ``(P, 4, 4)`` camera poses.
+        K: ``(3, 3)`` intrinsics.
+        image_size: ``(H, W)``.
+
+    Returns:
+        ``(P,)`` int64 counts.
+
+    Example:
+        >>> K = torch.tensor([[10.0, 0, 5], [0, 10, 5], [0, 0, 1]])
+        >>> c2w = torch.eye(4).repeat(2, 1, 1); c2w[1, 0, 3] = 1e30
+        >>> gaussians_in_view(torch.tensor([[0.0, 0, 2], [0, 0, -2]]), c2w, K, (10, 10)).tolist()
+        [1, 0]
+    """
+    check_shape(means, "means", ("N", 3))
+    check_shape(cam_to_world, "cam_to_world", ("P", 4, 4))
+    check_shape(K, "K", (3, 3))
+    h, w = image_size
+    w2c = invert_rigid(cam_to_world.double())
+    pts = means.double().to(w2c.device)
+    out = torch.zeros(cam_to_world.shape[0], dtype=torch.int64)
+    for i in range(0, w2c.shape[0], 64):  # (64, N, 3) at a time
+        cam = torch.einsum("pij,nj->pni", w2c[i : i + 64, :3, :3], pts) + w2c[i : i + 64, None, :3, 3]
+        z = cam[..., 2]
+        uv = torch.einsum("ij,pnj->pni", K.double().to(cam.device), cam)[..., :2] / z[..., None].clamp(
+            min=1e-9
+        )
+        seen = (z > 1e-6) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+        out[i : i + 64] = (seen & torch.isfinite(uv).all(-1)).sum(-1).cpu()
+    return out
+
+
+def write_video(
+    path: str | Path,
+    frames: Iterable[np.ndarray],
+    fps: float = 10.0,
+    total: int | None = None,
+    progress: bool = True,
+) -> tuple[int, tuple[int, int] | None]:
+    """Write ``frames`` to a video at ``path``, atomically, one frame at a time.
+
+    Each frame goes to imageio's ffmpeg writer as soon as ``frames`` yields it (pass a generator:
+    memory does not grow with the video's length), H.264 in ``yuv420p``, padded with black to even
+    sizes. The video is written to a temporary file beside ``path`` and renamed
+    (:func:`~vadgs.io.atomic_write`): an interrupted or failed video leaves no file at ``path``.
+
+    Args:
+        path: the output (:func:`check_video_path` checks it first).
+        frames: ``(H, W, 3)`` uint8 arrays, all of one size.
+        fps: frames per second.
+        total: the number of frames, for the progress bar.
+        progress: a tqdm bar.
+
+    Returns:
+        ``(frames written, (H, W) of the written frames)`` (None without a frame).
+
+    Raises:
+        ImportError: without imageio and imageio-ffmpeg (the ``video`` extra).
+        ValueError: for a path :func:`check_video_path` refuses.
+    """
+    try:
+        import imageio.v2 as imageio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise ImportError("videos need imageio and imageio-ffmpeg: pip install 'vadgs[video]'") from None
+    from tqdm import tqdm
+
+    path = check_video_path(path)
+    count, size = 0, None
+
+    def write(tmp: Path) -> None:  # into a temporary file: an interrupted video leaves no partial file
+        nonlocal count, size
+        writer = imageio.get_writer(
+            tmp,
+            format="FFMPEG",
+            mode="I",
+            fps=fps,
+            codec="libx264",
+            pixelformat="yuv420p",
+            macro_block_size=1,
+        )
+        try:
+            for frame in tqdm(frames, total=total, disable=not progress, desc="video"):
+                h, w = frame.shape[:2]
+                frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)))  # yuv420p needs even sizes
+                size = frame.shape[:2]
+                writer.append_data(frame)
+                count += 1
+        finally:
+            writer.close()
+
+    atomic_write(path, write)
+    return count, size
+
+
 class VideoInfo(NamedTuple):
     """What :func:`render_video` wrote: ``path``, ``num_frames`` and the frame ``size`` ``(H, W)``."""
 
@@ -152,7 +312,8 @@ def render_video(
     Args:
         model: the trained model.
         scene: its scene (intrinsics and image size of the trajectory's camera).
-        path: output ``.mp4``.
+        path: output ``.mp4`` (or another of :data:`VIDEO_SUFFIXES`), checked before any rendering
+            (:func:`check_video_path`).
         trajectory: default :func:`make_trajectory`'s: the ego path of the front camera, or on a
             scene without one (a photo collection) the path through its training cameras.
         fps: frames per second.
@@ -164,54 +325,35 @@ def render_video(
 
     Raises:
         ImportError: without imageio and imageio-ffmpeg (the ``video`` extra).
+        ValueError: for a path :func:`check_video_path` refuses.
     """
     try:
-        import imageio.v2 as imageio
+        import imageio.v2  # noqa: F401
         import imageio_ffmpeg  # noqa: F401
     except ImportError:
         raise ImportError(
             "render_video needs imageio and imageio-ffmpeg: pip install 'vadgs[video]'"
         ) from None
-    from tqdm import tqdm
 
+    path = check_video_path(path)
     if trajectory is None:
         trajectory = make_trajectory(scene)
     info = scene.cameras_info[trajectory.camera]
     K = info.K[None]
-    path = Path(path)
-    size = None  # of the frames written
+    last = max(len(trajectory.time) - 1, 1)
 
-    def write(tmp: Path) -> None:  # into a temporary file: an interrupted video leaves no partial file
-        nonlocal size
+    def frames() -> Iterable[np.ndarray]:  # one at a time: the encoder takes each as it is made
         depth_range = None
-        writer = imageio.get_writer(
-            tmp,
-            format="FFMPEG",
-            mode="I",
-            fps=fps,
-            codec="libx264",
-            pixelformat="yuv420p",
-            macro_block_size=1,
-        )
-        try:
-            last = max(len(trajectory.time) - 1, 1)
-            poses = list(zip(trajectory.cam_to_world, trajectory.time.tolist()))
-            for i, (c2w, t) in enumerate(tqdm(poses, disable=not progress, desc="video")):
-                w2c = invert_rigid(c2w[None].to(K.dtype))
-                out = model_at_time(model, t).render(w2c, K, info.image_size, 0, config)
-                if depth_range is None:
-                    # the opaque pixels only: a faint Gaussian at the camera would squash the range
-                    d = out.raster.depth[(out.raster.depth > 0) & (out.raster.alpha > 0.5)]
-                    depth_range = (
-                        (float(d.quantile(0.02)), float(d.quantile(0.98))) if d.numel() else (1.0, 100.0)
-                    )
-                frame = video_frame(out, depth_range, i / last)
-                h, w = frame.shape[:2]
-                frame = np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)))  # yuv420p needs even sizes
-                size = frame.shape[:2]
-                writer.append_data(frame)
-        finally:
-            writer.close()
+        for i, (c2w, t) in enumerate(zip(trajectory.cam_to_world, trajectory.time.tolist())):
+            w2c = invert_rigid(c2w[None].to(K.dtype))
+            out = model_at_time(model, t).render(w2c, K, info.image_size, 0, config)
+            if depth_range is None:
+                # the opaque pixels only: a faint Gaussian at the camera would squash the range
+                d = out.raster.depth[(out.raster.depth > 0) & (out.raster.alpha > 0.5)]
+                depth_range = (
+                    (float(d.quantile(0.02)), float(d.quantile(0.98))) if d.numel() else (1.0, 100.0)
+                )
+            yield video_frame(out, depth_range, i / last)
 
-    atomic_write(path, write)
-    return VideoInfo(path, len(trajectory.time), size)
+    count, size = write_video(path, frames(), fps, total=len(trajectory.time), progress=progress)
+    return VideoInfo(path, count, size)
