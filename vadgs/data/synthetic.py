@@ -49,6 +49,7 @@ _WALK = 4.0  # sidewalk width
 _CURB = 0.15  # sidewalk height
 _LANES = (-5.25, -1.75, 1.75, 5.25)  # lane centres; traffic drives on the right (+x at y < 0)
 
+_SIGN_COLORS = ((0.1, 0.35, 0.75), (0.8, 0.15, 0.12), (0.1, 0.55, 0.25))
 # box kinds (texture)
 _ROAD, _WALKWAY, _BUILDING, _POLE, _BOARD, _CAR = range(6)
 
@@ -220,7 +221,7 @@ def _build_world(cfg: SegmentConfig) -> _World:
         iid = add(f"sign_{k}", "sign", (0.12, 0.12, 6.3), _yaw_pose(x, y, _CURB), _POLE, (0.55, 0.56, 0.58))
         board_y = y - side * 0.7  # the board hangs over the road's edge, facing the oncoming ego
         add("", "", (0.06, 1.4, 1.0), _yaw_pose(x - 0.1, board_y, 5.3), _BOARD,
-            tuple(np.array([[0.1, 0.35, 0.75], [0.8, 0.15, 0.12], [0.1, 0.55, 0.25]])[k % 3]), iid=iid)  # fmt: skip
+            _SIGN_COLORS[k % 3], iid=iid)  # fmt: skip
     car_size = (4.4, 1.9, 1.5)
     for k in range(cfg.parked_cars):
         side = 1 if k % 2 == 0 else -1
@@ -262,7 +263,7 @@ def _build_world(cfg: SegmentConfig) -> _World:
         for tf, s in zip(t, sway)
     ])  # fmt: skip
     boxes = _Boxes(
-        np.array(size, dtype=np.float64),
+        np.array(size, dtype=np.float32),
         np.stack(pose),
         np.array(kind),
         np.array(inst),
@@ -286,7 +287,7 @@ _NORMALS = np.repeat(
 
 def _box_triangles(size: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """``(B * 12, 3, 3)`` world triangles of boxes ``size (B, 3)`` at ``pose (B, 4, 4)``."""
-    local = _CORNERS[_FACES][None] * size[:, None, None, :]  # (B, 12, 3, 3)
+    local = _CORNERS[_FACES][None] * size[:, None, None, :].astype(np.float64)  # (B, 12, 3, 3)
     world = local @ pose[:, None, :3, :3].transpose(0, 1, 3, 2) + pose[:, None, None, :3, 3]
     return world.reshape(-1, 3, 3)
 
@@ -307,6 +308,7 @@ class _Caster:
         from embreex.mesh_construction import TriangleMesh
 
         self.poses = _frame_poses(world, frame)
+        self.poses32 = self.poses.astype(np.float32)
         self.boxes = world.boxes
         self.scene = rtcore_scene.EmbreeScene()
         TriangleMesh(self.scene, _box_triangles(world.boxes.size, self.poses).astype(np.float32))
@@ -336,14 +338,16 @@ def _hash(*ints: np.ndarray) -> np.ndarray:
     return (h >> np.uint32(8)).astype(np.float32) / float(1 << 24)
 
 
-_SUN = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
+_SUN = (np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])).astype(np.float32)
+_HORIZON = np.array([0.78, 0.85, 0.93], dtype=np.float32)
+_ZENITH = np.array([0.35, 0.55, 0.88], dtype=np.float32)
 
 
 def _albedo(kind, p, n, base, h, box_id):
     """Procedural albedo ``(N, 3)`` from the box-frame point ``p``, normal ``n`` and box height ``h``."""
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     fine = _hash(np.floor(x * 12), np.floor(y * 12), np.floor(z * 12), box_id)
-    out = base * (0.82 + 0.3 * fine)[:, None]
+    out = base * (np.float32(0.82) + np.float32(0.3) * fine)[:, None]
     vertical = np.abs(n[:, 2]) < 0.5
     # buildings: a grid of windows on the facades (3 m wide bays, 3.2 m floors), roofs darker
     u = np.where(np.abs(n[:, 1]) > 0.5, x, y) + box_id * 1.37
@@ -376,15 +380,14 @@ def _albedo(kind, p, n, base, h, box_id):
 
 
 def _shade(caster: _Caster, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, prim: np.ndarray):
-    """``(N, 3)`` float colour of the rays (sky where ``prim < 0``)."""
-    dn = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
-    elev = np.clip(dn[:, 2], 0, 1)[:, None]
-    rgb = (1 - elev) * np.array([0.78, 0.85, 0.93]) + elev * np.array([0.35, 0.55, 0.88])
+    """``(N, 3)`` float32 colour of the rays ``origin (3,) + t dirs (N, 3)`` (sky where ``prim < 0``)."""
+    elev = np.clip(dirs[:, 2] / np.linalg.norm(dirs, axis=-1), 0, 1)[:, None]
+    rgb = (1 - elev) * _HORIZON + elev * _ZENITH
     hit = prim >= 0
     if hit.any():
         b = prim[hit] // 12
-        T = caster.poses[b]
-        pw = origin + t[hit, None].astype(np.float64) * dirs[hit]
+        T = caster.poses32[b]
+        pw = origin.astype(np.float32) + t[hit, None] * dirs[hit]
         p = np.einsum("nji,nj->ni", T[:, :3, :3], pw - T[:, :3, 3])  # box frame
         size = caster.boxes.size[b]
         p[:, 2] = np.clip(p[:, 2], 0, size[:, 2])
@@ -434,7 +437,7 @@ def _render_view(cfg, caster, K, cam_to_world, size) -> tuple[np.ndarray, np.nda
     for r0 in range(0, h, rows):
         ys = (np.arange(r0, min(h, r0 + rows)) - K[1, 2]) / K[1, 1]
         cam = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], 1.0), -1).reshape(-1, 3)
-        dirs = cam @ R.T  # camera z = 1: the hit distance t is the z-depth
+        dirs = (cam @ R.T).astype(np.float32)  # camera z = 1: the hit distance t is the z-depth
         t, prim = caster.cast(origin, dirs)
         sl = slice(r0 * w, r0 * w + len(t))
         hit = prim >= 0
@@ -579,7 +582,8 @@ def _scene_json(cfg: SegmentConfig, world: _World) -> dict:
             "depth": "z-depth in metres along the camera's optical axis, 0 where no surface (sky); "
             "float16 in npz key 'depth'",
             "instances": "uint16 PNG of instance ids, 0 = sky; ids are listed under 'instances'",
-            "lidar": "npz: points (N,3) float32 world, instance (N,) uint16, origin (3,) sensor position in world",
+            "lidar": "npz: points (N,3) float32 world, instance (N,) uint16, "
+            "origin (3,) sensor position in world",
             "objects": "object frame: origin at the bottom centre of the box, x forward, z up",
         },
         "generator": {"module": "vadgs.data.synthetic", "config": _config_json(cfg)},
