@@ -309,6 +309,14 @@ class _Caster:
 
         self.poses = _frame_poses(world, frame)
         self.poses32 = self.poses.astype(np.float32)
+        n_world = np.einsum("bij,tj->bti", self.poses[:, :3, :3], _NORMALS).reshape(-1, 3)
+        self.light = (0.5 + 0.55 * np.clip(n_world @ _SUN, 0, None)).astype(np.float32)  # per triangle
+        per_box = {
+            "tx": self.poses32[:, 0, 3], "ty": self.poses32[:, 1, 3], "tz": self.poses32[:, 2, 3],
+            "cos": self.poses32[:, 0, 0], "sin": self.poses32[:, 1, 0], "h": world.boxes.size[:, 2],
+            "kind": world.boxes.kind,
+        }  # fmt: skip
+        self.tri = {k: np.repeat(v, 12) for k, v in per_box.items()}  # per triangle, for 1-D gathers
         self.boxes = world.boxes
         self.scene = rtcore_scene.EmbreeScene()
         TriangleMesh(self.scene, _box_triangles(world.boxes.size, self.poses).astype(np.float32))
@@ -344,58 +352,72 @@ _ZENITH = np.array([0.35, 0.55, 0.88], dtype=np.float32)
 
 
 def _albedo(kind, p, n, base, h, box_id):
-    """Procedural albedo ``(N, 3)`` from the box-frame point ``p``, normal ``n`` and box height ``h``."""
+    """Procedural albedo ``(N, 3)`` from the box-frame point ``p``, normal ``n`` and box height ``h``.
+
+    Each kind's pattern is computed on its own pixels only.
+    """
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     fine = _hash(np.floor(x * 12), np.floor(y * 12), np.floor(z * 12), box_id)
     out = base * (np.float32(0.82) + np.float32(0.3) * fine)[:, None]
     vertical = np.abs(n[:, 2]) < 0.5
+
+    def of(k):
+        i = np.flatnonzero(kind == k)
+        return i, x[i], y[i], z[i]
+
     # buildings: a grid of windows on the facades (3 m wide bays, 3.2 m floors), roofs darker
-    u = np.where(np.abs(n[:, 1]) > 0.5, x, y) + box_id * 1.37
-    win = (kind == _BUILDING) & vertical & (z > 1.2) & (z < h - 0.8)
-    win &= (
-        ((u / 3.0) % 1.0 > 0.28)
-        & ((u / 3.0) % 1.0 < 0.72)
-        & ((z / 3.2) % 1.0 > 0.3)
-        & ((z / 3.2) % 1.0 < 0.8)
-    )
-    glass = 0.12 + 0.12 * _hash(np.floor(u / 3.0), np.floor(z / 3.2), box_id)
-    out = np.where(win[:, None], np.stack([glass, glass * 1.15, glass * 1.4], -1), out)
-    roof = (kind == _BUILDING) & ~vertical
-    out = np.where(roof[:, None], out * 0.6, out)
+    i, xi, yi, zi = of(_BUILDING)
+    u = np.where(np.abs(n[i, 1]) > 0.5, xi, yi) + box_id[i] * np.float32(1.37)
+    bay, floor = (u / np.float32(3.0)) % 1.0, (zi / np.float32(3.2)) % 1.0
+    win = vertical[i] & (zi > 1.2) & (zi < h[i] - 0.8)
+    win &= (bay > 0.28) & (bay < 0.72) & (floor > 0.3) & (floor < 0.8)
+    w = i[win]
+    glass = 0.12 + 0.12 * _hash(np.floor(u[win] / 3.0), np.floor(zi[win] / 3.2), box_id[w])
+    out[w] = glass[:, None] * np.array([1.0, 1.15, 1.4], dtype=np.float32)
+    out[i[~vertical[i]]] *= 0.6
     # road: dashed centre line, solid lane edges; sidewalk: 1 m tiles
-    line = ((np.abs(y) < 0.08) & ((x % 6.0) < 3.0)) | (np.abs(np.abs(y) - 7.0) < 0.08)
-    line |= (np.abs(np.abs(y) - 3.5) < 0.06) & ((x % 9.0) < 3.0)
-    out = np.where(((kind == _ROAD) & line)[:, None], 0.85, out)
-    joint = ((x % 1.0) < 0.04) | (((y + 0.5) % 1.0) < 0.04)
-    out = np.where(((kind == _WALKWAY) & joint & ~vertical)[:, None], out * 0.7, out)
+    i, xi, yi, _ = of(_ROAD)
+    ay = np.abs(yi)
+    line = ((ay < 0.08) & ((xi % 6.0) < 3.0)) | (np.abs(ay - 7.0) < 0.08)
+    line |= (np.abs(ay - 3.5) < 0.06) & ((xi % 9.0) < 3.0)
+    out[i[line]] = 0.85
+    i, xi, yi, _ = of(_WALKWAY)
+    joint = (((xi % 1.0) < 0.04) | (((yi + 0.5) % 1.0) < 0.04)) & ~vertical[i]
+    out[i[joint]] *= 0.7
     # sign boards: a white ring on the coloured board (seen from both sides)
-    r = np.hypot(y, z - 0.5)
-    ring = (kind == _BOARD) & (np.abs(np.abs(n[:, 0]) - 1) < 0.1) & (r > 0.3) & (r < 0.42)
-    out = np.where(ring[:, None], 0.92, out)
+    i, _, yi, zi = of(_BOARD)
+    r = np.hypot(yi, zi - 0.5)
+    out[i[(np.abs(n[i, 0]) > 0.9) & (r > 0.3) & (r < 0.42)]] = 0.92
     # cars: a dark window band, dark bumpers
-    band = (kind == _CAR) & vertical & (z > 0.85) & (z < 1.35) & (np.abs(x) < 1.5)
-    out = np.where(band[:, None], 0.1, out)
-    out = np.where(((kind == _CAR) & (z < 0.35))[:, None], 0.08, out)
+    i, xi, _, zi = of(_CAR)
+    out[i[vertical[i] & (zi > 0.85) & (zi < 1.35) & (np.abs(xi) < 1.5)]] = 0.1
+    out[i[zi < 0.35]] = 0.08
     return out
 
 
 def _shade(caster: _Caster, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, prim: np.ndarray):
     """``(N, 3)`` float32 colour of the rays ``origin (3,) + t dirs (N, 3)`` (sky where ``prim < 0``)."""
-    elev = np.clip(dirs[:, 2] / np.linalg.norm(dirs, axis=-1), 0, 1)[:, None]
-    rgb = (1 - elev) * _HORIZON + elev * _ZENITH
     hit = prim >= 0
-    if hit.any():
-        b = prim[hit] // 12
-        T = caster.poses32[b]
-        pw = origin.astype(np.float32) + t[hit, None] * dirs[hit]
-        p = np.einsum("nji,nj->ni", T[:, :3, :3], pw - T[:, :3, 3])  # box frame
-        size = caster.boxes.size[b]
-        p[:, 2] = np.clip(p[:, 2], 0, size[:, 2])
-        n_local = _NORMALS[prim[hit] % 12]
-        n_world = np.einsum("nij,nj->ni", T[:, :3, :3], n_local)
-        light = 0.5 + 0.55 * np.clip(n_world @ _SUN, 0, None)
-        alb = _albedo(caster.boxes.kind[b], p, n_local, caster.boxes.color[b], size[:, 2], b)
-        rgb[hit] = alb * light[:, None]
+    pr = np.maximum(prim, 0)
+    th = np.where(hit, t, 0)
+    tri = caster.tri
+    # box frame: every box is turned about z only (yaw), so p = R_z(-yaw) (pw - t)
+    dx = (origin[0] - np.take(tri["tx"], pr)) + th * dirs[:, 0]
+    dy = (origin[1] - np.take(tri["ty"], pr)) + th * dirs[:, 1]
+    c, s = np.take(tri["cos"], pr), np.take(tri["sin"], pr)
+    p = np.empty((len(pr), 3), np.float32)
+    p[:, 0] = c * dx + s * dy
+    p[:, 1] = c * dy - s * dx
+    h = np.take(tri["h"], pr)
+    p[:, 2] = np.clip((origin[2] - np.take(tri["tz"], pr)) + th * dirs[:, 2], 0, h)
+    b = pr // 12
+    alb = _albedo(np.take(tri["kind"], pr), p, _NORMALS[pr % 12], np.take(caster.boxes.color, b, 0), h, b)
+    rgb = alb * np.take(caster.light, pr)[:, None]
+    sky = np.flatnonzero(~hit)
+    if len(sky):
+        d = dirs[sky]
+        elev = np.clip(d[:, 2] / np.linalg.norm(d, axis=-1), 0, 1)[:, None]
+        rgb[sky] = (1 - elev) * _HORIZON + elev * _ZENITH
     return rgb
 
 
