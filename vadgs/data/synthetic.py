@@ -45,7 +45,8 @@ RIG: dict[str, tuple[float, bool]] = {
 """Camera name → (yaw in degrees, left positive; whether it uses ``side_height``), Waymo's order."""
 
 _ROAD_HALF = 9.0  # |y| < 7: four 3.5 m lanes; 7 < |y| < 9: parking strips
-_WALK = 4.0  # sidewalk width
+_WALK = 4.0  # sidewalk width in front of the buildings
+_GROUND = 22.0  # the sidewalk boxes' width: on under the buildings, so alleys and setbacks show ground
 _CURB = 0.15  # sidewalk height
 _LANES = (-5.25, -1.75, 1.75, 5.25)  # lane centres; traffic drives on the right (+x at y < 0)
 
@@ -193,8 +194,8 @@ def _build_world(cfg: SegmentConfig) -> _World:
         (0.3, 0.3, 0.32),
     )
     for side, name in ((1, "sidewalk_left"), (-1, "sidewalk_right")):
-        y = side * (_ROAD_HALF + _WALK / 2)
-        add(name, "sidewalk", (x1 - x0, _WALK, 0.2 + _CURB), _yaw_pose((x0 + x1) / 2, y, -0.2), _WALKWAY,
+        y = side * (_ROAD_HALF + _GROUND / 2)
+        add(name, "sidewalk", (x1 - x0, _GROUND, 0.2 + _CURB), _yaw_pose((x0 + x1) / 2, y, -0.2), _WALKWAY,
             (0.62, 0.6, 0.56))  # fmt: skip
     palette = np.array(
         [[0.72, 0.62, 0.5], [0.6, 0.6, 0.62], [0.75, 0.7, 0.6], [0.55, 0.42, 0.36], [0.8, 0.78, 0.72],
