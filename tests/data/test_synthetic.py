@@ -142,12 +142,13 @@ class TestMakeSegment:
         b = load_scene(jpg).load_images([0])
         assert float((a - b).abs().mean()) < 0.03  # the same picture, JPEG-compressed
 
-    def test_train_runs(self, tiny, tmp_path):
+    def test_train_runs(self, finer, tmp_path):
+        """A short ``vadgs train`` on five cameras of two image sizes."""
         from vadgs.cli import main
 
         out = tmp_path / "run"
-        args = ["train", str(tiny), "--out", str(out), "--iterations", "3", "--no-progress"]
+        args = ["train", str(finer), "--out", str(out), "--iterations", "3", "--no-progress"]
         args += ["--init.max-points", "400", "--init.voxel-size", "1.0", "--init.sh-degree", "0"]
         assert main(args) == 0
         metrics = json.loads((out / "metrics.json").read_text())
-        assert metrics["steps"] == 3 and metrics["test"]["num_views"] == 2
+        assert metrics["steps"] == 3 and metrics["test"]["num_views"] == 5
