@@ -1,6 +1,7 @@
 """Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
 
-A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``).
+A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``);
+:func:`make_segment` writes a procedural driving segment in the benchmark format at any size.
 
 Every loader returns a :class:`~vadgs.data.scene.Scene`; per-view images, depth and instance
 maps are read lazily.
@@ -32,6 +33,7 @@ from vadgs.data.scene import (
 )
 from vadgs.data.scene_json import load_scene
 from vadgs.data.sfm import SfmResult, run_sfm
+from vadgs.data.synthetic import SegmentConfig, make_segment
 from vadgs.data.validate import validate_scene
 from vadgs.data.waymo import load_waymo
 
@@ -43,6 +45,7 @@ __all__ = [
     "InstanceInfo",
     "LidarFrame",
     "Scene",
+    "SegmentConfig",
     "SfmResult",
     "Track",
     "ValidationReport",
@@ -55,6 +58,7 @@ __all__ = [
     "load_nuscenes",
     "load_scene",
     "load_waymo",
+    "make_segment",
     "match_colmap_views",
     "open_colmap_project",
     "reopen_colmap_project",
