@@ -249,9 +249,9 @@ class ExportCommand(Command):
             run = load_run(self.run, scene=self.scene)
             frame, _ = frame_position(run.scene, self.frame, "--frame")
             out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
-            owner = _check_into(self.run, out)
             if self.inria:
-                _check_inria_out(out, owner, run.scene_ref or {})
+                _check_inria_out(out, _owner(self.run, out), run.scene_ref or {})
+            owner = _check_into(self.run, out)
             res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step,
                                scene_ref=run.scene_ref)  # fmt: skip
             written = [p for p in res[:5] if p is not None]
