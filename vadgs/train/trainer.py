@@ -122,10 +122,11 @@ class Trainer:
             VAD-GS event (its summary; with the bar they are written above it), and the warning
             when the schedule can never densify (else a :class:`UserWarning`). None: silent.
         callback: ``(trainer, step)`` called after every step (tests use it to interrupt).
-        overwrite: ``out_dir`` may hold a previous run (a checkpoint or ``metrics.json``): its
-            files (checkpoint, log, config, metrics, eval, ``ply/``, ``renders/``) are removed when
-            :meth:`train` starts. Without it such an ``out_dir`` raises ``ValueError``; continue a
-            run with :meth:`from_checkpoint` instead.
+        overwrite: ``out_dir`` may hold a previous run (a checkpoint or ``metrics.json``): the
+            files it recorded in its manifest (:mod:`vadgs.runfolder`) are removed when
+            :meth:`train` starts, checked here first. Without it such an ``out_dir`` raises
+            ``ValueError``; continue a run with :meth:`from_checkpoint` instead. A non-empty
+            ``out_dir`` that vadgs did not write raises ``ValueError`` either way.
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
