@@ -37,6 +37,7 @@ from typing import Any
 import torch
 
 from vadgs.io import atomic_write
+from vadgs.runfolder import check_output_folder, record_files
 from vadgs.train.config import TrainConfig
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "BatchSummary",
     "RunInterrupted",
     "SceneResult",
+    "check_batch_folder",
     "run_batch",
     "run_names",
     "run_scene",
@@ -368,6 +370,7 @@ def run_scene(
             }
         ),
     )
+    record_files(run, [run / TASK_FILE])
     base = replace(base, retries=attempt - 1)
     threads_before = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))
@@ -400,6 +403,18 @@ def run_scene(
 # the batch (Ray driver)
 
 
+def check_batch_folder(out_dir: str | Path, flag: str = "--out") -> Path:
+    """Refuse a batch folder that is neither new, empty, nor a batch's (``summary.json`` or a manifest).
+
+    Raises:
+        ValueError: from :func:`vadgs.runfolder.check_output_folder`, naming ``flag``.
+    """
+    out = Path(out_dir)
+    if (out / "summary.json").is_file():  # a batch of an older vadgs (no manifest)
+        return out
+    return check_output_folder(out, flag, "vadgs batch")
+
+
 def write_summary(summary: BatchSummary, out_dir: str | Path | None = None) -> Path:
     """Write ``summary.json`` and ``summary.md`` atomically into ``out_dir`` (default its own).
 
@@ -410,6 +425,7 @@ def write_summary(summary: BatchSummary, out_dir: str | Path | None = None) -> P
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "summary.json", json.dumps(summary.to_dict(), indent=2))
     atomic_write(out / "summary.md", summary.to_markdown())
+    record_files(out, [out / "summary.json", out / "summary.md"])
     return out / "summary.json"
 
 
@@ -460,6 +476,7 @@ def run_batch(
         >>> [(r.name, r.status, r.psnr, r.retries) for r in summary.results]  # doctest: +SKIP
         [('seg-0001', 'done', 27.1, 0), ('seg-0002', 'done', 26.4, 1)]
     """
+    check_batch_folder(out_dir, "out_dir")
     try:
         import ray
     except ImportError as e:
@@ -479,6 +496,7 @@ def run_batch(
         run.mkdir(exist_ok=True)
         if _owner(run) != p:
             atomic_write(run / SCENE_FILE, json.dumps({"scene": p}))
+        record_files(run, [run / SCENE_FILE])
         base = SceneResult(scene=p, name=name, run=str(run))
         metrics = _finished(run)
         results.append(base if metrics is None else _skipped(base, run, metrics))

@@ -80,7 +80,7 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
         flag = "--" + name.replace("_", "-")
         with pytest.raises(ValueError, match=f"--resume: {flag} cannot be honoured"):
             _resume_changes(dataclasses.replace(stored, **{name: value}), out)
-    changed = {"iterations": 5, "max_minutes": 1.0, "device": "cpu:0", "threads": 1,
+    changed = {"iterations": 5, "max_minutes": 1.0, "device": "cpu:0", "threads": 1, "cache_gb": 0.5,
                "checkpoint_every": 7, "checkpoint_minutes": 2.0, "log_every": 3}  # fmt: skip
     assert set(changed) == set(RESUMABLE_CHANGES)
     for name, value in changed.items():

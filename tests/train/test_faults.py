@@ -205,7 +205,8 @@ class TestRunFolder:
         (out / "eval.json").write_text("{}")
         assert main([*args[:4], "3", *TINY, "--overwrite"]) == 0
         assert json.loads((out / "metrics.json").read_text())["steps"] == 3
-        assert not (out / "eval.json").exists()  # the previous run's files are gone
+        # the previous run's files are gone; an eval.json vadgs did not write is not its to remove
+        assert (out / "eval.json").read_text() == "{}"
         assert len((out / "log.jsonl").read_text().splitlines()) == log_lines  # replaced, not appended
 
     def test_trainer_api_refuses_an_existing_run(self, tiny_scene, tiny_config, tmp_path):
@@ -214,10 +215,11 @@ class TestRunFolder:
         with pytest.raises(ValueError, match=r"holds a run \(step 2/2\).*overwrite=True"):
             Trainer(tiny_scene, config, out_dir=tmp_path, progress=False)
         (tmp_path / "ply").mkdir()
+        (tmp_path / "ply" / "mine.ply").write_text("a user's file")
         tr = Trainer(tiny_scene, config, out_dir=tmp_path, progress=False, overwrite=True)
         assert (tmp_path / CHECKPOINT_NAME).exists()  # removed when training starts, not before
         tr.train()
-        assert not (tmp_path / "ply").exists()
+        assert (tmp_path / "ply" / "mine.ply").read_text() == "a user's file"  # only vadgs's files go
 
     def test_resume_flags(self, tmp_path, capsys):
         out = tmp_path / "run"

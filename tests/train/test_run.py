@@ -29,8 +29,9 @@ def test_finish_run_writes_the_metrics_it_returns(tiny_scene, tiny_config, tmp_p
     assert "vad_events" not in on_disk  # standard densification
     assert list(tmp_path.glob(TMP_GLOB)) == []
     removed = clear_run(tmp_path)
-    assert {p.name for p in removed} >= {"checkpoint.pt", "metrics.json", "ply"}
-    assert describe_run(tmp_path) is None
+    # the files it wrote (recorded in its manifest), not whole folders; the emptied ply/ goes too
+    assert {p.name for p in removed} >= {"checkpoint.pt", "metrics.json", "static.ply", "poses.json"}
+    assert describe_run(tmp_path) is None and not (tmp_path / "ply").exists()
 
 
 def test_load_run_gives_back_the_trained_model(tiny_scene, tiny_config, tmp_path):
@@ -113,7 +114,7 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
         assert torch.equal(run.model.params[k], v), k
     assert outcome.metrics["num_gaussians"] == trainer.model.num_gaussians
     # the run folder is not overwritten unless asked; resume continues it with a longer schedule
-    with pytest.raises(ValueError, match=r"holds a run \(step 4/4\): pass resume=True"):
+    with pytest.raises(ValueError, match=r"holds a run \(step 4/4\); use resume=True"):
         train_scene(ref, config, tmp_path / "a", progress=False)
     with pytest.raises(ValueError, match=r"resume=True.*pass None"):
         train_scene(ref, None, tmp_path / "a", resume=True)

@@ -39,9 +39,11 @@ class DemoCommand(Command):
 
     def main(self) -> int:
         """Train, evaluate, write the figures; 0."""
+        from vadgs.runfolder import check_output_folder
         from vadgs.train.run import describe_run
 
         out = _check_out_dir(self.out, create=False)
+        check_output_folder(out, "--out", "vadgs run")
         held = describe_run(out) if out.is_dir() else None
         if held is not None:
             demo = (out / "demo_panel.png").is_file()
@@ -58,6 +60,7 @@ class DemoCommand(Command):
             return self._run(out, overwrite=held is not None)
 
     def _run(self, out: Path, overwrite: bool) -> int:
+        from vadgs.runfolder import record_files
         from vadgs.train.config import TrainConfig
         from vadgs.train.results.evaluate import render_test_view
         from vadgs.train.run import BenchmarkRef, prepare_scene
@@ -98,9 +101,10 @@ class DemoCommand(Command):
             out / "demo_panel.png",
             columns=2,
         )  # fmt: skip
+        record_files(out, [png])
         if strategy is not None:
             if snapshots:
-                _completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)
+                record_files(out, [_completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)])
                 print(f"wrote {out / 'demo_completion.png'}")
         print(_summary(metrics))
         print(f"wrote {out / 'metrics.json'} and {png}")

@@ -22,6 +22,7 @@ import tyro
 from vadgs.checks import check_at_least, check_at_most, check_positive
 from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
 from vadgs.io import write_json
+from vadgs.runfolder import check_output_folder, record_files, recorded_files
 from vadgs.train.results.trajectory import MAX_FRAMES
 from vadgs.train.run import RunLock, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_METHODS
@@ -42,6 +43,24 @@ def _writing(run: str | Path, into: Path, command: str) -> contextlib.AbstractCo
     if folder.is_dir() and (into == folder or into.is_relative_to(folder)):
         return RunLock(folder, command)
     return contextlib.nullcontext()
+
+
+def _owner(run: str | Path, into: str | Path) -> Path:
+    """The folder whose manifest records what a command writes ``into``.
+
+    The run's, when ``into`` is inside the run folder, else ``into`` itself (an output folder of its own).
+    """
+    folder = _run_dir(run).resolve()
+    resolved = Path(into).resolve()
+    return _run_dir(run) if resolved == folder or resolved.is_relative_to(folder) else Path(into)
+
+
+def _check_into(run: str | Path, into: str | Path, flag: str = "--out") -> Path:
+    """Refuse an output folder outside the run that is neither empty nor written by vadgs."""
+    owner = _owner(run, into)
+    if owner == Path(into):
+        check_output_folder(into, flag, "vadgs output")
+    return owner
 
 
 def _scene_record(run) -> dict:
@@ -105,7 +124,7 @@ class EvalCommand(Command):
                 shown = {k: {kk: vv for kk, vv in g.items() if kk != "per_view"} for k, g in groups_d.items()}
                 note = next(iter(groups_d.values()))["lpips_note"]
             m["scene"] = _scene_record(run)
-            write_json(path, m)
+            record_files(folder, [write_json(path, m)])
         print(json.dumps(shown, indent=2))
         if note:
             print(note)
@@ -251,11 +270,14 @@ class RenderCommand(Command):
             return 0
         from vadgs.train.results.evaluate import save_test_panels
 
-        out = _check_out_dir(self.out if self.out else _run_dir(self.run) / "renders")
+        out = Path(self.out) if self.out else _run_dir(self.run) / "renders"
+        owner = _check_into(self.run, out)
+        out = _check_out_dir(out)
         views = list(self.views) or None
         paths = save_test_panels(
             model, scene, out, views, config.raster, not self.no_progress, run.appearance
         )
+        record_files(owner, paths)
         print(f"wrote {len(paths)} panels to {out}")
         return 0
 
@@ -288,10 +310,40 @@ class ExportCommand(Command):
             run = load_run(self.run, scene=self.scene)
             frame, _ = frame_position(run.scene, self.frame, "--frame")
             out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
+            if self.inria:
+                _check_inria_out(out, _owner(self.run, out), run.scene_ref or {})
+            owner = _check_into(self.run, out)
             res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step,
                                scene_ref=run.scene_ref)  # fmt: skip
+            written = [p for p in res[:5] if p is not None]
+            if (out / "sparse" / "0").is_dir():
+                written += [p for p in (out / "sparse" / "0").iterdir() if p.is_file()]
+            record_files(owner, written)
         print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
         return 0
+
+
+def _check_inria_out(out: Path, owner: Path, scene_ref: dict) -> None:
+    """Refuse an INRIA export into the scene's folder, or over another model's files.
+
+    Another model's: a ``cfg_args`` / ``cameras.json`` that vadgs did not write (not recorded).
+    """
+    scene = scene_ref.get("path")
+    if scene:
+        real, scene_real = out.resolve(), Path(scene).resolve()
+        if real == scene_real or real in scene_real.parents:
+            raise ValueError(
+                f"--out {out}: is the run's scene folder ({scene_real}) or holds it; "
+                "an INRIA export writes cameras.json, cfg_args and sparse/ there: give another folder"
+            )
+    mine = {p.resolve() for p in recorded_files(owner)}
+    names = ("cfg_args", "cameras.json")
+    theirs = [n for n in names if (out / n).exists() and (out / n).resolve() not in mine]
+    if theirs:
+        raise ValueError(
+            f"--out {out}: holds {', '.join(theirs)} that vadgs did not write (another model's); "
+            "nothing was changed: give a new or empty folder"
+        )
 
 
 @dataclass(frozen=True)

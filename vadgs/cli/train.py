@@ -103,7 +103,8 @@ class TrainCommand:
 
     def main(self) -> int:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
-        from vadgs.train.checkpoint import CHECKPOINT_NAME
+        from vadgs.runfolder import check_output_folder, check_removable
+        from vadgs.train.checkpoint import CHECKPOINT_NAME, held_run_message
         from vadgs.train.run import describe_run, train_scene
         from vadgs.train.session import RunLock
 
@@ -121,11 +122,12 @@ class TrainCommand:
         else:
             if self.scene is None and not self.sample:
                 raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
+            check_output_folder(out, "--out", "vadgs run")  # with or without --overwrite
             held = describe_run(out) if out.is_dir() else None
             if held is not None and not self.overwrite:
-                raise ValueError(
-                    f"{out} holds a run ({held}); use --resume to continue or --overwrite to start over"
-                )
+                raise ValueError(held_run_message(out, held))
+            if self.overwrite:
+                check_removable(out)  # a symlinked ply/, a read-only folder: refused before any work
             scene = _scene(self)
             outcome = train_scene(
                 scene,
@@ -455,8 +457,9 @@ class BatchCommand(Command):
 
     def main(self) -> int:
         """Run the batch; 0 when every run succeeded, else 1."""
-        from vadgs.batch import BatchConfig, run_batch
+        from vadgs.batch import BatchConfig, check_batch_folder, run_batch
 
+        check_batch_folder(self.out, "--out")
         train_config, kind, options = _batch_train(self.train_args)
         shared = {k: getattr(self, k) for k in ("address", "cpus_per_scene", "gpus_per_scene", "threads")}
         config = BatchConfig(**shared, max_retries=self.max_retries, train=train_config, scene_kind=kind,

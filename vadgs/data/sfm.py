@@ -236,6 +236,17 @@ def _check_project(project: Path, photos: Path, overwrite: bool) -> list[Path]:
         if (project / e).exists() or (project / e).is_symlink()
         if not (e == "images" and in_place)
     ]
+    if not held and project.is_dir():  # a non-empty folder with no project in it: not ours to write
+        from vadgs.runfolder import foreign_entries
+
+        others = [e for e in foreign_entries(project) if not (e == "images" and in_place)]
+        if others:
+            shown = ", ".join(others[:5]) + (f", ... ({len(others)} entries)" if len(others) > 5 else "")
+            raise ValueError(
+                f"--out {project}: destination path '{project}' already exists and is not an empty "
+                f"directory (holds {shown}) nor a COLMAP project; nothing was changed: "
+                "give a new or empty folder"
+            )
     if held and not overwrite:
         names = ", ".join(p.name for p in held)
         raise ValueError(f"--out {project}: already holds {names}; --overwrite replaces them")

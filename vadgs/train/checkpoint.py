@@ -34,6 +34,7 @@ __all__ = [
     "checkpoint_checksum",
     "clear_run",
     "describe_run",
+    "held_run_message",
     "load_checkpoint",
     "restore_rng",
     "resumed_config",
@@ -277,9 +278,6 @@ def resumed_config(ckpt: Checkpoint, changes: dict[str, Any] | None = None) -> T
 # ---------------------------------------------------------------------------------------------------
 # the run folder
 
-_RUN_FILES = (CHECKPOINT_NAME, "log.jsonl", "config.json", "metrics.json", "eval.json", "eval_novel.json")
-_RUN_DIRS = ("ply", "renders", "export")  # not undistorted/: a new COLMAP run has just written it
-
 
 def describe_run(folder: str | Path) -> str | None:
     """What run a folder holds: ``"step S/N"`` (its checkpoint), ``"finished"``, or None.
@@ -302,23 +300,42 @@ def describe_run(folder: str | Path) -> str | None:
     return None
 
 
-def clear_run(folder: str | Path) -> list[Path]:
-    """Remove a run's files from its folder (checkpoint, log, config, metrics, eval, ply/, renders/, export/).
+def held_run_message(
+    folder: str | Path, held: str, resume: str = "--resume", overwrite: str = "--overwrite"
+) -> str:
+    """The message refusing a new run in ``folder``, which holds a run (``held``: :func:`describe_run`).
 
-    The lock file (:class:`~vadgs.train.session.RunLock`) and files the run did not write by default
-    (videos named by the user, a COLMAP run's ``undistorted/``, which a new run replaces) stay.
+    A run with a checkpoint can be continued (``resume``); a finished run whose checkpoint is gone
+    cannot, so only ``overwrite`` (or another folder) is offered.
+
+    Example:
+        >>> print(held_run_message("runs/a", "step 200/3000"))
+        runs/a holds a run (step 200/3000); use --resume to continue or --overwrite to start over
     """
+    if held.startswith("finished"):
+        return (
+            f"{folder} holds a finished run whose checkpoint is gone (nothing to resume); "
+            f"use {overwrite} to start over or another folder"
+        )
+    return f"{folder} holds a run ({held}); use {resume} to continue or {overwrite} to start over"
+
+
+def clear_run(folder: str | Path) -> list[Path]:
+    """Remove what vadgs wrote into a run folder, and nothing else (:func:`vadgs.runfolder.remove_recorded`).
+
+    The files recorded in the run's manifest (for a run of an older vadgs: the exact names it
+    wrote, :data:`vadgs.runfolder.LEGACY_PATTERNS`), then the folders that became empty. Everything
+    is checked first (a symbolic link on the way, e.g. a linked ``ply/``, or a folder that is not
+    writable raises, naming it, before anything is removed). The lock file, files the user put
+    there (a video in ``renders/``) and a COLMAP run's ``undistorted/`` (which a new run replaces)
+    stay.
+
+    Returns:
+        The removed files (and the temporary files of a killed run).
+    """
+    from vadgs.runfolder import remove_recorded
+
     folder = Path(folder)
-    removed = []
-    for name in _RUN_FILES:
-        p = folder / name
-        if p.is_file():
-            p.unlink()
-            removed.append(p)
-    for name in _RUN_DIRS:
-        p = folder / name
-        if p.is_dir():
-            shutil.rmtree(p)
-            removed.append(p)
+    removed = remove_recorded(folder)
     removed += _remove_stale_tmp(folder)
     return removed

@@ -15,6 +15,7 @@ import time
 from typing import TYPE_CHECKING, NamedTuple
 
 from vadgs.io import write_json
+from vadgs.runfolder import record_files, recorded_files
 from vadgs.train.checkpoint import CHECKPOINT_NAME, _remove_stale_tmp, clear_run, restore_rng
 from vadgs.train.session import RunLog, stop_on_signals
 
@@ -64,12 +65,17 @@ def run_loop(trainer: Trainer) -> TrainResult:
     if trainer.out_dir is not None:
         trainer.out_dir.mkdir(parents=True, exist_ok=True)
         if trainer._clear_previous:
-            clear_run(trainer.out_dir)
+            removed = clear_run(trainer.out_dir)
             trainer._clear_previous = False
+            if trainer.log is not None:
+                n, where = len(removed), trainer.out_dir
+                trainer.log(f"overwrite: removed {n} files of the previous run from {where}")
         _remove_stale_tmp(trainer.out_dir)
-        if trainer.step == 0:  # a new run: a log left by a run killed before any checkpoint goes
-            (trainer.out_dir / "log.jsonl").unlink(missing_ok=True)
-        write_json(trainer.out_dir / "config.json", {"config": cfg.to_dict(), "scene": trainer.scene_ref})
+        out = trainer.out_dir
+        if trainer.step == 0 and "log.jsonl" in {p.name for p in recorded_files(out) if p.parent == out}:
+            (out / "log.jsonl").unlink()  # a new run: the log of a run killed before any checkpoint
+        write_json(out / "config.json", {"config": cfg.to_dict(), "scene": trainer.scene_ref})
+        record_files(out, [out / "config.json", out / "log.jsonl"])
     trainer._saved_at = time.monotonic()
     reason = "done"
     bar = tqdm(

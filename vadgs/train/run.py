@@ -33,7 +33,15 @@ import torch
 
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
-from vadgs.train.checkpoint import CHECKPOINT_NAME, Checkpoint, clear_run, describe_run, load_checkpoint
+from vadgs.runfolder import check_output_folder, check_removable, record_files
+from vadgs.train.checkpoint import (
+    CHECKPOINT_NAME,
+    Checkpoint,
+    clear_run,
+    describe_run,
+    held_run_message,
+    load_checkpoint,
+)
 from vadgs.train.scenes import (
     BenchmarkRef,
     ColmapRef,
@@ -114,12 +122,13 @@ def finish_run(
             progress=progress,
             appearance=trainer.appearance,
         ).to_dict()
-    export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
+    written = export_model(trainer.model, out / "ply", [f.index for f in scene.frames])
+    record_files(out, written)
     if "vad_events" in trainer.state:
         metrics["vad_events"] = trainer.state["vad_events"]
     if started is not None:
         metrics["wall_s"] = round(time.perf_counter() - started, 1)
-    write_json(out / "metrics.json", metrics, default=str)
+    record_files(out, [write_json(out / "metrics.json", metrics, default=str)])
     return metrics
 
 
@@ -344,10 +353,13 @@ def _start(
             say(f"the run's scene is now {located['path']} (recorded: {ckpt.scene_ref.get('path')})")
         return trainer
     config = TrainConfig() if config is None else config
+    # the Trainer checks these too; here before opening the scene, which may undistort into out_dir
+    check_output_folder(out, "out_dir", "vadgs run")
     held = describe_run(out) if out.is_dir() else None
     if held is not None and not overwrite:
-        # the Trainer says so too; before opening the scene, which may undistort into out_dir
-        raise ValueError(f"{out} holds a run ({held}): pass resume=True to continue or overwrite=True")
+        raise ValueError(held_run_message(out, held, "resume=True", "overwrite=True"))
+    if overwrite:
+        check_removable(out)  # a refused overwrite changes nothing
     opened, stored = prepare_scene(scene, out, say)
     if callable(init_points):
         init_points = init_points(opened)

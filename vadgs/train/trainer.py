@@ -37,6 +37,7 @@ import torch
 from vadgs.checks import checks_enabled
 from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
+from vadgs.runfolder import check_output_folder, check_removable, record_files
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
@@ -46,6 +47,7 @@ from vadgs.train.checkpoint import (
     checkpoint_checksum,
     clear_run,
     describe_run,
+    held_run_message,
     load_checkpoint,
     restore_rng,
     resumed_config,
@@ -120,10 +122,11 @@ class Trainer:
             VAD-GS event (its summary; with the bar they are written above it), and the warning
             when the schedule can never densify (else a :class:`UserWarning`). None: silent.
         callback: ``(trainer, step)`` called after every step (tests use it to interrupt).
-        overwrite: ``out_dir`` may hold a previous run (a checkpoint or ``metrics.json``): its
-            files (checkpoint, log, config, metrics, eval, ``ply/``, ``renders/``) are removed when
-            :meth:`train` starts. Without it such an ``out_dir`` raises ``ValueError``; continue a
-            run with :meth:`from_checkpoint` instead.
+        overwrite: ``out_dir`` may hold a previous run (a checkpoint or ``metrics.json``): the
+            files it recorded in its manifest (:mod:`vadgs.runfolder`) are removed when
+            :meth:`train` starts, checked here first. Without it such an ``out_dir`` raises
+            ``ValueError``; continue a run with :meth:`from_checkpoint` instead. A non-empty
+            ``out_dir`` that vadgs did not write raises ``ValueError`` either way.
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
@@ -157,12 +160,14 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self._clear_previous = False
         if self.out_dir is not None and not _resuming:
+            check_output_folder(self.out_dir, "out_dir", "vadgs run")
             held = describe_run(self.out_dir)
             if held is not None and not overwrite:
                 raise ValueError(
-                    f"{self.out_dir} holds a run ({held}); continue it with Trainer.from_checkpoint "
-                    "or pass overwrite=True to start over"
+                    held_run_message(self.out_dir, held, "Trainer.from_checkpoint", "overwrite=True")
                 )
+            if overwrite:
+                check_removable(self.out_dir)  # before any work: a refused overwrite changes nothing
             self._clear_previous = overwrite
         if scene_ref is None and scene.root is not None and (Path(scene.root) / "scene.json").is_file():
             scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
@@ -341,6 +346,8 @@ class Trainer:
                 raise ValueError("save_checkpoint: no path and no out_dir")
             path = self.out_dir / CHECKPOINT_NAME
         path = save_checkpoint(self.checkpoint(), path)
+        if self.out_dir is not None:
+            record_files(self.out_dir, [path])
         if default:
             self._saved_step = self.step
             self._saved_at = time.monotonic()
