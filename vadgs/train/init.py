@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from vadgs.data.cache import DEFAULT_CACHE_GB, ByteCache
+from vadgs.data.cache import ByteCache
 from vadgs.data.colmap import ColmapPoints
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
@@ -26,7 +26,7 @@ from vadgs.geometry.camera import project_points
 from vadgs.geometry.voxel import check_voxel_size
 from vadgs.train.model import GaussianModel
 
-__all__ = ["InitConfig", "init_gaussians", "knn_scales", "voxel_downsample"]
+__all__ = ["InitConfig", "VoxelAccumulator", "init_gaussians", "knn_scales", "voxel_downsample"]
 
 
 @dataclass(frozen=True)
@@ -109,6 +109,64 @@ def voxel_downsample(
     p = torch.zeros(m, 3, dtype=points.dtype, device=points.device).index_add_(0, inv, points) / cnt[:, None]
     c = torch.zeros(m, colors.shape[1], dtype=colors.dtype, device=colors.device).index_add_(0, inv, colors)
     return p, c / cnt[:, None].to(colors.dtype)
+
+
+_IMAGE_CACHE_BYTES = 512 * 2**20  # init_gaussians' image cache (float32 images read for colours)
+
+
+class VoxelAccumulator:
+    """:func:`voxel_downsample` of points given in chunks: memory follows the voxels, not the points.
+
+    Each chunk's points and colours are summed into the voxels met so far, so the result of
+    :meth:`add` for every chunk then :meth:`result` equals ``voxel_downsample`` of all chunks
+    concatenated in order (the same additions, voxel by voxel, in the same order: bit for bit on
+    one thread), while only the occupied voxels are held: initialising from a 200-frame segment's
+    30 million LiDAR points holds their voxels, not the points.
+
+    Example:
+        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [1.0, 0.0, 0.0]])
+        >>> acc = VoxelAccumulator(0.1)
+        >>> acc.add(p[:1], torch.ones(1, 1)); acc.add(p[1:], torch.ones(2, 1))
+        >>> all(torch.equal(a, b) for a, b in zip(acc.result(), voxel_downsample(p, torch.ones(3, 1), 0.1)))
+        True
+    """
+
+    def __init__(self, voxel_size: float) -> None:
+        self.voxel_size = voxel_size
+        self._keys: torch.Tensor | None = None  # (M, 3) sorted voxel keys
+        self._sums: torch.Tensor | None = None  # (M, 3 + C): points, colours
+        self._count: torch.Tensor | None = None  # (M,)
+        self._kept: list[torch.Tensor] = []  # voxel_size <= 0: every point
+
+    def add(self, points: torch.Tensor, colors: torch.Tensor) -> None:
+        """Add ``(N, 3)`` points and their ``(N, C)`` colours."""
+        if points.shape[0] == 0:
+            return
+        both = torch.cat([points, colors.to(points.dtype)], 1)
+        if self.voxel_size <= 0:
+            self._kept.append(both)
+            return
+        check_voxel_size(points, self.voxel_size)
+        keys = torch.floor(points / self.voxel_size).long()
+        ones = torch.ones_like(points[:, 0])
+        if self._keys is not None:  # the voxels so far first: their sums are added before the new points
+            keys = torch.cat([self._keys, keys])
+            both = torch.cat([self._sums, both])
+            ones = torch.cat([self._count, ones])
+        self._keys, inv = torch.unique(keys, dim=0, return_inverse=True)
+        m = self._keys.shape[0]
+        self._count = torch.zeros(m, dtype=points.dtype).index_add_(0, inv, ones)
+        self._sums = torch.zeros(m, both.shape[1], dtype=points.dtype).index_add_(0, inv, both)
+
+    def result(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``(M, 3)`` points and ``(M, C)`` colours (each voxel's mean)."""
+        if self.voxel_size <= 0:
+            both = torch.cat(self._kept) if self._kept else torch.zeros(0, 6)
+            return both[:, :3], both[:, 3:]
+        if self._keys is None:
+            return torch.zeros(0, 3), torch.zeros(0, 3)
+        cnt = self._count[:, None]
+        return self._sums[:, :3] / cnt, self._sums[:, 3:] / cnt
 
 
 def knn_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
@@ -212,19 +270,24 @@ def init_gaussians(
     gen = torch.Generator().manual_seed(config.seed)
     train_frames = scene.train_frames or [f.index for f in scene.frames]
     train_views = set(scene.train_views or range(scene.num_views))
-    cache = ByteCache(int(DEFAULT_CACHE_GB * 2**30))  # the views' images, bounded: read again if dropped
+    # the views' images: a frame's points are coloured from its own views, so a few frames' worth
+    # is all the static points use; the moving objects' points read their views again if dropped
+    cache = ByteCache(_IMAGE_CACHE_BYTES)
     has_lidar = config.use_lidar and scene.lidar_loader is not None
-    static_p, static_c = [], []
+    # the static points, frame by frame into their voxels: memory follows the voxels, not the sweeps
+    static = VoxelAccumulator(config.voxel_size)
+    any_static = False
     if has_lidar:
-        acc = accumulate_lidar(scene, train_frames, exclude_dynamic=True)
-        static_p.append(acc.points)
-        static_c.append(_point_colors(scene, acc.points, *acc.point_views, train_views, cache))
+        for f in train_frames:
+            acc = accumulate_lidar(scene, [f], exclude_dynamic=True)
+            static.add(acc.points, _point_colors(scene, acc.points, *acc.point_views, train_views, cache))
+        any_static = True
     if colmap_points is None:
         colmap_points = scene.sfm_points
     if colmap_points is not None and colmap_points.points.shape[0]:
-        static_p.append(colmap_points.points.float())
-        static_c.append(colmap_points.colors.float().clamp(0, 1))
-    if not static_p:
+        static.add(colmap_points.points.float(), colmap_points.colors.float().clamp(0, 1))
+        any_static = True
+    if not any_static:
         raise ValueError(
             f"scene {scene.name!r}: nothing to initialise from: no LiDAR"
             + (" (use_lidar=False)" if scene.lidar_loader is not None else "")
@@ -233,9 +296,7 @@ def init_gaussians(
             "point_triangulator) as `vadgs train SCENE --colmap MODEL` (colmap_points= in Python), "
             "or convert the scene with its LiDAR (vadgs convert without --no-lidar)"
         )
-    p = torch.cat(static_p)
-    c = torch.cat(static_c)
-    p, c = voxel_downsample(p, c, config.voxel_size)
+    p, c = static.result()
     p, c = _subsample(p, c, config.max_points, gen)
     means, colors, nodes = [p], [c], [torch.full((p.shape[0],), -1, dtype=torch.long)]
 
