@@ -189,6 +189,21 @@ class TestModes:
         assert "I;16" in SUPPORTED_MODES and "CMYK" in SUPPORTED_MODES
 
 
+def _pinhole_project(tmp_path):
+    """The tests' COLMAP sample as a PINHOLE project with its own copy of the images (to change)."""
+    pytest.importorskip("pycolmap")
+    import shutil
+
+    from .colmap_sample import write_sample_colmap
+
+    root = tmp_path / "proj"
+    made = write_sample_colmap(root, model="PINHOLE")
+    target = (root / "images").resolve()
+    (root / "images").unlink()
+    shutil.copytree(target, root / "images")
+    return root, made
+
+
 class TestThroughLoaders:
     def test_scene_loader_and_check_full(self, tmp_path, capsys):
         root = copy_sample_scene(tmp_path)
@@ -215,16 +230,7 @@ class TestThroughLoaders:
             load_scene(root).load_images([scene.view_id(19, "front")])
 
     def test_colmap_pinhole_project(self, tmp_path):
-        pytest.importorskip("pycolmap")
-        import shutil
-
-        from .colmap_sample import write_sample_colmap
-
-        root = tmp_path / "proj"
-        made = write_sample_colmap(root, model="PINHOLE")
-        target = (root / "images").resolve()
-        (root / "images").unlink()
-        shutil.copytree(target, root / "images")
+        root, made = _pinhole_project(tmp_path)
         name = made["names"][0]
         rgb8 = np.asarray(Image.open(root / "images" / name).convert("RGB"))
         _png16_rgb(root / "images" / name, rgb8.astype(np.uint16) * 257)  # 48-bit, same colours
@@ -236,16 +242,7 @@ class TestThroughLoaders:
         np.testing.assert_allclose(imgs[1].permute(1, 2, 0).numpy(), _grey(rgb8[..., 2] / 255.0), atol=1e-6)
 
     def test_colmap_project_with_rotated_images_warns(self, tmp_path):
-        pytest.importorskip("pycolmap")
-        import shutil
-
-        from .colmap_sample import write_sample_colmap
-
-        root = tmp_path / "proj"
-        made = write_sample_colmap(root, model="PINHOLE")
-        target = (root / "images").resolve()
-        (root / "images").unlink()
-        shutil.copytree(target, root / "images")
+        root, made = _pinhole_project(tmp_path)
         exif = Image.Exif()
         exif[0x0112] = 6
         for name in made["names"][:2]:  # tagged, pixels as stored: as COLMAP made elsewhere sees them
