@@ -198,6 +198,36 @@ def _slow_clock(monkeypatch) -> None:
     monkeypatch.setattr(event_module.time, "perf_counter", lambda: 1000.0 * next(ticks))
 
 
+class TestCooldown:
+    """``cooldown_events``: an instance reconstructed at an event waits that many events; one never
+    reconstructed is never cooling down (was: skipped in early events when ``cooldown_events >= 10``,
+    a ``-10`` sentinel for "never")."""
+
+    @pytest.mark.parametrize("cooldown", [0, 12])
+    def test_first_event_attempts_and_the_next_waits(self, scene, index, gt_points, cooldown):
+        pts, col, ins, spc = gt_points
+        keep = (ins != BUILDING) & (ins != 10)
+        trainer = _trainer(
+            scene,
+            _model(scene, pts[keep], col[keep], spc[keep]),
+            index,
+            work_budget=None,
+            max_instances=1,
+            cooldown_events=cooldown,
+            reconstruct=ReconstructConfig(max_crop=64),
+        )
+        st = trainer.state
+        first = trainer.strategy.densify(trainer.model.params, trainer.optimizer, st, 0)
+        assert first["attempted"] == 1 and "cooldown" not in first["skipped"]
+        done = first["instances"][0]["instance"]
+        assert st["vad_last_done"] == {done: 0}
+        second = trainer.strategy.densify(trainer.model.params, trainer.optimizer, st, 1)
+        attempted = {e["instance"] for e in second["instances"]}
+        if cooldown:  # event 1 - 0 <= 12: the instance done waits, the others do not
+            assert done not in attempted
+        assert second["attempted"] == 1
+
+
 class TestEventLog:
     def test_log_counts_and_time_budget(self, scene, index, gt_points):
         pts, col, ins, spc = gt_points

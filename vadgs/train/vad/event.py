@@ -450,7 +450,8 @@ def run_event(
             return "skip_class"
         if inst in inputs.tracks and not has_nodes:
             return "static_model"  # a static model (no node_ids) cannot hold a moving object
-        if event - state["vad_last_done"].get(inst, -10) <= cfg.cooldown_events:
+        last = state["vad_last_done"].get(inst)  # None: never reconstructed, never cooling down
+        if last is not None and event - last <= cfg.cooldown_events:
             return "cooldown"
         return None
 
