@@ -47,6 +47,7 @@ from vadgs.train.scenes import (
     ColmapRef,
     DGPRef,
     SceneRef,
+    folder_kind,
     locate_scene,
     open_run_scene,
     open_scene,
@@ -189,15 +190,9 @@ def load_run(path: str | Path, open: bool = True, scene: str | Path | None = Non
 
 def _check_is_run(path: Path) -> None:
     """Refuse a scene, a COLMAP project or a folder of photos given where a run goes, saying what it is."""
-    from vadgs.data import find_colmap_model
-
     if not path.is_dir() or (path / CHECKPOINT_NAME).is_file():
         return
-    what = None
-    if (path / "scene.json").is_file():
-        what = "a benchmark scene"
-    elif find_colmap_model(path) is not None:
-        what = "a COLMAP project"
+    what = {"benchmark": "a benchmark scene", "colmap": "a COLMAP project"}.get(folder_kind(path))
     if what is not None:
         raise FileNotFoundError(
             f"RUN {path}: is {what}, not a run (no {CHECKPOINT_NAME}): train it first, "

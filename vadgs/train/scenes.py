@@ -26,6 +26,7 @@ __all__ = [
     "ColmapRef",
     "DGPRef",
     "SceneRef",
+    "folder_kind",
     "locate_scene",
     "open_run_scene",
     "open_scene",
@@ -174,28 +175,54 @@ def scene_ref(path: str | Path, kind: str | None = None, **options: Any) -> Scen
 
 
 def _detect_kind(path: Path, what: str = "SCENE") -> str:
-    from vadgs.data import find_colmap_model
+    kind = folder_kind(path)
+    if kind in ("benchmark", "colmap"):
+        return kind
+    raise FileNotFoundError(f"{what} {path}: " + _not_a_scene(path, kind))
 
+
+def folder_kind(path: str | Path) -> str | None:
+    """What a folder given to a command is, for its messages; None when none of these.
+
+    ``"benchmark"`` (a ``scene.json``, or that file itself), ``"colmap"`` (a COLMAP model or
+    project), ``"run"`` (a vadgs run: a checkpoint or its ``metrics.json``), ``"photos"`` (photos
+    ``vadgs sfm`` takes, :data:`vadgs.data.sfm.PHOTO_SUFFIXES`, in the folder itself).
+
+    For the messages of a command given the wrong kind of folder (a run where a scene goes, photos
+    where a project goes, ...).
+
+    Example:
+        >>> from vadgs.data import sample_scene_path
+        >>> folder_kind(sample_scene_path())
+        'benchmark'
+    """
+    from vadgs.data import find_colmap_model
+    from vadgs.data.sfm import PHOTO_SUFFIXES
+    from vadgs.train.checkpoint import CHECKPOINT_NAME
+
+    path = Path(path)
     if (path / "scene.json").is_file() or path.name == "scene.json":
         return "benchmark"
-    if find_colmap_model(path) is None:
-        raise FileNotFoundError(f"{what} {path}: " + _not_a_scene(path))
-    return "colmap"
+    if find_colmap_model(path) is not None:
+        return "colmap"
+    if (path / CHECKPOINT_NAME).is_file() or (path / "metrics.json").is_file():
+        return "run"
+    if path.is_dir() and any(p.suffix.lower() in PHOTO_SUFFIXES for p in path.iterdir()):
+        return "photos"
+    return None
 
 
-#: File endings of photos (what ``vadgs sfm`` takes).
-_PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".heic", ".webp", ".bmp")
+def _not_a_scene(path: Path, kind: str | None) -> str:
+    """Why ``path`` (of :func:`folder_kind` ``kind``) is no scene, and what to run instead."""
+    from vadgs.data.sfm import PHOTO_SUFFIXES
 
-
-def _not_a_scene(path: Path) -> str:
-    """Why ``path`` is no scene, and what it looks like instead (photos, a run) with what to run."""
-    if (path / "checkpoint.pt").is_file() or (path / "metrics.json").is_file():
+    if kind == "run":
         return (
             "is a vadgs run, not a scene (vadgs eval / render / export take it; "
             "vadgs train --resume continues it)"
         )
-    photos = [p for p in path.iterdir() if p.suffix.lower() in _PHOTO_SUFFIXES] if path.is_dir() else []
-    if photos:
+    if kind == "photos":
+        photos = [p for p in path.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES]
         return (
             f"a folder of {len(photos)} photos, not a scene: make a COLMAP project of them first, "
             f"vadgs sfm {path} --out PROJECT, then vadgs train PROJECT"
