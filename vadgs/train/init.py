@@ -155,8 +155,10 @@ class VoxelAccumulator:
             ones = torch.cat([self._count, ones])
         self._keys, inv = torch.unique(keys, dim=0, return_inverse=True)
         m = self._keys.shape[0]
-        self._count = torch.zeros(m, dtype=points.dtype).index_add_(0, inv, ones)
-        self._sums = torch.zeros(m, both.shape[1], dtype=points.dtype).index_add_(0, inv, both)
+        self._count = torch.zeros(m, dtype=points.dtype, device=points.device).index_add_(0, inv, ones)
+        self._sums = torch.zeros(m, both.shape[1], dtype=points.dtype, device=points.device).index_add_(
+            0, inv, both
+        )
 
     def result(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The ``(M, 3)`` points and ``(M, C)`` colours (each voxel's mean)."""

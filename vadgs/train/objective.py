@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import torch
 
-from vadgs.data.cache import DEFAULT_CACHE_GB, ByteCache, SparseDepth, from_uint8, to_uint8
+from vadgs.data.cache import ByteCache, SparseDepth, from_uint8, to_uint8
 from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
 from vadgs.train import losses as L
@@ -58,7 +58,7 @@ class Objective:
         self.appearance = appearance
         self.geometry_targets = geometry_targets
         self.extra_losses = extra_losses
-        gb = getattr(config, "cache_gb", DEFAULT_CACHE_GB) if cache_gb is None else cache_gb
+        gb = config.cache_gb if cache_gb is None else cache_gb
         self.cache = ByteCache(max(1, int(gb * 2**30)))
 
     def image(self, view: int) -> torch.Tensor:
