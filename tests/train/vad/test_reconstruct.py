@@ -198,6 +198,13 @@ def _slow_clock(monkeypatch) -> None:
     monkeypatch.setattr(event_module.time, "perf_counter", lambda: 1000.0 * next(ticks))
 
 
+def _incomplete_model(scene, gt_points):
+    """The sample's ground-truth surface without the facade and instance 10: what an event repairs."""
+    pts, col, ins, spc = gt_points
+    keep = (ins != BUILDING) & (ins != 10)
+    return _model(scene, pts[keep], col[keep], spc[keep])
+
+
 class TestCooldown:
     """``cooldown_events``: an instance reconstructed at an event waits that many events; one never
     reconstructed is never cooling down (was: skipped in early events when ``cooldown_events >= 10``,
@@ -205,11 +212,9 @@ class TestCooldown:
 
     @pytest.mark.parametrize("cooldown", [0, 12])
     def test_first_event_attempts_and_the_next_waits(self, scene, index, gt_points, cooldown):
-        pts, col, ins, spc = gt_points
-        keep = (ins != BUILDING) & (ins != 10)
         trainer = _trainer(
             scene,
-            _model(scene, pts[keep], col[keep], spc[keep]),
+            _incomplete_model(scene, gt_points),
             index,
             work_budget=None,
             max_instances=1,
@@ -230,11 +235,9 @@ class TestCooldown:
 
 class TestEventLog:
     def test_log_counts_and_time_budget(self, scene, index, gt_points):
-        pts, col, ins, spc = gt_points
-        keep = (ins != BUILDING) & (ins != 10)
         trainer = _trainer(
             scene,
-            _model(scene, pts[keep], col[keep], spc[keep]),
+            _incomplete_model(scene, gt_points),
             index,
             work_budget=None,
             time_budget=1e-9,  # the opt-in wall-clock cap: the first instance only, then cut
@@ -256,10 +259,7 @@ class TestEventLog:
 
     def test_work_budget_counts_patchmatch_work(self, scene, index, gt_points, monkeypatch):
         """The budget is PatchMatch pixel-sweeps per training pixel so far, whatever the clock says."""
-
-        pts, col, ins, spc = gt_points
-        keep = (ins != BUILDING) & (ins != 10)
-        model = _model(scene, pts[keep], col[keep], spc[keep])
+        model = _incomplete_model(scene, gt_points)
         events = []
         for clock in (None, "slow"):
             if clock == "slow":  # every reading 1000 s after the last: a very loaded machine
