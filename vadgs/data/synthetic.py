@@ -33,6 +33,8 @@ from typing import NamedTuple
 import numpy as np
 from PIL import Image
 
+from vadgs.checks import check_fields, choice_field, float_field, int_field
+
 __all__ = ["RIG", "SegmentConfig", "make_segment"]
 
 RIG: dict[str, tuple[float, bool]] = {
@@ -102,27 +104,7 @@ class SegmentConfig:
     lidar_range: float = 75.0
 
     def __post_init__(self) -> None:
-        for name in ("frames", "width", "height", "lidar_points", "lidar_beams"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and value > 0):
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        if not (isinstance(self.cameras, int) and 1 <= self.cameras <= len(RIG)):
-            raise ValueError(f"cameras: expected an integer in [1, {len(RIG)}], got {self.cameras!r}")
-        if self.side_height is not None and not (isinstance(self.side_height, int) and self.side_height > 0):
-            raise ValueError(f"side_height: expected a positive integer or None, got {self.side_height!r}")
-        for name in ("moving_cars", "parked_cars", "signs"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and value >= 0):
-                raise ValueError(f"{name}: expected a non-negative integer, got {value!r}")
-        if self.image_format not in ("jpg", "png"):
-            raise ValueError(f"image_format: expected 'jpg' or 'png', got {self.image_format!r}")
-        if not 0 < self.hfov_deg < 170:
-            raise ValueError(f"hfov_deg: expected a field of view in (0, 170), got {self.hfov_deg!r}")
-        if not (self.speed >= 0 and self.rate_hz > 0 and self.lidar_range > 0):
-            raise ValueError(
-                f"speed, rate_hz, lidar_range: expected >= 0, > 0, > 0, got "
-                f"{self.speed!r}, {self.rate_hz!r}, {self.lidar_range!r}"
-            )
+        check_fields(self, _SEGMENT_FIELDS)
 
     @property
     def camera_names(self) -> list[str]:
@@ -137,6 +119,20 @@ class SegmentConfig:
 
 # ---------------------------------------------------------------------------------------------------
 # the world: boxes with a bottom-centre origin
+
+
+_SEGMENT_FIELDS = {
+    **{name: int_field(1) for name in ("frames", "width", "height", "lidar_points", "lidar_beams")},
+    "cameras": int_field(1, len(RIG)),
+    "side_height": int_field(1, optional=True),
+    **{name: int_field(0) for name in ("moving_cars", "parked_cars", "signs")},
+    "image_format": choice_field(("jpg", "png")),
+    "hfov_deg": float_field(0, 170, lo_open=True, hi_open=True),
+    "speed": float_field(0),
+    "rate_hz": float_field(0, lo_open=True),
+    "lidar_range": float_field(0, lo_open=True),
+}
+"""The check of each :class:`SegmentConfig` field (:func:`vadgs.checks.check_fields`)."""
 
 
 class _Boxes(NamedTuple):
