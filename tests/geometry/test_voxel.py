@@ -9,7 +9,15 @@ from collections import defaultdict
 import pytest
 import torch
 
-from vadgs.geometry import Cameras, VoxelGrid, observing_views, voxelize
+from vadgs.geometry import (
+    Cameras,
+    PointChunk,
+    VoxelGrid,
+    observing_views,
+    voxel_labels,
+    voxelize,
+    voxelize_chunks,
+)
 
 
 def _naive_voxelize(points, voxel_size, pidx, vidx, origin):
@@ -234,3 +242,80 @@ class TestObservingViews:
             observing_views(torch.rand(5, 3), cams, view_ids=[0])
         with pytest.raises(ValueError, match=r"groups\[0\]"):
             observing_views(torch.rand(5, 3), cams, groups=(torch.zeros(4), torch.zeros(2)))
+
+
+class TestVoxelizeChunks:
+    """``voxelize_chunks``: the grid of points given chunk by chunk (a segment's sweeps) equals
+    ``voxelize`` of them all, bit for bit, while only the voxels are held."""
+
+    @staticmethod
+    def _chunks(n_chunks, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        out = []
+        for _ in range(n_chunks):
+            n = int(torch.randint(50, 400, (1,), generator=g))
+            pts = torch.rand(n, 3, generator=g) * torch.tensor([4.0, 3.0, 1.0]) - 1.0
+            pv = torch.randint(0, n, (2 * n,), generator=g), torch.randint(0, 9, (2 * n,), generator=g)
+            out.append(PointChunk(pts, pv, torch.randint(0, 4, (n,), generator=g)))
+        return out
+
+    @pytest.mark.parametrize("n_chunks", [1, 3, 8])
+    def test_equals_voxelize_of_the_concatenation(self, n_chunks):
+        chunks = self._chunks(n_chunks)
+        calls = []
+
+        def source():
+            calls.append(1)
+            return iter(chunks)
+
+        points = torch.cat([c.points for c in chunks])
+        offsets = torch.tensor([0] + [c.points.shape[0] for c in chunks]).cumsum(0)
+        pidx = torch.cat([c.point_views[0] + o for c, o in zip(chunks, offsets)])
+        vidx = torch.cat([c.point_views[1] for c in chunks])
+        ref = voxelize(points, 0.3, (pidx, vidx), num_views=9)
+        got = voxelize_chunks(source, 0.3, num_views=9)
+        assert len(calls) == 3  # origin, sums, spread
+        for name in ("origin", "coords", "means", "counts", "vis_indptr", "vis_views", "normals"):
+            assert torch.equal(getattr(got.grid, name), getattr(ref, name)), name
+        assert got.grid.point_to_voxel.numel() == 0 and got.grid.num_views == 9
+        labels = torch.cat([c.labels for c in chunks])
+        assert torch.equal(got.labels, voxel_labels(ref.point_to_voxel, labels, len(ref)))
+        # and against plain counting: the most frequent label of each voxel, the smaller on ties
+        for m in torch.randperm(len(ref))[:20].tolist():
+            counts = torch.bincount(labels[ref.point_to_voxel == m], minlength=4)
+            assert int(got.labels[m]) == int(torch.argmax(counts))  # argmax: the first maximum
+        # with the origin given, two passes
+        calls.clear()
+        again = voxelize_chunks(source, 0.3, num_views=9, origin=ref.origin)
+        assert len(calls) == 2 and torch.equal(again.grid.means, ref.means)
+
+    def test_points_on_both_sides_of_the_origin(self):
+        chunks = self._chunks(2)
+        got = voxelize_chunks(lambda: chunks, 0.25, origin=torch.tensor([0.5, 0.5, 0.0]))
+        points = torch.cat([c.points for c in chunks])
+        ref = voxelize(points, 0.25, origin=torch.tensor([0.5, 0.5, 0.0]))
+        assert int(got.grid.coords.min()) < 0
+        assert torch.equal(got.grid.coords, ref.coords) and torch.equal(got.grid.means, ref.means)
+        assert got.grid.num_views == 9 and torch.equal(got.labels.unique(), torch.arange(4))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="chunks: expected at least one point, got none"):
+            voxelize_chunks(lambda: [PointChunk(torch.zeros(0, 3))], 0.5)
+        with pytest.raises(ValueError, match="chunks: expected at least one point"):
+            voxelize_chunks(lambda: [], 0.5, origin=torch.zeros(3))
+        with pytest.raises(ValueError, match="voxel_size"):
+            voxelize_chunks(lambda: [], 0.0)
+        far = PointChunk(torch.tensor([[0.0, 0, 0], [3e6, 0, 0]]))  # 3e6 voxels of 1 m along x
+        with pytest.raises(ValueError, match="span more than 2097152 voxels of 1 along an axis"):
+            voxelize_chunks(lambda: [far], 1.0)
+        with pytest.raises(ValueError, match="span more than"):
+            voxelize(far.points, 1.0)
+        three = torch.rand(3, 3)
+        with pytest.raises(ValueError, match="labels"):
+            voxelize_chunks(lambda: [PointChunk(three, labels=torch.tensor([0, -1, 2]))], 0.5)
+        with pytest.raises(ValueError, match="must give the same chunks in the same order"):
+            voxelize_chunks(lambda: [PointChunk(torch.rand(50, 3) * 10)], 0.5, origin=torch.zeros(3))
+        with pytest.raises(ValueError, match="num_views"):
+            voxelize_chunks(
+                lambda: [PointChunk(three, (torch.tensor([0]), torch.tensor([4])))], 0.5, 3
+            )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import torch
@@ -11,7 +11,7 @@ from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
 from vadgs.geometry.voxel import observing_views
 
-__all__ = ["AccumulatedLidar", "accumulate_lidar", "lidar_depth_map"]
+__all__ = ["AccumulatedLidar", "accumulate_lidar", "iter_lidar", "lidar_depth_map"]
 
 
 class AccumulatedLidar(NamedTuple):
@@ -39,6 +39,9 @@ def accumulate_lidar(
 ) -> AccumulatedLidar:
     """Accumulate LiDAR over frames with each point's observing views.
 
+    All frames' points at once; :func:`iter_lidar` gives them frame by frame (a segment's
+    30 million points need not be held together).
+
     Args:
         scene: the scene.
         frames: frame indices (default: the training frames, or all frames if there is no split).
@@ -58,43 +61,15 @@ def accumulate_lidar(
         >>> acc.points.shape[1], bool((acc.frame.unique() == torch.tensor(scene.train_frames)).all())
         (3, True)
     """
-    if frames is None:
-        frames = scene.train_frames or [f.index for f in scene.frames]
-    if track_id is not None and track_id not in scene.tracks:
-        raise ValueError(
-            f"track_id: {track_id} is not a track of scene {scene.name!r} ({list(scene.tracks)})"
-        )
     pts, ins, frm, pv_p, pv_v = [], [], [], [], []
     offset = 0
-    dynamic = torch.tensor(sorted(scene.tracks), dtype=torch.int64)
-    for f in frames:
-        lid = scene.lidar(f)
-        p, i = lid.points, lid.instance
-        if track_id is not None:
-            fpos = scene.frame_position(f)
-            track = scene.tracks[track_id]
-            keep = i == track_id
-            if not bool(track.valid[fpos]):
-                keep &= False
-        elif exclude_dynamic and dynamic.numel():
-            keep = ~torch.isin(i, dynamic)
-        else:
-            keep = torch.ones_like(i, dtype=torch.bool)
-        p, i = p[keep], i[keep]
-        view_ids = list(scene.frames[scene.frame_position(f)].view_ids)
-        if p.shape[0] and view_ids:
-            for ids in scene.size_groups(view_ids):  # cameras of one image size at a time
-                pi, vi = observing_views(p, scene.cameras(ids), ids)
-                pv_p.append(pi + offset)
-                pv_v.append(vi)
-        if track_id is not None and p.shape[0]:
-            o2w = scene.tracks[track_id].object_to_world[scene.frame_position(f)]
-            w2o = invert_rigid(o2w)
-            p = p @ w2o[:3, :3].T + w2o[:3, 3]
-        pts.append(p)
-        ins.append(i)
-        frm.append(torch.full((p.shape[0],), f, dtype=torch.int64))
-        offset += p.shape[0]
+    for sweep in iter_lidar(scene, frames, exclude_dynamic, track_id):
+        pts.append(sweep.points)
+        ins.append(sweep.instance)
+        frm.append(sweep.frame)
+        pv_p.append(sweep.point_views[0] + offset)
+        pv_v.append(sweep.point_views[1])
+        offset += sweep.points.shape[0]
     empty = torch.zeros(0, dtype=torch.int64)
     return AccumulatedLidar(
         torch.cat(pts) if pts else torch.zeros(0, 3),
@@ -102,6 +77,67 @@ def accumulate_lidar(
         torch.cat(frm) if frm else empty,
         (torch.cat(pv_p) if pv_p else empty, torch.cat(pv_v) if pv_v else empty),
     )
+
+
+def iter_lidar(
+    scene: Scene,
+    frames: Sequence[int] | None = None,
+    exclude_dynamic: bool = True,
+    track_id: int | None = None,
+    views: bool = True,
+) -> Iterator[AccumulatedLidar]:
+    """:func:`accumulate_lidar` one frame at a time: each frame's sweep is read when it is reached.
+
+    Yields one :class:`AccumulatedLidar` per frame (in ``frames``' order), its ``point_views``
+    numbering the frame's own points; ``views=False`` leaves them empty (the costly part, when
+    only the points are needed). Arguments as :func:`accumulate_lidar`.
+
+    Example:
+        >>> from vadgs.data import load_scene, sample_scene_path
+        >>> scene = load_scene(sample_scene_path())
+        >>> sweeps = list(iter_lidar(scene))
+        >>> n = sum(len(s.points) for s in sweeps)
+        >>> len(sweeps) == len(scene.train_frames), n == len(accumulate_lidar(scene).points)
+        (True, True)
+    """
+    if frames is None:
+        frames = scene.train_frames or [f.index for f in scene.frames]
+    if track_id is not None and track_id not in scene.tracks:
+        raise ValueError(
+            f"track_id: {track_id} is not a track of scene {scene.name!r} ({list(scene.tracks)})"
+        )
+    dynamic = torch.tensor(sorted(scene.tracks), dtype=torch.int64)
+    empty = torch.zeros(0, dtype=torch.int64)
+    for f in frames:
+        lid = scene.lidar(f)
+        p, i = lid.points, lid.instance
+        if track_id is not None:
+            fpos = scene.frame_position(f)
+            keep = i == track_id
+            if not bool(scene.tracks[track_id].valid[fpos]):
+                keep &= False
+        elif exclude_dynamic and dynamic.numel():
+            keep = ~torch.isin(i, dynamic)
+        else:
+            keep = torch.ones_like(i, dtype=torch.bool)
+        p, i = p[keep], i[keep]
+        view_ids = list(scene.frames[scene.frame_position(f)].view_ids)
+        pv_p, pv_v = [], []
+        if views and p.shape[0] and view_ids:
+            for ids in scene.size_groups(view_ids):  # cameras of one image size at a time
+                pi, vi = observing_views(p, scene.cameras(ids), ids)
+                pv_p.append(pi)
+                pv_v.append(vi)
+        if track_id is not None and p.shape[0]:
+            o2w = scene.tracks[track_id].object_to_world[scene.frame_position(f)]
+            w2o = invert_rigid(o2w)
+            p = p @ w2o[:3, :3].T + w2o[:3, 3]
+        yield AccumulatedLidar(
+            p,
+            i,
+            torch.full((p.shape[0],), f, dtype=torch.int64),
+            (torch.cat(pv_p) if pv_p else empty, torch.cat(pv_v) if pv_v else empty),
+        )
 
 
 def lidar_depth_map(scene: Scene, view: int) -> torch.Tensor:

@@ -23,11 +23,21 @@ from vadgs.geometry.homography import (
     warp_patches,
 )
 from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
-from vadgs.geometry.voxel import VoxelGrid, observing_views, voxelize
+from vadgs.geometry.voxel import (
+    ChunkedVoxels,
+    PointChunk,
+    VoxelGrid,
+    observing_views,
+    voxel_labels,
+    voxelize,
+    voxelize_chunks,
+)
 from vadgs.geometry.zbuffer import VoxelRaster, VoxelRasterizer, ZBufferConfig, rasterize_voxels
 
 __all__ = [
     "Cameras",
+    "ChunkedVoxels",
+    "PointChunk",
     "VoxelGrid",
     "VoxelRaster",
     "VoxelRasterizer",
@@ -49,6 +59,8 @@ __all__ = [
     "rasterize_voxels",
     "relative_pose",
     "scale_intrinsics",
+    "voxel_labels",
     "voxelize",
+    "voxelize_chunks",
     "warp_patches",
 ]

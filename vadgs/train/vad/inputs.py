@@ -21,7 +21,7 @@ both constructors).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -75,8 +75,11 @@ class VisibilityInputs:
             (:func:`~vadgs.train.vad.reconstruct.derive_instance_map`).
         instance_views: the views that have a map (default: every view when ``load_instances`` is
             given). A view without one makes the index derive instances for the views without.
-        lidar: LiDAR observations: ``track_id -> AccumulatedLidar`` (None: the static points in the
-            world; a track id: that object's points in its own frame), or None.
+        lidar: LiDAR observations, frame by frame: ``(track_id, views) ->`` an iterable of
+            :class:`~vadgs.data.lidar.AccumulatedLidar`, one per frame (``track_id`` None: the
+            static points in the world; a track id: that object's points in its own frame;
+            ``views=False``: the points alone, without their observing views), read anew at each
+            call (:func:`~vadgs.data.lidar.iter_lidar`); or None.
         sfm: SfM points with their TRACK table (used when ``lidar`` is None), or None.
         tracks: track id → :class:`~vadgs.data.scene.Track` of the moving objects (empty: static).
         classes: instance id → class name (e.g. ``"sign"``; derived cells are ``"static"``).
@@ -103,7 +106,7 @@ class VisibilityInputs:
     sizes: tuple[tuple[int, int], ...] | None = None
     load_instances: Callable[[int], torch.Tensor] | None = None
     instance_views: frozenset[int] | None = None
-    lidar: Callable[[int | None], Any] | None = None
+    lidar: Callable[[int | None, bool], Iterable[Any]] | None = None
     sfm: TrackTable | None = None
     tracks: Mapping[int, Any] = field(default_factory=dict)
     classes: Mapping[int, str] = field(default_factory=dict)
@@ -166,15 +169,17 @@ class VisibilityInputs:
         if self.scene_depth is not None:
             return float(self.scene_depth)
         if self.lidar is not None:
-            acc = self.lidar(None)
-            points, (pi, vi) = acc.points, acc.point_views
+            observations = [(a.points, *a.point_views) for a in self.lidar(None, True)]
         elif self.sfm is not None:
-            points, pi, vi = self.sfm.points, self.sfm.point_idx, self.sfm.view_idx
+            observations = [(self.sfm.points, self.sfm.point_idx, self.sfm.view_idx)]
         else:
             raise ValueError(f"inputs {self.name!r}: no LiDAR and no SfM observations to measure depth on")
-        w2c = self.cameras.world_to_cam.to(points)
-        z = (w2c[vi, 2, :3] * points[pi]).sum(-1) + w2c[vi, 2, 3]
-        z = z[z > 0]
+        depths = []
+        for points, pi, vi in observations:
+            w2c = self.cameras.world_to_cam.to(points)
+            z = (w2c[vi, 2, :3] * points[pi]).sum(-1) + w2c[vi, 2, 3]
+            depths.append(z[z > 0])
+        z = torch.cat(depths) if depths else torch.zeros(0)
         if z.numel() == 0:
             raise ValueError(f"inputs {self.name!r}: no observation in front of its camera")
         return float(z.median())
@@ -196,7 +201,7 @@ class VisibilityInputs:
             >>> inputs.num_views, inputs.lidar is not None, inputs.derives_instances
             (24, True, False)
         """
-        from vadgs.data.lidar import accumulate_lidar
+        from vadgs.data.lidar import iter_lidar
 
         if len(scene.size_groups()) == 1:
             cameras, sizes = scene.cameras(), None
@@ -209,8 +214,8 @@ class VisibilityInputs:
         lidar = sfm = None
         if scene.lidar_loader is not None:
 
-            def lidar(track_id: int | None = None):
-                return accumulate_lidar(scene, frames, track_id=track_id)
+            def lidar(track_id: int | None = None, views: bool = True):
+                return iter_lidar(scene, frames, track_id=track_id, views=views)
 
         elif scene.sfm_points is not None:
             points, (pi, vi) = sfm_observations(scene, frames)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,10 +25,9 @@ import torch.nn.functional as F
 
 from vadgs.data.cache import ByteCache
 from vadgs.geometry.camera import Cameras, invert_rigid, level_up, project_points
-from vadgs.geometry.voxel import VoxelGrid, voxelize
+from vadgs.geometry.voxel import PointChunk, VoxelGrid, voxelize, voxelize_chunks
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
-from vadgs.train.vad.incomplete import voxel_labels
 from vadgs.train.vad.inputs import VisibilityInputs
 
 __all__ = [
@@ -342,16 +341,26 @@ def ground_frame(
     """
     p = points.double()
     up = level_up(cam_to_world.to(p.device)) if len(cam_to_world) else p.new_tensor([0.0, 0.0, 1.0])
-    flat = p - (p @ up)[:, None] * up  # in the ground plane
-    centred = flat - flat.mean(0)
+    centred = p - (p @ up)[:, None] * up  # in the ground plane
+    centred -= centred.mean(0)
     eye = torch.eye(3, dtype=p.dtype, device=p.device)
     scatter = centred.T @ centred / len(p) + 1e-9 * (eye - up[:, None] * up[None])
+    del centred
     axes = torch.linalg.eigh(scatter).eigenvectors[:, 1:]  # the two ground axes (up's value is ~0)
     rotation = torch.stack([axes[:, 1], axes[:, 0], up])
     if walls is not None and len(p) > 1:
         rotation = _align_walls(p, rotation, walls)
-    ranked = (p @ rotation.T).sort(0).values
-    middle = 0.5 * (ranked[(len(p) - 1) // 2] + ranked[len(p) // 2])
+    local = p @ rotation.T
+    middle = torch.stack(  # the median, the middle two averaged (selection, not a sort: less memory)
+        [
+            0.5
+            * (
+                local[:, k].kthvalue((len(p) - 1) // 2 + 1).values
+                + local[:, k].kthvalue(len(p) // 2 + 1).values
+            )
+            for k in range(3)
+        ]
+    )
     return rotation, middle @ rotation
 
 
@@ -533,6 +542,42 @@ def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(lab)).long()
 
 
+#: The most points :func:`ground_frame` is measured on when building a visibility index: beyond,
+#: a sample of them (:func:`_sample_rows`).
+GROUND_FRAME_POINTS = 1 << 22
+
+_GOLDEN = 2654435761  # 2**32 / golden ratio: Fibonacci hashing of a row's position
+
+
+def _sample_rows(chunks: Iterable[torch.Tensor], budget: int) -> torch.Tensor:
+    """At most ``budget`` rows of the chunks concatenated, spread evenly, chosen by position only.
+
+    Row ``i`` is kept when ``(i * 2654435761) mod 2**32 < 2**32 / s``, ``s`` the smallest power of
+    two that keeps at most ``budget`` (every row when there are no more than that): Fibonacci
+    hashing spreads the kept rows without a period (a stride of 8 would take one LiDAR beam in
+    8). Only the sample is held (halving ``2**32 / s`` thins it); the rows chosen depend on their
+    positions alone, so a moved copy of the points gives the moved sample.
+    """
+    sample: torch.Tensor | None = None
+    keys = torch.zeros(0, dtype=torch.int64)
+    limit, total = 1 << 32, 0
+    for chunk in chunks:
+        key = (torch.arange(total, total + chunk.shape[0]) * _GOLDEN) & 0xFFFFFFFF
+        keep = key < limit
+        sample = (
+            chunk[keep.to(chunk.device)]
+            if sample is None
+            else torch.cat([sample, chunk[keep.to(chunk.device)]])
+        )
+        keys = torch.cat([keys, key[keep]])
+        total += chunk.shape[0]
+        while keys.shape[0] > budget:
+            limit //= 2
+            keep = keys < limit
+            sample, keys = sample[keep.to(sample.device)], keys[keep]
+    return sample if sample is not None else torch.zeros(0, 3)
+
+
 def build_visibility_index(
     source: VisibilityInputs | Any,
     voxel_size: float | None = None,
@@ -581,14 +626,12 @@ def build_visibility_index(
         inputs = source
     else:
         inputs = VisibilityInputs.from_scene(source, frames)
-    has_lidar = inputs.lidar is not None
-    if has_lidar:
-        acc = inputs.lidar(None)
-        points, point_views, instance = acc.points, acc.point_views, acc.instance
+    lidar = inputs.lidar
+    if lidar is not None:  # frame by frame: the sweeps are never held together
+        points = _sample_rows((a.points for a in lidar(None, False)), GROUND_FRAME_POINTS)
         what = "static LiDAR points"
     elif inputs.sfm is not None:
         points, point_views = inputs.sfm.points, (inputs.sfm.point_idx, inputs.sfm.view_idx)
-        instance = torch.zeros(points.shape[0], dtype=torch.int64)
         what = "SfM points observed by views"
     else:
         raise ValueError(
@@ -609,8 +652,18 @@ def build_visibility_index(
     static_to_world[:3, :3], static_to_world[:3, 3] = rotation.T, origin
     static_to_world = static_to_world.to(dtype=points.dtype, device=cameras.K.device)
     local = _in_frame(points.to(rotation.device), rotation, origin).to(points)
-    grid = voxelize(local, voxel_size, point_views, inputs.num_views)
-    labels = voxel_labels(grid.point_to_voxel, instance, len(grid))
+    if lidar is None:
+        grid = voxelize(local, voxel_size, point_views, inputs.num_views)
+        labels = torch.zeros(len(grid), dtype=torch.int64, device=grid.coords.device)
+    else:
+        corner = torch.floor(local.min(0).values / voxel_size) * voxel_size  # of all points when sampled all
+
+        def static_chunks() -> Iterator[PointChunk]:
+            for a in lidar(None, True):
+                p = _in_frame(a.points.to(rotation.device), rotation, origin).to(a.points)
+                yield PointChunk(p, a.point_views, a.instance)
+
+        grid, labels = voxelize_chunks(static_chunks, voxel_size, inputs.num_views, corner)
     allowed = torch.zeros(inputs.num_views, dtype=torch.bool, device=cameras.K.device)
     allowed[list(inputs.train_views)] = True
     index = VisibilityIndex(
@@ -628,11 +681,21 @@ def build_visibility_index(
         scene_depth=depth,
         static_to_world=static_to_world,
     )
-    for tid in inputs.tracks if has_lidar else ():
-        tacc = inputs.lidar(tid)
-        if tacc.points.shape[0] < 3:
+    for tid in inputs.tracks if lidar is not None else ():
+        count, low = 0, None
+        for a in lidar(tid, False):
+            if a.points.shape[0]:
+                count += a.points.shape[0]
+                m = a.points.min(0).values
+                low = m if low is None else torch.minimum(low, m)
+        if count < 3 or low is None:
             continue
-        tgrid = voxelize(tacc.points, voxel_size, tacc.point_views, inputs.num_views)
+
+        def track_chunks(tid: int = tid) -> Iterator[PointChunk]:
+            return (PointChunk(a.points, a.point_views) for a in lidar(tid, True))
+
+        corner = torch.floor(low / voxel_size) * voxel_size
+        tgrid = voxelize_chunks(track_chunks, voxel_size, inputs.num_views, corner).grid
         index.track_grids[tid] = tgrid
         index.track_covis[tid] = _covis(tgrid, index.object_cameras(tid), inputs)
     return index
