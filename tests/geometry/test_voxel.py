@@ -14,6 +14,7 @@ from vadgs.geometry import (
     PointChunk,
     VoxelGrid,
     observing_views,
+    unique_cells,
     voxel_labels,
     voxelize,
     voxelize_chunks,
@@ -316,6 +317,17 @@ class TestVoxelizeChunks:
         with pytest.raises(ValueError, match="must give the same chunks in the same order"):
             voxelize_chunks(lambda: [PointChunk(torch.rand(50, 3) * 10)], 0.5, origin=torch.zeros(3))
         with pytest.raises(ValueError, match="num_views"):
-            voxelize_chunks(
-                lambda: [PointChunk(three, (torch.tensor([0]), torch.tensor([4])))], 0.5, 3
-            )
+            voxelize_chunks(lambda: [PointChunk(three, (torch.tensor([0]), torch.tensor([4])))], 0.5, 3)
+
+
+@pytest.mark.parametrize("span", [5, 2**21 - 1, 2**21, 2**40])
+def test_unique_cells_equals_unique_over_rows(span):
+    g = torch.Generator().manual_seed(span % 1000)
+    coords = torch.randint(-50, 50, (5000, 3), generator=g)
+    coords[0, 1] = -7 + span  # one coordinate far away: packed below 2**21 cells, rows beyond
+    coords[1:40] = coords[0]  # repeated rows
+    got, inv = unique_cells(coords)
+    ref, ref_inv = torch.unique(coords, dim=0, return_inverse=True)
+    assert torch.equal(got, ref) and torch.equal(inv, ref_inv)
+    empty = unique_cells(torch.zeros(0, 3, dtype=torch.int64))
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0,)

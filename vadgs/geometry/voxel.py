@@ -27,6 +27,7 @@ __all__ = [
     "VoxelGrid",
     "check_voxel_size",
     "observing_views",
+    "unique_cells",
     "voxel_labels",
     "voxelize",
     "voxelize_chunks",
@@ -203,6 +204,30 @@ class ChunkedVoxels(NamedTuple):
 
 _BITS = 21  # bits of a packed voxel key per axis: 3 × 21 < 63
 _SPAN = 1 << _BITS
+
+
+def unique_cells(coords: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.unique(coords, dim=0, return_inverse=True)`` of integer cell coordinates, fast.
+
+    The same rows in the same (lexicographic) order and the same inverse; when the coordinates
+    span fewer than ``2**21`` cells along each axis they are packed into one int64 first, which
+    makes it about 50 times faster than ``unique`` over rows (4.5 s → 0.09 s for 3 million).
+
+    Example:
+        >>> u, inv = unique_cells(torch.tensor([[2, 0, 1], [0, 5, 5], [2, 0, 1]]))
+        >>> u.tolist(), inv.tolist()
+        ([[0, 5, 5], [2, 0, 1]], [1, 0, 1])
+    """
+    if coords.shape[0] == 0:
+        return torch.unique(coords, dim=0, return_inverse=True)
+    low = coords.min(0).values
+    c = coords - low
+    if int(c.max()) >= _SPAN:
+        return torch.unique(coords, dim=0, return_inverse=True)
+    keys, inv = torch.unique((c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2], return_inverse=True)
+    mask = _SPAN - 1
+    rows = torch.stack([keys >> (2 * _BITS), (keys >> _BITS) & mask, keys & mask], 1)
+    return rows + low, inv
 
 
 class _VoxelSums:

@@ -23,7 +23,7 @@ from vadgs.data.colmap import ColmapPoints
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import project_points
-from vadgs.geometry.voxel import check_voxel_size
+from vadgs.geometry.voxel import check_voxel_size, unique_cells
 from vadgs.train.model import GaussianModel
 
 __all__ = ["InitConfig", "VoxelAccumulator", "init_gaussians", "knn_scales", "voxel_downsample"]
@@ -101,7 +101,7 @@ def voxel_downsample(
         return points, colors
     check_voxel_size(points, voxel_size)
     keys = torch.floor(points / voxel_size).long()
-    _, inv = torch.unique(keys, dim=0, return_inverse=True)
+    _, inv = unique_cells(keys)
     m = int(inv.max()) + 1
     cnt = torch.zeros(m, dtype=points.dtype, device=points.device).index_add_(
         0, inv, torch.ones_like(points[:, 0])
@@ -153,7 +153,7 @@ class VoxelAccumulator:
             keys = torch.cat([self._keys, keys])
             both = torch.cat([self._sums, both])
             ones = torch.cat([self._count, ones])
-        self._keys, inv = torch.unique(keys, dim=0, return_inverse=True)
+        self._keys, inv = unique_cells(keys)
         m = self._keys.shape[0]
         self._count = torch.zeros(m, dtype=points.dtype, device=points.device).index_add_(0, inv, ones)
         self._sums = torch.zeros(m, both.shape[1], dtype=points.dtype, device=points.device).index_add_(
