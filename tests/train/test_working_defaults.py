@@ -114,6 +114,27 @@ class TestShortRunSchedule:
             warnings.simplefilter("error")
             Trainer(tiny_scene, scale_schedule(cfg), progress=False)
 
+    def test_warning_when_vad_can_never_hold_an_event(self, tiny_scene):
+        """A segment's 750 training views x 5 cycles outlast the 3000 default steps: say so."""
+        from vadgs.train.vad import VisibilityDensifyConfig
+
+        n = len(tiny_scene.train_views)
+        init = dataclasses.replace(TrainConfig().init, max_points=300)
+        vad = VisibilityDensifyConfig()
+        assert (vad.every_cycles, vad.last_event_fraction) == (5, 0.9)
+        need = int((5 * n - 1) / 0.9) + 1  # the first event ends step 5n - 1, before 0.9 of the run
+        cfg = scale_schedule(TrainConfig(iterations=need - 1, init=init, vad=vad))
+        lines: list[str] = []
+        Trainer(tiny_scene, cfg, progress=False, log=lines.append)
+        assert lines == [
+            f"WARNING: no VAD-GS event in {need - 1} steps: the first comes after 5 sampling cycles of the "
+            f"{n} training views (step {5 * n - 1}) and none after 0.9 of the run; raise --iterations to "
+            f"at least {need} or lower --vad.every-cycles"
+        ]
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            Trainer(tiny_scene, dataclasses.replace(cfg, iterations=need), progress=False)
+
 
 def _vad_config(scene, max_instances: int) -> TrainConfig:
     """Two sampling cycles and 4 steps: VAD-GS events after each cycle, small MVS crops."""

@@ -223,21 +223,33 @@ class Trainer:
         return strategy
 
     def _check_schedule(self) -> None:
-        """Say when the configured schedule can never densify in ``iterations`` steps."""
+        """Say when the schedule can never densify, or never hold a VAD-GS event, in ``iterations`` steps."""
         cfg = self.config
-        if cfg.iterations == 0 or len(refine_steps(cfg)):
-            return
-        s = cfg.strategy
-        msg = (
-            f"no densification in {cfg.iterations} steps: refine_start_iter "
-            f"{s.refine_start_iter}, refine_every {s.refine_every}, refine_stop_iter {s.refine_stop_iter}; "
-            "scale the schedule to the run (vadgs.train.config.scale_schedule, what vadgs train does for "
-            "short runs) or lower --strategy.refine-start-iter"
-        )
-        if self.log is not None:
-            self.log(f"WARNING: {msg}")
-        else:
-            warnings.warn(msg, UserWarning, stacklevel=3)
+        messages = []
+        if cfg.iterations and not len(refine_steps(cfg)):
+            s = cfg.strategy
+            messages.append(
+                f"no densification in {cfg.iterations} steps: refine_start_iter "
+                f"{s.refine_start_iter}, refine_every {s.refine_every}, refine_stop_iter "
+                f"{s.refine_stop_iter}; scale the schedule to the run (vadgs.train.config.scale_schedule, "
+                "what vadgs train does for short runs) or lower --strategy.refine-start-iter"
+            )
+        vad = cfg.vad
+        if cfg.iterations and vad is not None and vad.visibility:
+            first = vad.every_cycles * len(self.train_views) - 1  # the step that ends the first event's cycle
+            if not first < vad.last_event_fraction * cfg.iterations:
+                need = int(first / vad.last_event_fraction) + 1
+                messages.append(
+                    f"no VAD-GS event in {cfg.iterations} steps: the first comes after {vad.every_cycles} "
+                    f"sampling cycles of the {len(self.train_views)} training views (step {first}) and none "
+                    f"after {vad.last_event_fraction:g} of the run; raise --iterations to at least {need} "
+                    "or lower --vad.every-cycles"
+                )
+        for msg in messages:
+            if self.log is not None:
+                self.log(f"WARNING: {msg}")
+            else:
+                warnings.warn(msg, UserWarning, stacklevel=3)
 
     def _event_progress(self, message: str) -> None:
         """The VAD-GS strategy's ``on_progress`` hook: the bar says what the event is doing."""
