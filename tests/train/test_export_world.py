@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 from plyfile import PlyData
 
-from vadgs.render import eval_sh, load_ply, quaternion_to_rotation, sh_basis
+from vadgs.geometry.rotation import quaternion_to_rotation
+from vadgs.render import eval_sh, load_ply, sh_basis
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.results.export import (
     equirect_directions,

@@ -3,28 +3,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-from vadgs.render import quaternion_to_rotation
+from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians, knn_scales, voxel_downsample
-from vadgs.train.model import GaussianModel, gaussians_at, quat_multiply, rotation_to_quat
+from vadgs.train.model import GaussianModel, gaussians_at
 
 
 def _random_rotations(n, seed=0):
     g = torch.Generator().manual_seed(seed)
     q = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=torch.float64), dim=-1)
     return q, quaternion_to_rotation(q)
-
-
-class TestQuaternions:
-    def test_rotation_roundtrip(self):
-        q, R = _random_rotations(64)
-        q2 = rotation_to_quat(R)
-        assert torch.allclose(quaternion_to_rotation(q2), R, atol=1e-9)
-        assert torch.allclose(q2, q * torch.sign(q[:, :1]), atol=1e-9)
-
-    def test_multiply_composes_rotations(self):
-        q1, R1 = _random_rotations(16, 1)
-        q2, R2 = _random_rotations(16, 2)
-        assert torch.allclose(quaternion_to_rotation(quat_multiply(q1, q2)), R1 @ R2, atol=1e-9)
 
 
 def _model(n_static=3, n_obj=2, frames=3):

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
-from vadgs.render import quaternion_to_rotation
+from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.results.trajectory import (
     INTERPOLATE_BETWEEN,

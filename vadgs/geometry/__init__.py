@@ -1,4 +1,4 @@
-"""Geometry: cameras, poses, plane homographies, voxel grids, the voxel z-buffer, normal codes.
+"""Geometry: cameras, poses, rotations, plane homographies, voxel grids, the voxel z-buffer, normal codes.
 
 Knows nothing about Gaussians or scenes: every function takes tensors and small dataclasses.
 """
@@ -23,6 +23,7 @@ from vadgs.geometry.homography import (
     warp_patches,
 )
 from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
+from vadgs.geometry.rotation import quat_multiply, quaternion_to_rotation, rotation_to_quat
 from vadgs.geometry.voxel import (
     ChunkedVoxels,
     PointChunk,
@@ -57,8 +58,11 @@ __all__ = [
     "plane_distance",
     "plane_homography",
     "project_points",
+    "quat_multiply",
+    "quaternion_to_rotation",
     "rasterize_voxels",
     "relative_pose",
+    "rotation_to_quat",
     "scale_intrinsics",
     "unique_cells",
     "voxel_labels",

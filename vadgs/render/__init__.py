@@ -10,7 +10,7 @@ spherical harmonics, tile binning, compositing and 3DGS PLY input/output.
 from vadgs.render.composite import CompositeOutput, composite_gaussians
 from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
 from vadgs.render.ply import GaussianPly, load_ply, read_raw_ply, save_ply, write_raw_ply
-from vadgs.render.projection import ProjectedGaussians, project_gaussians, quaternion_to_rotation
+from vadgs.render.projection import ProjectedGaussians, project_gaussians
 from vadgs.render.sh import SH_C0, eval_sh, num_sh_bases, rgb_to_sh, sh_basis, sh_to_rgb
 from vadgs.render.splat import GaussianRasterizer, RasterConfig, RenderOutput, rasterize_gaussians
 from vadgs.render.tiles import TileBins, bin_gaussians
@@ -30,7 +30,6 @@ __all__ = [
     "load_ply",
     "num_sh_bases",
     "project_gaussians",
-    "quaternion_to_rotation",
     "rasterize_gaussians",
     "rasterize_gaussians_gsplat",
     "read_raw_ply",

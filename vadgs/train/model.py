@@ -24,11 +24,11 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from torch import nn
 
 from vadgs.checks import check_shape
 from vadgs.geometry.camera import invert_rigid, pixel_grid
+from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
 from vadgs.render import RasterConfig, RenderOutput, eval_sh, num_sh_bases, rasterize_gaussians, rgb_to_sh
 
 __all__ = [
@@ -37,56 +37,10 @@ __all__ = [
     "Gaussians",
     "ModelRender",
     "gaussians_at",
-    "quat_multiply",
-    "rotation_to_quat",
 ]
 
 #: Names of the per-Gaussian parameters, in storage order.
 PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-
-
-def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
-    """Hamilton product ``q1 ⊗ q2`` of ``wxyz`` quaternions (rotation ``q2`` first, then ``q1``).
-
-    Differentiable w.r.t. both.
-
-    Shape:
-        ``(*, 4)`` and ``(*, 4)`` (broadcast) → ``(*, 4)``.
-
-    Example:
-        >>> q = torch.tensor([0.0, 1.0, 0.0, 0.0])  # 180° about x
-        >>> quat_multiply(q, q)
-        tensor([-1.,  0.,  0.,  0.])
-    """
-    w1, x1, y1, z1 = q1.unbind(-1)
-    w2, x2, y2, z2 = q2.unbind(-1)
-    return torch.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        -1,
-    )
-
-
-def rotation_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Unit ``wxyz`` quaternion of rotation matrices, with ``w >= 0``.
-
-    :func:`kornia.geometry.conversions.rotation_matrix_to_quaternion` (Shepperd's choice of the
-    best conditioned component, branch-free), its sign fixed so that ``w >= 0``. Not meant to be
-    differentiated (poses are fixed).
-
-    Shape:
-        ``(*, 3, 3)`` → ``(*, 4)``.
-
-    Example:
-        >>> rotation_to_quat(torch.eye(3))
-        tensor([1., 0., 0., 0.])
-    """
-    q = rotation_matrix_to_quaternion(R)
-    return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 
 class Gaussians(NamedTuple):

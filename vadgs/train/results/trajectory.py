@@ -48,8 +48,7 @@ import torch
 from vadgs.checks import check_shape
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid, level_up
-from vadgs.render import quaternion_to_rotation
-from vadgs.train.model import rotation_to_quat
+from vadgs.geometry.rotation import quaternion_to_rotation, rotation_to_quat
 
 __all__ = [
     "INTERPOLATE_BETWEEN",

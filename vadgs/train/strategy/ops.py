@@ -33,7 +33,7 @@ from typing import Any, NamedTuple, Union
 import torch
 from torch import nn
 
-from vadgs.render import quaternion_to_rotation
+from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel
 
 __all__ = [
