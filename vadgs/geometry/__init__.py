@@ -15,6 +15,16 @@ from vadgs.geometry.camera import (
     relative_pose,
     scale_intrinsics,
 )
+from vadgs.geometry.camera_path import (
+    CameraPath,
+    catmull_rom,
+    focus_point,
+    interpolate_rigid,
+    keyframe_path,
+    look_at,
+    orbit_path,
+    spline_path,
+)
 from vadgs.geometry.homography import (
     apply_homography,
     homography_warp,
@@ -37,6 +47,7 @@ from vadgs.geometry.voxel import (
 from vadgs.geometry.zbuffer import VoxelRaster, VoxelRasterizer, ZBufferConfig, rasterize_voxels
 
 __all__ = [
+    "CameraPath",
     "Cameras",
     "ChunkedVoxels",
     "PointChunk",
@@ -48,12 +59,18 @@ __all__ = [
     "backproject_depth",
     "camera_centers",
     "cameras_in_object_frame",
+    "catmull_rom",
+    "focus_point",
     "homography_warp",
+    "interpolate_rigid",
     "invert_rigid",
+    "keyframe_path",
     "level_up",
+    "look_at",
     "observing_views",
     "octahedral_decode",
     "octahedral_encode",
+    "orbit_path",
     "pixel_grid",
     "plane_distance",
     "plane_homography",
@@ -64,6 +81,7 @@ __all__ = [
     "relative_pose",
     "rotation_to_quat",
     "scale_intrinsics",
+    "spline_path",
     "unique_cells",
     "voxel_labels",
     "voxelize",
