@@ -37,6 +37,7 @@ __all__ = [
     "Gaussians",
     "ModelRender",
     "gaussians_at",
+    "make_optimizer",
 ]
 
 #: Names of the per-Gaussian parameters, in storage order.
@@ -406,3 +407,32 @@ class GaussianModel(nn.Module):
         model.load_state_dict(state_dict)
         model.active_sh_degree = int(extra["active_sh_degree"])
         return model
+
+
+def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
+    """One Adam with a named param group per parameter (per-Gaussian ones and ``"sky"``).
+
+    The layout :mod:`vadgs.train.strategy.ops` expects of one optimizer: each group is named for
+    the entry of ``model.params`` it holds (``"sky"``: :attr:`GaussianModel.sky`).
+
+    Args:
+        model: the model.
+        lrs: learning rate per name (:data:`PER_GAUSSIAN` and ``"sky"``).
+        eps: Adam epsilon (3DGS uses 1e-15).
+
+    Raises:
+        ValueError: if ``lrs`` lacks a name.
+
+    Example:
+        >>> m = GaussianModel(torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(4, 3), torch.full((4,), -1),
+        ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=0)
+        >>> opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+        >>> [g["name"] for g in opt.param_groups][:2]
+        ['means', 'quats']
+    """
+    missing = [k for k in (*PER_GAUSSIAN, "sky") if k not in lrs]
+    if missing:
+        raise ValueError(f"lrs: missing learning rates for {missing}")
+    groups = [{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN]
+    groups.append({"params": [model.sky], "lr": lrs["sky"], "name": "sky"})
+    return torch.optim.Adam(groups, eps=eps)
