@@ -13,7 +13,7 @@ from vadgs.train.losses import (
 )
 from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_at, make_optimizer
 from vadgs.train.results.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
-from vadgs.train.results.export import export_model, export_world, rotate_sh
+from vadgs.train.results.export import export_model, export_world
 from vadgs.train.results.trajectory import ego_trajectory, make_trajectory
 from vadgs.train.results.video import render_video
 from vadgs.train.sampler import ViewSampler
@@ -65,7 +65,6 @@ __all__ = [
     "remove_gaussians",
     "render_video",
     "reset_opacity",
-    "rotate_sh",
     "save_test_panels",
     "split",
 ]
