@@ -5,11 +5,11 @@ Run (the numbers in docs/benchmarks.md come from exactly this, one thread, CPU t
     VADGS_BENCH_THREADS=1 pytest benchmarks/bench_quaternion.py --benchmark-enable -p no:cacheprovider \
         --benchmark-columns=min,median,max,rounds --benchmark-sort=name --benchmark-timer=time.process_time
 
-- ``quaternion_to_rotation`` (:mod:`vadgs.render.projection`) runs at every training step on
+- ``quaternion_to_rotation`` (:mod:`vadgs.geometry.rotation`) runs at every training step on
   every Gaussian, forward and backward: 150k seeded ``wxyz`` quaternions of random norm (a
   street_a initialisation), float32, against
   :func:`kornia.geometry.conversions.quaternion_to_rotation_matrix`.
-- rotation → quaternion (:func:`vadgs.train.model.rotation_to_quat`) runs on track poses and the
+- rotation → quaternion (:func:`vadgs.geometry.rotation_to_quat`) runs on track poses and the
   normals of a VAD-GS event's new points (thousands, no gradient): 10k seeded rotations, float64,
   the hand-written Shepperd's method vadgs had until issue 24 (kept here as the reference)
   against :func:`kornia.geometry.conversions.rotation_matrix_to_quaternion` with vadgs's
@@ -26,8 +26,7 @@ import pytest
 import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 
-from vadgs.render import quaternion_to_rotation
-from vadgs.train.model import rotation_to_quat
+from vadgs.geometry.rotation import quaternion_to_rotation, rotation_to_quat
 
 if os.environ.get("VADGS_BENCH_THREADS"):  # e.g. 1 on a loaded shared machine, see the docs
     torch.set_num_threads(int(os.environ["VADGS_BENCH_THREADS"]))

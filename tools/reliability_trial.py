@@ -331,11 +331,10 @@ def api_cases() -> None:
     """Library calls with values out of range."""
     from tests.mvs.mvs_scenes import plane_scene
     from vadgs.data import load_scene, sample_scene_path
-    from vadgs.geometry import invert_rigid, project_points
+    from vadgs.geometry import invert_rigid, project_points, quaternion_to_rotation
     from vadgs.geometry.voxel import voxelize
     from vadgs.mvs import PatchMatchConfig, patchmatch
     from vadgs.mvs.planar import fit_plane_ransac
-    from vadgs.render import quaternion_to_rotation
     from vadgs.select import max_weight_clique, top_k_views
     from vadgs.train.vad.event import normals_to_quats
 

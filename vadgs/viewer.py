@@ -28,8 +28,9 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.data import Scene
-from vadgs.render import quaternion_to_rotation, sh_to_rgb
-from vadgs.train.model import GaussianModel, rotation_to_quat
+from vadgs.geometry.rotation import quaternion_to_rotation, rotation_to_quat
+from vadgs.render import sh_to_rgb
+from vadgs.train.model import GaussianModel
 
 __all__ = [
     "FILTERS",

@@ -98,6 +98,47 @@ class TestProjectBackproject:
             torch.tensor([(3 - 15.5) * 3 / 50, (2 - 11.5) * 3 / 55, 3.0], dtype=torch.float64),
         )
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_methods_agree(self, dtype):
+        """The two arithmetics of backproject_depth: the same points to float rounding."""
+        g = torch.Generator().manual_seed(7)
+        depth = (1.0 + 40 * torch.rand(3, 1, 24, 32, generator=g, dtype=torch.float64)).to(dtype)
+        K, c2w = intrinsics(3, dtype=dtype), random_rigid(3, 8, dtype=dtype)
+        for pose in (None, c2w):
+            a = backproject_depth(depth, K, pose)
+            b = backproject_depth(depth, K, pose, method="inverse")
+            assert b.shape == a.shape and b.dtype == dtype
+            tol = 1e-5 if dtype == torch.float32 else 1e-12
+            torch.testing.assert_close(b, a, rtol=tol, atol=tol)
+
+    def test_inverse_reads_the_skew(self):
+        """K^-1 (u, v, 1): with a skewed K the round trip through project_points (which reads the
+        skew) lands on the pixel centres; kornia's rays ignore the skew."""
+        depth = 1.0 + torch.rand(2, 1, 6, 8, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+        K = intrinsics(2)
+        K[:, 0, 1] = 4.0
+        c2w = random_rigid(2, 10)
+        grid = pixel_grid((6, 8), dtype=torch.float64).reshape(1, -1, 2).expand(2, -1, -1)
+        pts = backproject_depth(depth, K, c2w, method="inverse")
+        uv, z = project_points(pts.flatten(2).transpose(1, 2), K, invert_rigid(c2w))
+        torch.testing.assert_close(uv, grid)
+        torch.testing.assert_close(z, depth.flatten(1))
+        uv, _ = project_points(
+            backproject_depth(depth, K, c2w).flatten(2).transpose(1, 2), K, invert_rigid(c2w)
+        )
+        assert float((uv - grid).abs().max()) > 0.1
+
+    def test_inverse_against_a_loop(self):
+        """Each pixel by hand: z K^-1 (u, v, 1)^T, then R X + t."""
+        depth = 1.0 + torch.rand(1, 1, 3, 4, generator=torch.Generator().manual_seed(11), dtype=torch.float64)
+        K, T = intrinsics(), random_rigid(1, 12)
+        Kinv = torch.linalg.inv(K[0])
+        got = backproject_depth(depth, K, T, method="inverse")[0]
+        for v in range(3):
+            for u in range(4):
+                cam = depth[0, 0, v, u] * (Kinv @ torch.tensor([u, v, 1.0], dtype=torch.float64))
+                torch.testing.assert_close(got[:, v, u], T[0, :3, :3] @ cam + T[0, :3, 3], rtol=0, atol=1e-12)
+
     def test_pixel_grid(self):
         grid = pixel_grid((2, 3))
         assert grid.shape == (2, 3, 2) and grid[1, 2].tolist() == [2.0, 1.0]
@@ -118,6 +159,7 @@ class TestProjectBackproject:
         assert gradcheck(lambda p, k, t: project_points(p, k, t), (pts, K, T))
         depth = (1 + torch.rand(1, 1, 3, 4, dtype=torch.float64)).requires_grad_()
         assert gradcheck(lambda d, k, t: backproject_depth(d, k, t), (depth, K, T))
+        assert gradcheck(lambda d, k, t: backproject_depth(d, k, t, method="inverse"), (depth, K, T))
 
     def test_exception(self):
         with pytest.raises(ValueError, match="points"):
@@ -130,6 +172,8 @@ class TestProjectBackproject:
             backproject_depth(torch.zeros(1, 4, 4), intrinsics())
         with pytest.raises(ValueError, match="cam_to_world"):
             backproject_depth(torch.zeros(1, 1, 4, 4), intrinsics(), torch.eye(4)[None, :3])
+        with pytest.raises(ValueError, match="method: expected 'kornia' or 'inverse', got 'inv'"):
+            backproject_depth(torch.zeros(1, 1, 4, 4), intrinsics(), method="inv")
 
 
 class TestScaleIntrinsics:

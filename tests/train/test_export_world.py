@@ -8,19 +8,13 @@ import torch
 import torch.nn.functional as F
 from plyfile import PlyData
 
-from vadgs.render import eval_sh, load_ply, quaternion_to_rotation, sh_basis
+from vadgs.render import eval_sh, load_ply
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.results.export import (
     equirect_directions,
     export_world,
-    rotate_sh,
-    sh_rotation,
     sky_equirect,
 )
-
-
-def random_rotation(gen: torch.Generator) -> torch.Tensor:
-    return quaternion_to_rotation(torch.randn(4, generator=gen, dtype=torch.float64))
 
 
 @pytest.fixture(scope="module")
@@ -41,33 +35,6 @@ def model(tiny_scene):
 def _frame_with_cars(model, scene) -> int:
     counts = model.track_valid.sum(0)
     return scene.frames[int(counts.argmax())].index
-
-
-class TestRotateSh:
-    @pytest.mark.parametrize("degree", [0, 1, 2, 3])
-    def test_against_evaluation_at_rotated_directions(self, degree):
-        gen = torch.Generator().manual_seed(degree)
-        R = random_rotation(gen)
-        sh = torch.randn(50, (degree + 1) ** 2, 3, generator=gen, dtype=torch.float64)
-        d = F.normalize(torch.randn(50, 3, generator=gen, dtype=torch.float64), dim=-1)
-        # the reference: evaluate the basis at R^T d directly, one Gaussian at a time
-        expect = torch.stack([sh_basis(R.T @ d[i], degree) @ sh[i] for i in range(50)])
-        got = torch.einsum("nk,nkc->nc", sh_basis(d, degree), rotate_sh(sh, R))
-        torch.testing.assert_close(got, expect, atol=1e-9, rtol=1e-9)
-
-    def test_group_structure(self):
-        gen = torch.Generator().manual_seed(1)
-        R1, R2 = random_rotation(gen), random_rotation(gen)
-        torch.testing.assert_close(sh_rotation(torch.eye(3), 3), torch.eye(16, dtype=torch.float64))
-        torch.testing.assert_close(sh_rotation(R1 @ R2, 3), sh_rotation(R1, 3) @ sh_rotation(R2, 3))
-        M = sh_rotation(R1, 3)
-        torch.testing.assert_close(M @ M.T, torch.eye(16, dtype=torch.float64))  # orthogonal
-
-    def test_exceptions(self):
-        with pytest.raises(ValueError, match="sh"):
-            rotate_sh(torch.zeros(2, 5, 3), torch.eye(3))
-        with pytest.raises(ValueError, match="R"):
-            sh_rotation(torch.eye(4), 1)
 
 
 class TestSky:

@@ -3,28 +3,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-from vadgs.render import quaternion_to_rotation
+from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians, knn_scales, voxel_downsample
-from vadgs.train.model import GaussianModel, gaussians_at, quat_multiply, rotation_to_quat
+from vadgs.train.model import PER_GAUSSIAN, GaussianModel, gaussians_at, make_optimizer
 
 
 def _random_rotations(n, seed=0):
     g = torch.Generator().manual_seed(seed)
     q = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=torch.float64), dim=-1)
     return q, quaternion_to_rotation(q)
-
-
-class TestQuaternions:
-    def test_rotation_roundtrip(self):
-        q, R = _random_rotations(64)
-        q2 = rotation_to_quat(R)
-        assert torch.allclose(quaternion_to_rotation(q2), R, atol=1e-9)
-        assert torch.allclose(q2, q * torch.sign(q[:, :1]), atol=1e-9)
-
-    def test_multiply_composes_rotations(self):
-        q1, R1 = _random_rotations(16, 1)
-        q2, R2 = _random_rotations(16, 2)
-        assert torch.allclose(quaternion_to_rotation(quat_multiply(q1, q2)), R1 @ R2, atol=1e-9)
 
 
 def _model(n_static=3, n_obj=2, frames=3):
@@ -99,6 +86,23 @@ class TestGaussiansAt:
         m2 = GaussianModel.from_state(m.state_dict(), m.extra_state())
         assert all(torch.equal(m.state_dict()[k], m2.state_dict()[k]) for k in m.state_dict())
         assert m2.active_sh_degree == 1 and m2.track_ids == [7]
+
+
+class TestMakeOptimizer:
+    def test_one_named_group_per_parameter(self):
+        m = _model()
+        lrs = {k: 0.1 * (i + 1) for i, k in enumerate([*PER_GAUSSIAN, "sky"])}
+        opt = make_optimizer(m, lrs, eps=1e-12)
+        assert [g["name"] for g in opt.param_groups] == [*PER_GAUSSIAN, "sky"]
+        for g in opt.param_groups:
+            held = m.sky if g["name"] == "sky" else m.params[g["name"]]
+            assert g["params"] == [held] and g["lr"] == lrs[g["name"]] and g["eps"] == 1e-12
+        # the integer entries (node_ids, provenance) are not optimised
+        assert not any(g["name"] in ("node_ids", "provenance") for g in opt.param_groups)
+
+    def test_missing_rate(self):
+        with pytest.raises(ValueError, match=r"lrs: missing learning rates for \['sky'\]"):
+            make_optimizer(_model(), dict.fromkeys(PER_GAUSSIAN, 1e-3))
 
 
 class TestRenderDepth:

@@ -3,7 +3,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from vadgs.train.model import PER_GAUSSIAN, GaussianModel
+from vadgs.train.model import PER_GAUSSIAN, GaussianModel, make_optimizer
 from vadgs.train.strategy import ops
 
 
@@ -20,7 +20,7 @@ def _setup(n=6, tracks=1):
         list(range(tracks)),
         sh_degree=1,
     )
-    opt = ops.make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-2))
+    opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-2))
     # one step so that the moments are non-zero and distinct per row
     loss = sum(
         (p * torch.arange(1, p.shape[0] + 1).reshape(-1, *[1] * (p.dim() - 1))).square().sum()
@@ -62,7 +62,7 @@ class TestRemove:
             k: (m.params[k].detach().clone(), *[x.clone() for x in _moments(m, opt, k)]) for k in PER_GAUSSIAN
         }
         mask = torch.tensor([False, True, False, True, False, False])
-        ops.remove_gaussians(m, opt, st, mask)
+        ops.remove_gaussians(m.params, opt, st, mask)
         keep = [0, 2, 4, 5]
         for k in PER_GAUSSIAN:
             p, ea, eas = old[k]
@@ -76,7 +76,7 @@ class TestRemove:
     def test_bad_mask(self):
         m, opt, st = _setup()
         with pytest.raises(ValueError, match="mask"):
-            ops.remove_gaussians(m, opt, st, torch.zeros(3, dtype=torch.bool))
+            ops.remove_gaussians(m.params, opt, st, torch.zeros(3, dtype=torch.bool))
 
 
 class TestDuplicate:
@@ -85,7 +85,7 @@ class TestDuplicate:
         old_means = m.params["means"].detach().clone()
         old_m = _moments(m, opt, "means")[0].clone()
         mask = torch.tensor([False, False, False, True, False, True])
-        ops.duplicate(m, opt, st, mask)
+        ops.duplicate(m.params, opt, st, mask)
         assert m.num_gaussians == 8
         assert torch.equal(m.params["means"].data, torch.cat([old_means, old_means[[3, 5]]]))
         ea = _moments(m, opt, "means")[0]
@@ -100,7 +100,7 @@ class TestSplit:
         m, opt, st = _setup()
         p0 = {k: v.detach().clone() for k, v in m.params.items()}
         mask = torch.tensor([True, False, False, True, False, False])
-        ops.split(m, opt, st, mask, torch.Generator().manual_seed(0))
+        ops.split(m.params, opt, st, mask, torch.Generator().manual_seed(0))
         assert m.num_gaussians == 8
         assert torch.equal(m.params["means"].data[:4], p0["means"][[1, 2, 4, 5]])
         children = m.params["log_scales"].data[4:]
@@ -119,7 +119,7 @@ class TestAdd:
     def test_add_to_track_node(self):
         m, opt, st = _setup()
         new = {k: torch.ones(2, *v.shape[1:]) for k, v in m.params.items()}
-        ops.add_gaussians(m, opt, st, new, torch.tensor([0, 0]))
+        ops.add_gaussians(m.params, opt, st, new, torch.tensor([0, 0]))
         assert m.num_gaussians == 8 and m.node_ids[-2:].tolist() == [0, 0]
         assert bool((m.params["means"].data[-2:] == 1).all())
         assert bool((_moments(m, opt, "sh_dc")[0][-2:] == 0).all()) and st["count"][-2:].tolist() == [
@@ -133,16 +133,49 @@ class TestAdd:
         m, opt, st = _setup()
         new = {k: torch.ones(2, *v.shape[1:]) for k, v in m.params.items()}
         with pytest.raises(ValueError, match="node_ids"):
-            ops.add_gaussians(m, opt, st, new, torch.tensor([0, 5]))
+            ops.add_gaussians(m.params, opt, st, new, torch.tensor([0, 5]), num_nodes=1)
         new["means"] = torch.ones(2, 2)
         with pytest.raises(ValueError, match="means"):
-            ops.add_gaussians(m, opt, st, new, torch.tensor([0, 0]))
+            ops.add_gaussians(m.params, opt, st, new, torch.tensor([0, 0]))
+
+
+class TestModelFree:
+    """The ops know params mappings only (gsplat's ``strategy/ops.py``), not vadgs's model."""
+
+    def test_no_import_of_the_model(self):
+        import networkx as nx
+
+        from tests.test_imports import import_graph
+
+        below = nx.descendants(import_graph(), "vadgs.train.strategy.ops")
+        assert not any(m.startswith("vadgs.train") for m in below), sorted(below)
+
+    def test_a_model_is_deprecated(self):
+        m, opt, st = _setup()
+        with pytest.warns(
+            DeprecationWarning, match=r"passing a GaussianModel is deprecated, pass its \.params"
+        ):
+            ops.remove_gaussians(m, opt, st, torch.tensor([True, False, False, False, False, False]))
+        assert m.num_gaussians == 5 and st["grad2d"].shape == (5,)
+        _consistent(m, opt)
+
+    def test_not_a_mapping(self):
+        with pytest.raises(TypeError, match=r"params: expected a params mapping .* got list"):
+            ops.reset_opacity([torch.zeros(3)], None, 0.01)
+
+    def test_node_ids_checked_without_num_nodes(self):
+        m, opt, st = _setup()
+        new = {k: torch.ones(2, *v.shape[1:]) for k, v in m.params.items()}
+        ops.add_gaussians(m.params, opt, st, new, torch.tensor([0, 7]))  # no num_nodes: not bounded above
+        assert m.node_ids[-2:].tolist() == [0, 7]
+        with pytest.raises(ValueError, match=r"node_ids: expected values in \[-1, 1\), got \[-2, 0\]"):
+            ops.add_gaussians(m.params, opt, st, new, torch.tensor([-2, 0]), num_nodes=1)
 
 
 class TestResetOpacity:
     def test_reset(self):
         m, opt, _ = _setup()
-        ops.reset_opacity(m, opt, 0.01)
+        ops.reset_opacity(m.params, opt, 0.01)
         assert bool((torch.sigmoid(m.params["opacity_logits"]) <= 0.0100001).all())
         assert bool((_moments(m, opt, "opacity_logits")[0] == 0).all())
         _consistent(m, opt)
@@ -154,16 +187,16 @@ class TestProvenance:
     def test_duplicate_split_add_follow_the_rows(self):
         m, opt, st = _setup()
         m.provenance = torch.tensor([0, 2, 0, 1, 0, 3])
-        ops.duplicate(m, opt, st, torch.tensor([False, True, False, True, False, False]))
+        ops.duplicate(m.params, opt, st, torch.tensor([False, True, False, True, False, False]))
         assert m.provenance.tolist() == [0, 2, 0, 1, 0, 3, 2, 1]
-        ops.split(m, opt, st, torch.tensor([False, False, False, False, False, True, True, False]))
+        ops.split(m.params, opt, st, torch.tensor([False, False, False, False, False, True, True, False]))
         assert m.provenance.tolist() == [0, 2, 0, 1, 0, 1, 3, 2, 3, 2]
-        ops.remove_gaussians(m, opt, st, m.provenance == 2)
+        ops.remove_gaussians(m.params, opt, st, m.provenance == 2)
         assert m.provenance.tolist() == [0, 0, 1, 0, 1, 3, 3]
         new = {k: torch.zeros(2, *m.params[k].shape[1:]) for k in PER_GAUSSIAN}
-        ops.add_gaussians(m, opt, st, new)
+        ops.add_gaussians(m.params, opt, st, new)
         assert m.provenance.tolist()[-2:] == [0, 0]
-        ops.add_gaussians(m, opt, st, {**new, "provenance": torch.tensor([4, 4])})
+        ops.add_gaussians(m.params, opt, st, {**new, "provenance": torch.tensor([4, 4])})
         assert m.provenance.tolist()[-2:] == [4, 4]
         assert not m.provenance.requires_grad and m.provenance.dtype == torch.int64
         _consistent(m, opt)

@@ -3,8 +3,8 @@ from __future__ import annotations
 import torch
 
 from vadgs.render import RenderOutput
-from vadgs.train.model import PER_GAUSSIAN, GaussianModel
-from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy, ops
+from vadgs.train.model import PER_GAUSSIAN, GaussianModel, make_optimizer
+from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strategy
 
 
 def _fake_info(n, grad_rows, h=10, w=20):
@@ -57,7 +57,7 @@ class TestDefaultStrategy:
 
     def test_clone_split_prune(self):
         m = _model()
-        opt = ops.make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+        opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
         s = DefaultStrategy(
             DefaultStrategyConfig(refine_start_iter=0, refine_every=2, grow_scale3d=0.1, reset_every=0)
         )
@@ -75,7 +75,7 @@ class TestDefaultStrategy:
 
     def test_cap(self):
         m = _model()
-        opt = ops.make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+        opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
         s = DefaultStrategy(
             DefaultStrategyConfig(refine_start_iter=0, refine_every=1, max_gaussians=7, prune_opa=0.0)
         )
@@ -85,7 +85,7 @@ class TestDefaultStrategy:
 
     def test_reset(self):
         m = _model()
-        opt = ops.make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+        opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
         s = DefaultStrategy(DefaultStrategyConfig(refine_start_iter=100, reset_every=3))
         state = s.initialize_state(1.0)
         s.step_post_backward(m.params, opt, state, 3, _fake_info(6, []))

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 import torch
 
+from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
 from vadgs.render import RasterConfig, rasterize_gaussians
-from vadgs.train.model import quat_multiply, rotation_to_quat
 from vadgs.train.strategy import DefaultStrategy
 from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityInputs
 from vadgs.train.vad.reconstruct import ReconstructConfig

@@ -4,22 +4,17 @@ import dataclasses
 import re
 
 import imageio.v2 as imageio
-import numpy as np
 import pytest
 import torch
 
 from vadgs.data.scene import CameraInfo, FrameInfo, Scene, ViewInfo
-from vadgs.render import quaternion_to_rotation
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.results.trajectory import (
     INTERPOLATE_BETWEEN,
     ORBIT_FRAMES,
-    catmull_rom,
     default_video_camera,
     ego_trajectory,
-    interpolate_rigid,
     interpolated_trajectory,
-    look_at,
     make_trajectory,
     orbit_trajectory,
     parse_trajectory,
@@ -43,23 +38,7 @@ def tiny_model(tiny_scene):
     return model
 
 
-def _rot(axis: torch.Tensor, angle: float) -> torch.Tensor:
-    q = torch.cat([torch.tensor([np.cos(angle / 2)]), np.sin(angle / 2) * axis / axis.norm()])
-    return quaternion_to_rotation(q.double())
-
-
-class TestInterpolateRigid:
-    def test_endpoints_and_midpoint(self):
-        a, b = torch.eye(4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
-        axis = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
-        a[:3, :3], b[:3, :3] = _rot(axis, 0.3), _rot(axis, 1.1)
-        a[:3, 3], b[:3, 3] = torch.tensor([1.0, 2, 3]), torch.tensor([3.0, 0, 3])
-        torch.testing.assert_close(interpolate_rigid(a, b, 0.0), a)
-        torch.testing.assert_close(interpolate_rigid(a, b, 1.0), b)
-        mid = interpolate_rigid(a, b, 0.25)
-        torch.testing.assert_close(mid[:3, :3], _rot(axis, 0.5))  # constant angular speed
-        torch.testing.assert_close(mid[:3, 3], torch.tensor([1.5, 1.5, 3.0], dtype=torch.float64))
-
+class TestObjectPoses:
     def test_object_poses(self):
         o2w = torch.eye(4).repeat(2, 3, 1, 1)
         o2w[:, 1, 0, 3] = 2.0
@@ -184,31 +163,6 @@ UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
 
 class TestPhotoPaths:
-    def test_catmull_rom(self):
-        pts = torch.tensor([[0.0, 0.0], [1.0, 2.0], [4.0, 2.5], [5.0, 0.0]], dtype=torch.float64)
-        torch.testing.assert_close(catmull_rom(pts, torch.arange(4.0, dtype=torch.float64)), pts)
-        h = 1e-5  # smooth at the inner points: the tangents from both sides point the same way
-        for k in (1.0, 2.0):
-            t = torch.tensor([k - h, k, k + h], dtype=torch.float64)
-            a, b, c = catmull_rom(pts, t)
-            cos = torch.nn.functional.cosine_similarity(b - a, c - b, dim=0)
-            assert float(cos) > 1 - 1e-6, (k, float(cos))
-        # a straight run of uneven steps: no overshoot, monotone
-        line = torch.tensor([[0.0], [0.1], [3.0], [3.2]], dtype=torch.float64)
-        x = catmull_rom(line, torch.linspace(0, 3, 301, dtype=torch.float64))[:, 0]
-        assert bool((x.diff() >= 0).all()) and float(x.min()) == 0.0 and float(x.max()) == 3.2
-        with pytest.raises(ValueError, match="t: expected parameters in"):
-            catmull_rom(pts, torch.tensor([3.5]))
-
-    def test_look_at(self):
-        pos, target = torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([[4.0, -2.0, 3.5]])
-        c2w = look_at(pos, target, UP.float())[0]
-        torch.testing.assert_close(c2w[:3, 2], (target - pos)[0] / (target - pos).norm())
-        assert abs(float(c2w[:3, 0] @ UP.float())) < 1e-6 and float(c2w[:3, 1] @ UP.float()) < 0  # y down
-        assert float(torch.linalg.det(c2w[:3, :3])) == pytest.approx(1.0)
-        down = look_at(torch.zeros(3), torch.tensor([0.0, 0.0, -1.0]), UP.float())  # along up: still a pose
-        assert float(torch.linalg.det(down[:3, :3])) == pytest.approx(1.0)
-
     def test_scene_up_ignores_a_sideways_photo(self, tiny_scene):
         scene = _photo_scene()
         torch.testing.assert_close(scene_up(scene), UP, atol=1e-6, rtol=0)

@@ -1,4 +1,4 @@
-"""Geometry: cameras, poses, plane homographies, voxel grids, the voxel z-buffer, normal codes.
+"""Geometry: cameras, poses, rotations, plane homographies, voxel grids, the voxel z-buffer, normal codes.
 
 Knows nothing about Gaussians or scenes: every function takes tensors and small dataclasses.
 """
@@ -15,6 +15,16 @@ from vadgs.geometry.camera import (
     relative_pose,
     scale_intrinsics,
 )
+from vadgs.geometry.camera_path import (
+    CameraPath,
+    catmull_rom,
+    focus_point,
+    interpolate_rigid,
+    keyframe_path,
+    look_at,
+    orbit_path,
+    spline_path,
+)
 from vadgs.geometry.homography import (
     apply_homography,
     homography_warp,
@@ -23,6 +33,7 @@ from vadgs.geometry.homography import (
     warp_patches,
 )
 from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
+from vadgs.geometry.rotation import quat_multiply, quaternion_to_rotation, rotation_to_quat
 from vadgs.geometry.voxel import (
     ChunkedVoxels,
     PointChunk,
@@ -36,6 +47,7 @@ from vadgs.geometry.voxel import (
 from vadgs.geometry.zbuffer import VoxelRaster, VoxelRasterizer, ZBufferConfig, rasterize_voxels
 
 __all__ = [
+    "CameraPath",
     "Cameras",
     "ChunkedVoxels",
     "PointChunk",
@@ -47,19 +59,29 @@ __all__ = [
     "backproject_depth",
     "camera_centers",
     "cameras_in_object_frame",
+    "catmull_rom",
+    "focus_point",
     "homography_warp",
+    "interpolate_rigid",
     "invert_rigid",
+    "keyframe_path",
     "level_up",
+    "look_at",
     "observing_views",
     "octahedral_decode",
     "octahedral_encode",
+    "orbit_path",
     "pixel_grid",
     "plane_distance",
     "plane_homography",
     "project_points",
+    "quat_multiply",
+    "quaternion_to_rotation",
     "rasterize_voxels",
     "relative_pose",
+    "rotation_to_quat",
     "scale_intrinsics",
+    "spline_path",
     "unique_cells",
     "voxel_labels",
     "voxelize",

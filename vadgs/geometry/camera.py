@@ -136,33 +136,65 @@ def pixel_grid(
 
 
 def backproject_depth(
-    depth: torch.Tensor, K: torch.Tensor, cam_to_world: torch.Tensor | None = None
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    cam_to_world: torch.Tensor | None = None,
+    method: str = "kornia",
 ) -> torch.Tensor:
-    """Back-project z-depth maps to 3D points (kornia ``depth_to_3d_v2`` plus a pose).
+    r"""Back-project z-depth maps to 3D points: pixel ``(u, v)`` at depth ``z`` to ``z K^{-1} (u, v, 1)^T``.
 
-    Differentiable w.r.t. depth, intrinsics and pose.
+    Differentiable w.r.t. depth, intrinsics and pose. The two methods give the same points to float
+    rounding (a few ulps) for intrinsics without skew:
+
+    - ``"kornia"``: :func:`kornia.geometry.depth.depth_to_3d_v2`, the rays
+      ``((u - cx) / fx, (v - cy) / fy, 1)`` (the skew ``K[0, 1]`` is not read), the pose applied by
+      :func:`kornia.geometry.linalg.transform_points`;
+    - ``"inverse"``: the rays ``K^{-1} (u, v, 1)^T`` by a matrix inverse and product (any ``K``,
+      skew included), the pose applied as ``R X + t``: the arithmetic of :mod:`vadgs.mvs`
+      (consistency and fusion), whose results it keeps bit for bit.
+
+    .. math::
+
+        X(u, v) = T_{cam \to world} \begin{pmatrix} z(u, v)\, K^{-1} (u, v, 1)^T \\ 1 \end{pmatrix}
 
     Args:
         depth: ``(B, 1, H, W)`` z-depth maps.
         K: ``(B, 3, 3)`` intrinsics.
         cam_to_world: optional ``(B, 4, 4)``; when given the points are in world coordinates,
             otherwise in camera coordinates.
+        method: ``"kornia"`` or ``"inverse"`` (see above).
 
     Returns:
         ``(B, 3, H, W)`` points.
+
+    Raises:
+        ValueError: for a shape other than the above, intrinsics without positive focal lengths,
+            or another ``method``.
 
     Example:
         >>> K = torch.tensor([[[2.0, 0, 1], [0, 2.0, 1], [0, 0, 1]]])
         >>> backproject_depth(torch.full((1, 1, 3, 3), 4.0), K)[0, :, 1, 1]
         tensor([0., 0., 4.])
+        >>> backproject_depth(torch.full((1, 1, 3, 3), 4.0), K, method="inverse")[0, :, 2, 2]
+        tensor([2., 2., 4.])
     """
     dims = check_shape(depth, "depth", ("B", 1, "H", "W"))
     check_shape(K, "K", ("B", 3, 3), dims)
     check_intrinsics(K)
-    pts = depth_to_3d_v2(depth[:, 0], K)  # (B, H, W, 3)
     if cam_to_world is not None:
         check_shape(cam_to_world, "cam_to_world", ("B", 4, 4), dims)
-        b, h, w, _ = pts.shape
+    b, h, w = dims["B"], dims["H"], dims["W"]
+    if method == "inverse":
+        grid = pixel_grid((h, w), device=depth.device, dtype=depth.dtype).permute(2, 0, 1)  # (2, H, W)
+        pix = torch.cat([grid, torch.ones_like(grid[:1])]).reshape(3, h * w)
+        pts = (torch.linalg.inv(K) @ pix) * depth.reshape(b, 1, h * w)  # (B, 3, P)
+        if cam_to_world is not None:
+            pts = cam_to_world[:, :3, :3] @ pts + cam_to_world[:, :3, 3:]
+        return pts.reshape(b, 3, h, w)
+    if method != "kornia":
+        raise ValueError(f"method: expected 'kornia' or 'inverse', got {method!r}")
+    pts = depth_to_3d_v2(depth[:, 0], K)  # (B, H, W, 3)
+    if cam_to_world is not None:
         pts = transform_points(cam_to_world, pts.reshape(b, h * w, 3)).reshape(b, h, w, 3)
     return pts.permute(0, 3, 1, 2)
 

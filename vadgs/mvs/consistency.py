@@ -23,7 +23,7 @@ from typing import NamedTuple
 import torch
 
 from vadgs.checks import check_shape
-from vadgs.geometry import invert_rigid, relative_pose
+from vadgs.geometry import backproject_depth, invert_rigid, pixel_grid, relative_pose
 
 __all__ = ["ConsistencyResult", "geometric_consistency", "reproject_depth"]
 
@@ -91,26 +91,22 @@ def reproject_depth(
     check_shape(src_from_ref, "src_from_ref", ("N", 4, 4), dims)
     n, h, w = dims["N"], dims["H"], dims["W"]
     hs, ws = dims["Hs"], dims["Ws"]
-    ys, xs = torch.meshgrid(
-        torch.arange(h, device=depth.device, dtype=depth.dtype),
-        torch.arange(w, device=depth.device, dtype=depth.dtype),
-        indexing="ij",
-    )
-    pix = torch.stack([xs, ys, torch.ones_like(xs)]).reshape(1, 3, h * w)  # (1, 3, P)
+    pix = pixel_grid((h, w), device=depth.device, dtype=depth.dtype).reshape(1, h * w, 2).transpose(1, 2)
     z = depth.reshape(n, 1, h * w)
-    pts = (torch.linalg.inv(K) @ pix) * z  # (N, 3, P) reference camera
+    pts = backproject_depth(depth, K, method="inverse").reshape(n, 3, h * w)  # reference camera
     rot, t = src_from_ref[:, :3, :3], src_from_ref[:, :3, 3:]
     uv_s, z_s = _project(rot @ pts + t, src_K)
     uv_r = uv_s.round()
     inside = (uv_r[:, 0] >= 0) & (uv_r[:, 0] <= ws - 1) & (uv_r[:, 1] >= 0) & (uv_r[:, 1] <= hs - 1)
     lin = (uv_r[:, 1].clamp(0, hs - 1) * ws + uv_r[:, 0].clamp(0, ws - 1)).long()
     d_s = torch.gather(src_depth.reshape(n, hs * ws), 1, lin)  # (N, P)
-    pix_s = torch.cat([uv_r, torch.ones_like(uv_r[:, :1])], dim=1)
-    pts_s = (torch.linalg.inv(src_K) @ pix_s) * d_s[:, None]
+    # the source's points at those pixels (where inside, the pixel is uv_r)
+    src_pts = backproject_depth(src_depth, src_K, method="inverse").reshape(n, 3, hs * ws)
+    pts_s = torch.gather(src_pts, 2, lin[:, None].expand(-1, 3, -1))
     back = invert_rigid(src_from_ref)
     uv_b, z_b = _project(back[:, :3, :3] @ pts_s + back[:, :3, 3:], K)
     ok = (z[:, 0] > 0) & (z_s > 1e-9) & inside & (d_s > 0) & (z_b > 1e-9)
-    err = (uv_b - pix[:, :2]).norm(dim=1)
+    err = (uv_b - pix).norm(dim=1)
     rel = (z_b - z[:, 0]).abs() / z[:, 0].clamp_min(1e-12)
     inf = torch.full_like(err, float("inf"))
     err = torch.where(ok & torch.isfinite(err), err, inf)

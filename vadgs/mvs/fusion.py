@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.checks import check_shape
-from vadgs.geometry import invert_rigid
+from vadgs.geometry import backproject_depth, invert_rigid, pixel_grid
 
 __all__ = ["FusedPoints", "FusionConfig", "fuse_depth_maps"]
 
@@ -134,14 +134,10 @@ def fuse_depth_maps(
     valid = torch.isfinite(z) & (z > 0)
     if mask is not None:
         valid &= mask.reshape(b, p)
-    ys, xs = torch.meshgrid(
-        torch.arange(h, device=dev, dtype=dt), torch.arange(w, device=dev, dtype=dt), indexing="ij"
-    )
-    pix = torch.stack([xs, ys, torch.ones_like(xs)]).reshape(3, p)
+    pix = pixel_grid((h, w), device=dev, dtype=dt).reshape(p, 2).T  # (2, P)
     cam_to_world = invert_rigid(world_to_cam)
-    rays = torch.linalg.inv(K) @ pix  # (B, 3, P)
-    zc = torch.where(valid, z, torch.zeros_like(z))
-    pts_world = cam_to_world[:, :3, :3] @ (rays * zc[:, None]) + cam_to_world[:, :3, 3:]  # (B, 3, P)
+    zc = torch.where(valid, z, torch.zeros_like(z)).reshape(b, 1, h, w)
+    pts_world = backproject_depth(zc, K, cam_to_world, method="inverse").reshape(b, 3, p)
     if normal is not None:
         nrm_world = cam_to_world[:, :3, :3] @ normal.reshape(b, 3, p)
     else:
@@ -174,7 +170,7 @@ def fuse_depth_maps(
             back = world_to_cam[i, :3, :3] @ xj + world_to_cam[i, :3, 3:]
             bz = back[2]
             buv = K[i, :2, :2] @ (back[:2] / torch.where(bz > 1e-9, bz, torch.ones_like(bz))) + K[i, :2, 2:]
-            err = (buv - pix[:2, sel]).norm(dim=0)
+            err = (buv - pix[:, sel]).norm(dim=0)
             rel = (z[j, lin] - zj).abs() / zj.clamp_min(1e-12)
             ok &= (bz > 1e-9) & (err <= cfg.max_reproj_error) & (rel <= cfg.max_rel_depth)
             if normal is not None:

@@ -37,8 +37,8 @@ import torch.nn.functional as F
 
 from vadgs.checks import check_size
 from vadgs.geometry.camera import camera_centers
+from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs, _check_no_sh_degree
-from vadgs.render.projection import quaternion_to_rotation
 
 __all__ = ["GSPLAT_TILE_SIZE", "rasterize_gaussians_gsplat"]
 

@@ -32,44 +32,10 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_quaternions, check_shape, check_size
+from vadgs.checks import check_shape, check_size
+from vadgs.geometry.rotation import quaternion_to_rotation
 
-__all__ = ["ProjectedGaussians", "project_gaussians", "quaternion_to_rotation"]
-
-
-def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices from ``wxyz`` quaternions of any non-zero norm (normalised here).
-
-    Differentiable w.r.t. ``quats``.
-
-    Args:
-        quats: ``(*, 4)`` quaternions ``(w, x, y, z)``.
-
-    Returns:
-        ``(*, 3, 3)`` rotation matrices acting on column vectors.
-
-    Example:
-        >>> quaternion_to_rotation(torch.tensor([[2.0, 0.0, 0.0, 0.0]]))
-        tensor([[[1., 0., 0.],
-                 [0., 1., 0.],
-                 [0., 0., 1.]]])
-    """
-    check_shape(quats, "quats", ("*", 4))
-    check_quaternions(quats)
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
+__all__ = ["ProjectedGaussians", "project_gaussians"]
 
 
 class ProjectedGaussians(NamedTuple):

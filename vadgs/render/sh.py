@@ -5,6 +5,9 @@ A Gaussian's view-dependent colour is ``c(d) = max(0, sum_k Y_k(d) f_k + 0.5)`` 
 and ``d`` the unit direction from the camera centre to the Gaussian's mean, in world
 coordinates. The ``+0.5`` offset and the clamp at zero are those of 3DGS and gsplat, so
 coefficients move between vadgs and those codebases unchanged (``f_0 = (rgb - 0.5) / C0``).
+
+:func:`rotate_sh` turns a Gaussian's coefficients with its frame (:func:`sh_rotation`: the exact
+rotation of each degree's coefficients), e.g. to export a moving object's Gaussians in the world.
 """
 
 from __future__ import annotations
@@ -15,7 +18,16 @@ import torch
 
 from vadgs.checks import check_shape
 
-__all__ = ["SH_C0", "eval_sh", "num_sh_bases", "rgb_to_sh", "sh_basis", "sh_to_rgb"]
+__all__ = [
+    "SH_C0",
+    "eval_sh",
+    "num_sh_bases",
+    "rgb_to_sh",
+    "rotate_sh",
+    "sh_basis",
+    "sh_rotation",
+    "sh_to_rgb",
+]
 
 SH_C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
@@ -139,3 +151,74 @@ def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
 def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`rgb_to_sh`: ``sh * C0 + 0.5``."""
     return sh * SH_C0 + 0.5
+
+
+# ---------------------------------------------------------------------------------------------------
+# rotation
+
+
+def _sphere_directions(n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(n, 3)`` unit directions on a Fibonacci sphere (well spread, deterministic)."""
+    i = torch.arange(n, dtype=dtype) + 0.5
+    z = 1 - 2 * i / n
+    r = torch.sqrt(1 - z * z)
+    phi = math.pi * (3 - math.sqrt(5)) * i
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+
+
+def sh_rotation(R: torch.Tensor, degree: int) -> torch.Tensor:
+    r"""The ``(K, K)`` matrix ``M`` that rotates SH coefficients by ``R``: ``f' = M f``.
+
+    ``f'`` evaluated at ``d`` equals ``f`` evaluated at ``R^\top d`` (an object's SH moved into the
+    world by its rotation ``R``). The SH of degree ≤ 3 span a rotation-invariant space, so ``M`` is
+    exactly the least-squares solution of :math:`B(D)\,M = B(D R)` on 64 directions ``D``
+    (``B`` = :func:`sh_basis`), computed in float64: block diagonal by degree, the Wigner-D
+    matrices in the real basis of 3DGS. Not differentiable (poses are fixed).
+
+    .. math::
+
+        \sum_k Y_k(\mathbf{d})\,(M \mathbf{f})_k = \sum_k Y_k(R^\top \mathbf{d})\,\mathbf{f}_k
+
+    Args:
+        R: ``(3, 3)`` rotation.
+        degree: 0 to 3.
+
+    Returns:
+        ``(K, K)`` float64, ``K = (degree + 1)^2``.
+
+    Raises:
+        ValueError: for ``R`` not ``(3, 3)`` or a degree outside 0 to 3.
+
+    Example:
+        >>> Rz = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # 90° about z
+        >>> sh_rotation(Rz, 1).round(decimals=6).abs().tolist()[1:]  # basis y, z, x: y -> x, x -> y
+        [[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0]]
+    """
+    if R.shape != (3, 3):
+        raise ValueError(f"R: expected shape (3, 3), got {tuple(R.shape)}")
+    dirs = _sphere_directions(64)
+    B = sh_basis(dirs, degree)
+    B_rot = sh_basis(dirs @ R.double(), degree)  # rows (R^T d)^T = d^T R
+    return torch.linalg.lstsq(B, B_rot).solution
+
+
+def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """SH coefficients ``(N, K, C)`` rotated by ``(3, 3)`` ``R`` (see :func:`sh_rotation`).
+
+    Differentiable w.r.t. ``sh``; keeps its dtype and device.
+
+    Raises:
+        ValueError: for ``sh`` not ``(N, K, C)`` with ``K`` in 1, 4, 9, 16, or ``R`` not ``(3, 3)``.
+
+    Example:
+        >>> sh = torch.randn(5, 9, 3); R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+        >>> d = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+        >>> bool(torch.allclose(eval_sh(rotate_sh(sh, R), d), eval_sh(sh, d @ R), atol=1e-5))
+        True
+    """
+    k = sh.shape[-2]
+    degree = math.isqrt(k) - 1
+    if (degree + 1) ** 2 != k or k > 16 or sh.dim() != 3:
+        raise ValueError(f"sh: expected (N, K, C) with K in (1, 4, 9, 16), got {tuple(sh.shape)}")
+    M = sh_rotation(R.detach().cpu(), degree).to(device=sh.device, dtype=sh.dtype)
+    return torch.einsum("kj,njc->nkc", M, sh)

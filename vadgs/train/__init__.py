@@ -11,9 +11,9 @@ from vadgs.train.losses import (
     geometric_weights,
     normal_loss,
 )
-from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_at
+from vadgs.train.model import GaussianModel, Gaussians, ModelRender, gaussians_at, make_optimizer
 from vadgs.train.results.evaluate import EvalMetrics, evaluate, evaluate_split, save_test_panels
-from vadgs.train.results.export import export_model, export_world, rotate_sh
+from vadgs.train.results.export import export_model, export_world
 from vadgs.train.results.trajectory import ego_trajectory, make_trajectory
 from vadgs.train.results.video import render_video
 from vadgs.train.sampler import ViewSampler
@@ -21,7 +21,6 @@ from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, Strateg
 from vadgs.train.strategy.ops import (
     add_gaussians,
     duplicate,
-    make_optimizer,
     remove_gaussians,
     reset_opacity,
     split,
@@ -66,7 +65,6 @@ __all__ = [
     "remove_gaussians",
     "render_video",
     "reset_opacity",
-    "rotate_sh",
     "save_test_panels",
     "split",
 ]

@@ -24,11 +24,11 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from torch import nn
 
 from vadgs.checks import check_shape
 from vadgs.geometry.camera import invert_rigid, pixel_grid
+from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
 from vadgs.render import RasterConfig, RenderOutput, eval_sh, num_sh_bases, rasterize_gaussians, rgb_to_sh
 
 __all__ = [
@@ -37,56 +37,11 @@ __all__ = [
     "Gaussians",
     "ModelRender",
     "gaussians_at",
-    "quat_multiply",
-    "rotation_to_quat",
+    "make_optimizer",
 ]
 
 #: Names of the per-Gaussian parameters, in storage order.
 PER_GAUSSIAN = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-
-
-def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
-    """Hamilton product ``q1 ⊗ q2`` of ``wxyz`` quaternions (rotation ``q2`` first, then ``q1``).
-
-    Differentiable w.r.t. both.
-
-    Shape:
-        ``(*, 4)`` and ``(*, 4)`` (broadcast) → ``(*, 4)``.
-
-    Example:
-        >>> q = torch.tensor([0.0, 1.0, 0.0, 0.0])  # 180° about x
-        >>> quat_multiply(q, q)
-        tensor([-1.,  0.,  0.,  0.])
-    """
-    w1, x1, y1, z1 = q1.unbind(-1)
-    w2, x2, y2, z2 = q2.unbind(-1)
-    return torch.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        -1,
-    )
-
-
-def rotation_to_quat(R: torch.Tensor) -> torch.Tensor:
-    """Unit ``wxyz`` quaternion of rotation matrices, with ``w >= 0``.
-
-    :func:`kornia.geometry.conversions.rotation_matrix_to_quaternion` (Shepperd's choice of the
-    best conditioned component, branch-free), its sign fixed so that ``w >= 0``. Not meant to be
-    differentiated (poses are fixed).
-
-    Shape:
-        ``(*, 3, 3)`` → ``(*, 4)``.
-
-    Example:
-        >>> rotation_to_quat(torch.eye(3))
-        tensor([1., 0., 0., 0.])
-    """
-    q = rotation_matrix_to_quaternion(R)
-    return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 
 class Gaussians(NamedTuple):
@@ -452,3 +407,32 @@ class GaussianModel(nn.Module):
         model.load_state_dict(state_dict)
         model.active_sh_degree = int(extra["active_sh_degree"])
         return model
+
+
+def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
+    """One Adam with a named param group per parameter (per-Gaussian ones and ``"sky"``).
+
+    The layout :mod:`vadgs.train.strategy.ops` expects of one optimizer: each group is named for
+    the entry of ``model.params`` it holds (``"sky"``: :attr:`GaussianModel.sky`).
+
+    Args:
+        model: the model.
+        lrs: learning rate per name (:data:`PER_GAUSSIAN` and ``"sky"``).
+        eps: Adam epsilon (3DGS uses 1e-15).
+
+    Raises:
+        ValueError: if ``lrs`` lacks a name.
+
+    Example:
+        >>> m = GaussianModel(torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(4, 3), torch.full((4,), -1),
+        ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=0)
+        >>> opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+        >>> [g["name"] for g in opt.param_groups][:2]
+        ['means', 'quats']
+    """
+    missing = [k for k in (*PER_GAUSSIAN, "sky") if k not in lrs]
+    if missing:
+        raise ValueError(f"lrs: missing learning rates for {missing}")
+    groups = [{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN]
+    groups.append({"params": [model.sky], "lr": lrs["sky"], "name": "sky"})
+    return torch.optim.Adam(groups, eps=eps)

@@ -58,12 +58,11 @@ from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFinite
 from vadgs.train.init import init_gaussians
 from vadgs.train.loop import TrainResult, run_loop
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender
+from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender, make_optimizer
 from vadgs.train.objective import Objective
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
-from vadgs.train.strategy.ops import make_optimizer
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,

@@ -267,7 +267,7 @@ class TestFinerMatchingOfSmallInstances:
 
 class TestNormalsToQuats:
     def test_third_axis_is_the_normal(self):
-        from vadgs.render import quaternion_to_rotation
+        from vadgs.geometry import quaternion_to_rotation
 
         n = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
         R = quaternion_to_rotation(normals_to_quats(n))

@@ -11,7 +11,7 @@ where the track is valid).
 **The world at one frame** (:func:`export_world`, ``vadgs export RUN --frame F``) is what a viewer
 (SuperSplat, the INRIA SIBR viewer, gsplat's, nerfstudio's) opens as is: one PLY with the static
 Gaussians and every track valid at ``F`` posed into the world, means ``R μ + t`` and quaternions
-``q(R) ⊗ q``, and their SH coefficients *rotated into the world* (:func:`rotate_sh`), since a
+``q(R) ⊗ q``, and their SH coefficients *rotated into the world* (:func:`~vadgs.render.rotate_sh`), since a
 viewer evaluates every Gaussian's SH at the world viewing direction while the model evaluates a car's
 at the direction in the car's frame. Only the SH degrees the model renders with
 (``active_sh_degree``) are written. Optionally the INRIA model layout
@@ -37,7 +37,7 @@ import torch
 
 from vadgs.data.scene import Scene
 from vadgs.io import atomic_write
-from vadgs.render import eval_sh, num_sh_bases, save_ply, sh_basis
+from vadgs.render import eval_sh, num_sh_bases, rotate_sh, save_ply
 from vadgs.render.ply import write_raw_ply
 from vadgs.train.model import GaussianModel
 
@@ -46,8 +46,6 @@ __all__ = [
     "equirect_directions",
     "export_model",
     "export_world",
-    "rotate_sh",
-    "sh_rotation",
     "sky_equirect",
     "world_gaussians",
 ]
@@ -92,63 +90,6 @@ def export_model(
 
 # ---------------------------------------------------------------------------------------------------
 # the world at one frame
-
-
-def _sphere_directions(n: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """``(n, 3)`` unit directions on a Fibonacci sphere (well spread, deterministic)."""
-    i = torch.arange(n, dtype=dtype) + 0.5
-    z = 1 - 2 * i / n
-    r = torch.sqrt(1 - z * z)
-    phi = math.pi * (3 - math.sqrt(5)) * i
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
-
-
-def sh_rotation(R: torch.Tensor, degree: int) -> torch.Tensor:
-    r"""The ``(K, K)`` matrix ``M`` that rotates SH coefficients by ``R``: ``f' = M f``.
-
-    ``f'`` evaluated at ``d`` equals ``f`` evaluated at ``R^\top d`` (an object's SH moved into the
-    world by its rotation ``R``). The SH of degree ≤ 3 span a rotation-invariant space, so ``M`` is
-    exactly the least-squares solution of :math:`B(D)\,M = B(D R)` on 64 directions ``D``
-    (``B`` = :func:`~vadgs.render.sh_basis`), computed in float64: block diagonal by degree, the
-    Wigner-D matrices in the real basis of 3DGS. Not differentiable (poses are fixed).
-
-    Args:
-        R: ``(3, 3)`` rotation.
-        degree: 0 to 3.
-
-    Returns:
-        ``(K, K)`` float64, ``K = (degree + 1)^2``.
-
-    Example:
-        >>> Rz = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # 90° about z
-        >>> sh_rotation(Rz, 1).round(decimals=6).abs().tolist()[1:]  # basis y, z, x: y -> x, x -> y
-        [[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0]]
-    """
-    if R.shape != (3, 3):
-        raise ValueError(f"R: expected shape (3, 3), got {tuple(R.shape)}")
-    dirs = _sphere_directions(64)
-    B = sh_basis(dirs, degree)
-    B_rot = sh_basis(dirs @ R.double(), degree)  # rows (R^T d)^T = d^T R
-    return torch.linalg.lstsq(B, B_rot).solution
-
-
-def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
-    """SH coefficients ``(N, K, C)`` rotated by ``(3, 3)`` ``R`` (see :func:`sh_rotation`).
-
-    Differentiable w.r.t. ``sh``; keeps its dtype and device.
-
-    Example:
-        >>> sh = torch.randn(5, 9, 3); R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
-        >>> d = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
-        >>> bool(torch.allclose(eval_sh(rotate_sh(sh, R), d), eval_sh(sh, d @ R), atol=1e-5))
-        True
-    """
-    k = sh.shape[-2]
-    degree = math.isqrt(k) - 1
-    if (degree + 1) ** 2 != k or k > 16 or sh.dim() != 3:
-        raise ValueError(f"sh: expected (N, K, C) with K in (1, 4, 9, 16), got {tuple(sh.shape)}")
-    M = sh_rotation(R.detach().cpu(), degree).to(device=sh.device, dtype=sh.dtype)
-    return torch.einsum("kj,njc->nkc", M, sh)
 
 
 def equirect_directions(height: int, width: int) -> torch.Tensor:

@@ -9,10 +9,11 @@ as the scene's novel views):
     T_{cam \to world}(t) = T_{ego \to world}(t)\, T(\text{shift})\, T_{cam \to ego}
 
 With ``frames_between = n > 0``, ``n`` poses are inserted between consecutive frames: rotations are
-slerped, translations interpolated linearly (:func:`interpolate_rigid`). The moving objects are
-interpolated the same way between the two frames when their track is valid at both, else they take
-the pose (and validity) of the nearest frame (:func:`object_poses_at`). Time ``t`` is measured in
-frame positions (``t = 2.5`` is half-way between ``scene.frames[2]`` and ``scene.frames[3]``).
+slerped, translations interpolated linearly (:func:`~vadgs.geometry.keyframe_path`). The moving
+objects are interpolated the same way between the two frames when their track is valid at both,
+else they take the pose (and validity) of the nearest frame
+(:func:`~vadgs.train.results.video.object_poses_at`). Time ``t`` is measured in frame positions
+(``t = 2.5`` is half-way between ``scene.frames[2]`` and ``scene.frames[3]``).
 
 Without ``ego_to_world`` or ``cam_to_ego`` the camera's own poses are interpolated instead (when it
 has a view at every frame) and only ``shift_ego_m = (0, 0, 0)`` is accepted.
@@ -22,18 +23,22 @@ path. Two trajectories need none, every scene offers them (:func:`trajectory_cho
 :func:`make_trajectory` builds one from its name, ``vadgs render --video --trajectory``):
 
 - ``interpolate`` (:func:`interpolated_trajectory`): a smooth path through the training cameras
-  in frame (name) order, as gsplat's ``generate_interpolated_path``. The camera centres and
-  look-at points (``focus`` ahead of each camera: the median depth of the SfM points) follow a
-  centripetal Catmull-Rom spline, which passes through every camera without overshoot or
-  cusps; every pose looks at its look-at point with the scene's up (:func:`scene_up`), so the
-  path does not roll with a photo taken sideways.
+  in frame (name) order, as gsplat's ``generate_interpolated_path``
+  (:func:`~vadgs.geometry.spline_path`). The camera centres and look-at points (``focus`` ahead of
+  each camera: the median depth of the SfM points) follow a centripetal Catmull-Rom spline, which
+  passes through every camera without overshoot or cusps; every pose looks at its look-at point
+  with the scene's up (:func:`scene_up`), so the path does not roll with a photo taken sideways.
 - ``orbit`` (:func:`orbit_trajectory`): a circle around the scene's centre (the point nearest to
   every training camera's optical axis, as multinerf's ``focus_point_fn``) in the plane normal to
   the up, at the cameras' median distance and mean height, looking at the centre, starting at the
-  first training camera and turning the way the cameras do, as nerfstudio's orbit.
+  first training camera and turning the way the cameras do, as nerfstudio's orbit
+  (:func:`~vadgs.geometry.orbit_path`).
 
 Both render with the intrinsics and image size of one camera (:func:`default_video_camera`: the
 one with the most training views) and sweep the frame time from the first frame to the last.
+
+The path math is :mod:`vadgs.geometry.camera_path`'s; this module picks the keys from a scene,
+names the paths and times them.
 """
 
 from __future__ import annotations
@@ -45,24 +50,18 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from vadgs.checks import check_shape
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid, level_up
-from vadgs.render import quaternion_to_rotation
-from vadgs.train.model import rotation_to_quat
+from vadgs.geometry.camera_path import keyframe_path, orbit_path, spline_path
 
 __all__ = [
     "INTERPOLATE_BETWEEN",
     "MAX_FRAMES",
     "ORBIT_FRAMES",
     "Trajectory",
-    "catmull_rom",
     "default_video_camera",
     "ego_trajectory",
-    "interpolate_rigid",
     "interpolated_trajectory",
-    "level_up",
-    "look_at",
     "make_trajectory",
     "orbit_trajectory",
     "parse_trajectory",
@@ -80,37 +79,6 @@ ORBIT_FRAMES = 60
 #: The most poses :func:`make_trajectory` builds unless its ``max_frames`` says (``vadgs render
 #: --max-frames``): 100 000 frames are 2.8 hours at 10 fps; ``orbit:100000000`` would fill memory.
 MAX_FRAMES = 100_000
-
-
-def interpolate_rigid(a: torch.Tensor, b: torch.Tensor, t: float) -> torch.Tensor:
-    """Rigid transform between ``a`` (``t = 0``) and ``b`` (``t = 1``): slerped rotation, linear translation.
-
-    Not differentiable (poses are fixed).
-
-    Shape:
-        ``(*, 4, 4)`` and ``(*, 4, 4)`` → ``(*, 4, 4)``.
-
-    Example:
-        >>> a = torch.eye(4); b = torch.eye(4); b[:3, :3] = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
-        >>> b[0, 3] = 2.0
-        >>> m = interpolate_rigid(a, b, 0.5)  # 45° about z, half-way
-        >>> [round(v, 4) for v in (m[0, 0].item(), m[1, 0].item(), m[0, 3].item())]
-        [0.7071, 0.7071, 1.0]
-    """
-    qa = rotation_to_quat(a[..., :3, :3].double())
-    qb = rotation_to_quat(b[..., :3, :3].double())
-    dot = (qa * qb).sum(-1, keepdim=True)
-    qb = torch.where(dot < 0, -qb, qb)  # the short way round
-    dot = dot.abs().clamp(max=1.0)
-    theta = torch.acos(dot)
-    sin = torch.sin(theta)
-    near = sin < 1e-6  # (almost) the same rotation: linear interpolation is exact enough
-    wa = torch.where(near, 1.0 - t, torch.sin((1.0 - t) * theta) / sin.clamp(min=1e-12))
-    wb = torch.where(near, torch.full_like(theta, t), torch.sin(t * theta) / sin.clamp(min=1e-12))
-    out = a.double().clone()
-    out[..., :3, :3] = quaternion_to_rotation(wa * qa + wb * qb)
-    out[..., :3, 3] = (1.0 - t) * a[..., :3, 3].double() + t * b[..., :3, 3].double()
-    return out.to(a.dtype)
 
 
 class Trajectory(NamedTuple):
@@ -209,14 +177,8 @@ def ego_trajectory(
                 f"{missing}, so no ego path; it offers {trajectory_choices(scene, camera)}"
             )
         keys = torch.stack([scene.views[scene.view_id(f.index, camera)].cam_to_world for f in scene.frames])
-    n = int(frames_between) + 1
-    poses, times = [], []
-    for i in range(len(keys)):
-        for j in range(n if i + 1 < len(keys) else 1):
-            s = j / n
-            poses.append(keys[i] if j == 0 else interpolate_rigid(keys[i], keys[i + 1], s))
-            times.append(i + s)
-    return Trajectory(torch.stack(poses), torch.tensor(times, dtype=torch.float64), camera)
+    path = keyframe_path(keys, int(frames_between))
+    return Trajectory(path.cam_to_world, path.t, camera)
 
 
 def _has_view(scene: Scene, frame: object, camera: str) -> bool:
@@ -381,77 +343,6 @@ def make_trajectory(
     return orbit_trajectory(scene, camera, arg)
 
 
-def look_at(position: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """Camera-to-world poses looking from ``position`` at ``target``, no roll about ``up``.
-
-    OpenCV axes: z towards the target, x right (normal to ``up``), y down. Where the view is
-    along ``up`` (no right direction), x is taken normal to the nearest world axis instead.
-
-    Shape:
-        ``(*, 3)``, ``(*, 3)``, ``(3,)`` → ``(*, 4, 4)``, on the inputs' device and dtype.
-
-    Example:
-        >>> c2w = look_at(torch.zeros(3), torch.tensor([0.0, 1, 0]), torch.tensor([0.0, 0, 1]))
-        >>> c2w[:3, :3].tolist()  # right = +x, down = -z, forward = +y
-        [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
-    """
-    z = torch.nn.functional.normalize(target - position, dim=-1)
-    up = up.to(z).expand_as(z)
-    x = torch.linalg.cross(z, up)
-    flat = x.norm(dim=-1, keepdim=True) < 1e-6
-    if bool(flat.any()):  # looking along up: any axis not along z gives a right direction
-        axis = torch.eye(3, dtype=z.dtype, device=z.device)[z.abs().argmin(-1)]
-        x = torch.where(flat, torch.linalg.cross(z, axis), x)
-    x = torch.nn.functional.normalize(x, dim=-1)
-    out = torch.zeros(*z.shape[:-1], 4, 4, dtype=z.dtype, device=z.device)
-    out[..., :3, 0], out[..., :3, 1], out[..., :3, 2] = x, torch.linalg.cross(z, x), z
-    out[..., :3, 3] = position
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def catmull_rom(points: torch.Tensor, t: torch.Tensor, alpha: float = 0.5) -> torch.Tensor:
-    """A Catmull-Rom spline through ``points`` at parameters ``t`` (point ``i`` at ``t = i``).
-
-    ``alpha = 0.5`` is the centripetal spline: no cusp or self-intersection within a segment,
-    no overshoot on a straight run. The ends are extended by reflecting their neighbour.
-
-    Shape:
-        ``(N, D)``, ``(P,)`` in ``[0, N - 1]`` → ``(P, D)``.
-
-    Example:
-        >>> pts = torch.tensor([[0.0, 0], [1, 1], [2, 0], [3, 1]])
-        >>> catmull_rom(pts, torch.tensor([0.0, 1.0, 2.5])).tolist()[:2]
-        [[0.0, 0.0], [1.0, 1.0]]
-    """
-    check_shape(points, "points", ("N", "D"))
-    n = points.shape[0]
-    t = torch.as_tensor(t, dtype=points.dtype, device=points.device)
-    if n == 1:
-        return points.expand(t.shape[0], -1).clone()
-    if bool(((t < 0) | (t > n - 1)).any()):
-        raise ValueError(f"t: expected parameters in [0, {n - 1}], got {t.min().item()}..{t.max().item()}")
-    ext = torch.cat([2 * points[:1] - points[1:2], points, 2 * points[-1:] - points[-2:-1]])
-    i = t.floor().long().clamp(max=n - 2)
-    u = (t - i)[:, None]
-    p0, p1, p2, p3 = ext[i], ext[i + 1], ext[i + 2], ext[i + 3]
-
-    def knot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return (b - a).norm(dim=-1, keepdim=True).pow(alpha).clamp(min=1e-9)
-
-    t0 = torch.zeros_like(u)
-    t1 = t0 + knot(p0, p1)
-    t2 = t1 + knot(p1, p2)
-    t3 = t2 + knot(p2, p3)
-    tt = t1 + u * (t2 - t1)
-    a1 = ((t1 - tt) * p0 + (tt - t0) * p1) / (t1 - t0)
-    a2 = ((t2 - tt) * p1 + (tt - t1) * p2) / (t2 - t1)
-    a3 = ((t3 - tt) * p2 + (tt - t2) * p3) / (t3 - t2)
-    b1 = ((t2 - tt) * a1 + (tt - t0) * a2) / (t2 - t0)
-    b2 = ((t3 - tt) * a2 + (tt - t1) * a3) / (t3 - t1)
-    return ((t2 - tt) * b1 + (tt - t1) * b2) / (t2 - t1)
-
-
 def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:
     """The scene's up direction ``(3,)`` (unit, float64): :func:`level_up` of its cameras.
 
@@ -513,29 +404,10 @@ def interpolated_trajectory(
     if int(frames_between) < 0:
         raise ValueError(f"frames_between: expected >= 0, got {frames_between}")
     camera, keys, c2w = _path_keys(scene, camera)
-    depth = _focus_depth(scene, keys)
-    centres, targets = c2w[:, :3, 3], c2w[:, :3, 3] + depth * c2w[:, :3, 2]
-    n = int(frames_between) + 1
-    t = torch.arange((len(keys) - 1) * n + 1, dtype=torch.float64) / n
-    poses = look_at(catmull_rom(centres, t), catmull_rom(targets, t), scene_up(scene, keys))
+    path = spline_path(c2w, scene_up(scene, keys), _focus_depth(scene, keys), int(frames_between))
     key_times = [float(scene.view_frame_position(v)) for v in keys]
-    times = torch.from_numpy(np.interp(t.numpy(), np.arange(len(keys)), key_times))
-    return Trajectory(poses.float(), times, camera)
-
-
-def _focus_point(centres: torch.Tensor, forward: torch.Tensor) -> torch.Tensor | None:
-    """The point nearest (least squares) to every optical axis.
-
-    None when the axes are about parallel or the point lies behind most cameras.
-    """
-    proj = torch.eye(3, dtype=centres.dtype) - forward[:, :, None] * forward[:, None, :]  # (V, 3, 3)
-    A, b = proj.sum(0), (proj @ centres[:, :, None]).sum(0)[:, 0]
-    eig = torch.linalg.eigvalsh(A)
-    if float(eig[0]) < 0.02 * float(eig[-1]):
-        return None
-    point = torch.linalg.solve(A, b)
-    ahead = ((point - centres) * forward).sum(-1) > 0
-    return point if float(ahead.double().mean()) > 0.5 else None
+    times = torch.from_numpy(np.interp(path.t.numpy(), np.arange(len(keys)), key_times))
+    return Trajectory(path.cam_to_world.float(), times, camera)
 
 
 def orbit_trajectory(scene: Scene, camera: str | None = None, num_frames: int = ORBIT_FRAMES) -> Trajectory:
@@ -552,25 +424,7 @@ def orbit_trajectory(scene: Scene, camera: str | None = None, num_frames: int = 
     if int(num_frames) < 1:
         raise ValueError(f"num_frames: expected >= 1, got {num_frames}")
     camera, keys, c2w = _path_keys(scene, camera)
-    centres, forward = c2w[:, :3, 3], c2w[:, :3, 2]
-    up = scene_up(scene, keys)
-    centre = _focus_point(centres, forward)
-    if centre is None:  # cameras looking the same way (a street): the middle of what they look at
-        centre = (centres + _focus_depth(scene, keys) * forward).mean(0)
-    offset = centres - centre
-    height = float((offset @ up).mean())
-    flat = offset - (offset @ up)[:, None] * up
-    radius = float(flat.norm(dim=-1).median())
-    e1 = flat[0] if float(flat[0].norm()) > 1e-9 * max(radius, 1e-9) else torch.linalg.cross(up, forward[0])
-    e1 = torch.nn.functional.normalize(e1 - (e1 @ up) * up, dim=0)
-    e2 = torch.linalg.cross(up, e1)
-    azimuth = torch.atan2(flat @ e2, flat @ e1)
-    turn = torch.remainder(azimuth.diff() + torch.pi, 2 * torch.pi) - torch.pi  # steps in (-pi, pi]
-    sense = -1.0 if float(turn.sum()) < 0 else 1.0
-    angle = sense * 2 * torch.pi * torch.arange(int(num_frames), dtype=torch.float64) / int(num_frames)
-    radius = radius if radius > 0 else 1.0
-    positions = centre + radius * (angle.cos()[:, None] * e1 + angle.sin()[:, None] * e2) + height * up
-    poses = look_at(positions, centre.expand_as(positions), up)
+    path = orbit_path(c2w, scene_up(scene, keys), int(num_frames), _focus_depth(scene, keys))
     last = len(scene.frames) - 1
     times = torch.linspace(0.0, float(last), int(num_frames), dtype=torch.float64)
-    return Trajectory(poses.float(), times, camera)
+    return Trajectory(path.cam_to_world.float(), times, camera)

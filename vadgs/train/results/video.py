@@ -29,10 +29,11 @@ import torch
 from vadgs.checks import check_shape
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
+from vadgs.geometry.camera_path import interpolate_rigid
 from vadgs.io import atomic_write
 from vadgs.render import RasterConfig
 from vadgs.train.model import GaussianModel, ModelRender
-from vadgs.train.results.trajectory import Trajectory, interpolate_rigid, make_trajectory
+from vadgs.train.results.trajectory import Trajectory, make_trajectory
 
 __all__ = [
     "NAME_MAX",
@@ -104,8 +105,9 @@ def object_poses_at(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Track poses at a (fractional) frame position.
 
-    A track valid at both neighbouring frames is interpolated (:func:`interpolate_rigid`); otherwise
-    it takes the pose and validity of the nearest frame.
+    A track valid at both neighbouring frames is interpolated
+    (:func:`~vadgs.geometry.interpolate_rigid`); otherwise it takes the pose and validity of the
+    nearest frame.
 
     Args:
         object_to_world: ``(T, F, 4, 4)``.

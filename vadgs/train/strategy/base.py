@@ -17,7 +17,7 @@ lives in a dict that the training loop owns, checkpoints and passes back. Any lo
 ``opacities``, ``sh0``, ``shN``) or vadgs's ``GaussianModel.params`` (``log_scales``,
 ``opacity_logits``, ``sh_dc``, ``sh_rest`` and the integer ``node_ids``); ``optimizers`` is gsplat's
 ``{name: optimizer}`` or one optimizer with a named group per parameter
-(:func:`vadgs.train.strategy.ops.make_optimizer`). Strategies change the set of Gaussians only through
+(:func:`vadgs.train.model.make_optimizer`). Strategies change the set of Gaussians only through
 :mod:`vadgs.train.strategy.ops`, which keeps the optimizer moments and every per-Gaussian tensor of
 ``state`` consistent. A strategy never sees the training loop: what else it needs is given to it
 explicitly (e.g. :class:`~vadgs.train.vad.StrategyContext` for the visibility-aware one).

@@ -21,20 +21,23 @@ generically with the rows, as gsplat's ``strategy/ops.py`` does: a clone or a sp
 its parent's row, removal drops it.
 
 ``optimizers`` is either one optimizer with a named param group per parameter (vadgs's
-:func:`make_optimizer`) or gsplat's dict ``{name: optimizer}``. A :class:`GaussianModel` may be
-passed wherever a params mapping is expected.
+:func:`~vadgs.train.model.make_optimizer`) or gsplat's dict ``{name: optimizer}``.
+
+Nothing here knows vadgs's model, as nothing in gsplat's ``strategy/ops.py`` does: pass
+``model.params``. Passing the :class:`~vadgs.train.model.GaussianModel` itself is deprecated (a
+``DeprecationWarning``; its ``params`` are used).
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Mapping, MutableMapping
 from typing import Any, NamedTuple, Union
 
 import torch
 from torch import nn
 
-from vadgs.render import quaternion_to_rotation
-from vadgs.train.model import PER_GAUSSIAN, GaussianModel
+from vadgs.geometry.rotation import quaternion_to_rotation
 
 __all__ = [
     "GSPLAT_NAMES",
@@ -43,7 +46,6 @@ __all__ = [
     "add_gaussians",
     "check_params",
     "duplicate",
-    "make_optimizer",
     "param_names",
     "remove_gaussians",
     "reset_opacity",
@@ -53,6 +55,9 @@ __all__ = [
 
 #: ``torch.optim.Optimizer`` with named groups, or gsplat's ``{name: optimizer}``.
 Optimizers = Union[torch.optim.Optimizer, Mapping[str, torch.optim.Optimizer], None]  # noqa: UP007
+
+#: A params mapping: gsplat's dict or :class:`~torch.nn.ParameterDict` of per-Gaussian tensors.
+Params = Union[MutableMapping[str, torch.Tensor], nn.ParameterDict]  # noqa: UP007
 
 
 class ParamNames(NamedTuple):
@@ -74,11 +79,25 @@ VADGS_NAMES = ParamNames("means", "quats", "log_scales", "opacity_logits", "sh_d
 GSPLAT_NAMES = ParamNames("means", "quats", "scales", "opacities", "sh0", "shN")
 
 
-def _params(params: Any) -> MutableMapping[str, torch.Tensor]:
-    return params.params if isinstance(params, GaussianModel) else params
+def _params(params: Any) -> Params:
+    """``params`` itself, or a model's ``params`` with a deprecation warning (see the module docstring)."""
+    if isinstance(params, (Mapping, nn.ParameterDict)):
+        return params
+    inner = getattr(params, "params", None)
+    if isinstance(inner, (Mapping, nn.ParameterDict)):
+        warnings.warn(
+            f"vadgs.train.strategy.ops: passing a {type(params).__name__} is deprecated, pass its .params",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return inner
+    raise TypeError(
+        "params: expected a params mapping (a dict or ParameterDict of per-Gaussian tensors, e.g. "
+        f"model.params), got {type(params).__name__}"
+    )
 
 
-def param_names(params: Mapping[str, torch.Tensor] | GaussianModel) -> ParamNames:
+def param_names(params: Params) -> ParamNames:
     """The layout of a params mapping: :data:`VADGS_NAMES` or :data:`GSPLAT_NAMES`.
 
     Recognised by the geometry names (means, quats, scales, opacities); the SH names are None when
@@ -105,32 +124,8 @@ def param_names(params: Mapping[str, torch.Tensor] | GaussianModel) -> ParamName
     )
 
 
-def _num_rows(params: Mapping[str, torch.Tensor]) -> int:
+def _num_rows(params: Params) -> int:
     return int(params["means"].shape[0])
-
-
-def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
-    """One Adam with a named param group per parameter (per-Gaussian ones and ``"sky"``).
-
-    Args:
-        model: the model.
-        lrs: learning rate per name (:data:`~vadgs.train.model.PER_GAUSSIAN` and ``"sky"``).
-        eps: Adam epsilon (3DGS uses 1e-15).
-
-    Example:
-        >>> from vadgs.train.model import GaussianModel
-        >>> m = GaussianModel(torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(4, 3), torch.full((4,), -1),
-        ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=0)
-        >>> opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
-        >>> [g["name"] for g in opt.param_groups][:2]
-        ['means', 'quats']
-    """
-    missing = [k for k in (*PER_GAUSSIAN, "sky") if k not in lrs]
-    if missing:
-        raise ValueError(f"lrs: missing learning rates for {missing}")
-    groups = [{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN]
-    groups.append({"params": [model.sky], "lr": lrs["sky"], "name": "sky"})
-    return torch.optim.Adam(groups, eps=eps)
 
 
 def _group(optimizers: Optimizers, name: str) -> tuple[torch.optim.Optimizer, dict] | None:
@@ -146,7 +141,7 @@ def _group(optimizers: Optimizers, name: str) -> tuple[torch.optim.Optimizer, di
     return None
 
 
-def check_params(params: Mapping[str, torch.Tensor] | GaussianModel, optimizers: Optimizers) -> None:
+def check_params(params: Params, optimizers: Optimizers) -> None:
     """Check that ``params`` and ``optimizers`` agree (a strategy's ``check_sanity``).
 
     Every per-Gaussian entry must have the Gaussians as first dimension; the geometry must be
@@ -166,7 +161,7 @@ def check_params(params: Mapping[str, torch.Tensor] | GaussianModel, optimizers:
         ...
         ValueError: optimizers: expected an optimizer of params['means'], got None
     """
-    p = getattr(params, "params", params)
+    p = _params(params)
     names = param_names(p)
     n = int(p[names.means].shape[0])
     for k, v in p.items():
@@ -200,7 +195,7 @@ def check_params(params: Mapping[str, torch.Tensor] | GaussianModel, optimizers:
 
 @torch.no_grad()
 def update_params(
-    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    params: Params,
     optimizers: Optimizers,
     state: dict | None,
     param_fn: Callable[[str, torch.Tensor], torch.Tensor],
@@ -211,8 +206,7 @@ def update_params(
     """The primitive all ops are built on: replace parameters, their moments and per-row tensors.
 
     Args:
-        params: params mapping (or a :class:`GaussianModel`), updated in place (new
-            :class:`~torch.nn.Parameter` objects).
+        params: params mapping, updated in place (new :class:`~torch.nn.Parameter` objects).
         optimizers: their groups get the new parameters, with moments ``moment_fn(name, moment)``.
         state: strategy state; each tensor with first dimension ``N`` becomes ``row_fn(tensor)``.
         param_fn: ``(name, old) -> new`` data of every entry in ``names``.
@@ -247,7 +241,7 @@ def _zero_rows(t: torch.Tensor, m: int) -> torch.Tensor:
 
 
 def remove_gaussians(
-    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    params: Params,
     optimizers: Optimizers,
     state: dict | None,
     mask: torch.Tensor,
@@ -255,25 +249,26 @@ def remove_gaussians(
     """Remove the Gaussians where ``mask`` is True (parameters, moments, node ids, state rows).
 
     Args:
-        params: params mapping or model, updated in place.
+        params: params mapping, updated in place.
         optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
         mask: ``(N,)`` bool.
 
     Example:
-        >>> m = GaussianModel(torch.randn(5, 3), torch.rand(5, 3), torch.zeros(5, 3), torch.full((5,), -1),
-        ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=0)
-        >>> remove_gaussians(m, None, None, torch.tensor([True, False, True, False, False]))
-        >>> m.num_gaussians
+        >>> params = {"means": torch.randn(5, 3), "quats": torch.rand(5, 4), "scales": torch.zeros(5, 3),
+        ...           "opacities": torch.zeros(5)}  # gsplat's names
+        >>> remove_gaussians(params, None, None, torch.tensor([True, False, True, False, False]))
+        >>> params["means"].shape[0]
         3
     """
+    params = _params(params)
     _check_mask(params, mask)
     keep = ~mask
     update_params(params, optimizers, state, lambda _, p: p[keep], lambda _, v: v[keep], lambda t: t[keep])
 
 
 def duplicate(
-    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    params: Params,
     optimizers: Optimizers,
     state: dict | None,
     mask: torch.Tensor,
@@ -282,6 +277,7 @@ def duplicate(
 
     The copies have the same parameters and node; their moments and state rows start at zero.
     """
+    params = _params(params)
     _check_mask(params, mask)
     sel = torch.nonzero(mask).squeeze(1)
     update_params(
@@ -297,7 +293,7 @@ def duplicate(
 
 
 def split(
-    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    params: Params,
     optimizers: Optimizers,
     state: dict | None,
     mask: torch.Tensor,
@@ -311,7 +307,7 @@ def split(
     Children's moments and state rows start at zero.
 
     Args:
-        params: params mapping or model, updated in place.
+        params: params mapping, updated in place.
         optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
         mask: ``(N,)`` bool, the parents.
@@ -319,9 +315,9 @@ def split(
             (the samples are drawn on the CPU and moved to the parameters' device).
         factor: scale divisor (3DGS: 1.6).
     """
+    p = params = _params(params)
     _check_mask(params, mask)
     names = param_names(params)
-    p = _params(params)
     sel = torch.nonzero(mask).squeeze(1)
     keep = ~mask
     scales = p[names.log_scales].data[sel].exp()
@@ -357,16 +353,17 @@ def split(
 
 
 def add_gaussians(
-    params: MutableMapping[str, torch.Tensor] | GaussianModel,
+    params: Params,
     optimizers: Optimizers,
     state: dict | None,
     new: dict[str, torch.Tensor],
     node_ids: torch.Tensor | None = None,
+    num_nodes: int | None = None,
 ) -> None:
     """Append new Gaussians (e.g. from MVS points), with zero moments and zero state rows.
 
     Args:
-        params: params mapping or model, updated in place.
+        params: params mapping, updated in place.
         optimizers: their moments follow (None: parameters only).
         state: strategy state whose per-Gaussian rows follow (or None).
         new: raw parameters of the new Gaussians, every key of ``params`` (``node_ids`` and
@@ -375,18 +372,23 @@ def add_gaussians(
             ``means`` in the world for static Gaussians, in the object frame for a track node.
         node_ids: ``(M,)`` int64, ``-1`` static or a track node index, when ``params`` has
             ``node_ids`` (overrides ``new["node_ids"]``; default: static).
+        num_nodes: the number of track nodes (vadgs's ``model.object_to_world.shape[0]``), when
+            known: the node ids must then be below it.
 
     Raises:
-        ValueError: on a missing key, a wrong shape, or a node id that is not a track of the model.
+        ValueError: on a missing key, a wrong shape, or a node id below ``-1`` or not below
+            ``num_nodes``.
 
     Example:
-        >>> m = GaussianModel(torch.randn(2, 3), torch.rand(2, 3), torch.zeros(2, 3), torch.full((2,), -1),
-        ...                   torch.zeros(0, 1, 4, 4), torch.zeros(0, 1, dtype=torch.bool), [], sh_degree=0)
-        >>> add_gaussians(m, None, None, {k: torch.zeros(3, *m.params[k].shape[1:]) for k in PER_GAUSSIAN})
-        >>> m.num_gaussians, m.node_ids.tolist()
-        (5, [-1, -1, -1, -1, -1])
+        >>> params = {"means": torch.zeros(2, 3), "quats": torch.ones(2, 4), "log_scales": torch.zeros(2, 3),
+        ...           "opacity_logits": torch.zeros(2), "node_ids": torch.tensor([-1, 0])}  # vadgs's names
+        >>> new = {"means": torch.ones(3, 3), "quats": torch.ones(3, 4), "log_scales": torch.ones(3, 3),
+        ...        "opacity_logits": torch.ones(3)}
+        >>> add_gaussians(params, None, None, new, node_ids=torch.tensor([0, 0, -1]), num_nodes=1)
+        >>> params["means"].shape[0], params["node_ids"].tolist()
+        (5, [-1, 0, 0, 0, -1])
     """
-    p = _params(params)
+    p = params = _params(params)
     first = next(iter(new.values()), None)
     m = int(first.shape[0]) if first is not None else 0
     new = dict(new)
@@ -403,12 +405,11 @@ def add_gaussians(
         want = (m, *p[k].shape[1:])
         if tuple(new[k].shape) != want:
             raise ValueError(f"new[{k!r}]: expected shape {want}, got {tuple(new[k].shape)}")
-    if isinstance(params, GaussianModel) and m:
-        num_tracks = params.object_to_world.shape[0]
+    if num_nodes is not None and "node_ids" in p and m:
         nid = new["node_ids"]
         lo, hi = int(nid.min()), int(nid.max())
-        if lo < -1 or hi >= num_tracks:
-            raise ValueError(f"node_ids: expected values in [-1, {num_tracks}), got [{lo}, {hi}]")
+        if lo < -1 or hi >= num_nodes:
+            raise ValueError(f"node_ids: expected values in [-1, {num_nodes}), got [{lo}, {hi}]")
     update_params(
         params,
         optimizers,
@@ -419,10 +420,9 @@ def add_gaussians(
     )
 
 
-def reset_opacity(
-    params: MutableMapping[str, torch.Tensor] | GaussianModel, optimizers: Optimizers, value: float
-) -> None:
+def reset_opacity(params: Params, optimizers: Optimizers, value: float) -> None:
     """Clamp every opacity to at most ``value`` (3DGS opacity reset) and zero its moments."""
+    params = _params(params)
     name = param_names(params).opacity_logits
     logit = float(torch.logit(torch.tensor(value)))
     update_params(

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from vadgs.checks import check_finite, check_shape
-from vadgs.train.model import rotation_to_quat
+from vadgs.geometry.rotation import rotation_to_quat
 from vadgs.train.strategy import ops
 from vadgs.train.vad.config import RANKINGS
 from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
@@ -163,7 +163,7 @@ def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
     the normal. On the device and in the dtype of ``normals``.
 
     Example:
-        >>> from vadgs.render import quaternion_to_rotation
+        >>> from vadgs.geometry import quaternion_to_rotation
         >>> n = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
         >>> torch.allclose(quaternion_to_rotation(normals_to_quats(n))[:, :, 2], n, atol=1e-6)
         True

@@ -1,0 +1,106 @@
+"""Tests of the rotation of spherical-harmonics coefficients (vadgs.render.sh).
+
+The reference: rotating the coefficients by ``R`` and evaluating at ``d`` equals evaluating the
+original coefficients at ``R^T d`` (the basis evaluated one Gaussian at a time); degree 1 against
+its hand-computed matrix.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch.autograd import gradcheck
+
+from vadgs.geometry import quaternion_to_rotation
+from vadgs.render import eval_sh, rotate_sh, sh_basis, sh_rotation
+
+#: (x, y, z) -> (-y, z, -x): the degree-1 basis of 3DGS is C1 times this (sh_basis).
+S1 = torch.tensor([[0.0, -1, 0], [0, 0, 1], [-1, 0, 0]], dtype=torch.float64)
+
+
+def random_rotation(gen: torch.Generator) -> torch.Tensor:
+    return quaternion_to_rotation(torch.randn(4, generator=gen, dtype=torch.float64))
+
+
+class TestShRotation:
+    def test_identity_and_group_structure(self):
+        gen = torch.Generator().manual_seed(1)
+        R1, R2 = random_rotation(gen), random_rotation(gen)
+        torch.testing.assert_close(sh_rotation(torch.eye(3), 3), torch.eye(16, dtype=torch.float64))
+        torch.testing.assert_close(sh_rotation(R1 @ R2, 3), sh_rotation(R1, 3) @ sh_rotation(R2, 3))
+        M = sh_rotation(R1, 3)
+        torch.testing.assert_close(M @ M.T, torch.eye(16, dtype=torch.float64))  # orthogonal
+
+    def test_block_diagonal_by_degree(self):
+        M = sh_rotation(random_rotation(torch.Generator().manual_seed(2)), 3)
+        degree = torch.tensor([0] + [1] * 3 + [2] * 5 + [3] * 7)
+        across = degree[:, None] != degree[None, :]
+        assert float(M[across].abs().max()) < 1e-12
+        assert abs(float(M[0, 0]) - 1.0) < 1e-12  # the constant term does not turn
+
+    def test_degree_one_hand_computed(self):
+        # f' . Y(d) = f . Y(R^T d) with Y = C1 S1 d for degree 1: f' = S1 R S1^T f
+        R = random_rotation(torch.Generator().manual_seed(3))
+        M = sh_rotation(R, 1)
+        torch.testing.assert_close(M[1:, 1:], S1 @ R @ S1.T, rtol=0, atol=1e-12)
+
+    def test_float32_rotation(self):
+        R = random_rotation(torch.Generator().manual_seed(4))
+        M = sh_rotation(R.float(), 2)
+        assert M.dtype == torch.float64 and M.shape == (9, 9)
+        torch.testing.assert_close(M, sh_rotation(R.float().double(), 2))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match=r"R: expected shape \(3, 3\), got \(4, 4\)"):
+            sh_rotation(torch.eye(4), 1)
+        with pytest.raises(ValueError, match="degree: expected 0 to 3, got 4"):
+            sh_rotation(torch.eye(3), 4)
+
+
+class TestRotateSh:
+    def test_smoke(self, device, dtype):
+        sh = torch.randn(7, 9, 3, device=device, dtype=dtype)
+        out = rotate_sh(sh, torch.eye(3, device=device))
+        assert out.shape == sh.shape and out.device == sh.device and out.dtype == dtype
+        torch.testing.assert_close(out, sh)
+
+    @pytest.mark.parametrize("degree", [0, 1, 2, 3])
+    def test_against_evaluation_at_rotated_directions(self, degree):
+        gen = torch.Generator().manual_seed(degree)
+        R = random_rotation(gen)
+        sh = torch.randn(50, (degree + 1) ** 2, 3, generator=gen, dtype=torch.float64)
+        d = F.normalize(torch.randn(50, 3, generator=gen, dtype=torch.float64), dim=-1)
+        # the reference: evaluate the basis at R^T d directly, one Gaussian at a time
+        expect = torch.stack([sh_basis(R.T @ d[i], degree) @ sh[i] for i in range(50)])
+        got = torch.einsum("nk,nkc->nc", sh_basis(d, degree), rotate_sh(sh, R))
+        torch.testing.assert_close(got, expect, atol=1e-9, rtol=1e-9)
+
+    def test_colours_follow_the_frame(self):
+        # an object's colours seen from the world: eval_sh of the rotated SH at d = the object's at R^T d
+        gen = torch.Generator().manual_seed(5)
+        R = random_rotation(gen)
+        sh = torch.randn(20, 16, 3, generator=gen, dtype=torch.float64)
+        d = F.normalize(torch.randn(20, 3, generator=gen, dtype=torch.float64), dim=-1)
+        torch.testing.assert_close(eval_sh(rotate_sh(sh, R), d), eval_sh(sh, d @ R))
+
+    def test_inverse(self):
+        gen = torch.Generator().manual_seed(6)
+        R = random_rotation(gen)
+        sh = torch.randn(10, 16, 3, generator=gen, dtype=torch.float64)
+        torch.testing.assert_close(rotate_sh(rotate_sh(sh, R), R.T), sh)
+
+    def test_exception(self):
+        with pytest.raises(
+            ValueError, match=r"sh: expected \(N, K, C\) with K in \(1, 4, 9, 16\), got \(2, 5, 3\)"
+        ):
+            rotate_sh(torch.zeros(2, 5, 3), torch.eye(3))
+        with pytest.raises(ValueError, match="sh: expected"):
+            rotate_sh(torch.zeros(4, 3), torch.eye(3))
+        with pytest.raises(ValueError, match="R: expected shape"):
+            rotate_sh(torch.zeros(2, 4, 3), torch.eye(2))
+
+    def test_gradcheck(self):
+        R = random_rotation(torch.Generator().manual_seed(7))
+        sh = torch.randn(2, 9, 3, dtype=torch.float64, requires_grad=True)
+        assert gradcheck(lambda s: rotate_sh(s, R), (sh,))
