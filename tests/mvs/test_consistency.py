@@ -52,6 +52,20 @@ class TestGeometricConsistency:
         assert not res.mask[0, 0, 5, 5] and not res.mask[0, 0, 6, 6]
         assert torch.isinf(res.reproj_error[0, :, 6, 6]).all()
 
+    def test_non_finite_reference_depth_is_inconsistent_not_a_crash(self):
+        """An inf / NaN reference depth (a render with no surface) projects nowhere: it used to give
+        NaN pixel coordinates cast to an out-of-range index (RuntimeError)."""
+        d, K, w2c, sd, sK, sw = _setup()
+        ref = geometric_consistency(d, K, w2c, sd, sK, sw, min_views=1)
+        d = d.clone()
+        d[..., 3, 4], d[..., 7, 9], d[..., 8, 2] = float("inf"), float("nan"), float("-inf")
+        res = geometric_consistency(d, K, w2c, sd, sK, sw, min_views=1)
+        bad = torch.zeros(12, 16, dtype=torch.bool)
+        bad[3, 4] = bad[7, 9] = bad[8, 2] = True
+        assert not res.mask[0, 0][bad].any() and torch.isinf(res.reproj_error[0][:, bad]).all()
+        assert torch.equal(res.mask[0, 0][~bad], ref.mask[0, 0][~bad])
+        assert torch.equal(res.reproj_error[0][:, ~bad], ref.reproj_error[0][:, ~bad])
+
     def test_exceptions(self):
         d, K, w2c, sd, sK, sw = _setup()
         with pytest.raises(ValueError, match="src_depth"):

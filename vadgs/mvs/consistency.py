@@ -96,7 +96,7 @@ def reproject_depth(
     pts = backproject_depth(depth, K, method="inverse").reshape(n, 3, h * w)  # reference camera
     rot, t = src_from_ref[:, :3, :3], src_from_ref[:, :3, 3:]
     uv_s, z_s = _project(rot @ pts + t, src_K)
-    uv_r = uv_s.round()
+    uv_r = torch.nan_to_num(uv_s.round(), nan=-1.0, posinf=-1.0, neginf=-1.0)  # inf/NaN depth: outside
     inside = (uv_r[:, 0] >= 0) & (uv_r[:, 0] <= ws - 1) & (uv_r[:, 1] >= 0) & (uv_r[:, 1] <= hs - 1)
     lin = (uv_r[:, 1].clamp(0, hs - 1) * ws + uv_r[:, 0].clamp(0, ws - 1)).long()
     d_s = torch.gather(src_depth.reshape(n, hs * ws), 1, lin)  # (N, P)
