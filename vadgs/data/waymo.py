@@ -451,7 +451,7 @@ def load_waymo(
                 f"{arr.shape[1]}x{arr.shape[0]} differs from the calibration's {w}x{h}"
             )
         img = torch.from_numpy(arr).permute(2, 0, 1)
-        return undistort[view.camera](img[None])[0].clamp(0.0, 1.0)
+        return undistort[view.camera](img[None])[0].clamp_(0.0, 1.0)  # img is fresh: clamped in place
 
     # -- boxes → instances and tracks ---------------------------------------------------------------
     boxes: dict[int, dict[int, BoxObservation]] = {}
