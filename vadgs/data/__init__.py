@@ -1,7 +1,9 @@
 """Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
 
 A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``);
-:func:`make_segment` writes a procedural driving segment in the benchmark format at any size.
+:func:`make_segment` writes a procedural driving segment in the benchmark format at any size, and
+:func:`write_waymo_segment` a benchmark scene as the Waymo v2 parquet components that
+:func:`load_waymo` reads.
 
 Every loader returns a :class:`~vadgs.data.scene.Scene`; per-view images, depth and instance
 maps are read lazily.
@@ -36,6 +38,7 @@ from vadgs.data.sfm import SfmResult, run_sfm
 from vadgs.data.synthetic import SegmentConfig, make_segment
 from vadgs.data.validate import validate_scene
 from vadgs.data.waymo import load_waymo
+from vadgs.data.waymo_writer import write_waymo_segment
 
 __all__ = [
     "CameraInfo",
@@ -65,6 +68,7 @@ __all__ = [
     "run_sfm",
     "sample_scene_path",
     "validate_scene",
+    "write_waymo_segment",
 ]
 
 

@@ -67,8 +67,8 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         for vid in f.view_ids:
             v = scene.views[vid]
             rel = f"images/{safe_filename(v.camera)}/{f.index:06d}.png"
-            img = scene.load_images([vid])[0]
-            pil = Image.fromarray((img.clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy())
+            img = scene.load_images([vid])[0]  # a fresh tensor: rounded to 8 bits in place
+            pil = Image.fromarray(img.clamp_(0, 1).mul_(255).round_().byte().permute(1, 2, 0).numpy())
             atomic_write(out / rel, lambda tmp, pil=pil: pil.save(tmp, format="PNG"))
             views.append({"camera": v.camera, "image": rel, "cam_to_world": _list(v.cam_to_world)})
         fm: dict = {"index": f.index, "timestamp": f.timestamp, "views": views}

@@ -161,15 +161,40 @@ class _Component:
         if required and not self.exists:
             raise FileNotFoundError(f"Waymo component {name!r}: missing file {self.path}")
 
-    def read(self, columns: Sequence[str], optional: Sequence[str] = (), filters=None) -> dict[str, list]:
+    def read_table(self, columns: Sequence[str], optional: Sequence[str] = (), filters=None):
+        """The pyarrow table of ``columns`` (each required) and those of ``optional`` the file has."""
         names = set(self.pq.read_schema(self.path).names)
         missing = [c for c in columns if c not in names]
         if missing:
             raise ValueError(f"Waymo component {self.name!r} ({self.path.name}): missing column(s) {missing}")
         cols = list(columns) + [c for c in optional if c in names]
-        table = self.pq.read_table(self.path, columns=cols, filters=filters)
+        return self.pq.read_table(self.path, columns=cols, filters=filters)
+
+    def read(self, columns: Sequence[str], optional: Sequence[str] = (), filters=None) -> dict[str, list]:
+        """Column name → Python values (None for an absent optional column), as ``read_table``."""
+        table = self.read_table(columns, optional, filters)
         out = table.to_pydict()
         return {c: out.get(c, [None] * table.num_rows) for c in [*columns, *optional]}
+
+    def range_images(self, component: str, filters) -> dict[int, np.ndarray]:
+        """``key.laser_name`` → the ``(H, W, C)`` float32 first-return range image of the matching rows.
+
+        The values stay in numpy (a range image is ~700k floats: no Python list of them).
+        """
+        values, shape = _columns(component, *_RANGE_IMAGE)
+        table = self.read_table([_LASER, values, shape], filters=filters)
+        out = {}
+        for laser, vals, shp in zip(
+            table.column(_LASER).to_pylist(), table.column(values), table.column(shape).to_pylist()
+        ):
+            if vals.is_valid and shp is not None:
+                flat = vals.values.to_numpy(zero_copy_only=False)
+                if flat.size != int(np.prod(shp)):
+                    raise ValueError(
+                        f"Waymo component {self.name!r}: a range image of shape {shp} has {flat.size} values"
+                    )
+                out[int(laser)] = flat.reshape(shp)
+        return out
 
 
 def waymo_camera_name(value: object) -> str:
@@ -426,7 +451,7 @@ def load_waymo(
                 f"{arr.shape[1]}x{arr.shape[0]} differs from the calibration's {w}x{h}"
             )
         img = torch.from_numpy(arr).permute(2, 0, 1)
-        return undistort[view.camera](img[None])[0].clamp(0.0, 1.0)
+        return undistort[view.camera](img[None])[0].clamp_(0.0, 1.0)  # img is fresh: clamped in place
 
     # -- boxes → instances and tracks ---------------------------------------------------------------
     boxes: dict[int, dict[int, BoxObservation]] = {}
@@ -488,20 +513,13 @@ def load_waymo(
             if not 0 <= frame < num_frames:
                 raise FileNotFoundError(f"Waymo segment {segment}: no LiDAR for frame {frame}")
             flt = [*seg_filter, (_TS, "=", frame_ts[frame])]
-            ri = lidar_comp.read([_LASER, *_columns(_L, *_RANGE_IMAGE)], filters=flt)
-            pix = {}
-            if pose_comp.exists:
-                pr = pose_comp.read([_LASER, *_columns(_LP, *_RANGE_IMAGE)], filters=flt)
-                for k, v, s in zip(*pr.values()):
-                    if v is not None:
-                        pix[int(k)] = np.asarray(v, dtype=np.float64).reshape(s)
-            by_laser = {int(k): (v, s) for k, v, s in zip(*ri.values())}
+            by_laser = lidar_comp.range_images(_L, flt)
+            pix = pose_comp.range_images(_LP, flt) if pose_comp.exists else {}
             out = []
             for n in lasers:
                 if laser_id[n] not in by_laser:
                     raise ValueError(f"Waymo segment {segment}: frame {frame} has no {n} range image")
-                values, shape = by_laser[laser_id[n]]
-                img = np.asarray(values, dtype=np.float64).reshape(shape)
+                img = by_laser[laser_id[n]]
                 row = lcal[laser_id[n]]
                 incl = waymo_beam_inclinations(
                     img.shape[0],

@@ -4,6 +4,8 @@
 :func:`waymo_range_image_to_points` turns the first return into points in the vehicle frame, or in
 the world with the per-pixel vehicle poses of the ``lidar_pose`` component. Used by
 :func:`vadgs.data.waymo.load_waymo`, and importable from :mod:`vadgs.data.waymo`.
+:func:`waymo_points_to_range_image` is the inverse (to a cell's resolution), used by
+:func:`vadgs.data.waymo_writer.write_waymo_segment`.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["waymo_beam_inclinations", "waymo_range_image_to_points"]
+__all__ = ["waymo_beam_inclinations", "waymo_points_to_range_image", "waymo_range_image_to_points"]
 
 
 def waymo_beam_inclinations(
@@ -115,3 +117,68 @@ def waymo_range_image_to_points(
         rot = _euler_to_matrix(pp[:, 0], pp[:, 1], pp[:, 2])
         pts = np.einsum("nij,nj->ni", rot, pts) + pp[:, 3:]
     return pts
+
+
+def waymo_points_to_range_image(
+    points: np.ndarray, extrinsic: np.ndarray, row_inclination: np.ndarray, width: int
+) -> np.ndarray:
+    """The ranges of a range image that :func:`waymo_range_image_to_points` turns back into ``points``.
+
+    The inverse of :func:`waymo_range_image_to_points` (without ``pixel_pose``) up to the cell
+    size: each point goes to the row of the nearest beam inclination and to the column whose
+    azimuth interval (in the vehicle frame, ``π - 2π (c + 1) / W`` to ``π - 2π c / W``) holds its
+    azimuth, and keeps its exact range. Read back, a point lies at its row's inclination and its
+    column's centre azimuth: off by at most half a column (``range · π / W``) sideways, and by
+    the distance to the nearest beam's cone vertically (nothing for points that a beam of
+    ``row_inclination`` measured). Where several points share a cell, the nearest one is kept
+    (the first return); the others are dropped.
+
+    Args:
+        points: ``(N, 3)`` points in the vehicle frame.
+        extrinsic: ``(4, 4)`` LiDAR → vehicle.
+        row_inclination: ``(H,)`` beam inclination (radians) of each row, row 0 the highest
+            (:func:`waymo_beam_inclinations`), strictly decreasing.
+        width: ``W``, the number of columns (Waymo's TOP laser: 2650).
+
+    Returns:
+        ``(H, W)`` float64 ranges in metres, ``-1`` where no point fell (Waymo's "no return").
+
+    Raises:
+        ValueError: on inconsistent shapes, a non-positive ``width`` or inclinations that do not
+            decrease.
+
+    Example:
+        >>> ranges = waymo_points_to_range_image(np.array([[7.0711, 7.0711, 0.0]]), np.eye(4), np.zeros(1), 4)
+        >>> ranges.round(3).tolist()  # 45° to the left: column 1 of 4
+        [[-1.0, 10.0, -1.0, -1.0]]
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points: expected shape (N, 3), got {points.shape}")
+    if np.shape(extrinsic) != (4, 4):
+        raise ValueError(f"extrinsic: expected shape (4, 4), got {np.shape(extrinsic)}")
+    incl = np.asarray(row_inclination, dtype=np.float64)
+    if incl.ndim != 1 or len(incl) == 0 or not (np.diff(incl) < 0).all():
+        raise ValueError(
+            f"row_inclination: expected a strictly decreasing (H,) array (row 0 the highest beam), got {incl}"
+        )
+    if not (isinstance(width, (int, np.integer)) and width > 0):
+        raise ValueError(f"width: expected a positive integer, got {width!r}")
+    ext = np.asarray(extrinsic, dtype=np.float64)
+    local = (points - ext[:3, 3]) @ ext[:3, :3]  # vehicle -> LiDAR frame (rigid inverse)
+    rng = np.linalg.norm(local, axis=-1)
+    keep = rng > 0
+    local, rng = local[keep], rng[keep]
+    inc = np.arcsin(np.clip(local[:, 2] / rng, -1.0, 1.0))
+    # the nearest beam: rows by decreasing inclination, so search the increasing midpoints reversed
+    mid = (incl[1:] + incl[:-1]) / 2
+    rows = len(incl) - 1 - np.searchsorted(mid[::-1], inc)
+    yaw = np.arctan2(ext[1, 0], ext[0, 0])
+    azimuth = np.arctan2(local[:, 1], local[:, 0]) + yaw  # in the vehicle frame
+    cols = np.floor((np.pi - azimuth) / (2 * np.pi) * width).astype(np.int64) % width
+    cell = rows * width + cols
+    order = np.lexsort((rng, cell))  # by cell, nearest first
+    cell, first = np.unique(cell[order], return_index=True)
+    out = np.full(len(incl) * width, -1.0)
+    out[cell] = rng[order][first]
+    return out.reshape(len(incl), width)
