@@ -14,7 +14,13 @@ builds a VAD-GS trainer and measures each stage as a run meets it:
   tests the views the loop trained (a real run's event, after five sampling cycles, has tested
   every view from the loop's renders) and reconstructs at most ``--instances``;
 - ``eval_view``: the evaluation of one test view (s a view, ``evaluate`` on ``--eval-views`` views);
-- the process's peak resident memory.
+- the peak resident memory of the steps (with everything before them: initialisation, the
+  index), of the event alone (``VmHWM`` reset before it: the resident model and index included),
+  and of the whole process.
+
+Times are CPU seconds of the process (``time.process_time``, one torch thread): on a shared
+machine they move far less with the load than wall times do (the steps' wall time is kept too,
+``step_wall_ms``, with the load average).
 
 Then, over the scenes of each scale, a least-squares fit of ``log cost = a + b log frames`` gives
 each stage's exponent ``b`` (0: flat, 1: linear in the frames), printed as a table and drawn as a
@@ -34,6 +40,7 @@ import contextlib
 import importlib
 import json
 import math
+import os
 import resource
 import statistics
 import subprocess
@@ -53,6 +60,7 @@ _TIMED = [
     ("vadgs.train.vad.event", "reconstruct_instance", "instance"),
 ]
 STAGES = ["load", "init", "index", "zbuffer", "incomplete", "step", "instance", "eval_view"]
+PEAKS = ["train_peak_gb", "event_peak_gb", "peak_rss_gb"]
 UNITS = {"load": "s", "init": "s", "index": "s", "zbuffer": "ms", "incomplete": "ms", "step": "ms",
          "instance": "s", "eval_view": "s"}  # fmt: skip
 
@@ -66,9 +74,9 @@ def _timed(calls: dict[str, list[float]]):
         rec = calls.setdefault(label, [])
 
         def wrapped(*args, _fn=fn, _rec=rec, **kwargs):
-            t = time.perf_counter()
+            t = time.process_time()
             out = _fn(*args, **kwargs)
-            _rec.append(time.perf_counter() - t)
+            _rec.append(time.process_time() - t)
             return out
 
         saved.append((mod, fn_name, fn))
@@ -89,33 +97,37 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
 
     torch.set_num_threads(1)
     calls: dict[str, list[float]] = {}
-    t = time.perf_counter()
+    t = time.process_time()
     scene = load_scene(path, scale=scale)
-    load_s = time.perf_counter() - t
+    load_s = time.process_time() - t
     h, w = scene.image_size(0)
     vad = VisibilityDensifyConfig(every_cycles=10**6, max_instances=instances, work_budget=None)
     config = TrainConfig(iterations=10**6, checkpoint_every=0, vad=vad)
     with _timed(calls):
         trainer = Trainer(scene, config, progress=False)
-        step_s = []
+        step_s, step_wall = [], []
         for _ in range(steps):
-            t = time.perf_counter()
+            t, w = time.process_time(), time.perf_counter()
             trainer.train_step()
-            step_s.append(time.perf_counter() - t)
+            step_s.append(time.process_time() - t)
+            step_wall.append(time.perf_counter() - w)
+        train_peak = _hwm_gb()
+        _reset_hwm()
         strategy = trainer.strategy
         detect = strategy.detect
         # the event tests the views the loop trained (a real run's event has tested them all)
         strategy.detect = lambda views=None, renders=None, tests=None: detect(
             sorted(tests or {}), renders, tests
         )
-        t = time.perf_counter()
+        t = time.process_time()
         event = strategy.densify(trainer.model.params, trainer.optimizer, trainer.state, trainer.step)
-        event_s = time.perf_counter() - t
+        event_s = time.process_time() - t
+        event_peak = _hwm_gb()
         strategy.detect = detect
     views = scene.test_views[:: max(1, len(scene.test_views) // eval_views)][:eval_views]
-    t = time.perf_counter()
+    t = time.process_time()
     evaluate(trainer.model, scene, views, config.raster, with_lpips=False)
-    eval_s = (time.perf_counter() - t) / len(views)
+    eval_s = (time.process_time() - t) / len(views)
     med = {k: statistics.median(v) if v else float("nan") for k, v in calls.items()}
     return {
         "scene": path,
@@ -133,6 +145,7 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
         "zbuffer_calls": len(calls["zbuffer"]),
         "incomplete": 1e3 * med["incomplete"],
         "step": 1e3 * statistics.median(step_s[2:] or step_s),
+        "step_wall_ms": 1e3 * statistics.median(step_wall[2:] or step_wall),
         "steps": steps,
         "instance": med["instance"],
         "instance_calls": len(calls["instance"]),
@@ -140,8 +153,24 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
         "event_attempted": event["attempted"],
         "eval_view": eval_s,
         "eval_views": len(views),
+        "train_peak_gb": train_peak,
+        "event_peak_gb": event_peak,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "load_average": os.getloadavg()[0],
     }
+
+
+def _hwm_gb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM"):
+                return int(line.split()[1]) / 2**20
+    raise RuntimeError("no VmHWM in /proc/self/status")
+
+
+def _reset_hwm() -> None:
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")  # the peak from here on
 
 
 def fit_exponent(frames: list[float], cost: list[float]) -> float:
@@ -165,9 +194,9 @@ def report(rows: list[dict[str, Any]], plot: str | None) -> str:
         lines.append(f"\n{w}x{h} (scale {scale}):\n")
         lines.append("| stage | " + " | ".join(f"{r['frames']} frames" for r in sub) + " | exponent |")
         lines.append("|---|" + "---:|" * (len(sub) + 1))
-        for stage in [*STAGES, "peak_rss_gb"]:
+        for stage in [*STAGES, *PEAKS]:
             unit = UNITS.get(stage, "GB")
-            vals = [r[stage] for r in sub]
+            vals = [r.get(stage, float("nan")) for r in sub]
             b = fit_exponent([r["frames"] for r in sub], vals)
             cells = " | ".join(f"{v:.3g}" for v in vals)
             lines.append(f"| {stage} ({unit}) | {cells} | {b:.2f} |")
@@ -184,8 +213,8 @@ def report(rows: list[dict[str, Any]], plot: str | None) -> str:
         for ax, scale in zip(axes[0], scales):
             sub = sorted((r for r in rows if r["scale"] == scale), key=lambda r: r["frames"])
             frames = [r["frames"] for r in sub]
-            for stage in [*STAGES, "peak_rss_gb"]:
-                vals = [r[stage] for r in sub]
+            for stage in [*STAGES, *PEAKS]:
+                vals = [r.get(stage, float("nan")) for r in sub]
                 b = fit_exponent(frames, vals)
                 unit = UNITS.get(stage, "GB")
                 ax.plot(frames, vals, "o-", label=f"{stage} ({unit}): b={b:.2f}")
