@@ -87,7 +87,7 @@ class TestKilledRun:
             config,
             out_dir=tmp_path,
             progress=False,
-            callback=lambda t, s: saved.append(t._saved_step),
+            callback=lambda t, s: saved.append(t.checkpoint_step),
         )
         tr.train()
         assert saved[1:] == list(range(1, config.iterations))  # a checkpoint after every step

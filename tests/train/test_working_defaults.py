@@ -157,8 +157,8 @@ def vad_run(tmp_path_factory, tiny_scene):
     lines: list[str] = []
     trainer = Trainer(tiny_scene, _vad_config(tiny_scene, 2), out_dir=out, progress=False, log=lines.append)
     progress: list[str] = []
-    hook = trainer.strategy.on_progress
-    trainer.strategy.on_progress = lambda line: progress.append(line) or hook(line)
+    assert trainer.strategy.on_progress is None  # the loop's bar sets it while it runs (progress=True)
+    trainer.strategy.on_progress = progress.append
     trainer.additions = []
     trainer.strategy.on_addition = trainer.additions.append
     trainer.train()
@@ -195,22 +195,39 @@ class TestProgress:
     def test_bar_shows_eta_loss_and_event(self, tiny_scene, monkeypatch):
         import tqdm
 
+        from vadgs.train.strategy import DefaultStrategy
+
         stream = io.StringIO()
         real = tqdm.tqdm
-        monkeypatch.setattr(tqdm, "tqdm", lambda *a, **k: real(*a, **{**k, "file": stream, "mininterval": 0}))
-        cfg = TrainConfig(iterations=6, init=dataclasses.replace(TrainConfig().init, max_points=300))
-        trainer = Trainer(tiny_scene, scale_schedule(cfg), progress=True)
+        bars = []
+
+        def make_bar(*a, **k):
+            bars.append(real(*a, **{**k, "file": stream, "mininterval": 0}))
+            return bars[-1]
+
+        monkeypatch.setattr(tqdm, "tqdm", make_bar)
+
+        class Talking(DefaultStrategy):  # a strategy with VAD-GS's on_progress hook
+            on_progress = None
+
+            def step_post_backward(self, *args, **kwargs):
+                super().step_post_backward(*args, **kwargs)
+                if args[3] == 2 and self.on_progress is not None:
+                    self.on_progress("VAD-GS event 1: 4 instances flagged, reconstructing 2/4 (sign 61), 3 s")
+
+        cfg = scale_schedule(
+            TrainConfig(iterations=6, init=dataclasses.replace(TrainConfig().init, max_points=300))
+        )
+        strategy = Talking(cfg.strategy)
+        trainer = Trainer(tiny_scene, cfg, progress=True, strategy=strategy)
         seen = []
-        trainer.callback = lambda t, s: seen.append(t._bar.postfix)
+        trainer.callback = lambda t, s: seen.append((bars[-1].postfix, bars[-1].desc))
         trainer.train()
-        assert all("loss=" in p and "psnr=" in p for p in seen)  # every step, not every 50
+        assert all("loss=" in p and "psnr=" in p for p, _ in seen)  # every step, not every 50
+        assert seen[2][1].startswith("VAD-GS event 1: 4 instances flagged")  # the event's message
         text = stream.getvalue()
         assert "<" in text and "6/6" in text  # elapsed<remaining: the ETA
-        bar = real(total=3, file=io.StringIO())
-        trainer._bar = bar
-        trainer._event_progress("VAD-GS event 1: 4 instances flagged, reconstructing 2/4 (sign 61), 3 s")
-        assert bar.desc.startswith("VAD-GS event 1: 4 instances flagged")
-        bar.close()
+        assert strategy.on_progress is None  # the loop's hook is taken off after the run
 
 
 class TestCheckpointSize:

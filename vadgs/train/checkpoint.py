@@ -30,12 +30,14 @@ __all__ = [
     "CHECKPOINT_NAME",
     "RESUMABLE_CHANGES",
     "Checkpoint",
+    "StepSnapshot",
     "capture_rng",
     "checkpoint_checksum",
     "clear_run",
     "describe_run",
     "held_run_message",
     "load_checkpoint",
+    "remove_run_tmp",
     "restore_rng",
     "resumed_config",
     "save_checkpoint",
@@ -45,6 +47,18 @@ CHECKPOINT_NAME = "checkpoint.pt"
 _FORMAT = "vadgs-train-checkpoint"
 _VERSION = 1
 _REQUIRED = ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
+
+
+class StepSnapshot(NamedTuple):
+    """What a training step consumes before it changes the parameters (``Trainer.snapshot``).
+
+    Attributes:
+        sampler: the view sampler's ``state_dict``.
+        rng: the generators' states (:func:`capture_rng`).
+    """
+
+    sampler: dict[str, Any]
+    rng: dict[str, Any]
 
 
 class Checkpoint(NamedTuple):
@@ -174,7 +188,7 @@ def _tensor_bytes(obj: Any) -> int:
     return 0
 
 
-def _remove_stale_tmp(folder: Path) -> list[Path]:
+def remove_run_tmp(folder: Path) -> list[Path]:
     """Remove temporary files a killed run left behind (of checkpoints, JSON files and exports)."""
     removed = remove_stale_tmp(folder, "ply")
     # the names written before vadgs.io
@@ -337,5 +351,5 @@ def clear_run(folder: str | Path) -> list[Path]:
 
     folder = Path(folder)
     removed = remove_recorded(folder)
-    removed += _remove_stale_tmp(folder)
+    removed += remove_run_tmp(folder)
     return removed

@@ -5,24 +5,86 @@ stop), with the progress bar, the run's ``log.jsonl`` (:class:`~vadgs.train.sess
 stop signals (:func:`~vadgs.train.session.stop_on_signals`), the divergence check, the callback,
 the checkpoints on the way (:func:`checkpoint_due`) and at the end, and the failure path
 (:func:`save_after_failure`); it returns a :class:`TrainResult`. The trainer holds the model and
-the step; this module only drives it (it never imports :mod:`vadgs.train.trainer` at run time).
+the step; this module drives it through its public interface (:class:`LoopTrainer`: ``train_step``,
+``snapshot`` / ``restore``, ``save_checkpoint``, ...) and owns what is the loop's: the progress
+bar, the undo snapshot of the step in flight and the checkpoint cadence. It does not import
+:mod:`vadgs.train.trainer`.
 """
 
 from __future__ import annotations
 
 import resource
 import time
-from typing import TYPE_CHECKING, NamedTuple
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple, Protocol
 
 from vadgs.io import write_json
 from vadgs.runfolder import record_files, recorded_files
-from vadgs.train.checkpoint import CHECKPOINT_NAME, _remove_stale_tmp, clear_run, restore_rng
+from vadgs.train.checkpoint import CHECKPOINT_NAME, StepSnapshot, clear_run, remove_run_tmp
 from vadgs.train.session import RunLog, stop_on_signals
 
-if TYPE_CHECKING:
-    from vadgs.train.trainer import Trainer
+__all__ = ["LoopTrainer", "TrainResult", "checkpoint_due", "run_loop", "save_after_failure"]
 
-__all__ = ["TrainResult", "checkpoint_due", "run_loop", "save_after_failure"]
+
+class LoopTrainer(Protocol):
+    """What :func:`run_loop` uses of a trainer (:class:`~vadgs.train.trainer.Trainer` has it all)."""
+
+    config: Any
+    out_dir: Path | None
+    scene_ref: dict[str, Any]
+    progress: bool
+    log: Callable[[str], None] | None
+    callback: Callable[[Any, int], None] | None
+    clear_previous: bool
+    step: int
+    train_s: float
+    state: dict[str, Any]
+    model: Any
+    strategy: Any
+    sampler: Any
+
+    def train_step(self) -> dict[str, float]:
+        """One step; the loss terms as floats."""
+
+    def check_divergence(self, res: dict[str, float]) -> None:
+        """Raise when the model diverged."""
+
+    def save_checkpoint(self, path: str | Path | None = None) -> Path:
+        """Write the run's state (``out_dir`` by default)."""
+
+    def request_stop(self) -> None:
+        """Stop after the current step."""
+
+    def snapshot(self) -> StepSnapshot:
+        """What a step consumes before its update (sampler, generators)."""
+
+    def restore(self, snapshot: StepSnapshot) -> None:
+        """Put a :meth:`snapshot` back."""
+
+    @property
+    def stop_requested(self) -> bool:
+        """True once :meth:`request_stop` was called."""
+
+    @property
+    def checkpoint_step(self) -> int | None:
+        """The step of the last checkpoint in ``out_dir``."""
+
+    @property
+    def checkpoint_time(self) -> float | None:
+        """``time.monotonic()`` of the last checkpoint in ``out_dir``."""
+
+    @property
+    def updating(self) -> bool:
+        """True while a step's update is applied (a failure then is not undone)."""
+
+
+class _Flight:
+    """The loop's state of the step in flight: its undo snapshot, and whether it is checking divergence."""
+
+    def __init__(self) -> None:
+        self.undo: StepSnapshot | None = None
+        self.checking = False
 
 
 class TrainResult(NamedTuple):
@@ -48,7 +110,7 @@ class TrainResult(NamedTuple):
 _BAR_STEPS = 10  # the progress bar's loss and PSNR: the mean of this many last steps
 
 
-def run_loop(trainer: Trainer) -> TrainResult:
+def run_loop(trainer: LoopTrainer) -> TrainResult:
     """Train ``trainer`` to ``config.iterations`` from its current step (the body of its ``train``).
 
     Prepares the run folder (``config.json``; a previous run's files go with ``overwrite``, a
@@ -56,27 +118,27 @@ def run_loop(trainer: Trainer) -> TrainResult:
     :class:`~vadgs.train.session.RunLog` and :func:`~vadgs.train.session.stop_on_signals`: the
     strategy's pending log lines, a record every ``log_every`` steps, the divergence check, the
     callback, the stop / time limit, the checkpoints on the way (:func:`checkpoint_due`), the
-    failure path (:func:`save_after_failure`) and the final checkpoint. The progress bar is
-    ``trainer._bar`` while it runs (the VAD-GS event's messages go there).
+    failure path (:func:`save_after_failure`) and the final checkpoint. While the bar runs, the
+    strategy's ``on_progress`` hook (the VAD-GS event's messages), when it has one, writes to it.
     """
     from tqdm import tqdm
 
     cfg = trainer.config
     if trainer.out_dir is not None:
         trainer.out_dir.mkdir(parents=True, exist_ok=True)
-        if trainer._clear_previous:
+        if trainer.clear_previous:
             removed = clear_run(trainer.out_dir)
-            trainer._clear_previous = False
+            trainer.clear_previous = False
             if trainer.log is not None:
                 n, where = len(removed), trainer.out_dir
                 trainer.log(f"overwrite: removed {n} files of the previous run from {where}")
-        _remove_stale_tmp(trainer.out_dir)
+        remove_run_tmp(trainer.out_dir)
         out = trainer.out_dir
         if trainer.step == 0 and "log.jsonl" in {p.name for p in recorded_files(out) if p.parent == out}:
             (out / "log.jsonl").unlink()  # a new run: the log of a run killed before any checkpoint
         write_json(out / "config.json", {"config": cfg.to_dict(), "scene": trainer.scene_ref})
         record_files(out, [out / "config.json", out / "log.jsonl"])
-    trainer._saved_at = time.monotonic()
+    started = time.monotonic()
     reason = "done"
     bar = tqdm(
         total=cfg.iterations,
@@ -86,18 +148,22 @@ def run_loop(trainer: Trainer) -> TrainResult:
         dynamic_ncols=True,
         smoothing=0.05,  # the ETA: the rate of the recent steps, VAD-GS events averaged in
     )
-    trainer._bar = bar
+    hook = getattr(trainer.strategy, "on_progress", False) is not False and trainer.progress
+    if hook:
+        saved_hook = trainer.strategy.on_progress
+        trainer.strategy.on_progress = lambda message: bar.set_description_str(message, refresh=True)
     recent: list[tuple[float, float]] = []  # (loss, PSNR) of the last steps, shown on the bar
-    trainer._undo = None
-    trainer._updating = False
+    flight = _Flight()
     try:
         with (
             RunLog(trainer.out_dir, keep_until=trainer.step) as log,
-            stop_on_signals(trainer.request_stop, lambda: trainer._stop),
+            stop_on_signals(trainer.request_stop, lambda: trainer.stop_requested),
         ):
             while trainer.step < cfg.iterations:
                 t0 = time.perf_counter()
+                flight.undo = trainer.snapshot()  # what a step failing before its update consumed
                 res = trainer.train_step()
+                flight.undo = None
                 trainer.train_s += time.perf_counter() - t0
                 events = trainer.state.pop("pending_log", None) or []
                 for event in events:
@@ -126,25 +192,30 @@ def run_loop(trainer: Trainer) -> TrainResult:
                             **{k: round(v, 6) for k, v in res.items()},
                         }
                     )
-                trainer._updating = True  # a diverged state is not saved
+                flight.checking = True  # a diverged state is not saved
                 trainer.check_divergence(res)
-                trainer._updating = False
+                flight.checking = False
                 if trainer.callback is not None:
                     trainer.callback(trainer, trainer.step)
-                if trainer._stop:
+                if trainer.stop_requested:
                     reason = "interrupted"
                     break
                 if cfg.max_minutes and trainer.train_s > cfg.max_minutes * 60:
                     reason = "time limit"
                     break
-                if trainer.out_dir is not None and trainer.step < cfg.iterations and checkpoint_due(trainer):
+                if (
+                    trainer.out_dir is not None
+                    and trainer.step < cfg.iterations
+                    and checkpoint_due(trainer, started)
+                ):
                     trainer.save_checkpoint()
     except Exception as e:
-        save_after_failure(trainer, e)
+        save_after_failure(trainer, e, flight.undo, flight.checking)
         raise
     finally:
         bar.close()
-        trainer._bar = None
+        if hook:
+            trainer.strategy.on_progress = saved_hook
     if trainer.out_dir is not None:
         trainer.save_checkpoint()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -152,36 +223,42 @@ def run_loop(trainer: Trainer) -> TrainResult:
     return TrainResult(trainer.step, trainer.step >= cfg.iterations, reason, trainer.train_s, peak, n)
 
 
-def checkpoint_due(trainer: Trainer) -> bool:
-    """Every ``checkpoint_every`` steps, every ``checkpoint_minutes``, and after the first cycle."""
+def checkpoint_due(trainer: LoopTrainer, started: float) -> bool:
+    """Every ``checkpoint_every`` steps, every ``checkpoint_minutes``, and after the first cycle.
+
+    The minutes count from the last checkpoint written to ``out_dir``, or from ``started``
+    (``time.monotonic()`` when the loop started) before one.
+    """
     cfg = trainer.config
+    last = max(started, trainer.checkpoint_time or started)
     return bool(
         (cfg.checkpoint_every and trainer.step % cfg.checkpoint_every == 0)
         or trainer.step == len(trainer.sampler)
-        or (cfg.checkpoint_minutes and time.monotonic() - trainer._saved_at > cfg.checkpoint_minutes * 60)
+        or (cfg.checkpoint_minutes and time.monotonic() - last > cfg.checkpoint_minutes * 60)
     )
 
 
-def save_after_failure(trainer: Trainer, e: Exception) -> None:
+def save_after_failure(
+    trainer: LoopTrainer, e: Exception, undo: StepSnapshot | None = None, checking: bool = False
+) -> None:
     """Checkpoint the last completed step when an exception stops the loop, and say so on ``e``.
 
-    A step that failed before its optimizer update is undone (the sampler and generators are
-    put back), so the saved state is exactly the previous step's; a failure during or after
-    the update, a divergence or a non-finite value keeps the previous checkpoint. A failing
-    write (disk full) keeps it too.
+    A step that failed before its optimizer update (``trainer.updating`` False) is undone with
+    ``undo``, the snapshot taken before it (the sampler and generators are put back), so the saved
+    state is exactly the previous step's; a failure during or after the update, in the divergence
+    check (``checking``) or a non-finite value keeps the previous checkpoint. A failing write
+    (disk full) keeps it too.
     """
     if trainer.out_dir is None:
         return
     path = trainer.out_dir / CHECKPOINT_NAME
     saved = False
     failed_write = isinstance(e, OSError) and e.filename == str(path)
-    if not trainer._updating and not isinstance(e, FloatingPointError) and not failed_write:
-        if trainer._undo is not None:
-            sampler, rng = trainer._undo
-            trainer.sampler.load_state_dict(sampler)
-            restore_rng(rng, trainer.generator)
-            trainer._undo = None
-        if trainer._saved_step != trainer.step:
+    updating = trainer.updating or checking
+    if not updating and not isinstance(e, FloatingPointError) and not failed_write:
+        if undo is not None:
+            trainer.restore(undo)
+        if trainer.checkpoint_step != trainer.step:
             try:
                 trainer.save_checkpoint()
                 saved = True
@@ -191,8 +268,8 @@ def save_after_failure(trainer: Trainer, e: Exception) -> None:
             saved = True
     if saved:
         note = f"checkpoint of step {trainer.step} in {path}"
-    elif trainer._saved_step is not None:
-        note = f"last good checkpoint: step {trainer._saved_step} in {path}"
+    elif trainer.checkpoint_step is not None:
+        note = f"last good checkpoint: step {trainer.checkpoint_step} in {path}"
     else:
         note = f"no checkpoint was written before step {trainer.step}"
         e.add_note(note)

@@ -43,6 +43,7 @@ from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     RESUMABLE_CHANGES,
     Checkpoint,
+    StepSnapshot,
     capture_rng,
     checkpoint_checksum,
     clear_run,
@@ -157,7 +158,7 @@ class Trainer:
         self.scene = scene
         self.config = config or TrainConfig()
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        self._clear_previous = False
+        self.clear_previous = False
         if self.out_dir is not None and not _resuming:
             check_output_folder(self.out_dir, "out_dir", "vadgs run")
             held = describe_run(self.out_dir)
@@ -167,7 +168,7 @@ class Trainer:
                 )
             if overwrite:
                 check_removable(self.out_dir)  # before any work: a refused overwrite changes nothing
-            self._clear_previous = overwrite
+            self.clear_previous = overwrite
         if scene_ref is None and scene.root is not None and (Path(scene.root) / "scene.json").is_file():
             scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
         self.scene_ref = scene_ref or {}
@@ -177,7 +178,6 @@ class Trainer:
         self.progress = progress
         self.log = log
         self.callback = callback
-        self._bar: Any = None
         self.train_views = list(scene.train_views)
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
@@ -209,6 +209,8 @@ class Trainer:
         self.train_s = 0.0
         self._stop = False
         self._saved_step: int | None = None
+        self._saved_at: float | None = None
+        self._updating = False
         self._divergence: DivergenceMonitor | None = None
 
     def _configured_strategy(self) -> Strategy:
@@ -216,7 +218,6 @@ class Trainer:
         if self.config.vad is None:
             return base
         strategy = VisibilityAwareDensification.from_config(self.config.vad, base=base)
-        strategy.on_progress = self._event_progress
         # the scene as data, the loop's context; the visibility index, built once, before the first step
         strategy.prepare(VisibilityInputs.from_scene(self.scene), self.strategy_context())
         return strategy
@@ -249,11 +250,6 @@ class Trainer:
                 self.log(f"WARNING: {msg}")
             else:
                 warnings.warn(msg, UserWarning, stacklevel=3)
-
-    def _event_progress(self, message: str) -> None:
-        """The VAD-GS strategy's ``on_progress`` hook: the bar says what the event is doing."""
-        if self._bar is not None and self.progress:
-            self._bar.set_description_str(message, refresh=True)
 
     def _strategy_priors(self, view: int) -> GeometryTargets | None:
         return self.strategy.geometry_targets(self.state, view)
@@ -368,6 +364,42 @@ class Trainer:
         """Stop at the end of the current step (and checkpoint); what SIGINT / SIGTERM do."""
         self._stop = True
 
+    @property
+    def stop_requested(self) -> bool:
+        """True once :meth:`request_stop` was called: :meth:`train` stops after the current step."""
+        return self._stop
+
+    @property
+    def checkpoint_step(self) -> int | None:
+        """The step of the last checkpoint written to (or resumed from) ``out_dir``; None before one."""
+        return self._saved_step
+
+    @property
+    def checkpoint_time(self) -> float | None:
+        """``time.monotonic()`` when the last checkpoint was written to ``out_dir`` (None before one)."""
+        return self._saved_at
+
+    @property
+    def updating(self) -> bool:
+        """True while a step's update is applied (optimizer, strategy, checks).
+
+        The state may be half changed then, so a failure is not undone by :meth:`restore`.
+        """
+        return self._updating
+
+    def snapshot(self) -> StepSnapshot:
+        """What a step consumes before it changes the parameters: the view sampler and the generators.
+
+        :meth:`restore` of it undoes a step that failed before its update (:attr:`updating` False),
+        so that the run continues exactly as if the step had never started.
+        """
+        return StepSnapshot(self.sampler.state_dict(), capture_rng(self.generator))
+
+    def restore(self, snapshot: StepSnapshot) -> None:
+        """Put back the sampler and generators of :meth:`snapshot`."""
+        self.sampler.load_state_dict(snapshot.sampler)
+        restore_rng(snapshot.rng, self.generator)
+
     # -- the loop -------------------------------------------------------------------------------------
 
     def _lrs(self, step: int) -> dict[str, float]:
@@ -424,8 +456,6 @@ class Trainer:
         """One optimisation step on the next sampled view; returns the loss terms as floats."""
         step = self.step
         cfg = self.config
-        # what a step that fails before the parameters change may have consumed (restored by train())
-        self._undo = (self.sampler.state_dict(), capture_rng(self.generator))
         self._updating = False
         for g in self.optimizer.param_groups:
             g["lr"] = self._lrs(step)[g["name"]]
@@ -477,7 +507,6 @@ class Trainer:
                 step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"
             )
         self._updating = False
-        self._undo = None
         return res
 
     def check_divergence(self, res: dict[str, float]) -> None:
