@@ -51,5 +51,9 @@ def test_vadgs_default_and_gsplat_mcmc():
     ):
         check_info(DefaultStrategy(), {"raster": object()})
     check_info(DefaultStrategy(), {k: v for k, v in _gsplat_meta().items() if k != "gaussian_ids"})
+    unpacked = {k: v for k, v in _gsplat_meta().items() if k != "gaussian_ids"}
+    with pytest.raises(ValueError, match=r"expected key 'gaussian_ids' \(read by vadgs's DefaultStrategy"):
+        check_info(DefaultStrategy(), unpacked, packed=True)
+    check_info(DefaultStrategy(), _gsplat_meta(packed=True), packed=True)
     _first_step(gsplat_strategy.MCMCStrategy(), {})  # MCMC reads nothing from info (it takes lr=)
     check_info(object(), {})  # an unknown base: nothing is known, nothing checked

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from vadgs.data import load_colmap
+from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,
@@ -187,7 +188,7 @@ def _gsplat_run(parser, base, steps, post_kwargs, packed=False, monkeypatch=None
         view = train[(5 * step) % len(train)]
         out, info = rasterize(view)
         info["gaussian_ids"] = None
-        vad.step_pre_backward(splats, optimizers, state, step, info)
+        vad.step_pre_backward(params=splats, optimizers=optimizers, state=state, step=step, info=info)
         (out.color[0] - inputs.load_image(view, None)).abs().mean().backward()
         for opt in optimizers.values():
             opt.step()
@@ -198,7 +199,10 @@ def _gsplat_run(parser, base, steps, post_kwargs, packed=False, monkeypatch=None
             m2d.grad = info["means2d"].grad[0][ids]
             info = {**info, "means2d": m2d, "radii": info["radii"][0][ids], "gaussian_ids": ids}
         torch.manual_seed(100 + step)  # gsplat's split draws from the global generator
-        vad.step_post_backward(splats, optimizers, state, step, info, **post_kwargs)
+        # as gsplat's simple_trainer calls it: keywords, packed= (DefaultStrategy) or lr= (MCMC)
+        vad.step_post_backward(
+            params=splats, optimizers=optimizers, state=state, step=step, info=info, **post_kwargs
+        )
     return splats, optimizers, state, n0
 
 
@@ -230,6 +234,33 @@ class TestGsplatBases:
         assert a["means"].shape == b["means"].shape
         torch.testing.assert_close(a["means"], b["means"], rtol=0, atol=1e-6)
         torch.testing.assert_close(sa["grad2d"], sb["grad2d"])
+
+    def test_default_base_in_a_gsplat_loop(self, parser):
+        """The class docstring's use: the default base (vadgs's ``DefaultStrategy``) called as
+        gsplat's ``simple_trainer`` calls a strategy, ``step_post_backward(..., packed=...)`` (was:
+        ``TypeError: unexpected keyword argument 'packed'``). Packed or not, the same decisions."""
+        runs = {}
+        for packed in (False, True):
+            base = DefaultStrategy(DefaultStrategyConfig(refine_start_iter=3, refine_every=2))
+            runs[packed] = _gsplat_run(parser, base, self.STEPS, {"packed": packed}, packed=packed)
+        for splats, optimizers, state, n0 in runs.values():
+            event = self._check(splats, optimizers, state, n0)
+            n = splats["means"].shape[0]
+            assert n > n0 + event["added"], "the base grew after the event"
+            assert state["grad2d"].shape == (n,) and state["count"].shape == (n,)
+        (a, _, sa, _), (b, _, sb, _) = runs[False], runs[True]
+        assert a["means"].shape == b["means"].shape
+        torch.testing.assert_close(a["means"], b["means"], rtol=0, atol=1e-6)
+        torch.testing.assert_close(sa["grad2d"], sb["grad2d"])
+        torch.testing.assert_close(sa["count"], sb["count"])
+        # the other keyword arguments of gsplat's loops (MCMC's lr=) are accepted and ignored
+        _gsplat_run(parser, DefaultStrategy(), 1, {"lr": 1e-3})
+
+    def test_default_base_packed_without_ids(self, parser):
+        with pytest.raises(
+            ValueError, match=r"info\['gaussian_ids'\]: expected the ids of .*packed=True, got None"
+        ):
+            _gsplat_run(parser, DefaultStrategy(), 1, {"packed": True})
 
     def test_mcmc_strategy(self, parser, monkeypatch):
         """gsplat's MCMCStrategy: ``initialize_state()`` without arguments, ``lr=`` passed on.

@@ -106,22 +106,25 @@ def info_requirements(base: Any, packed: bool = False) -> list[dict[str, str]]:
     """What a base strategy reads from the loop's ``info``: alternatives of ``{key: where it comes from}``.
 
     vadgs's ``DefaultStrategy``: vadgs's render (``raster``, ``image_size``) or gsplat's meta
-    (``means2d``, ``width``, ``height``, ``radii``); gsplat's ``DefaultStrategy``: its
-    ``key_for_gradient`` (``means2d``), ``width``, ``height``, ``n_cameras``, ``radii`` and
-    ``gaussian_ids`` (None unless ``packed``); gsplat's ``MCMCStrategy``: nothing (it takes
-    ``lr=``). Other bases: nothing is known (an empty list).
+    (``means2d``, ``width``, ``height``, ``radii``; ``gaussian_ids`` too when ``packed``); gsplat's
+    ``DefaultStrategy``: its ``key_for_gradient`` (``means2d``), ``width``, ``height``,
+    ``n_cameras``, ``radii`` and ``gaussian_ids`` (None unless ``packed``); gsplat's
+    ``MCMCStrategy``: nothing (it takes ``lr=``). Other bases: nothing is known (an empty list).
 
     Example:
         >>> [sorted(a) for a in info_requirements(DefaultStrategy())]
         [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
     """
     if isinstance(base, DefaultStrategy):
+        meta = {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")}
+        if packed:
+            meta["gaussian_ids"] = _GSPLAT_META + " with packed=True"
         return [
             {
                 "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
                 "image_size": "the view's (H, W)",
             },
-            {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")},
+            meta,
         ]
     cls = type(base)
     if not cls.__module__.startswith("gsplat.") or not hasattr(base, "key_for_gradient"):
@@ -399,8 +402,18 @@ class VisibilityAwareDensification:
         )
         return state
 
-    def step_pre_backward(self, params, optimizers, state, step, info, **kwargs) -> None:
+    def step_pre_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        **kwargs: Any,
+    ) -> None:
         """The base's ``step_pre_backward``; at the first step, checks ``info`` for the base.
+
+        ``kwargs`` go to the base (gsplat's loop passes none here).
 
         (``step_post_backward`` checks it again at its first call, with its ``packed=``.)
 
