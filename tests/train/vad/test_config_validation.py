@@ -146,7 +146,6 @@ class TestValidValues:
             skip_classes=["road", "sky"],
             new_opacity=np.float32(0.25),
             last_event_fraction=1,
-            explained_tolerance=0,
             visibility=np.bool_(True),
         )
         assert type(cfg.every_cycles) is int and cfg.every_cycles == 1

@@ -12,6 +12,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
+from typing import ClassVar
 
 import torch
 
@@ -25,6 +26,7 @@ from vadgs.checks import (
     int_field,
     names_field,
 )
+from vadgs.config import RemovedField
 from vadgs.train.vad.incomplete import IncompleteConfig
 from vadgs.train.vad.reconstruct import ReconstructConfig, ViewRender
 
@@ -97,9 +99,6 @@ class VisibilityDensifyConfig:
             flagged in such a view (``whole`` of :func:`~vadgs.train.vad.event.pick_references`); with
             ``reconstruct.whole_supports`` its supporting views show all of it too.
         skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
-        explained_tolerance: an MVS pixel is "explained" (gives no new Gaussian) where its view's
-            render has opacity above ``incomplete.alpha_threshold`` and a depth within this
-            relative tolerance of (or in front of) the MVS depth.
         new_opacity: opacity of the new Gaussians.
         flatness: thickness of the new Gaussians along their normal, relative to their width.
         voxel_depth_prior: use the voxel depth where no MVS depth exists.
@@ -126,11 +125,17 @@ class VisibilityDensifyConfig:
     cooldown_events: int = 0
     whole_reference: bool = True
     skip_classes: tuple[str, ...] = ("road",)
-    explained_tolerance: float = 0.05
     new_opacity: float = 0.5
     flatness: float = 0.2
     voxel_depth_prior: bool = True
     last_event_fraction: float = 0.9
+
+    REMOVED_FIELDS: ClassVar[dict[str, RemovedField]] = {
+        "explained_tolerance": RemovedField(
+            "it never had an effect; the tolerance in use is reconstruct.explained_tolerance"
+        ),
+    }
+    """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
@@ -158,7 +163,6 @@ _FIELDS: dict[str, FieldCheck] = {
     "cooldown_events": int_field(0),
     "whole_reference": bool_field(),
     "skip_classes": names_field("class names"),
-    "explained_tolerance": float_field(0),
     "new_opacity": float_field(0, 1, lo_open=True, hi_open=True),
     "flatness": float_field(0, lo_open=True),
     "voxel_depth_prior": bool_field(),

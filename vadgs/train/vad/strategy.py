@@ -24,7 +24,7 @@ flow:
    initialised from the rendered depth and normals and restricted to the instance (a moving object
    in its own frame), consistency and fusion (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`);
 4. **new Gaussians**: the fused points that the current Gaussians do not already explain (no opaque
-   surface within ``explained_tolerance`` in front of them in the reference view) become flat
+   surface within ``reconstruct.explained_tolerance`` in front of them in the view) become flat
    Gaussians oriented by the MVS normals — static, or in the object's frame for moving ones — added
    with :func:`~vadgs.train.strategy.ops.add_gaussians` (optimizer moments and state rows follow);
 5. **priors**: the MVS depth and normals of the group views are kept in ``state`` and returned by
