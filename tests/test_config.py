@@ -120,6 +120,20 @@ class TestRemovedSettings:
         with pytest.raises(TypeError, match="explained_tolerance"):
             VisibilityDensifyConfig(explained_tolerance=0.1)
 
+    def test_visibility_switch(self):
+        """One way to train without VAD-GS: ``vad=None``. An older run's ``visibility: true`` (the
+        only behaviour left) is ignored; ``false`` is refused, saying what to do instead."""
+        with pytest.warns(UserWarning, match=r"^config\.vad\.visibility: a removed setting, ignored"):
+            assert TrainConfig.from_dict({"vad": {"visibility": True}}).vad == VisibilityDensifyConfig()
+        with pytest.raises(
+            ValueError,
+            match=r"^config\.vad\.visibility: a removed setting, False no longer possible: .*'w/o voxel "
+            r"visibility reasoning' ablation \(visibility False\) is TrainConfig\.vad = None: vadgs "
+            r"train without --vad$",
+        ):
+            TrainConfig.from_dict({"vad": {"visibility": False, "explained_tolerance": 0.1}})
+        assert "visibility" not in {f.name for f in dataclasses.fields(VisibilityDensifyConfig)}
+
     def test_other_unknown_keys_still_refused(self):
         with pytest.raises(ValueError, match=r"config.vad: unknown key\(s\) \['explained_tolerence'\]"):
             TrainConfig.from_dict({"vad": {"explained_tolerence": 0.1}})

@@ -56,11 +56,13 @@ def _drop_removed(cls: type, data: dict[str, Any], fields: Any, where: str) -> d
     """``data`` without the keys of ``cls.REMOVED_FIELDS`` (a warning each, or the error)."""
     removed: dict[str, RemovedField] = getattr(cls, "REMOVED_FIELDS", None) or {}
     gone = [k for k in data if k in removed and k not in fields]
-    for key in gone:
+    for key in gone:  # a refused value first: then no warning about the others
         spec, value = removed[key], data[key]
         same = spec.same is None or any(type(value) is type(v) and value == v for v in spec.same)
         if not same:
             raise ValueError(f"{where}.{key}: a removed setting, {value!r} no longer possible: {spec.note}")
+    for key in gone:
+        spec = removed[key]
         warnings.warn(f"{where}.{key}: a removed setting, ignored: {spec.note}", UserWarning, stacklevel=3)
     return {k: v for k, v in data.items() if k not in gone}
 

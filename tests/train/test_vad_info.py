@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from vadgs.train.strategy import DefaultStrategy
-from vadgs.train.vad import VisibilityAwareDensification, check_info
+from vadgs.train.vad import StrategyContext, VisibilityAwareDensification, check_info
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")
 
@@ -19,11 +19,13 @@ def _gsplat_meta(packed: bool = False) -> dict:
 
 
 def _first_step(base, info, **kwargs) -> None:
-    """The first step's calls up to the base's: pre-backward, then post-backward with ``kwargs``."""
-    vad = VisibilityAwareDensification(base=base, visibility=False)
+    """The first step's calls up to the base's: pre-backward, then post-backward with ``kwargs``
+    (no event in reach: a sampling cycle of 100 steps; no view in ``info``: nothing is tested)."""
+    vad = VisibilityAwareDensification(base=base)
+    vad.context = StrategyContext(lambda v: None, total_steps=10, steps_per_cycle=100)
     vad.step_pre_backward({}, {}, {}, 0, info)
     base.step_post_backward = lambda *a, **k: None  # what is tested is the check before it
-    vad.step_post_backward({}, {}, {}, 0, info, **kwargs)
+    vad.step_post_backward({}, {}, {"vad_cycle": 0}, 0, info, **kwargs)
 
 
 def test_gsplat_default_strategy_names_the_missing_key():

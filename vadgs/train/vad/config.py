@@ -37,9 +37,11 @@ __all__ = ["RANKINGS", "StrategyContext", "VisibilityDensifyConfig"]
 class VisibilityDensifyConfig:
     """Settings of :class:`~vadgs.train.vad.VisibilityAwareDensification` (paper values by default).
 
+    VAD-GS is on wherever this config is given (``TrainConfig.vad``); the paper's "w/o voxel
+    visibility reasoning" ablation, which disables everything else, is its absence
+    (``TrainConfig.vad = None``, ``vadgs train`` without ``--vad``: the standard strategy alone).
+
     Attributes:
-        visibility: the whole strategy on (False: the "w/o voxel visibility reasoning" ablation,
-            which disables everything else).
         view_selection: diversity-aware selection (False: consecutive frames of the reference
             camera, the "w/o view selection" ablation).
         geometric_losses: normal and hard/soft depth losses on the priors.
@@ -106,7 +108,6 @@ class VisibilityDensifyConfig:
             the very end would not be trained).
     """
 
-    visibility: bool = True
     view_selection: bool = True
     geometric_losses: bool = True
     every_cycles: int = 5
@@ -134,6 +135,11 @@ class VisibilityDensifyConfig:
         "explained_tolerance": RemovedField(
             "it never had an effect; the tolerance in use is reconstruct.explained_tolerance"
         ),
+        "visibility": RemovedField(
+            "VAD-GS is on wherever its config is given; the paper's 'w/o voxel visibility reasoning' "
+            "ablation (visibility False) is TrainConfig.vad = None: vadgs train without --vad",
+            same=(True,),
+        ),
     }
     """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
@@ -144,7 +150,6 @@ class VisibilityDensifyConfig:
 RANKINGS = ("class_round_robin", "pixels")
 
 _FIELDS: dict[str, FieldCheck] = {
-    "visibility": bool_field(),
     "view_selection": bool_field(),
     "geometric_losses": bool_field(),
     "every_cycles": int_field(1),
