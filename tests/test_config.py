@@ -5,10 +5,11 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import pytest
 
-from vadgs.config import config_from_dict
+from vadgs.config import RemovedField, config_from_dict
 from vadgs.mvs import PatchMatchConfig
 from vadgs.train.trainer import TrainConfig
 from vadgs.train.vad import VisibilityDensifyConfig
@@ -92,6 +93,69 @@ class TestConfigFromDict:
             config_from_dict(_Outer, {"names": [1]}, "c")
         with pytest.raises(ValueError, match=r"c.maybe.b: expected float, got str 'x'"):
             config_from_dict(_Outer, {"maybe": {"b": "x"}}, "c")
+
+
+class TestRemovedSettings:
+    """Settings removed from the configs (issue 41) are still in older runs' files (checkpoints,
+    ``config.json``, ``--config`` files): ignored with a one-line warning naming them, or, where the
+    run cannot do without them, an error naming the setting and what to do."""
+
+    def test_dead_settings_ignored_with_a_warning(self):
+        base = TrainConfig(vad=VisibilityDensifyConfig()).to_dict()
+        old = json.loads(json.dumps(base))
+        old["vad"]["explained_tolerance"] = 0.2  # never had an effect (reconstruct's is the live one)
+        old["vad"]["incomplete"]["foreign_fraction"] = 0.5  # never wired into the strategy
+        with pytest.warns(UserWarning) as caught:
+            config = TrainConfig.from_dict(old)
+        assert config == TrainConfig.from_dict(base)
+        lines = sorted(str(w.message) for w in caught)
+        assert lines == [
+            "config.vad.explained_tolerance: a removed setting, ignored: it never had an effect; the "
+            "tolerance in use is reconstruct.explained_tolerance",
+            "config.vad.incomplete.foreign_fraction: a removed setting, ignored: it was never used by "
+            "the strategy (find_incomplete still reports the share, as 'foreign')",
+        ]
+        assert all("\n" not in line for line in lines)
+        assert "explained_tolerance" not in config.to_dict()["vad"]
+        with pytest.raises(TypeError, match="explained_tolerance"):
+            VisibilityDensifyConfig(explained_tolerance=0.1)
+
+    def test_visibility_switch(self):
+        """One way to train without VAD-GS: ``vad=None``. An older run's ``visibility: true`` (the
+        only behaviour left) is ignored; ``false`` is refused, saying what to do instead."""
+        with pytest.warns(UserWarning, match=r"^config\.vad\.visibility: a removed setting, ignored"):
+            assert TrainConfig.from_dict({"vad": {"visibility": True}}).vad == VisibilityDensifyConfig()
+        with pytest.raises(
+            ValueError,
+            match=r"^config\.vad\.visibility: a removed setting, False no longer possible: .*'w/o voxel "
+            r"visibility reasoning' ablation \(visibility False\) is TrainConfig\.vad = None: vadgs "
+            r"train without --vad$",
+        ):
+            TrainConfig.from_dict({"vad": {"visibility": False, "explained_tolerance": 0.1}})
+        assert "visibility" not in {f.name for f in dataclasses.fields(VisibilityDensifyConfig)}
+
+    def test_other_unknown_keys_still_refused(self):
+        with pytest.raises(ValueError, match=r"config.vad: unknown key\(s\) \['explained_tolerence'\]"):
+            TrainConfig.from_dict({"vad": {"explained_tolerence": 0.1}})
+
+    def test_removed_field_of_a_dataclass(self):
+        @dataclass(frozen=True)
+        class _Cfg:
+            a: int = 1
+            REMOVED_FIELDS: ClassVar[dict] = {
+                "b": RemovedField("use a", same=(True,)),
+                "c": RemovedField("gone"),
+            }
+
+        with pytest.warns(UserWarning, match=r"^x\.b: a removed setting, ignored: use a$"):
+            assert config_from_dict(_Cfg, {"a": 2, "b": True}, "x") == _Cfg(2)
+        with pytest.warns(UserWarning, match=r"^x\.c: a removed setting, ignored: gone$"):
+            assert config_from_dict(_Cfg, {"c": [1, 2]}, "x") == _Cfg()
+        for value in (False, 1, None):
+            with pytest.raises(
+                ValueError, match=rf"^x\.b: a removed setting, {value!r} no longer possible: use a$"
+            ):
+                config_from_dict(_Cfg, {"b": value}, "x")
 
 
 class TestDeviceBackend:

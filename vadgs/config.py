@@ -8,6 +8,11 @@ annotations are strings) and handles ``int``, ``float``, ``bool``, ``str``, ``X 
 ``tuple[T, ...]``, ``tuple[A, B]``, ``list[T]``, ``dict[str, T]``, nested dataclasses and optional
 nested dataclasses. ``int`` is accepted where ``float`` is expected; ``bool`` is not an ``int``.
 
+A setting removed from a config may still be in the files of older runs: the dataclass lists it in
+its class attribute ``REMOVED_FIELDS`` (name → :class:`RemovedField`), and such a file still loads
+(the setting ignored, with a one-line warning) as long as the run it describes behaves the same
+without it; otherwise the error names the setting and says what to do.
+
 Example:
     >>> from vadgs.render import RasterConfig
     >>> config_from_dict(RasterConfig, {"near": 0.1, "tile_size": 16}).tile_size
@@ -23,11 +28,43 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from typing import Any, TypeVar
+import warnings
+from typing import Any, NamedTuple, TypeVar
 
-__all__ = ["config_from_dict"]
+__all__ = ["RemovedField", "config_from_dict"]
 
 T = TypeVar("T")
+
+
+class RemovedField(NamedTuple):
+    """A setting a config dataclass no longer has, as read from older files by :func:`config_from_dict`.
+
+    Listed in the dataclass's class attribute ``REMOVED_FIELDS: ClassVar[dict[str, RemovedField]]``.
+
+    Attributes:
+        note: why it went and what replaces it (the end of the warning or the error).
+        same: the values with which a run behaves as it does without the setting: those are
+            ignored with a :class:`UserWarning`; any other value is a :class:`ValueError`. None
+            (the default): every value (a setting that never had an effect).
+    """
+
+    note: str
+    same: tuple[Any, ...] | None = None
+
+
+def _drop_removed(cls: type, data: dict[str, Any], fields: Any, where: str) -> dict[str, Any]:
+    """``data`` without the keys of ``cls.REMOVED_FIELDS`` (a warning each, or the error)."""
+    removed: dict[str, RemovedField] = getattr(cls, "REMOVED_FIELDS", None) or {}
+    gone = [k for k in data if k in removed and k not in fields]
+    for key in gone:  # a refused value first: then no warning about the others
+        spec, value = removed[key], data[key]
+        same = spec.same is None or any(type(value) is type(v) and value == v for v in spec.same)
+        if not same:
+            raise ValueError(f"{where}.{key}: a removed setting, {value!r} no longer possible: {spec.note}")
+    for key in gone:
+        spec = removed[key]
+        warnings.warn(f"{where}.{key}: a removed setting, ignored: {spec.note}", UserWarning, stacklevel=3)
+    return {k: v for k, v in data.items() if k not in gone}
 
 
 def _type_name(tp: Any) -> str:
@@ -126,15 +163,20 @@ def config_from_dict(cls: type[T], data: Any, where: str = "config") -> T:
     Returns:
         The instance of ``cls``.
 
+    Warns:
+        UserWarning: one line per removed setting (``cls.REMOVED_FIELDS``) that is ignored.
+
     Raises:
         ValueError: on a key that is not a field, or a value of the wrong type; the message names
             the field's path, the expected and the actual type (``config.lr.means: expected
-            float, got str 'x'``). Errors raised by the dataclass's own ``__post_init__``
+            float, got str 'x'``). A removed setting with a value the run cannot do without names
+            the setting and what to do. Errors raised by the dataclass's own ``__post_init__``
             (range checks) are re-raised prefixed with ``where``.
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of {cls.__name__} fields, got {_got(data)}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    data = _drop_removed(cls, data, fields, where)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {unknown}; {cls.__name__} has {sorted(fields)}")

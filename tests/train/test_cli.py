@@ -101,3 +101,67 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
     assert "--resume: --seed cannot be honoured" in capsys.readouterr().err
     assert main(["train", "--out", str(out), "--resume", "--iterations", "2", "--no-progress"]) == 0
     assert "NOTE: --iterations changes the run from 1 to 2" in capsys.readouterr().out
+
+
+def test_older_runs_with_removed_settings(tmp_path, capsys):
+    """A run written before issue 41 removed ``vad.explained_tolerance``, ``vad.visibility`` and
+    ``vad.incomplete.foreign_fraction`` still resumes, evaluates and serves as ``--config``: each is
+    ignored with a one-line warning naming it. A run made with ``visibility`` False (plain ADC under
+    the VAD-GS wrapper) is refused naming the setting and what to do."""
+    import pytest
+    import torch
+
+    from vadgs.train.checkpoint import CHECKPOINT_NAME, checkpoint_checksum
+
+    out = tmp_path / "run"
+    tiny = ["--scale", "0.25", "--no-progress", "--init.max-points", "300", "--init.sh-degree", "0"]
+    assert main(["train", "--sample", "--out", str(out), "--iterations", "3", "--vad", *tiny]) == 0
+
+    def write_old(visibility: bool) -> dict:
+        """The run's checkpoint and config.json as an older vadgs wrote them."""
+        path = out / CHECKPOINT_NAME
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        vad = ckpt["config"]["vad"]
+        vad.update(explained_tolerance=0.2, visibility=visibility)
+        vad["incomplete"]["foreign_fraction"] = 0.5
+        ckpt["checksum"] = checkpoint_checksum(ckpt)
+        torch.save(ckpt, path)
+        meta = json.loads((out / "config.json").read_text())
+        meta["config"]["vad"] = vad
+        (out / "config.json").write_text(json.dumps(meta))
+        return meta["config"]
+
+    removed = (
+        "config.vad.explained_tolerance",
+        "config.vad.visibility",
+        "config.vad.incomplete.foreign_fraction",
+    )
+    old = write_old(visibility=True)
+    for args in (
+        ["eval", str(out), "--no-progress"],
+        ["train", "--out", str(out), "--resume", "--iterations", "4"],
+    ):
+        with pytest.warns(UserWarning) as caught:
+            assert main([*args, "--no-progress"] if args[0] == "train" else args) == 0
+        said = {str(w.message).split(":")[0] for w in caught if "removed setting" in str(w.message)}
+        assert said == set(removed), args
+    assert json.loads((out / "metrics.json").read_text())["steps"] == 4
+    assert "explained_tolerance" not in json.loads((out / "config.json").read_text())["config"]["vad"]
+
+    config = tmp_path / "old_config.json"
+    config.write_text(json.dumps({**old, "iterations": 2}))
+    run2 = tmp_path / "run2"
+    with pytest.warns(UserWarning) as caught:  # each named once, as the file's
+        assert main(["train", "--sample", "--out", str(run2), "--config", str(config), *tiny]) == 0
+    said = [str(w.message) for w in caught if "removed setting" in str(w.message)]
+    assert sorted(m.split(":")[0] for m in said) == sorted(f"--config {config}.{r[7:]}" for r in removed)
+    assert "visibility" not in json.loads((run2 / "config.json").read_text())["config"]["vad"]
+
+    write_old(visibility=False)
+    capsys.readouterr()
+    assert main(["eval", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(
+        "vadgs eval: error: config.vad.visibility: a removed setting, False no longer possible"
+    )
+    assert err.endswith("is TrainConfig.vad = None: vadgs train without --vad") and "\n" not in err

@@ -272,7 +272,7 @@ class TestUnknownKeys:
             torch.randn(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2), rgb, torch.full((2,), 0.1),
             None, [0], [], [], "ok",
         )  # fmt: skip
-        VisibilityAwareDensification(visibility=False)._add(splats, opts, None, rec)
+        VisibilityAwareDensification()._add(splats, opts, None, rec)
         assert splats["means"].shape[0] == 7
         torch.testing.assert_close(splats["colors"][5:].detach(), torch.logit(rgb))
         assert torch.equal(splats["features"][5:], torch.zeros(2, 32))

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import pytest
 import torch
 
 from vadgs.render import RenderOutput
@@ -93,3 +94,29 @@ class TestDefaultStrategy:
             state["num_resets"] == 1
             and float(torch.sigmoid(m.params["opacity_logits"].detach()).max()) <= 0.0101
         )
+
+    def test_check_sanity(self):
+        m = _model()
+        opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+        DefaultStrategy().check_sanity(m.params, opt)
+        splats = {k: torch.zeros(4, 3, requires_grad=True) for k in ("means", "quats", "scales", "opacities")}
+        opts = {k: torch.optim.Adam([v]) for k, v in splats.items()}
+        DefaultStrategy().check_sanity(splats, opts)  # gsplat's layout and optimizers
+        del opts["quats"]
+        with pytest.raises(ValueError, match=r"^optimizers: expected a key 'quats', got keys \["):
+            DefaultStrategy().check_sanity(splats, opts)
+
+    def test_gsplat_keyword_arguments(self):
+        """gsplat's loops pass ``packed=`` (DefaultStrategy) or ``lr=`` (MCMCStrategy): accepted;
+        ``packed`` means nothing for vadgs's own render, the others are ignored."""
+        stats = []
+        for kwargs in ({}, {"packed": False}, {"packed": True}, {"lr": 1e-3, "extra": None}):
+            m = _model()
+            opt = make_optimizer(m, dict.fromkeys([*PER_GAUSSIAN, "sky"], 1e-3))
+            s = DefaultStrategy(DefaultStrategyConfig(refine_start_iter=10))
+            state = s.initialize_state(1.0)
+            info = _fake_info(6, [0, 1])
+            s.step_pre_backward(m.params, opt, state, 1, info, **kwargs)
+            s.step_post_backward(m.params, opt, state, 1, info, **kwargs)
+            stats.append((state["grad2d"].tolist(), state["count"].tolist()))
+        assert stats == [stats[0]] * 4 and stats[0][0][0] == 10.0

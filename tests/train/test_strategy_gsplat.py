@@ -154,3 +154,35 @@ def test_default_strategy_matches_gsplat(pause):
     assert s_v["num_resets"] == 2
     assert len(set(counts)) > 3
     assert not (p_v["scales"].exp().amax(-1) > settings["prune_scale3d"]).any()
+
+
+def test_packed_statistics_match_gsplat():
+    """``step_post_backward(..., packed=True)`` with gsplat's packed meta (``means2d`` ``(nnz, 2)`` of
+    the rows ``gaussian_ids``): the same statistics as gsplat's with ``packed=True`` and as the
+    unpacked meta of the same render."""
+    settings = dict(refine_start_iter=100, reset_every=1000)
+    theirs = gsplat_strategy.DefaultStrategy(**settings)
+    mine = DefaultStrategy(DefaultStrategyConfig(**settings))
+    params, _ = _params()
+    target = torch.rand(1, 3, *SIZE, generator=torch.Generator().manual_seed(7))
+    out, info = _render(params)
+    mine.step_pre_backward(params, {}, {}, 0, info)
+    (out.color - target).abs().mean().backward()
+    ids = torch.nonzero((info["radii"][0] > 0).all(-1)).squeeze(1)
+    assert 0 < ids.numel() < params["means"].shape[0]
+    m2d = torch.zeros(ids.numel(), 2)
+    m2d.grad = info["means2d"].grad[0][ids]
+    packed = {**info, "means2d": m2d, "radii": info["radii"][0][ids], "gaussian_ids": ids}
+    stats = {}
+    for name, strategy, meta, is_packed in (
+        ("gsplat packed", theirs, packed, True),
+        ("vadgs packed", mine, packed, True),
+        ("vadgs unpacked", mine, info, False),
+    ):
+        state = strategy.initialize_state(scene_scale=1.0)
+        strategy.step_post_backward(params, {}, state, 1, meta, packed=is_packed)
+        stats[name] = (state["grad2d"], state["count"])
+    for name in ("vadgs packed", "vadgs unpacked"):
+        torch.testing.assert_close(stats[name][0], stats["gsplat packed"][0], rtol=0, atol=0, msg=name)
+        assert torch.equal(stats[name][1], stats["gsplat packed"][1]), name
+    assert int(stats["vadgs packed"][1].sum()) == ids.numel()

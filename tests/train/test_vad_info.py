@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from vadgs.train.strategy import DefaultStrategy
-from vadgs.train.vad import VisibilityAwareDensification, check_info
+from vadgs.train.vad import StrategyContext, VisibilityAwareDensification, check_info
 
 gsplat_strategy = pytest.importorskip("gsplat.strategy")
 
@@ -19,11 +19,13 @@ def _gsplat_meta(packed: bool = False) -> dict:
 
 
 def _first_step(base, info, **kwargs) -> None:
-    """The first step's calls up to the base's: pre-backward, then post-backward with ``kwargs``."""
-    vad = VisibilityAwareDensification(base=base, visibility=False)
+    """The first step's calls up to the base's: pre-backward, then post-backward with ``kwargs``
+    (no event in reach: a sampling cycle of 100 steps; no view in ``info``: nothing is tested)."""
+    vad = VisibilityAwareDensification(base=base)
+    vad.context = StrategyContext(lambda v: None, total_steps=10, steps_per_cycle=100)
     vad.step_pre_backward({}, {}, {}, 0, info)
     base.step_post_backward = lambda *a, **k: None  # what is tested is the check before it
-    vad.step_post_backward({}, {}, {}, 0, info, **kwargs)
+    vad.step_post_backward({}, {}, {"vad_cycle": 0}, 0, info, **kwargs)
 
 
 def test_gsplat_default_strategy_names_the_missing_key():
@@ -51,5 +53,9 @@ def test_vadgs_default_and_gsplat_mcmc():
     ):
         check_info(DefaultStrategy(), {"raster": object()})
     check_info(DefaultStrategy(), {k: v for k, v in _gsplat_meta().items() if k != "gaussian_ids"})
+    unpacked = {k: v for k, v in _gsplat_meta().items() if k != "gaussian_ids"}
+    with pytest.raises(ValueError, match=r"expected key 'gaussian_ids' \(read by vadgs's DefaultStrategy"):
+        check_info(DefaultStrategy(), unpacked, packed=True)
+    check_info(DefaultStrategy(), _gsplat_meta(packed=True), packed=True)
     _first_step(gsplat_strategy.MCMCStrategy(), {})  # MCMC reads nothing from info (it takes lr=)
     check_info(object(), {})  # an unknown base: nothing is known, nothing checked

@@ -151,8 +151,11 @@ class TrainCommand:
 _SESSION = ("scene", "out", "resume", "no_progress", "debug", "train")  # SCENE: where it moved
 
 
-def _read_config_file(path: str) -> dict:
-    """A ``--config`` JSON file, type-checked against :class:`TrainConfig` on its own."""
+def _read_config_file(path: str) -> tuple[dict, TrainConfig]:
+    """A ``--config`` JSON file and its :class:`TrainConfig`, type-checked against it on its own.
+
+    Read once: a removed setting in it is named once, as ``--config FILE.vad.KEY``.
+    """
     from vadgs.config import config_from_dict
 
     p = Path(path)
@@ -164,8 +167,7 @@ def _read_config_file(path: str) -> dict:
         raise ValueError(f"--config {p}: not valid JSON ({e})") from None
     except RecursionError:
         raise ValueError(f"--config {p}: nested too deeply to parse (over ~1000 levels)") from None
-    config_from_dict(TrainConfig, data, where=f"--config {p}")
-    return data
+    return data, config_from_dict(TrainConfig, data, where=f"--config {p}")
 
 
 def _starting_config(argv: list[str]) -> tuple[TrainConfig, dict]:
@@ -191,8 +193,7 @@ def _starting_config(argv: list[str]) -> tuple[TrainConfig, dict]:
             raise FileNotFoundError(f"--resume: no checkpoint in {out}")
         base = load_checkpoint(out).train_config()
     elif known.config:
-        data = _read_config_file(known.config)
-        base = TrainConfig.from_dict(data)
+        data, base = _read_config_file(known.config)
     else:
         base = TrainConfig()
     if known.vad and base.vad is None:

@@ -235,7 +235,7 @@ class Trainer:
                 "what vadgs train does for short runs) or lower --strategy.refine-start-iter"
             )
         vad = cfg.vad
-        if cfg.iterations and vad is not None and vad.visibility:
+        if cfg.iterations and vad is not None:
             first = vad.every_cycles * len(self.train_views) - 1  # the step that ends the first event's cycle
             if not first < vad.last_event_fraction * cfg.iterations:
                 need = int(first / vad.last_event_fraction) + 1

@@ -146,13 +146,12 @@ class TestValidValues:
             skip_classes=["road", "sky"],
             new_opacity=np.float32(0.25),
             last_event_fraction=1,
-            explained_tolerance=0,
-            visibility=np.bool_(True),
+            view_selection=np.bool_(True),
         )
         assert type(cfg.every_cycles) is int and cfg.every_cycles == 1
         assert cfg.skip_classes == ("road", "sky")  # a list becomes a tuple
         assert type(cfg.new_opacity) is float and type(cfg.last_event_fraction) is float
-        assert cfg.visibility is True
+        assert cfg.view_selection is True
         assert VisibilityDensifyConfig(skip_classes=()).skip_classes == ()
         assert VisibilityDensifyConfig(last_event_fraction=0.0).last_event_fraction == 0.0
         rec = ReconstructConfig(
@@ -190,12 +189,12 @@ class TestContextAndScale:
     @pytest.mark.parametrize("scale", [NAN, -1.0, 0.0, INF, "1", None])
     def test_initialize_state_scene_scale(self, scale):
         with pytest.raises(ValueError, match=r"^scene_scale: expected a finite number > 0, got"):
-            VisibilityAwareDensification(visibility=False).initialize_state(scene_scale=scale)
+            VisibilityAwareDensification().initialize_state(scene_scale=scale)
         with pytest.raises(ValueError, match=r"^scene_scale: expected a finite number > 0, got"):
             DefaultStrategy().initialize_state(scale)
 
     def test_initialize_state_valid(self):
-        state = VisibilityAwareDensification(visibility=False).initialize_state(np.float64(2.5))
+        state = VisibilityAwareDensification().initialize_state(np.float64(2.5))
         assert state["scene_scale"] == 2.5 and state["vad_priors"] == {}
 
 
@@ -217,11 +216,18 @@ def inputs(tiny_scene):
     return VisibilityInputs.from_scene(tiny_scene)
 
 
+@pytest.fixture(scope="module")
+def index(inputs):
+    """A coarse visibility index of the tiny scene, built once."""
+    return VisibilityAwareDensification(voxel_size=1.0, cell_size=20.0).prepare(inputs)
+
+
 @pytest.fixture
-def strategy(inputs):
-    """A strategy with inputs and context (no visibility index: ``visibility`` off), and its state."""
-    s = VisibilityAwareDensification(base=_NoBase(), visibility=False)
-    s.prepare(inputs, StrategyContext(render=lambda v: None, total_steps=100, steps_per_cycle=10))
+def strategy(index):
+    """A strategy with inputs, index and context (no event in reach), and its state."""
+    s = VisibilityAwareDensification(base=_NoBase())
+    ctx = StrategyContext(render=lambda v: None, total_steps=100, steps_per_cycle=10)
+    s.prepare(context=ctx, index=index)
     return s, s.initialize_state(1.0)
 
 
@@ -289,9 +295,9 @@ class TestGeometryTargets:
         with pytest.raises(ValueError, match=r"^geometry_targets: .* call prepare\(inputs, context\)"):
             s.geometry_targets({}, 0)
 
-    def test_state_not_from_initialize_state_and_view_out_of_range(self, inputs):
+    def test_state_not_from_initialize_state_and_view_out_of_range(self, inputs, index):
         s = VisibilityAwareDensification(voxel_size=1.0, cell_size=20.0)
-        s.prepare(inputs)
+        s.prepare(inputs, index=index)
         with pytest.raises(
             ValueError, match=r"^state: expected the strategy's state .*'vad_priors'.*, got keys \[\]"
         ):

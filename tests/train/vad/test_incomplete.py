@@ -3,6 +3,7 @@ import math
 import pytest
 import torch
 
+import vadgs.geometry
 from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete, voxel_labels
 
 
@@ -32,9 +33,7 @@ def _naive(ins, vox, ren, alpha, cfg, vindex=None, vlabels=None):
                 idx = idx[idx >= 0]
                 if idx.numel():
                     foreign = float((vlabels[idx] != i).float().mean())
-            flagged = (med > cfg.depth_ratio) or (low > cfg.low_alpha_fraction)
-            if cfg.foreign_fraction is not None and vlabels is not None:
-                flagged = flagged or foreign > cfg.foreign_fraction
+            flagged = (med > cfg.depth_ratio) or (low > cfg.low_alpha_fraction)  # foreign: reported only
             rows[(v, i)] = (flagged, med, low, foreign, n)
     return rows
 
@@ -73,17 +72,21 @@ class TestFindIncomplete:
                 assert float(out.depth_ratio[k]) == pytest.approx(med, rel=1e-5)
 
     def test_foreign_voxels_match_reference(self):
+        """The share of pixels on other instances' voxels is reported; it flags nothing (the
+        never-used ``foreign_fraction`` is gone): the same flags as without labels."""
         ins, vox, ren, alpha = _random_case(3)
         g = torch.Generator().manual_seed(3)
         vindex = torch.randint(-1, 50, ins.shape, generator=g)
         vlabels = torch.randint(0, 6, (50,), generator=g)
-        cfg = IncompleteConfig(min_pixels=5, foreign_fraction=0.5)
+        cfg = IncompleteConfig(min_pixels=5)
         out = find_incomplete(ins, vox, ren, alpha, cfg, vindex, vlabels)
         ref = _naive(ins, vox, ren, alpha, cfg, vindex, vlabels)
+        assert torch.equal(out.flagged, find_incomplete(ins, vox, ren, alpha, cfg).flagged)
         for k in range(out.view.numel()):
             flagged, _, _, foreign, _ = ref[(int(out.view[k]), int(out.instance[k]))]
             assert bool(out.flagged[k]) == flagged
             assert float(out.foreign[k]) == pytest.approx(foreign, abs=1e-6)
+        assert 0 < float(out.foreign.nan_to_num(0).max()) and not hasattr(cfg, "foreign_fraction")
 
     def test_paper_rules(self):
         # four instances: complete; rendered behind voxels (ratio 1.2); transparent (alpha 0.5);
@@ -124,3 +127,7 @@ class TestVoxelLabels:
                 continue
             best = min(set(ls), key=lambda x: (-ls.count(x), x))
             assert out[v] == best
+
+    def test_is_the_geometry_one(self):
+        """Moved to :mod:`vadgs.geometry.voxel`; still importable from here."""
+        assert voxel_labels is vadgs.geometry.voxel_labels

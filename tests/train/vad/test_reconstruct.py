@@ -255,6 +255,8 @@ class TestEventLog:
         assert "wall-clock cap" in log["summary"] and "skipped" in log["summary"]
         assert event["flagged_instances"] >= event["candidates"]
         assert event["repaired"] <= event["attempted"]
+        (first,) = event["instances"]  # its consistent MVS points, thinned to the Gaussians added
+        assert first["points"] > first["added"] > 0, first
         assert event["total_s"] >= event["mvs_s"] > 0
 
     def test_work_budget_counts_patchmatch_work(self, scene, index, gt_points, monkeypatch):

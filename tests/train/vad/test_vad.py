@@ -13,7 +13,6 @@ from vadgs.train.vad import (
     StrategyContext,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
-    VisibilityInputs,
     normals_to_quats,
     pick_references,
     rank_instances,
@@ -186,8 +185,8 @@ class TestMovingObject:
             sh_degree=0,
         )
         ctx = StrategyContext(lambda v: None, total_steps=1, steps_per_cycle=1, track_nodes={CAR: 0})
-        vad = VisibilityAwareDensification(visibility=False)
-        vad.prepare(VisibilityInputs.from_scene(scene), ctx)
+        vad = VisibilityAwareDensification()
+        vad.prepare(context=ctx, index=index)
         vad._add(model.params, None, None, rec, torch.ones(rec.points.shape[0], dtype=torch.bool))
         assert model.num_gaussians == 1 + rec.points.shape[0]
         assert (model.node_ids[1:] == 0).all()

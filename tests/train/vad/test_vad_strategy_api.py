@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from vadgs.data import load_colmap
+from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, ops
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,
@@ -69,6 +70,38 @@ class TestDataclass:
             s.prepare({})
 
 
+class _Recording:
+    """A base strategy that records every call (and checks nothing)."""
+
+    def __init__(self) -> None:
+        self.calls: list = []
+
+    def check_sanity(self, *args, **kwargs) -> None:
+        self.calls.append(("check_sanity", args, kwargs))
+
+    def initialize_state(self, *args, **kwargs) -> dict:
+        self.calls.append(("initialize_state", args, kwargs))
+        return {"from_base": args[0]}
+
+    def step_pre_backward(self, *args, **kwargs) -> None:
+        self.calls.append(("step_pre_backward", args, kwargs))
+
+    def step_post_backward(self, *args, **kwargs) -> None:
+        self.calls.append(("step_post_backward", args, kwargs))
+
+
+class _RecordingGsplat(gsplat_strategy.DefaultStrategy):
+    """gsplat's DefaultStrategy, its ``check_sanity`` recorded (and run)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.calls = []
+
+    def check_sanity(self, *args, **kwargs) -> None:
+        self.calls.append(("check_sanity", args, kwargs))
+        super().check_sanity(*args, **kwargs)
+
+
 class TestCheckSanity:
     def _splats(self, n=5):
         keys = {"means": 3, "quats": 4, "scales": 3, "opacities": None, "sh0": (1, 3), "shN": (0, 3)}
@@ -79,12 +112,47 @@ class TestCheckSanity:
         return splats, {k: torch.optim.Adam([splats[k]], lr=1e-3) for k in splats}
 
     def test_passes_and_calls_the_base(self):
+        """Its own check, then the base's, with the same ``params`` and ``optimizers``."""
         splats, opts = self._splats()
-        VisibilityAwareDensification(base=gsplat_strategy.DefaultStrategy()).check_sanity(splats, opts)
-        del splats["sh0"], splats["shN"]  # the base's own check runs (gsplat asserts its keys)
-        splats["colors"] = torch.nn.Parameter(torch.zeros(5, 3))
-        opts = {k: torch.optim.Adam([splats[k]], lr=1e-3) for k in splats}
-        VisibilityAwareDensification(base=gsplat_strategy.DefaultStrategy()).check_sanity(splats, opts)
+        for base in (_Recording(), _RecordingGsplat()):
+            VisibilityAwareDensification(base=base).check_sanity(splats, opts)
+            assert base.calls == [("check_sanity", (splats, opts), {})]
+        splats2 = {k: v for k, v in splats.items() if k not in ("sh0", "shN")}  # gsplat's appearance
+        splats2["colors"] = torch.nn.Parameter(torch.zeros(5, 3))
+        opts2 = {k: torch.optim.Adam([splats2[k]], lr=1e-3) for k in splats2}
+        base = _RecordingGsplat()
+        VisibilityAwareDensification(base=base).check_sanity(splats2, opts2)
+        assert [c[0] for c in base.calls] == ["check_sanity"]
+        # the base's own verdict stands: gsplat's wants an optimizer for trainable params only
+        extra = {**opts, "sky": torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=1e-3)}
+        ops.check_params(splats, extra)  # vadgs's own check lets an extra optimizer pass
+        base = _RecordingGsplat()
+        with pytest.raises(
+            AssertionError, match="trainable parameters and optimizers must have the same keys"
+        ):
+            VisibilityAwareDensification(base=base).check_sanity(splats, extra)
+        assert [c[0] for c in base.calls] == ["check_sanity"]
+        VisibilityAwareDensification(base=object()).check_sanity(splats, opts)  # a base without one
+
+    def test_forwards_every_call_to_the_base(self):
+        """``initialize_state`` (with ``scene_scale``), ``step_pre_backward`` and
+        ``step_post_backward`` reach the base with the loop's arguments and keyword arguments."""
+        base = _Recording()
+        vad = VisibilityAwareDensification(base=base)
+        vad.context = StrategyContext(lambda v: None, total_steps=10, steps_per_cycle=100)  # no event
+        state = vad.initialize_state(2.5)
+        assert state["from_base"] == 2.5 and "vad_events" in state
+        splats, opts = self._splats()
+        info = {"width": 8}
+        vad.step_pre_backward(splats, opts, state, 3, info)
+        vad.step_post_backward(
+            params=splats, optimizers=opts, state=state, step=3, info=info, packed=True, lr=0.1
+        )
+        assert base.calls == [
+            ("initialize_state", (2.5,), {}),
+            ("step_pre_backward", (splats, opts, state, 3, info), {}),
+            ("step_post_backward", (splats, opts, state, 3, info), {"packed": True, "lr": 0.1}),
+        ]
 
     def test_clear_errors(self):
         s = VisibilityAwareDensification()
@@ -187,7 +255,7 @@ def _gsplat_run(parser, base, steps, post_kwargs, packed=False, monkeypatch=None
         view = train[(5 * step) % len(train)]
         out, info = rasterize(view)
         info["gaussian_ids"] = None
-        vad.step_pre_backward(splats, optimizers, state, step, info)
+        vad.step_pre_backward(params=splats, optimizers=optimizers, state=state, step=step, info=info)
         (out.color[0] - inputs.load_image(view, None)).abs().mean().backward()
         for opt in optimizers.values():
             opt.step()
@@ -198,7 +266,10 @@ def _gsplat_run(parser, base, steps, post_kwargs, packed=False, monkeypatch=None
             m2d.grad = info["means2d"].grad[0][ids]
             info = {**info, "means2d": m2d, "radii": info["radii"][0][ids], "gaussian_ids": ids}
         torch.manual_seed(100 + step)  # gsplat's split draws from the global generator
-        vad.step_post_backward(splats, optimizers, state, step, info, **post_kwargs)
+        # as gsplat's simple_trainer calls it: keywords, packed= (DefaultStrategy) or lr= (MCMC)
+        vad.step_post_backward(
+            params=splats, optimizers=optimizers, state=state, step=step, info=info, **post_kwargs
+        )
     return splats, optimizers, state, n0
 
 
@@ -230,6 +301,33 @@ class TestGsplatBases:
         assert a["means"].shape == b["means"].shape
         torch.testing.assert_close(a["means"], b["means"], rtol=0, atol=1e-6)
         torch.testing.assert_close(sa["grad2d"], sb["grad2d"])
+
+    def test_default_base_in_a_gsplat_loop(self, parser):
+        """The class docstring's use: the default base (vadgs's ``DefaultStrategy``) called as
+        gsplat's ``simple_trainer`` calls a strategy, ``step_post_backward(..., packed=...)`` (was:
+        ``TypeError: unexpected keyword argument 'packed'``). Packed or not, the same decisions."""
+        runs = {}
+        for packed in (False, True):
+            base = DefaultStrategy(DefaultStrategyConfig(refine_start_iter=3, refine_every=2))
+            runs[packed] = _gsplat_run(parser, base, self.STEPS, {"packed": packed}, packed=packed)
+        for splats, optimizers, state, n0 in runs.values():
+            event = self._check(splats, optimizers, state, n0)
+            n = splats["means"].shape[0]
+            assert n > n0 + event["added"], "the base grew after the event"
+            assert state["grad2d"].shape == (n,) and state["count"].shape == (n,)
+        (a, _, sa, _), (b, _, sb, _) = runs[False], runs[True]
+        assert a["means"].shape == b["means"].shape
+        torch.testing.assert_close(a["means"], b["means"], rtol=0, atol=1e-6)
+        torch.testing.assert_close(sa["grad2d"], sb["grad2d"])
+        torch.testing.assert_close(sa["count"], sb["count"])
+        # the other keyword arguments of gsplat's loops (MCMC's lr=) are accepted and ignored
+        _gsplat_run(parser, DefaultStrategy(), 1, {"lr": 1e-3})
+
+    def test_default_base_packed_without_ids(self, parser):
+        with pytest.raises(
+            ValueError, match=r"info\['gaussian_ids'\]: expected the ids of .*packed=True, got None"
+        ):
+            _gsplat_run(parser, DefaultStrategy(), 1, {"packed": True})
 
     def test_mcmc_strategy(self, parser, monkeypatch):
         """gsplat's MCMCStrategy: ``initialize_state()`` without arguments, ``lr=`` passed on.

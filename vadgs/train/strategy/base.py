@@ -5,6 +5,7 @@ lives in a dict that the training loop owns, checkpoints and passes back. Any lo
 
 .. code-block:: python
 
+    strategy.check_sanity(params, optimizers)     # once: params and optimizers agree
     state = strategy.initialize_state(scene_scale)
     for step in ...:
         out = render(params, view)                 # info: what the rasterizer reports
@@ -12,6 +13,10 @@ lives in a dict that the training loop owns, checkpoints and passes back. Any lo
         loss.backward()
         for opt in optimizers.values(): opt.step()  # or one optimizer with named groups
         strategy.step_post_backward(params, optimizers, state, step, info)  # may add / remove rows
+
+Both step methods take further keyword arguments, as a loop written for gsplat passes them
+(``step_post_backward(..., packed=cfg.packed)`` to gsplat's ``DefaultStrategy``, ``lr=`` to its
+``MCMCStrategy``): a strategy uses those it knows and ignores the others.
 
 ``params`` is gsplat's mapping of per-Gaussian tensors (``means``, ``quats``, ``scales``,
 ``opacities``, ``sh0``, ``shN``) or vadgs's ``GaussianModel.params`` (``log_scales``,
@@ -48,6 +53,10 @@ class Strategy(Protocol):
     and removes them from the state.
     """
 
+    def check_sanity(self, params: MutableMapping[str, torch.Tensor], optimizers: Any) -> None:
+        """Check ``params`` and ``optimizers`` before training; raises ``ValueError`` naming the key."""
+        ...
+
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """A fresh state dict (per-Gaussian tensors are allocated lazily, at their first use)."""
         ...
@@ -59,6 +68,7 @@ class Strategy(Protocol):
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
+        **kwargs: Any,
     ) -> None:
         """Called after the render, before ``loss.backward()``."""
         ...
@@ -70,6 +80,7 @@ class Strategy(Protocol):
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
+        **kwargs: Any,
     ) -> None:
         """Called after ``loss.backward()`` and the optimizer step; may add or remove Gaussians."""
         ...

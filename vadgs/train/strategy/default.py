@@ -100,6 +100,23 @@ class DefaultStrategy:
             "last_refine": {},
         }
 
+    def check_sanity(self, params: Mapping[str, torch.Tensor] | Any, optimizers: Any) -> None:
+        """Check ``params`` and ``optimizers`` before training (gsplat's ``check_sanity``).
+
+        :func:`~vadgs.train.strategy.ops.check_params`: every per-Gaussian entry has the Gaussians
+        as first dimension, the geometry has vadgs's or gsplat's names, every trainable entry has
+        its optimizer.
+
+        Raises:
+            ValueError: naming the key, what was expected and what was found.
+
+        Example:
+            >>> geometry = ("means", "quats", "scales", "opacities")
+            >>> params = {k: torch.zeros(4, 3, requires_grad=True) for k in geometry}
+            >>> DefaultStrategy().check_sanity(params, {k: torch.optim.Adam([v]) for k, v in params.items()})
+        """
+        ops.check_params(params, optimizers)
+
     def step_pre_backward(
         self,
         params: MutableMapping[str, torch.Tensor],
@@ -107,8 +124,12 @@ class DefaultStrategy:
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
+        **kwargs: Any,
     ) -> None:
-        """Retain the gradient of the projected means (the rasterizer's ``means2d``)."""
+        """Retain the gradient of the projected means (the rasterizer's ``means2d``).
+
+        ``kwargs``: what another loop passes its strategies (gsplat's ``packed=``, ``lr=``), ignored.
+        """
         means2d = info["raster"].means2d if "raster" in info else info["means2d"]
         if means2d.requires_grad and not means2d.is_leaf:
             means2d.retain_grad()
@@ -120,12 +141,26 @@ class DefaultStrategy:
         state: dict[str, Any],
         step: int,
         info: dict[str, Any],
+        packed: bool = False,
+        **kwargs: Any,
     ) -> None:
-        """Accumulate the gradient statistics; densify, prune and reset opacities on schedule."""
+        """Accumulate the gradient statistics; densify, prune and reset opacities on schedule.
+
+        Args:
+            params: the per-Gaussian tensors (vadgs's or gsplat's names).
+            optimizers: vadgs's one optimizer with named groups, or gsplat's ``{name: optimizer}``.
+            state: from :meth:`initialize_state`.
+            step: the step just taken.
+            info: vadgs's (``raster``, ``ids``, ``image_size``, ``generator``) or gsplat's meta.
+            packed: gsplat's meta of ``rasterization(packed=True)``: ``means2d`` ``(nnz, 2)`` and
+                ``radii`` of the rows ``info["gaussian_ids"]`` (gsplat's argument; unused with
+                vadgs's ``info``).
+            kwargs: what another loop passes its strategies (gsplat's MCMC ``lr=``), ignored.
+        """
         cfg = self.config
         if step >= cfg.refine_stop_iter:
             return
-        self._update_state(params, state, info)
+        self._update_state(params, state, info, packed)
         paused = bool(cfg.reset_every) and step % cfg.reset_every < cfg.pause_refine_after_reset
         if step > cfg.refine_start_iter and step % cfg.refine_every == 0 and not paused:
             state["last_refine"] = self.refine(params, optimizers, state, step, info.get("generator"))
@@ -135,17 +170,23 @@ class DefaultStrategy:
 
     @torch.no_grad()
     def _update_state(
-        self, params: Mapping[str, torch.Tensor], state: dict[str, Any], info: dict[str, Any]
+        self, params: Mapping[str, torch.Tensor], state: dict[str, Any], info: dict[str, Any], packed: bool
     ) -> None:
         params = getattr(params, "params", params)
+        packed = packed and "raster" not in info  # vadgs's own render is never packed
         if "raster" in info:  # vadgs: one camera, rows ``ids`` of the model
             raster = info["raster"]
             means2d, (h, w), cams = raster.means2d, info["image_size"], 1
             vis = raster.visible
-        else:  # gsplat: (C, N, 2) means2d, radii (C, N) or (C, N, 2)
+        else:  # gsplat: (C, N, 2) means2d, radii (C, N) or (C, N, 2); packed: (nnz, 2), gaussian_ids
             means2d, h, w, cams = info["means2d"], info["height"], info["width"], info.get("n_cameras", 1)
+            if packed and info.get("gaussian_ids") is None:
+                raise ValueError(
+                    "info['gaussian_ids']: expected the ids of gsplat's rasterization(packed=True) with "
+                    f"packed=True, got {info.get('gaussian_ids', 'no such key')}"
+                )
             radii = info["radii"]
-            vis = (radii > 0).all(-1) if radii.dim() == 3 else radii > 0
+            vis = None if packed else (radii > 0).all(-1) if radii.dim() == 3 else radii > 0
         grad = getattr(means2d, "absgrad", None) if self.config.absgrad else means2d.grad
         if grad is None:
             return
@@ -157,11 +198,16 @@ class DefaultStrategy:
         g = grad.clone()
         g[..., 0] *= w / 2.0 * cams
         g[..., 1] *= h / 2.0 * cams
-        ids = info.get("ids")
-        for c in range(g.shape[0]):
-            rows = torch.nonzero(vis[c]).squeeze(1)
-            gid = rows if ids is None else ids[rows]
-            norms = g[c, rows].norm(dim=-1).to(state["grad2d"].dtype)
+        if packed:  # (nnz, 2): every packed row was rendered (gsplat counts them all)
+            rows_of = [(info["gaussian_ids"], g)]
+        else:
+            ids = info.get("ids")
+            rows_of = []
+            for c in range(g.shape[0]):
+                rows = torch.nonzero(vis[c]).squeeze(1)
+                rows_of.append((rows if ids is None else ids[rows], g[c, rows]))
+        for gid, gc in rows_of:
+            norms = gc.norm(dim=-1).to(state["grad2d"].dtype)
             state["grad2d"].index_add_(0, gid, norms)
             state["count"].index_add_(0, gid, torch.ones_like(norms))
 

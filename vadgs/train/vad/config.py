@@ -12,6 +12,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
+from typing import ClassVar
 
 import torch
 
@@ -25,6 +26,7 @@ from vadgs.checks import (
     int_field,
     names_field,
 )
+from vadgs.config import RemovedField
 from vadgs.train.vad.incomplete import IncompleteConfig
 from vadgs.train.vad.reconstruct import ReconstructConfig, ViewRender
 
@@ -35,9 +37,11 @@ __all__ = ["RANKINGS", "StrategyContext", "VisibilityDensifyConfig"]
 class VisibilityDensifyConfig:
     """Settings of :class:`~vadgs.train.vad.VisibilityAwareDensification` (paper values by default).
 
+    VAD-GS is on wherever this config is given (``TrainConfig.vad``); the paper's "w/o voxel
+    visibility reasoning" ablation, which disables everything else, is its absence
+    (``TrainConfig.vad = None``, ``vadgs train`` without ``--vad``: the standard strategy alone).
+
     Attributes:
-        visibility: the whole strategy on (False: the "w/o voxel visibility reasoning" ablation,
-            which disables everything else).
         view_selection: diversity-aware selection (False: consecutive frames of the reference
             camera, the "w/o view selection" ablation).
         geometric_losses: normal and hard/soft depth losses on the priors.
@@ -97,9 +101,6 @@ class VisibilityDensifyConfig:
             flagged in such a view (``whole`` of :func:`~vadgs.train.vad.event.pick_references`); with
             ``reconstruct.whole_supports`` its supporting views show all of it too.
         skip_classes: instance classes never densified (e.g. the road, which LiDAR covers).
-        explained_tolerance: an MVS pixel is "explained" (gives no new Gaussian) where its view's
-            render has opacity above ``incomplete.alpha_threshold`` and a depth within this
-            relative tolerance of (or in front of) the MVS depth.
         new_opacity: opacity of the new Gaussians.
         flatness: thickness of the new Gaussians along their normal, relative to their width.
         voxel_depth_prior: use the voxel depth where no MVS depth exists.
@@ -107,7 +108,6 @@ class VisibilityDensifyConfig:
             the very end would not be trained).
     """
 
-    visibility: bool = True
     view_selection: bool = True
     geometric_losses: bool = True
     every_cycles: int = 5
@@ -126,11 +126,22 @@ class VisibilityDensifyConfig:
     cooldown_events: int = 0
     whole_reference: bool = True
     skip_classes: tuple[str, ...] = ("road",)
-    explained_tolerance: float = 0.05
     new_opacity: float = 0.5
     flatness: float = 0.2
     voxel_depth_prior: bool = True
     last_event_fraction: float = 0.9
+
+    REMOVED_FIELDS: ClassVar[dict[str, RemovedField]] = {
+        "explained_tolerance": RemovedField(
+            "it never had an effect; the tolerance in use is reconstruct.explained_tolerance"
+        ),
+        "visibility": RemovedField(
+            "VAD-GS is on wherever its config is given; the paper's 'w/o voxel visibility reasoning' "
+            "ablation (visibility False) is TrainConfig.vad = None: vadgs train without --vad",
+            same=(True,),
+        ),
+    }
+    """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
@@ -139,7 +150,6 @@ class VisibilityDensifyConfig:
 RANKINGS = ("class_round_robin", "pixels")
 
 _FIELDS: dict[str, FieldCheck] = {
-    "visibility": bool_field(),
     "view_selection": bool_field(),
     "geometric_losses": bool_field(),
     "every_cycles": int_field(1),
@@ -158,7 +168,6 @@ _FIELDS: dict[str, FieldCheck] = {
     "cooldown_events": int_field(0),
     "whole_reference": bool_field(),
     "skip_classes": names_field("class names"),
-    "explained_tolerance": float_field(0),
     "new_opacity": float_field(0, 1, lo_open=True, hi_open=True),
     "flatness": float_field(0, lo_open=True),
     "voxel_depth_prior": bool_field(),

@@ -429,6 +429,14 @@ def run_event(
     reference, ``strategy._add`` of the new points, :func:`merge_priors`. The log entry is appended
     to ``state["vad_events"]`` and, with its summary, to ``state["pending_log"]`` (at most
     ``strategy.log_size`` kept).
+
+    The entry's ``instances`` has one dict per attempted instance: ``instance``, ``class``,
+    ``references`` (its reference views), ``views`` (each reference's group), ``points`` (the
+    consistent MVS points of its groups, :attr:`InstanceReconstruction.consistent
+    <vadgs.train.vad.reconstruct.InstanceReconstruction>`: before those the Gaussians already
+    explain are left out and the rest thinned), ``added`` (the Gaussians added: what remains of
+    ``points``), ``work`` (PatchMatch pixel-sweeps) and ``reason`` (each reference's
+    ``InstanceReconstruction.reason``, joined).
     """
     cfg = strategy.config
     inputs = strategy._inputs()
@@ -521,11 +529,11 @@ def run_event(
             if cfg.geometric_losses:
                 merge_priors(state["vad_priors"], rec)
             entry_views.append(rec.views)
-            points += n_new
+            points += rec.consistent
             n_new_total += n_new
             reasons.append(rec.reason)
         added += n_new_total
-        done += points > 0
+        done += n_new_total > 0  # an instance that added nothing does not use up a max_instances slot
         repaired += n_new_total > 0
         state["vad_last_done"][inst] = event
         log.append(

@@ -14,19 +14,22 @@ when
 Rendered depth consistently *smaller* than the voxel depth is not flagged: it means completed
 geometry in front of the voxels, or redundancy that opacity can resolve.
 
-Optionally (``foreign_fraction``, off by default, beyond the paper), when each voxel carries an
-instance label, an instance whose pixels mostly map to voxels of *other* instances (the z-buffer
-sees through it to what lies behind) is flagged too: its own geometry is missing from the voxels.
+Given the voxel index map and each voxel's instance label (:func:`~vadgs.geometry.voxel_labels`),
+:func:`find_incomplete` also reports the share of an instance's pixels that map to voxels of
+*other* instances (``foreign``: the z-buffer sees through it to what lies behind), as a diagnostic;
+it flags nothing.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import torch
 
 from vadgs.checks import check_fields, check_shape, float_field, int_field, ints_field
+from vadgs.config import RemovedField
+from vadgs.geometry import voxel_labels  # was defined here: importable from here too
 
 __all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "voxel_labels"]
 
@@ -41,8 +44,6 @@ class IncompleteConfig:
         low_alpha_fraction: flag when more than this share of the instance's pixels is transparent.
         min_pixels: instances with fewer pixels in a view are skipped.
         min_alpha_for_depth: rendered depth counts as absent where alpha is below this.
-        foreign_fraction: if set and ``voxel_labels`` are given, flag when more than this share of
-            the instance's voxel-covered pixels map to voxels of other instances.
         ignore_ids: instance ids never tested (0 = sky / none).
     """
 
@@ -51,8 +52,14 @@ class IncompleteConfig:
     low_alpha_fraction: float = 0.25
     min_pixels: int = 20
     min_alpha_for_depth: float = 0.05
-    foreign_fraction: float | None = None
     ignore_ids: tuple[int, ...] = (0,)
+
+    REMOVED_FIELDS: ClassVar[dict[str, RemovedField]] = {
+        "foreign_fraction": RemovedField(
+            "it was never used by the strategy (find_incomplete still reports the share, as 'foreign')"
+        ),
+    }
+    """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
@@ -64,7 +71,6 @@ _FIELDS = {
     "low_alpha_fraction": float_field(0, 1),
     "min_pixels": int_field(0),
     "min_alpha_for_depth": float_field(0, 1),
-    "foreign_fraction": float_field(0, 1, optional=True),
     "ignore_ids": ints_field("instance ids"),
 }
 
@@ -80,7 +86,7 @@ class IncompleteInstances(NamedTuple):
             ``inf`` when nothing is rendered there).
         low_alpha: ``(R,)`` share of pixels with alpha below the threshold.
         foreign: ``(R,)`` share of voxel-covered pixels mapping to other instances' voxels
-            (``nan`` without labels).
+            (``nan`` without labels; a diagnostic, not a criterion).
         pixels: ``(R,)`` int64 pixel count of the instance.
         voxel_pixels: ``(R,)`` int64 pixels that have a voxel depth.
     """
@@ -133,7 +139,8 @@ def find_incomplete(
         rendered_alpha: ``(B, 1, H, W)`` accumulated opacity.
         config: :class:`IncompleteConfig`.
         voxel_index: ``(B, H, W)`` voxel index map (needed with ``voxel_labels``).
-        voxel_labels: ``(M,)`` int64 instance label of each voxel.
+        voxel_labels: ``(M,)`` int64 instance label of each voxel: with ``voxel_index``, the
+            ``foreign`` share is reported (it flags nothing).
 
     Returns:
         :class:`IncompleteInstances`, rows sorted by (view, instance).
@@ -191,8 +198,6 @@ def find_incomplete(
                 cnt > 0, torch.bincount(seg[covered], weights=other, minlength=r) / cnt.clamp(min=1), foreign
             )
         flagged = (med > cfg.depth_ratio) | (low > cfg.low_alpha_fraction)
-        if cfg.foreign_fraction is not None and voxel_labels is not None:
-            flagged |= foreign > cfg.foreign_fraction
         big = pixels >= cfg.min_pixels
         flagged &= big
         sel = big
@@ -206,37 +211,3 @@ def find_incomplete(
             pixels=pixels[sel],
             voxel_pixels=voxel_pixels[sel],
         )
-
-
-def voxel_labels(point_to_voxel: torch.Tensor, point_labels: torch.Tensor, num_voxels: int) -> torch.Tensor:
-    """Majority label of each voxel's points (e.g. LiDAR instance ids); ties go to the smaller id.
-
-    Args:
-        point_to_voxel: ``(N,)`` voxel of each point (``VoxelGrid.point_to_voxel``; ``-1`` ignored).
-        point_labels: ``(N,)`` int64 label of each point.
-        num_voxels: ``M``.
-
-    Returns:
-        ``(M,)`` int64 labels, ``0`` for voxels without points.
-
-    Example:
-        >>> voxel_labels(torch.tensor([0, 0, 0, 1]), torch.tensor([7, 3, 7, 2]), 3).tolist()
-        [7, 2, 0]
-    """
-    check_shape(point_to_voxel, "point_to_voxel", ("N",))
-    check_shape(point_labels, "point_labels", ("N",), {"N": point_to_voxel.shape[0]})
-    ok = point_to_voxel >= 0
-    v, lab = point_to_voxel[ok], point_labels[ok].long()
-    out = torch.zeros(num_voxels, dtype=torch.int64, device=point_to_voxel.device)
-    if v.numel() == 0:
-        return out
-    pairs, counts = torch.unique(v * (int(lab.max()) + 1) + lab, return_counts=True)
-    pv, pl = pairs // (int(lab.max()) + 1), pairs % (int(lab.max()) + 1)
-    # order by (voxel, count desc, label asc) and take the first row of each voxel
-    order = torch.argsort(pl, stable=True)
-    order = order[torch.argsort(-counts[order], stable=True)]
-    order = order[torch.argsort(pv[order], stable=True)]
-    first = torch.ones_like(order, dtype=torch.bool)
-    first[1:] = pv[order][1:] != pv[order][:-1]
-    out[pv[order][first]] = pl[order][first]
-    return out

@@ -98,6 +98,9 @@ class InstanceReconstruction(NamedTuple):
         reason: ``"ok"`` or why nothing (or little) was reconstructed.
         work: the PatchMatch work done, in pixel-sweeps (:func:`match_work`; 0 when nothing was
             matched): a count that does not depend on the machine, for the event's budget.
+        consistent: the group's consistent MVS pixels (at the matching scale): the points fusion
+            makes of them before those the Gaussians already explain are left out and the rest
+            thinned (``points`` is what remains; 0 when nothing was matched).
     """
 
     points: torch.Tensor
@@ -110,6 +113,7 @@ class InstanceReconstruction(NamedTuple):
     normal: list[torch.Tensor]
     reason: str
     work: float = 0.0
+    consistent: int = 0
 
 
 class ViewRender(NamedTuple):
@@ -541,5 +545,6 @@ def reconstruct_instance(
     views = [group[i] for i in crops.members]
     reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
     return InstanceReconstruction(
-        points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work
-    )
+        points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work,
+        int(cons.keep.sum()),
+    )  # fmt: skip

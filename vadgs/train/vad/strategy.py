@@ -24,7 +24,7 @@ flow:
    initialised from the rendered depth and normals and restricted to the instance (a moving object
    in its own frame), consistency and fusion (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`);
 4. **new Gaussians**: the fused points that the current Gaussians do not already explain (no opaque
-   surface within ``explained_tolerance`` in front of them in the reference view) become flat
+   surface within ``reconstruct.explained_tolerance`` in front of them in the view) become flat
    Gaussians oriented by the MVS normals — static, or in the object's frame for moving ones — added
    with :func:`~vadgs.train.strategy.ops.add_gaussians` (optimizer moments and state rows follow);
 5. **priors**: the MVS depth and normals of the group views are kept in ``state`` and returned by
@@ -32,9 +32,10 @@ flow:
    which the loop turns into the normal and hard/soft depth losses with
    :func:`vadgs.train.losses.geometric_losses` — one loss path, in vadgs's trainer or any loop.
 
-Ablation switches (:class:`VisibilityDensifyConfig`): ``visibility=False`` disables the whole
-strategy (plain ADC), ``view_selection=False`` uses consecutive frames of the reference camera,
-``geometric_losses=False`` drops the priors. Every event's cost is logged in
+Ablation switches (:class:`VisibilityDensifyConfig`): ``view_selection=False`` uses consecutive
+frames of the reference camera, ``geometric_losses=False`` drops the priors; the paper's "w/o voxel
+visibility reasoning", which disables everything else, is the base strategy alone (no VAD-GS:
+``TrainConfig.vad = None``). Every event's cost is logged in
 ``state["vad_events"]`` (seconds of detection, selection + MVS, and densification).
 """
 
@@ -106,22 +107,25 @@ def info_requirements(base: Any, packed: bool = False) -> list[dict[str, str]]:
     """What a base strategy reads from the loop's ``info``: alternatives of ``{key: where it comes from}``.
 
     vadgs's ``DefaultStrategy``: vadgs's render (``raster``, ``image_size``) or gsplat's meta
-    (``means2d``, ``width``, ``height``, ``radii``); gsplat's ``DefaultStrategy``: its
-    ``key_for_gradient`` (``means2d``), ``width``, ``height``, ``n_cameras``, ``radii`` and
-    ``gaussian_ids`` (None unless ``packed``); gsplat's ``MCMCStrategy``: nothing (it takes
-    ``lr=``). Other bases: nothing is known (an empty list).
+    (``means2d``, ``width``, ``height``, ``radii``; ``gaussian_ids`` too when ``packed``); gsplat's
+    ``DefaultStrategy``: its ``key_for_gradient`` (``means2d``), ``width``, ``height``,
+    ``n_cameras``, ``radii`` and ``gaussian_ids`` (None unless ``packed``); gsplat's
+    ``MCMCStrategy``: nothing (it takes ``lr=``). Other bases: nothing is known (an empty list).
 
     Example:
         >>> [sorted(a) for a in info_requirements(DefaultStrategy())]
         [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
     """
     if isinstance(base, DefaultStrategy):
+        meta = {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")}
+        if packed:
+            meta["gaussian_ids"] = _GSPLAT_META + " with packed=True"
         return [
             {
                 "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
                 "image_size": "the view's (H, W)",
             },
-            {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")},
+            meta,
         ]
     cls = type(base)
     if not cls.__module__.startswith("gsplat.") or not hasattr(base, "key_for_gradient"):
@@ -263,7 +267,7 @@ class VisibilityAwareDensification:
         >>> dataclasses.is_dataclass(VisibilityAwareDensification)
         True
         >>> list(inspect.signature(VisibilityAwareDensification).parameters)[:3]
-        ['visibility', 'view_selection', 'geometric_losses']
+        ['view_selection', 'geometric_losses', 'every_cycles']
     """
 
     base: Any = field(default_factory=DefaultStrategy)
@@ -399,8 +403,18 @@ class VisibilityAwareDensification:
         )
         return state
 
-    def step_pre_backward(self, params, optimizers, state, step, info, **kwargs) -> None:
+    def step_pre_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        **kwargs: Any,
+    ) -> None:
         """The base's ``step_pre_backward``; at the first step, checks ``info`` for the base.
+
+        ``kwargs`` go to the base (gsplat's loop passes none here).
 
         (``step_post_backward`` checks it again at its first call, with its ``packed=``.)
 
@@ -443,8 +457,6 @@ class VisibilityAwareDensification:
         has_inputs = self.inputs is not None or self.index is not None
         _check_info_values(info, self._inputs().num_views if has_inputs else None)
         self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
-        if not self.visibility:
-            return
         context = self._context()
         if step < self.last_event_fraction * context.total_steps:
             self._observe(state, info)
@@ -525,7 +537,7 @@ class VisibilityAwareDensification:
         """Give the strategy its data and the loop's context, and build the visibility index once.
 
         Call it before the first step (vadgs's trainer does, at construction). Later calls without
-        arguments return the index; the index is built only when ``visibility`` is on.
+        arguments return the index.
 
         Args:
             inputs: :class:`~vadgs.train.vad.inputs.VisibilityInputs` (e.g.
@@ -535,7 +547,7 @@ class VisibilityAwareDensification:
                 (its own inputs are used when ``inputs`` is None).
 
         Returns:
-            The index (None when ``visibility`` is off and none was given).
+            The index.
 
         Raises:
             ValueError: on arguments of the wrong type.
@@ -553,7 +565,7 @@ class VisibilityAwareDensification:
             self.inputs, self.index, self._train_views, self._mean_pixels = inputs, None, None, None
         if context is not None:
             self.context = context
-        if self.index is None and self.visibility:
+        if self.index is None:
             self.index = self._build_index()
         return self.index
 
@@ -647,7 +659,7 @@ class VisibilityAwareDensification:
         MVS depth and normals of the events so far; where no MVS depth exists, the voxel depth —
         only where the voxel belongs to the pixel's own instance (elsewhere the z-buffer sees
         through missing geometry, e.g. the facade behind a sign, and would pull it backwards).
-        ``None`` when the strategy or its losses are off, or the view has no prior. Tensors
+        ``None`` when the losses are off (``geometric_losses``), or the view has no prior. Tensors
         ``(1, 1, H, W)`` / ``(1, 3, H, W)`` on the device of the MVS priors (the render's), or of
         the visibility index for a view without them: move them to the render's device.
 
@@ -656,7 +668,7 @@ class VisibilityAwareDensification:
                 :meth:`initialize_state`, or a ``view`` that is not one of the inputs'.
         """
         cfg = self.config
-        if not (cfg.visibility and cfg.geometric_losses):
+        if not cfg.geometric_losses:
             return None
         if self.inputs is None and self.index is None:
             raise ValueError(

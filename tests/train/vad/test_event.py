@@ -1,0 +1,347 @@
+"""The steps of a VAD-GS event (:mod:`vadgs.train.vad.event`) against naive references and
+hand-computed values: which instances an event skips (cooldown, a moving object in a static
+model), what its log counts, :func:`merge_priors` and :func:`flat_gaussians`.
+
+The event runs for real (:func:`~vadgs.train.vad.event.run_event` through the strategy's
+``densify``) on stand-ins of what it reads: the detection's rows, the index's classes and the
+reconstruction of an instance (a few points, no PatchMatch), so that each rule is seen alone.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+import vadgs.train.vad.event as event_module
+from vadgs.geometry import quaternion_to_rotation
+from vadgs.train.strategy import ops
+from vadgs.train.vad import (
+    InstanceReconstruction,
+    StrategyContext,
+    VisibilityAwareDensification,
+    flat_gaussians,
+    normals_to_quats,
+)
+from vadgs.train.vad.event import merge_priors
+from vadgs.train.vad.incomplete import IncompleteInstances
+
+C0 = 0.28209479177387814  # the SH band-0 constant
+
+
+# -- an event on stand-ins ---------------------------------------------------------------------------
+
+
+def _rows(flagged: dict[int, int], view: int = 0) -> IncompleteInstances:
+    """One view's detection: every instance of ``flagged`` (id → pixels) flagged."""
+    ids = sorted(flagged)
+    n = len(ids)
+    f = torch.full((n,), float("nan"))
+    return IncompleteInstances(
+        view=torch.full((n,), view, dtype=torch.int64),
+        instance=torch.tensor(ids, dtype=torch.int64),
+        flagged=torch.ones(n, dtype=torch.bool),
+        depth_ratio=f,
+        low_alpha=f,
+        foreign=f,
+        pixels=torch.tensor([flagged[i] for i in ids], dtype=torch.int64),
+        voxel_pixels=torch.zeros(n, dtype=torch.int64),
+    )
+
+
+def _rec(instance: int, points: int, consistent: int, track: int | None = None) -> InstanceReconstruction:
+    g = torch.Generator().manual_seed(instance)
+    return InstanceReconstruction(
+        points=torch.rand(points, 3, generator=g),
+        normals=torch.tensor([[0.0, 0.0, 1.0]]).repeat(points, 1),
+        colors=torch.full((points, 3), 0.5),
+        spacing=torch.full((points,), 0.05),
+        track=track,
+        views=[0],
+        depth=[torch.zeros(1, 4, 4)],
+        normal=[torch.zeros(3, 4, 4)],
+        reason="ok" if points else "explained",
+        work=1.0,
+        consistent=consistent,
+    )
+
+
+def _splats(n: int = 4, node_ids: bool = False) -> dict[str, torch.Tensor]:
+    """gsplat-layout Gaussians (no optimizer: the event's additions need none)."""
+    p = {
+        "means": torch.zeros(n, 3),
+        "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        "scales": torch.zeros(n, 3),
+        "opacities": torch.zeros(n),
+        "sh0": torch.zeros(n, 1, 3),
+        "shN": torch.zeros(n, 0, 3),
+    }
+    if node_ids:
+        p["node_ids"] = torch.full((n,), -1, dtype=torch.int64)
+    return p
+
+
+class _Event:
+    """A strategy whose events see ``flagged`` (instance → pixels, every event) and reconstruct each
+    instance as ``made[instance] = (points, consistent)`` (default ``(3, 7)``); ``tracks``: the
+    moving instances (track id → node)."""
+
+    def __init__(self, monkeypatch, flagged, made=None, tracks=None, **settings):
+        tracks = tracks or {}
+        settings = {"work_budget": None, "whole_reference": False, "ranking": "pixels", **settings}
+        self.strategy = s = VisibilityAwareDensification(**settings)
+        s.inputs = SimpleNamespace(
+            train_views=(0,),
+            tracks=dict.fromkeys(tracks),
+            views=[SimpleNamespace(camera="front", frame=0)],
+        )
+        s.index = SimpleNamespace(
+            classes=lambda: dict.fromkeys(flagged, "thing"), cut_by_border=lambda view, inst: False
+        )
+        s.context = StrategyContext(
+            render=lambda v: pytest.fail("the event renders nothing here"),
+            total_steps=100,
+            steps_per_cycle=1,
+            track_nodes=tracks,
+        )
+        self.state = s.initialize_state()
+        self.calls: list[int] = []
+        made = made or {}
+
+        def reconstruct(index, ref, instance, *args, **kwargs):
+            self.calls.append(instance)
+            n, c = made.get(instance, (3, 7))
+            return _rec(instance, n, c, track=instance if instance in tracks else None)
+
+        monkeypatch.setattr(event_module, "detect", lambda *a, **k: (_rows(flagged), [0]))
+        monkeypatch.setattr(event_module, "reconstruct_instance", reconstruct)
+
+    def run(self, params, step=0) -> dict:
+        return self.strategy.densify(params, None, self.state, step)
+
+
+def _naive_cooldown(order, cooldown, events, max_instances):
+    """Per event, the instances attempted and how many cool down: an instance attempted at event
+    ``e`` is skipped at the events ``e + 1 .. e + cooldown``; one never attempted never is."""
+    last: dict[int, int] = {}
+    out = []
+    for e in range(events):
+        waiting = [i for i in order if i in last and e - last[i] <= cooldown]
+        attempted = [i for i in order if i not in waiting][:max_instances]
+        for i in attempted:
+            last[i] = e
+        out.append((attempted, len(waiting)))
+    return out
+
+
+class TestCooldown:
+    @pytest.mark.parametrize("cooldown", [0, 1, 2, 10, 12])
+    def test_against_naive(self, monkeypatch, cooldown):
+        """Three instances flagged at every event, one reconstructed per event (largest first)."""
+        flagged = {7: 300, 3: 200, 9: 100}
+        ev = _Event(monkeypatch, flagged, cooldown_events=cooldown, max_instances=1)
+        params = _splats()
+        expect = _naive_cooldown([7, 3, 9], cooldown, 16, 1)
+        for e, (attempted, waiting) in enumerate(expect):
+            ev.calls.clear()
+            entry = ev.run(params, step=e)
+            assert [i["instance"] for i in entry["instances"]] == attempted, (cooldown, e)
+            assert ev.calls == attempted, (cooldown, e)
+            assert entry["skipped"].get("cooldown", 0) == waiting, (cooldown, e)
+        if cooldown == 12:  # the reference by hand: each in turn, then all wait until event 13
+            assert [a for a, _ in expect] == [[7], [3], [9]] + [[]] * 10 + [[7], [3], [9]]
+        if cooldown >= 2:  # never-attempted instances never cool down, however long the cooldown
+            # (the former -10 sentinel for "never" skipped them early when cooldown_events >= 10)
+            assert [a for a, _ in expect[:3]] == [[7], [3], [9]]
+
+    def test_repaired_instance_waits_exactly_cooldown_events(self, monkeypatch):
+        ev = _Event(monkeypatch, {5: 100}, cooldown_events=3)
+        params = _splats()
+        attempted = [bool(ev.run(params, step=e)["instances"]) for e in range(9)]
+        assert attempted == [True, False, False, False, True, False, False, False, True]
+        assert ev.state["vad_last_done"] == {5: 8}
+
+
+class TestStaticModel:
+    def test_moving_instance_skipped_without_node_ids(self, monkeypatch):
+        """A static model (gsplat's, no ``node_ids``) cannot hold a moving object: its instance is
+        skipped as ``static_model``, the static one is reconstructed."""
+        ev = _Event(monkeypatch, {4: 100, 21: 500}, tracks={21: 0})
+        params = _splats()
+        entry = ev.run(params)
+        assert ev.calls == [4]
+        assert entry["skipped"] == {"static_model": 1}
+        assert [i["instance"] for i in entry["instances"]] == [4]
+        assert params["means"].shape[0] == 4 + 3
+
+    def test_moving_instance_joins_its_node(self, monkeypatch):
+        ev = _Event(monkeypatch, {4: 100, 21: 500}, made={21: (2, 5)}, tracks={21: 1})
+        params = _splats(node_ids=True)
+        entry = ev.run(params)
+        assert ev.calls == [21, 4] and entry["skipped"] == {}
+        assert params["node_ids"].tolist() == [-1] * 4 + [1, 1] + [-1] * 3  # the track's node, then static
+
+
+class TestEventLog:
+    def test_points_and_added(self, monkeypatch):
+        """``points``: the consistent MVS points of the instance's references; ``added``: the
+        Gaussians it got (what remains once the explained points are left out and the rest thinned)."""
+        ev = _Event(monkeypatch, {1: 400, 2: 300, 3: 200}, made={1: (20, 500), 2: (0, 80), 3: (0, 0)})
+        params = _splats()
+        entry = ev.run(params)
+        got = {i["instance"]: (i["points"], i["added"], i["reason"]) for i in entry["instances"]}
+        assert got == {1: (500, 20, "ok"), 2: (80, 0, "explained"), 3: (0, 0, "explained")}
+        assert entry["added"] == 20 == params["means"].shape[0] - 4
+        assert entry["attempted"] == 3 and entry["repaired"] == 1
+        assert "2 added nothing" in ev.state["pending_log"][-1]["summary"]
+
+    def test_points_sum_over_references(self, monkeypatch):
+        ev = _Event(monkeypatch, {1: 400}, made={1: (6, 9)}, references=1)
+        assert ev.run(_splats())["instances"][0]["points"] == 9
+        monkeypatch.setattr(
+            event_module, "pick_references", lambda candidates, *a, **k: [0, 0]
+        )  # two references of the one view: two reconstructions
+        entry = ev.run(_splats())
+        assert (entry["instances"][0]["points"], entry["instances"][0]["added"]) == (18, 12)
+
+
+# -- merge_priors ------------------------------------------------------------------------------------
+
+
+def _naive_merge(priors, views, depths, normals):
+    """Pixel by pixel: a view's new depth (and normal) replaces the old one where it is > 0."""
+    out = {v: (d.clone(), n.clone()) for v, (d, n) in priors.items()}
+    for v, d, n in zip(views, depths, normals):
+        if v not in out:
+            out[v] = (d.clone(), n.clone())
+            continue
+        od, on = out[v]
+        for y in range(d.shape[-2]):
+            for x in range(d.shape[-1]):
+                if d[0, y, x] > 0:
+                    od[0, y, x] = d[0, y, x]
+                    on[:, y, x] = n[:, y, x]
+    return out
+
+
+class TestMergePriors:
+    def test_hand_values(self):
+        old_d = torch.tensor([[[1.0, 2.0], [3.0, 0.0]]])
+        old_n = torch.arange(12.0).reshape(3, 2, 2)
+        priors = {4: (old_d, old_n)}
+        new_d = torch.tensor([[[0.0, 5.0], [0.0, 6.0]]])
+        new_n = -torch.ones(3, 2, 2)
+        rec = _rec(1, 0, 0)._replace(views=[4, 8], depth=[new_d, new_d * 2], normal=[new_n, new_n * 2])
+        merge_priors(priors, rec)
+        assert priors[4][0].tolist() == [[[1.0, 5.0], [3.0, 6.0]]]
+        assert priors[4][1][:, 0, 0].tolist() == [0.0, 4.0, 8.0]  # kept: no new depth there
+        assert priors[4][1][:, 1, 1].tolist() == [-1.0, -1.0, -1.0]  # replaced
+        assert priors[8][0] is rec.depth[1] and priors[8][1] is rec.normal[1]  # a new view: as is
+
+    def test_against_naive(self):
+        g = torch.Generator().manual_seed(0)
+
+        def maps():
+            d = torch.rand(1, 5, 6, generator=g)
+            d[torch.rand(1, 5, 6, generator=g) < 0.5] = 0  # half the pixels without depth
+            return d, torch.randn(3, 5, 6, generator=g)
+
+        priors = {v: maps() for v in (0, 2)}
+        for views in ([0, 1], [2, 0, 1], [1, 1]):
+            new = [maps() for _ in views]
+            rec = _rec(1, 0, 0)._replace(views=views, depth=[d for d, _ in new], normal=[n for _, n in new])
+            expect = _naive_merge(priors, views, rec.depth, rec.normal)
+            merge_priors(priors, rec)
+            assert sorted(priors) == sorted(expect)
+            for v in expect:
+                assert torch.equal(priors[v][0], expect[v][0]) and torch.equal(priors[v][1], expect[v][1]), v
+
+
+# -- flat_gaussians ----------------------------------------------------------------------------------
+
+
+def _fused(dtype=torch.float32) -> InstanceReconstruction:
+    """Three fused points: normals +z, +x and a tilted one; spacing 0.1, 0.2 and 0 (clamped)."""
+    return InstanceReconstruction(
+        points=torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]], dtype=dtype),
+        normals=torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.6, 0.8]], dtype=dtype),
+        colors=torch.tensor([[0.5, 0.25, 1.0], [0.0, 0.75, 0.5], [0.1, 0.2, 0.3]], dtype=dtype),
+        spacing=torch.tensor([0.1, 0.2, 0.0], dtype=dtype),
+        track=None,
+        views=[0],
+        depth=[],
+        normal=[],
+        reason="ok",
+    )
+
+
+class TestFlatGaussians:
+    def _check_geometry(self, new, means, quats, scales, opacities, rows, flatness=0.2, opacity=0.3):
+        rec = _fused()
+        assert torch.equal(new[means], rec.points[rows])
+        r = quaternion_to_rotation(new[quats])
+        torch.testing.assert_close(r[:, :, 2], rec.normals[rows])  # the disc's normal: the MVS normal
+        torch.testing.assert_close(r.transpose(1, 2) @ r, torch.eye(3).expand(len(rows), 3, 3))
+        width = [max(float(rec.spacing[k]), 1e-4) for k in rows]
+        expect = [[math.log(w), math.log(w), math.log(w * flatness)] for w in width]
+        torch.testing.assert_close(new[scales], torch.tensor(expect))
+        torch.testing.assert_close(
+            new[opacities], torch.full((len(rows),), math.log(opacity / (1 - opacity)))
+        )
+
+    def test_vadgs_layout(self):
+        params = {
+            "means": torch.zeros(2, 3),
+            "quats": torch.zeros(2, 4),
+            "log_scales": torch.zeros(2, 3),
+            "opacity_logits": torch.zeros(2),
+            "sh_dc": torch.zeros(2, 1, 3),
+            "sh_rest": torch.zeros(2, 8, 3),
+            "node_ids": torch.zeros(2, dtype=torch.int64),
+            "provenance": torch.zeros(2, dtype=torch.int64),
+        }
+        new = flat_gaussians(params, _fused(), None, new_opacity=0.3, flatness=0.2, event=4)
+        assert set(new) == set(params) - {"node_ids"}  # node_ids: the caller's
+        self._check_geometry(new, "means", "quats", "log_scales", "opacity_logits", [0, 1, 2])
+        expect_dc = [[[(0.5 - 0.5) / C0, (0.25 - 0.5) / C0, (1.0 - 0.5) / C0]]]
+        torch.testing.assert_close(new["sh_dc"][:1], torch.tensor(expect_dc))
+        assert torch.equal(new["sh_rest"], torch.zeros(3, 8, 3))
+        assert new["provenance"].tolist() == [4, 4, 4] and new["provenance"].dtype == torch.int64
+
+    def test_gsplat_colors_layout(self):
+        """gsplat's appearance layout: ``colors`` (N, 3) get the logit of the MVS colour, unknown
+        entries (``features``) zeros of their trailing shape and dtype; ``keep`` selects points."""
+        params = {
+            "means": torch.zeros(2, 3, dtype=torch.float64),
+            "quats": torch.zeros(2, 4, dtype=torch.float64),
+            "scales": torch.zeros(2, 3, dtype=torch.float64),
+            "opacities": torch.zeros(2, dtype=torch.float64),
+            "features": torch.zeros(2, 32, dtype=torch.float16),
+            "colors": torch.zeros(2, 3, dtype=torch.float64),
+        }
+        keep = torch.tensor([True, False, True])
+        new = flat_gaussians(params, _fused(), keep, new_opacity=0.3, flatness=0.5)
+        assert set(new) == set(params)
+        assert all(new[k].dtype == params[k].dtype for k in params)
+        new32 = {k: v.float() for k, v in new.items()}
+        self._check_geometry(new32, "means", "quats", "scales", "opacities", [0, 2], flatness=0.5)
+        eps = 1e-4
+        expect = [
+            [math.log(c / (1 - c)) for c in (0.5, 0.25, 1 - eps)],
+            [math.log(c / (1 - c)) for c in (0.1, 0.2, 0.3)],
+        ]
+        torch.testing.assert_close(
+            new["colors"], torch.tensor(expect, dtype=torch.float64), rtol=1e-5, atol=1e-4
+        )
+        assert torch.equal(new["features"], torch.zeros(2, 32, dtype=torch.float16))
+        assert "sh0" not in new and ops.param_names(params).sh_dc is None
+
+    def test_normals_to_quats_is_a_rotation_onto_the_normal(self):
+        n = torch.nn.functional.normalize(
+            torch.randn(50, 3, generator=torch.Generator().manual_seed(1)), dim=-1
+        )
+        r = quaternion_to_rotation(normals_to_quats(n))
+        torch.testing.assert_close(r[:, :, 2], n, atol=1e-5, rtol=0)
+        torch.testing.assert_close(torch.linalg.det(r), torch.ones(50), atol=1e-5, rtol=0)
