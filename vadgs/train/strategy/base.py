@@ -1,7 +1,10 @@
 """The interface of a densification strategy (gsplat's ``Strategy``) and of a priors provider.
 
-A strategy follows gsplat's ``Strategy``: an object with settings and *no hidden state*; its state
-lives in a dict that the training loop owns, checkpoints and passes back. Any loop calls
+A strategy follows gsplat's ``Strategy``: an object with settings whose training state lives in a
+dict that the training loop owns, checkpoints and passes back (what must survive a resume is in
+that dict; a strategy may keep caches derived from its inputs, such as the visibility-aware
+strategy's voxel index and the timings of its events, which are rebuilt after a resume and do
+not change the results). Any loop calls
 
 .. code-block:: python
 
