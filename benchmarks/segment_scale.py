@@ -107,10 +107,10 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
         trainer = Trainer(scene, config, progress=False)
         step_s, step_wall = [], []
         for _ in range(steps):
-            t, w = time.process_time(), time.perf_counter()
+            t, wall = time.process_time(), time.perf_counter()
             trainer.train_step()
             step_s.append(time.process_time() - t)
-            step_wall.append(time.perf_counter() - w)
+            step_wall.append(time.perf_counter() - wall)
         train_peak = _hwm_gb()
         _reset_hwm()
         strategy = trainer.strategy
@@ -213,11 +213,12 @@ def report(rows: list[dict[str, Any]], plot: str | None) -> str:
         for ax, scale in zip(axes[0], scales):
             sub = sorted((r for r in rows if r["scale"] == scale), key=lambda r: r["frames"])
             frames = [r["frames"] for r in sub]
-            for stage in [*STAGES, *PEAKS]:
+            for k, stage in enumerate([*STAGES, *PEAKS]):
                 vals = [r.get(stage, float("nan")) for r in sub]
                 b = fit_exponent(frames, vals)
                 unit = UNITS.get(stage, "GB")
-                ax.plot(frames, vals, "o-", label=f"{stage} ({unit}): b={b:.2f}")
+                style = "o-" if stage in STAGES else "s--"
+                ax.plot(frames, vals, style, color=f"C{k % 10}", label=f"{stage} ({unit}): b={b:.2f}")
             w, h = sub[0]["size_wh"]
             ax.set(xscale="log", yscale="log", xlabel="frames (5 cameras each)", title=f"{w}x{h}")
             ax.set_xticks(frames, [str(f) for f in frames])
