@@ -15,37 +15,38 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Collection, Mapping, MutableMapping
-from typing import TYPE_CHECKING, Any
+from typing import Any, NamedTuple
 
 import torch
 
 from vadgs.checks import check_finite, check_shape
 from vadgs.geometry.rotation import rotation_to_quat
 from vadgs.train.strategy import ops
-from vadgs.train.vad.config import RANKINGS
+from vadgs.train.vad.config import RANKINGS, VisibilityDensifyConfig
 from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
 from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.reconstruct import (
     InstanceReconstruction,
+    ReconstructConfig,
     ViewRender,
     VisibilityIndex,
     reconstruct_instance,
 )
 from vadgs.train.vad.state import compact_render, expand_render
 
-if TYPE_CHECKING:  # the strategy imports this module: its type only for the hints
-    from vadgs.train.vad.config import VisibilityDensifyConfig
-    from vadgs.train.vad.strategy import VisibilityAwareDensification
-
 __all__ = [
+    "EventInputs",
     "add_reconstruction",
     "detect",
+    "detect_view",
     "flat_gaussians",
+    "keep_render",
     "merge_priors",
     "normals_to_quats",
     "pick_references",
     "rank_instances",
     "run_event",
+    "view_map",
 ]
 
 _C0 = 0.28209479177387814
@@ -286,7 +287,7 @@ def _failed(instances: list[Mapping[str, Any]]) -> str:
     return f"{len(failed)} added nothing ({why}{more}), "
 
 
-class _Renders:
+class EventRenders:
     """Renders of one event: the loop's own renders kept in the state, else rendered once."""
 
     def __init__(self, render: Callable[[int], ViewRender], kept: Mapping[int, tuple] | None = None) -> None:
@@ -303,13 +304,13 @@ class _Renders:
         return self.cache[view]
 
 
-def _chw(x: torch.Tensor) -> torch.Tensor:
+def view_map(x: torch.Tensor) -> torch.Tensor:
     """A single view's map as ``(C, H, W)``, detached (from ``(1, C, H, W)`` or ``(H, W)``)."""
     x = x.detach()
     return x[0] if x.dim() == 4 else x[None] if x.dim() == 2 else x
 
 
-def _keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> None:
+def keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> None:
     """Keep a view's render (:func:`compact_render`) in ``store``, the oldest dropped beyond ``max_bytes``."""
     store.pop(view, None)
     if max_bytes <= 0:
@@ -321,7 +322,7 @@ def _keep_render(store: dict, view: int, render: ViewRender, max_bytes: int) -> 
         total -= sum(x.numel() * x.element_size() for x in store.pop(oldest))
 
 
-def _view_test(
+def detect_view(
     index: VisibilityIndex, view: int, depth: torch.Tensor, alpha: torch.Tensor, config: IncompleteConfig
 ) -> tuple[torch.Tensor, ...]:
     """The incompleteness test of one view, on the render's device.
@@ -362,7 +363,7 @@ def detect(
             fields = tests[v]
         else:
             out = render(v)
-            fields = _view_test(index, v, out.depth, out.alpha, incomplete)
+            fields = detect_view(index, v, out.depth, out.alpha, incomplete)
         one = IncompleteInstances(*fields)
         parts.append(one._replace(view=torch.full_like(one.view, k)))
     dev = parts[0].view.device
@@ -412,23 +413,58 @@ def add_reconstruction(
     ops.add_gaussians(params, optimizers, state, new, node_ids)
 
 
+class EventInputs(NamedTuple):
+    """What one event (:func:`run_event`) reads: built by the strategy's ``densify`` for each event.
+
+    Attributes:
+        index: the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex`.
+        inputs: the :class:`~vadgs.train.vad.inputs.VisibilityInputs` of the index.
+        render: ``view -> ViewRender``, the loop's render of a view with the current Gaussians.
+        generator: seeds the view-selection noise and point subsampling (or None).
+        config: the strategy's :class:`~vadgs.train.vad.config.VisibilityDensifyConfig`.
+        reconstruct: the :class:`~vadgs.train.vad.reconstruct_config.ReconstructConfig` the event
+            uses (consecutive-frame selection when ``config.view_selection`` is off).
+        add: ``add(params, optimizers, state, rec, event=...)``: adds the flat Gaussians of an
+            :class:`~vadgs.train.vad.reconstruct.InstanceReconstruction` (e.g. with
+            :func:`add_reconstruction`).
+        trained_pixels: training pixels so far, the scale of ``config.work_budget`` (None when
+            that is None).
+        on_progress: optional callback given one line while the event runs.
+        on_addition: optional callback given ``{"instance", "view", "step", "added", "depth",
+            "alpha"}`` each time an instance gets new Gaussians.
+        log_size: at most this many events kept in ``state["pending_log"]``.
+    """
+
+    index: VisibilityIndex
+    inputs: VisibilityInputs
+    render: Callable[[int], ViewRender]
+    generator: torch.Generator | None
+    config: VisibilityDensifyConfig
+    reconstruct: ReconstructConfig
+    add: Callable[..., None]
+    trained_pixels: float | None
+    on_progress: Callable[[str], None] | None = None
+    on_addition: Callable[[dict[str, Any]], None] | None = None
+    log_size: int = 64
+
+
 def run_event(
-    strategy: VisibilityAwareDensification,
+    ev: EventInputs,
     params: MutableMapping[str, torch.Tensor],
     optimizers: Any,
     state: dict[str, Any],
     step: int,
 ) -> dict[str, Any]:
-    """One event of ``strategy`` (``VisibilityAwareDensification.densify``'s body); returns its log.
+    """One VAD-GS event (``VisibilityAwareDensification.densify``'s body); returns its log.
 
-    Detection (``strategy.detect``, reusing the loop's tests and renders kept in ``state``), the
-    candidates (flagged, not skipped by class, model or cooldown) ranked by :func:`rank_instances`,
-    then per instance, within ``max_instances`` and the budgets (PatchMatch work against
-    ``work_budget`` x ``strategy.trained_pixels(step)``; the opt-in wall-clock ``time_budget``):
+    Detection (:func:`detect` of the training views, reusing the loop's tests and renders kept in
+    ``state``), the candidates (flagged, not skipped by class, model or cooldown) ranked by
+    :func:`rank_instances`, then per instance, within ``max_instances`` and the budgets (PatchMatch
+    work against ``work_budget`` x ``ev.trained_pixels``; the opt-in wall-clock ``time_budget``):
     :func:`pick_references`, :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` per
-    reference, ``strategy._add`` of the new points, :func:`merge_priors`. The log entry is appended
+    reference, ``ev.add`` of the new points, :func:`merge_priors`. The log entry is appended
     to ``state["vad_events"]`` and, with its summary, to ``state["pending_log"]`` (at most
-    ``strategy.log_size`` kept).
+    ``ev.log_size`` kept).
 
     The entry's ``instances`` has one dict per attempted instance: ``instance``, ``class``,
     ``references`` (its reference views), ``views`` (each reference's group), ``points`` (the
@@ -438,17 +474,16 @@ def run_event(
     ``points``), ``work`` (PatchMatch pixel-sweeps) and ``reason`` (each reference's
     ``InstanceReconstruction.reason``, joined).
     """
-    cfg = strategy.config
-    inputs = strategy._inputs()
-    context = strategy._context()
-    index = strategy.prepare()
-    renders = _Renders(context.render, state.get("vad_renders"))
+    cfg = ev.config
+    inputs = ev.inputs
+    index = ev.index
+    renders = EventRenders(ev.render, state.get("vad_renders"))
     t0 = time.perf_counter()
     event = len(state["vad_events"])
-    say = strategy.on_progress or (lambda _line: None)
+    say = ev.on_progress or (lambda _line: None)
     say(f"VAD-GS event {event + 1}: testing {len(inputs.train_views)} views")
     tests = state.get("vad_tests") or {}
-    rows, views = strategy.detect(renders=renders, tests=tests)
+    rows, views = detect(index, list(inputs.train_views), renders, tests, cfg.incomplete)
     t1 = time.perf_counter()
     classes = index.classes()  # incl. derived instances (scenes without maps)
     has_nodes = "node_ids" in getattr(params, "params", params)
@@ -478,7 +513,13 @@ def run_event(
     ranked = rank_instances(best, classes, cfg.ranking)
     added, log = 0, []
     t_mvs = 0.0
-    work_budget = math.inf if cfg.work_budget is None else cfg.work_budget * strategy.trained_pixels(step)
+    work_budget = math.inf
+    if cfg.work_budget is not None:
+        if ev.trained_pixels is None:
+            raise ValueError(
+                "EventInputs.trained_pixels: expected a number with config.work_budget set, got None"
+            )
+        work_budget = cfg.work_budget * ev.trained_pixels
     time_cap = math.inf
     if cfg.time_budget is not None:
         time_cap = cfg.time_budget * float(state.get("vad_train_s", 0.0))
@@ -511,18 +552,18 @@ def run_event(
             ta = time.perf_counter()
             taken = occupied.get(frame_key)
             rec = reconstruct_instance(
-                index, ref, inst, strategy._reconstruct_config(), context.generator, renders,
+                index, ref, inst, ev.reconstruct, ev.generator, renders,
                 occupied=torch.cat(taken) if taken else None,
             )  # fmt: skip
             t_mvs += time.perf_counter() - ta
             work += rec.work
             n_new = int(rec.points.shape[0])
             if n_new:
-                strategy._add(params, optimizers, state, rec, event=event + 1)
+                ev.add(params, optimizers, state, rec, event=event + 1)
                 occupied.setdefault(frame_key, []).append(rec.points)
-                if strategy.on_addition is not None:
+                if ev.on_addition is not None:
                     before = renders(ref)
-                    strategy.on_addition(
+                    ev.on_addition(
                         {"instance": inst, "view": ref, "step": step, "added": n_new,
                          "depth": before.depth[0], "alpha": before.alpha[0]}
                     )  # fmt: skip
@@ -576,5 +617,5 @@ def run_event(
     summary = _event_summary(entry, cfg)
     log_list = state.setdefault("pending_log", [])
     log_list.append({"kind": "visibility_densification", "summary": summary, **entry})
-    del log_list[: -strategy.log_size]  # bounded when the loop does not pop it
+    del log_list[: -ev.log_size]  # bounded when the loop does not pop it
     return entry

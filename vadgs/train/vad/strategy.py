@@ -52,18 +52,21 @@ import torch
 from vadgs.checks import check_size, float_field, int_field
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import DefaultStrategy, ops
-from vadgs.train.vad import event as vad_event
 from vadgs.train.vad.config import _FIELDS as _CONFIG_FIELDS
 from vadgs.train.vad.config import RANKINGS as RANKINGS
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
 from vadgs.train.vad.event import (
-    _chw,
-    _keep_render,
-    _view_test,
+    EventInputs,
+    add_reconstruction,
+    detect,
+    detect_view,
     flat_gaussians,
+    keep_render,
     normals_to_quats,
     pick_references,
     rank_instances,
+    run_event,
+    view_map,
 )
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.inputs import TrackTable, VisibilityInputs
@@ -483,14 +486,14 @@ class VisibilityAwareDensification:
         if depth is None or alpha is None:
             return
         view = int(view)
-        depth, alpha = _chw(depth), _chw(alpha)
+        depth, alpha = view_map(depth), view_map(alpha)
         if tuple(depth.shape[-2:]) != tuple(self._inputs().size(view)):
             return  # a crop or another scale of the view (gsplat's patch_size): not the view's render
-        state.setdefault("vad_tests", {})[view] = _view_test(
+        state.setdefault("vad_tests", {})[view] = detect_view(
             self.prepare(), view, depth, alpha, self.incomplete
         )
-        normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else _chw(normals)
-        _keep_render(
+        normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else view_map(normals)
+        keep_render(
             state.setdefault("vad_renders", {}),
             view,
             ViewRender(depth, alpha, normals),
@@ -611,7 +614,7 @@ class VisibilityAwareDensification:
             ``(rows, views)``: :class:`~vadgs.train.vad.incomplete.IncompleteInstances` (``rows.view``
             indexes ``views``) and the views tested.
         """
-        return vad_event.detect(
+        return detect(
             self.prepare(),
             views if views is not None else list(self._inputs().train_views),
             renders or self._context().render,
@@ -628,9 +631,24 @@ class VisibilityAwareDensification:
     ) -> dict[str, Any]:
         """One visibility-aware densification event (detect, reconstruct, add); returns its log.
 
-        See :func:`vadgs.train.vad.event.run_event`.
+        See :func:`vadgs.train.vad.event.run_event`, given this strategy's parts as an
+        :class:`~vadgs.train.vad.event.EventInputs`.
         """
-        return vad_event.run_event(self, params, optimizers, state, step)
+        context = self._context()
+        event = EventInputs(
+            index=self.prepare(),
+            inputs=self._inputs(),
+            render=context.render,
+            generator=context.generator,
+            config=self.config,
+            reconstruct=self._reconstruct_config(),
+            add=self._add,
+            trained_pixels=None if self.work_budget is None else self.trained_pixels(step),
+            on_progress=self.on_progress,
+            on_addition=self.on_addition,
+            log_size=self.log_size,
+        )
+        return run_event(event, params, optimizers, state, step)
 
     def _add(
         self,
@@ -642,9 +660,7 @@ class VisibilityAwareDensification:
         event: int = 1,
     ) -> None:
         """Add the flat Gaussians of the (kept) points (:func:`~vadgs.train.vad.event.add_reconstruction`)."""
-        vad_event.add_reconstruction(
-            params, optimizers, state, rec, keep, event, self.config, self._track_nodes
-        )
+        add_reconstruction(params, optimizers, state, rec, keep, event, self.config, self._track_nodes)
 
     def _track_nodes(self) -> Mapping[int, int]:
         if self.context is not None and self.context.track_nodes is not None:
