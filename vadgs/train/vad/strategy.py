@@ -19,7 +19,8 @@ flow:
    per instance, flag when the rendered depth is absent or more than 1.1× the voxel depth, or when
    more than 25 % of its pixels are below 0.7 opacity
    (:func:`~vadgs.train.vad.incomplete.find_incomplete`);
-3. **selection and MVS**: each flagged instance (:func:`rank_instances`, :func:`pick_references`) is
+3. **selection and MVS**: each flagged instance (:func:`~vadgs.train.vad.references.rank_instances`,
+   :func:`~vadgs.train.vad.references.pick_references`) is
    reconstructed from its reference views: diversity-aware k-clique view selection, PatchMatch
    initialised from the rendered depth and normals and restricted to the instance (a moving object
    in its own frame), consistency and fusion (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`);
@@ -53,23 +54,12 @@ from vadgs.checks import check_size, float_field, int_field
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import DefaultStrategy, ops
 from vadgs.train.vad.config import _FIELDS as _CONFIG_FIELDS
-from vadgs.train.vad.config import RANKINGS as RANKINGS
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
-from vadgs.train.vad.event import (
-    EventInputs,
-    add_reconstruction,
-    detect,
-    detect_view,
-    flat_gaussians,
-    keep_render,
-    normals_to_quats,
-    pick_references,
-    rank_instances,
-    run_event,
-    view_map,
-)
+from vadgs.train.vad.detect import detect, detect_view, keep_render, view_map
+from vadgs.train.vad.event import EventInputs, run_event
+from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
-from vadgs.train.vad.inputs import TrackTable, VisibilityInputs
+from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.reconstruct import (
     InstanceReconstruction,
     ReconstructConfig,
@@ -77,24 +67,8 @@ from vadgs.train.vad.reconstruct import (
     VisibilityIndex,
     build_visibility_index,
 )
-from vadgs.train.vad.state import pack_state, unpack_state
 
-__all__ = [
-    "StrategyContext",
-    "TrackTable",
-    "ViewRender",
-    "VisibilityAwareDensification",
-    "VisibilityDensifyConfig",
-    "VisibilityInputs",
-    "check_info",
-    "flat_gaussians",
-    "info_requirements",
-    "normals_to_quats",
-    "pack_state",
-    "pick_references",
-    "rank_instances",
-    "unpack_state",
-]
+__all__ = ["VisibilityAwareDensification", "check_info", "info_requirements"]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
 
