@@ -1,9 +1,10 @@
 """No import circle in ``vadgs``: every module imports, and the graph of its imports has no cycle.
 
-The graph is read from the source (AST): module-level imports and the lazy ones inside functions
-(a lazy import only hides a circle until the function runs), without ``if TYPE_CHECKING:`` blocks
-(never executed). ``from vadgs.pkg import name`` depends on ``vadgs.pkg.name`` when that is a
-module, else on ``vadgs.pkg`` (its ``__init__``).
+The graph is read from the source (AST): module-level imports, the lazy ones inside functions
+(a lazy import only hides a circle until the function runs) and those of ``if TYPE_CHECKING:``
+blocks (never executed, but a circle of type hints is still two modules that know each other:
+the design has no one-way flow). ``from vadgs.pkg import name`` depends on ``vadgs.pkg.name`` when
+that is a module, else on ``vadgs.pkg`` (its ``__init__``).
 """
 
 from __future__ import annotations
@@ -30,22 +31,11 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _is_type_checking(node: ast.If) -> bool:
-    t = node.test
-    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
-        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING"
-    )
-
-
 def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
 
     def visit(node: ast.AST) -> None:
-        if isinstance(node, ast.If) and _is_type_checking(node):
-            for child in node.orelse:
-                visit(child)
-            return
         if isinstance(node, ast.Import):
             for a in node.names:
                 if a.name.split(".")[0] == "vadgs":
@@ -106,7 +96,7 @@ def test_no_import_circle():
     assert g.has_edge("vadgs.batch", "vadgs.train.run") and not g.has_edge("vadgs.batch", "vadgs.cli")
 
 
-def test_the_graph_sees_lazy_imports_and_skips_type_checking(tmp_path, monkeypatch):
+def test_the_graph_sees_lazy_and_type_checking_imports(tmp_path, monkeypatch):
     pkg = tmp_path / "vadgs"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
@@ -117,4 +107,4 @@ def test_the_graph_sees_lazy_imports_and_skips_type_checking(tmp_path, monkeypat
     (pkg / "c.py").write_text("")
     modules = {"vadgs": pkg / "__init__.py", **{f"vadgs.{m}": pkg / f"{m}.py" for m in "abc"}}
     assert _imports("vadgs.a", pkg / "a.py", modules) == {"vadgs.b"}
-    assert _imports("vadgs.b", pkg / "b.py", modules) == {"vadgs.a"}
+    assert _imports("vadgs.b", pkg / "b.py", modules) == {"vadgs.a", "vadgs.c"}

@@ -336,7 +336,7 @@ def api_cases() -> None:
     from vadgs.mvs import PatchMatchConfig, patchmatch
     from vadgs.mvs.planar import fit_plane_ransac
     from vadgs.select import max_weight_clique, top_k_views
-    from vadgs.train.vad.event import normals_to_quats
+    from vadgs.train.vad.gaussians import normals_to_quats
 
     nan = float("nan")
     api_case(

@@ -19,7 +19,7 @@ from vadgs.mvs.planar import fit_plane_ransac
 from vadgs.select import ViewSelectionConfig, max_weight_clique, top_k_views
 from vadgs.select.clique import MAX_CLIQUES
 from vadgs.train.init import voxel_downsample
-from vadgs.train.vad.event import normals_to_quats
+from vadgs.train.vad.gaussians import normals_to_quats
 
 K_OK = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]]])
 NAN = float("nan")

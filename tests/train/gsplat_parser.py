@@ -97,13 +97,13 @@ FACADE_POINT = (35.0, -15.0)
 
 def facade_cell(inputs, cell_size: float = 10.0, at=FACADE_POINT, voxel_size: float = 0.2):
     """``in_cell(points (Q, 3)) -> (Q,) bool``: the ``cell_size`` ground cell around ``at``, in the
-    ground frame VAD-GS derives its instances in (:func:`~vadgs.train.vad.visibility.ground_frame`
+    ground frame VAD-GS derives its instances in (:func:`~vadgs.geometry.ground.ground_frame`
     of the inputs' SfM points and the views' cameras, walls aligned at ``voxel_size``, as
     ``build_visibility_index`` does)."""
     import torch
 
     from vadgs.geometry import invert_rigid
-    from vadgs.train.vad.visibility import ground_frame
+    from vadgs.geometry.ground import ground_frame
 
     c2w = invert_rigid(inputs.cameras.world_to_cam)
     rotation, origin = ground_frame(inputs.sfm.points, c2w, walls=voxel_size)

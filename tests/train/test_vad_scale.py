@@ -127,7 +127,7 @@ def test_through_gsplats_parser_normalisation(project, parser, at_scale_1, monke
     """gsplat's own ``Parser(normalize=True)`` (``../shared``'s v1.5.3 examples; the forked
     ``SceneManager`` over pycolmap 4.x): its world is tilted (PCA-aligned), centred and about 1/14
     of the sample's. The static voxels and the derived cells lie in the scene's own ground frame
-    (:func:`~vadgs.train.vad.visibility.ground_frame`), so the same instance is flagged and repaired
+    (:func:`~vadgs.geometry.ground.ground_frame`), so the same instance is flagged and repaired
     from the same references and supports. Measured: 744 voxels against 746 (float32 rounding in
     the tilted world moves points across voxel borders); new Gaussians 427, all in the deleted
     cell, against 620 of which 488 in it: the sample's own frame lets the second reference's

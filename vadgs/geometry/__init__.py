@@ -25,6 +25,7 @@ from vadgs.geometry.camera_path import (
     orbit_path,
     spline_path,
 )
+from vadgs.geometry.ground import ground_frame, points_in_frame
 from vadgs.geometry.homography import (
     apply_homography,
     homography_warp,
@@ -61,6 +62,7 @@ __all__ = [
     "cameras_in_object_frame",
     "catmull_rom",
     "focus_point",
+    "ground_frame",
     "homography_warp",
     "interpolate_rigid",
     "invert_rigid",
@@ -74,6 +76,7 @@ __all__ = [
     "pixel_grid",
     "plane_distance",
     "plane_homography",
+    "points_in_frame",
     "project_points",
     "quat_multiply",
     "quaternion_to_rotation",

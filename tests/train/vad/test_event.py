@@ -25,8 +25,8 @@ from vadgs.train.vad import (
     flat_gaussians,
     normals_to_quats,
 )
-from vadgs.train.vad.event import merge_priors
 from vadgs.train.vad.incomplete import IncompleteInstances
+from vadgs.train.vad.priors import merge_priors
 
 C0 = 0.28209479177387814  # the SH band-0 constant
 

@@ -12,7 +12,8 @@ import numpy as np
 import torch
 from scipy.spatial import ConvexHull
 
-from vadgs.train.vad.visibility import derive_instance_map, scene_lengths
+from vadgs.train.vad.instances import derive_instance_map
+from vadgs.train.vad.lengths import scene_lengths
 
 H, W = 24, 32
 K = torch.tensor([[20.0, 0.0, 15.3], [0.0, 20.0, 11.7], [0.0, 0.0, 1.0]])

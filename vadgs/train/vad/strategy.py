@@ -19,7 +19,8 @@ flow:
    per instance, flag when the rendered depth is absent or more than 1.1× the voxel depth, or when
    more than 25 % of its pixels are below 0.7 opacity
    (:func:`~vadgs.train.vad.incomplete.find_incomplete`);
-3. **selection and MVS**: each flagged instance (:func:`rank_instances`, :func:`pick_references`) is
+3. **selection and MVS**: each flagged instance (:func:`~vadgs.train.vad.references.rank_instances`,
+   :func:`~vadgs.train.vad.references.pick_references`) is
    reconstructed from its reference views: diversity-aware k-clique view selection, PatchMatch
    initialised from the rendered depth and normals and restricted to the instance (a moving object
    in its own frame), consistency and fusion (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`);
@@ -52,21 +53,13 @@ import torch
 from vadgs.checks import check_size, float_field, int_field
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import DefaultStrategy, ops
-from vadgs.train.vad import event as vad_event
 from vadgs.train.vad.config import _FIELDS as _CONFIG_FIELDS
-from vadgs.train.vad.config import RANKINGS as RANKINGS
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
-from vadgs.train.vad.event import (
-    _chw,
-    _keep_render,
-    _view_test,
-    flat_gaussians,
-    normals_to_quats,
-    pick_references,
-    rank_instances,
-)
+from vadgs.train.vad.detect import detect, detect_view, keep_render, view_map
+from vadgs.train.vad.event import EventInputs, run_event
+from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
-from vadgs.train.vad.inputs import TrackTable, VisibilityInputs
+from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.reconstruct import (
     InstanceReconstruction,
     ReconstructConfig,
@@ -74,24 +67,8 @@ from vadgs.train.vad.reconstruct import (
     VisibilityIndex,
     build_visibility_index,
 )
-from vadgs.train.vad.state import pack_state, unpack_state
 
-__all__ = [
-    "StrategyContext",
-    "TrackTable",
-    "ViewRender",
-    "VisibilityAwareDensification",
-    "VisibilityDensifyConfig",
-    "VisibilityInputs",
-    "check_info",
-    "flat_gaussians",
-    "info_requirements",
-    "normals_to_quats",
-    "pack_state",
-    "pick_references",
-    "rank_instances",
-    "unpack_state",
-]
+__all__ = ["VisibilityAwareDensification", "check_info", "info_requirements"]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
 
@@ -483,14 +460,14 @@ class VisibilityAwareDensification:
         if depth is None or alpha is None:
             return
         view = int(view)
-        depth, alpha = _chw(depth), _chw(alpha)
+        depth, alpha = view_map(depth), view_map(alpha)
         if tuple(depth.shape[-2:]) != tuple(self._inputs().size(view)):
             return  # a crop or another scale of the view (gsplat's patch_size): not the view's render
-        state.setdefault("vad_tests", {})[view] = _view_test(
+        state.setdefault("vad_tests", {})[view] = detect_view(
             self.prepare(), view, depth, alpha, self.incomplete
         )
-        normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else _chw(normals)
-        _keep_render(
+        normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else view_map(normals)
+        keep_render(
             state.setdefault("vad_renders", {}),
             view,
             ViewRender(depth, alpha, normals),
@@ -611,7 +588,7 @@ class VisibilityAwareDensification:
             ``(rows, views)``: :class:`~vadgs.train.vad.incomplete.IncompleteInstances` (``rows.view``
             indexes ``views``) and the views tested.
         """
-        return vad_event.detect(
+        return detect(
             self.prepare(),
             views if views is not None else list(self._inputs().train_views),
             renders or self._context().render,
@@ -628,9 +605,24 @@ class VisibilityAwareDensification:
     ) -> dict[str, Any]:
         """One visibility-aware densification event (detect, reconstruct, add); returns its log.
 
-        See :func:`vadgs.train.vad.event.run_event`.
+        See :func:`vadgs.train.vad.event.run_event`, given this strategy's parts as an
+        :class:`~vadgs.train.vad.event.EventInputs`.
         """
-        return vad_event.run_event(self, params, optimizers, state, step)
+        context = self._context()
+        event = EventInputs(
+            index=self.prepare(),
+            inputs=self._inputs(),
+            render=context.render,
+            generator=context.generator,
+            config=self.config,
+            reconstruct=self._reconstruct_config(),
+            add=self._add,
+            trained_pixels=None if self.work_budget is None else self.trained_pixels(step),
+            on_progress=self.on_progress,
+            on_addition=self.on_addition,
+            log_size=self.log_size,
+        )
+        return run_event(event, params, optimizers, state, step)
 
     def _add(
         self,
@@ -642,9 +634,7 @@ class VisibilityAwareDensification:
         event: int = 1,
     ) -> None:
         """Add the flat Gaussians of the (kept) points (:func:`~vadgs.train.vad.event.add_reconstruction`)."""
-        vad_event.add_reconstruction(
-            params, optimizers, state, rec, keep, event, self.config, self._track_nodes
-        )
+        add_reconstruction(params, optimizers, state, rec, keep, event, self.config, self._track_nodes)
 
     def _track_nodes(self) -> Mapping[int, int]:
         if self.context is not None and self.context.track_nodes is not None:

@@ -6,92 +6,37 @@ LiDAR frames, or COLMAP's TRACK table), and the cameras of every view, as
 :class:`~vadgs.select.Covisibility` objects for view selection; per-view maps (voxel depth,
 pixel → voxel index, instance masks) are computed on demand and kept in a :class:`ViewCache` with
 an explicit bound. :func:`build_visibility_index` builds it from
-:class:`~vadgs.train.vad.inputs.VisibilityInputs` (or a vadgs scene); :func:`derive_instance_map`
-stands in for instance masks a dataset does not have. :mod:`vadgs.train.vad.reconstruct` and the
-VAD-GS strategy (:mod:`vadgs.train.vad`) read it.
+:class:`~vadgs.train.vad.inputs.VisibilityInputs` (or a vadgs scene);
+:func:`~vadgs.train.vad.instances.derive_instance_map` stands in for instance masks a dataset does
+not have, and :mod:`vadgs.train.vad.lengths` scales its lengths to the scene.
+:mod:`vadgs.train.vad.reconstruct` and the VAD-GS strategy (:mod:`vadgs.train.vad`) read it.
 """
 
 from __future__ import annotations
 
-import itertools
-import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 
 from vadgs.data.cache import ByteCache
-from vadgs.geometry.camera import Cameras, invert_rigid, level_up, project_points
+from vadgs.geometry.camera import Cameras, invert_rigid
+from vadgs.geometry.ground import ground_frame, points_in_frame
 from vadgs.geometry.voxel import PointChunk, VoxelGrid, voxelize, voxelize_chunks
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
 from vadgs.train.vad.inputs import VisibilityInputs
+from vadgs.train.vad.instances import box_corners, derive_instance_map, ground_cells
+from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
 
 __all__ = [
-    "LENGTHS",
-    "REFERENCE_DEPTH",
+    "GROUND_FRAME_POINTS",
     "ViewCache",
     "VisibilityIndex",
     "build_visibility_index",
-    "derive_instance_map",
-    "ground_cells",
-    "ground_frame",
-    "scene_lengths",
 ]
-
-#: The scene depth VAD-GS's default lengths are written for: vadgs's scenes (street metres, or SfM
-#: normalised to a median view depth of 10).
-REFERENCE_DEPTH = 10.0
-
-#: VAD-GS's lengths at :data:`REFERENCE_DEPTH`; each scales with ``scene_depth / REFERENCE_DEPTH``
-#: unless set explicitly (absolute): the voxel edge of the visibility grids, the ground cell of
-#: derived instances, the z-buffer's near plane, PatchMatch's fallback depth range and its lower
-#: bound, the smallest voxel depth and depth span of an instance (``reconstruct``), and the nearest
-#: depth a track's box is painted at. (The view selection's ``ε``, ``ReconstructConfig.selection.eps``,
-#: is scaled the same way: it is always read at :data:`REFERENCE_DEPTH`.)
-LENGTHS = {
-    "voxel_size": 0.2,
-    "cell_size": 10.0,
-    "zbuffer_near": 0.1,
-    "fallback_depth_range": (0.5, 150.0),
-    "min_depth": 0.2,
-    "min_voxel_depth": 0.1,
-    "min_depth_span": 1.0,
-    "box_near": 0.1,
-}
-
-
-def scene_lengths(scene_depth: float = REFERENCE_DEPTH, **absolute: Any) -> dict[str, Any]:
-    """VAD-GS's lengths for a scene of ``scene_depth``: :data:`LENGTHS` scaled, ``absolute`` kept.
-
-    ``None`` values of ``absolute`` mean "relative" (scaled). At :data:`REFERENCE_DEPTH` the values
-    are :data:`LENGTHS` exactly.
-
-    Example:
-        >>> scene_lengths(5.0)["voxel_size"], scene_lengths(5.0, voxel_size=0.02)["voxel_size"]
-        (0.1, 0.02)
-        >>> scene_lengths()["cell_size"]
-        10.0
-    """
-    unknown = set(absolute) - set(LENGTHS)
-    if unknown:
-        raise ValueError(f"absolute: expected keys of {sorted(LENGTHS)}, got {sorted(unknown)}")
-    if not (math.isfinite(scene_depth) and scene_depth > 0):
-        raise ValueError(f"scene_depth: expected a finite depth > 0, got {scene_depth}")
-    unit = scene_depth / REFERENCE_DEPTH
-    out = {}
-    for key, value in LENGTHS.items():
-        given = absolute.get(key)
-        if given is not None:
-            out[key] = given
-        elif isinstance(value, tuple):
-            out[key] = tuple(v * unit for v in value)
-        else:
-            out[key] = value * unit
-    return out
 
 
 ViewCache = ByteCache
@@ -222,7 +167,7 @@ class VisibilityIndex:
     def box_corners(self, track: int) -> torch.Tensor:
         """``(8, 3)`` box corners of a track in its object frame (cached: a mesh is read once)."""
         if track not in self._corners:
-            self._corners[track] = _box_corners(self.inputs.tracks[track])
+            self._corners[track] = box_corners(self.inputs.tracks[track])
         return self._corners[track]
 
     def cell_ids(self) -> torch.Tensor:
@@ -250,7 +195,7 @@ class VisibilityIndex:
     def to_ground(self, points: torch.Tensor) -> torch.Tensor:
         """``(N, 3)`` world points in the static grid's frame (float64, on the points' device)."""
         rotation, origin = (x.to(points.device) for x in self.ground_frame())
-        return _in_frame(points, rotation, origin)
+        return points_in_frame(points, rotation, origin)
 
     def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Static voxel z-buffer of a view: depth ``(1, H, W)`` and index ``(H, W)`` (cached)."""
@@ -301,158 +246,6 @@ class VisibilityIndex:
         return self.cameras.world_to_cam @ t.object_to_world[pos].to(self.cameras.world_to_cam)
 
 
-def _in_frame(points: torch.Tensor, rotation: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """``(N, 3)`` points in the frame ``(rotation, origin)`` of :func:`ground_frame` (float64)."""
-    return (points.double() - origin) @ rotation.T
-
-
-def ground_frame(
-    points: torch.Tensor, cam_to_world: torch.Tensor, walls: float | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The scene's own ground frame: the cameras' up, the points' principal ground axes, their median.
-
-    The up is :func:`~vadgs.geometry.camera.level_up` of the cameras (the world's ``z`` without
-    cameras); the two ground axes are the principal axes of the points projected on the ground
-    plane (the larger first); the origin is the points' median along each of the three axes (the
-    middle two averaged). A rotated, shifted or uniformly scaled copy of the scene has the same
-    frame, moved with it, up to the sign of each axis (an eigen-solver's choice): what is built on
-    it (:func:`ground_cells`, the thinning of new points) is symmetric about the origin.
-
-    With ``walls``, the ground axes are then turned about the up onto the scene's walls (a
-    Manhattan alignment): the turn, searched over a quarter turn from the principal axes, that
-    gives the points' coordinates the sharpest histogram at a bin of ``walls`` (walls are thin
-    peaks along their normal). A street's principal axis can lie a degree or two off its facades;
-    voxels on the facades' axes give their z-buffer flat faces.
-
-    Args:
-        points: ``(M, 3)`` points (voxel centres), world frame; ``M >= 1``.
-        cam_to_world: ``(V, 4, 4)`` OpenCV camera-to-world of the views that saw them.
-        walls: histogram bin of the wall alignment (a voxel edge), or None for the principal axes.
-
-    Returns:
-        ``(rotation, origin)``, float64 on the points' device: ``local = (x - origin) @ rotation.T``,
-        the rows of ``rotation`` the major ground axis, the minor one and the up.
-
-    Example:
-        >>> pts = torch.tensor([[0.0, 0, 0], [4, 3, 0], [8, 6, 0], [12, 9, 1]])
-        >>> rot, origin = ground_frame(pts, torch.empty(0, 4, 4))  # no cameras: z up
-        >>> [round(abs(v), 3) for v in rot[0].tolist()], [round(v, 6) for v in origin.tolist()]
-        ([0.8, 0.6, 0.0], [6.0, 4.5, 0.0])
-    """
-    p = points.double()
-    up = level_up(cam_to_world.to(p.device)) if len(cam_to_world) else p.new_tensor([0.0, 0.0, 1.0])
-    centred = p - (p @ up)[:, None] * up  # in the ground plane
-    centred -= centred.mean(0)
-    eye = torch.eye(3, dtype=p.dtype, device=p.device)
-    scatter = centred.T @ centred / len(p) + 1e-9 * (eye - up[:, None] * up[None])
-    del centred
-    axes = torch.linalg.eigh(scatter).eigenvectors[:, 1:]  # the two ground axes (up's value is ~0)
-    rotation = torch.stack([axes[:, 1], axes[:, 0], up])
-    if walls is not None and len(p) > 1:
-        rotation = _align_walls(p, rotation, walls)
-    local = p @ rotation.T
-    middle = torch.stack(  # the median, the middle two averaged (selection, not a sort: less memory)
-        [
-            0.5
-            * (
-                local[:, k].kthvalue((len(p) - 1) // 2 + 1).values
-                + local[:, k].kthvalue(len(p) // 2 + 1).values
-            )
-            for k in range(3)
-        ]
-    )
-    return rotation, middle @ rotation
-
-
-def _align_walls(
-    p: torch.Tensor, rotation: torch.Tensor, bin_size: float, max_points: int = 200_000
-) -> torch.Tensor:
-    """``rotation`` turned about its up (third row) onto the walls of ``p`` (:func:`ground_frame`).
-
-    The candidates are turns from the principal axes (a quarter turn in 0.5° steps, then ±0.5°
-    in 0.05° steps), so a rotated copy of the points meets the same candidates.
-    """
-    sub = p[:: max(1, len(p) // max_points)]
-    uv0 = sub @ rotation[:2].T
-
-    def score(angles: torch.Tensor) -> torch.Tensor:
-        c, s = torch.cos(angles), torch.sin(angles)
-        out = []
-        for ci, si in zip(c.tolist(), s.tolist()):
-            u = uv0[:, 0] * ci + uv0[:, 1] * si
-            v = -uv0[:, 0] * si + uv0[:, 1] * ci
-            total = 0.0
-            for x in (u, v):
-                q = torch.floor((x - x.min()) / bin_size).long()
-                total += float(torch.bincount(q).double().pow(2).sum())
-            out.append(total)
-        return torch.tensor(out, dtype=torch.float64)
-
-    coarse = torch.arange(180, dtype=torch.float64) * (math.pi / 360)
-    best = float(coarse[int(score(coarse).argmax())])
-    fine = best + torch.arange(-10, 11, dtype=torch.float64) * (math.pi / 3600)
-    angle = float(fine[int(score(fine).argmax())])
-    c, s = math.cos(angle), math.sin(angle)
-    a, b = rotation[0], rotation[1]
-    return torch.stack([c * a + s * b, -s * a + c * b, rotation[2]])
-
-
-def ground_cells(
-    points: torch.Tensor,
-    cam_to_world: torch.Tensor | None,
-    cell_size: float,
-    frame: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> torch.Tensor:
-    """Cell index of each point in a grid of ``cell_size`` ground squares that moves with the scene.
-
-    The squares lie in the ground plane of :func:`ground_frame`, along its axes, one centred on
-    its origin (the points' median): a rotated, shifted or uniformly scaled copy of a scene
-    (``cell_size`` scaled with it) is cut into the same cells, where square cells fixed to the
-    world's axes would cut it elsewhere. Cells are numbered by their number of points, most first
-    (ties: nearest to the origin, then lowest, first).
-
-    Args:
-        points: ``(M, 3)`` points (voxel centres), world frame.
-        cam_to_world: ``(V, 4, 4)`` OpenCV camera-to-world of the views that saw them (unused
-            when ``frame`` is given).
-        cell_size: the squares' edge, in world units (> 0).
-        frame: :func:`ground_frame` of these points and cameras, when already computed.
-
-    Returns:
-        ``(M,)`` int64 cell index in ``[0, number of cells)``, on the points' device.
-
-    Example:
-        >>> import math
-        >>> pts = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([40.0, 8, 3])
-        >>> c2w = torch.eye(4)[None].repeat(2, 1, 1)
-        >>> c2w[:, :3, :3] = torch.tensor([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # level, z up
-        >>> a = ground_cells(pts, c2w, 10.0)
-        >>> c, s = math.cos(1.0), math.sin(1.0)
-        >>> R = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-        >>> moved = c2w.clone()
-        >>> moved[:, :3, :3] = R @ c2w[:, :3, :3]
-        >>> b = ground_cells(0.05 * (pts @ R.T) + 3.0, moved, 0.5)  # turned, shifted, 1/20
-        >>> int(a.max()) + 1, bool((a == b).all())
-        (5, True)
-    """
-    if not cell_size > 0:
-        raise ValueError(f"cell_size: expected > 0, got {cell_size}")
-    if len(points) == 0:
-        return torch.zeros(0, dtype=torch.long, device=points.device)
-    local = _in_frame(points, *(frame if frame is not None else ground_frame(points, cam_to_world)))
-    ij = torch.floor(local[:, :2] / cell_size + 0.5).long()  # the origin in a cell's centre
-    _, cell, count = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
-    centre = ij.double().norm(dim=1)  # a cell's distance from the origin, in cells
-    dist = torch.zeros(len(count), dtype=local.dtype, device=local.device)
-    dist = dist.scatter_reduce(0, cell, centre, "amax", include_self=False)
-    height = torch.zeros_like(dist).index_add_(0, cell, local[:, 2] / cell_size) / count  # mean height
-    key = [(-int(n), round(float(d), 6), round(float(h), 6)) for n, d, h in zip(count, dist, height)]
-    order = sorted(range(len(count)), key=lambda c: (*key[c], c))
-    rank = torch.empty_like(count)
-    rank[torch.tensor(order, device=count.device)] = torch.arange(len(count), device=count.device)
-    return rank[cell]
-
-
 def _covis(
     grid: VoxelGrid,
     world_to_cam: torch.Tensor,
@@ -471,80 +264,10 @@ def _covis(
     return Covisibility.from_csr(grid.vis_indptr, grid.vis_views, centers, world_to_cam, cam_ids, frame_ids)
 
 
-def _box_corners(track) -> torch.Tensor:
-    """``(8, 3)`` box corners of a track in its object frame.
-
-    The mesh's bounds when the track has a mesh (street scenes put the origin on the ground), else
-    ``size_lwh`` about the origin (DGP boxes).
-    """
-    if track.mesh is not None and Path(track.mesh).is_file():
-        import trimesh
-
-        lo, hi = (
-            torch.tensor(b, dtype=torch.float32) for b in trimesh.load(track.mesh, process=False).bounds
-        )
-    else:
-        hi = track.size_lwh.float() / 2
-        lo = -hi
-    pick = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.bool)
-    return torch.where(pick, hi, lo)
-
-
-def derive_instance_map(index: VisibilityIndex, view: int) -> torch.Tensor:
-    """An instance map for a scene without one, from the voxel index map and the tracks.
-
-    Static pixels take the id of their voxel's ground cell (``index.cell_size`` metres square,
-    :meth:`VisibilityIndex.cell_ids`); pixels without a voxel take the nearest labelled pixel's id
-    within ``index.grow`` pixels (so MVS can extend a little beyond the LiDAR's reach), else 0.
-    Tracks with a pose at the view's frame paint their projected 3D box (convex hull of its
-    corners, far boxes first). Unlike a segmentation network, this cannot label structures far
-    from any LiDAR point (a sign above the LiDAR's field of view): the strategy then only repairs
-    geometry near what the LiDAR saw.
-
-    Returns:
-        ``(H, W)`` int64 instance ids (0 = none).
-    """
-    import numpy as np
-    from scipy import ndimage
-    from scipy.spatial import ConvexHull, QhullError
-    from skimage.draw import polygon
-
-    inputs = index.inputs
-    _, vox = index.voxel_raster(view)
-    cells = index.cell_ids()
-    lab = torch.where(vox >= 0, cells[vox.clamp_min(0)], torch.zeros_like(vox)).numpy()
-    if index.grow > 0 and (lab > 0).any():
-        dist, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
-        lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
-    pos = inputs.frame_position(view)
-    cam = index.camera(view)
-    own = index.valid(view).numpy()
-    lab = np.where(own, lab, 0)  # nothing grows into the padding of a smaller view
-    box_near = scene_lengths(index.scene_depth)["box_near"]
-    boxes = []
-    for tid, t in inputs.tracks.items():
-        if not bool(t.valid[pos]):
-            continue
-        corners = index.box_corners(tid)
-        o2w = t.object_to_world[pos].float()
-        world = corners @ o2w[:3, :3].T + o2w[:3, 3]
-        uv, z = project_points(world[None], cam.K, cam.world_to_cam)
-        if bool((z < box_near).any()):  # a box across the image plane: skip rather than mis-project
-            continue
-        boxes.append((float(z.mean()), tid, uv[0].numpy()))
-    for _, tid, uv in sorted(boxes, reverse=True):  # far first: near boxes paint over them
-        try:
-            hull = uv[ConvexHull(uv).vertices]
-        except QhullError:
-            continue
-        rr, cc = polygon(hull[:, 1], hull[:, 0], shape=index.size(view))
-        lab[rr, cc] = tid
-    return torch.from_numpy(np.ascontiguousarray(lab)).long()
-
-
 #: The most points :func:`ground_frame` is measured on when building a visibility index: beyond,
 #: a sample of them (:func:`_sample_rows`).
 GROUND_FRAME_POINTS = 1 << 22
+
 
 _GOLDEN = 2654435761  # 2**32 / golden ratio: Fibonacci hashing of a row's position
 
@@ -651,7 +374,7 @@ def build_visibility_index(
     static_to_world = torch.eye(4, dtype=torch.float64, device=rotation.device)
     static_to_world[:3, :3], static_to_world[:3, 3] = rotation.T, origin
     static_to_world = static_to_world.to(dtype=points.dtype, device=cameras.K.device)
-    local = _in_frame(points.to(rotation.device), rotation, origin).to(points)
+    local = points_in_frame(points.to(rotation.device), rotation, origin).to(points)
     if lidar is None:
         grid = voxelize(local, voxel_size, point_views, inputs.num_views)
         labels = torch.zeros(len(grid), dtype=torch.int64, device=grid.coords.device)
@@ -660,7 +383,7 @@ def build_visibility_index(
 
         def static_chunks() -> Iterator[PointChunk]:
             for a in lidar(None, True):
-                p = _in_frame(a.points.to(rotation.device), rotation, origin).to(a.points)
+                p = points_in_frame(a.points.to(rotation.device), rotation, origin).to(a.points)
                 yield PointChunk(p, a.point_views, a.instance)
 
         grid, labels = voxelize_chunks(static_chunks, voxel_size, inputs.num_views, corner)
