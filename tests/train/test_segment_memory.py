@@ -41,3 +41,19 @@ def test_run_peak_memory_grows_less_than_20_percent_with_4x_the_frames(tmp_path)
     # 24 training views and sweeps of 60k points against 6
     assert peak[32] < 1.2 * peak[8], peak
     assert peak[32] < 1500, peak  # the bound for this scene: MB
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux: ru_maxrss survives exec")
+def test_peak_is_the_runs_own_not_its_parents():
+    """A run started by a large process (a test runner, a Ray worker) reports its own peak:
+    ``ru_maxrss`` would report the parent's size at the fork (1.7 GB for a 0.9 GB run)."""
+    parent = r"""
+import subprocess, sys, numpy as np
+ballast = np.ones(400 * 2**20 // 8)  # 400 MiB resident in the parent
+child = ("from vadgs.train.loop import peak_rss_mb; import resource; "
+         "print(peak_rss_mb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)")
+print(subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, check=True).stdout)
+"""
+    out = subprocess.run([sys.executable, "-c", parent], capture_output=True, text=True, check=True).stdout
+    own, inherited = map(float, out.split())
+    assert inherited > 400 and own < 300, (own, inherited)  # MiB
