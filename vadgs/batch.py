@@ -519,7 +519,7 @@ def run_batch(
     if not ray.is_initialized():
         local = config.address is None and not os.environ.get("RAY_ADDRESS")
         # a local Ray for this batch only: no dashboard (a process and a port fewer)
-        extra = {"include_dashboard": False} if local else {}
+        extra: dict[str, Any] = {"include_dashboard": False} if local else {}
         ray.init(address=config.address, runtime_env=config.runtime_env, **extra)
         started = True
     try:

@@ -259,3 +259,20 @@ class TestExports:
         monkeypatch.undo()
         assert (tmp_path / "poses.json").read_text() == before
         assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_failure_notes_on_python_310(monkeypatch):
+    """Python 3.10 has no BaseException.add_note: the failure path's notes go to __notes__ all the same.
+
+    (Found by mypy with python_version 3.10: the failure path raised AttributeError there, hiding
+    the training error.)
+    """
+    from vadgs.train.loop import _add_note
+
+    e = ValueError("diverged")
+    monkeypatch.setattr(sys, "version_info", (3, 10, 13, "final", 0))
+    _add_note(e, "last good checkpoint: step 2")
+    _add_note(e, "continue with: vadgs train --resume")
+    monkeypatch.undo()
+    assert e.__notes__ == ["last good checkpoint: step 2", "continue with: vadgs train --resume"]
+    assert _one_line(e) == "diverged; last good checkpoint: step 2; continue with: vadgs train --resume"

@@ -122,3 +122,24 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
     assert more.completed and more.step == 6 and more.metrics["steps"] == 6
     again = train_scene(ref, config, tmp_path / "a", overwrite=True, progress=False)
     assert again.step == 4 and again.metrics["num_gaussians"] == outcome.metrics["num_gaussians"]
+
+
+def test_scene_fingerprint_without_file_digest(tiny_scene, monkeypatch):
+    """Python 3.10 has no hashlib.file_digest: the fingerprint is the same without it.
+
+    (Found by mypy with python_version 3.10: scene_fingerprint raised AttributeError there.)
+    """
+    import hashlib
+    import io
+
+    from vadgs.train.run import scene_fingerprint, scene_ref
+    from vadgs.train.scenes import _sha256
+
+    data = bytes(range(256)) * 5000  # more than one block of _sha256
+    fh = io.BytesIO(data)
+    fh.seek(7)  # as hashlib.file_digest: from the file's position on
+    assert _sha256(fh) == hashlib.sha256(data[7:]).digest()
+    ref = scene_ref(tiny_scene.root, scale=0.25).to_dict()
+    expected = scene_fingerprint(ref, tiny_scene)
+    monkeypatch.delattr(hashlib, "file_digest", raising=False)
+    assert scene_fingerprint(ref, tiny_scene) == expected

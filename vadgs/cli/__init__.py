@@ -21,6 +21,7 @@ import contextlib
 import os
 import sys
 import traceback
+from typing import Any, Protocol
 
 import torch
 
@@ -48,9 +49,16 @@ __all__ = [
     "main",
 ]
 
+
+class _CommandType(Protocol):
+    """A command class: :class:`Command`'s ``parse`` (``vadgs train``'s own, not a subclass)."""
+
+    def parse(self, argv: list[str], prog: str) -> Any: ...
+
+
 #: The commands by name: a :class:`Command` dataclass each (``vadgs train``'s is
 #: :class:`TrainCommand`, whose ``--threads`` is the run's ``TrainConfig.threads``).
-COMMANDS: dict[str, type] = {
+COMMANDS: dict[str, _CommandType] = {
     "sfm": SfmCommand,
     "check": CheckCommand,
     "visibility": VisibilityCommand,

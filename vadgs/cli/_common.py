@@ -17,7 +17,7 @@ import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import tyro
 
@@ -72,7 +72,7 @@ def parse_command(cls: type[C], argv: list[str], prog: str, default: C | None = 
     Raises:
         ValueError: a bad flag or value, as one line naming the flag.
     """
-    kwargs = {"default": default, "config": (tyro.conf.AvoidSubcommands,), "prog": prog}
+    kwargs: dict[str, Any] = {"default": default, "config": (tyro.conf.AvoidSubcommands,), "prog": prog}
     kwargs["description"] = _plain(cls.__doc__ or "")
     if "-h" in argv or "--help" in argv:
         with contextlib.suppress(SystemExit):

@@ -81,7 +81,10 @@ class DemoCommand(Command):
         trainer = Trainer(
             scene, config, out_dir=out, scene_ref=ref, progress=not self.no_progress, overwrite=overwrite
         )
-        strategy = trainer.strategy if config.vad is not None else None
+        from vadgs.train.vad import VisibilityAwareDensification
+
+        # config.vad set: the trainer's strategy is the visibility-aware one
+        strategy = trainer.strategy if isinstance(trainer.strategy, VisibilityAwareDensification) else None
         snapshots: list[dict] = []  # the largest addition only, for the completion figure
         if strategy is not None:
             strategy.on_addition = lambda snap: snapshots.__setitem__(

@@ -21,10 +21,11 @@ import tyro
 
 from vadgs.checks import check_at_least, check_at_most, check_positive
 from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
+from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, record_files, recorded_files
 from vadgs.train.results.trajectory import MAX_FRAMES
-from vadgs.train.run import RunLock, frame_position, load_run
+from vadgs.train.run import Run, RunLock, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_METHODS
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
@@ -36,13 +37,20 @@ RunArg = Annotated[str, Positional, tyro.conf.arg(metavar="RUN")]
 SceneOpt = Annotated[str | None, tyro.conf.arg(metavar="FOLDER")]
 
 
-def _writing(run: str | Path, into: Path, command: str) -> contextlib.AbstractContextManager:
+def _writing(run: str | Path, into: str | Path, command: str) -> contextlib.AbstractContextManager:
     """The run folder's lock while a command writes ``into`` it (nothing when it writes elsewhere)."""
     folder = _run_dir(run).resolve()
     into = Path(into).resolve()
     if folder.is_dir() and (into == folder or into.is_relative_to(folder)):
         return RunLock(folder, command)
     return contextlib.nullcontext()
+
+
+def _scene(run: Run) -> Scene:
+    """The scene of a run loaded with ``open=True`` (every command here loads it so)."""
+    if run.scene is None:
+        raise ValueError("run: expected its scene opened (load_run(open=True)), got None")
+    return run.scene
 
 
 def _owner(run: str | Path, into: str | Path) -> Path:
@@ -105,7 +113,7 @@ class EvalCommand(Command):
             run = load_run(self.run, scene=self.scene)
             groups = evaluate_split(
                 run.model,
-                run.scene,
+                _scene(run),
                 self.split,
                 config=run.config.raster,
                 progress=not self.no_progress,
@@ -222,7 +230,7 @@ class RenderCommand(Command):
 
     def _render(self) -> int:
         run = load_run(self.run, scene=self.scene)
-        model, scene, config = run.model, run.scene, run.config
+        model, scene, config = run.model, _scene(run), run.config
         if self.video or self.trajectory == "list":
             from vadgs.train.results.trajectory import (
                 default_video_camera,
@@ -253,6 +261,7 @@ class RenderCommand(Command):
                     given += f" --frames-between {self.frames_between}"
                 raise ValueError(f"{given}: {_too_many(self.max_frames, count)}")
             _warn_out_of_view(model, scene, traj, spec)
+            assert self.video is not None  # --trajectory list without --video returned above
             info = render_video(
                 model,
                 scene,
@@ -262,6 +271,7 @@ class RenderCommand(Command):
                 config=config.raster,
                 progress=not self.no_progress,
             )
+            assert info.size is not None  # a trajectory has at least one pose
             size = f"{info.size[1]}x{info.size[0]}"
             print(
                 f"wrote {info.path}: {info.num_frames} frames of {size} at {self.fps} fps "
@@ -308,12 +318,12 @@ class ExportCommand(Command):
 
         with _writing(self.run, self.out or _run_dir(self.run), "vadgs export"):
             run = load_run(self.run, scene=self.scene)
-            frame, _ = frame_position(run.scene, self.frame, "--frame")
+            frame, _ = frame_position(_scene(run), self.frame, "--frame")
             out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
             if self.inria:
                 _check_inria_out(out, _owner(self.run, out), run.scene_ref or {})
             owner = _check_into(self.run, out)
-            res = export_world(run.model, run.scene, frame, out, inria=self.inria, iteration=run.step,
+            res = export_world(run.model, _scene(run), frame, out, inria=self.inria, iteration=run.step,
                                scene_ref=run.scene_ref)  # fmt: skip
             written = [p for p in res[:5] if p is not None]
             if (out / "sparse" / "0").is_dir():
@@ -388,7 +398,7 @@ class ViewCommand(Command):
         from vadgs.viewer import build_viewer
 
         run = load_run(self.run, scene=self.scene)
-        model, scene = run.model, run.scene
+        model, scene = run.model, _scene(run)
         _, position = frame_position(scene, self.frame, "--frame")
         stop = threading.Event()
         # SIGINT / SIGTERM stop serving (exit 0), from before the server starts: a signal that

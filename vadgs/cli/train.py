@@ -142,6 +142,7 @@ class TrainCommand:
             print(f"stopped ({outcome.reason}) at step {outcome.step}; checkpoint {out / CHECKPOINT_NAME}; "
                   f"continue with: vadgs train --out {out} --resume")  # fmt: skip
             return 130 if outcome.reason == "interrupted" else 0
+        assert outcome.metrics is not None  # written for a completed run
         print(_summary(outcome.metrics))
         print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
         return 0

@@ -56,7 +56,7 @@ class BoxObservation(NamedTuple):
     class_name: str
 
 
-def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
+def quat_wxyz_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
     """A ``(w, x, y, z)`` quaternion as a 3×3 float64 rotation matrix (normalised first).
 
     The sign of ``q`` does not matter (``q`` and ``-q`` are the same rotation); the matrix is

@@ -173,6 +173,8 @@ def file_image_loader(
         return None
 
     def image_loader(view: ViewInfo) -> torch.Tensor:
+        if view.image is None:
+            raise ValueError(f"view {view.index}: expected an image file, got None")
         img = _read_rgb(view.image)
         und = undistort.get(view.camera)
         if und is None:

@@ -123,7 +123,8 @@ class SparseDepth(NamedTuple):
         shape: the dense map's shape, e.g. ``(1, 1, H, W)``.
     """
 
-    index: torch.Tensor
+    # the field shadows tuple.index (the method); the public name stays
+    index: torch.Tensor  # type: ignore[assignment]
     depth: torch.Tensor
     shape: tuple[int, ...]
 

@@ -29,6 +29,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -53,6 +54,7 @@ __all__ = [
 #: Absolute tolerance on ``R^T R - I``, ``det R - 1`` and the last row of a rigid transform.
 #: Poses stored with 6 decimals are off by about 1e-6; a 1 % scale is off by 0.02.
 RIGID_TOLERANCE = 1e-3
+_INSTANCE_MODES = ("I;16", "I;16B", "I;16L", "I", "L")  # what an instance map's PNG may hold
 
 
 class ValidationRow(NamedTuple):
@@ -302,27 +304,29 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
 
         col.run(f"cameras.{cam.name}.K", None, camera)
 
-    poses: list[tuple[str, torch.Tensor]] = []
-    poses += [(f"cameras.{c.name}.cam_to_ego", c.cam_to_ego) for c in scene.cameras_info.values()]
-    poses += [(f"frame {f.index}.ego_to_world", f.ego_to_world) for f in scene.frames]
-    poses += [(f"view {v.index} ({v.camera}@{v.frame}).cam_to_world", v.cam_to_world) for v in scene.views]
+    given: list[tuple[str, torch.Tensor | None]] = []
+    given += [(f"cameras.{c.name}.cam_to_ego", c.cam_to_ego) for c in scene.cameras_info.values()]
+    given += [(f"frame {f.index}.ego_to_world", f.ego_to_world) for f in scene.frames]
+    given += [(f"view {v.index} ({v.camera}@{v.frame}).cam_to_world", v.cam_to_world) for v in scene.views]
     for tid, t in scene.tracks.items():
-        poses += [
+        given += [
             (f"track {tid}.object_to_world[frame {scene.frames[i].index}]", t.object_to_world[i])
             for i in range(len(scene.frames))
             if bool(t.valid[i])
         ]
-    poses = [(w, p) for w, p in poses if p is not None]
-    bad_pose = [not col.run(w, None, lambda w=w, p=p: check_rigid(p, w, tolerance)) for w, p in poses]
+    poses = [(w, p) for w, p in given if p is not None]
+    bad_pose = [not col.run(w, None, functools.partial(check_rigid, p, w, tolerance)) for w, p in poses]
     if not any(bad_pose):
         col.rows.append(ValidationRow("poses", "", "ok", f"{len(poses)} rigid (tolerance {tolerance:g})"))
 
     frame_ids = [f.index for f in scene.frames]
     for key, frames in (("train_frames", scene.train_frames), ("test_frames", scene.test_frames)):
-        col.run(
-            f"split.{key}", None,
-            lambda k=key, fr=frames: (check_split(fr, frame_ids, f"split.{k}"), f"{len(fr)} frames")[1],
-        )  # fmt: skip
+
+        def split(k: str = key, fr: list[int] = frames) -> str:
+            check_split(fr, frame_ids, f"split.{k}")
+            return f"{len(fr)} frames"
+
+        col.run(f"split.{key}", None, split)
 
     # -- files ----------------------------------------------------------------------------------------
     s = float(scene.scale)
@@ -334,19 +338,19 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
         if v.image is not None:
             counts["images"] += 1
             failed["images"] += not col.run(
-                "image", v.image, lambda v=v, z=size: _check_png(v.image, z, s, None, full)
+                "image", v.image, functools.partial(_check_png, v.image, size, s, None, full)
             )
         if v.depth is not None:
             counts["depth"] += 1
             decode = full or v.index in test
             failed["depth"] += not col.run(
-                "depth", v.depth, lambda v=v, z=size, d=decode: _check_depth(v.depth, z, s, d)
+                "depth", v.depth, functools.partial(_check_depth, v.depth, size, s, decode)
             )
         if v.instances is not None:
             counts["instances"] += 1
             failed["instances"] += not col.run(
                 "instances", v.instances,
-                lambda v=v, z=size: _check_png(v.instances, z, s, ("I;16", "I;16B", "I;16L", "I", "L"), full),
+                functools.partial(_check_png, v.instances, size, s, _INSTANCE_MODES, full),
             )  # fmt: skip
     for kind, n in counts.items():
         if n and not failed[kind]:

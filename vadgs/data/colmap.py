@@ -48,7 +48,7 @@ import os
 import shutil
 import warnings
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -70,6 +70,9 @@ from vadgs.data.images import exif_orientation
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
+
+if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
+    import pycolmap
 
 __all__ = [
     "COLMAP_PIXEL_OFFSET",
@@ -216,7 +219,7 @@ def load_colmap(
         full_width[cam_name[cid]] = w
 
     # -- frames and views -----------------------------------------------------------------------------
-    groups: dict[int, list[object]] = {}
+    groups: dict[int, list[pycolmap.Image]] = {}
     for im in registered:
         key = int(im.frame_id) if im.has_frame_id() else -int(im.image_id) - 1
         groups.setdefault(key, []).append(im)
@@ -619,7 +622,7 @@ def open_colmap_project(
                 warnings.filterwarnings("ignore", message=".*EXIF orientation tag that COLMAP ignores")
             colmap = load_colmap(model, images_dir, scale=scale, test_every=test_every)
     except BaseException:
-        if distorted:  # the undistorted copy of a project that cannot be loaded is no use: remove it
+        if distorted and undistort_dir is not None:  # the undistorted copy is no use: remove it
             shutil.rmtree(undistort_dir, ignore_errors=True)
         raise
     name = _project_name(source)

@@ -25,8 +25,12 @@ from __future__ import annotations
 import math
 import struct
 from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
+    import pycolmap
 
 __all__ = [
     "check_colmap_images",
@@ -67,7 +71,7 @@ def check_image_name(name: str, what: str) -> str:
     return name
 
 
-def check_reconstruction(rec: object, sparse_dir: Path) -> None:
+def check_reconstruction(rec: pycolmap.Reconstruction, sparse_dir: Path) -> None:
     """Check a :class:`pycolmap.Reconstruction` before any other pycolmap call uses it.
 
     Raises:
@@ -113,7 +117,7 @@ def check_reconstruction(rec: object, sparse_dir: Path) -> None:
             )
 
 
-def check_colmap_images(rec: object, images_dir: Path, full: bool = True) -> None:
+def check_colmap_images(rec: pycolmap.Reconstruction, images_dir: Path, full: bool = True) -> None:
     """Every registered image of ``rec`` under ``images_dir``: present, decodable, its camera's size.
 
     Args:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -18,6 +19,9 @@ import torch
 from vadgs.data.colmap_files import check_reconstruction, diagnose_model_files, diagnose_references
 from vadgs.data.scene import Scene
 from vadgs.geometry.camera import invert_rigid
+
+if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
+    import pycolmap
 
 __all__ = [
     "COLMAP_PIXEL_OFFSET",
@@ -35,7 +39,7 @@ _PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 _DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
-def colmap_camera_to_K(camera: object) -> tuple[torch.Tensor, tuple[int, int]]:
+def colmap_camera_to_K(camera: pycolmap.Camera) -> tuple[torch.Tensor, tuple[int, int]]:
     """The vadgs intrinsics of a :class:`pycolmap.Camera`: its pinhole part, pixel centres at integers.
 
     Warns (:class:`UserWarning`) when the model has non-zero distortion, which is ignored.
@@ -80,8 +84,8 @@ def colmap_camera_to_K(camera: object) -> tuple[torch.Tensor, tuple[int, int]]:
     return K, (int(camera.height), int(camera.width))
 
 
-def _cam_from_world(image: object) -> np.ndarray:
-    cfw = image.cam_from_world
+def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
+    cfw: Any = image.cam_from_world  # Any: the stubs know only the pycolmap installed
     cfw = cfw() if callable(cfw) else cfw  # a method in pycolmap 4, a property before
     out = np.eye(4)
     out[:3, :4] = np.asarray(cfw.matrix(), dtype=np.float64)
@@ -116,7 +120,7 @@ def find_colmap_model(path: str | Path) -> Path | None:
     return None
 
 
-def _read_model(sparse_dir: Path, what: str) -> object:
+def _read_model(sparse_dir: Path, what: str) -> pycolmap.Reconstruction:
     import pycolmap
 
     if not _has_model(sparse_dir):
@@ -195,7 +199,8 @@ def match_colmap_views(scene: Scene, sparse_dir: str | Path, what: str = "colmap
     idx = [by_suffix.get(Path(im.name).parts, -1) for im in images]
     bad = [im.name for im, i in zip(images, idx) if i < 0]
     if bad or not images:
-        expected = [str(Path(*Path(scene.views[v].image).parts[-2:])) for v in scene.train_views[:2]]
+        firsts = [scene.views[v].image for v in scene.train_views[:2]]
+        expected = [str(Path(*Path(im).parts[-2:])) for im in firsts if im is not None]
         raise ValueError(
             f"{what} {sparse_dir}: the COLMAP model's images are not the views of scene {scene.name!r}: "
             f"{len(bad)} of {len(images)} registered image names match none (expected names like "

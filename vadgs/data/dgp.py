@@ -383,8 +383,10 @@ def load_dgp(
         }
         for iid, per_frame in raw_boxes.items()
     }
-    names = {iid: f"{next(iter(b.values())).class_name}_{iid}" for iid, b in boxes.items()}
-    instances, tracks = build_instances(boxes, names, len(frames), rigid=lambda _: True, min_motion_m=None)
+    track_names = {iid: f"{next(iter(b.values())).class_name}_{iid}" for iid, b in boxes.items()}
+    instances, tracks = build_instances(
+        boxes, track_names, len(frames), rigid=lambda _: True, min_motion_m=None
+    )
 
     def read_lidar(frame: int, path: Path) -> LidarFrame:
         sensor_to_world = lidar_to_world[frame]

@@ -6,6 +6,7 @@ tool that reads :func:`~vadgs.data.load_scene` work on it (``vadgs convert`` on 
 
 from __future__ import annotations
 
+import functools
 import shutil
 from pathlib import Path
 
@@ -69,7 +70,7 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
             rel = f"images/{safe_filename(v.camera)}/{f.index:06d}.png"
             img = scene.load_images([vid])[0]  # a fresh tensor: rounded to 8 bits in place
             pil = Image.fromarray(img.clamp_(0, 1).mul_(255).round_().byte().permute(1, 2, 0).numpy())
-            atomic_write(out / rel, lambda tmp, pil=pil: pil.save(tmp, format="PNG"))
+            atomic_write(out / rel, functools.partial(pil.save, format="PNG"))
             views.append({"camera": v.camera, "image": rel, "cam_to_world": _list(v.cam_to_world)})
         fm: dict = {"index": f.index, "timestamp": f.timestamp, "views": views}
         if f.ego_to_world is not None:
@@ -82,7 +83,11 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
                 "instance": lf.instance.numpy().astype(np.int32),
                 "origin": lf.origin.float().numpy(),
             }
-            atomic_write(out / rel, lambda tmp, arrays=arrays: np.savez(tmp, **arrays))
+
+            def save_npz(tmp: Path, arrays: dict[str, np.ndarray] = arrays) -> None:
+                np.savez(tmp, **arrays)  # type: ignore[arg-type]  # stubs: **arrays might fill allow_pickle
+
+            atomic_write(out / rel, save_npz)
             fm["lidar"] = rel
         frames.append(fm)
     meta = {

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 from PIL import Image, ImageOps
@@ -142,7 +143,7 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
     return _decode(io.BytesIO(data), name, len(data))
 
 
-def _decode(source: object, name: object, nbytes: int) -> np.ndarray:
+def _decode(source: Path | IO[bytes], name: object, nbytes: int) -> np.ndarray:
     try:
         with Image.open(source) as im:
             im.load()

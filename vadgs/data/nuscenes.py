@@ -264,7 +264,7 @@ def load_nuscenes(
         sensor = _ref(t["sensor"], _key(cs, "sensor_token", what), "sensor", what)
         return str(_key(sensor, "channel", "sensor.json")), str(sensor.get("modality", ""))
 
-    wanted = {str(s["token"]): i for i, s in enumerate(samples)}
+    wanted: dict[str | None, int] = {str(s["token"]): i for i, s in enumerate(samples)}
     readings: dict[tuple[int, str], dict] = {}
     modality: dict[str, str] = {}
     for i, sd in enumerate(raw["sample_data"]):
@@ -372,7 +372,7 @@ def load_nuscenes(
     boxes: dict[int, dict[int, BoxObservation]] = {}
     id_of: dict[str, int] = {}
     names: dict[int, str] = {}
-    anns_by_sample: dict[str, list[dict]] = {}
+    anns_by_sample: dict[str | None, list[dict]] = {}
     for a in raw["sample_annotation"]:
         anns_by_sample.setdefault(a.get("sample_token"), []).append(a)
     for fi, s in enumerate(samples):

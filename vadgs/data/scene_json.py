@@ -239,7 +239,9 @@ def load_scene(
             }
             if files["image"] is None:
                 raise ValueError(f"scene.json: {vwhat}: missing key 'image'")
-            views.append(ViewInfo(len(views), index, cam, ts, c2w, **files))
+            views.append(
+                ViewInfo(len(views), index, cam, ts, c2w, files["image"], files["depth"], files["instances"])
+            )
             ids.append(len(views) - 1)
         lidar = files_of(_str(fm["lidar"], f"{what}.lidar"), f"{what}.lidar") if fm.get("lidar") else None
         frames.append(FrameInfo(index, ts, e2w, tuple(ids), lidar))

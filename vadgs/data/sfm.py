@@ -56,11 +56,14 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from PIL import Image
 
 from vadgs.data.images import read_image, upright_image
+
+if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
+    import pycolmap
 
 __all__ = [
     "CAMERA_MODES",
@@ -497,10 +500,10 @@ def _run_sfm_locked(
                 else:
                     listing = work / "pairs.txt"
                     listing.write_text("".join(f"{a} {b}\n" for a, b in pairs[i : i + step]))
-                    pairing = pycolmap.ImportedPairingOptions()
-                    pairing.match_list_path = str(listing)
+                    imported = pycolmap.ImportedPairingOptions()
+                    imported.match_list_path = str(listing)
                     pycolmap.match_image_pairs(
-                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+                        db, matching_options=matching, pairing_options=imported, device=pycolmap.Device.cpu
                     )
                 bar.update(len(pairs[i : i + step]))
         t2 = time.perf_counter()
@@ -541,9 +544,9 @@ def _run_sfm_locked(
         from vadgs.data.colmap import UNDISTORT_CACHE
 
         _remove(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
-        for entry in ("database.db", "sparse", "images"):
-            if (work / entry).exists():
-                os.replace(work / entry, out / entry)
+        for name in ("database.db", "sparse", "images"):
+            if (work / name).exists():
+                os.replace(work / name, out / name)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         if created and out.is_dir() and not any(out.iterdir()):
@@ -590,12 +593,15 @@ def _camera_of(db: Path, name: str) -> int:
 
     database = pycolmap.Database.open(str(db))
     try:
-        return int(database.read_image_with_name(name).camera_id)
+        image = database.read_image_with_name(name)
+        if image is None:
+            raise ValueError(f"{db}: expected photo {name!r} in the database, found none")
+        return int(image.camera_id)
     finally:
         database.close()
 
 
-def _check_sizes(rec: object, photos: Path, headers: dict[str, _PhotoHeader]) -> None:
+def _check_sizes(rec: pycolmap.Reconstruction, photos: Path, headers: dict[str, _PhotoHeader]) -> None:
     """Every registered camera has its photo's stored size (what vadgs reads), else a ValueError."""
     for im in rec.images.values():
         if not im.has_pose:

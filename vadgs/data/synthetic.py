@@ -28,7 +28,7 @@ import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from PIL import Image
@@ -113,8 +113,9 @@ class SegmentConfig:
 
     def image_size(self, camera: str) -> tuple[int, int]:
         """``(H, W)`` of a camera."""
-        side = RIG[camera][1] and self.side_height is not None
-        return (self.side_height if side else self.height), self.width
+        if RIG[camera][1] and self.side_height is not None:
+            return self.side_height, self.width
+        return self.height, self.width
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -646,7 +647,7 @@ def make_segment(
     workers: int = 1,
     progress: bool = True,
     overwrite: bool = False,
-    **fields: object,
+    **fields: Any,
 ) -> Path:
     """Write a procedural driving segment in the benchmark scene format; see the module docstring.
 

@@ -18,6 +18,7 @@ Example:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 from vadgs.data.checks import RIGID_TOLERANCE, ValidationReport, ValidationRow, check_scene
 from vadgs.data.scene import Scene
@@ -52,4 +53,4 @@ def validate_scene(
         except (ValueError, FileNotFoundError, OSError) as e:
             row = ValidationRow("scene.json", str(where), "error", str(e))
             return ValidationReport(str(path), (row,), full)
-    return check_scene(scene, full=full, tolerance=tolerance)
+    return check_scene(cast(Scene, scene), full=full, tolerance=tolerance)  # anything with views

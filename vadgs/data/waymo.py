@@ -430,7 +430,9 @@ def load_waymo(
             if (fi, cam_id[n]) not in image_pose:
                 raise ValueError(f"Waymo segment {segment}: frame {fi} (timestamp {ts} µs) has no {n} image")
             pose, pose_ts = image_pose[(fi, cam_id[n])]
-            c2w = recentred(pose, offset) @ cams[n].cam_to_ego.double().numpy()
+            c2e = cams[n].cam_to_ego
+            assert c2e is not None  # pinhole_camera above is given the calibration's extrinsic
+            c2w = recentred(pose, offset) @ c2e.double().numpy()
             views.append(ViewInfo(len(views), fi, n, pose_ts - t0, as_tensor(c2w, f"{n} at frame {fi}")))
             ids.append(len(views) - 1)
         frame_infos.append(

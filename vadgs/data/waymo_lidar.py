@@ -18,7 +18,10 @@ __all__ = ["waymo_beam_inclinations", "waymo_points_to_range_image", "waymo_rang
 
 
 def waymo_beam_inclinations(
-    height: int, inclination_min: float, inclination_max: float, values: Sequence[float] | None = None
+    height: int,
+    inclination_min: float,
+    inclination_max: float,
+    values: Sequence[float] | np.ndarray | None = None,
 ) -> np.ndarray:
     """The inclination (radians) of each range-image row, row 0 at the top.
 

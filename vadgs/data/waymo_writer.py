@@ -41,7 +41,7 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -262,13 +262,14 @@ def write_waymo_segment(
         )
     cam_ids = {name: _waymo_camera_id(name) for name in sc.camera_names}
     order = sorted(sc.camera_names, key=lambda c: cam_ids[c])
+    ego = []
     for f in sc.frames:
         if f.ego_to_world is None:
             raise ValueError(f"scene: frame {f.index} has no ego_to_world (Waymo's vehicle_pose needs one)")
+        ego.append(f.ego_to_world.double().numpy())
     ts_us = [start_us + round(f.timestamp * 1e6) for f in sc.frames]
     if len(set(ts_us)) != len(ts_us):
         raise ValueError("scene: frame timestamps are not distinct to the microsecond")
-    ego = [f.ego_to_world.double().numpy() for f in sc.frames]
     c2e = {}
     for c in order:
         info = sc.cameras_info[c]
@@ -283,9 +284,9 @@ def write_waymo_segment(
             c2e[c] = np.linalg.inv(ego[0]) @ sc.views[vid].cam_to_world.double().numpy()
     lidar = sc.lidar_loader is not None
     incl = _beam_inclinations(root, beam_inclinations) if lidar else np.zeros(0)
-    for p in paths.values():
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.unlink(missing_ok=True)  # a stale component of an earlier run (e.g. lidar) must not stay
+    for path in paths.values():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.unlink(missing_ok=True)  # a stale component of an earlier run (e.g. lidar) must not stay
 
     def finish(component: str, write) -> None:
         """Write a component to a temporary file, then move it into place (whole or not at all)."""
@@ -327,6 +328,7 @@ def write_waymo_segment(
     )
 
     # -- LiDAR calibration ---------------------------------------------------------------------------
+    width = 0  # the range images' columns (with lidar)
     if lidar:
         rows_incl = waymo_beam_inclinations(len(incl), float(incl[0]), float(incl[-1]), incl)
         first = sc.lidar(sc.frames[0].index)
@@ -335,6 +337,7 @@ def write_waymo_segment(
         if columns is None:
             local = (first.points.double().numpy() - ego[0][:3, 3]) @ ego[0][:3, :3] - extrinsic[:3, 3]
             columns = _scan_columns(local, incl)
+        width = columns
         small(
             "lidar_calibration",
             {
@@ -407,7 +410,7 @@ def write_waymo_segment(
             if lidar_writer is not None:
                 pts = sc.lidar(f.index).points.double().numpy()
                 vehicle = (pts - ego[p][:3, 3]) @ ego[p][:3, :3]
-                ranges = waymo_points_to_range_image(vehicle, extrinsic, rows_incl, columns)
+                ranges = waymo_points_to_range_image(vehicle, extrinsic, rows_incl, width)
                 img = _ranges_to_image(ranges)
                 n_points += len(pts)
                 n_returns += int((ranges > 0).sum())
@@ -436,7 +439,7 @@ def write_waymo_segment(
         tmp_lidar.replace(paths["lidar"])
 
     # -- tracks -> boxes ------------------------------------------------------------------------------
-    box = {k: [] for k in ("ts", "obj", "center", "size", "heading", "type")}
+    box: dict[str, list[Any]] = {k: [] for k in ("ts", "obj", "center", "size", "heading", "type")}
     names: set[str] = set()
     for tid, track in sc.tracks.items():
         inst = sc.instances.get(tid)
@@ -472,7 +475,7 @@ def write_waymo_segment(
             f"{_LB}.type": pa.array(box["type"], pa.int8()),
         },
     )
-    shape = (len(incl), columns) if lidar else (0, 0)
+    shape = (len(incl), width) if lidar else (0, 0)
     return WaymoSegmentSummary(
         out, segment, len(sc.frames), n_views, shape, n_points, n_returns, len(box["ts"])
     )

@@ -319,7 +319,7 @@ class _VoxelSums:
             self.label_pairs.append(torch.unique((p2v << 32) | labels.long(), return_counts=True))
 
     def grid(self, num_views: int | None, point_to_voxel: torch.Tensor) -> VoxelGrid:
-        assert self.keys is not None
+        assert self.keys is not None and self.base is not None  # set by add() (_pack)
         m, device = self.keys.shape[0], self.keys.device
         nv = self.max_view + 1
         num_views = nv if num_views is None else int(num_views)

@@ -52,7 +52,8 @@ class VoxelRaster(NamedTuple):
     """
 
     depth: torch.Tensor
-    index: torch.Tensor
+    # the field shadows tuple.index (the method); the public name stays
+    index: torch.Tensor  # type: ignore[assignment]
     visible: list[torch.Tensor]
 
 

@@ -573,7 +573,8 @@ def _pyramid(
 
 def _patchmatch_level(
     image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg, init_depth,
-    init_normal, mask, src_masks, start_iteration: int, iterations: int, alt_init=None,
+    init_normal, mask, src_masks, start_iteration: int, iterations: int,
+    alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None = None,
 ) -> PatchMatchResult:  # fmt: skip
     """PatchMatch at one resolution (inputs already checked)."""
     lo, hi = depth_range

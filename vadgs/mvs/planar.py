@@ -204,10 +204,10 @@ def complete_planar(
         return depth, zero_n, none
     pts = backproject_depth(depth[None], K[None])[0]  # (3, H, W) camera frame
     p = pts[:, good[0]].T
-    nrm = None
+    nrm, angle = None, 90.0  # the angle is unused without normals
     if normal is not None and cfg.max_normal_angle is not None:
         nrm = torch.nn.functional.normalize(normal[:, good[0]].T, dim=-1)
-    angle = cfg.max_normal_angle if nrm is not None else 90.0  # unused without normals
+        angle = cfg.max_normal_angle
     fit = fit_plane_ransac(p, cfg.rel_threshold * p[:, 2], cfg.iterations, generator, nrm, angle)
     if fit is None or float(fit.inliers.float().mean()) < cfg.min_inlier_ratio:
         return depth, zero_n, none

@@ -204,13 +204,13 @@ def _chunk_weights(s: _Setup, coef: torch.Tensor, t0: torch.Tensor, e: torch.Ten
     # transmittances below 1e-30 are past the stop rule, so both clamps change nothing.
     e.clamp_(min=_LOG_TINY, max=s.log_alpha_max if s.clamp else None)
     e.exp_()
-    F.threshold_(e, s.alpha_floor, 0.0)  # alpha; column 0 is exp(0) and gets overwritten
+    torch.threshold_(e, s.alpha_floor, 0.0)  # alpha; column 0 is exp(0) and gets overwritten
     if a is not None:
         a.copy_(e[..., 1:])
     e.neg_().log1p_()
     e[..., 0] = torch.log(t0)
     e.cumsum_(-1).clamp_min_(_LOG_TINY).exp_()
-    F.threshold_(e, _TINY, 0.0)
+    torch.threshold_(e, _TINY, 0.0)
     torch.sub(e[..., :-1], e[..., 1:], out=w)
 
 
@@ -377,7 +377,7 @@ def _backward_loop(
 
 class _CompositeFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, params, features, setup, absgrad):  # type: ignore[override]
+    def forward(ctx, params, features, setup, absgrad):
         table = torch.cat([params, features], dim=-1)
         out, t_final, median = _forward_loop(setup, table)
         ctx.setup = setup
@@ -387,7 +387,7 @@ class _CompositeFn(torch.autograd.Function):
         return out, t_final, median
 
     @staticmethod
-    def backward(ctx, g_out, g_t, _g_median):  # type: ignore[override]
+    def backward(ctx, g_out, g_t, _g_median):
         table, out, t_final = ctx.saved_tensors
         s = ctx.setup
         g_out = torch.zeros_like(out) if g_out is None else g_out.contiguous()

@@ -159,6 +159,7 @@ def rasterize_gaussians(
         composited = torch.cat([means2d, proj.means2d])
         opac = torch.cat([opac, torch.ones_like(opac)])
         conics, depths = conics.repeat(2, 1, 1), depths.repeat(2, 1)
+        assert proj.opaque_radii is not None  # projected with opaque=hard_depth
         radii = torch.cat([radii, proj.opaque_radii])
         features = features.repeat(2, 1, 1)
         absgrad = None if absgrad is None else absgrad.repeat(2, 1, 1)

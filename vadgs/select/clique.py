@@ -151,7 +151,7 @@ def max_weight_clique(
     graph.add_nodes_from(range(n))
     rows, cols = np.nonzero(np.triu(adj, 1))
     graph.add_edges_from(zip(rows.tolist(), cols.tolist()))
-    cliques = []
+    cliques: list[np.ndarray] = []
     for c in nx.find_cliques(graph):
         if len(cliques) == MAX_CLIQUES:
             raise ValueError(

@@ -332,7 +332,8 @@ class Covisibility:
     def shared_counts(self) -> torch.Tensor:
         """``(V, V)`` the number of voxels each pair of views both sees: ``B B^T``."""
         values = self.incidence.values()
-        return sparse_gram(self.incidence.indices(), values, values, tuple(self.incidence.shape))
+        shape = (self.incidence.shape[0], self.incidence.shape[1])
+        return sparse_gram(self.incidence.indices(), values, values, shape)
 
     def _zeros(self, dims: int) -> torch.Tensor:
         shape = (self.num_views,) * dims

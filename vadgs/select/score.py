@@ -77,7 +77,7 @@ def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]
         idx = inc.indices()
         centers = camera_centers(covis.world_to_cam)  # (V, 3)
         dist = (covis.voxel_centers[idx[1]] - centers[idx[0]].to(covis.voxel_centers.dtype)).norm(dim=-1)
-        shape = tuple(inc.shape)
+        shape = (inc.shape[0], inc.shape[1])
         shared = sparse_gram(idx, inc.values(), inc.values(), shape)
         dist_dot = sparse_gram(idx, dist, dist, shape)
     return shared, dist_dot

@@ -316,8 +316,8 @@ class ViewSelector:
         allowed: torch.Tensor | None = None,
     ) -> list[ViewSelection]:
         """Select for every view in ``refs`` (default: all views), in order."""
-        refs = range(covis.num_views) if refs is None else [int(r) for r in refs]
-        return [self(r, covis, allowed) for r in refs]
+        ids = range(covis.num_views) if refs is None else [int(r) for r in refs]
+        return [self(r, covis, allowed) for r in ids]
 
     def __repr__(self) -> str:
         return f"ViewSelector({self.config!r}, seed={self.seed})"

@@ -259,7 +259,7 @@ def scale_schedule(config: TrainConfig, reference: int = SCHEDULE_ITERATIONS) ->
     def scaled(n: int) -> int:
         return max(1, round(n * f)) if n else 0
 
-    changes = {k: scaled(getattr(config.strategy, k)) for k in SCHEDULE_FIELDS}
+    changes: dict[str, Any] = {k: scaled(getattr(config.strategy, k)) for k in SCHEDULE_FIELDS}
     # at least 10 steps of gradient statistics between refinements (or the configured count if fewer)
     changes["refine_every"] = max(changes["refine_every"], min(config.strategy.refine_every, 10))
     strategy = dataclasses.replace(config.strategy, **changes)

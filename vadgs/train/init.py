@@ -150,6 +150,7 @@ class VoxelAccumulator:
         keys = torch.floor(points / self.voxel_size).long()
         ones = torch.ones_like(points[:, 0])
         if self._keys is not None:  # the voxels so far first: their sums are added before the new points
+            assert self._sums is not None and self._count is not None  # set with _keys
             keys = torch.cat([self._keys, keys])
             both = torch.cat([self._sums, both])
             ones = torch.cat([self._count, ones])
@@ -167,6 +168,7 @@ class VoxelAccumulator:
             return both[:, :3], both[:, 3:]
         if self._keys is None:
             return torch.zeros(0, 3), torch.zeros(0, 3)
+        assert self._sums is not None and self._count is not None  # set with _keys
         cnt = self._count[:, None]
         return self._sums[:, :3] / cnt, self._sums[:, 3:] / cnt
 
@@ -222,7 +224,11 @@ def _point_colors(
     pi, vi = pi[first], vi[first]
     for v in vi.unique().tolist():
         sel = pi[vi == v]
-        img = cache.get(v, lambda v=v: scene.load_images([v])[0])
+
+        def load(view: int = v) -> torch.Tensor:
+            return scene.load_images([view])[0]
+
+        img = cache.get(v, load)
         cams = scene.cameras([v])
         uv, _ = project_points(world_points[sel][None], cams.K, cams.world_to_cam)
         h, w = img.shape[-2:]

@@ -242,6 +242,14 @@ def peak_rss_mb() -> float:
     return rss / 1024.0 if sys.platform.startswith("linux") else rss / 2**20  # kB on Linux, bytes on macOS
 
 
+def _add_note(e: BaseException, note: str) -> None:
+    """``e.add_note(note)``; on Python 3.10 (no add_note) the same ``__notes__`` list, which the CLI reads."""
+    if sys.version_info >= (3, 11):
+        e.add_note(note)
+    else:
+        e.__notes__ = [*getattr(e, "__notes__", ()), note]  # type: ignore[attr-defined]  # 3.11+ in the stubs
+
+
 def checkpoint_due(trainer: LoopTrainer, started: float) -> bool:
     """Every ``checkpoint_every`` steps, every ``checkpoint_minutes``, and after the first cycle.
 
@@ -282,7 +290,7 @@ def save_after_failure(
                 trainer.save_checkpoint()
                 saved = True
             except OSError as se:
-                e.add_note(f"(saving the checkpoint failed too: {se})")
+                _add_note(e, f"(saving the checkpoint failed too: {se})")
         else:
             saved = True
     if saved:
@@ -291,6 +299,6 @@ def save_after_failure(
         note = f"last good checkpoint: step {trainer.checkpoint_step} in {path}"
     else:
         note = f"no checkpoint was written before step {trainer.step}"
-        e.add_note(note)
+        _add_note(e, note)
         return
-    e.add_note(f"{note}; continue with: vadgs train --out {trainer.out_dir} --resume")
+    _add_note(e, f"{note}; continue with: vadgs train --out {trainer.out_dir} --resume")

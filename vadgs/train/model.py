@@ -173,6 +173,10 @@ class GaussianModel(nn.Module):
         (10, (10, 3, 3))
     """
 
+    # buffers (registered in __init__), declared for the type checker
+    object_to_world: torch.Tensor
+    track_valid: torch.Tensor
+
     def __init__(
         self,
         means: torch.Tensor,

@@ -123,6 +123,7 @@ class Objective:
         terms = {"color": L.color_loss(color, self.image(view), cfg.ssim_weight)}
         if self.appearance is not None:
             app = cfg.appearance
+            assert app is not None  # the appearance model is made from it
             camera = view_camera(self.scene, view)
             cam, frame = self.appearance.penalty(camera, self.scene.view_frame_position(view))
             terms["appearance"] = app.reg * cam + app.frame_reg * frame

@@ -192,7 +192,7 @@ def _check_is_run(path: Path) -> None:
     """Refuse a scene, a COLMAP project or a folder of photos given where a run goes, saying what it is."""
     if not path.is_dir() or (path / CHECKPOINT_NAME).is_file():
         return
-    what = {"benchmark": "a benchmark scene", "colmap": "a COLMAP project"}.get(folder_kind(path))
+    what = {"benchmark": "a benchmark scene", "colmap": "a COLMAP project"}.get(folder_kind(path) or "")
     if what is not None:
         raise FileNotFoundError(
             f"RUN {path}: is {what}, not a run (no {CHECKPOINT_NAME}): train it first, "
@@ -355,6 +355,7 @@ def _start(
         raise ValueError(held_run_message(out, held, "resume=True", "overwrite=True"))
     if overwrite:
         check_removable(out)  # a refused overwrite changes nothing
+    assert scene is not None  # train_scene refuses a new run without a scene
     opened, stored = prepare_scene(scene, out, say)
     if callable(init_points):
         init_points = init_points(opened)

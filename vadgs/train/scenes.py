@@ -13,7 +13,7 @@ import hashlib
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, BinaryIO, ClassVar
 
 import torch
 
@@ -367,6 +367,14 @@ FINGERPRINT_METHOD = 2
 _SAMPLE = 4096  # bytes read at each of a file's start, middle and end (method 2)
 
 
+def _sha256(fh: BinaryIO) -> bytes:
+    """The SHA-256 of a binary file's bytes from its position on (``hashlib.file_digest``: Python 3.11+)."""
+    h = hashlib.sha256()
+    for block in iter(lambda: fh.read(1 << 20), b""):
+        h.update(block)
+    return h.digest()
+
+
 def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRINT_METHOD) -> str:
     """A content fingerprint of a scene, wherever it lies: 16 hex digits of a SHA-256.
 
@@ -395,7 +403,7 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRI
     for f in _metadata_files(ref):
         h.update(f"\n{f.name}\n".encode())
         with f.open("rb") as fh:
-            h.update(hashlib.file_digest(fh, "sha256").digest())
+            h.update(_sha256(fh))
 
     def add(p: Path | None, whole: bool = False) -> None:
         if p is None:
@@ -406,7 +414,7 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRI
         if method >= 2 and size > 0:
             with p.open("rb") as fh:
                 if whole or size <= 3 * _SAMPLE:
-                    h.update(hashlib.file_digest(fh, "sha256").digest())
+                    h.update(_sha256(fh))
                     return
                 for at in (0, size // 2 - _SAMPLE // 2, size - _SAMPLE):
                     fh.seek(at)
@@ -416,8 +424,8 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRI
     for v in scene.views:
         for p in (v.image, v.depth, v.instances):
             add(p, whole=v.index in test)
-    for f in scene.frames:
-        add(f.lidar)
+    for frame in scene.frames:
+        add(frame.lidar)
     return h.hexdigest()[:16]
 
 
@@ -497,6 +505,8 @@ def locate_scene(
             from vadgs.data.colmap import _find_images_dir
 
             model = find_colmap_model(given)
+            if model is None:  # found as a COLMAP project just above: gone since
+                raise FileNotFoundError(f"{flag} {given}: expected a COLMAP model in it, found none")
             located["source"] = str(model)
             if not Path(located["path"]).is_relative_to(run_dir):  # not an undistorted copy in the run
                 located["path"] = str(model)

@@ -28,7 +28,7 @@ from vadgs.io import atomic_write
 try:
     import fcntl
 except ImportError:  # not POSIX: run folders are not locked
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]  # the module's stand-in where it is missing
 
 __all__ = ["LOCK_NAME", "RunInUseError", "RunLock", "RunLog", "reclaim_signals", "stop_on_signals"]
 
@@ -144,7 +144,7 @@ class RunLock:
                 break
             os.close(fd)
         self._fd = fd
-        old = {}
+        old: Any = {}  # the lock file's JSON: any value (a dict when well formed)
         with contextlib.suppress(OSError, ValueError):
             old = json.loads(os.pread(fd, 1 << 16, 0) or b"null") or {}
         if isinstance(old, dict) and old.get("pid") is not None:

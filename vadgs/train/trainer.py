@@ -28,9 +28,9 @@ import math
 import random
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -252,7 +252,8 @@ class Trainer:
                 warnings.warn(msg, UserWarning, stacklevel=3)
 
     def _strategy_priors(self, view: int) -> GeometryTargets | None:
-        return self.strategy.geometry_targets(self.state, view)
+        # bound in __init__ only when the strategy is GeometryPriors
+        return cast(GeometryPriors, self.strategy).geometry_targets(self.state, view)
 
     def strategy_context(self) -> StrategyContext:
         """What a strategy may know of this loop: render a view, step counts, the generator, nodes."""
@@ -309,6 +310,7 @@ class Trainer:
             if ckpt.appearance is None:
                 raise ValueError(f"checkpoint {path}: config.appearance is set but no appearance is stored")
             trainer.appearance.load_state_dict(ckpt.appearance["model"])
+            assert trainer.appearance_optimizer is not None  # made with the appearance model
             trainer.appearance_optimizer.load_state_dict(ckpt.appearance["optimizer"])
         trainer.state = unpack_state(ckpt.strategy_state)
         trainer.sampler.load_state_dict(ckpt.sampler)
@@ -322,6 +324,7 @@ class Trainer:
         """The run's state now, as a :class:`~vadgs.train.checkpoint.Checkpoint`."""
         appearance = None
         if self.appearance is not None:
+            assert self.appearance_optimizer is not None  # made with the appearance model
             appearance = {
                 "model": self.appearance.state_dict(),
                 "optimizer": self.appearance_optimizer.state_dict(),
@@ -471,9 +474,17 @@ class Trainer:
             "frame": self.scene.view_frame_position(view),
             "generator": self.generator,
         }
-        params = self.model.params
+        # a ParameterDict is a mutable mapping of str to tensors; its stubs do not say so
+        params = cast(MutableMapping[str, torch.Tensor], self.model.params)
         self.strategy.step_pre_backward(params, self.optimizer, self.state, step, info)
-        render_hard = (lambda _v, _s: out.raster.hard_depth) if fused else self.render_hard_depth
+        render_hard: Callable[[int, int], torch.Tensor] = self.render_hard_depth
+        if fused:
+            hard = out.raster.hard_depth
+            assert hard is not None  # rendered with hard_depth=True
+
+            def render_hard(_v: int, _s: int) -> torch.Tensor:
+                return hard
+
         terms = self.objective(step, view, out, render_hard)
         total = torch.stack([t.reshape(()) for t in terms.values()]).sum()
         if checks_enabled() and not bool(torch.isfinite(total)):

@@ -155,7 +155,7 @@ class _ImageStats:
             self.n_dyn += float(dyn.sum())
         return p, s
 
-    def summary(self) -> dict[str, float | None]:
+    def summary(self) -> dict[str, Any]:  # floats; psnr_star None without moving-object pixels
         return {
             "psnr": round(sum(self.psnrs) / len(self.psnrs), 4),
             "psnr_pooled": round(_psnr(self.se_all / self.n_all), 4),

@@ -243,7 +243,7 @@ def export_world(
     sky_json = atomic_write(out_dir / "sky.json", json.dumps(sky_meta, indent=1))
     cameras_json = cfg_args = None
     if inria:
-        cams = []
+        cams: list[dict[str, Any]] = []
         rig = list(scene.frames[fpos].view_ids)
         others = [vid for f in scene.frames for vid in f.view_ids if vid not in rig]
         for vid in rig + others:

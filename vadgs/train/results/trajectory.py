@@ -45,12 +45,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import torch
 
-from vadgs.data.scene import Scene
+from vadgs.data.scene import FrameInfo, Scene
 from vadgs.geometry.camera import invert_rigid, level_up
 from vadgs.geometry.camera_path import keyframe_path, orbit_path, spline_path
 
@@ -162,8 +162,9 @@ def ego_trajectory(
     shift = torch.eye(4)
     shift[:3, 3] = torch.as_tensor([float(c) for c in shift_ego_m])
     c2e = scene.cameras_info[camera].cam_to_ego
-    if c2e is not None and all(f.ego_to_world is not None for f in scene.frames):
-        keys = torch.stack([f.ego_to_world @ shift @ c2e for f in scene.frames])
+    ego_to_world = [f.ego_to_world for f in scene.frames if f.ego_to_world is not None]
+    if c2e is not None and len(ego_to_world) == len(scene.frames):
+        keys = torch.stack([e2w @ shift @ c2e for e2w in ego_to_world])
     else:
         if bool(shift[:3, 3].any()):
             raise ValueError(
@@ -181,7 +182,7 @@ def ego_trajectory(
     return Trajectory(path.cam_to_world, path.t, camera)
 
 
-def _has_view(scene: Scene, frame: object, camera: str) -> bool:
+def _has_view(scene: Scene, frame: FrameInfo, camera: str) -> bool:
     return any(scene.views[v].camera == camera for v in frame.view_ids)
 
 
@@ -337,10 +338,10 @@ def make_trajectory(
         between = "" if frames_between is None else f", frames_between {frames_between}"
         raise ValueError(f"max_frames: expected at most {max_frames} frames, got {count} ({shown}{between})")
     if kind == "ego":
-        return ego_trajectory(scene, camera, arg, frames_between or 0)
+        return ego_trajectory(scene, camera, cast(Sequence[float], arg), frames_between or 0)
     if kind == "interpolate":
-        return interpolated_trajectory(scene, camera, arg)
-    return orbit_trajectory(scene, camera, arg)
+        return interpolated_trajectory(scene, camera, cast(int, arg))
+    return orbit_trajectory(scene, camera, cast(int, arg))
 
 
 def scene_up(scene: Scene, views: Sequence[int] | None = None) -> torch.Tensor:

@@ -292,11 +292,14 @@ def write_video(
 
 
 class VideoInfo(NamedTuple):
-    """What :func:`render_video` wrote: ``path``, ``num_frames`` and the frame ``size`` ``(H, W)``."""
+    """What :func:`render_video` wrote: ``path``, ``num_frames`` and the frame ``size`` ``(H, W)``.
+
+    ``size`` is None when no frame was written (a trajectory without poses).
+    """
 
     path: Path
     num_frames: int
-    size: tuple[int, int]
+    size: tuple[int, int] | None
 
 
 @torch.no_grad()

@@ -100,7 +100,7 @@ class DefaultStrategy:
             "last_refine": {},
         }
 
-    def check_sanity(self, params: Mapping[str, torch.Tensor] | Any, optimizers: Any) -> None:
+    def check_sanity(self, params: MutableMapping[str, torch.Tensor] | Any, optimizers: Any) -> None:
         """Check ``params`` and ``optimizers`` before training (gsplat's ``check_sanity``).
 
         :func:`~vadgs.train.strategy.ops.check_params`: every per-Gaussian entry has the Gaussians
@@ -230,8 +230,8 @@ class DefaultStrategy:
         p = getattr(params, "params", params)
         n = p[names.means].shape[0]
         if state["grad2d"] is None:  # no statistics yet
-            state["grad2d"] = torch.zeros(n, device=p[names.means].device)
-            state["count"] = torch.zeros_like(state["grad2d"])
+            grad2d = torch.zeros(n, device=p[names.means].device)
+            state["grad2d"], state["count"] = grad2d, torch.zeros_like(grad2d)
         scale = state["scene_scale"]
         avg = state["grad2d"] / state["count"].clamp(min=1)
         cand = avg > cfg.grow_grad2d

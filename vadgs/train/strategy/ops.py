@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Mapping, MutableMapping
-from typing import Any, NamedTuple, Union
+from typing import Any, NamedTuple, Union, cast
 
 import torch
 from torch import nn
@@ -82,7 +82,7 @@ GSPLAT_NAMES = ParamNames("means", "quats", "scales", "opacities", "sh0", "shN")
 def _params(params: Any) -> Params:
     """``params`` itself, or a model's ``params`` with a deprecation warning (see the module docstring)."""
     if isinstance(params, (Mapping, nn.ParameterDict)):
-        return params
+        return cast(Params, params)  # a read-only mapping fails at the first write, as before
     inner = getattr(params, "params", None)
     if isinstance(inner, (Mapping, nn.ParameterDict)):
         warnings.warn(
@@ -90,7 +90,7 @@ def _params(params: Any) -> Params:
             DeprecationWarning,
             stacklevel=3,
         )
-        return inner
+        return cast(Params, inner)
     raise TypeError(
         "params: expected a params mapping (a dict or ParameterDict of per-Gaussian tensors, e.g. "
         f"model.params), got {type(params).__name__}"
