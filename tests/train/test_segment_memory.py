@@ -49,11 +49,12 @@ def test_peak_is_the_runs_own_not_its_parents():
     ``ru_maxrss`` would report the parent's size at the fork (1.7 GB for a 0.9 GB run)."""
     parent = r"""
 import subprocess, sys, numpy as np
-ballast = np.ones(400 * 2**20 // 8)  # 400 MiB resident in the parent
+ballast = np.ones(1200 * 2**20 // 8)  # 1200 MiB resident in the parent
 child = ("from vadgs.train.loop import peak_rss_mb; import resource; "
          "print(peak_rss_mb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)")
 print(subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, check=True).stdout)
 """
     out = subprocess.run([sys.executable, "-c", parent], capture_output=True, text=True, check=True).stdout
     own, inherited = map(float, out.split())
-    assert inherited > 400 and own < 300, (own, inherited)  # MiB
+    # the child imports torch and vadgs: 300-400 MiB of its own
+    assert inherited > 1200 and own < 800, (own, inherited)  # MiB
