@@ -17,6 +17,7 @@ pytest.importorskip("embreex")  # make_segment's ray caster
 
 from scipy.spatial import cKDTree  # noqa: E402
 
+from tests.data.test_waymo import _rigid  # noqa: E402  (pyarrow is required by both)
 from vadgs.data import SegmentConfig, load_scene, load_waymo, make_segment  # noqa: E402
 from vadgs.data.waymo import waymo_beam_inclinations, waymo_range_image_to_points  # noqa: E402
 from vadgs.data.waymo_lidar import waymo_points_to_range_image  # noqa: E402
@@ -26,14 +27,6 @@ SEG = "synthetic_0001"
 # five cameras (the side ones shorter, as Waymo's) and the generated segment's 150k-point scan
 CONFIG = SegmentConfig(frames=4, cameras=5, width=64, height=48, side_height=32, lidar_points=150_000)
 REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "waymo_one_frame"
-
-
-def _rigid(yaw: float, t) -> np.ndarray:
-    out = np.eye(4)
-    c, s = math.cos(yaw), math.sin(yaw)
-    out[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    out[:3, 3] = t
-    return out
 
 
 @pytest.fixture(scope="module")
