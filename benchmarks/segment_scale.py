@@ -41,7 +41,6 @@ import importlib
 import json
 import math
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -56,7 +55,7 @@ _TIMED = [
     ("vadgs.train.trainer", "init_gaussians", "init"),
     ("vadgs.train.vad.strategy", "build_visibility_index", "index"),
     ("vadgs.train.vad.visibility", "rasterize_voxels", "zbuffer"),
-    ("vadgs.train.vad.event", "find_incomplete", "incomplete"),
+    ("vadgs.train.vad.detect", "find_incomplete", "incomplete"),
     ("vadgs.train.vad.event", "reconstruct_instance", "instance"),
 ]
 STAGES = ["load", "init", "index", "zbuffer", "incomplete", "step", "instance", "eval_view"]
@@ -155,17 +154,15 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
         "eval_views": len(views),
         "train_peak_gb": train_peak,
         "event_peak_gb": event_peak,
-        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "peak_rss_gb": max(train_peak, event_peak, _hwm_gb()),
         "load_average": os.getloadavg()[0],
     }
 
 
 def _hwm_gb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM"):
-                return int(line.split()[1]) / 2**20
-    raise RuntimeError("no VmHWM in /proc/self/status")
+    from vadgs.train.loop import peak_rss_mb
+
+    return peak_rss_mb() / 1024
 
 
 def _reset_hwm() -> None:
