@@ -615,7 +615,7 @@ def segment_memory(chk: Check, budget: float) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "segment"
         t = time.perf_counter()
-        make_segment(out, **seg)
+        make_segment(out, workers=min(16, os.cpu_count() or 1) if chk.cuda else 1, progress=False, **seg)
         res["generate_s"] = time.perf_counter() - t
         res["segment_mib"] = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 2**20
         scale = s["seg_scale"] or working_scale(max(seg["width"], seg["height"]))
@@ -668,7 +668,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--tiny", action="store_true", help="with --cpu: the smallest sizes (the test)")
     ap.add_argument("--budget", type=float, default=450.0, help="overall seconds (each section capped)")
     ap.add_argument("--only", nargs="+", choices=SECTIONS, help="run these sections only")
+    ap.add_argument("--seg-frames", type=int, help="segment_memory: its frames")
+    ap.add_argument("--section-budget", nargs="+", default=[], metavar="NAME=S", help="seconds per section")
     args = ap.parse_args(argv)
+    for item in args.section_budget:
+        name, _, seconds = item.partition("=")
+        if name not in BUDGET_S:
+            ap.error(f"--section-budget: expected NAME=S with NAME one of {SECTIONS}, got {item!r}")
+        BUDGET_S[name] = float(seconds)
     if args.cpu:
         device, mode = "cpu", "tiny" if args.tiny else "cpu"
     elif torch.cuda.is_available():
@@ -677,6 +684,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print("[gpu_check] no CUDA device: running the CPU mode (--cpu)", flush=True)
         device, mode = "cpu", "cpu"
     chk = Check(args.out, device, mode, args.budget)
+    if args.seg_frames:
+        chk.sizes["seg"] = {**chk.sizes["seg"], "frames": args.seg_frames}
     todo = args.only or SECTIONS
     for name in SECTIONS:
         if name not in todo:

@@ -5,11 +5,13 @@
 # $OUT/gpu_check.log.
 #
 #   bash benchmarks/gpu_check.sh "$OUT"          # docs/benchmarks.md, "The GPU check"
+#   bash benchmarks/gpu_check.sh "$OUT" --only environment segment_memory   # a rerun of some sections
 #
 # GPU_CHECK_TIMEOUT (default 450 s) bounds the python run (its own budget is 20 s less), so that
 # with the install and nvidia-smi the whole stays under the device call's 480 s.
 set -uo pipefail
 OUT=${1:-${OUT:-/tmp/gpu_check}}
+shift || true  # the rest goes to gpu_check.py (--only SECTION ...)
 mkdir -p "$OUT"
 cd "$(dirname "$0")/.."
 exec > >(tee "$OUT/gpu_check.log") 2>&1
@@ -47,7 +49,7 @@ import vadgs
 print("vadgs", vadgs.__file__)
 EOF
 
-timeout -k 10 "$TIMEOUT" python3 benchmarks/gpu_check.py --out "$OUT/gpu_check.json" --budget $(( TIMEOUT - 20 ))
+timeout -k 10 "$TIMEOUT" python3 benchmarks/gpu_check.py --out "$OUT/gpu_check.json" --budget $(( TIMEOUT - 20 )) "$@"
 rc=$?
 echo "[gpu_check.sh] gpu_check.py exited $rc (124: the overall timeout) after $(( $(date +%s) - t0 )) s"
 python3 - "$OUT/gpu_check.json" <<'EOF'

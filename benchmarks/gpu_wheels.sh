@@ -7,7 +7,7 @@
 # Versions: those of the development venv (pip show). The device has torch, numpy, scipy,
 # scikit-image, networkx, pillow, matplotlib, tqdm, ... but not these. Left out: pycolmap (large;
 # imported lazily, only by COLMAP input/export: vadgs, vadgs.train, the renderer, the strategy and
-# the check import without it), embreex / rtree (benchmarks only). .whl/ is git-ignored (.gitignore;
+# the check import without it; its tests skip), rtree (benchmarks only). .whl/ is git-ignored (.gitignore;
 # else .git/info/exclude gets it), so it travels only as a carried path.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,6 +15,7 @@ WHEELS=(
     # vadgs's own dependencies
     kornia==0.9.0 kornia_rs==0.2.0 plyfile==1.1.5 trimesh==5.2.0
     tyro==1.0.17 docstring_parser==0.18.0 typeguard==4.6.1
+    embreex==4.4.0.post1  # make_segment's ray caster (segment_memory)
     # gsplat (its CUDA code compiles on first use: ninja) and what it imports
     gsplat==1.5.3 ninja==1.13.2 jaxtyping==0.3.11 wadler_lindig==0.1.8
     rich==14.3.4 markdown-it-py==4.3.0 mdurl==0.1.2 Pygments==2.21.0

@@ -70,7 +70,7 @@ def test_cpu_mode_writes_every_section(tmp_path, stand_in_segment):
     assert ops["zbuffer"]["replay_median_ms"] > 0 and ops["patchmatch"]["replay_median_ms"] > 0
     assert sections["train_step"]["backends"]["torch"]["step_ms_median"] > 0
     seg = sections["segment_memory"]
-    assert stand_in_segment == [gc.SIZES["tiny"]["seg"]]
+    assert stand_in_segment == [{**gc.SIZES["tiny"]["seg"], "workers": 1, "progress": False}]
     assert seg["steps"] == gc.SIZES["tiny"]["seg_steps"] and seg["peak_host_rss_gib"] > 0
     assert "peak_gpu_gib" not in seg and seg["event_s"] > 0
 

@@ -193,5 +193,10 @@ class TestGsplatBackendCuda:
             err = (getattr(ref, name) - getattr(out, name)).abs().max().item()
             assert err <= (1e-3 if name == "depth" else 1e-4), (name, err)
         both = out.visible & ref.visible
-        torch.testing.assert_close(out.means2d.grad[both], ref.means2d.grad[both], rtol=1e-3, atol=1e-4)
+        # Both sum float32 terms of up to ~90 px^-1 in different orders (gsplat: atomicAdd per
+        # tile): on an H100 (2026-11-27) 7 of 860 entries differed by up to 5.8e-4 = 6.5e-6 of the
+        # largest entry (a fixed atol of 1e-4 failed there); a wrong footprint or weight moves them
+        # by a fraction of their own size.
+        g2d = ref.means2d.grad[both]
+        torch.testing.assert_close(out.means2d.grad[both], g2d, rtol=1e-3, atol=3e-5 * g2d.abs().max().item())
         torch.testing.assert_close(g_out, g_ref, rtol=1e-3, atol=1e-3 * g_ref.abs().max().item())

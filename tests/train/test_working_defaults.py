@@ -7,7 +7,6 @@ import io
 import json
 import warnings
 
-import pycolmap
 import pytest
 import torch
 
@@ -19,6 +18,8 @@ from vadgs.train.config import TrainConfig, refine_steps, scale_schedule
 from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig, pack_state, unpack_state
 from vadgs.train.vad.reconstruct import ReconstructConfig
+
+pycolmap = pytest.importorskip("pycolmap")  # optional: vadgs imports it lazily (COLMAP export)
 
 FAST_MVS = ReconstructConfig(max_crop=40)  # small crops: an event in seconds
 
