@@ -1,4 +1,4 @@
-"""VisibilityAwareDensification as gsplat strategies are: a dataclass of its settings, fed by
+"""VisibilityAwareDensification as gsplat strategies are: a dataclass holding its settings, fed by
 :class:`VisibilityInputs` (a vadgs scene or gsplat's ``Parser``), with ``check_sanity``, an explicit
 ``prepare``, and gsplat's ``DefaultStrategy`` (packed or not) and ``MCMCStrategy`` as its base."""
 
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from vadgs.data import load_colmap
-from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig, ops
+from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, DefaultStrategyConfig, ops
 from vadgs.train.vad import (
     StrategyContext,
     ViewRender,
@@ -43,9 +43,59 @@ class TestDataclass:
         params = inspect.signature(VisibilityAwareDensification).parameters
         assert "scene" not in params and "context" not in params
         assert not any("Scene" in str(p.annotation) for p in params.values())
-        settings = {f.name for f in dataclasses.fields(VisibilityDensifyConfig)}
-        assert settings | {"base", "on_addition", "on_progress", "log_size"} == set(params)
+        assert list(params) == ["config", "base", "on_addition", "on_progress", "log_size", "settings"]
+        assert params["settings"].kind is inspect.Parameter.VAR_KEYWORD
 
+
+SHAPES = [
+    (DefaultStrategy, DefaultStrategyConfig, "refine_every", 50, 0),
+    (VisibilityAwareDensification, VisibilityDensifyConfig, "every_cycles", 3, 0),
+]
+
+
+@pytest.mark.parametrize(("cls", "config_cls", "name", "good", "bad"), SHAPES, ids=["default", "vad"])
+class TestOneShape:
+    """Both strategies hold a frozen config; settings as keywords and as checked attributes."""
+
+    def test_keywords_config_and_attributes(self, cls, config_cls, name, good, bad):
+        assert issubclass(cls, ConfiguredStrategy) and cls.config_type is config_cls
+        assert dataclasses.is_dataclass(cls) and config_cls.__dataclass_params__.frozen
+        s = cls(**{name: good})
+        assert s.config == config_cls(**{name: good}) and getattr(s, name) == good
+        assert cls(config_cls(**{name: good})).config == s.config
+        for f in dataclasses.fields(config_cls):  # every setting reads through
+            assert getattr(s, f.name) == getattr(s.config, f.name), f.name
+        # a keyword replaces that field of a given config, the others stay
+        other = next(f.name for f in dataclasses.fields(config_cls) if f.name != name)
+        base = config_cls(**{name: good})
+        assert cls(base, **{other: getattr(base, other)}).config == base
+
+    def test_assignment_is_checked_and_replaces_the_config(self, cls, config_cls, name, good, bad):
+        s = cls()
+        before = s.config
+        setattr(s, name, good)
+        assert getattr(s.config, name) == good and before == config_cls()  # a new config, not edited
+        with pytest.raises(ValueError, match=f"{name}: expected an integer >= 1, got {bad}"):
+            setattr(s, name, bad)
+        assert getattr(s, name) == good  # unchanged by the failed assignment
+        with pytest.raises(ValueError, match=f"config: expected a {config_cls.__name__}, got dict"):
+            s.config = {}
+        with pytest.raises(ValueError, match=f"config: expected a {config_cls.__name__}, got int"):
+            cls(3)
+
+    def test_unknown_setting_and_attribute(self, cls, config_cls, name, good, bad):
+        with pytest.raises(TypeError, match=r"unexpected keyword argument\(s\) \['refine_evry'\]"):
+            cls(refine_evry=1)
+        with pytest.raises(AttributeError, match="has no attribute 'no_such_setting'"):
+            _ = cls().no_such_setting
+
+    def test_copies(self, cls, config_cls, name, good, bad):
+        s = cls(**{name: good})
+        for t in (copy.copy(s), copy.deepcopy(s)):
+            assert t.config == s.config and getattr(t, name) == good
+
+
+class TestSettings:
     def test_init_does_not_rewrite_its_settings(self):
         s = VisibilityAwareDensification(view_selection=False)
         assert s.reconstruct == ReconstructConfig()  # as given

@@ -30,6 +30,13 @@ Both step methods take further keyword arguments, as a loop written for gsplat p
 ``state`` consistent. A strategy never sees the training loop: what else it needs is given to it
 explicitly (e.g. :class:`~vadgs.train.vad.StrategyContext` for the visibility-aware one).
 
+vadgs's strategies share one shape, :class:`ConfiguredStrategy`: the settings are a frozen,
+validated config dataclass held in ``strategy.config`` (``DefaultStrategyConfig``,
+``VisibilityDensifyConfig``: what ``TrainConfig`` and the CLI hold), given as ``config=`` or as
+keyword settings (``DefaultStrategy(refine_every=50)``, as gsplat's strategies are called), and
+readable and assignable as attributes (``strategy.refine_every = 0`` is checked as the config's
+field is, then replaces the config).
+
 ``info`` is either vadgs's (``raster``: the :class:`~vadgs.render.RenderOutput`, ``ids``: the model
 rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with its gradient,
 ``radii``, ``width``, ``height``, ``n_cameras``; :func:`gsplat.rasterization`'s ``meta``).
@@ -37,14 +44,15 @@ rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with i
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import MutableMapping
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import torch
 
 from vadgs.train.losses import GeometryTargets
 
-__all__ = ["GeometryPriors", "Strategy"]
+__all__ = ["ConfiguredStrategy", "GeometryPriors", "Strategy"]
 
 
 @runtime_checkable
@@ -100,3 +108,69 @@ class GeometryPriors(Protocol):
     def geometry_targets(self, state: dict[str, Any], view: int) -> GeometryTargets | None:
         """The priors of a view (None: no geometric loss for it)."""
         ...
+
+
+@dataclasses.dataclass(init=False, eq=False)
+class ConfiguredStrategy:
+    """The shape of vadgs's strategies: settings in a frozen, validated config (``config``).
+
+    A subclass names its config class in ``config_type`` and calls :meth:`_take_config` in its
+    ``__init__`` with ``config`` and the keyword settings it was given. Each setting is then an
+    attribute too: reading ``strategy.NAME`` reads ``strategy.config.NAME``; assigning it builds
+    a new config with ``dataclasses.replace`` (so the config's own checks run, e.g. ``every_cycles =
+    0`` raises ``ValueError``) and stores that. Assigning ``config`` checks its type.
+
+    Example:
+        >>> from vadgs.train.strategy import DefaultStrategy, DefaultStrategyConfig
+        >>> s = DefaultStrategy(refine_every=50)
+        >>> s.refine_every, s.config == DefaultStrategyConfig(refine_every=50)
+        (50, True)
+        >>> s.refine_every = 0
+        Traceback (most recent call last):
+        ...
+        ValueError: refine_every: expected an integer >= 1, got 0
+    """
+
+    config_type: ClassVar[type[Any]]
+    config: Any
+
+    def _take_config(self, config: Any, settings: dict[str, Any]) -> None:
+        """Set ``config`` (default: the config type's defaults) with ``settings`` replaced in it.
+
+        Raises:
+            ValueError: ``config`` is not a ``config_type``, or a setting fails the config's check.
+            TypeError: a setting that is not a field of the config (as an unknown keyword would).
+        """
+        cls = type(self).config_type
+        config = cls() if config is None else config
+        if settings:
+            unknown = sorted(set(settings) - _field_names(cls))
+            if unknown:
+                raise TypeError(
+                    f"{type(self).__name__}: unexpected keyword argument(s) {unknown}: expected the "
+                    f"fields of {cls.__name__} ({', '.join(sorted(_field_names(cls)))})"
+                )
+            if not isinstance(config, cls):
+                raise ValueError(f"config: expected a {cls.__name__}, got {type(config).__name__}")
+            config = dataclasses.replace(config, **settings)
+        self.config = config
+
+    def __getattr__(self, name: str) -> Any:
+        # only for names not found otherwise: a setting reads the config's field
+        config = self.__dict__.get("config")
+        if config is not None and name in _field_names(type(config)):
+            return getattr(config, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        cls = type(self).config_type
+        if name == "config":
+            if not isinstance(value, cls):
+                raise ValueError(f"config: expected a {cls.__name__}, got {type(value).__name__}")
+        elif name in _field_names(cls):
+            name, value = "config", dataclasses.replace(self.config, **{name: value})
+        object.__setattr__(self, name, value)
+
+
+def _field_names(cls: type) -> frozenset[str]:
+    return frozenset(f.name for f in dataclasses.fields(cls))

@@ -7,12 +7,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, MutableMapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
-from vadgs.checks import float_field
+from vadgs.checks import FieldCheck, bool_field, check_fields, float_field, int_field
 from vadgs.train.strategy import ops
+from vadgs.train.strategy.base import ConfiguredStrategy
 
 __all__ = ["DefaultStrategy", "DefaultStrategyConfig"]
 
@@ -55,15 +56,29 @@ class DefaultStrategyConfig:
     pause_refine_after_reset: int = 0
 
     def __post_init__(self) -> None:
-        if self.refine_every < 1:
-            raise ValueError(f"refine_every: expected >= 1, got {self.refine_every}")
-        if self.max_gaussians < 1:
-            raise ValueError(f"max_gaussians: expected >= 1, got {self.max_gaussians}")
-        if self.pause_refine_after_reset < 0:
-            raise ValueError(f"pause_refine_after_reset: expected >= 0, got {self.pause_refine_after_reset}")
+        check_fields(self, _FIELDS)
 
 
-class DefaultStrategy:
+_FIELDS: dict[str, FieldCheck] = {
+    "prune_opa": float_field(0, 1, hi_open=True),
+    "grow_grad2d": float_field(0),
+    "grow_scale3d": float_field(0),
+    "prune_scale3d": float_field(0, lo_open=True),
+    "refine_start_iter": int_field(0),
+    "refine_stop_iter": int_field(0),
+    "refine_every": int_field(1),
+    "reset_every": int_field(0),
+    "reset_value": float_field(0, 1),
+    "absgrad": bool_field(),
+    "max_gaussians": int_field(1),
+    "split_factor": float_field(0, lo_open=True),
+    "pause_refine_after_reset": int_field(0),
+}
+"""The check of each :class:`DefaultStrategyConfig` field (:func:`vadgs.checks.check_fields`)."""
+
+
+@dataclass(init=False, eq=False)
+class DefaultStrategy(ConfiguredStrategy):
     """Standard ADC: clone/split by view-space gradient, prune by opacity and size, opacity reset.
 
     The state holds ``grad2d (N,)`` (summed gradient norms), ``count (N,)`` (times visible),
@@ -78,12 +93,20 @@ class DefaultStrategy:
     happen), (3) vadgs caps growth at ``max_gaussians`` and (4) has no 2D-scale rules nor
     ``revised_opacity``.
 
+    Its settings are a :class:`DefaultStrategyConfig` in ``config``, given whole or as keywords
+    (``DefaultStrategy(refine_every=50)``, as gsplat's is called) and readable / assignable as
+    attributes, each checked (:class:`~vadgs.train.strategy.base.ConfiguredStrategy`).
+
     Args:
-        config: :class:`DefaultStrategyConfig`.
+        config: :class:`DefaultStrategyConfig` (default: its defaults).
+        **settings: fields of :class:`DefaultStrategyConfig` replaced in ``config``.
     """
 
-    def __init__(self, config: DefaultStrategyConfig | None = None) -> None:
-        self.config = config or DefaultStrategyConfig()
+    config_type: ClassVar[type[Any]] = DefaultStrategyConfig
+    config: DefaultStrategyConfig
+
+    def __init__(self, config: DefaultStrategyConfig | None = None, **settings: Any) -> None:
+        self._take_config(config, settings)
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """Statistics allocated at the first update; the scene scale for the size thresholds.

@@ -97,7 +97,7 @@ def _params(params: Any) -> Params:
     )
 
 
-def param_names(params: Params) -> ParamNames:
+def param_names(params: Params | Mapping[str, torch.Tensor]) -> ParamNames:
     """The layout of a params mapping: :data:`VADGS_NAMES` or :data:`GSPLAT_NAMES`.
 
     Recognised by the geometry names (means, quats, scales, opacities); the SH names are None when
@@ -141,7 +141,7 @@ def _group(optimizers: Optimizers, name: str) -> tuple[torch.optim.Optimizer, di
     return None
 
 
-def check_params(params: Params, optimizers: Optimizers) -> None:
+def check_params(params: Params | Mapping[str, torch.Tensor], optimizers: Optimizers) -> None:
     """Check that ``params`` and ``optimizers`` agree (a strategy's ``check_sanity``).
 
     Every per-Gaussian entry must have the Gaussians as first dimension; the geometry must be

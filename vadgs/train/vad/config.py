@@ -1,17 +1,16 @@
 """Settings of the VAD-GS strategy and the context it is given by the training loop.
 
 :class:`VisibilityDensifyConfig` holds the settings of
-:class:`~vadgs.train.vad.VisibilityAwareDensification` (its fields are copied onto the strategy by
-:func:`_with_settings_of`, written once here); :class:`StrategyContext` is what the strategy needs
-of the loop (a render function, step counts, a generator). Both are importable from
+:class:`~vadgs.train.vad.VisibilityAwareDensification` (the strategy holds one in ``config``, its
+fields readable and assignable as the strategy's attributes); :class:`StrategyContext` is what
+the strategy needs of the loop (a render function, step counts, a generator). Both are importable from
 :mod:`vadgs.train.vad`.
 """
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 import torch
@@ -174,8 +173,8 @@ _FIELDS: dict[str, FieldCheck] = {
     "last_event_fraction": float_field(0, 1),
 }
 """The check of each :class:`VisibilityDensifyConfig` field (:func:`vadgs.checks.check_fields`), run
-by its ``__post_init__`` and by :class:`~vadgs.train.vad.VisibilityAwareDensification` on a setting
-assigned after construction."""
+by its ``__post_init__``, hence also on a setting assigned to the strategy after construction
+(which replaces the strategy's config)."""
 
 
 @dataclass(frozen=True)
@@ -213,20 +212,3 @@ class StrategyContext:
                 f"render: expected a function view -> ViewRender, got {type(self.render).__name__}"
             )
         check_fields(self, {"total_steps": int_field(0), "steps_per_cycle": int_field(1)})
-
-
-def _with_settings_of(config_cls: type) -> Callable[[type], type]:
-    """Give a class the fields of the dataclass ``config_cls`` (same names, types, defaults) first.
-
-    The strategy's settings are :class:`VisibilityDensifyConfig`'s, written once there: a mutable
-    dataclass cannot inherit them from a frozen one, so they are copied in before ``@dataclass``.
-    """
-
-    def add(cls: type) -> type:
-        own = dict(inspect.get_annotations(cls))
-        cls.__annotations__ = {f.name: f.type for f in fields(config_cls)} | own
-        for f in fields(config_cls):
-            setattr(cls, f.name, field(default=f.default, default_factory=f.default_factory))
-        return cls
-
-    return add

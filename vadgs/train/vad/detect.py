@@ -33,7 +33,8 @@ class EventRenders:
     """Renders of one event: the loop's own renders kept in the state, else rendered once."""
 
     def __init__(self, render: Callable[[int], ViewRender], kept: Mapping[int, tuple] | None = None) -> None:
-        self.render, self.kept, self.cache = render, kept or {}, {}
+        self.render, self.kept = render, kept or {}
+        self.cache: dict[int, ViewRender] = {}
         self.rendered = 0
 
     def __call__(self, view: int) -> ViewRender:

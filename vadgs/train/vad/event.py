@@ -12,7 +12,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, MutableMapping
-from typing import Any, NamedTuple
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -74,7 +75,8 @@ def _failed(instances: list[Mapping[str, Any]]) -> str:
     return f"{len(failed)} added nothing ({why}{more}), "
 
 
-class EventInputs(NamedTuple):
+@dataclass(frozen=True)
+class EventInputs:
     """What one event (:func:`run_event`) reads: built by the strategy's ``densify`` for each event.
 
     Attributes:
@@ -168,11 +170,13 @@ def run_event(
             flagged.setdefault(inst, []).append((views[int(rows.view[k])], int(rows.pixels[k])))
     flagged_ids = set(rows.instance[rows.flagged].tolist())
     for inst in flagged_ids - set(flagged):
-        why = skip_reason(inst)
-        skipped[why] = skipped.get(why, 0) + 1
+        why = skip_reason(inst)  # not None: why it is not in flagged
+        if why is not None:
+            skipped[why] = skipped.get(why, 0) + 1
     best = {i: max(c, key=lambda vp: vp[1])[1] for i, c in flagged.items()}
     ranked = rank_instances(best, classes, cfg.ranking)
-    added, log = 0, []
+    added = 0
+    log: list[dict[str, Any]] = []
     t_mvs = 0.0
     work_budget = math.inf
     if cfg.work_budget is not None:

@@ -104,7 +104,7 @@ def flat_gaussians(
         names.log_scales: torch.log(torch.stack([width, width, width * flatness], -1)),
         names.opacity_logits: torch.log(opacity / (1 - opacity)),
     }
-    if names.sh_dc is not None:
+    if names.sh_dc is not None and names.sh_rest is not None:
         new[names.sh_dc] = ((col[:, :3] - 0.5) / _C0)[:, None, :]
         new[names.sh_rest] = torch.zeros(m, *p[names.sh_rest].shape[1:], device=dev, dtype=dt)
     if "provenance" in p:

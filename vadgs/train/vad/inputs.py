@@ -291,7 +291,9 @@ class VisibilityInputs:
         c2w = torch.as_tensor(np.asarray(parser.camtoworlds), dtype=torch.float32)
         if tuple(c2w.shape) != (n, 4, 4):
             raise ValueError(f"parser.camtoworlds: expected ({n}, 4, 4), got {tuple(c2w.shape)}")
-        hw = [tuple(int(x) for x in parser.imsize_dict[c])[::-1] for c in cam_ids]  # (W, H) -> (H, W)
+        hw = [
+            (int(parser.imsize_dict[c][1]), int(parser.imsize_dict[c][0])) for c in cam_ids
+        ]  # (W, H) -> (H, W)
         big = (max(h for h, _ in hw), max(w for _, w in hw))
         sizes = None if len(set(hw)) == 1 else tuple(hw)
         cameras = Cameras(K, invert_rigid(c2w), big)
@@ -367,7 +369,8 @@ def _undistortion(parser: Any, camera_id: int) -> tuple[Any, Any, tuple[int, int
             f"parser camera {camera_id}: expected mapx_dict / mapy_dict / roi_undist_dict for its distortion "
             f"params {list(params)}, got none (undistort the images, or use gsplat's Parser)"
         ) from None
-    return maps[0], maps[1], tuple(int(v) for v in maps[2])
+    x, y, w, h = (int(v) for v in maps[2])
+    return maps[0], maps[1], (x, y, w, h)
 
 
 def sfm_observations(

@@ -68,7 +68,11 @@ def ground_cells(
         raise ValueError(f"cell_size: expected > 0, got {cell_size}")
     if len(points) == 0:
         return torch.zeros(0, dtype=torch.long, device=points.device)
-    local = points_in_frame(points, *(frame if frame is not None else ground_frame(points, cam_to_world)))
+    if frame is None:
+        if cam_to_world is None:
+            raise ValueError("cam_to_world: expected the cameras (N, 4, 4) when no frame is given, got None")
+        frame = ground_frame(points, cam_to_world)
+    local = points_in_frame(points, *frame)
     ij = torch.floor(local[:, :2] / cell_size + 0.5).long()  # the origin in a cell's centre
     _, cell, count = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
     centre = ij.double().norm(dim=1)  # a cell's distance from the origin, in cells
@@ -148,9 +152,9 @@ def derive_instance_map(index: Any, view: int) -> torch.Tensor:
         if bool((z < box_near).any()):  # a box across the image plane: skip rather than mis-project
             continue
         boxes.append((float(z.mean()), tid, uv[0].numpy()))
-    for _, tid, uv in sorted(boxes, reverse=True):  # far first: near boxes paint over them
+    for _, tid, uv_np in sorted(boxes, reverse=True):  # far first: near boxes paint over them
         try:
-            hull = uv[ConvexHull(uv).vertices]
+            hull = uv_np[ConvexHull(uv_np).vertices]
         except QhullError:
             continue
         rr, cc = polygon(hull[:, 1], hull[:, 0], shape=index.size(view))

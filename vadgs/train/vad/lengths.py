@@ -28,7 +28,7 @@ REFERENCE_DEPTH = 10.0
 #: bound, the smallest voxel depth and depth span of an instance (``reconstruct``), and the nearest
 #: depth a track's box is painted at. (The view selection's ``ε``, ``ReconstructConfig.selection.eps``,
 #: is scaled the same way: it is always read at :data:`REFERENCE_DEPTH`.)
-LENGTHS = {
+LENGTHS: dict[str, float | tuple[float, float]] = {
     "voxel_size": 0.2,
     "cell_size": 10.0,
     "zbuffer_near": 0.1,

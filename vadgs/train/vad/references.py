@@ -60,7 +60,7 @@ def pick_references(
         [0, 1]
     """
     if isinstance(scene, VisibilityInputs):
-        cam, frame = scene.view_cameras, scene.view_frames
+        cam, frame = list(scene.view_cameras), list(scene.view_frames)
     else:
         cam, frame = [v.camera for v in scene.views], [v.frame for v in scene.views]
 

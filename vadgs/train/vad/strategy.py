@@ -1,9 +1,11 @@
 r"""VAD-GS: the visibility-aware densification strategy (paper, Sec. "Methodology").
 
-:class:`VisibilityAwareDensification` is a gsplat-style strategy — a dataclass of its settings
-with ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` / ``step_post_backward`` on
-``params``, ``optimizers``, ``state``, ``step``, ``info`` — that wraps a standard one (adaptive
-density control: vadgs's or gsplat's ``DefaultStrategy``, gsplat's ``MCMCStrategy``) and never sees
+:class:`VisibilityAwareDensification` is a gsplat-style strategy — a dataclass holding its settings
+(a frozen :class:`VisibilityDensifyConfig`, its fields readable and checked-assignable as
+attributes) with ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` /
+``step_post_backward`` on ``params``, ``optimizers``, ``state``, ``step``, ``info`` — that wraps
+a standard one (adaptive density control: vadgs's or gsplat's ``DefaultStrategy``, gsplat's
+``MCMCStrategy``) and never sees
 the training loop nor a vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it the
 data as a :class:`~vadgs.train.vad.inputs.VisibilityInputs` (``from_scene`` / ``from_gsplat_parser``)
 and, in a frozen :class:`StrategyContext`, the three things of the loop it needs — a function
@@ -45,16 +47,15 @@ from __future__ import annotations
 import inspect
 import time
 from collections.abc import Callable, Mapping, MutableMapping
-from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar
 
 import torch
 
 from vadgs.checks import check_size, float_field, int_field
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.strategy import DefaultStrategy, ops
-from vadgs.train.vad.config import _FIELDS as _CONFIG_FIELDS
-from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig, _with_settings_of
+from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, ops
+from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig
 from vadgs.train.vad.detect import detect, detect_view, keep_render, view_map
 from vadgs.train.vad.event import EventInputs, run_event
 from vadgs.train.vad.gaussians import add_reconstruction
@@ -72,9 +73,7 @@ __all__ = ["VisibilityAwareDensification", "check_info", "info_requirements"]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
 
-_SETTINGS = {**_CONFIG_FIELDS, "log_size": int_field(1)}
-"""The check of each setting of the strategy (:meth:`VisibilityAwareDensification.__setattr__`)."""
-
+_LOG_SIZE = int_field(1)
 _SCENE_SCALE = float_field(0, lo_open=True)
 
 _GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
@@ -198,19 +197,19 @@ def _check_info_values(info: Mapping[str, Any], num_views: int | None) -> None:
         raise ValueError(f"{a}, {b}: expected maps of one size (H, W), got {ha} and {hb}")
 
 
-@dataclass(eq=False)
-@_with_settings_of(VisibilityDensifyConfig)
-class VisibilityAwareDensification:
+@dataclass(init=False, eq=False)
+class VisibilityAwareDensification(ConfiguredStrategy):
     """The VAD-GS densification strategy (gsplat ``Strategy`` interface). See the module docstring.
 
-    A dataclass whose fields are its settings, as gsplat's ``DefaultStrategy`` /
-    ``MCMCStrategy``: the fields, defaults and checks of :class:`VisibilityDensifyConfig` (copied
-    from it, written once), then ``base``, ``on_addition`` and ``log_size``; :meth:`from_config`
-    builds one from a :class:`VisibilityDensifyConfig` (vadgs's trainer and ``vadgs train
-    --vad.KEY VALUE``). It holds no
-    dataset: :meth:`prepare` gives it a :class:`~vadgs.train.vad.inputs.VisibilityInputs` (per-view
-    cameras, loaders, LiDAR or TRACK observations, tracks) and the loop's
-    :class:`StrategyContext`, and builds the visibility index once. Use::
+    Its settings are a :class:`VisibilityDensifyConfig` in ``config``, given whole or as keywords
+    (``VisibilityAwareDensification(every_cycles=5)``, as gsplat's strategies are called) and
+    readable / assignable as attributes, each checked as the config's field is
+    (:class:`~vadgs.train.strategy.base.ConfiguredStrategy`, the shape of vadgs's
+    :class:`~vadgs.train.strategy.DefaultStrategy` too); :meth:`from_config` is the same with
+    the config first. It holds no dataset: :meth:`prepare` gives it a
+    :class:`~vadgs.train.vad.inputs.VisibilityInputs` (per-view cameras, loaders, LiDAR or TRACK
+    observations, tracks) and the loop's :class:`StrategyContext`, and builds the visibility
+    index once. Use::
 
         strategy = VisibilityAwareDensification(base=DefaultStrategy(), every_cycles=5)
         strategy.check_sanity(params, optimizers)
@@ -218,7 +217,8 @@ class VisibilityAwareDensification:
         state = strategy.initialize_state(scene_scale)
         # each step: step_pre_backward(...); loss.backward(); step_post_backward(..., packed=...)
 
-    Attributes:
+    Args:
+        config: :class:`VisibilityDensifyConfig` (default: the paper's settings).
         base: the strategy it extends, whose clone/split/prune keeps running (default
             :class:`~vadgs.train.strategy.DefaultStrategy`; gsplat's ``DefaultStrategy`` (packed or
             not) and ``MCMCStrategy`` work too: extra keyword arguments of ``step_pre_backward`` /
@@ -232,7 +232,7 @@ class VisibilityAwareDensification:
             trainer does), so that a long event does not look like a frozen run.
         log_size: at most this many events are kept in ``state["pending_log"]`` for the loop to
             pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
-        the others: see :class:`VisibilityDensifyConfig`.
+        **settings: fields of :class:`VisibilityDensifyConfig` replaced in ``config``.
 
     The incompleteness test of a view reuses the loop's own render when ``info`` carries it
     (``info["view"]`` and ``info["raster"]`` with ``depth`` / ``alpha``, as vadgs's trainer passes,
@@ -240,36 +240,49 @@ class VisibilityAwareDensification:
     again for detection. The others are rendered at the event (kept for that event only).
 
     Example:
-        >>> import dataclasses, inspect
-        >>> dataclasses.is_dataclass(VisibilityAwareDensification)
-        True
-        >>> list(inspect.signature(VisibilityAwareDensification).parameters)[:3]
-        ['view_selection', 'geometric_losses', 'every_cycles']
+        >>> s = VisibilityAwareDensification(every_cycles=2)
+        >>> s.every_cycles, s.config == VisibilityDensifyConfig(every_cycles=2)
+        (2, True)
+        >>> s.every_cycles = 0
+        Traceback (most recent call last):
+        ...
+        ValueError: every_cycles: expected an integer >= 1, got 0
     """
 
-    base: Any = field(default_factory=DefaultStrategy)
-    on_addition: Callable[[dict[str, Any]], None] | None = field(default=None, repr=False)
-    on_progress: Callable[[str], None] | None = field(default=None, repr=False)
-    log_size: int = _MAX_PENDING
-    inputs: VisibilityInputs | None = field(default=None, init=False, repr=False)
-    context: StrategyContext | None = field(default=None, init=False, repr=False)
-    index: VisibilityIndex | None = field(default=None, init=False, repr=False)
+    config_type: ClassVar[type[Any]] = VisibilityDensifyConfig
+    config: VisibilityDensifyConfig
+    base: Any
+    on_addition: Callable[[dict[str, Any]], None] | None = field(repr=False)
+    on_progress: Callable[[str], None] | None = field(repr=False)
+    log_size: int
+    inputs: VisibilityInputs | None = field(repr=False)
+    context: StrategyContext | None = field(repr=False)
+    index: VisibilityIndex | None = field(repr=False)
 
-    def __post_init__(self) -> None:
+    def __init__(
+        self,
+        config: VisibilityDensifyConfig | None = None,
+        base: Any = None,
+        on_addition: Callable[[dict[str, Any]], None] | None = None,
+        on_progress: Callable[[str], None] | None = None,
+        log_size: int = _MAX_PENDING,
+        **settings: Any,
+    ) -> None:
+        self._take_config(config, settings)
+        self.base = base if base is not None else DefaultStrategy()
+        self.on_addition, self.on_progress, self.log_size = on_addition, on_progress, log_size
+        self.inputs: VisibilityInputs | None = None
+        self.context: StrategyContext | None = None
+        self.index: VisibilityIndex | None = None
         self._last_call: float | None = None
+        self._info_checked = self._post_info_checked = False
+        self._train_views: set[int] | None = None
+        self._mean_pixels: float | None = None
 
     def __setattr__(self, name: str, value: Any) -> None:
-        """Set an attribute; a setting is checked first (its check in :data:`_SETTINGS`).
-
-        Each setting is checked once, when it is set (by ``__init__`` or later), with the check of
-        :class:`VisibilityDensifyConfig`'s own field: ``strategy.every_cycles = 0`` raises as
-        ``VisibilityDensifyConfig(every_cycles=0)`` does.
-        """
-        check = _SETTINGS.get(name)
-        if check is not None:
-            value = check(name, value)
-            self.__dict__.pop("_config", None)  # the cached config of the settings
-        object.__setattr__(self, name, value)
+        if name == "log_size":
+            value = _LOG_SIZE(name, value)
+        super().__setattr__(name, value)
 
     @classmethod
     def from_config(
@@ -288,9 +301,7 @@ class VisibilityAwareDensification:
             >>> s.every_cycles, s.config == VisibilityDensifyConfig(every_cycles=2)
             (2, True)
         """
-        config = config or VisibilityDensifyConfig()
-        kw = {f.name: getattr(config, f.name) for f in fields(config)}
-        out = cls(**kw, base=base if base is not None else DefaultStrategy(), on_addition=on_addition)
+        out = cls(config, base=base, on_addition=on_addition)
         if inputs is not None or index is not None or context is not None:
             out.prepare(inputs, context, index)
         return out
@@ -321,28 +332,12 @@ class VisibilityAwareDensification:
         inputs = VisibilityInputs.from_scene(scene) if index is None else None
         return cls.from_config(config, base, inputs, context, index, on_addition)
 
-    @property
-    def config(self) -> VisibilityDensifyConfig:
-        """The settings as a :class:`VisibilityDensifyConfig` (assignable: sets every field)."""
-        config = self.__dict__.get("_config")
-        if config is None:  # built again only after a setting changed
-            config = VisibilityDensifyConfig(
-                **{f.name: getattr(self, f.name) for f in fields(VisibilityDensifyConfig)}
-            )
-            self.__dict__["_config"] = config
-        return config
-
-    @config.setter
-    def config(self, value: VisibilityDensifyConfig) -> None:
-        for f in fields(VisibilityDensifyConfig):
-            setattr(self, f.name, getattr(value, f.name))
-
     def _reconstruct_config(self) -> ReconstructConfig:
         """``reconstruct``, with consecutive-frame selection when ``view_selection`` is off."""
-        if self.view_selection:
-            return self.reconstruct
-        sel = replace(self.reconstruct.selection, method="consecutive")
-        return replace(self.reconstruct, selection=sel)
+        if self.config.view_selection:
+            return self.config.reconstruct
+        sel = replace(self.config.reconstruct.selection, method="consecutive")
+        return replace(self.config.reconstruct, selection=sel)
 
     # -- Strategy interface ----------------------------------------------------------------------------
 
@@ -398,7 +393,7 @@ class VisibilityAwareDensification:
         Raises:
             ValueError: a key the base reads is missing from ``info`` (see :func:`check_info`).
         """
-        if not getattr(self, "_info_checked", False):
+        if not self._info_checked:
             check_info(self.base, info)
             self._info_checked = True
         self.base.step_pre_backward(params, optimizers, state, step, info, **kwargs)
@@ -428,14 +423,14 @@ class VisibilityAwareDensification:
         if self._last_call is not None:
             state["vad_train_s"] = state.get("vad_train_s", 0.0) + (now - self._last_call)
         self._last_call = now
-        if not getattr(self, "_post_info_checked", False):  # with packed= now known
+        if not self._post_info_checked:  # with packed= now known
             check_info(self.base, info, bool(kwargs.get("packed", False)))
             self._post_info_checked = True
         has_inputs = self.inputs is not None or self.index is not None
         _check_info_values(info, self._inputs().num_views if has_inputs else None)
         self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
         context = self._context()
-        if step < self.last_event_fraction * context.total_steps:
+        if step < self.config.last_event_fraction * context.total_steps:
             self._observe(state, info)
         elif state.get("vad_renders") or state.get("vad_tests"):
             # no event can follow (each is at a later step): their tests and renders are never used
@@ -443,8 +438,8 @@ class VisibilityAwareDensification:
         cycle = (step + 1) // context.steps_per_cycle
         if cycle != state["vad_cycle"]:
             state["vad_cycle"] = cycle
-            late = step >= self.last_event_fraction * context.total_steps
-            if cycle > 0 and cycle % self.every_cycles == 0 and not late:
+            late = step >= self.config.last_event_fraction * context.total_steps
+            if cycle > 0 and cycle % self.config.every_cycles == 0 and not late:
                 self.densify(params, optimizers, state, step)
                 self._last_call = time.perf_counter()  # the event's time is not training time
 
@@ -464,14 +459,14 @@ class VisibilityAwareDensification:
         if tuple(depth.shape[-2:]) != tuple(self._inputs().size(view)):
             return  # a crop or another scale of the view (gsplat's patch_size): not the view's render
         state.setdefault("vad_tests", {})[view] = detect_view(
-            self.prepare(), view, depth, alpha, self.incomplete
+            self.prepare(), view, depth, alpha, self.config.incomplete
         )
         normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else view_map(normals)
         keep_render(
             state.setdefault("vad_renders", {}),
             view,
             ViewRender(depth, alpha, normals),
-            int(self.render_cache_mb * 2**20),
+            int(self.config.render_cache_mb * 2**20),
         )
 
     def trained_pixels(self, step: int) -> float:
@@ -480,14 +475,14 @@ class VisibilityAwareDensification:
         The scale of the event's ``work_budget`` (a function of the step, hence the same on any
         machine and on resume).
         """
-        if getattr(self, "_mean_pixels", None) is None:
+        if self._mean_pixels is None:
             inputs = self._inputs()
             sizes = [inputs.size(v) for v in inputs.train_views]
             self._mean_pixels = sum(h * w for h, w in sizes) / max(len(sizes), 1)
         return (step + 1) * self._mean_pixels
 
     def _train_set(self) -> set[int]:
-        if getattr(self, "_train_views", None) is None:
+        if self._train_views is None:
             self._train_views = set(self._inputs().train_views)
         return self._train_views
 
@@ -510,7 +505,7 @@ class VisibilityAwareDensification:
         inputs: VisibilityInputs | None = None,
         context: StrategyContext | None = None,
         index: VisibilityIndex | None = None,
-    ) -> VisibilityIndex | None:
+    ) -> VisibilityIndex:
         """Give the strategy its data and the loop's context, and build the visibility index once.
 
         Call it before the first step (vadgs's trainer does, at construction). Later calls without
@@ -548,7 +543,10 @@ class VisibilityAwareDensification:
 
     def _build_index(self) -> VisibilityIndex:
         return build_visibility_index(
-            self._inputs(), self.voxel_size, cell_size=self.cell_size, scene_depth=self.scene_depth
+            self._inputs(),
+            self.config.voxel_size,
+            cell_size=self.config.cell_size,
+            scene_depth=self.config.scene_depth,
         )
 
     def visibility_index(self) -> VisibilityIndex:
@@ -593,7 +591,7 @@ class VisibilityAwareDensification:
             views if views is not None else list(self._inputs().train_views),
             renders or self._context().render,
             tests or {},
-            self.incomplete,
+            self.config.incomplete,
         )
 
     def densify(
@@ -617,7 +615,7 @@ class VisibilityAwareDensification:
             config=self.config,
             reconstruct=self._reconstruct_config(),
             add=self._add,
-            trained_pixels=None if self.work_budget is None else self.trained_pixels(step),
+            trained_pixels=None if self.config.work_budget is None else self.trained_pixels(step),
             on_progress=self.on_progress,
             on_addition=self.on_addition,
             log_size=self.log_size,

@@ -151,8 +151,9 @@ class VisibilityIndex:
         """
 
         def make() -> torch.Tensor:
-            if self.inputs.has_instances(view):
-                return self.pad(self.inputs.load_instances(view))
+            load = self.inputs.load_instances
+            if load is not None and self.inputs.has_instances(view):
+                return self.pad(load(view))
             return derive_instance_map(self, view)
 
         return self.view_cache.get(("instances", view), make)
@@ -404,9 +405,10 @@ def build_visibility_index(
         scene_depth=depth,
         static_to_world=static_to_world,
     )
+    track_lidar = lidar if lidar is not None else (lambda _tid, _views: ())
     for tid in inputs.tracks if lidar is not None else ():
         count, low = 0, None
-        for a in lidar(tid, False):
+        for a in track_lidar(tid, False):
             if a.points.shape[0]:
                 count += a.points.shape[0]
                 m = a.points.min(0).values
@@ -415,7 +417,7 @@ def build_visibility_index(
             continue
 
         def track_chunks(tid: int = tid) -> Iterator[PointChunk]:
-            return (PointChunk(a.points, a.point_views) for a in lidar(tid, True))
+            return (PointChunk(a.points, a.point_views) for a in track_lidar(tid, True))
 
         corner = torch.floor(low / voxel_size) * voxel_size
         tgrid = voxelize_chunks(track_chunks, voxel_size, inputs.num_views, corner).grid
