@@ -396,12 +396,3 @@ class TestGsplatBases:
         event = self._check(splats, optimizers, state, n0)
         assert splats["means"].shape[0] == n0 + event["added"]
         assert state["binoms"].shape == (51, 51)
-
-
-def test_former_constructor_is_deprecated(project):
-    scene, _ = load_colmap(project / "sparse" / "0", scale=0.25, test_every=8)
-    ctx = StrategyContext(lambda v: None, total_steps=10, steps_per_cycle=5)
-    with pytest.warns(DeprecationWarning, match="from_config"):
-        s = VisibilityAwareDensification.from_scene(scene, ctx, VisibilityDensifyConfig(every_cycles=2))
-    assert s.every_cycles == 2 and s.context is ctx and s.index is not None
-    assert s.inputs.train_views == tuple(scene.train_views)

@@ -5,6 +5,7 @@
   gives it (:class:`StrategyContext`);
 - :mod:`~vadgs.train.vad.event`: one event's flow (:func:`~vadgs.train.vad.event.run_event`, given an
   :class:`~vadgs.train.vad.event.EventInputs` by the strategy's ``densify``), its log and summary;
+- :mod:`~vadgs.train.vad.info`: what a loop's ``info`` must carry for the base strategy, checked;
 - :mod:`~vadgs.train.vad.state`: the strategy's state in checkpoints (packed losslessly);
 - :mod:`~vadgs.train.vad.inputs`: the data it sees (:class:`VisibilityInputs`, from a vadgs scene or
   gsplat's COLMAP parser);
@@ -29,12 +30,13 @@ from vadgs.train.vad.config import RANKINGS, StrategyContext, VisibilityDensifyC
 from vadgs.train.vad.event import EventInputs, run_event
 from vadgs.train.vad.gaussians import flat_gaussians, normals_to_quats
 from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
+from vadgs.train.vad.info import check_info, info_requirements
 from vadgs.train.vad.inputs import TrackTable, VisibilityInputs
 from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender, reconstruct_instance
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.references import pick_references, rank_instances
 from vadgs.train.vad.state import pack_state, unpack_state
-from vadgs.train.vad.strategy import VisibilityAwareDensification, check_info, info_requirements
+from vadgs.train.vad.strategy import VisibilityAwareDensification
 from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = [

@@ -10,10 +10,12 @@ by :class:`EventRenders`.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from typing import Any
 
 import torch
 
 from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
+from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.reconstruct import (
     ViewRender,
     VisibilityIndex,
@@ -25,6 +27,7 @@ __all__ = [
     "detect",
     "detect_view",
     "keep_render",
+    "observe_view",
     "view_map",
 ]
 
@@ -115,3 +118,38 @@ def detect(
         *(torch.cat([getattr(p, f).to(dev) for p in parts]) for f in IncompleteInstances._fields)
     )
     return rows, views
+
+
+def observe_view(
+    state: dict[str, Any],
+    info: Mapping[str, Any],
+    index: VisibilityIndex,
+    inputs: VisibilityInputs,
+    incomplete: IncompleteConfig,
+    max_bytes: int,
+) -> None:
+    """Test the view a loop just trained from its own render in ``info``, and keep that render.
+
+    ``info["view"]`` and ``info["raster"]`` with ``depth`` / ``alpha`` (/ ``normals``), as vadgs's
+    trainer passes, or ``info["depth"]`` / ``info["alpha"]``: the view's test
+    (:func:`detect_view`) goes to ``state["vad_tests"]`` and its render to
+    ``state["vad_renders"]`` (:func:`keep_render`, up to ``max_bytes``), so that the next event
+    does not render it again. Nothing is done without a render, or for a render of another size
+    than the view's (a crop or another scale, e.g. gsplat's ``patch_size``).
+    """
+    view = info.get("view")
+    if view is None:
+        return
+    raster = info.get("raster")
+    src = raster if raster is not None else info
+    get = (lambda k: getattr(src, k, None)) if raster is not None else src.get
+    depth, alpha, normals = get("depth"), get("alpha"), get("normals")
+    if depth is None or alpha is None:
+        return
+    view = int(view)
+    depth, alpha = view_map(depth), view_map(alpha)
+    if tuple(depth.shape[-2:]) != tuple(inputs.size(view)):
+        return
+    state.setdefault("vad_tests", {})[view] = detect_view(index, view, depth, alpha, incomplete)
+    normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else view_map(normals)
+    keep_render(state.setdefault("vad_renders", {}), view, ViewRender(depth, alpha, normals), max_bytes)

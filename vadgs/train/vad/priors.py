@@ -1,7 +1,8 @@
 """The geometric priors of the losses: MVS depth and normals of the reconstructed views (Sec. 3.4).
 
 :func:`merge_priors` keeps each event's MVS depth and normals in the strategy's state
-(``state["vad_priors"]``); the strategy's ``geometry_targets`` reads them back as the targets of
+(``state["vad_priors"]``); :func:`view_targets` (the strategy's ``geometry_targets``) reads them
+back, with the voxel depth where no MVS depth exists, as the targets of
 :func:`vadgs.train.losses.geometric_losses`.
 """
 
@@ -9,12 +10,15 @@ from __future__ import annotations
 
 import torch
 
+from vadgs.train.losses import GeometryTargets
 from vadgs.train.vad.reconstruct import (
     InstanceReconstruction,
 )
+from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
     "merge_priors",
+    "view_targets",
 ]
 
 
@@ -30,3 +34,34 @@ def merge_priors(priors: dict[int, tuple[torch.Tensor, torch.Tensor]], rec: Inst
             d = torch.where(has, d, old[0])
             n = torch.where(has, n, old[1])
         priors[v] = (d, n)
+
+
+def view_targets(
+    priors: dict[int, tuple[torch.Tensor, torch.Tensor]],
+    index: VisibilityIndex,
+    view: int,
+    voxel_depth_prior: bool = True,
+) -> GeometryTargets | None:
+    """The targets of a view's geometric losses: its MVS depth and normals, else the voxel depth.
+
+    ``priors`` is ``state["vad_priors"]`` (:func:`merge_priors`); ``index`` the scene's
+    :class:`~vadgs.train.vad.visibility.VisibilityIndex`. With ``voxel_depth_prior``, pixels
+    without MVS depth take the voxel depth — only where the voxel belongs to the pixel's own
+    instance (elsewhere the z-buffer sees through missing geometry, e.g. the facade behind a sign,
+    and would pull it backwards). ``None`` when the view has neither. Tensors ``(1, 1, H, W)`` /
+    ``(1, 3, H, W)`` at the view's own size (the index's maps may be padded), on the device of the
+    MVS priors, or of the index for a view without them.
+    """
+    depth, normal = None, None
+    if view in priors:
+        depth, normal = priors[view]
+    if voxel_depth_prior:
+        vd, vlabel = index.voxel_depth(view)
+        vd = torch.where((vlabel == index.instances(view))[None], vd, torch.zeros_like(vd))
+        depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))
+    if depth is None:
+        return None
+    h, w = index.size(view)
+    depth = depth[..., :h, :w]
+    normal = None if normal is None else normal[..., :h, :w]
+    return GeometryTargets(depth=depth[None], normal=normal if normal is None else normal[None])

@@ -1,39 +1,18 @@
 r"""VAD-GS: the visibility-aware densification strategy (paper, Sec. "Methodology").
 
-:class:`VisibilityAwareDensification` is a gsplat-style strategy — a dataclass holding its settings
-(a frozen :class:`VisibilityDensifyConfig`, its fields readable and checked-assignable as
-attributes) with ``check_sanity`` / ``initialize_state`` / ``step_pre_backward`` /
-``step_post_backward`` on ``params``, ``optimizers``, ``state``, ``step``, ``info`` — that wraps
-a standard one (adaptive density control: vadgs's or gsplat's ``DefaultStrategy``, gsplat's
-``MCMCStrategy``) and never sees
-the training loop nor a vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it the
-data as a :class:`~vadgs.train.vad.inputs.VisibilityInputs` (``from_scene`` / ``from_gsplat_parser``)
-and, in a frozen :class:`StrategyContext`, the three things of the loop it needs — a function
-that renders a view's depth, opacity and normals with the current Gaussians, the total number of
-steps and the number of steps of a sampling cycle — plus the generator of its selection noise.
-Every ``every_cycles`` complete sampling cycles of the training views it runs one event, a one-way
-flow:
-
-1. **visibility index** (built once): voxel grids of the initial points with per-voxel view
-   visibility (:func:`~vadgs.train.vad.reconstruct.build_visibility_index`: LiDAR, or COLMAP tracks);
-2. **incompleteness test**: for every training view, the rendered depth and opacity against the
-   voxel depth of the z-buffer (static grid in world, each moving object's grid in its own frame);
-   per instance, flag when the rendered depth is absent or more than 1.1× the voxel depth, or when
-   more than 25 % of its pixels are below 0.7 opacity
-   (:func:`~vadgs.train.vad.incomplete.find_incomplete`);
-3. **selection and MVS**: each flagged instance (:func:`~vadgs.train.vad.references.rank_instances`,
-   :func:`~vadgs.train.vad.references.pick_references`) is
-   reconstructed from its reference views: diversity-aware k-clique view selection, PatchMatch
-   initialised from the rendered depth and normals and restricted to the instance (a moving object
-   in its own frame), consistency and fusion (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`);
-4. **new Gaussians**: the fused points that the current Gaussians do not already explain (no opaque
-   surface within ``reconstruct.explained_tolerance`` in front of them in the view) become flat
-   Gaussians oriented by the MVS normals — static, or in the object's frame for moving ones — added
-   with :func:`~vadgs.train.strategy.ops.add_gaussians` (optimizer moments and state rows follow);
-5. **priors**: the MVS depth and normals of the group views are kept in ``state`` and returned by
-   :meth:`VisibilityAwareDensification.geometry_targets` (voxel depth where no MVS depth exists),
-   which the loop turns into the normal and hard/soft depth losses with
-   :func:`vadgs.train.losses.geometric_losses` — one loss path, in vadgs's trainer or any loop.
+:class:`VisibilityAwareDensification` is a gsplat-style strategy that wraps a standard one (vadgs's
+or gsplat's ``DefaultStrategy``, gsplat's ``MCMCStrategy``) and never sees the training loop nor a
+vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it a
+:class:`~vadgs.train.vad.inputs.VisibilityInputs` and a :class:`StrategyContext` (render a view,
+step counts, the generator of its selection noise).
+Every ``every_cycles`` complete sampling cycles of the training views it runs one event
+(:func:`~vadgs.train.vad.event.run_event`, given an :class:`~vadgs.train.vad.event.EventInputs`):
+detection from the visibility index (built once, :mod:`~vadgs.train.vad.visibility`;
+:mod:`~vadgs.train.vad.detect`), ranking and reference views (:mod:`~vadgs.train.vad.references`),
+multi-view stereo per instance (:mod:`~vadgs.train.vad.reconstruct`), new flat Gaussians
+(:mod:`~vadgs.train.vad.gaussians`) and the geometric priors (:mod:`~vadgs.train.vad.priors`),
+returned by :meth:`VisibilityAwareDensification.geometry_targets` for
+:func:`vadgs.train.losses.geometric_losses`. ``docs/vad.md`` maps the paper's sections to them.
 
 Ablation switches (:class:`VisibilityDensifyConfig`): ``view_selection=False`` uses consecutive
 frames of the reference camera, ``geometric_losses=False`` drops the priors; the paper's "w/o voxel
@@ -52,15 +31,17 @@ from typing import Any, ClassVar
 
 import torch
 
-from vadgs.checks import check_size, float_field, int_field
+from vadgs.checks import float_field, int_field
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, ops
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig
-from vadgs.train.vad.detect import detect, detect_view, keep_render, view_map
+from vadgs.train.vad.detect import detect, observe_view
 from vadgs.train.vad.event import EventInputs, run_event
 from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
+from vadgs.train.vad.info import check_info, check_info_values
 from vadgs.train.vad.inputs import VisibilityInputs
+from vadgs.train.vad.priors import view_targets
 from vadgs.train.vad.reconstruct import (
     InstanceReconstruction,
     ReconstructConfig,
@@ -69,132 +50,12 @@ from vadgs.train.vad.reconstruct import (
     build_visibility_index,
 )
 
-__all__ = ["VisibilityAwareDensification", "check_info", "info_requirements"]
+__all__ = ["VisibilityAwareDensification"]
 
 _MAX_PENDING = 64  # events kept in state["pending_log"] when the loop does not pop them
 
 _LOG_SIZE = int_field(1)
 _SCENE_SCALE = float_field(0, lo_open=True)
-
-_GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
-
-
-def info_requirements(base: Any, packed: bool = False) -> list[dict[str, str]]:
-    """What a base strategy reads from the loop's ``info``: alternatives of ``{key: where it comes from}``.
-
-    vadgs's ``DefaultStrategy``: vadgs's render (``raster``, ``image_size``) or gsplat's meta
-    (``means2d``, ``width``, ``height``, ``radii``; ``gaussian_ids`` too when ``packed``); gsplat's
-    ``DefaultStrategy``: its ``key_for_gradient`` (``means2d``), ``width``, ``height``,
-    ``n_cameras``, ``radii`` and ``gaussian_ids`` (None unless ``packed``); gsplat's
-    ``MCMCStrategy``: nothing (it takes ``lr=``). Other bases: nothing is known (an empty list).
-
-    Example:
-        >>> [sorted(a) for a in info_requirements(DefaultStrategy())]
-        [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
-    """
-    if isinstance(base, DefaultStrategy):
-        meta = {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")}
-        if packed:
-            meta["gaussian_ids"] = _GSPLAT_META + " with packed=True"
-        return [
-            {
-                "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
-                "image_size": "the view's (H, W)",
-            },
-            meta,
-        ]
-    cls = type(base)
-    if not cls.__module__.startswith("gsplat.") or not hasattr(base, "key_for_gradient"):
-        return []  # gsplat's MCMCStrategy reads nothing; unknown bases: not checked
-    req = {k: _GSPLAT_META for k in (base.key_for_gradient, "width", "height", "n_cameras", "radii")}
-    req["gaussian_ids"] = _GSPLAT_META + (" with packed=True" if packed else " (None when packed=False)")
-    return [req]
-
-
-def check_info(base: Any, info: Mapping[str, Any], packed: bool = False) -> None:
-    """Check the loop's ``info`` against what ``base`` reads (:func:`info_requirements`).
-
-    Raises:
-        ValueError: naming the missing key, the base that reads it and where it comes from.
-    """
-    alternatives = info_requirements(base, packed)
-    if not alternatives:
-        return
-    if not isinstance(info, Mapping):
-        raise ValueError(f"info: expected a dict (the renderer's meta), got {type(info).__name__}")
-    missing = [[k for k in alt if k not in info] for alt in alternatives]
-    if any(not m for m in missing):
-        if packed and info.get("gaussian_ids", 0) is None and "gaussian_ids" in alternatives[-1]:
-            raise ValueError(
-                "info['gaussian_ids']: expected the ids of gsplat's rasterization(packed=True) with "
-                "packed=True, got None"
-            )
-        return
-    best = min(range(len(missing)), key=lambda i: (len(missing[i]) - len(alternatives[i]), len(missing[i])))
-    key = missing[best][0]
-    name = f"{type(base).__module__.split('.')[0]}'s {type(base).__name__}"
-    raise ValueError(
-        f"info: expected key {key!r} (read by {name}; from {alternatives[best][key]}), "
-        f"got keys {sorted(info)}"
-    )
-
-
-def _check_info_values(info: Mapping[str, Any], num_views: int | None) -> None:
-    """Check the values ``info`` carries for the strategy: metadata only (no tensor value is read).
-
-    ``view`` an integer in ``[0, num_views)`` (when known), ``image_size`` a positive ``(H, W)``,
-    ``width`` / ``height`` positive integers, and the render's ``depth`` / ``alpha`` (of
-    ``info["raster"]`` or ``info``) tensors of shape ``(1, H, W)``, ``(H, W)`` or ``(1, 1, H, W)``
-    of one ``(H, W)``, that of ``image_size`` or ``height``, ``width`` when given.
-
-    Raises:
-        ValueError: naming the key, the expected and the actual value or shape.
-    """
-    if not isinstance(info, Mapping):
-        return  # check_info names it when the base reads info; otherwise nothing is read
-    view = info.get("view")
-    if view is not None:
-        hi = None if num_views is None else num_views - 1
-        note = "" if num_views is None else f" (a view of the inputs' {num_views})"
-        int_field(0, hi, note=note)("info['view']", view)
-    size = None
-    if info.get("image_size") is not None:
-        size = check_size(info["image_size"], "info['image_size']")
-    for key in ("height", "width"):
-        if info.get(key) is not None:
-            int_field(1)(f"info[{key!r}]", info[key])
-    if size is None and info.get("height") is not None and info.get("width") is not None:
-        size = (int(info["height"]), int(info["width"]))
-    raster = info.get("raster")
-    maps = {}
-    for key in ("depth", "alpha"):
-        name, value = f"info[{key!r}]", info.get(key)
-        if raster is not None:
-            name, value = f"info['raster'].{key}", getattr(raster, key, None)
-        if value is None:
-            continue
-        if not isinstance(value, torch.Tensor):
-            raise ValueError(
-                f"{name}: expected a torch.Tensor (the view's rendered {key}), got {type(value).__name__}"
-            )
-        shape = tuple(value.shape)
-        ok = (
-            (len(shape) == 2)
-            or (len(shape) == 3 and shape[0] == 1)
-            or (len(shape) == 4 and shape[:2] == (1, 1))
-        )
-        hw = shape[-2:]
-        want = (
-            "(1, H, W), (H, W) or (1, 1, H, W)"
-            if size is None
-            else f"(1, {size[0]}, {size[1]}) or (H, W) = {size}"
-        )
-        if not ok or (size is not None and hw != size):
-            raise ValueError(f"{name}: expected the view's {key} of shape {want}, got {shape}")
-        maps[name] = hw
-    if len(set(maps.values())) > 1:
-        (a, ha), (b, hb) = maps.items()
-        raise ValueError(f"{a}, {b}: expected maps of one size (H, W), got {ha} and {hb}")
 
 
 @dataclass(init=False, eq=False)
@@ -234,10 +95,8 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
         **settings: fields of :class:`VisibilityDensifyConfig` replaced in ``config``.
 
-    The incompleteness test of a view reuses the loop's own render when ``info`` carries it
-    (``info["view"]`` and ``info["raster"]`` with ``depth`` / ``alpha``, as vadgs's trainer passes,
-    or ``info["depth"]`` / ``info["alpha"]``): a view trained since the last event is not rendered
-    again for detection. The others are rendered at the event (kept for that event only).
+    A view trained since the last event is tested from the loop's own render when ``info``
+    carries it (:func:`~vadgs.train.vad.detect.observe_view`); the others are rendered at the event.
 
     Example:
         >>> s = VisibilityAwareDensification(every_cycles=2)
@@ -305,32 +164,6 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         if inputs is not None or index is not None or context is not None:
             out.prepare(inputs, context, index)
         return out
-
-    @classmethod
-    def from_scene(
-        cls,
-        scene: Any,
-        context: StrategyContext,
-        config: VisibilityDensifyConfig | None = None,
-        base: Any = None,
-        index: VisibilityIndex | None = None,
-        on_addition: Callable[[dict[str, Any]], None] | None = None,
-    ) -> VisibilityAwareDensification:
-        """Deprecated: the former constructor ``(scene, context, config, base, index)``.
-
-        Use ``from_config(config, base=base, inputs=VisibilityInputs.from_scene(scene),
-        context=context)``.
-        """
-        import warnings
-
-        warnings.warn(
-            "VisibilityAwareDensification.from_scene(scene, context, ...) is deprecated: use "
-            "from_config(config, base=..., inputs=VisibilityInputs.from_scene(scene), context=...)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        inputs = VisibilityInputs.from_scene(scene) if index is None else None
-        return cls.from_config(config, base, inputs, context, index, on_addition)
 
     def _reconstruct_config(self) -> ReconstructConfig:
         """``reconstruct``, with consecutive-frame selection when ``view_selection`` is off."""
@@ -427,7 +260,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             check_info(self.base, info, bool(kwargs.get("packed", False)))
             self._post_info_checked = True
         has_inputs = self.inputs is not None or self.index is not None
-        _check_info_values(info, self._inputs().num_views if has_inputs else None)
+        check_info_values(info, self._inputs().num_views if has_inputs else None)
         self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
         context = self._context()
         if step < self.config.last_event_fraction * context.total_steps:
@@ -448,26 +281,8 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         view = info.get("view") if isinstance(info, Mapping) else None
         if view is None or int(view) not in self._train_set():
             return
-        raster = info.get("raster")
-        src = raster if raster is not None else info
-        get = (lambda k: getattr(src, k, None)) if raster is not None else src.get
-        depth, alpha, normals = get("depth"), get("alpha"), get("normals")
-        if depth is None or alpha is None:
-            return
-        view = int(view)
-        depth, alpha = view_map(depth), view_map(alpha)
-        if tuple(depth.shape[-2:]) != tuple(self._inputs().size(view)):
-            return  # a crop or another scale of the view (gsplat's patch_size): not the view's render
-        state.setdefault("vad_tests", {})[view] = detect_view(
-            self.prepare(), view, depth, alpha, self.config.incomplete
-        )
-        normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else view_map(normals)
-        keep_render(
-            state.setdefault("vad_renders", {}),
-            view,
-            ViewRender(depth, alpha, normals),
-            int(self.config.render_cache_mb * 2**20),
-        )
+        mb = self.config.render_cache_mb
+        observe_view(state, info, self.prepare(), self._inputs(), self.config.incomplete, int(mb * 2**20))
 
     def trained_pixels(self, step: int) -> float:
         """Training pixels up to and including ``step``: ``(step + 1)`` × the training views' mean size.
@@ -644,12 +459,10 @@ class VisibilityAwareDensification(ConfiguredStrategy):
     def geometry_targets(self, state: dict[str, Any], view: int) -> GeometryTargets | None:
         """The priors of a view for :func:`vadgs.train.losses.geometric_losses`.
 
-        MVS depth and normals of the events so far; where no MVS depth exists, the voxel depth —
-        only where the voxel belongs to the pixel's own instance (elsewhere the z-buffer sees
-        through missing geometry, e.g. the facade behind a sign, and would pull it backwards).
-        ``None`` when the losses are off (``geometric_losses``), or the view has no prior. Tensors
-        ``(1, 1, H, W)`` / ``(1, 3, H, W)`` on the device of the MVS priors (the render's), or of
-        the visibility index for a view without them: move them to the render's device.
+        :func:`~vadgs.train.vad.priors.view_targets`: the MVS depth and normals of the events so
+        far, the voxel depth of the pixel's own instance where no MVS depth exists; ``None`` when
+        the losses are off (``geometric_losses``) or the view has no prior. Move the tensors to the
+        render's device.
 
         Raises:
             ValueError: before :meth:`prepare` or with a ``state`` not made by
@@ -671,17 +484,4 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             )
         n = self._inputs().num_views
         view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
-        depth, normal = None, None
-        if view in state["vad_priors"]:
-            depth, normal = state["vad_priors"][view]
-        if cfg.voxel_depth_prior:
-            index = self.visibility_index()
-            vd, vlabel = index.voxel_depth(view)
-            vd = torch.where((vlabel == index.instances(view))[None], vd, torch.zeros_like(vd))
-            depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))
-        if depth is None:
-            return None
-        h, w = self.prepare().size(view)  # the view's own size (the index's maps may be padded)
-        depth = depth[..., :h, :w]
-        normal = None if normal is None else normal[..., :h, :w]
-        return GeometryTargets(depth=depth[None], normal=normal if normal is None else normal[None])
+        return view_targets(state["vad_priors"], self.prepare(), view, cfg.voxel_depth_prior)
