@@ -8,12 +8,12 @@ behind foreground geometry are excluded.
 
 Depth modes. ``"box"`` returns the exact entry depth (what a ray caster of the boxes returns;
 checked against Embree). Its error is *not* bounded by the voxel size: a ray skimming a road at a
-shallow angle enters a road voxel through its top face, metres before it meets the road (street_a:
-0% of road pixels within 0.2 m). ``"plane"`` (the default for a :class:`VoxelGrid`) intersects the
+shallow angle enters a road voxel through its top face, metres before it meets the road.
+``"plane"`` (the default for a :class:`VoxelGrid`) intersects the
 ray with the plane fitted to the voxel's neighbourhood and keeps the hit only inside the box, so a
 ray that crosses a box above its surface falls through to the voxel behind; then the error is of
-the order of the voxel size where a plane exists (street_a: road 98.7%, buildings 93% within
-0.2 m; see docs/benchmarks.md).
+the order of the voxel size where a plane exists (the measured accuracy of both modes is in
+docs/benchmarks.md).
 
 The ray tests work in inverse depth, where every box face is an affine function of the pixel
 (see ``_raster_one``): boxes are bucketed by the size of their projected pixel rectangle and

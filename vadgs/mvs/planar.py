@@ -137,8 +137,8 @@ class PlanarCompletionConfig:
         min_views: other views that must agree.
         iterations: RANSAC triples.
         max_normal_angle: if set and a normal map is given, inliers' normals must lie within this
-            angle (degrees) of the plane's. Off by default: on the street_a sign, PatchMatch's
-            normals on the board are too noisy (board coverage 53 % with 30°, 73 % without).
+            angle (degrees) of the plane's. Off by default: PatchMatch's normals on a small board
+            are too noisy for it (the measurement: ``docs/results.md``).
     """
 
     min_pixels: int = 30

@@ -149,8 +149,8 @@ def _chunk_size(s: _Setup, n: int, n0: int) -> int:
     Gaussian slots, the first step's buffers can hold the doubled step (``n * c <= n0 *
     chunk_size``) and the growth stays within ``_MAX_CHUNK_GROWTH``. A step has a fixed cost of
     some twenty small ops; without the growth the few tiles with the longest lists take most of
-    the steps (on street_a 386 of the hard depth render's 441, with at most 10 of 107 tiles
-    active), with it they finish in far fewer (37). Where most tiles are still active (the first
+    the steps (while most other tiles have stopped), with it they finish in far fewer
+    (``docs/benchmarks.md``, "the compositor's growing chunks"). Where most tiles are still active (the first
     steps, large images) the chunk stays: a larger one only adds slots after pixels have stopped.
     """
     c = s.chunk

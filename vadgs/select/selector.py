@@ -22,8 +22,8 @@ over the k-cliques of that graph (:func:`vadgs.select.max_weight_clique`), with 
 symmetrised pair score ``(s[i, j] + s[j, i]) / 2``.
 
 The solver is exact over the candidates after the cap. The cap bounds the search
-(``C(24, 4) = 10626`` subsets at most); on street_a it returns the uncapped optimum for most
-references (``docs/select.md`` has the measured agreement).
+(``C(24, 4) = 10626`` subsets at most); ``docs/select.md`` measures how often it returns the
+uncapped optimum.
 
 Nothing here raises on a hard case: no voxel, no candidate, fewer candidates than ``k`` or a
 graph without a k-clique all return a :class:`ViewSelection` with fewer views (or none) and the

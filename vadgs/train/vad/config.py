@@ -69,9 +69,9 @@ class VisibilityDensifyConfig:
             views' mean pixel count); the instances left are logged as skipped
             (``"work_budget"``) and tried at the next event. The first instance is always tried.
             A count of work, not of seconds: one config and seed give one model on any machine,
-            under any load, and on exact resume. 0.1 by default: street_a's first event (step
-            449, 240×144) needs 0.077 for all its 29 candidate instances, which the former 20 %
-            wall-clock budget let it attempt (docs/vad.md). ``None``: no limit.
+            under any load, and on exact resume. 0.1 by default: enough for every candidate
+            instance of a first event on the benchmark streets (``docs/vad.md``). ``None``: no
+            limit.
         time_budget: opt-in wall-clock safety cap (off by default): an event also stops starting
             instances once it has taken this fraction of the training time so far (the time
             between the strategy's calls, events excluded), logged as skipped (``"time_budget"``)
@@ -87,8 +87,7 @@ class VisibilityDensifyConfig:
         references: reference views per instance: its flagged view with the most pixels, then
             the next largest ones from another camera or at least ``min_frame_gap`` frames away
             from those already chosen (another side of the object, e.g. the back of a sign).
-            3 by default (2 before the event got cheap: on street_a a third reference took PSNR
-            29.15 → 29.35 dB for 118k → 125k Gaussians, docs/results.md).
+            3 by default (the measured trade of a third reference: ``docs/results.md``).
         min_frame_gap: see ``references``.
         ranking: ``"class_round_robin"`` (default): one instance per class in turn, the largest
             (most pixels in its best flagged view) first within a class, so that small structures

@@ -47,16 +47,14 @@ class ReconstructConfig:
         max_upsample: small instances, whose crop is at most ``max_crop / f`` pixels, are matched
             at ``f`` times the scene's resolution, ``f`` up to this integer and never finer than
             the image files (``1 / scene.scale``): a sign 40 px tall at half resolution gets four
-            times the pixels and half the depth error (on street_a: its MVS points within 5 cm of
-            the true surface 35 % → 60 %, its surface covered 51 % → 65 %), while the crop stays
-            within ``max_crop`` so the cost stays bounded. ``1``: always the scene's resolution.
+            times the pixels and about half the depth error (``docs/results.md``), while the crop
+            stays within ``max_crop`` so the cost stays bounded. ``1``: always the scene's resolution.
         planar: planar completion of the textureless parts of static instances
             (:func:`vadgs.mvs.complete_planar`); ``None`` turns it off. Never applied to moving
             objects: a car is not planar, and one plane fitted to it fills many of its pixels off
             its surface. On by default since small instances are matched at a finer resolution
-            (``max_upsample``): on street_a it took the sign's completeness in training from 76 %
-            to 84 % at +0.3 dB (docs/results.md). (At the training resolution alone it had tilted
-            the sign's board.)
+            (``max_upsample``), where it completes thin textureless boards without tilting them
+            (``docs/results.md``).
         max_match_pixels: pixel budget of one member's instance mask at the matching scale:
             an instance larger than this (a facade filling the view) is matched at 1/2, 1/4, ...
             of the scene's resolution (down to ``1 / max_downsample``), so that an event's cost
@@ -84,13 +82,12 @@ class ReconstructConfig:
             facade: ``max_match_pixels``), the cell of ``thin_points`` is this many times the
             point spacing and the new Gaussians are as much wider: fewer, larger Gaussians on
             large surfaces. Smaller instances (a sign) keep one point per pixel footprint. 1: no
-            change. 1.5 by default: on street_a 1.24x the baseline's Gaussians instead of 1.32x,
-            PSNR 29.51 dB, sign and facades as at 1 (docs/results.md).
+            change. 1.5 by default: fewer Gaussians at the same quality (``docs/results.md``).
         whole_supports: when the instance is whole in the reference view (its mask does not touch
             the image border), select the supporting views among those where it is whole too, if
             there are ``selection.k`` of them (else among all). A view that cuts the instance off
-            cannot confirm the part it does not show: on street_a the sign's top 0.3 m is above
-            the frame of the close views the voxels favour, and stayed empty (82.8 % complete).
+            cannot confirm the part it does not show (e.g. the top of a sign above the frame of the
+            close views the voxels favour, which stays empty).
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))

@@ -103,10 +103,10 @@ def pack_state(state: dict[str, Any]) -> dict[str, Any]:
     """The strategy's state for a checkpoint: its per-view maps zlib-compressed, losslessly.
 
     The MVS priors (``vad_priors``) are zero outside the instances an event reconstructed (and
-    piecewise constant where MVS ran at a coarser scale), so they compress several times (6x on
-    the bundled sample); the loop's kept renders (``vad_renders``, 5 bytes a pixel in their
-    :func:`compact_render` form, only while an event can still follow) 2.4x on street_a, with a
-    PNG-style "Sub" filter (each value's bits minus its left neighbour's) before zlib. The other
+    piecewise constant where MVS ran at a coarser scale), so they compress several times; the
+    loop's kept renders (``vad_renders``, 5 bytes a pixel in their :func:`compact_render` form,
+    only while an event can still follow) about twice, with a PNG-style "Sub" filter (each
+    value's bits minus its left neighbour's) before zlib. The other
     entries are kept as they are. :func:`unpack_state` gives back the same bits, so a resumed
     run stays exact. A state without them (the standard strategy's, gsplat's) is returned
     unchanged.
@@ -142,7 +142,6 @@ def unpack_state(state: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-# per view: a tuple of maps; whether the Sub filter goes before zlib. The renders pack 1.33x smaller
-# with it (street_a's 90 at step 448: 8.7 -> 6.5 MB; depth 1.5x, opacity and normals 1.2x); the
-# priors, mostly zero and piecewise constant, do not (their normals 1.4x larger on the sample).
+# per view: a tuple of maps; whether the Sub filter goes before zlib. The renders pack smaller with
+# it; the priors, mostly zero and piecewise constant, do not (docs/train.md, "Checkpoints").
 _PACKED = {"vad_priors": False, "vad_renders": True}
