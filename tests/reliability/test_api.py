@@ -11,6 +11,7 @@ import torch
 
 from tests.mvs.mvs_scenes import plane_scene
 from vadgs.checks import checking
+from vadgs.geometry import normals_to_quats
 from vadgs.geometry.camera import backproject_depth, invert_rigid, project_points
 from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.geometry.voxel import voxelize
@@ -19,7 +20,6 @@ from vadgs.mvs.planar import fit_plane_ransac
 from vadgs.select import ViewSelectionConfig, max_weight_clique, top_k_views
 from vadgs.select.clique import MAX_CLIQUES
 from vadgs.train.init import voxel_downsample
-from vadgs.train.vad.gaussians import normals_to_quats
 
 K_OK = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]]])
 NAN = float("nan")

@@ -34,7 +34,7 @@ from vadgs.geometry.homography import (
     warp_patches,
 )
 from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
-from vadgs.geometry.rotation import quat_multiply, quaternion_to_rotation, rotation_to_quat
+from vadgs.geometry.rotation import normals_to_quats, quat_multiply, quaternion_to_rotation, rotation_to_quat
 from vadgs.geometry.voxel import (
     ChunkedVoxels,
     PointChunk,
@@ -69,6 +69,7 @@ __all__ = [
     "keyframe_path",
     "level_up",
     "look_at",
+    "normals_to_quats",
     "observing_views",
     "octahedral_decode",
     "octahedral_encode",

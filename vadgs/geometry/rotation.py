@@ -17,9 +17,9 @@ from __future__ import annotations
 import torch
 from kornia.geometry.conversions import rotation_matrix_to_quaternion
 
-from vadgs.checks import check_quaternions, check_shape
+from vadgs.checks import check_finite, check_quaternions, check_shape
 
-__all__ = ["quat_multiply", "quaternion_to_rotation", "rotation_to_quat"]
+__all__ = ["normals_to_quats", "quat_multiply", "quaternion_to_rotation", "rotation_to_quat"]
 
 
 def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
@@ -107,3 +107,28 @@ def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:
         ],
         -1,
     )
+
+
+def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
+    """``wxyz`` quaternions of rotations whose third axis is the given unit normal ``(N, 3)``.
+
+    A Gaussian with scales ``(s, s, t)``, ``t << s``, and this rotation is a disc in the plane of
+    the normal. On the device and in the dtype of ``normals``.
+
+    Example:
+        >>> n = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
+        >>> torch.allclose(quaternion_to_rotation(normals_to_quats(n))[:, :, 2], n, atol=1e-6)
+        True
+    """
+    check_shape(normals, "normals", ("N", 3))
+    check_finite(normals, "normals")
+    n = torch.nn.functional.normalize(normals, dim=-1)
+    helper = torch.where(
+        n[:, 2:3].abs() < 0.9,
+        n.new_tensor([0.0, 0.0, 1.0]).expand_as(n),
+        n.new_tensor([1.0, 0.0, 0.0]).expand_as(n),
+    )
+    a = torch.nn.functional.normalize(torch.cross(helper, n, dim=-1), dim=-1)
+    b = torch.cross(n, a, dim=-1)
+    R = torch.stack([a, b, n], dim=-1)  # columns: the Gaussian's axes in the world
+    return rotation_to_quat(R)

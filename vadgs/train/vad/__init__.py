@@ -24,11 +24,12 @@
 The names below are the public face: ``from vadgs.train.vad import ...`` (see ``docs/vad.md``).
 """
 
+from vadgs.geometry.rotation import normals_to_quats
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy.default import DefaultStrategy
 from vadgs.train.vad.config import RANKINGS, StrategyContext, VisibilityDensifyConfig
 from vadgs.train.vad.event import EventInputs, run_event
-from vadgs.train.vad.gaussians import flat_gaussians, normals_to_quats
+from vadgs.train.vad.gaussians import flat_gaussians
 from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
 from vadgs.train.vad.info import check_info, info_requirements
 from vadgs.train.vad.inputs import TrackTable, VisibilityInputs

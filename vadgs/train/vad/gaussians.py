@@ -1,7 +1,8 @@
 """New Gaussians from an instance's fused MVS points (paper, Sec. 3.3, "Densification").
 
 :func:`flat_gaussians` turns each kept point into a flat disc oriented by its MVS normal
-(:func:`normals_to_quats`); :func:`add_reconstruction` adds them with their optimizer state
+(:func:`~vadgs.geometry.rotation.normals_to_quats`); :func:`add_reconstruction` adds them with
+their optimizer state
 (:func:`~vadgs.train.strategy.ops.add_gaussians`), static or attached to the object's node.
 """
 
@@ -12,8 +13,7 @@ from typing import Any
 
 import torch
 
-from vadgs.checks import check_finite, check_shape
-from vadgs.geometry.rotation import rotation_to_quat
+from vadgs.geometry.rotation import normals_to_quats
 from vadgs.train.strategy import ops
 from vadgs.train.vad.config import VisibilityDensifyConfig
 from vadgs.train.vad.reconstruct import (
@@ -23,37 +23,10 @@ from vadgs.train.vad.reconstruct import (
 __all__ = [
     "add_reconstruction",
     "flat_gaussians",
-    "normals_to_quats",
 ]
 
 
 _C0 = 0.28209479177387814
-
-
-def normals_to_quats(normals: torch.Tensor) -> torch.Tensor:
-    """``wxyz`` quaternions of rotations whose third axis is the given unit normal ``(N, 3)``.
-
-    A Gaussian with scales ``(s, s, t)``, ``t << s``, and this rotation is a disc in the plane of
-    the normal. On the device and in the dtype of ``normals``.
-
-    Example:
-        >>> from vadgs.geometry import quaternion_to_rotation
-        >>> n = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
-        >>> torch.allclose(quaternion_to_rotation(normals_to_quats(n))[:, :, 2], n, atol=1e-6)
-        True
-    """
-    check_shape(normals, "normals", ("N", 3))
-    check_finite(normals, "normals")
-    n = torch.nn.functional.normalize(normals, dim=-1)
-    helper = torch.where(
-        n[:, 2:3].abs() < 0.9,
-        n.new_tensor([0.0, 0.0, 1.0]).expand_as(n),
-        n.new_tensor([1.0, 0.0, 0.0]).expand_as(n),
-    )
-    a = torch.nn.functional.normalize(torch.cross(helper, n, dim=-1), dim=-1)
-    b = torch.cross(n, a, dim=-1)
-    R = torch.stack([a, b, n], dim=-1)  # columns: the Gaussian's axes in the world
-    return rotation_to_quat(R)
 
 
 def flat_gaussians(
@@ -66,7 +39,8 @@ def flat_gaussians(
 ) -> dict[str, torch.Tensor]:
     """New flat Gaussians from an instance's (kept) fused points, in ``params``' layout.
 
-    Each point becomes a disc oriented by its MVS normal (:func:`normals_to_quats`), of width its
+    Each point becomes a disc oriented by its MVS normal
+    (:func:`~vadgs.geometry.rotation.normals_to_quats`), of width its
     spacing and thickness ``flatness`` times that, with opacity ``new_opacity`` and the MVS colour,
     on the device and in the dtype of ``params``' means. Where ``params`` has a ``provenance``
     entry the new rows get ``event`` (1-based). Entries of other layouts: gsplat's appearance
