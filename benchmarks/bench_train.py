@@ -60,7 +60,7 @@ def test_train_step(benchmark, trainer, checks):
 def _hard_depth_full_render(trainer: Trainer, view: int) -> torch.Tensor:
     """The hard depth as it was rendered before ``GaussianModel.render_depth``: a full render
     (SH colours, sky) at the strided camera, of which only the depth is used."""
-    s = trainer.config.hard_stride
+    s = trainer.config.geometry.hard_stride
     cams = trainer.scene.cameras([view])
     K = cams.K.clone()
     K[:, :2] /= s
@@ -73,7 +73,7 @@ def _hard_depth_full_render(trainer: Trainer, view: int) -> torch.Tensor:
 
 @pytest.mark.parametrize("path", ["render_depth", "full render"])
 def test_hard_depth_render(benchmark, trainer, path):
-    """Forward and backward of the hard depth loss's render (stride ``hard_stride``, opacities 1)."""
+    """Forward and backward of the hard depth loss's render (stride ``geometry.hard_stride``, opacities 1)."""
     benchmark.group = "hard depth render + backward, street_a 240x144"
     view = trainer.train_views[0]
     render = trainer.render_hard_depth if path == "render_depth" else _hard_depth_full_render
@@ -88,7 +88,7 @@ def test_hard_depth_render(benchmark, trainer, path):
 
 @pytest.mark.parametrize("stride", [1, 2, 4])
 def test_hard_depth_stride(benchmark, trainer, stride):
-    """The hard depth render + backward at ``hard_stride`` 1, 2, 4 (pixel rows and columns kept)."""
+    """The hard depth render + backward at ``geometry.hard_stride`` 1, 2, 4 (pixel rows and columns kept)."""
     benchmark.group = "hard depth render + backward by stride, street_a 240x144"
     view = trainer.train_views[0]
 
@@ -127,7 +127,7 @@ def test_chunk_growth(benchmark, trainer, what, growth, monkeypatch):
 @pytest.mark.parametrize("path", ["colour only", "two renders, stride 2", "two renders, stride 1", "fused"])
 def test_hard_depth_fused(benchmark, trainer, path):
     """The step's render with the hard depth: composited in the same pass (``hard_depth=True``,
-    ``TrainConfig.hard_fused``: every pixel) against a second render (the default: stride 2, or
+    ``TrainConfig.geometry.hard_fused``: every pixel) against a second render (the default: stride 2, or
     every pixel), and the colour render alone (a step without the hard loss); forward and
     backward of 4 training views (every 12th), 240x144."""
     benchmark.group = "hard depth: fused pass vs second render, + backward, street_a 240x144"

@@ -1,7 +1,7 @@
 """The compositor's steps with and without growing chunks, and an interleaved timing of both.
 
 Prints, for the street_a trainer (``benchmarks/street_config.json``, 240x144; view 0): how many
-compositing steps a colour render and a hard depth render (opacity 1, ``hard_stride``) take and
+compositing steps a colour render and a hard depth render (opacity 1, ``geometry.hard_stride``) take and
 how many of them run with at most 10 tiles active, with the chunk growth on (default) and off
 (``_MAX_CHUNK_GROWTH = 1``: the compositor before). Then times forward+backward of renderer cases
 1 and 2 (``bench_render.py``) alternating growth off / on in one process (median of the rounds

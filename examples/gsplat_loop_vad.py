@@ -8,7 +8,9 @@ parameter in a dict, their own render call and their own loss. What they add: a
 ``step_post_backward``), the data it reads as a :class:`~vadgs.train.vad.inputs.VisibilityInputs`
 (cameras, image loader, LiDAR or TRACK observations; the loop below sees only that, no vadgs
 ``Scene``), a :class:`~vadgs.train.vad.StrategyContext` that tells it how to render a view, and the
-geometric losses on its priors through :func:`vadgs.train.losses.geometric_losses`.
+geometric losses on its priors through :func:`vadgs.train.losses.geometric_losses`, weighted and
+scheduled by a :class:`~vadgs.train.losses.GeometricLossConfig` (the paper's weights; the hard term
+every 4th step, at every pixel).
 
 Rendering: :func:`vadgs.render.rasterize_gaussians` (pure torch, CPU or GPU) by default;
 :func:`vadgs.render.gsplat_backend.rasterize_gaussians_gsplat` (gsplat's CUDA ``rasterization``,
@@ -68,16 +70,29 @@ def make_optimizers(params: torch.nn.ParameterDict, scene_scale: float) -> dict[
     return {k: torch.optim.Adam([params[k]], lr=lr, eps=1e-15) for k, lr in lrs.items()}
 
 
-def render(params, inputs: VisibilityInputs, view: int, backend: str = "torch", opacity_override=None):
+def render(
+    params,
+    inputs: VisibilityInputs,
+    view: int,
+    backend: str = "torch",
+    opacity_override=None,
+    stride: int = 1,
+):
     """Render one view: ``(color (1, 3, H, W), depth, alpha (1, 1, H, W), normals (1, 3, H, W), info)``.
 
     ``info`` is gsplat's (``means2d``, ``radii``, ``width``, ``height``, ``n_cameras``) for the base
-    strategy. ``backend="gsplat"``: gsplat's rasterizer (CUDA tensors: its CUDA kernels).
+    strategy. ``backend="gsplat"``: gsplat's rasterizer (CUDA tensors: its CUDA kernels). ``stride``
+    s: every s-th pixel row and column only (``(ceil(H / s), ceil(W / s))``: the hard depth at
+    ``GeometricLossConfig.hard_stride``).
     """
     dev = params["means"].device
     w2c = inputs.cameras.world_to_cam[view : view + 1].to(dev)
     K = inputs.cameras.K[view : view + 1].to(dev)
     h, w = inputs.size(view)
+    if stride > 1:
+        K = K.clone()
+        K[:, :2] /= stride
+        h, w = -(-h // stride), -(-w // stride)
     opac = torch.sigmoid(params["opacities"])
     if opacity_override is not None:
         opac = torch.full_like(opac.detach(), opacity_override)
@@ -126,11 +141,15 @@ def train(
     adc: DefaultStrategyConfig | None = None,
     backend: str = "torch",
     seed: int = 0,
-    lambdas: tuple[float, float, float] = (0.02, 0.1, 0.1),
-    hard_every: int = 4,
+    geometry: L.GeometricLossConfig | None = None,
     callback=None,
 ):
-    """The loop, on the inputs only. Returns ``(params, optimizers, strategy, state)``."""
+    """The loop, on the inputs only. Returns ``(params, optimizers, strategy, state)``.
+
+    ``geometry``: the geometric losses' weights and schedule (default: the paper's weights, the hard
+    term every 4th step at every pixel); ``hard_fused`` is vadgs's trainer's, not used here.
+    """
+    geometry = geometry or L.GeometricLossConfig(hard_every=4, hard_stride=1)
     views = list(inputs.train_views)
     scale = scene_scale(inputs)
     optimizers = make_optimizers(params, scale)
@@ -165,11 +184,13 @@ def train(
         loss = L.color_loss(color, images[view])
         targets = strategy.geometry_targets(state, view)  # VAD-GS's MVS / voxel depth priors
         if targets is not None:
-            weights = L.geometric_weights(step, steps, *lambdas)
+            weights = geometry.weights(step, steps)
             hard = None
-            if weights["hard"] > 0 and step % hard_every == 0:
-                hard = render(params, inputs, view, backend, opacity_override=1.0)[1]
-            terms = L.geometric_losses(targets.to(depth.device), depth, normals, weights, hard)
+            if targets.depth is not None and geometry.hard_applies(step, steps):
+                hard = render(params, inputs, view, backend, 1.0, geometry.hard_stride)[1]
+            terms = L.geometric_losses(
+                targets.to(depth.device), depth, normals, weights, hard, geometry.hard_stride
+            )
             loss = loss + sum(terms.values())
         loss.backward()
         for opt in optimizers.values():

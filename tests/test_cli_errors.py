@@ -138,7 +138,13 @@ class TestArguments:
             (["--max-minutes", "-1"], "--max-minutes: expected a finite number >= 0 (0 = no limit), got -1"),
             (["--max-minutes", "inf"], "--max-minutes: expected a finite number >= 0 (0 = no limit), got i"),
             (["--iterations", "-5"], "--iterations: expected >= 1, got -5"),
-            (["--hard-every", "0"], "--sh-degree-interval, --log-every, --hard-every, --hard-stride: "),
+            (["--log-every", "0"], "--sh-degree-interval, --log-every: expected >= 1, got 1000, 0"),
+            (["--geometry.hard-every", "0"], "--geometry.hard-every: expected an integer >= 1, got 0"),
+            (
+                ["--geometry.hard-fused"],
+                "--geometry.hard-fused: expected geometry.hard_stride 1, raster.backend 'torch' and no "
+                "antialiasing, got geometry.hard_stride 2",
+            ),
             (["--lr.means", "fast"], "--lr.means: could not convert string to float: 'fast'"),
             (["--iterations", "x"], "--iterations: invalid literal for int() with base 10: 'x'"),
             (["--scale", "0"], "--scale: expected a positive number, got 0.0"),
@@ -158,6 +164,29 @@ class TestArguments:
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"vadgs train: error: {line}") and "\n" not in err, err
         assert not (tmp_path / "x").exists()
+
+    @pytest.mark.parametrize(
+        ("flags", "line"),
+        [
+            (["--lambda-normal", "0.05"], "--lambda-normal is now --geometry.lambda-normal"),
+            (["--lambda-hard", "0.3"], "--lambda-hard is now --geometry.lambda-hard"),
+            (["--lambda-soft=0.3"], "--lambda-soft is now --geometry.lambda-soft"),
+            (["--hard-until", "0.5"], "--hard-until is now --geometry.hard-until"),
+            (["--hard_every", "2"], "--hard_every is now --geometry.hard-every"),
+            (["--hard-stride", "1"], "--hard-stride is now --geometry.hard-stride"),
+            (["--hard-fused"], "--hard-fused is now --geometry.hard-fused"),
+            (["--no-hard-fused"], "--no-hard-fused is now --geometry.no-hard-fused"),
+        ],
+    )
+    def test_moved_train_flags_name_their_new_flag(self, flags, line, tmp_path, capsys):
+        """The flags of the geometric loss moved to ``--geometry.*`` (``TrainConfig.MOVED_FIELDS``): an
+        old one fails in one line naming the new one, exit 2, as does ``vadgs batch --train-args``."""
+        assert main(["train", "--sample", "--out", str(tmp_path / "x"), *flags]) == 2
+        assert _error_line(capsys) == f"vadgs train: error: {line}"
+        assert not (tmp_path / "x").exists()
+        assert main(["batch", "a", "--out", str(tmp_path / "b"), f"--train-args={' '.join(flags)}"]) == 2
+        assert _error_line(capsys) == f"vadgs batch: error: {line}"
+        assert not (tmp_path / "b").exists()
 
     def test_out_is_a_file(self, tmp_path, capsys):
         f = tmp_path / "file.txt"

@@ -158,6 +158,104 @@ class TestRemovedSettings:
                 config_from_dict(_Cfg, {"b": value}, "x")
 
 
+@dataclass(frozen=True)
+class _Moved:
+    """A config whose ``a`` and ``c`` moved into ``inner`` (``inner.a``, ``inner.b``)."""
+
+    inner: _Inner = field(default_factory=_Inner)
+    flag: bool = False
+    MOVED_FIELDS: ClassVar[dict[str, str]] = {"a": "inner.a", "c": "inner.b"}
+
+
+class TestMovedSettings:
+    """Settings moved into a nested config (``MOVED_FIELDS``): older files (checkpoints,
+    ``config.json``, ``--config`` files) give them flat; they load into the new place."""
+
+    OLD: ClassVar[
+        dict
+    ] = {  # the geometric loss as TrainConfig held it before issue 41, item 3: flat, non-default
+        "lambda_normal": 0.05,
+        "lambda_hard": 0.3,
+        "lambda_soft": 0.2,
+        "hard_until": 0.5,
+        "hard_every": 2,
+        "hard_stride": 1,
+        "hard_fused": True,
+    }
+
+    def test_flat_geometric_settings_load_into_geometry(self):
+        from vadgs.train.losses import GeometricLossConfig
+
+        assert set(TrainConfig.MOVED_FIELDS) == set(self.OLD)
+        old = {**TrainConfig(iterations=7).to_dict(), **self.OLD}
+        del old["geometry"]  # an older file has no section
+        data = json.loads(json.dumps(old))
+        config = TrainConfig.from_dict(data)
+        assert data == old  # the caller's dict is not changed
+        assert config.geometry == GeometricLossConfig(**self.OLD) and config.iterations == 7
+        assert config == TrainConfig(iterations=7, geometry=GeometricLossConfig(**self.OLD))
+        new = config.to_dict()
+        assert new["geometry"] == self.OLD and not set(self.OLD) & set(new)  # written in the new layout
+        assert TrainConfig.from_dict(json.loads(json.dumps(new))) == config
+
+    def test_one_flat_setting_keeps_the_other_defaults(self):
+        config = TrainConfig.from_dict({"lambda_hard": 0.3})
+        assert config.geometry.lambda_hard == 0.3
+        assert dataclasses.replace(config.geometry, lambda_hard=0.1) == TrainConfig().geometry
+        config = TrainConfig.from_dict({"lambda_hard": 0.3, "geometry": {"hard_every": 2}})
+        assert (config.geometry.lambda_hard, config.geometry.hard_every) == (0.3, 2)
+
+    def test_old_and_new_key(self):
+        same = TrainConfig.from_dict({"lambda_hard": 0.3, "geometry": {"lambda_hard": 0.3}})
+        assert same.geometry.lambda_hard == 0.3
+        with pytest.raises(
+            ValueError,
+            match=r"^config\.lambda_hard and config\.geometry\.lambda_hard: two values of one setting "
+            r"\(lambda_hard moved to geometry\.lambda_hard\), 0\.3 and 0\.5; give one, as "
+            r"config\.geometry\.lambda_hard$",
+        ):
+            TrainConfig.from_dict({"lambda_hard": 0.3, "geometry": {"lambda_hard": 0.5}})
+        with pytest.raises(ValueError, match=r"config\.hard_fused and config\.geometry\.hard_fused"):
+            TrainConfig.from_dict({"hard_fused": True, "geometry": {"hard_fused": 1}})
+
+    def test_old_values_are_checked_at_their_new_path(self):
+        with pytest.raises(ValueError, match=r"^config\.geometry\.hard_every: expected int, got str 'x'$"):
+            TrainConfig.from_dict({"hard_every": "x"})
+        with pytest.raises(
+            ValueError, match=r"^config\.geometry: hard_every: expected an integer >= 1, got 0$"
+        ):
+            TrainConfig.from_dict({"hard_every": 0})
+        with pytest.raises(
+            ValueError, match=r"^config: geometry\.hard_fused: expected geometry\.hard_stride 1"
+        ):
+            TrainConfig.from_dict({"hard_fused": True})  # hard_stride 2 by default
+
+    def test_replace_names_the_new_field(self):
+        with pytest.raises(ValueError, match=r"^config: 'lambda_hard' is now 'geometry\.lambda_hard'$"):
+            TrainConfig().replace(lambda_hard=0.3)
+        assert TrainConfig().replace(**{"geometry.lambda_hard": 0.3}).geometry.lambda_hard == 0.3
+
+    def test_mechanism(self):
+        """Generic: any dataclass's ``MOVED_FIELDS``, nested sections copied, errors at ``where``."""
+        data = {"a": 2, "c": 0.5, "flag": True}
+        assert config_from_dict(_Moved, data, "x") == _Moved(_Inner(2, 0.5), True)
+        assert data == {"a": 2, "c": 0.5, "flag": True}
+        inner = {"a": 2}
+        assert config_from_dict(_Moved, {"c": 1, "inner": inner}, "x") == _Moved(_Inner(2, 1.0))
+        assert inner == {"a": 2}
+        assert config_from_dict(_Moved, {"a": 3, "inner": _Inner(3, 2.0)}, "x") == _Moved(_Inner(3, 2.0))
+        with pytest.raises(ValueError, match=r"^x\.a and x\.inner\.a: two values of one setting .* 3 and 1;"):
+            config_from_dict(_Moved, {"a": 3, "inner": _Inner()}, "x")  # an instance gives every field
+        with pytest.raises(ValueError, match=r"^x\.a and x\.inner\.a: two values of one setting"):
+            config_from_dict(_Moved, {"a": 3, "inner": {"a": 4}}, "x")
+        with pytest.raises(
+            ValueError, match=r"^x\.inner: expected an object \(it holds x\.inner\.a, given as x\.a\)"
+        ):
+            config_from_dict(_Moved, {"a": 3, "inner": 5}, "x")
+        with pytest.raises(ValueError, match=r"^x: unknown key\(s\) \['d'\]"):
+            config_from_dict(_Moved, {"d": 1}, "x")
+
+
 class TestDeviceBackend:
     """``vadgs train --device cuda`` renders with gsplat unless the backend is set explicitly."""
 

@@ -259,9 +259,9 @@ def flag_cases() -> None:
     for flags, what in [
         (["--lr.means", "nan"], "`--lr.means nan`"),
         (["--lr.sh-rest", "-1e-3"], "`--lr.sh-rest -1e-3`"),
-        (["--lambda-soft", "inf"], "`--lambda-soft inf`"),
+        (["--geometry.lambda-soft", "inf"], "`--geometry.lambda-soft inf`"),
         (["--ssim-weight", "1.5"], "`--ssim-weight 1.5`"),
-        (["--hard-until", "-0.1"], "`--hard-until -0.1`"),
+        (["--geometry.hard-until", "-0.1"], "`--geometry.hard-until -0.1`"),
         (["--iterations", "0"], "`--iterations 0`"),
         (["--scale", "1e6"], "`--scale 1e6`"),
         (["--scale", "1e-7"], "`--scale 1e-7`"),

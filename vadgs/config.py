@@ -13,6 +13,11 @@ its class attribute ``REMOVED_FIELDS`` (name → :class:`RemovedField`), and suc
 (the setting ignored, with a one-line warning) as long as the run it describes behaves the same
 without it; otherwise the error names the setting and says what to do.
 
+A setting moved into a nested config (``TrainConfig.lambda_hard`` → ``TrainConfig.geometry.lambda_hard``)
+is listed in the class attribute ``MOVED_FIELDS`` (old name → new dotted path, relative to the
+dataclass): an older file's value is read into its new place, silently (the file describes the same
+run); a file that gives both, with different values, is an error naming both.
+
 Example:
     >>> from vadgs.render import RasterConfig
     >>> config_from_dict(RasterConfig, {"near": 0.1, "tile_size": 16}).tile_size
@@ -65,6 +70,50 @@ def _drop_removed(cls: type, data: dict[str, Any], fields: Any, where: str) -> d
         spec = removed[key]
         warnings.warn(f"{where}.{key}: a removed setting, ignored: {spec.note}", UserWarning, stacklevel=3)
     return {k: v for k, v in data.items() if k not in gone}
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    return isinstance(a, bool) == isinstance(b, bool) and a == b
+
+
+def _move_fields(cls: type, data: dict[str, Any], fields: Any, where: str) -> dict[str, Any]:
+    """``data`` with the keys of ``cls.MOVED_FIELDS`` put at their new (dotted) paths.
+
+    The nested dicts on the way are copied, not changed in place. A key given at both places with
+    different values is a :class:`ValueError` naming both.
+    """
+    moved: dict[str, str] = getattr(cls, "MOVED_FIELDS", None) or {}
+    old = [k for k in data if k in moved and k not in fields]
+    if not old:
+        return data
+    out = dict(data)
+    for key in old:
+        value = out.pop(key)
+        *parents, leaf = moved[key].split(".")
+        target = out
+        for i, part in enumerate(parents):
+            sub = target.get(part)
+            if sub is None:
+                sub = {}
+            elif dataclasses.is_dataclass(sub) and not isinstance(sub, type):
+                sub = dataclasses.asdict(sub)
+            elif isinstance(sub, dict):
+                sub = dict(sub)
+            else:
+                path = ".".join(parents[: i + 1])
+                raise ValueError(
+                    f"{where}.{path}: expected an object (it holds {where}.{moved[key]}, given as "
+                    f"{where}.{key}), got {_got(sub)}"
+                )
+            target[part] = sub
+            target = sub
+        if leaf in target and not _same_value(target[leaf], value):
+            raise ValueError(
+                f"{where}.{key} and {where}.{moved[key]}: two values of one setting ({key} moved to "
+                f"{moved[key]}), {value!r} and {target[leaf]!r}; give one, as {where}.{moved[key]}"
+            )
+        target[leaf] = value
+    return out
 
 
 def _type_name(tp: Any) -> str:
@@ -157,7 +206,8 @@ def config_from_dict(cls: type[T], data: Any, where: str = "config") -> T:
     Args:
         cls: a dataclass type, possibly with nested dataclass fields.
         data: a dict of field values (nested dicts for nested dataclasses), e.g. the output of
-            :func:`dataclasses.asdict`; missing fields take their defaults.
+            :func:`dataclasses.asdict`; missing fields take their defaults. Keys of
+            ``cls.MOVED_FIELDS`` are read at their new paths (the dict itself is not changed).
         where: the name of ``data`` in error messages (field paths are appended to it).
 
     Returns:
@@ -170,12 +220,14 @@ def config_from_dict(cls: type[T], data: Any, where: str = "config") -> T:
         ValueError: on a key that is not a field, or a value of the wrong type; the message names
             the field's path, the expected and the actual type (``config.lr.means: expected
             float, got str 'x'``). A removed setting with a value the run cannot do without names
-            the setting and what to do. Errors raised by the dataclass's own ``__post_init__``
+            the setting and what to do; a moved setting given at its old and its new path with
+            different values names both. Errors raised by the dataclass's own ``__post_init__``
             (range checks) are re-raised prefixed with ``where``.
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of {cls.__name__} fields, got {_got(data)}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    data = _move_fields(cls, data, fields, where)
     data = _drop_removed(cls, data, fields, where)
     unknown = sorted(set(data) - set(fields))
     if unknown:

@@ -109,8 +109,11 @@ def test_threads_cover_loading_and_the_final_evaluation(tmp_path, monkeypatch):
         (["--lr.opacity-logits", "-0.1"], "--lr.opacity-logits: expected a finite number >= 0, got -0.1"),
         (["--lr.sh-dc", "nan"], "--lr.sh-dc: expected a finite number >= 0, got nan"),
         (["--lambda-lidar", "nan"], "--lambda-lidar: expected a finite number >= 0, got nan"),
-        (["--lambda-hard", "-1"], "--lambda-hard: expected a finite number >= 0, got -1.0"),
-        (["--lambda-normal", "inf"], "--lambda-normal: expected a finite number >= 0, got inf"),
+        (["--geometry.lambda-hard", "-1"], "--geometry.lambda-hard: expected a finite number >= 0, got -1.0"),
+        (
+            ["--geometry.lambda-normal", "inf"],
+            "--geometry.lambda-normal: expected a finite number >= 0, got inf",
+        ),
         (["--ssim-weight", "2"], "--ssim-weight: expected a number in [0, 1], got 2.0"),
         (["--iterations", "0"], "--iterations: expected >= 1, got 0"),
         (

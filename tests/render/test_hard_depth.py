@@ -103,6 +103,7 @@ class TestTrainerFusedHardDepth:
         """One step with the hard loss: the fused pass gives the two-render step's gradients."""
         from vadgs.data import load_scene, sample_scene_path
         from vadgs.train.config import TrainConfig
+        from vadgs.train.losses import GeometricLossConfig
         from vadgs.train.trainer import Trainer
         from vadgs.train.vad import VisibilityDensifyConfig
 
@@ -110,7 +111,8 @@ class TestTrainerFusedHardDepth:
         results = []
         for fused in (False, True):
             cfg = TrainConfig(
-                iterations=10, checkpoint_every=10**6, hard_every=1, hard_stride=1, hard_fused=fused,
+                iterations=10, checkpoint_every=10**6,
+                geometry=GeometricLossConfig(hard_every=1, hard_stride=1, hard_fused=fused),
                 vad=VisibilityDensifyConfig(every_cycles=10**6),
             )  # fmt: skip
             trainer = Trainer(scene, cfg, progress=False)
@@ -131,8 +133,13 @@ class TestTrainerFusedHardDepth:
 
     def test_config_errors(self):
         from vadgs.train.config import TrainConfig
+        from vadgs.train.losses import GeometricLossConfig
 
-        with pytest.raises(ValueError, match="hard_fused: expected hard_stride 1"):
-            TrainConfig(hard_fused=True)  # hard_stride 2 by default
+        with pytest.raises(ValueError, match=r"^geometry\.hard_fused: expected geometry\.hard_stride 1"):
+            TrainConfig(geometry=GeometricLossConfig(hard_fused=True))  # hard_stride 2 by default
+        fused = GeometricLossConfig(hard_fused=True, hard_stride=1)
         with pytest.raises(ValueError, match="backend 'gsplat'"):
-            TrainConfig(hard_fused=True, hard_stride=1, raster=RasterConfig(backend="gsplat"))
+            TrainConfig(geometry=fused, raster=RasterConfig(backend="gsplat"))
+        with pytest.raises(ValueError, match="antialiased True"):
+            TrainConfig(geometry=fused, raster=RasterConfig(antialiased=True))
+        assert TrainConfig(geometry=fused).geometry.hard_fused

@@ -86,9 +86,14 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
     for name, value in changed.items():
         cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, **{name: value}))
         assert _resume_changes(cmd, out) == {name: value}
-    for name, value in (("seed", 3), ("hard_every", 2), ("lambda_hard", 0.5)):
-        cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, **{name: value}))
-        with pytest.raises(ValueError, match="--" + name.replace("_", "-") + " cannot be honoured"):
+    cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, seed=3))
+    with pytest.raises(ValueError, match="--seed cannot be honoured"):
+        _resume_changes(cmd, out)
+    for name, value in (("hard_every", 2), ("lambda_hard", 0.5)):
+        geometry = dataclasses.replace(stored.train.geometry, **{name: value})
+        cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, geometry=geometry))
+        flag = r"--geometry\." + name.replace("_", "-")
+        with pytest.raises(ValueError, match=flag + " cannot be honoured"):
             _resume_changes(cmd, out)
     strategy = dataclasses.replace(stored.train.strategy, max_gaussians=5)
     with pytest.raises(ValueError, match=r"--strategy\.max-gaussians cannot be honoured"):
@@ -165,3 +170,61 @@ def test_older_runs_with_removed_settings(tmp_path, capsys):
         "vadgs eval: error: config.vad.visibility: a removed setting, False no longer possible"
     )
     assert err.endswith("is TrainConfig.vad = None: vadgs train without --vad") and "\n" not in err
+
+
+def test_older_runs_with_flat_geometric_settings(tmp_path, capsys):
+    """A run written before issue 41 moved the geometric loss settings into ``geometry`` (flat
+    ``lambda_hard``, ``hard_every``, ... in its checkpoint and ``config.json``) resumes with its own
+    values, evaluates and serves as ``--config``, without a warning; the files it writes again are in
+    the new layout. A ``--config`` file giving one setting at both places, differently, is refused
+    naming both."""
+    import warnings
+
+    import torch
+
+    from vadgs.train.checkpoint import CHECKPOINT_NAME, checkpoint_checksum, load_checkpoint
+
+    out = tmp_path / "run"
+    tiny = ["--scale", "0.25", "--no-progress", "--init.max-points", "300", "--init.sh-degree", "0"]
+    geometry = {"lambda_normal": 0.05, "lambda_hard": 0.3, "lambda_soft": 0.2, "hard_until": 0.5,
+                "hard_every": 2, "hard_stride": 1, "hard_fused": True}  # fmt: skip
+    flags = [f"--geometry.{k.replace('_', '-')}" for k in geometry if k != "hard_fused"]
+    values = [str(v) for k, v in geometry.items() if k != "hard_fused"]
+    flags = [w for pair in zip(flags, values) for w in pair] + ["--geometry.hard-fused"]
+    assert main(["train", "--sample", "--out", str(out), "--iterations", "3", *flags, *tiny]) == 0
+    assert load_checkpoint(out).train_config().geometry.lambda_hard == 0.3
+
+    path = out / CHECKPOINT_NAME  # as an older vadgs wrote them: the seven settings flat
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    assert ckpt["config"].pop("geometry") == geometry
+    ckpt["config"].update(geometry)
+    ckpt["checksum"] = checkpoint_checksum(ckpt)
+    torch.save(ckpt, path)
+    meta = json.loads((out / "config.json").read_text())
+    meta["config"] = ckpt["config"]
+    (out / "config.json").write_text(json.dumps(meta))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # nothing to say: the same run
+        assert main(["eval", str(out), "--no-progress"]) == 0
+        assert main(["train", "--out", str(out), "--resume", "--iterations", "4", "--no-progress"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["steps"] == 4
+    written = json.loads((out / "config.json").read_text())["config"]
+    assert written["geometry"] == geometry and not set(geometry) & set(written)
+    assert load_checkpoint(out).train_config().geometry.hard_every == 2
+
+    config = tmp_path / "old_config.json"
+    config.write_text(json.dumps({**meta["config"], "iterations": 2}))
+    run2 = tmp_path / "run2"
+    assert main(["train", "--sample", "--out", str(run2), "--config", str(config), *tiny]) == 0
+    assert json.loads((run2 / "config.json").read_text())["config"]["geometry"] == geometry
+
+    config.write_text(json.dumps({"lambda_hard": 0.3, "geometry": {"lambda_hard": 0.5}}))
+    capsys.readouterr()
+    assert main(["train", "--sample", "--out", str(tmp_path / "run3"), "--config", str(config)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(
+        f"vadgs train: error: --config {config}.lambda_hard and --config {config}.geometry.lambda_hard: "
+        "two values of one setting"
+    ), err
+    assert "\n" not in err and not (tmp_path / "run3").exists()

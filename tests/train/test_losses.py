@@ -61,3 +61,65 @@ class TestDepthAndNormal:
     def test_hard_switched_off_after_80_percent(self):
         w = [L.geometric_weights(s, 100)["hard"] for s in range(100)]
         assert w[:80] == [0.1] * 80 and w[80:] == [0.0] * 20
+
+
+class TestGeometricLossConfig:
+    """The paper's geometric loss settings in one frozen, checked config (``TrainConfig.geometry``)."""
+
+    def test_paper_defaults_and_weights(self):
+        g = L.GeometricLossConfig()
+        assert (g.lambda_normal, g.lambda_hard, g.lambda_soft, g.hard_until) == (0.02, 0.1, 0.1, 0.8)
+        assert (g.hard_every, g.hard_stride, g.hard_fused) == (8, 2, False)
+        for step in (0, 79, 80, 99):
+            assert g.weights(step, 100) == L.geometric_weights(step, 100)
+        assert g.weights(79, 100) == {"normal": 0.02, "hard": 0.1, "soft": 0.1}
+        assert g.weights(80, 100) == {"normal": 0.02, "hard": 0.0, "soft": 0.1}
+
+    def test_geometric_weights_is_the_config(self):
+        """The function keeps its signature, with the config's defaults (written once)."""
+        import inspect
+
+        params = inspect.signature(L.geometric_weights).parameters
+        for name in ("lambda_normal", "lambda_hard", "lambda_soft", "hard_until"):
+            assert params[name].default == getattr(L.GeometricLossConfig(), name)
+        g = L.GeometricLossConfig(lambda_normal=0.5, lambda_hard=0.3, lambda_soft=0.2, hard_until=0.5)
+        for step in (0, 49, 50, 99):
+            assert g.weights(step, 100) == L.geometric_weights(step, 100, 0.5, 0.3, 0.2, 0.5)
+        with pytest.raises(ValueError, match="lambda_hard: expected a finite number >= 0, got -1"):
+            L.geometric_weights(0, 100, lambda_hard=-1)
+
+    def test_hard_applies(self):
+        g = L.GeometricLossConfig(hard_every=4)
+        applies = [s for s in range(100) if g.hard_applies(s, 100)]
+        assert applies == list(range(0, 80, 4))  # every 4th step, until 80 % of the run
+        assert not L.GeometricLossConfig(lambda_hard=0.0, hard_every=1).hard_applies(0, 100)
+        assert not L.GeometricLossConfig(hard_until=0.0, hard_every=1).hard_applies(0, 100)
+        every = L.GeometricLossConfig(hard_every=1)
+        assert [s for s in range(10) if every.hard_applies(s, 10)] == list(range(8))
+
+    @pytest.mark.parametrize(
+        ("changes", "message"),
+        [
+            ({"lambda_normal": -0.1}, "lambda_normal: expected a finite number >= 0, got -0.1"),
+            ({"lambda_hard": float("nan")}, "lambda_hard: expected a finite number >= 0, got nan"),
+            ({"lambda_soft": float("inf")}, "lambda_soft: expected a finite number >= 0, got inf"),
+            ({"lambda_soft": "0.1"}, "lambda_soft: expected a finite number >= 0, got str '0.1'"),
+            ({"hard_until": 1.5}, r"hard_until: expected a finite number in \[0, 1\], got 1.5"),
+            ({"hard_until": -0.1}, r"hard_until: expected a finite number in \[0, 1\], got -0.1"),
+            ({"hard_every": 0}, "hard_every: expected an integer >= 1, got 0"),
+            ({"hard_every": 2.5}, "hard_every: expected an integer >= 1, got 2.5"),
+            ({"hard_stride": 0}, "hard_stride: expected an integer >= 1, got 0"),
+            ({"hard_fused": 1}, "hard_fused: expected True or False, got 1"),
+        ],
+    )
+    def test_checks(self, changes, message):
+        with pytest.raises(ValueError, match=f"^{message}$"):
+            L.GeometricLossConfig(**changes)
+
+    def test_frozen_and_normalised(self):
+        import dataclasses
+
+        g = L.GeometricLossConfig(lambda_hard=1, hard_until=1)
+        assert type(g.lambda_hard) is float and type(g.hard_until) is float
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            g.lambda_hard = 0.5  # type: ignore[misc]

@@ -7,6 +7,7 @@ import torch
 
 from vadgs.data.colmap import ColmapPoints
 from vadgs.data.scene import Track
+from vadgs.train.losses import GeometricLossConfig
 from vadgs.train.trainer import CHECKPOINT_NAME, NonFiniteLossError, TrainConfig, Trainer, load_checkpoint
 
 
@@ -180,14 +181,16 @@ class TestTrainer:
 
 class TestHardDepth:
     def test_stride_one_is_the_opaque_render(self, tiny_scene, tiny_config):
-        tr = Trainer(tiny_scene, dataclasses.replace(tiny_config, hard_stride=1), progress=False)
+        config = dataclasses.replace(tiny_config, geometry=GeometricLossConfig(hard_stride=1))
+        tr = Trainer(tiny_scene, config, progress=False)
         v = tr.train_views[0]
         with torch.no_grad():
             full = tr.render_view(v, opacity_override=1.0).raster.depth
             assert torch.equal(tr.render_hard_depth(v), full)
 
     def test_strided_render_is_the_full_render_at_those_pixels(self, tiny_scene, tiny_config):
-        tr = Trainer(tiny_scene, dataclasses.replace(tiny_config, hard_stride=2), progress=False)
+        config = dataclasses.replace(tiny_config, geometry=GeometricLossConfig(hard_stride=2))
+        tr = Trainer(tiny_scene, config, progress=False)
         v = tr.train_views[0]
         with torch.no_grad():
             full = tr.render_view(v, opacity_override=1.0).raster.depth
@@ -217,5 +220,5 @@ class TestHardDepth:
             L.geometric_losses(t, d, torch.zeros(1, 3, 5, 7), w, hard, hard_stride=1)
 
     def test_bad_stride(self):
-        with pytest.raises(ValueError, match="hard_stride"):
-            TrainConfig(hard_stride=0)
+        with pytest.raises(ValueError, match="hard_stride: expected an integer >= 1, got 0"):
+            TrainConfig(geometry=GeometricLossConfig(hard_stride=0))

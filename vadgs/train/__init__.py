@@ -4,6 +4,7 @@ from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affi
 from vadgs.train.config import TrainConfig
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.losses import (
+    GeometricLossConfig,
     color_loss,
     depth_loss,
     depth_loss_hard,
@@ -35,6 +36,7 @@ __all__ = [
     "EvalMetrics",
     "GaussianModel",
     "Gaussians",
+    "GeometricLossConfig",
     "GeometryTargets",
     "InitConfig",
     "ModelRender",

@@ -10,15 +10,23 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
-from vadgs.checks import MAX_THREADS, check_at_least, check_at_most, check_non_negative, check_positive
+from vadgs.checks import (
+    MAX_THREADS,
+    check_at_least,
+    check_at_most,
+    check_non_negative,
+    check_positive,
+    instance_field,
+)
 from vadgs.data.cache import DEFAULT_CACHE_GB
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
 from vadgs.train.init import InitConfig
+from vadgs.train.losses import GeometricLossConfig
 from vadgs.train.strategy import DefaultStrategyConfig
 from vadgs.train.vad import VisibilityDensifyConfig
 
@@ -70,21 +78,10 @@ class TrainConfig:
         sh_degree_interval: the active SH degree grows by one every this many steps.
         lambda_lidar: weight of the relative L1 between the rendered depth and the view's own
             LiDAR sweep projected into it (0 disables; the baseline's only geometric term).
-        lambda_normal, lambda_hard, lambda_soft, hard_until: the paper's geometric loss weights
-            (applied to priors: VAD-GS's, or a :class:`GeometryTargets` provider's).
-        hard_every: the hard depth loss (an extra depth-only render with opacities fixed to 1,
-            :meth:`~vadgs.train.model.GaussianModel.render_depth`) is applied on every
-            ``hard_every``-th step only, to bound its cost (1: the paper's schedule). 8 by
-            default: on street_a 1.26x the baseline's training time, PSNR 29.52 dB, the sign 93 %
-            complete (docs/results.md, round 14).
-        hard_stride: the hard depth is rendered on every ``hard_stride``-th pixel row and column
-            (a camera with ``fx, fy, cx, cy`` divided by it) and compared with the target depth
-            there, to bound its cost further (1: every pixel). 2 by default: on street_a PSNR
-            29.64 dB against 29.59 at 1, the other metrics equal (docs/results.md).
-        hard_fused: composite the hard depth in the step's own render pass (the same projection
-            and tile lists, forward and backward: ``rasterize_gaussians(hard_depth=True)``)
-            instead of a second render. Needs ``hard_stride`` 1, the torch backend and no
-            antialiasing. Off by default (docs/benchmarks.md: the measured trade).
+        geometry: :class:`~vadgs.train.losses.GeometricLossConfig`: the paper's geometric loss
+            (normal, hard and soft depth on priors: VAD-GS's, or a GeometryTargets provider's),
+            its weights, the hard term's switch-off after 80 % of the iterations and the settings
+            that bound its cost. Older files' flat lambda_normal, lambda_hard, ... are read into it.
         vad: :class:`~vadgs.train.vad.VisibilityDensifyConfig` to train with VAD-GS's
             visibility-aware densification (extending ``strategy``); None: standard ADC only.
             Stored in checkpoints: a resumed run continues with the same strategy.
@@ -126,13 +123,7 @@ class TrainConfig:
     ssim_weight: float = 0.2
     sh_degree_interval: int = 1000
     lambda_lidar: float = 0.05
-    lambda_normal: float = 0.02
-    lambda_hard: float = 0.1
-    lambda_soft: float = 0.1
-    hard_until: float = 0.8
-    hard_every: int = 8
-    hard_stride: int = 2
-    hard_fused: bool = False
+    geometry: GeometricLossConfig = field(default_factory=GeometricLossConfig)
     vad: VisibilityDensifyConfig | None = None
     appearance: AppearanceConfig | None = None
     device: str = "cpu"
@@ -146,17 +137,28 @@ class TrainConfig:
     diverge_share: float = 0.2
     diverge_loss_factor: float = 10.0
 
+    MOVED_FIELDS: ClassVar[dict[str, str]] = {
+        name: f"geometry.{name}"
+        for name in (
+            "lambda_normal",
+            "lambda_hard",
+            "lambda_soft",
+            "hard_until",
+            "hard_every",
+            "hard_stride",
+            "hard_fused",
+        )
+    }
+    """Settings older runs' files hold flat, now in ``geometry`` (:func:`vadgs.config.config_from_dict`)."""
+
     def __post_init__(self) -> None:
         check_at_least(self, 1, "iterations")
-        check_non_negative(
-            self, "ssim_weight", "lambda_lidar", "lambda_normal", "lambda_hard", "lambda_soft", "hard_until"
-        )
+        check_non_negative(self, "ssim_weight", "lambda_lidar")
         check_non_negative(
             self, "checkpoint_minutes", "diverge_distance", "diverge_share", "diverge_loss_factor"
         )
-        for name in ("ssim_weight", "hard_until"):
-            if getattr(self, name) > 1:
-                raise ValueError(f"{name}: expected a number in [0, 1], got {getattr(self, name)}")
+        if self.ssim_weight > 1:
+            raise ValueError(f"ssim_weight: expected a number in [0, 1], got {self.ssim_weight}")
         if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
             raise ValueError(
                 f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"
@@ -165,14 +167,14 @@ class TrainConfig:
         if not (math.isfinite(self.cache_gb) and self.cache_gb > 0):
             raise ValueError(f"cache_gb: expected a finite number of GB > 0, got {self.cache_gb}")
         check_at_most(self, MAX_THREADS, "threads")
-        check_at_least(self, 1, "sh_degree_interval", "log_every", "hard_every", "hard_stride")
-        if self.hard_fused and (
-            self.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased
-        ):
+        check_at_least(self, 1, "sh_degree_interval", "log_every")
+        instance_field(GeometricLossConfig)("geometry", self.geometry)
+        g = self.geometry
+        if g.hard_fused and (g.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased):
             raise ValueError(
-                "hard_fused: expected hard_stride 1, raster.backend 'torch' and no antialiasing, got "
-                f"hard_stride {self.hard_stride}, backend {self.raster.backend!r}, "
-                f"antialiased {self.raster.antialiased}"
+                "geometry.hard_fused: expected geometry.hard_stride 1, raster.backend 'torch' and no "
+                f"antialiasing, got geometry.hard_stride {g.hard_stride}, backend "
+                f"{self.raster.backend!r}, antialiased {self.raster.antialiased}"
             )
         try:
             torch.device(self.device)
@@ -206,6 +208,8 @@ class TrainConfig:
         """A copy with changes; nested fields as ``"init.max_points"``."""
         flat = self.to_dict()
         for k, v in changes.items():
+            if k in self.MOVED_FIELDS:
+                raise ValueError(f"config: {k!r} is now {self.MOVED_FIELDS[k]!r}")
             parts = k.split(".")
             target = flat
             for p in parts[:-1]:

@@ -7,7 +7,9 @@ r"""Training losses: the colour loss and the paper's geometric losses (Eq. "Loss
 
 with :math:`\lambda_\text{normal} = 0.02`, :math:`\lambda_\text{hard} = \lambda_\text{soft} = 0.1`
 and :math:`\lambda_\text{hard}` switched off after 80 % of the iterations (paper, "Implementation
-Details"; :func:`geometric_weights`).
+Details"). These settings, and the ones that bound the hard loss's cost, are one
+:class:`GeometricLossConfig` (``TrainConfig.geometry``); :func:`geometric_weights` gives its weights
+at a step to any loop.
 
 Our reading of the paper (it gives no formulas): both depth losses compare a rendered z-depth with
 a target depth (voxel-rasterised / MVS depth in VAD-GS, projected LiDAR in the baseline) by the
@@ -30,15 +32,17 @@ by vadgs's trainer and by any other loop (``examples/gsplat_loop_vad.py``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from kornia.metrics import ssim
 
-from vadgs.checks import check_shape
+from vadgs.checks import FieldCheck, bool_field, check_fields, check_shape, float_field, int_field
 
 __all__ = [
+    "GeometricLossConfig",
     "GeometryTargets",
     "color_loss",
     "depth_loss",
@@ -206,22 +210,132 @@ def depth_loss_hard(
     return depth_loss(depth_hard, target, mask)
 
 
+@dataclass(frozen=True)
+class GeometricLossConfig:
+    r"""The paper's geometric loss: weights, the hard term's switch-off and cost (``TrainConfig.geometry``).
+
+    The loss of a step (paper, Eq. "Loss Function" and "Implementation Details"):
+
+    .. math::
+
+        \mathcal{L} = \mathcal{L}_\text{color} + 0.02\,\mathcal{L}_\text{normal}
+            + 0.1\,(\mathcal{L}_\text{hard} + \mathcal{L}_\text{soft})
+
+    :math:`\mathcal{L}_\text{normal}` compares the rendered normals with the priors' normals
+    (:func:`normal_loss`); :math:`\mathcal{L}_\text{soft}` and :math:`\mathcal{L}_\text{hard}` the
+    rendered depth with the priors' depth (:func:`depth_loss_soft`: the learned opacities;
+    :func:`depth_loss_hard`: every opacity fixed to 1, so a floater cannot escape by fading). The
+    hard term is switched off after 80 % of the iterations (``hard_until``): too strong a
+    constraint once the geometry has settled. :meth:`weights` gives the three weights at a step.
+
+    The priors are VAD-GS's (:meth:`vadgs.train.vad.VisibilityAwareDensification.geometry_targets`:
+    MVS depth and normals, voxel depth where MVS has none) or any
+    :class:`GeometryTargets` provider's; a view without priors has no geometric term. The paper's
+    "w/o geometric losses" ablation is the strategy's ``VisibilityDensifyConfig.geometric_losses =
+    False`` (``--vad.geometric-losses False``): it gives no targets, which turns every geometric
+    term off whatever the weights here.
+
+    Three settings bound the hard term's cost: documented deviations from the paper (docs/train.md;
+    measured in docs/results.md and docs/benchmarks.md). ``hard_every`` 1, ``hard_stride`` 1 is the
+    paper's schedule:
+
+    - ``hard_every``: the hard term (an extra depth-only render) on every ``hard_every``-th step
+      only (:meth:`hard_applies`); the paper's: every step (1).
+    - ``hard_stride``: its depth rendered on every ``hard_stride``-th pixel row and column (a
+      camera with ``fx, fy, cx, cy`` divided by it) and compared with the targets there; the
+      paper's: every pixel (1).
+    - ``hard_fused``: composite the hard depth in the step's own render pass instead of a second
+      render (the same loss and gradients, to float32 rounding, as the second render at
+      ``hard_stride`` 1); a cost setting only, off by default.
+
+    Attributes:
+        lambda_normal: weight of the normal term (0 disables it).
+        lambda_hard: weight of the hard depth term before the switch-off (0 disables it).
+        lambda_soft: weight of the soft depth term (0 disables it).
+        hard_until: the hard term applies while ``step < hard_until * total_steps`` (in [0, 1]).
+        hard_every: the hard term is applied on every ``hard_every``-th step only. 8 by default:
+            on street_a 1.26x the baseline's training time, PSNR 29.52 dB, the sign 93 % complete
+            (docs/results.md, round 14).
+        hard_stride: the stride of the hard depth's pixels. 2 by default: on street_a PSNR 29.64
+            dB against 29.59 at 1, the other metrics equal (docs/results.md).
+        hard_fused: the hard depth composited in the step's own render pass (the same projection
+            and tile lists, forward and backward: ``rasterize_gaussians(hard_depth=True)``). Needs
+            ``hard_stride`` 1, the torch raster backend and no antialiasing (checked by
+            ``TrainConfig``). Off by default (docs/benchmarks.md: the measured trade).
+
+    Example:
+        >>> g = GeometricLossConfig()
+        >>> g.weights(0, 1000)
+        {'normal': 0.02, 'hard': 0.1, 'soft': 0.1}
+        >>> g.weights(800, 1000)["hard"], g.hard_applies(8, 1000), g.hard_applies(9, 1000)
+        (0.0, True, False)
+        >>> GeometricLossConfig(hard_every=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: hard_every: expected an integer >= 1, got 0
+    """
+
+    lambda_normal: float = 0.02
+    lambda_hard: float = 0.1
+    lambda_soft: float = 0.1
+    hard_until: float = 0.8
+    hard_every: int = 8
+    hard_stride: int = 2
+    hard_fused: bool = False
+
+    def __post_init__(self) -> None:
+        check_fields(self, _GEOMETRY_FIELDS)
+
+    def weights(self, step: int, total_steps: int) -> dict[str, float]:
+        """The weights ``{"normal", "hard", "soft"}`` at ``step`` of ``total_steps``.
+
+        ``hard`` is ``lambda_hard`` before ``hard_until * total_steps``, 0 from there on; the others
+        are constant.
+        """
+        hard = self.lambda_hard if step < self.hard_until * total_steps else 0.0
+        return {"normal": self.lambda_normal, "hard": hard, "soft": self.lambda_soft}
+
+    def hard_applies(self, step: int, total_steps: int) -> bool:
+        """Whether the hard depth term is computed at ``step``: its weight > 0 and ``step % hard_every == 0``.
+
+        (It also needs the view's target depth: a loop asks only for a view with one.)
+        """
+        return self.weights(step, total_steps)["hard"] > 0 and step % self.hard_every == 0
+
+
+_GEOMETRY_FIELDS: dict[str, FieldCheck] = {
+    "lambda_normal": float_field(0),
+    "lambda_hard": float_field(0),
+    "lambda_soft": float_field(0),
+    "hard_until": float_field(0, 1),
+    "hard_every": int_field(1),
+    "hard_stride": int_field(1),
+    "hard_fused": bool_field(),
+}
+"""The check of each :class:`GeometricLossConfig` field (:func:`vadgs.checks.check_fields`)."""
+
+
 def geometric_weights(
     step: int,
     total_steps: int,
-    lambda_normal: float = 0.02,
-    lambda_hard: float = 0.1,
-    lambda_soft: float = 0.1,
-    hard_until: float = 0.8,
+    lambda_normal: float = GeometricLossConfig.lambda_normal,
+    lambda_hard: float = GeometricLossConfig.lambda_hard,
+    lambda_soft: float = GeometricLossConfig.lambda_soft,
+    hard_until: float = GeometricLossConfig.hard_until,
 ) -> dict[str, float]:
     """The weights of the geometric losses at a step: ``λ_hard`` is 0 from ``hard_until · total_steps`` on.
+
+    :meth:`GeometricLossConfig.weights` of a config with these settings (checked; the defaults are
+    the paper's), for a loop that holds the numbers rather than the config.
 
     Example:
         >>> geometric_weights(799, 1000)["hard"], geometric_weights(800, 1000)["hard"]
         (0.1, 0.0)
     """
-    hard = lambda_hard if step < hard_until * total_steps else 0.0
-    return {"normal": lambda_normal, "hard": hard, "soft": lambda_soft}
+    config = GeometricLossConfig(
+        lambda_normal=lambda_normal, lambda_hard=lambda_hard, lambda_soft=lambda_soft, hard_until=hard_until
+    )
+    return config.weights(step, total_steps)
 
 
 def geometric_losses(
@@ -244,7 +358,8 @@ def geometric_losses(
         targets: :class:`GeometryTargets` on the device of the renders.
         depth: ``(1, 1, H, W)`` rendered expected depth.
         normals: ``(1, 3, H, W)`` rendered camera-frame normals.
-        weights: ``{"normal", "hard", "soft"}`` (:func:`geometric_weights`).
+        weights: ``{"normal", "hard", "soft"}`` (:meth:`GeometricLossConfig.weights`,
+            :func:`geometric_weights`).
         hard_depth: ``(1, 1, H, W)`` or None; with ``hard_stride`` s, ``(1, 1, ceil(H / s),
             ceil(W / s))``: the depth at every s-th pixel row and column, compared with the
             targets there.

@@ -33,7 +33,8 @@ class Objective:
 
     Args:
         scene: the scene whose views are trained.
-        config: the run's :class:`~vadgs.train.config.TrainConfig` (weights, schedule, hard stride).
+        config: the run's :class:`~vadgs.train.config.TrainConfig` (its ``geometry``: the geometric
+            losses' weights, schedule and hard stride).
         device: where the loss is computed (images and LiDAR depth are moved there per step).
         appearance: the appearance model, or None.
         geometry_targets: ``view -> GeometryTargets | None``, the geometric losses' priors, or None.
@@ -84,25 +85,17 @@ class Objective:
         """A render's colour ``(1, 3, H, W)`` after the view's appearance transform, if any."""
         return correct_view(self.appearance, self.scene, view, color, held_out=False)
 
-    def _weights(self, step: int) -> dict[str, float]:
-        cfg = self.config
-        return L.geometric_weights(
-            step, cfg.iterations, cfg.lambda_normal, cfg.lambda_hard, cfg.lambda_soft, cfg.hard_until
-        )
-
-    def _hard_applies(self, step: int, w: dict[str, float], targets: GeometryTargets | None) -> bool:
-        return (
-            targets is not None
-            and w["hard"] > 0
-            and targets.depth is not None
-            and step % self.config.hard_every == 0
-        )
-
     def wants_hard(self, step: int, view: int) -> bool:
-        """Whether the step's loss includes the hard depth term (so its render may composite it)."""
-        if self.geometry_targets is None or not self._weights(step)["hard"] > 0:
+        """Whether the step's loss includes the hard depth term (so its render may composite it).
+
+        :meth:`~vadgs.train.losses.GeometricLossConfig.hard_applies` at ``step``, for a view with a
+        target depth.
+        """
+        cfg = self.config
+        if self.geometry_targets is None or not cfg.geometry.hard_applies(step, cfg.iterations):
             return False
-        return self._hard_applies(step, self._weights(step), self.geometry_targets(view))
+        targets = self.geometry_targets(view)
+        return targets is not None and targets.depth is not None
 
     def __call__(
         self, step: int, view: int, out: ModelRender, render_hard: Callable[[int, int], torch.Tensor]
@@ -115,7 +108,7 @@ class Objective:
             out: its raw render; the colour loss compares its :meth:`corrected_color` with the
                 image; ``extra_losses`` get it as given.
             render_hard: ``(view, s) -> (1, 1, ceil(H/s), ceil(W/s))`` the view's depth with every
-                opacity 1 on every ``s``-th pixel row and column (``s = config.hard_stride``, the
+                opacity 1 on every ``s``-th pixel row and column (``s = config.geometry.hard_stride``, the
                 stride the targets are sampled at); called on the steps the hard depth loss applies.
         """
         cfg = self.config
@@ -134,12 +127,13 @@ class Objective:
         targets = self.geometry_targets(view) if self.geometry_targets is not None else None
         if targets is not None:
             targets = targets.to(self.device)
-            w = self._weights(step)
+            geo = cfg.geometry
+            w = geo.weights(step, cfg.iterations)
             hard = None
-            if self._hard_applies(step, w, targets):
-                hard = render_hard(view, cfg.hard_stride)
+            if targets.depth is not None and geo.hard_applies(step, cfg.iterations):
+                hard = render_hard(view, geo.hard_stride)
             terms.update(
-                L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, cfg.hard_stride)
+                L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, geo.hard_stride)
             )
         if self.extra_losses is not None:
             terms.update(self.extra_losses(step, out, view))

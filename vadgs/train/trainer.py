@@ -431,11 +431,11 @@ class Trainer:
     def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
         """The depth ``(1, 1, ceil(H / s), ceil(W / s))`` of a view with every opacity fixed to 1.
 
-        Rendered on every ``s = stride``-th pixel row and column (default ``config.hard_stride``;
+        Rendered on every ``s = stride``-th pixel row and column (default ``config.geometry.hard_stride``;
         pixel ``(s i, s j)`` of the view is pixel ``(i, j)`` here); the paper's hard depth loss
         compares it with the target depth at those pixels.
         """
-        s = self.config.hard_stride if stride is None else stride
+        s = self.config.geometry.hard_stride if stride is None else stride
         cams = self.scene.cameras([view])
         K = cams.K.clone()
         K[:, :2] /= s
@@ -464,7 +464,8 @@ class Trainer:
             g["lr"] = self._lrs(step)[g["name"]]
         self.model.active_sh_degree = min(step // cfg.sh_degree_interval, self.model.sh_degree)
         view = self.sampler.next()
-        fused = cfg.hard_fused and self.objective.wants_hard(step, view)  # the hard depth in this pass
+        # the hard depth in this pass
+        fused = cfg.geometry.hard_fused and self.objective.wants_hard(step, view)
         out = self.render_view(view, hard_depth=True) if fused else self.render_view(view)
         info = {
             "raster": out.raster,
