@@ -254,10 +254,9 @@ class GeometricLossConfig:
         lambda_soft: weight of the soft depth term (0 disables it).
         hard_until: the hard term applies while ``step < hard_until * total_steps`` (in [0, 1]).
         hard_every: the hard term is applied on every ``hard_every``-th step only. 8 by default:
-            on street_a 1.26x the baseline's training time, PSNR 29.52 dB, the sign 93 % complete
-            (docs/results.md, round 14).
-        hard_stride: the stride of the hard depth's pixels. 2 by default: on street_a PSNR 29.64
-            dB against 29.59 at 1, the other metrics equal (docs/results.md).
+            a fraction of the cost of every step at the same quality (docs/results.md).
+        hard_stride: the stride of the hard depth's pixels. 2 by default: the same quality as
+            every pixel (docs/results.md).
         hard_fused: the hard depth composited in the step's own render pass (the same projection
             and tile lists, forward and backward: ``rasterize_gaussians(hard_depth=True)``). Needs
             ``hard_stride`` 1, the torch raster backend and no antialiasing (checked by
