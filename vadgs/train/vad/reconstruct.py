@@ -22,9 +22,9 @@ reference view and an instance flagged by :func:`~vadgs.train.vad.incomplete.fin
 6. returns each member's consistent depth and normals at the scene's resolution as priors.
 
 Each step is a small function (``_instance_frame``, :func:`~vadgs.select.select_views`,
-``_crop_group`` and ``_match``, ``_consistent``, fusion, ``_depth_priors``) on the device of the
+``crop_group`` and ``_match``, ``_consistent``, fusion, ``_depth_priors``) on the device of the
 index. The settings, :class:`ReconstructConfig`, live in :mod:`vadgs.train.vad.reconstruct_config`; the
-crops and the matching scale (:func:`match_scale`, ``_crop_group``) in
+crops and the matching scale (:func:`match_scale`, ``crop_group``) in
 :mod:`vadgs.train.vad.crops`; both are re-exported here.
 """
 
@@ -45,14 +45,14 @@ from vadgs.mvs.planar import complete_planar
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
 from vadgs.train.vad.crops import (
+    Crops,
     MatchScale,
-    _crop_group,
-    _Crops,
-    _pool_valid,
-    _repeat,
-    _shift_K,
-    _to_scale,
+    crop_group,
     match_scale,
+    pool_valid,
+    repeat,
+    shift_K,
+    to_scale,
 )
 from vadgs.train.vad.inputs import sfm_observations
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
@@ -244,7 +244,7 @@ def _renders(
 
 def _match(
     index: VisibilityIndex,
-    crops: _Crops,
+    crops: Crops,
     group: list[int],
     world_to_cam: torch.Tensor,
     depth_range: tuple[float, float],
@@ -258,12 +258,12 @@ def _match(
     for i, (y0, x0) in zip(crops.members, crops.corners):
         ref_imgs.append(crops.images[i, :, y0 : y0 + ch, x0 : x0 + cw])
         ref_masks.append(crops.masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
-        ref_K.append(_shift_K(crops.K[i], x0, y0))
+        ref_K.append(shift_K(crops.K[i], x0, y0))
         if render_prior is not None:
             d, _, n = _renders(render_prior, group[i], index)
             d, n = d.to(dev), n.to(dev)
             known = d > 0
-            d, n = _to_scale(d, known, crops.scale), _to_scale(n, known, crops.scale, unit=True)
+            d, n = to_scale(d, known, crops.scale), to_scale(n, known, crops.scale, unit=True)
             init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
             init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
     others = [[j for j in range(len(group)) if j != i] for i in crops.members]
@@ -288,7 +288,7 @@ def _match(
 
 def _consistent(
     matched: _Matched,
-    crops: _Crops,
+    crops: Crops,
     group: list[int],
     world_to_cam: torch.Tensor,
     planar: bool,
@@ -332,7 +332,7 @@ def _consistent(
 def _explained(
     index: VisibilityIndex,
     cons: _Consistent,
-    crops: _Crops,
+    crops: Crops,
     group: list[int],
     cfg: ReconstructConfig,
     render_prior: Callable[[int], ViewRender] | None,
@@ -354,9 +354,9 @@ def _explained(
             continue
         d, a = d.to(dev), a.to(dev)
         if crops.scale.up > 1:
-            d, a = _repeat(d, crops.scale.up), _repeat(a, crops.scale.up)
+            d, a = repeat(d, crops.scale.up), repeat(a, crops.scale.up)
         elif crops.scale.down > 1:
-            d = _pool_valid(d, d > 0, crops.scale.down)
+            d = pool_valid(d, d > 0, crops.scale.down)
             a = F.avg_pool2d(a[None], crops.scale.down)[0]
         d, a = d[:, y0 : y0 + ch, x0 : x0 + cw], a[:, y0 : y0 + ch, x0 : x0 + cw]
         mvs = cons.depth[k]
@@ -398,7 +398,7 @@ def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None
     return keep[every.shape[0] - points.shape[0] :]
 
 
-def _depth_priors(cons: _Consistent, crops: _Crops, size: tuple[int, int]) -> tuple[list, list]:
+def _depth_priors(cons: _Consistent, crops: Crops, size: tuple[int, int]) -> tuple[list, list]:
     """Step 6: each member's consistent depth and normals in its full image at the scene's resolution."""
     h, w = size
     ch, cw = crops.size_lo
@@ -408,12 +408,12 @@ def _depth_priors(cons: _Consistent, crops: _Crops, size: tuple[int, int]) -> tu
         fn = cons.normal.new_zeros(3, h, w)
         if crops.scale.up > 1:
             f = crops.scale.up
-            d = _pool_valid(cons.depth[k], cons.keep[k], f)
-            n = _pool_valid(cons.normal[k], cons.keep[k], f, unit=True)
+            d = pool_valid(cons.depth[k], cons.keep[k], f)
+            n = pool_valid(cons.normal[k], cons.keep[k], f, unit=True)
         else:
             f = crops.scale.down
-            d = _repeat(torch.where(cons.keep[k], cons.depth[k], torch.zeros_like(cons.depth[k])), f)
-            n = _repeat(torch.where(cons.keep[k], cons.normal[k], torch.zeros_like(cons.normal[k])), f)
+            d = repeat(torch.where(cons.keep[k], cons.depth[k], torch.zeros_like(cons.depth[k])), f)
+            n = repeat(torch.where(cons.keep[k], cons.normal[k], torch.zeros_like(cons.normal[k])), f)
         fd[:, y0 : y0 + ch, x0 : x0 + cw] = d
         fn[:, y0 : y0 + ch, x0 : x0 + cw] = n
         full_depth.append(fd)
@@ -510,7 +510,7 @@ def reconstruct_instance(
     group = [ref, *sel.views.tolist()]
     if len(group) < 2:
         return nothing(f"selection:{sel.reason}")
-    crops = _crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
+    crops = crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
     if isinstance(crops, str):
         return nothing(crops, group)
     w2c = frame.world_to_cam[group]
