@@ -159,7 +159,7 @@ def _warm_index(name: str, scene, legacy: bool):
             ).build_visibility_index
             scene = _legacy_scene(name)  # the legacy strategy takes its own Scene type
         else:
-            from vadgs.train.vad.reconstruct import build_visibility_index
+            from vadgs.train.vad import build_visibility_index
         index = build_visibility_index(scene, 0.2)
         for v in scene.train_views:
             index.voxel_depth(v)

@@ -497,8 +497,7 @@ def _timed_ops(device: str, record: dict[str, dict[str, Any]]):
 
 def _vad_config(sizes: dict[str, Any], **changes):
     """VAD-GS settings of the check: no work budget, and ``max_crop`` where the sizes set it."""
-    from vadgs.train.vad import VisibilityDensifyConfig
-    from vadgs.train.vad.reconstruct import ReconstructConfig
+    from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
     if sizes["max_crop"] is not None:
         changes["reconstruct"] = ReconstructConfig(max_crop=sizes["max_crop"])

@@ -33,8 +33,7 @@ from vadgs.geometry import backproject_depth
 from vadgs.mvs import PlanarCompletionConfig
 from vadgs.train.results.evaluate import evaluate, render_test_view
 from vadgs.train.trainer import TrainConfig, Trainer
-from vadgs.train.vad import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
 VARIANTS = {
     "baseline": None,

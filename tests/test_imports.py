@@ -108,3 +108,33 @@ def test_the_graph_sees_lazy_and_type_checking_imports(tmp_path, monkeypatch):
     modules = {"vadgs": pkg / "__init__.py", **{f"vadgs.{m}": pkg / f"{m}.py" for m in "abc"}}
     assert _imports("vadgs.a", pkg / "a.py", modules) == {"vadgs.b"}
     assert _imports("vadgs.b", pkg / "b.py", modules) == {"vadgs.a", "vadgs.c"}
+
+
+# Names a module re-exported before issue 41 (re-exports only in a package's ``__init__``), and the
+# module that defines them: the old import still works, with a DeprecationWarning naming the new place.
+MOVED = {
+    "vadgs.train.vad.reconstruct": {
+        "MatchScale": "vadgs.train.vad.crops",
+        "ReconstructConfig": "vadgs.train.vad.reconstruct_config",
+        "ViewCache": "vadgs.train.vad.visibility",
+        "VisibilityIndex": "vadgs.train.vad.visibility",
+        "build_visibility_index": "vadgs.train.vad.visibility",
+        "derive_instance_map": "vadgs.train.vad.instances",
+        "match_scale": "vadgs.train.vad.crops",
+        "sfm_observations": "vadgs.train.vad.inputs",
+        "thin_points": "vadgs.train.vad.fusion",
+    },
+}
+
+
+@pytest.mark.parametrize("old, name", [(m, n) for m, names in MOVED.items() for n in names])
+def test_moved_names_import_from_the_old_place_with_a_warning(old, name):
+    new = MOVED[old][name]
+    module = importlib.import_module(old)
+    assert name not in vars(module) and name not in module.__all__  # not bound there any more
+    with pytest.warns(DeprecationWarning, match=rf"^{old}\.{name} moved: import it from {new}$") as caught:
+        exec(f"from {old} import {name} as got", namespace := {})
+    assert namespace["got"] is getattr(importlib.import_module(new), name)
+    assert caught[0].filename == "<string>"  # the warning points at the importing line
+    with pytest.raises(AttributeError, match=f"has no attribute '{name}x'"):
+        getattr(module, f"{name}x")

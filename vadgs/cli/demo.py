@@ -72,8 +72,7 @@ class DemoCommand(Command):
         if self.iterations is not None:
             config = config.replace(iterations=self.iterations)
         if not self.baseline:
-            from vadgs.train.vad import VisibilityDensifyConfig
-            from vadgs.train.vad.reconstruct import ReconstructConfig
+            from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
             vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
             config = dataclasses.replace(config, vad=vad)

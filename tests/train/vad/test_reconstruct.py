@@ -12,15 +12,10 @@ from tests.train.vad.test_vad import BUILDING, _model, _trainer
 from tests.train.vad.test_vad import gt_points as gt_points
 from tests.train.vad.test_vad import index as index
 from tests.train.vad.test_vad import scene as scene
-from vadgs.train.vad import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import (
-    MatchScale,
-    ReconstructConfig,
-    ViewRender,
-    match_scale,
-    reconstruct_instance,
-    thin_points,
-)
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
+from vadgs.train.vad.crops import MatchScale, match_scale
+from vadgs.train.vad.fusion import thin_points
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
 
 
 class TestMatchScale:
@@ -343,7 +338,8 @@ class TestEventLog:
 class TestViewCache:
     def test_bounded_index_gives_the_same_maps(self, scene, index):
         """A tiny byte budget drops views and recomputes them identically."""
-        from vadgs.train.vad.reconstruct import ViewCache, build_visibility_index
+        from vadgs.train.vad import build_visibility_index
+        from vadgs.train.vad.visibility import ViewCache
 
         small = build_visibility_index(scene)
         small.view_cache = ViewCache(max_bytes=3 * 120 * 72 * 12)

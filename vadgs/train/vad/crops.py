@@ -3,7 +3,9 @@
 :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` matches an instance on crops around it in
 each group view, at a scale of its own (:func:`match_scale`): finer than the scene's resolution
 for small instances (a sign), coarser for large ones (a facade). :func:`crop_group` makes the
-crops (:class:`Crops`); the helpers resample maps between the scene's resolution and the matching
+crops (:class:`Crops`), which PatchMatch turns into :class:`MatchedCrops`; :func:`render_maps`
+reads the Gaussians' render of a view (the matching's initialisation and the test of what is
+already explained); the helpers resample maps between the scene's resolution and the matching
 scale (:func:`repeat`: nearest upsampling; :func:`pool_valid`: means of the valid pixels of each
 block; :func:`to_scale`: either, as the scale asks) and shift intrinsics to a crop
 (:func:`shift_K`).
@@ -18,15 +20,18 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.geometry.camera import scale_intrinsics
+from vadgs.mvs.patchmatch import PatchMatchResult
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
     "Crops",
     "MatchScale",
+    "MatchedCrops",
     "crop_group",
     "match_scale",
     "pool_valid",
+    "render_maps",
     "repeat",
     "shift_K",
     "to_scale",
@@ -158,6 +163,21 @@ def shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
     return K
 
 
+def render_maps(
+    render_prior, view: int, index: VisibilityIndex | None = None
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """``(depth, alpha or None, normals)`` of a render prior's answer (a ViewRender or a pair).
+
+    Padded to the index's size when ``index`` is given (views of different sizes).
+    """
+    out = render_prior(view)
+    d, a, n = (out[0], None, out[1]) if isinstance(out, tuple) and len(out) == 2 else out
+    if index is not None:
+        d, n = index.pad(d), index.pad(n)
+        a = None if a is None else index.pad(a)
+    return d, a, n
+
+
 class Crops(NamedTuple):
     """Step 3's input: the group's images and masks cropped around the instance, at the matching scale."""
 
@@ -229,3 +249,13 @@ def crop_group(
     images, regions, K = images.to(device), regions.to(device), K.to(device)
     masks = [m.to(device) for m in masks]
     return Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
+
+
+class MatchedCrops(NamedTuple):
+    """Step 3b's result: PatchMatch of each member's crop, with that crop's inputs."""
+
+    result: PatchMatchResult
+    images: torch.Tensor  # (b, 3, ch, cw) the members' crops
+    masks: torch.Tensor  # (b, 1, ch, cw)
+    K: torch.Tensor  # (b, 3, 3) of the crops
+    world_to_cam: torch.Tensor  # (b, 4, 4)

@@ -60,13 +60,9 @@ from vadgs.train.vad.event import EventInputs, run_event
 from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.inputs import VisibilityInputs
-from vadgs.train.vad.reconstruct import (
-    InstanceReconstruction,
-    ReconstructConfig,
-    ViewRender,
-    VisibilityIndex,
-    build_visibility_index,
-)
+from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
+from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = ["VisibilityAwareDensification", "check_info", "info_requirements"]
 
