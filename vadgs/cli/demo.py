@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vadgs.checks import check_at_least
-from vadgs.cli._common import Command, Flag, _check_out_dir, _scene_arg, _summary
+from vadgs.cli._common import Command, Flag, check_out_dir, metrics_summary, scene_arg
 from vadgs.train.run import finish_run
 from vadgs.train.session import RunLock
 
@@ -42,7 +42,7 @@ class DemoCommand(Command):
         from vadgs.runfolder import check_output_folder
         from vadgs.train.run import describe_run
 
-        out = _check_out_dir(self.out, create=False)
+        out = check_out_dir(self.out, create=False)
         check_output_folder(out, "--out", "vadgs run")
         held = describe_run(out) if out.is_dir() else None
         if held is not None:
@@ -67,7 +67,7 @@ class DemoCommand(Command):
         from vadgs.train.trainer import Trainer
         from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
-        scene, ref = prepare_scene(BenchmarkRef(str(_scene_arg(None)), DEMO_SCALE), out)
+        scene, ref = prepare_scene(BenchmarkRef(str(scene_arg(None)), DEMO_SCALE), out)
         config = TrainConfig.from_dict(DEMO_CONFIG)
         if self.iterations is not None:
             config = config.replace(iterations=self.iterations)
@@ -108,7 +108,7 @@ class DemoCommand(Command):
             if snapshots:
                 record_files(out, [_completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)])
                 print(f"wrote {out / 'demo_completion.png'}")
-        print(_summary(metrics))
+        print(metrics_summary(metrics))
         print(f"wrote {out / 'metrics.json'} and {png}")
         return 0
 

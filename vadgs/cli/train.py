@@ -28,11 +28,11 @@ from vadgs.cli._common import (
     Command,
     Flag,
     Positional,
-    _check_out_dir,
-    _flag,
-    _scene_arg,
-    _summary,
+    as_flag,
+    check_out_dir,
+    metrics_summary,
     parse_command,
+    scene_arg,
 )
 from vadgs.train.config import TrainConfig
 
@@ -108,7 +108,7 @@ class TrainCommand:
         from vadgs.train.run import describe_run, train_scene
         from vadgs.train.session import RunLock
 
-        out = _check_out_dir(self.out, create=False)
+        out = check_out_dir(self.out, create=False)
         RunLock.check_free(out)  # before the checks below: a run in use is named by its pid
         progress = not self.no_progress
         if self.resume:
@@ -143,7 +143,7 @@ class TrainCommand:
                   f"continue with: vadgs train --out {out} --resume")  # fmt: skip
             return 130 if outcome.reason == "interrupted" else 0
         assert outcome.metrics is not None  # written for a completed run
-        print(_summary(outcome.metrics))
+        print(metrics_summary(outcome.metrics))
         print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
         return 0
 
@@ -281,13 +281,13 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
     changed = switched + sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
     defaults = TrainCommand()
     given = [
-        "SCENE" if f.name == "scene" else _flag(f.name)
+        "SCENE" if f.name == "scene" else as_flag(f.name)
         for f in dataclasses.fields(TrainCommand)
         if f.name not in _SESSION and getattr(cmd, f.name) != getattr(defaults, f.name)
     ]
-    refused = list(dict.fromkeys(given + [_flag(k) for k in changed if k not in RESUMABLE_CHANGES]))
+    refused = list(dict.fromkeys(given + [as_flag(k) for k in changed if k not in RESUMABLE_CHANGES]))
     if refused:
-        allowed = ", ".join(_flag(k) for k in RESUMABLE_CHANGES)
+        allowed = ", ".join(as_flag(k) for k in RESUMABLE_CHANGES)
         raise ValueError(
             f"--resume: {', '.join(refused)} cannot be honoured: a resumed run keeps the scene and "
             f"configuration of its checkpoint (only {allowed} can change); start a new run with "
@@ -307,7 +307,7 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
         )
     for key in changes:
         if key != "iterations":
-            print(f"NOTE: {_flag(key)} changes {key} from {a.get(key)!r} to {changes[key]!r}")
+            print(f"NOTE: {as_flag(key)} changes {key} from {a.get(key)!r} to {changes[key]!r}")
     return changes
 
 
@@ -321,7 +321,7 @@ def _scene(cmd: TrainCommand) -> Any:
 
     if cmd.dgp and cmd.colmap_scene:
         raise ValueError("--dgp, --colmap-scene: give one scene kind")
-    path = _scene_arg(cmd.scene)
+    path = scene_arg(cmd.scene)
     kind = "dgp" if cmd.dgp else "colmap" if cmd.colmap_scene else None
     if kind is None and cmd.scene is not None:
         kind = scene_ref(path).kind
