@@ -48,7 +48,8 @@ import pytest
 import torch
 
 from vadgs.data import load_scene
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ import pytest
 
 from vadgs.config import RemovedField, config_from_dict
 from vadgs.mvs import PatchMatchConfig
-from vadgs.train.trainer import TrainConfig
+from vadgs.train.config import TrainConfig
 from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
 

@@ -40,7 +40,7 @@ class DemoCommand(Command):
     def main(self) -> int:
         """Train, evaluate, write the figures; 0."""
         from vadgs.runfolder import check_output_folder
-        from vadgs.train.run import describe_run
+        from vadgs.train.checkpoint import describe_run
 
         out = check_out_dir(self.out, create=False)
         check_output_folder(out, "--out", "vadgs run")
@@ -63,7 +63,7 @@ class DemoCommand(Command):
         from vadgs.runfolder import record_files
         from vadgs.train.config import TrainConfig
         from vadgs.train.results.evaluate import render_test_view
-        from vadgs.train.run import BenchmarkRef, prepare_scene
+        from vadgs.train.scenes import BenchmarkRef, prepare_scene
         from vadgs.train.trainer import Trainer
         from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 

@@ -25,8 +25,9 @@ from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, record_files, recorded_files
 from vadgs.train.results.trajectory import MAX_FRAMES
-from vadgs.train.run import Run, RunLock, frame_position, load_run
+from vadgs.train.run import Run, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_METHODS
+from vadgs.train.session import RunLock
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
 

@@ -104,8 +104,8 @@ class TrainCommand:
     def main(self) -> int:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
         from vadgs.runfolder import check_output_folder, check_removable
-        from vadgs.train.checkpoint import CHECKPOINT_NAME, held_run_message
-        from vadgs.train.run import describe_run, train_scene
+        from vadgs.train.checkpoint import CHECKPOINT_NAME, describe_run, held_run_message
+        from vadgs.train.run import train_scene
         from vadgs.train.session import RunLock
 
         out = check_out_dir(self.out, create=False)
@@ -315,9 +315,9 @@ def _scene(cmd: TrainCommand) -> Any:
     """The typed reference of ``vadgs train``'s SCENE (benchmark, dgp, colmap), checking each kind's flags.
 
     A COLMAP model or project folder without ``scene.json`` is detected without ``--colmap-scene``
-    (:func:`vadgs.train.run.scene_ref`).
+    (:func:`vadgs.train.scenes.scene_ref`).
     """
-    from vadgs.train.run import scene_ref
+    from vadgs.train.scenes import scene_ref
 
     if cmd.dgp and cmd.colmap_scene:
         raise ValueError("--dgp, --colmap-scene: give one scene kind")

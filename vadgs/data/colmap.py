@@ -63,34 +63,36 @@ from vadgs.data.colmap_model import (
     distorted_cameras,
     find_colmap_model,
     has_colmap_model,
-    match_colmap_views,
     read_colmap_model,
 )
 from vadgs.data.images import exif_orientation
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
+from vadgs.deprecation import moved_names
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
     import pycolmap
 
 __all__ = [
-    "COLMAP_PIXEL_OFFSET",
-    "ColmapPoints",
     "ColmapScene",
-    "colmap_camera_to_K",
     "colmap_normalization",
-    "distorted_cameras",
-    "find_colmap_model",
     "find_images_dir",
     "load_colmap",
-    "match_colmap_views",
     "open_colmap_project",
     "reopen_colmap_project",
     "transform_colmap",
     "undistort_colmap",
     "warn_exif_rotated",
 ]
+
+if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
+    __getattr__ = moved_names(
+        __name__,
+        {
+            "match_colmap_views": "vadgs.data.colmap_model",
+        },
+    )
 
 COLMAP_LOG_LEVEL = 1
 """pycolmap's glog ``minloglevel`` while vadgs calls pycolmap: 0 info, 1 warnings (the default:

@@ -96,9 +96,7 @@ __all__ = [
     "load_waymo",
     "pyarrow_parquet",
     "read_waymo_poses",
-    "waymo_beam_inclinations",
     "waymo_camera_name",
-    "waymo_range_image_to_points",
 ]
 
 #: ``key.camera_name`` → name (``camera_image.CameraName``).

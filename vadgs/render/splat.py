@@ -27,7 +27,7 @@ from vadgs.render.projection import project_gaussians
 from vadgs.render.sh import eval_sh
 from vadgs.render.tiles import bin_gaussians
 
-__all__ = ["GaussianRasterizer", "RasterConfig", "RenderOutput", "rasterize_gaussians"]
+__all__ = ["GaussianRasterizer", "rasterize_gaussians"]
 
 
 def rasterize_gaussians(

@@ -2,8 +2,11 @@
 
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affine
 from vadgs.train.config import TrainConfig
+from vadgs.train.divergence import NonFiniteLossError
 from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.loop import TrainResult
 from vadgs.train.losses import (
+    GeometryTargets,
     color_loss,
     depth_loss,
     depth_loss_hard,
@@ -25,7 +28,7 @@ from vadgs.train.strategy.ops import (
     reset_opacity,
     split,
 )
-from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, Trainer, TrainResult
+from vadgs.train.trainer import Trainer
 
 __all__ = [
     "AppearanceConfig",

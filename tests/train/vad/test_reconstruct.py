@@ -287,7 +287,8 @@ class TestEventLog:
     def test_same_model_under_a_slow_clock(self, monkeypatch):
         """One config and seed, one model: training with a clock 1000x slower gives the same bits."""
         from vadgs.data import load_scene, sample_scene_path
-        from vadgs.train.trainer import TrainConfig, Trainer
+        from vadgs.train.config import TrainConfig
+        from vadgs.train.trainer import Trainer
 
         scene = load_scene(sample_scene_path(), scale=0.5)  # 120x72: 18 views, the event after step 17
         small = ReconstructConfig(max_crop=32)
@@ -359,7 +360,8 @@ class TestViewsOfDifferentSizes:
     def test_event_adds_gaussians_from_both_sizes(self, tmp_path):
         from tests.data.multisize_sample import write_multisize_sample
         from vadgs.data import load_scene
-        from vadgs.train.trainer import TrainConfig, Trainer
+        from vadgs.train.config import TrainConfig
+        from vadgs.train.trainer import Trainer
 
         sc = load_scene(write_multisize_sample(tmp_path))
         sizes = {sc.image_size(v) for v in range(sc.num_views)}

@@ -7,8 +7,9 @@ import torch
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth, project_points
 from vadgs.mvs import PlanarCompletionConfig
+from vadgs.train.config import TrainConfig
 from vadgs.train.model import GaussianModel
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import (
     ReconstructConfig,
     StrategyContext,
