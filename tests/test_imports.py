@@ -31,6 +31,15 @@ def _modules() -> dict[str, Path]:
     return out
 
 
+def _from_module(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module of ``from ... import`` in ``package`` (relative imports resolved)."""
+    if not node.level:
+        return node.module or ""
+    base = package.split(".")
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join([*base, node.module] if node.module else base)
+
+
 def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
@@ -41,12 +50,7 @@ def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
                 if a.name.split(".")[0] == "vadgs":
                     found.add(a.name if a.name in modules else a.name.rpartition(".")[0])
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join([*base, node.module] if node.module else base)
-            else:
-                target = node.module or ""
+            target = _from_module(node, package)
             if target.split(".")[0] == "vadgs":
                 for a in node.names:
                     sub = f"{target}.{a.name}"
@@ -134,12 +138,7 @@ def _private_imports(modules: dict[str, Path]) -> set[tuple[str, str, str]]:
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if not isinstance(node, ast.ImportFrom):
                 continue
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join([*base, node.module] if node.module else base)
-            else:
-                target = node.module or ""
+            target = _from_module(node, package)
             if target.split(".")[0] != "vadgs" or target == name:
                 continue
             for a in node.names:
