@@ -33,7 +33,7 @@ STEPS = {
     "selection": (("select/selector.py",), ("select_views",)),
     "crops": (("reconstruct.py", "instance_crops.py", "vad/crops.py"), ("_crop_group", "crop_group")),
     "patchmatch": (("patchmatch.py",), ("patchmatch",)),
-    "consistency": (("reconstruct.py",), ("_consistent",)),
+    "consistency": (("reconstruct.py", "vad/fusion.py"), ("_consistent", "consistent_depth")),
     "fusion": (("mvs/fusion.py",), ("fuse_depth_maps",)),
     "add": (("vad.py", "vad/strategy.py"), ("_add",)),
     "renders": (("trainer.py",), ("render_geometry",)),
