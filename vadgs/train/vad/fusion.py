@@ -186,9 +186,7 @@ def fuse_points(
     seed_w2c, seed_K = matched.world_to_cam[fused.view_index], matched.K[fused.view_index]
     z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
     points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
-    if (
-        cfg.thin_points and points.shape[0]
-    ):  # one point per cell of the scene resolution's spacing, or coarser
+    if cfg.thin_points and points.shape[0]:  # one per cell of the scene resolution's spacing, or coarser
         spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
         local, taken = points, None if occupied is None else occupied.to(device)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
