@@ -26,7 +26,8 @@ import torch
 
 from vadgs import checking
 from vadgs.data import load_scene
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 
 if os.environ.get("VADGS_BENCH_THREADS"):
     torch.set_num_threads(int(os.environ["VADGS_BENCH_THREADS"]))

@@ -48,7 +48,8 @@ import pytest
 import torch
 
 from vadgs.data import load_scene
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,7 +160,7 @@ def _warm_index(name: str, scene, legacy: bool):
             ).build_visibility_index
             scene = _legacy_scene(name)  # the legacy strategy takes its own Scene type
         else:
-            from vadgs.train.vad.reconstruct import build_visibility_index
+            from vadgs.train.vad import build_visibility_index
         index = build_visibility_index(scene, 0.2)
         for v in scene.train_views:
             index.voxel_depth(v)

@@ -20,7 +20,8 @@ import torch
 
 from vadgs.data import load_scene
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig
 from vadgs.train.vad.state import unpack_state
 

@@ -26,7 +26,8 @@ import torch
 import vadgs.render.composite as composite
 from vadgs.data import load_scene
 from vadgs.render import RasterConfig
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

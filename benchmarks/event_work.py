@@ -20,7 +20,8 @@ from pathlib import Path
 import torch
 
 from vadgs.data import load_scene
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig
 
 

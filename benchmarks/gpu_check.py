@@ -497,8 +497,7 @@ def _timed_ops(device: str, record: dict[str, dict[str, Any]]):
 
 def _vad_config(sizes: dict[str, Any], **changes):
     """VAD-GS settings of the check: no work budget, and ``max_crop`` where the sizes set it."""
-    from vadgs.train.vad import VisibilityDensifyConfig
-    from vadgs.train.vad.reconstruct import ReconstructConfig
+    from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
     if sizes["max_crop"] is not None:
         changes["reconstruct"] = ReconstructConfig(max_crop=sizes["max_crop"])
@@ -508,7 +507,8 @@ def _vad_config(sizes: dict[str, Any], **changes):
 def _vad_trainer(device: str, scale: float, backend: str, sizes: dict[str, Any]):
     from vadgs.data import load_scene, sample_scene_path
     from vadgs.render import RasterConfig
-    from vadgs.train.trainer import TrainConfig, Trainer
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.trainer import Trainer
 
     scene = load_scene(sample_scene_path(), scale=scale)
     vad = _vad_config(sizes, work_budget=None, max_instances=sizes["ops_max_instances"])
@@ -606,7 +606,8 @@ def segment_memory(chk: Check, budget: float) -> dict[str, Any]:
     from vadgs.data import load_scene
     from vadgs.data.resolution import working_scale
     from vadgs.render import RasterConfig
-    from vadgs.train.trainer import TrainConfig, Trainer
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.trainer import Trainer
 
     s = chk.sizes
     seg = s["seg"]

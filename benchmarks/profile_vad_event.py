@@ -27,16 +27,16 @@ from bench_vad_event import _checkpoint, _fresh, _legacy_strategy, _warm_index
 
 from vadgs.data import load_scene
 
-# step -> (file suffixes, function name) whose cumulative time it is; the legacy path's files are
-# those of vadgs at commit 274c932 (bench_vad_event.legacy_package), the current path's today's
+# step -> (file suffixes, function names) whose cumulative time it is; the legacy path's files and
+# names are those of vadgs at commit 274c932 (bench_vad_event.legacy_package), the current path's today's
 STEPS = {
-    "selection": (("select/selector.py",), "select_views"),
-    "crops": (("reconstruct.py", "instance_crops.py", "vad/crops.py"), "_crop_group"),
-    "patchmatch": (("patchmatch.py",), "patchmatch"),
-    "consistency": (("reconstruct.py",), "_consistent"),
-    "fusion": (("mvs/fusion.py",), "fuse_depth_maps"),
-    "add": (("vad.py", "vad/strategy.py"), "_add"),
-    "renders": (("trainer.py",), "render_geometry"),
+    "selection": (("select/selector.py",), ("select_views",)),
+    "crops": (("reconstruct.py", "instance_crops.py", "vad/crops.py"), ("_crop_group", "crop_group")),
+    "patchmatch": (("patchmatch.py",), ("patchmatch",)),
+    "consistency": (("reconstruct.py", "vad/fusion.py"), ("_consistent", "consistent_depth")),
+    "fusion": (("mvs/fusion.py",), ("fuse_depth_maps",)),
+    "add": (("vad.py", "vad/strategy.py"), ("_add",)),
+    "renders": (("trainer.py",), ("render_geometry",)),
 }
 
 
@@ -60,8 +60,8 @@ def profile(scene_dir: str, path: str) -> dict[str, float]:
     prof.disable()
     stats = pstats.Stats(prof).stats
     cum = {}
-    for step, (suffix, fn) in STEPS.items():
-        cum[step] = sum(v[3] for (f, _, n), v in stats.items() if f.endswith(suffix) and n == fn)
+    for step, (suffix, names) in STEPS.items():
+        cum[step] = sum(v[3] for (f, _, n), v in stats.items() if f.endswith(suffix) and n in names)
     out = {"total": event["total_s"], "detection": event["detect_s"], **cum}
     out["other"] = out["total"] - out["detection"] - sum(cum[k] for k in STEPS if k != "renders")
     out["instances attempted"] = len(event["instances"])

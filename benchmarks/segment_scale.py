@@ -90,8 +90,9 @@ def _timed(calls: dict[str, list[float]]):
 def measure(path: str, scale: float, steps: int, instances: int, eval_views: int) -> dict[str, Any]:
     """The stages of one scene at one working scale, in this process."""
     from vadgs.data import load_scene
+    from vadgs.train.config import TrainConfig
     from vadgs.train.results.evaluate import evaluate
-    from vadgs.train.trainer import TrainConfig, Trainer
+    from vadgs.train.trainer import Trainer
     from vadgs.train.vad import VisibilityDensifyConfig
 
     torch.set_num_threads(1)

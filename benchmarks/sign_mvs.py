@@ -24,8 +24,8 @@ from vad_ablation import sign_surface
 
 from vadgs.data import load_scene
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityAwareDensification, VisibilityInputs, pick_references
-from vadgs.train.vad.reconstruct import ReconstructConfig, reconstruct_instance
+from vadgs.train.vad import ReconstructConfig, VisibilityAwareDensification, VisibilityInputs, pick_references
+from vadgs.train.vad.reconstruct import reconstruct_instance
 
 SETTINGS = {
     "training resolution": ReconstructConfig(max_upsample=1, planar=None),

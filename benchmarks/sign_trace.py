@@ -29,7 +29,8 @@ from scipy.spatial import cKDTree
 from vad_ablation import VARIANTS, sign_surface, surface_completeness
 
 from vadgs.data import load_scene
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.config import TrainConfig
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityAwareDensification
 
 

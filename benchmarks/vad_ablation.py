@@ -31,10 +31,10 @@ from scipy.spatial import cKDTree
 from vadgs.data import load_scene
 from vadgs.geometry import backproject_depth
 from vadgs.mvs import PlanarCompletionConfig
+from vadgs.train.config import TrainConfig
 from vadgs.train.results.evaluate import evaluate, render_test_view
-from vadgs.train.trainer import TrainConfig, Trainer
-from vadgs.train.vad import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.trainer import Trainer
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
 VARIANTS = {
     "baseline": None,

@@ -26,8 +26,8 @@ from vadgs.data import load_scene
 from vadgs.geometry import backproject_depth
 from vadgs.train.results.evaluate import render_test_view
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import build_visibility_index, reconstruct_instance
+from vadgs.train.vad import VisibilityDensifyConfig, build_visibility_index
+from vadgs.train.vad.reconstruct import reconstruct_instance
 from vadgs.viz import colorize_depth, image_to_uint8
 
 

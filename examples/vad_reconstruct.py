@@ -18,7 +18,8 @@ import torch
 
 from vadgs.data import load_scene
 from vadgs.select import ViewSelectionConfig
-from vadgs.train.vad.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
+from vadgs.train.vad import ReconstructConfig, build_visibility_index
+from vadgs.train.vad.reconstruct import reconstruct_instance
 
 
 def main() -> None:

@@ -11,9 +11,8 @@ import pytest
 
 from vadgs.config import RemovedField, config_from_dict
 from vadgs.mvs import PatchMatchConfig
-from vadgs.train.trainer import TrainConfig
-from vadgs.train.vad import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.config import TrainConfig
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
 
 @dataclass(frozen=True)

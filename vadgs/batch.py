@@ -79,7 +79,7 @@ class BatchConfig:
         train: the :class:`~vadgs.train.config.TrainConfig` of every scene (None: the defaults);
             used when a run starts, a resumed run keeps its own.
         scene_kind: the kind of every scene (``"benchmark"``, ``"dgp"``, ``"colmap"``; None:
-            found per folder, :func:`vadgs.train.run.scene_ref`).
+            found per folder, :func:`vadgs.train.scenes.scene_ref`).
         scene_options: the options of every scene's reference (``scale``, ``cameras``, ...).
         runtime_env: Ray runtime environment passed to ``ray.init`` when this call starts Ray.
         progress: print a line each time a run ends.
@@ -336,7 +336,7 @@ def run_scene(
         config: the :class:`~vadgs.train.config.TrainConfig` of a new run (None: the defaults).
         threads: torch threads.
         submission: an id of the batch submission (attempts are counted per submission).
-        scene_kind: the scene's kind (:func:`vadgs.train.run.scene_ref`; None: found).
+        scene_kind: the scene's kind (:func:`vadgs.train.scenes.scene_ref`; None: found).
         scene_options: the options of its reference (``scale``, ...).
 
     Returns:
@@ -348,7 +348,8 @@ def run_scene(
             retries it.
     """
     from vadgs.train.checkpoint import CHECKPOINT_NAME
-    from vadgs.train.run import scene_ref, train_scene
+    from vadgs.train.run import train_scene
+    from vadgs.train.scenes import scene_ref
 
     run = Path(run_dir)
     base = SceneResult(scene=str(scene), name=run.name, run=str(run))

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from vadgs.data import ColmapPoints, ColmapScene, Scene, load_colmap
-from vadgs.data.colmap import colmap_camera_to_K
+from vadgs.data.colmap_model import colmap_camera_to_K
 from vadgs.geometry import invert_rigid, project_points, scale_intrinsics
 
 pycolmap = pytest.importorskip("pycolmap")

@@ -15,7 +15,8 @@ from vadgs.data import (
     open_colmap_project,
     reopen_colmap_project,
 )
-from vadgs.data.colmap import colmap_normalization, distorted_cameras, transform_colmap
+from vadgs.data.colmap import colmap_normalization, transform_colmap
+from vadgs.data.colmap_model import distorted_cameras
 from vadgs.data.normalize import (
     normalization_transform,
     similarity_scale,

@@ -14,7 +14,8 @@ import torch.nn.functional as F
 from PIL import Image
 
 from vadgs.data import Scene, load_dgp
-from vadgs.data.dgp import dgp_pose_to_matrix, points_in_boxes
+from vadgs.data._tracks import points_in_boxes
+from vadgs.data.dgp import dgp_pose_to_matrix
 from vadgs.geometry import invert_rigid, project_points
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"

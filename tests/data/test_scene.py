@@ -259,7 +259,7 @@ class TestNovelViews:
 
     def test_invisible_to_lidar_and_view_selection(self, tmp_path):
         from vadgs.data.lidar import accumulate_lidar
-        from vadgs.train.vad.reconstruct import build_visibility_index
+        from vadgs.train.vad import build_visibility_index
 
         def add(meta):
             meta["novel_views"] = [

@@ -14,7 +14,7 @@ from PIL import Image
 
 from vadgs.cli import main
 from vadgs.data import open_colmap_project
-from vadgs.data.colmap_model import _cam_from_world
+from vadgs.data.colmap_model import colmap_world_to_cam
 from vadgs.data.sfm import _sequential_pairs, find_photos, photo_groups, run_sfm
 from vadgs.train.scenes import scene_ref
 
@@ -68,7 +68,7 @@ class TestRunSfm:
             assert (cam.height, cam.width) == (h, w), name
             assert cam.focal_length == pytest.approx(truth["K"][i][0, 0], rel=0.01), name
         # poses: the camera centres match the truth up to a similarity within 0.5 % of the arc's radius
-        c2w = [np.linalg.inv(_cam_from_world(images[n])) for n in truth["names"]]
+        c2w = [np.linalg.inv(colmap_world_to_cam(images[n])) for n in truth["names"]]
         centres = np.stack([m[:3, 3] for m in c2w])
         s, R, t = _similarity(centres, truth["cam_to_world"][:, :3, 3])
         err = np.linalg.norm(s * centres @ R.T + t - truth["cam_to_world"][:, :3, 3], axis=1)
@@ -348,7 +348,7 @@ def test_phone_photos_stored_sideways(tmp_path):
         assert res.registered == 6, res.summary()
         rec = pycolmap.Reconstruction(str(res.model))
         ims = sorted(rec.images.values(), key=lambda im: im.name)
-        c2w = torch.tensor(np.stack([np.linalg.inv(_cam_from_world(im)) for im in ims]))
+        c2w = torch.tensor(np.stack([np.linalg.inv(colmap_world_to_cam(im)) for im in ims]))
         up = level_up(c2w)
         # the up in each camera's own axes: free of the reconstructions' arbitrary world frames
         return res, {im.name: (c2w[i, :3, :3].T @ up).numpy() for i, im in enumerate(ims)}

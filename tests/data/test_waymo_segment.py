@@ -19,8 +19,11 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from tests.data.test_waymo import _rigid  # noqa: E402  (pyarrow is required by both)
 from vadgs.data import SegmentConfig, load_scene, load_waymo, make_segment  # noqa: E402
-from vadgs.data.waymo import waymo_beam_inclinations, waymo_range_image_to_points  # noqa: E402
-from vadgs.data.waymo_lidar import waymo_points_to_range_image  # noqa: E402
+from vadgs.data.waymo_lidar import (  # noqa: E402
+    waymo_beam_inclinations,
+    waymo_points_to_range_image,
+    waymo_range_image_to_points,
+)
 from vadgs.data.waymo_writer import write_waymo_segment  # noqa: E402
 
 SEG = "synthetic_0001"

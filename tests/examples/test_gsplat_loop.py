@@ -10,8 +10,7 @@ import torch
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth
 from vadgs.train.strategy import DefaultStrategyConfig
-from vadgs.train.vad import VisibilityDensifyConfig, VisibilityInputs
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig, VisibilityInputs
 
 BUILDING = 9  # a large facade of the sample with LiDAR on its lower part
 

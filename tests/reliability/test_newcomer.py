@@ -14,7 +14,7 @@ from PIL import Image
 
 import vadgs
 from vadgs.cli import main
-from vadgs.cli._common import _summary
+from vadgs.cli._common import metrics_summary
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.train.checkpoint import load_checkpoint
 from vadgs.train.scenes import open_scene, scene_fingerprint
@@ -136,9 +136,9 @@ def test_psnr_star_none_is_explained():
         "num_gaussians": 100,
         "test": {"psnr": 20.0, "psnr_star": None, "ssim": 0.5, "depth": {}},
     }
-    assert "PSNR* n/a (no moving-object pixels in the test views)" in _summary(metrics)
+    assert "PSNR* n/a (no moving-object pixels in the test views)" in metrics_summary(metrics)
     metrics["test"]["psnr_star"] = 18.123
-    assert "PSNR* 18.12 dB" in _summary(metrics)
+    assert "PSNR* 18.12 dB" in metrics_summary(metrics)
 
 
 def test_event_summary_counts_the_instances_that_added_nothing():

@@ -100,7 +100,8 @@ def test_symlinked_out_to_user_folder_refused(tmp_path, capsys):
 
 
 def test_python_api_refuses_a_user_folder(tmp_path, tiny_scene, tiny_config):
-    from vadgs.train.run import scene_ref, train_scene
+    from vadgs.train.run import train_scene
+    from vadgs.train.scenes import scene_ref
     from vadgs.train.trainer import Trainer
 
     folder = _user_folder(tmp_path / "mine")

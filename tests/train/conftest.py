@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from vadgs.data import load_scene, sample_scene_path
+from vadgs.train.config import TrainConfig
 from vadgs.train.init import InitConfig
 from vadgs.train.strategy import DefaultStrategyConfig
-from vadgs.train.trainer import TrainConfig
 
 
 @pytest.fixture(scope="session")

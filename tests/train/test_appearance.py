@@ -17,8 +17,9 @@ from vadgs.train.appearance import (
     identity_deviation,
     view_camera,
 )
+from vadgs.train.config import TrainConfig
 from vadgs.train.results.evaluate import evaluate
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.trainer import Trainer
 
 TINY = ["--sample", "--scale", "0.25", "--no-progress", "--init.max-points", "400"]
 TINY += ["--init.voxel-size", "1.0", "--init.sh-degree", "0"]

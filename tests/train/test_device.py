@@ -7,8 +7,7 @@ import torch
 
 from vadgs.train import losses as L
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityDensifyConfig, normals_to_quats
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig, normals_to_quats
 
 
 def test_vad_training_runs_on_the_device(tiny_scene, tiny_config, device):

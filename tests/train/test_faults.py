@@ -17,13 +17,9 @@ import torch
 
 from vadgs.cli import _one_line, main
 from vadgs.io import TMP_GLOB
-from vadgs.train.trainer import (
-    CHECKPOINT_NAME,
-    DivergenceError,
-    NonFiniteLossError,
-    Trainer,
-    load_checkpoint,
-)
+from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from vadgs.train.divergence import DivergenceError, NonFiniteLossError
+from vadgs.train.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["--sample", "--scale", "0.25", "--no-progress", "--init.max-points", "400"]

@@ -17,8 +17,7 @@ import math
 
 import pytest
 
-from vadgs.train.vad import VisibilityInputs
-from vadgs.train.vad.reconstruct import build_visibility_index
+from vadgs.train.vad import VisibilityInputs, build_visibility_index
 
 from ..data.colmap_sample import write_sample_colmap
 from .gsplat_parser import sample_parser

@@ -29,13 +29,13 @@ import torch
 
 from vadgs.render import rasterize_gaussians
 from vadgs.train.vad import (
+    ReconstructConfig,
     StrategyContext,
     ViewRender,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
     VisibilityInputs,
 )
-from vadgs.train.vad.reconstruct import ReconstructConfig
 
 from .gsplat_parser import facade_splats
 

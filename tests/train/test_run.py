@@ -7,7 +7,8 @@ import json
 import time
 
 from vadgs.io import TMP_GLOB
-from vadgs.train.run import clear_run, describe_run, finish_run
+from vadgs.train.checkpoint import clear_run, describe_run
+from vadgs.train.run import finish_run
 from vadgs.train.trainer import Trainer
 
 
@@ -61,7 +62,7 @@ def test_scene_ref_finds_the_kind_and_checks_the_options(tmp_path):
     import pytest
 
     from vadgs.data import sample_scene_path
-    from vadgs.train.run import BenchmarkRef, ColmapRef, DGPRef, scene_ref
+    from vadgs.train.scenes import BenchmarkRef, ColmapRef, DGPRef, scene_ref
 
     ref = scene_ref(sample_scene_path(), scale=0.25)
     assert ref == BenchmarkRef(str(sample_scene_path()), 0.25)
@@ -88,7 +89,8 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
     import pytest
     import torch
 
-    from vadgs.train.run import load_run, scene_fingerprint, scene_ref, train_scene
+    from vadgs.train.run import load_run, train_scene
+    from vadgs.train.scenes import scene_fingerprint, scene_ref
 
     config = dataclasses.replace(tiny_config, iterations=4, checkpoint_every=2)
     ref = scene_ref(tiny_scene.root, scale=0.25)
@@ -132,8 +134,7 @@ def test_scene_fingerprint_without_file_digest(tiny_scene, monkeypatch):
     import hashlib
     import io
 
-    from vadgs.train.run import scene_fingerprint, scene_ref
-    from vadgs.train.scenes import _sha256
+    from vadgs.train.scenes import _sha256, scene_fingerprint, scene_ref
 
     data = bytes(range(256)) * 5000  # more than one block of _sha256
     fh = io.BytesIO(data)

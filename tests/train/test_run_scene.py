@@ -21,7 +21,8 @@ import pytest
 
 from vadgs.cli import main as _main
 from vadgs.train.checkpoint import load_checkpoint, save_checkpoint
-from vadgs.train.run import load_run, open_scene, scene_fingerprint, scene_ref, train_scene
+from vadgs.train.run import load_run, train_scene
+from vadgs.train.scenes import open_scene, scene_fingerprint, scene_ref
 from vadgs.train.session import LOCK_NAME, RunInUseError, RunLock
 
 from ..data.sample_copy import copy_sample_scene

@@ -5,10 +5,12 @@ import dataclasses
 import pytest
 import torch
 
-from vadgs.data.colmap import ColmapPoints
-from vadgs.data.scene import Track
+from vadgs.data.scene import ColmapPoints, Track
+from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from vadgs.train.config import TrainConfig
+from vadgs.train.divergence import NonFiniteLossError
 from vadgs.train.losses import GeometricLossConfig
-from vadgs.train.trainer import CHECKPOINT_NAME, NonFiniteLossError, TrainConfig, Trainer, load_checkpoint
+from vadgs.train.trainer import Trainer
 
 
 def _params(trainer):

@@ -22,8 +22,13 @@ import torch
 from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
 from vadgs.render import RasterConfig, rasterize_gaussians
 from vadgs.train.strategy import DefaultStrategy
-from vadgs.train.vad import StrategyContext, ViewRender, VisibilityAwareDensification, VisibilityInputs
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.vad import (
+    ReconstructConfig,
+    StrategyContext,
+    ViewRender,
+    VisibilityAwareDensification,
+    VisibilityInputs,
+)
 
 from .gsplat_parser import facade_splats
 

@@ -14,9 +14,10 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vadgs.render import rgb_to_sh
+from vadgs.train.config import TrainConfig
 from vadgs.train.init import InitConfig
 from vadgs.train.strategy import DefaultStrategyConfig
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.trainer import Trainer
 from vadgs.viewer import (
     FILTERS,
     browser_screenshot,

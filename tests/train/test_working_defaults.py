@@ -16,8 +16,7 @@ from vadgs.data.resolution import working_resolution, working_scale
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from vadgs.train.config import TrainConfig, refine_steps, scale_schedule
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityDensifyConfig, pack_state, unpack_state
-from vadgs.train.vad.reconstruct import ReconstructConfig
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig, pack_state, unpack_state
 
 pycolmap = pytest.importorskip("pycolmap")  # optional: vadgs imports it lazily (COLMAP export)
 

@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import torch
 
-from vadgs.cli._common import Command, _plain
+from vadgs.cli._common import Command, help_text
 from vadgs.cli.demo import DEMO_CONFIG, DEMO_SCALE, DemoCommand  # noqa: F401 (DEMO_*: documented here)
 from vadgs.cli.runs import EvalCommand, ExportCommand, RenderCommand, ViewCommand
 from vadgs.cli.scenes import CheckCommand, ConvertCommand, VisibilityCommand
@@ -150,7 +150,7 @@ def _usage() -> str:
     lines += ["", "VAD-GS: visibility-aware densification for 3D Gaussian splatting", "", "commands:"]
     width = max(map(len, COMMANDS))
     for name, cls in COMMANDS.items():
-        first = _plain(cls.__doc__ or "").strip().splitlines()[0]
+        first = help_text(cls.__doc__ or "").strip().splitlines()[0]
         lines.append(f"  {name:<{width}}  {first}")
     lines += [
         "",

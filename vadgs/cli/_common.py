@@ -23,6 +23,19 @@ import tyro
 
 from vadgs.checks import MAX_THREADS, check_at_least, check_at_most
 
+__all__ = [
+    "Command",
+    "Flag",
+    "Positional",
+    "as_flag",
+    "check_out_dir",
+    "help_text",
+    "metrics_summary",
+    "parse_command",
+    "run_dir",
+    "scene_arg",
+]
+
 #: A flag that is off unless given (``--no-progress``; no ``--no-no-progress`` pair).
 Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]
 
@@ -73,7 +86,7 @@ def parse_command(cls: type[C], argv: list[str], prog: str, default: C | None = 
         ValueError: a bad flag or value, as one line naming the flag.
     """
     kwargs: dict[str, Any] = {"default": default, "config": (tyro.conf.AvoidSubcommands,), "prog": prog}
-    kwargs["description"] = _plain(cls.__doc__ or "")
+    kwargs["description"] = help_text(cls.__doc__ or "")
     if "-h" in argv or "--help" in argv:
         with contextlib.suppress(SystemExit):
             tyro.cli(cls, args=["--help"], **kwargs)
@@ -88,13 +101,13 @@ def parse_command(cls: type[C], argv: list[str], prog: str, default: C | None = 
         raise ValueError(_tyro_error(f"Error parsing {cls.__name__}: {e}")) from None
 
 
-def _plain(doc: str) -> str:
+def help_text(doc: str) -> str:
     """A docstring as help text: reST literals and roles as plain text (```--out``` → ``--out``)."""
     doc = re.sub(r":\w+:`~?([^`]+)`", lambda m: m.group(1).rsplit(".", 1)[-1], inspect.cleandoc(doc))
     return doc.replace("``", "")
 
 
-def _flag(key: str) -> str:
+def as_flag(key: str) -> str:
     """A dotted field name as its flag: ``vad.max_instances`` → ``--vad.max-instances``."""
     return "--" + key.replace("_", "-")
 
@@ -128,13 +141,13 @@ def _tyro_error(text: str) -> str:
         return rest
     # a message that names its field with its section already ("appearance.lr") keeps it
     flags = [
-        _flag(name if prefix and name.startswith(prefix[-1] + ".") else ".".join([*prefix, name]))
+        as_flag(name if prefix and name.startswith(prefix[-1] + ".") else ".".join([*prefix, name]))
         for name in named.group(1).split(", ")
     ]
     return f"{', '.join(flags)}: {named.group(2)}"
 
 
-def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -> Path:
+def check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -> Path:
     """Check, before any work, that the output folder ``path`` can be written (and create it).
 
     Args:
@@ -159,7 +172,7 @@ def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -
         if not os.access(parent, os.W_OK | os.X_OK):
             raise ValueError(f"{flag} {path}: cannot create the folder ({parent} is not writable)")
         # os.access says yes to root everywhere (/proc, read-only mounts): try it, then undo
-        _check_out_dir(path, flag, create=True)
+        check_out_dir(path, flag, create=True)
         first = path
         while first.parent != parent:
             first = first.parent
@@ -181,19 +194,21 @@ def _check_out_dir(path: str | Path, flag: str = "--out", create: bool = True) -
     return path
 
 
-def _run_dir(run: str | Path) -> Path:
+def run_dir(run: str | Path) -> Path:
     """The run folder of ``RUN`` given as the folder or as its checkpoint file."""
     run = Path(run)
     return run.parent if run.is_file() else run
 
 
-def _scene_arg(value: str | None) -> Path:
+def scene_arg(value: str | None) -> Path:
+    """The ``SCENE`` argument as a path: the bundled sample scene when it is not given."""
     from vadgs.data import sample_scene_path
 
     return Path(value) if value else sample_scene_path()
 
 
-def _summary(metrics: dict) -> str:
+def metrics_summary(metrics: dict) -> str:
+    """A run's ``metrics.json`` as the one line the commands print (steps, Gaussians, test metrics)."""
     t = metrics.get("test")
     parts = [
         f"{metrics['steps']} steps in {metrics['train_s']:.0f} s",

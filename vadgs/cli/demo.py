@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vadgs.checks import check_at_least
-from vadgs.cli._common import Command, Flag, _check_out_dir, _scene_arg, _summary
+from vadgs.cli._common import Command, Flag, check_out_dir, metrics_summary, scene_arg
 from vadgs.train.run import finish_run
 from vadgs.train.session import RunLock
 
@@ -40,9 +40,9 @@ class DemoCommand(Command):
     def main(self) -> int:
         """Train, evaluate, write the figures; 0."""
         from vadgs.runfolder import check_output_folder
-        from vadgs.train.run import describe_run
+        from vadgs.train.checkpoint import describe_run
 
-        out = _check_out_dir(self.out, create=False)
+        out = check_out_dir(self.out, create=False)
         check_output_folder(out, "--out", "vadgs run")
         held = describe_run(out) if out.is_dir() else None
         if held is not None:
@@ -63,17 +63,16 @@ class DemoCommand(Command):
         from vadgs.runfolder import record_files
         from vadgs.train.config import TrainConfig
         from vadgs.train.results.evaluate import render_test_view
-        from vadgs.train.run import BenchmarkRef, prepare_scene
+        from vadgs.train.scenes import BenchmarkRef, prepare_scene
         from vadgs.train.trainer import Trainer
         from vadgs.viz import colorize_depth, image_to_uint8, save_panel
 
-        scene, ref = prepare_scene(BenchmarkRef(str(_scene_arg(None)), DEMO_SCALE), out)
+        scene, ref = prepare_scene(BenchmarkRef(str(scene_arg(None)), DEMO_SCALE), out)
         config = TrainConfig.from_dict(DEMO_CONFIG)
         if self.iterations is not None:
             config = config.replace(iterations=self.iterations)
         if not self.baseline:
-            from vadgs.train.vad import VisibilityDensifyConfig
-            from vadgs.train.vad.reconstruct import ReconstructConfig
+            from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
             vad = VisibilityDensifyConfig(max_instances=3, reconstruct=ReconstructConfig(max_crop=64))
             config = dataclasses.replace(config, vad=vad)
@@ -109,7 +108,7 @@ class DemoCommand(Command):
             if snapshots:
                 record_files(out, [_completion_panel(trainer, snapshots, out / "demo_completion.png", vmax)])
                 print(f"wrote {out / 'demo_completion.png'}")
-        print(_summary(metrics))
+        print(metrics_summary(metrics))
         print(f"wrote {out / 'metrics.json'} and {png}")
         return 0
 

@@ -20,13 +20,14 @@ from typing import Annotated, Literal
 import tyro
 
 from vadgs.checks import check_at_least, check_at_most, check_positive
-from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _run_dir
+from vadgs.cli._common import Command, Flag, Positional, check_out_dir, run_dir
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, record_files, recorded_files
 from vadgs.train.results.trajectory import MAX_FRAMES
-from vadgs.train.run import Run, RunLock, frame_position, load_run
+from vadgs.train.run import Run, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_METHODS
+from vadgs.train.session import RunLock
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
 
@@ -39,7 +40,7 @@ SceneOpt = Annotated[str | None, tyro.conf.arg(metavar="FOLDER")]
 
 def _writing(run: str | Path, into: str | Path, command: str) -> contextlib.AbstractContextManager:
     """The run folder's lock while a command writes ``into`` it (nothing when it writes elsewhere)."""
-    folder = _run_dir(run).resolve()
+    folder = run_dir(run).resolve()
     into = Path(into).resolve()
     if folder.is_dir() and (into == folder or into.is_relative_to(folder)):
         return RunLock(folder, command)
@@ -58,9 +59,9 @@ def _owner(run: str | Path, into: str | Path) -> Path:
 
     The run's, when ``into`` is inside the run folder, else ``into`` itself (an output folder of its own).
     """
-    folder = _run_dir(run).resolve()
+    folder = run_dir(run).resolve()
     resolved = Path(into).resolve()
-    return _run_dir(run) if resolved == folder or resolved.is_relative_to(folder) else Path(into)
+    return run_dir(run) if resolved == folder or resolved.is_relative_to(folder) else Path(into)
 
 
 def _check_into(run: str | Path, into: str | Path, flag: str = "--out") -> Path:
@@ -108,7 +109,7 @@ class EvalCommand(Command):
         """Evaluate the run and write the JSON; 0."""
         from vadgs.train.results.evaluate import evaluate_split
 
-        folder = _run_dir(self.run)
+        folder = run_dir(self.run)
         with _writing(self.run, folder, "vadgs eval"):
             run = load_run(self.run, scene=self.scene)
             groups = evaluate_split(
@@ -219,12 +220,12 @@ class RenderCommand(Command):
             except ValueError as e:
                 raise ValueError(f"--video {e}") from None
             # nothing rendered for a folder that cannot take the video
-            _check_out_dir(Path(self.video).parent, "--video", create=False)
+            check_out_dir(Path(self.video).parent, "--video", create=False)
 
     def main(self) -> int:
         """Write the panels or the video; 0."""
         self._check_video()
-        into = Path(self.video).parent if self.video else (self.out or _run_dir(self.run) / "renders")
+        into = Path(self.video).parent if self.video else (self.out or run_dir(self.run) / "renders")
         with _writing(self.run, into, "vadgs render"):
             return self._render()
 
@@ -280,9 +281,9 @@ class RenderCommand(Command):
             return 0
         from vadgs.train.results.evaluate import save_test_panels
 
-        out = Path(self.out) if self.out else _run_dir(self.run) / "renders"
+        out = Path(self.out) if self.out else run_dir(self.run) / "renders"
         owner = _check_into(self.run, out)
-        out = _check_out_dir(out)
+        out = check_out_dir(out)
         views = list(self.views) or None
         paths = save_test_panels(
             model, scene, out, views, config.raster, not self.no_progress, run.appearance
@@ -316,10 +317,10 @@ class ExportCommand(Command):
         """Write the PLY and the sky map; 0."""
         from vadgs.train.results.export import export_world
 
-        with _writing(self.run, self.out or _run_dir(self.run), "vadgs export"):
+        with _writing(self.run, self.out or run_dir(self.run), "vadgs export"):
             run = load_run(self.run, scene=self.scene)
             frame, _ = frame_position(_scene(run), self.frame, "--frame")
-            out = Path(self.out) if self.out else _run_dir(self.run) / "export" / f"frame{frame:03d}"
+            out = Path(self.out) if self.out else run_dir(self.run) / "export" / f"frame{frame:03d}"
             if self.inria:
                 _check_inria_out(out, _owner(self.run, out), run.scene_ref or {})
             owner = _check_into(self.run, out)
@@ -409,7 +410,7 @@ class ViewCommand(Command):
                 viewer = build_viewer(model, scene, server, position, max_gaussians=self.max_gaussians)
                 shown = sum(int(g.rows.numel()) for g in viewer.groups)
                 print(
-                    f"viewing {_run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
+                    f"viewing {run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
                     f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
                 )
                 print(_listening(self.host, server.get_port()), flush=True)

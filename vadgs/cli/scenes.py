@@ -20,7 +20,7 @@ from typing import Annotated, Literal
 import tyro
 
 from vadgs.checks import check_at_least, check_positive
-from vadgs.cli._common import Command, Flag, Positional, _check_out_dir, _scene_arg
+from vadgs.cli._common import Command, Flag, Positional, check_out_dir, scene_arg
 from vadgs.io import write_json
 
 __all__ = ["CheckCommand", "ConvertCommand", "VisibilityCommand"]
@@ -33,7 +33,7 @@ def _scene_ref(scene: str | None, dgp: bool, scale: float):
     """The reference of SCENE (default: the bundled sample): its kind decided by ``scene_ref``."""
     from vadgs.train.scenes import scene_ref
 
-    return scene_ref(_scene_arg(scene), "dgp" if dgp else None, scale=scale)
+    return scene_ref(scene_arg(scene), "dgp" if dgp else None, scale=scale)
 
 
 @contextlib.contextmanager
@@ -83,14 +83,14 @@ class VisibilityCommand(Command):
         """Write the panel and visibility.json; 0."""
         from vadgs.train.scenes import read_scene
 
-        out = _check_out_dir(self.out, create=False)  # created once the scene has opened
+        out = check_out_dir(self.out, create=False)  # created once the scene has opened
         scene = read_scene(_scene_ref(self.scene, self.dgp, self.scale))
         if self.view is not None and self.view >= scene.num_views:
             raise ValueError(
                 f"--view: expected < {scene.num_views} (the views of {scene.name}), got {self.view}"
             )
         with _new_folder(out):
-            return self._write(scene, _check_out_dir(out))
+            return self._write(scene, check_out_dir(out))
 
     def _write(self, scene, out: Path) -> int:
         from vadgs.data.lidar import accumulate_lidar
@@ -227,7 +227,7 @@ class CheckCommand(Command):
         from vadgs.data.checks import ValidationReport, ValidationRow
         from vadgs.train.scenes import BenchmarkRef, read_scene
 
-        path = _scene_arg(self.scene)
+        path = scene_arg(self.scene)
         notes: list[str] = []
         try:
             ref = _scene_ref(self.scene, self.dgp, self.scale)

@@ -30,11 +30,11 @@ from vadgs.cli._common import (
     Command,
     Flag,
     Positional,
-    _check_out_dir,
-    _flag,
-    _scene_arg,
-    _summary,
+    as_flag,
+    check_out_dir,
+    metrics_summary,
     parse_command,
+    scene_arg,
 )
 from vadgs.train.config import TrainConfig
 
@@ -106,11 +106,11 @@ class TrainCommand:
     def main(self) -> int:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
         from vadgs.runfolder import check_output_folder, check_removable
-        from vadgs.train.checkpoint import CHECKPOINT_NAME, held_run_message
-        from vadgs.train.run import describe_run, train_scene
+        from vadgs.train.checkpoint import CHECKPOINT_NAME, describe_run, held_run_message
+        from vadgs.train.run import train_scene
         from vadgs.train.session import RunLock
 
-        out = _check_out_dir(self.out, create=False)
+        out = check_out_dir(self.out, create=False)
         RunLock.check_free(out)  # before the checks below: a run in use is named by its pid
         progress = not self.no_progress
         if self.resume:
@@ -145,7 +145,7 @@ class TrainCommand:
                   f"continue with: vadgs train --out {out} --resume")  # fmt: skip
             return 130 if outcome.reason == "interrupted" else 0
         assert outcome.metrics is not None  # written for a completed run
-        print(_summary(outcome.metrics))
+        print(metrics_summary(outcome.metrics))
         print(f"wrote {out / 'metrics.json'}, {out / 'ply'}")
         return 0
 
@@ -241,13 +241,13 @@ def _moved_flags() -> dict[str, str]:
     flags: dict[str, str] = {}
     defaults = TrainConfig()
     for old, new in TrainConfig.MOVED_FIELDS.items():
-        flags[_flag(old)] = _flag(new)
+        flags[as_flag(old)] = as_flag(new)
         section, _, leaf = new.rpartition(".")
         value: Any = defaults
         for part in new.split("."):
             value = getattr(value, part)
         if isinstance(value, bool):
-            flags[_flag(f"no_{old}")] = _flag(f"{section}.no_{leaf}" if section else f"no_{leaf}")
+            flags[as_flag(f"no_{old}")] = as_flag(f"{section}.no_{leaf}" if section else f"no_{leaf}")
     return flags
 
 
@@ -314,13 +314,13 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
     changed = switched + sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
     defaults = TrainCommand()
     given = [
-        "SCENE" if f.name == "scene" else _flag(f.name)
+        "SCENE" if f.name == "scene" else as_flag(f.name)
         for f in dataclasses.fields(TrainCommand)
         if f.name not in _SESSION and getattr(cmd, f.name) != getattr(defaults, f.name)
     ]
-    refused = list(dict.fromkeys(given + [_flag(k) for k in changed if k not in RESUMABLE_CHANGES]))
+    refused = list(dict.fromkeys(given + [as_flag(k) for k in changed if k not in RESUMABLE_CHANGES]))
     if refused:
-        allowed = ", ".join(_flag(k) for k in RESUMABLE_CHANGES)
+        allowed = ", ".join(as_flag(k) for k in RESUMABLE_CHANGES)
         raise ValueError(
             f"--resume: {', '.join(refused)} cannot be honoured: a resumed run keeps the scene and "
             f"configuration of its checkpoint (only {allowed} can change); start a new run with "
@@ -340,7 +340,7 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
         )
     for key in changes:
         if key != "iterations":
-            print(f"NOTE: {_flag(key)} changes {key} from {a.get(key)!r} to {changes[key]!r}")
+            print(f"NOTE: {as_flag(key)} changes {key} from {a.get(key)!r} to {changes[key]!r}")
     return changes
 
 
@@ -348,13 +348,13 @@ def _scene(cmd: TrainCommand) -> Any:
     """The typed reference of ``vadgs train``'s SCENE (benchmark, dgp, colmap), checking each kind's flags.
 
     A COLMAP model or project folder without ``scene.json`` is detected without ``--colmap-scene``
-    (:func:`vadgs.train.run.scene_ref`).
+    (:func:`vadgs.train.scenes.scene_ref`).
     """
-    from vadgs.train.run import scene_ref
+    from vadgs.train.scenes import scene_ref
 
     if cmd.dgp and cmd.colmap_scene:
         raise ValueError("--dgp, --colmap-scene: give one scene kind")
-    path = _scene_arg(cmd.scene)
+    path = scene_arg(cmd.scene)
     kind = "dgp" if cmd.dgp else "colmap" if cmd.colmap_scene else None
     if kind is None and cmd.scene is not None:
         kind = scene_ref(path).kind

@@ -12,20 +12,14 @@ maps are read lazily.
 from pathlib import Path
 
 from vadgs.data.checks import ValidationReport, ValidationRow
-from vadgs.data.colmap import (
-    ColmapPoints,
-    ColmapScene,
-    find_colmap_model,
-    load_colmap,
-    match_colmap_views,
-    open_colmap_project,
-    reopen_colmap_project,
-)
+from vadgs.data.colmap import ColmapScene, load_colmap, open_colmap_project, reopen_colmap_project
+from vadgs.data.colmap_model import find_colmap_model, match_colmap_views
 from vadgs.data.dgp import load_dgp
 from vadgs.data.export import export_scene
 from vadgs.data.nuscenes import load_nuscenes
 from vadgs.data.scene import (
     CameraInfo,
+    ColmapPoints,
     FrameInfo,
     InstanceInfo,
     LidarFrame,

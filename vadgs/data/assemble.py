@@ -27,7 +27,7 @@ from vadgs.data.scene import (
     Scene,
     Track,
     ViewInfo,
-    _read_rgb,
+    read_rgb,
 )
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
@@ -175,7 +175,7 @@ def file_image_loader(
     def image_loader(view: ViewInfo) -> torch.Tensor:
         if view.image is None:
             raise ValueError(f"view {view.index}: expected an image file, got None")
-        img = _read_rgb(view.image)
+        img = read_rgb(view.image)
         und = undistort.get(view.camera)
         if und is None:
             return img

@@ -46,6 +46,7 @@ __all__ = [
     "ValidationReport",
     "ValidationRow",
     "check_intrinsics",
+    "check_png",
     "check_rigid",
     "check_scene",
     "check_split",
@@ -204,7 +205,7 @@ def _size_matches(file_wh: tuple[int, int], size: tuple[int, int], scale: float)
     return (round(fh * scale), round(fw * scale)) == tuple(size)
 
 
-def _check_png(
+def check_png(
     path: Path, size: tuple[int, int], scale: float, modes: tuple[str, ...] | None, full: bool
 ) -> None:
     """An image file's size and mode; ``full``: decoded (colour images as the loaders decode them).
@@ -338,7 +339,7 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
         if v.image is not None:
             counts["images"] += 1
             failed["images"] += not col.run(
-                "image", v.image, functools.partial(_check_png, v.image, size, s, None, full)
+                "image", v.image, functools.partial(check_png, v.image, size, s, None, full)
             )
         if v.depth is not None:
             counts["depth"] += 1
@@ -350,7 +351,7 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
             counts["instances"] += 1
             failed["instances"] += not col.run(
                 "instances", v.instances,
-                functools.partial(_check_png, v.instances, size, s, _INSTANCE_MODES, full),
+                functools.partial(check_png, v.instances, size, s, _INSTANCE_MODES, full),
             )  # fmt: skip
     for kind, n in counts.items():
         if n and not failed[kind]:

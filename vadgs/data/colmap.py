@@ -58,38 +58,41 @@ from vadgs.data.assemble import assemble_scene, check_scale, check_validate_leve
 from vadgs.data.colmap_files import check_colmap_images
 from vadgs.data.colmap_model import (
     COLMAP_PIXEL_OFFSET,
-    _cam_from_world,
-    _has_model,
-    _read_model,
     colmap_camera_to_K,
+    colmap_world_to_cam,
     distorted_cameras,
     find_colmap_model,
-    match_colmap_views,
+    has_colmap_model,
+    read_colmap_model,
 )
 from vadgs.data.images import exif_orientation
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
+from vadgs.deprecation import moved_names
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
     import pycolmap
 
 __all__ = [
-    "COLMAP_PIXEL_OFFSET",
-    "ColmapPoints",
     "ColmapScene",
-    "colmap_camera_to_K",
     "colmap_normalization",
-    "distorted_cameras",
-    "find_colmap_model",
+    "find_images_dir",
     "load_colmap",
-    "match_colmap_views",
     "open_colmap_project",
     "reopen_colmap_project",
     "transform_colmap",
     "undistort_colmap",
     "warn_exif_rotated",
 ]
+
+if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
+    __getattr__ = moved_names(
+        __name__,
+        {
+            "match_colmap_views": "vadgs.data.colmap_model",
+        },
+    )
 
 COLMAP_LOG_LEVEL = 1
 """pycolmap's glog ``minloglevel`` while vadgs calls pycolmap: 0 info, 1 warnings (the default:
@@ -109,7 +112,8 @@ class ColmapScene(NamedTuple):
     points: ColmapPoints
 
 
-def _find_images_dir(sparse_dir: Path) -> Path | None:
+def find_images_dir(sparse_dir: Path) -> Path | None:
+    """The ``images`` folder of a COLMAP project, looked for beside and above ``sparse_dir``; or None."""
     for cand in (sparse_dir.parent.parent / "images", sparse_dir.parent / "images", sparse_dir / "images"):
         if cand.is_dir():
             return cand
@@ -185,14 +189,14 @@ def load_colmap(
     transform = None if isinstance(normalize, bool) else _check_similarity(normalize)
     if not any((sparse_dir / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
         raise FileNotFoundError(f"sparse_dir: no COLMAP model (cameras.bin or cameras.txt) in {sparse_dir}")
-    rec = _read_model(sparse_dir, "sparse_dir")
+    rec = read_colmap_model(sparse_dir, "sparse_dir")
 
     if images_dir is not None:
         images_dir = Path(images_dir)
         if not images_dir.is_dir():
             raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
     else:
-        images_dir = _find_images_dir(sparse_dir)
+        images_dir = find_images_dir(sparse_dir)
 
     # -- cameras --------------------------------------------------------------------------------------
     images = sorted(rec.images.values(), key=lambda im: im.name)
@@ -230,7 +234,7 @@ def load_colmap(
     for fi, group in enumerate(ordered):
         ids = []
         for im in sorted(group, key=lambda im: (im.camera_id, im.name)):
-            w2c = torch.tensor(_cam_from_world(im))
+            w2c = torch.tensor(colmap_world_to_cam(im))
             check_finite(w2c, f"{sparse_dir}: image {im.name!r} cam_from_world")
             path = images_dir / im.name if images_dir is not None else None
             view_of_image[int(im.image_id)] = len(views)
@@ -435,13 +439,13 @@ def undistort_colmap(
     import pycolmap
 
     sparse_dir, images_dir, out_dir = Path(sparse_dir), Path(images_dir), Path(out_dir)
-    rec = _read_model(sparse_dir, "sparse_dir")
+    rec = read_colmap_model(sparse_dir, "sparse_dir")
     if not images_dir.is_dir():
         raise FileNotFoundError(f"images_dir: no such folder {images_dir}")
     # pycolmap's undistorter aborts the process on an image of the wrong size and grey-fills a
     # truncated one: every registered image is decoded and measured first, naming the file
     check_colmap_images(rec, images_dir, full=True)
-    if out_dir.exists() and not _has_model(out_dir / "sparse"):
+    if out_dir.exists() and not has_colmap_model(out_dir / "sparse"):
         raise ValueError(
             f"out_dir {out_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
         )
@@ -459,7 +463,7 @@ def undistort_colmap(
                 raise ValueError(
                     f"sparse_dir {sparse_dir}, images_dir {images_dir}: pycolmap.undistort_images: {first}"
                 ) from None
-        if not _has_model(partial / "sparse"):
+        if not has_colmap_model(partial / "sparse"):
             raise ValueError(f"out_dir {out_dir}: pycolmap.undistort_images wrote no model")
         if out_dir.exists():
             shutil.rmtree(out_dir)
@@ -526,13 +530,13 @@ def _undistort_cached(model: Path, images_dir: Path, undistort_dir: Path) -> tup
     )
     if not owned:
         return undistort_colmap(model, images_dir, undistort_dir)
-    if undistort_dir.exists() and not _has_model(undistort_dir / "sparse"):
+    if undistort_dir.exists() and not has_colmap_model(undistort_dir / "sparse"):
         raise ValueError(
             f"out_dir {undistort_dir}: exists and is not an undistorted COLMAP model; refusing to replace it"
         )
-    names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
+    names = [im.name for im in read_colmap_model(model, "path").images.values() if im.has_pose]
     entry = project / UNDISTORT_CACHE / _undistort_key(model, images_dir, names)
-    if _has_model(entry / "sparse") and (entry / "images").is_dir():
+    if has_colmap_model(entry / "sparse") and (entry / "images").is_dir():
         undistort_dir.parent.mkdir(parents=True, exist_ok=True)
         _link_tree(entry, undistort_dir, undistort_dir.with_name(f".{undistort_dir.name}.partial"))
         return undistort_dir / "sparse", undistort_dir / "images"
@@ -597,7 +601,7 @@ def open_colmap_project(
             "sparse/0, sparse or 0"
         )
     if images_dir is None:
-        images_dir = _find_images_dir(model)
+        images_dir = find_images_dir(model)
         if images_dir is None:
             raise FileNotFoundError(
                 f"{path}: no images/ folder next to the COLMAP model {model}; give the images folder"
@@ -613,7 +617,7 @@ def open_colmap_project(
             raise ValueError(
                 f"{model}: cameras {distorted} are distorted; give undistort_dir to undistort them"
             )
-        names = [im.name for im in _read_model(model, "path").images.values() if im.has_pose]
+        names = [im.name for im in read_colmap_model(model, "path").images.values() if im.has_pose]
         rotated = warn_exif_rotated(images_dir, names)  # the photos themselves, not the undistorted copies
         model, images_dir = _undistort_cached(model, images_dir, Path(undistort_dir))
     try:

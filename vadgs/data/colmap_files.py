@@ -130,7 +130,7 @@ def check_colmap_images(rec: pycolmap.Reconstruction, images_dir: Path, full: bo
         ValueError: naming the image file: not decodable (truncated, 0 bytes), or of another size
             than its camera's.
     """
-    from vadgs.data.checks import _check_png
+    from vadgs.data.checks import check_png
 
     missing = []
     for im in sorted(rec.images.values(), key=lambda im: im.name):
@@ -142,7 +142,7 @@ def check_colmap_images(rec: pycolmap.Reconstruction, images_dir: Path, full: bo
             continue
         cam = rec.cameras[im.camera_id]
         try:
-            _check_png(path, (int(cam.height), int(cam.width)), 1.0, None, full)
+            check_png(path, (int(cam.height), int(cam.width)), 1.0, None, full)
         except ValueError as e:
             raise ValueError(f"{path}: {e} (camera {im.camera_id}, {cam.model.name})") from None
     if missing:

@@ -26,9 +26,12 @@ if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
 __all__ = [
     "COLMAP_PIXEL_OFFSET",
     "colmap_camera_to_K",
+    "colmap_world_to_cam",
     "distorted_cameras",
     "find_colmap_model",
+    "has_colmap_model",
     "match_colmap_views",
+    "read_colmap_model",
 ]
 
 #: vadgs pixel coordinates = COLMAP pixel coordinates + this offset (pixel centres at integers).
@@ -84,7 +87,8 @@ def colmap_camera_to_K(camera: pycolmap.Camera) -> tuple[torch.Tensor, tuple[int
     return K, (int(camera.height), int(camera.width))
 
 
-def _cam_from_world(image: pycolmap.Image) -> np.ndarray:
+def colmap_world_to_cam(image: pycolmap.Image) -> np.ndarray:
+    """A pycolmap image's ``cam_from_world`` as a ``(4, 4)`` float64 ``world_to_cam`` (pycolmap 3 and 4)."""
     cfw: Any = image.cam_from_world  # Any: the stubs know only the pycolmap installed
     cfw = cfw() if callable(cfw) else cfw  # a method in pycolmap 4, a property before
     out = np.eye(4)
@@ -96,7 +100,8 @@ def _model_file(folder: Path, name: str) -> bool:
     return any((folder / f"{name}.{e}").is_file() for e in ("bin", "txt"))
 
 
-def _has_model(folder: Path) -> bool:
+def has_colmap_model(folder: Path) -> bool:
+    """Whether ``folder`` holds a COLMAP model (``cameras``, ``images``, ``points3D``: ``.bin``, ``.txt``)."""
     return all(_model_file(folder, n) for n in ("cameras", "images", "points3D"))
 
 
@@ -115,15 +120,21 @@ def find_colmap_model(path: str | Path) -> Path | None:
     """
     path = Path(path)
     for cand in (path, path / "sparse" / "0", path / "sparse", path / "0"):
-        if cand.is_dir() and _has_model(cand):
+        if cand.is_dir() and has_colmap_model(cand):
             return cand
     return None
 
 
-def _read_model(sparse_dir: Path, what: str) -> pycolmap.Reconstruction:
+def read_colmap_model(sparse_dir: Path, what: str) -> pycolmap.Reconstruction:
+    """The COLMAP model in ``sparse_dir``, its files checked first (errors name ``what`` and the file).
+
+    Raises:
+        FileNotFoundError: when a model file is missing.
+        ValueError: when a file is corrupt or the model inconsistent.
+    """
     import pycolmap
 
-    if not _has_model(sparse_dir):
+    if not has_colmap_model(sparse_dir):
         missing = [n for n in ("cameras", "images", "points3D") if not _model_file(sparse_dir, n)]
         raise FileNotFoundError(
             f"{what} {sparse_dir}: no COLMAP model (cameras, images, points3D as .bin or .txt; "
@@ -160,7 +171,7 @@ def distorted_cameras(sparse_dir: str | Path) -> list[str]:
         FileNotFoundError: if ``sparse_dir`` holds no model.
         ValueError: if the model cannot be read.
     """
-    rec = _read_model(Path(sparse_dir), "sparse_dir")
+    rec = read_colmap_model(Path(sparse_dir), "sparse_dir")
     return [
         f"{cid} {cam.model.name}"
         for cid, cam in sorted(rec.cameras.items())
@@ -188,7 +199,7 @@ def match_colmap_views(scene: Scene, sparse_dir: str | Path, what: str = "colmap
         FileNotFoundError: if ``sparse_dir`` holds no model.
         ValueError: naming ``what``, the expected and the found names (or the centres' distance).
     """
-    rec = _read_model(Path(sparse_dir), what)
+    rec = read_colmap_model(Path(sparse_dir), what)
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     by_suffix: dict[tuple[str, ...], int] = {}
     for v in scene.views:
@@ -206,7 +217,7 @@ def match_colmap_views(scene: Scene, sparse_dir: str | Path, what: str = "colmap
             f"{len(bad)} of {len(images)} registered image names match none (expected names like "
             f"{expected}, found {bad[:3]})"
         )
-    theirs = torch.stack([invert_rigid(torch.tensor(_cam_from_world(im)))[:3, 3] for im in images])
+    theirs = torch.stack([invert_rigid(torch.tensor(colmap_world_to_cam(im)))[:3, 3] for im in images])
     mine = torch.stack([scene.views[i].cam_to_world[:3, 3] for i in idx]).double()
     allc = torch.stack([v.cam_to_world[:3, 3] for v in scene.views]).double()
     extent = max(float((allc - allc.mean(0)).norm(dim=-1).max()), 1e-3)

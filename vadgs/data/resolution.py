@@ -76,12 +76,12 @@ def _sizes(path: Path, kind: str, cameras: list[str] | None) -> tuple[list[tuple
         rendered = any(isinstance(v, dict) and v.get("depth") for f in frames[:1] for v in f.get("views", []))
         return sizes, rendered
     if kind == "colmap":
-        from vadgs.data.colmap_model import _read_model, find_colmap_model
+        from vadgs.data.colmap_model import find_colmap_model, read_colmap_model
 
         model = find_colmap_model(path)
         if model is None:
             raise FileNotFoundError(f"{path}: no COLMAP model")
-        rec = _read_model(model, "SCENE")
+        rec = read_colmap_model(model, "SCENE")
         used = {im.camera_id for im in rec.images.values() if im.has_pose}
         return [(int(c.height), int(c.width)) for cid, c in rec.cameras.items() if cid in used], False
     if kind == "dgp":

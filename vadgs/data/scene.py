@@ -38,6 +38,8 @@ __all__ = [
     "ViewInfo",
     "npz_headers",
     "read_depth",
+    "read_lidar_npz",
+    "read_rgb",
 ]
 
 
@@ -366,7 +368,7 @@ class Scene:
             else:
                 if v.image is None:
                     raise FileNotFoundError(f"view {i} ({v.camera}@{v.frame}) has no image")
-                img = _read_rgb(v.image)
+                img = read_rgb(v.image)
             out.append(self._resize(img[None], i, "area", size)[0])
         return torch.stack(out)
 
@@ -451,13 +453,13 @@ class Scene:
 # readers of the files a scene references
 
 
-def _read_rgb(path: Path) -> torch.Tensor:
+def read_rgb(path: Path) -> torch.Tensor:
     """A colour image ``(3, H, W)`` float32 in ``[0, 1]`` (:func:`vadgs.data.images.read_image`)."""
     return torch.from_numpy(read_image(path)).permute(2, 0, 1)
 
 
 def _read_png(path: Path) -> np.ndarray:
-    """A PNG's stored values (instance maps; colour images: :func:`_read_rgb`)."""
+    """A PNG's stored values (instance maps; colour images: :func:`read_rgb`)."""
     if not path.is_file():
         raise FileNotFoundError(f"missing file {path}")
     try:
@@ -467,7 +469,7 @@ def _read_png(path: Path) -> np.ndarray:
         raise ValueError(f"{path}: not a decodable image ({type(e).__name__}: {e})") from None
 
 
-def _read_lidar(path: Path) -> LidarFrame:
+def read_lidar_npz(path: Path) -> LidarFrame:
     """A benchmark LiDAR ``.npz``, checked: (N, 3) finite points, (N,) ids, (3,) origin."""
     npz_headers(path)  # a clear error for a file that is not an .npz (0 bytes, truncated)
     try:

@@ -19,7 +19,7 @@ from vadgs.checks import check_finite
 from vadgs.data._json import DatasetFiles, read_json, require_key
 from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
 from vadgs.data.checks import check_intrinsics, check_rigid, check_split
-from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, _read_lidar
+from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, read_lidar_npz
 from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = ["load_scene", "novel_view_group"]
@@ -314,7 +314,7 @@ def load_scene(
         train_frames=train_frames,
         test_frames=test_frames,
         scale=scale,
-        read_lidar=lambda frame, path: _read_lidar(path),
+        read_lidar=lambda frame, path: read_lidar_npz(path),
         check_files=check_files,
         validate=validate,
     )

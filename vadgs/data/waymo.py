@@ -82,15 +82,21 @@ from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_range_image_to
 __all__ = [
     "WAYMO_BOX_TYPES",
     "WAYMO_CAMERAS",
+    "WAYMO_CAMERA_CALIBRATION",
+    "WAYMO_CAMERA_IMAGE",
     "WAYMO_CAMERA_TO_OPENCV",
     "WAYMO_LASERS",
+    "WAYMO_LIDAR",
+    "WAYMO_LIDAR_BOX",
+    "WAYMO_LIDAR_CALIBRATION",
+    "WAYMO_LIDAR_POSE",
     "WAYMO_PIXEL_OFFSET",
+    "WAYMO_VEHICLE_POSE",
     "WaymoPoses",
     "load_waymo",
+    "pyarrow_parquet",
     "read_waymo_poses",
-    "waymo_beam_inclinations",
     "waymo_camera_name",
-    "waymo_range_image_to_points",
 ]
 
 #: ``key.camera_name`` → name (``camera_image.CameraName``).
@@ -113,19 +119,29 @@ _SEG, _TS, _CAM, _LASER, _OBJ = (
     "key.laser_name",
     "key.laser_object_id",
 )
-_CC, _CI, _LC, _L, _LP, _LB, _VP = (
-    "[CameraCalibrationComponent]",
-    "[CameraImageComponent]",
-    "[LiDARCalibrationComponent]",
-    "[LiDARComponent]",
-    "[LiDARPoseComponent]",
-    "[LiDARBoxComponent]",
-    "[VehiclePoseComponent]",
+#: The components' column prefixes (``<component>.<field>``), read here and written by
+#: :func:`vadgs.data.waymo_writer.write_waymo_segment`.
+WAYMO_CAMERA_CALIBRATION = "[CameraCalibrationComponent]"
+WAYMO_CAMERA_IMAGE = "[CameraImageComponent]"
+WAYMO_LIDAR_CALIBRATION = "[LiDARCalibrationComponent]"
+WAYMO_LIDAR = "[LiDARComponent]"
+WAYMO_LIDAR_POSE = "[LiDARPoseComponent]"
+WAYMO_LIDAR_BOX = "[LiDARBoxComponent]"
+WAYMO_VEHICLE_POSE = "[VehiclePoseComponent]"
+_CC, _CI, _LC, _L, _LP, _LB, _VP = (  # short names for the columns below
+    WAYMO_CAMERA_CALIBRATION,
+    WAYMO_CAMERA_IMAGE,
+    WAYMO_LIDAR_CALIBRATION,
+    WAYMO_LIDAR,
+    WAYMO_LIDAR_POSE,
+    WAYMO_LIDAR_BOX,
+    WAYMO_VEHICLE_POSE,
 )
 _RANGE_IMAGE = ("range_image_return1.values", "range_image_return1.shape")  # fields of lidar, lidar_pose
 
 
-def _pyarrow():
+def pyarrow_parquet():
+    """``pyarrow.parquet``, or an ``ImportError`` saying how to install it (the ``waymo`` extra)."""
     try:
         import pyarrow.parquet as pq
     except ImportError:
@@ -260,7 +276,7 @@ def read_waymo_poses(dataset_dir: str | Path, segment: str) -> WaymoPoses:
         ...     poses.world_from_vehicle.shape
         torch.Size([199, 4, 4])
     """
-    pq = _pyarrow()
+    pq = pyarrow_parquet()
     dataset_dir = Path(dataset_dir)
     if not dataset_dir.is_dir():
         raise FileNotFoundError(f"dataset_dir: no such folder {dataset_dir}")
@@ -342,7 +358,7 @@ def load_waymo(
         >>> scene.num_views, scene.image_size(0)  # doctest: +SKIP
         (995, (320, 480))
     """
-    pq = _pyarrow()
+    pq = pyarrow_parquet()
     dataset_dir = Path(dataset_dir)
     if not dataset_dir.is_dir():
         raise FileNotFoundError(f"dataset_dir: no such folder {dataset_dir}")

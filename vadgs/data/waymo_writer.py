@@ -48,21 +48,30 @@ import numpy as np
 from vadgs.data.scene import Scene
 from vadgs.data.scene_json import load_scene
 from vadgs.data.waymo import (
-    _CC,
-    _CI,
-    _L,
-    _LB,
-    _LC,
-    _VP,
+    WAYMO_CAMERA_CALIBRATION,
+    WAYMO_CAMERA_IMAGE,
     WAYMO_CAMERA_TO_OPENCV,
     WAYMO_CAMERAS,
+    WAYMO_LIDAR,
+    WAYMO_LIDAR_BOX,
+    WAYMO_LIDAR_CALIBRATION,
     WAYMO_PIXEL_OFFSET,
-    _pyarrow,
+    WAYMO_VEHICLE_POSE,
+    pyarrow_parquet,
 )
 from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_points_to_range_image
 from vadgs.io import safe_filename
 
 __all__ = ["BOX_TYPE_OF_CLASS", "MAX_COLUMNS", "WaymoSegmentSummary", "write_waymo_segment"]
+
+_CC, _CI, _L, _LB, _LC, _VP = (  # short names for the columns below
+    WAYMO_CAMERA_CALIBRATION,
+    WAYMO_CAMERA_IMAGE,
+    WAYMO_LIDAR,
+    WAYMO_LIDAR_BOX,
+    WAYMO_LIDAR_CALIBRATION,
+    WAYMO_VEHICLE_POSE,
+)
 
 #: vadgs class name → ``[LiDARBoxComponent].type`` (``box.BoxType``); others are 0 (unknown).
 BOX_TYPE_OF_CLASS = {"car": 1, "vehicle": 1, "truck": 1, "bus": 1, "pedestrian": 2, "sign": 3, "cyclist": 4}
@@ -237,7 +246,7 @@ def write_waymo_segment(
         >>> load_waymo(d + "/waymo", "seg0").camera_names
         ['FRONT', 'FRONT_LEFT']
     """
-    pq = _pyarrow()
+    pq = pyarrow_parquet()
     import pyarrow as pa
 
     root = Path(scene)

@@ -7,6 +7,7 @@ spherical harmonics (and their rotation), tile binning, compositing and 3DGS PLY
 :func:`rasterize_gaussians_gsplat` renders the same inputs with gsplat (``RasterConfig(backend="gsplat")``).
 """
 
+from vadgs.render.common import RasterConfig, RenderOutput
 from vadgs.render.composite import CompositeOutput, composite_gaussians
 from vadgs.render.gsplat_backend import rasterize_gaussians_gsplat
 from vadgs.render.ply import GaussianPly, load_ply, read_raw_ply, save_ply, write_raw_ply
@@ -21,7 +22,7 @@ from vadgs.render.sh import (
     sh_rotation,
     sh_to_rgb,
 )
-from vadgs.render.splat import GaussianRasterizer, RasterConfig, RenderOutput, rasterize_gaussians
+from vadgs.render.splat import GaussianRasterizer, rasterize_gaussians
 from vadgs.render.tiles import TileBins, bin_gaussians
 
 __all__ = [

@@ -16,7 +16,12 @@ import torch
 
 from vadgs.checks import check_finite, check_same_device, check_shape, checks_enabled
 
-__all__ = ["RasterConfig", "RenderOutput"]
+__all__ = [
+    "RasterConfig",
+    "RenderOutput",
+    "check_no_sh_degree",
+    "check_raster_inputs",
+]
 
 
 @dataclass(frozen=True)
@@ -121,7 +126,7 @@ class RenderOutput(NamedTuple):
     hard_depth: torch.Tensor | None = None
 
 
-def _check_inputs(
+def check_raster_inputs(
     means: torch.Tensor,
     quats: torch.Tensor,
     scales: torch.Tensor,
@@ -131,6 +136,11 @@ def _check_inputs(
     K: torch.Tensor,
     background: torch.Tensor | None,
 ) -> dict[str, int]:
+    """Check a rasterizer's inputs (shapes, dtypes, finite cameras); their dims (``N``, ``B``, ...).
+
+    What both rasterizers (:mod:`vadgs.render.splat`, :mod:`vadgs.render.gsplat_backend`) check
+    before rendering.
+    """
     dims = check_shape(means, "means", ("N", 3))
     check_shape(quats, "quats", ("N", 4), dims)
     check_shape(scales, "scales", ("N", 3), dims)
@@ -199,7 +209,7 @@ def _check_inputs(
     return dims
 
 
-def _check_no_sh_degree(colors: torch.Tensor, sh_degree: int | None) -> None:
+def check_no_sh_degree(colors: torch.Tensor, sh_degree: int | None) -> None:
     """``sh_degree`` must be None when ``colors`` are not SH coefficients (``(N, D)`` colours)."""
     if sh_degree is not None:
         raise ValueError(f"sh_degree: given ({sh_degree}) but colors are not SH, shape {tuple(colors.shape)}")

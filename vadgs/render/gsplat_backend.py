@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from vadgs.checks import check_size
 from vadgs.geometry.camera import camera_centers
 from vadgs.geometry.rotation import quaternion_to_rotation
-from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs, _check_no_sh_degree
+from vadgs.render.common import RasterConfig, RenderOutput, check_no_sh_degree, check_raster_inputs
 
 __all__ = ["GSPLAT_TILE_SIZE", "rasterize_gaussians_gsplat"]
 
@@ -307,7 +307,7 @@ def rasterize_gaussians_gsplat(
     if impl not in _IMPLS:
         raise ValueError(f"impl: expected one of {_IMPLS}, got {impl!r}")
     h, w = check_size(image_size)
-    dims = _check_inputs(means, quats, scales, opacities, colors, world_to_cam, K, background)
+    dims = check_raster_inputs(means, quats, scales, opacities, colors, world_to_cam, K, background)
     b, n, d = dims["B"], dims["N"], dims["D"]
     if impl == "auto":
         impl = "cuda" if means.is_cuda else "torch"
@@ -342,7 +342,7 @@ def rasterize_gaussians_gsplat(
             sh = _spherical_harmonics(degree, dirs, coeffs)
         rgb = torch.clamp_min(sh + 0.5, 0.0)
     else:
-        _check_no_sh_degree(colors, sh_degree)
+        check_no_sh_degree(colors, sh_degree)
         rgb = colors[None].expand(b, n, d)
     normals = _shortest_axis_normals(means, quats, scales, world_to_cam)
     feats = torch.cat([rgb, normals], -1)  # (B, N, D + 3)

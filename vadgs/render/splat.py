@@ -21,13 +21,13 @@ from torch import nn
 
 from vadgs.checks import check_size, checks_enabled
 from vadgs.geometry.camera import Cameras, camera_centers
-from vadgs.render.common import RasterConfig, RenderOutput, _check_inputs, _check_no_sh_degree
+from vadgs.render.common import RasterConfig, RenderOutput, check_no_sh_degree, check_raster_inputs
 from vadgs.render.composite import CompositeOutput, composite_gaussians
 from vadgs.render.projection import project_gaussians
 from vadgs.render.sh import eval_sh
 from vadgs.render.tiles import bin_gaussians
 
-__all__ = ["GaussianRasterizer", "RasterConfig", "RenderOutput", "rasterize_gaussians"]
+__all__ = ["GaussianRasterizer", "rasterize_gaussians"]
 
 
 def rasterize_gaussians(
@@ -110,7 +110,7 @@ def rasterize_gaussians(
             means, quats, scales, opacities, colors, world_to_cam, K, image_size, background, sh_degree, cfg
         )
     h, w = check_size(image_size)
-    dims = _check_inputs(means, quats, scales, opacities, colors, world_to_cam, K, background)
+    dims = check_raster_inputs(means, quats, scales, opacities, colors, world_to_cam, K, background)
     b, n, d = dims["B"], dims["N"], dims["D"]
     if hard_depth and cfg.antialiased:
         raise ValueError("hard_depth: expected RasterConfig(antialiased=False), got antialiased=True")
@@ -144,7 +144,7 @@ def rasterize_gaussians(
         dirs = F.normalize(means[None] - camera_centers(world_to_cam)[:, None], dim=-1)
         rgb = eval_sh(colors, dirs, sh_degree)
     else:
-        _check_no_sh_degree(colors, sh_degree)
+        check_no_sh_degree(colors, sh_degree)
         rgb = colors.expand(b, n, d)
     features = torch.cat([rgb, proj.depths[..., None], proj.normals], dim=-1)
     means2d = proj.means2d

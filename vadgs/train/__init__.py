@@ -2,9 +2,12 @@
 
 from vadgs.train.appearance import AppearanceConfig, AppearanceModel, apply_affine
 from vadgs.train.config import TrainConfig
+from vadgs.train.divergence import NonFiniteLossError
 from vadgs.train.init import InitConfig, init_gaussians
+from vadgs.train.loop import TrainResult
 from vadgs.train.losses import (
     GeometricLossConfig,
+    GeometryTargets,
     color_loss,
     depth_loss,
     depth_loss_hard,
@@ -26,7 +29,7 @@ from vadgs.train.strategy.ops import (
     reset_opacity,
     split,
 )
-from vadgs.train.trainer import GeometryTargets, NonFiniteLossError, Trainer, TrainResult
+from vadgs.train.trainer import Trainer
 
 __all__ = [
     "AppearanceConfig",

@@ -19,9 +19,8 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.data.cache import ByteCache
-from vadgs.data.colmap import ColmapPoints
 from vadgs.data.lidar import accumulate_lidar
-from vadgs.data.scene import Scene
+from vadgs.data.scene import ColmapPoints, Scene
 from vadgs.geometry.camera import project_points
 from vadgs.geometry.voxel import check_voxel_size, unique_cells
 from vadgs.train.model import GaussianModel

@@ -6,17 +6,24 @@ A run is a folder (``--out``) holding ``checkpoint.pt`` (:mod:`vadgs.train.check
 paths and a content fingerprint — that :func:`open_run_scene` reopens from any current folder
 (``docs/design.md``, "A run"). One process writes a run folder at a time (:class:`RunLock`).
 
-- Scene references (:mod:`vadgs.train.scenes`, re-exported here), one typed dataclass per kind:
-  :class:`BenchmarkRef`, :class:`DGPRef`, :class:`ColmapRef`; :func:`scene_ref` picks the kind of
-  a folder; :func:`prepare_scene` opens one for a new run (a distorted COLMAP project is
-  undistorted into the run folder) and returns the reference the checkpoint stores.
+- Scene references (:mod:`vadgs.train.scenes`), one typed dataclass per kind:
+  :class:`~vadgs.train.scenes.BenchmarkRef`, :class:`~vadgs.train.scenes.DGPRef`,
+  :class:`~vadgs.train.scenes.ColmapRef`; :func:`~vadgs.train.scenes.scene_ref` picks the kind of
+  a folder; :func:`~vadgs.train.scenes.prepare_scene` opens one for a new run (a distorted COLMAP
+  project is undistorted into the run folder) and returns the reference the checkpoint stores.
 - :func:`train_scene`: open → train → :func:`finish_run` (evaluate, export, ``metrics.json``), or
   continue a run folder's checkpoint. ``vadgs train`` and ``vadgs batch`` are adapters over it.
 - :func:`load_run` reads a finished or running run back (``scene=``: the folder its scene moved
-  to); :func:`describe_run` / :func:`clear_run` (:mod:`vadgs.train.checkpoint`, re-exported) look
-  after its folder.
+  to); :func:`~vadgs.train.checkpoint.describe_run` / :func:`~vadgs.train.checkpoint.clear_run`
+  look after its folder.
+
+The scene references, ``describe_run``, ``clear_run``, ``RunLock`` and ``RunInUseError`` were
+importable from here before; they are imported from their modules now (the old imports still
+work, with a ``DeprecationWarning`` for the names this module does not use itself).
 
 Example::
+
+    from vadgs.train.scenes import scene_ref
 
     ref = scene_ref("data/street_a", scale=0.5)
     outcome = train_scene(ref, TrainConfig(vad=VisibilityDensifyConfig()), "runs/street_a")
@@ -27,58 +34,49 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 
 from vadgs.data.scene import Scene
+from vadgs.deprecation import moved_names
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, check_removable, record_files
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,
-    clear_run,
     describe_run,
     held_run_message,
     load_checkpoint,
 )
 from vadgs.train.scenes import (
-    BenchmarkRef,
     ColmapRef,
-    DGPRef,
-    SceneRef,
     folder_kind,
-    locate_scene,
     open_run_scene,
-    open_scene,
     prepare_scene,
-    scene_fingerprint,
-    scene_ref,
 )
-from vadgs.train.session import RunInUseError, RunLock, reclaim_signals
+from vadgs.train.session import RunLock, reclaim_signals
 
-__all__ = [
-    "BenchmarkRef",
-    "ColmapRef",
-    "DGPRef",
-    "Run",
-    "RunInUseError",
-    "RunLock",
-    "RunOutcome",
-    "SceneRef",
-    "clear_run",
-    "describe_run",
-    "finish_run",
-    "frame_position",
-    "load_run",
-    "locate_scene",
-    "open_run_scene",
-    "open_scene",
-    "prepare_scene",
-    "scene_fingerprint",
-    "scene_ref",
-    "train_scene",
-]
+if TYPE_CHECKING:
+    from vadgs.train.scenes import SceneRef
+
+__all__ = ["Run", "RunOutcome", "finish_run", "frame_position", "load_run", "train_scene"]
+
+if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
+    __getattr__ = moved_names(
+        __name__,
+        {
+            "BenchmarkRef": "vadgs.train.scenes",
+            "clear_run": "vadgs.train.checkpoint",
+            "DGPRef": "vadgs.train.scenes",
+            "locate_scene": "vadgs.train.scenes",
+            "open_scene": "vadgs.train.scenes",
+            "RunInUseError": "vadgs.train.session",
+            "scene_fingerprint": "vadgs.train.scenes",
+            "scene_ref": "vadgs.train.scenes",
+            "SceneRef": "vadgs.train.scenes",
+        },
+    )
 
 
 def finish_run(
@@ -89,7 +87,7 @@ def finish_run(
     Args:
         trainer: the :class:`~vadgs.train.trainer.Trainer` that ran.
         out: the run folder (``metrics.json`` and ``ply/`` go there).
-        result: its :class:`~vadgs.train.trainer.TrainResult`.
+        result: its :class:`~vadgs.train.loop.TrainResult`.
         progress: progress bar of the evaluation.
         started: a :func:`time.perf_counter` value: ``wall_s`` is the time since then, this
             function included.
@@ -228,7 +226,7 @@ class RunOutcome(NamedTuple):
     Attributes:
         out_dir: the run folder.
         completed: the run reached its last step (and was finished: ``metrics``).
-        reason: why training stopped (:class:`~vadgs.train.trainer.TrainResult`): ``"done"``,
+        reason: why training stopped (:class:`~vadgs.train.loop.TrainResult`): ``"done"``,
             ``"interrupted"`` (SIGINT / SIGTERM, checkpointed) or ``"time limit"`` (``max_minutes``).
         step: steps trained.
         metrics: ``metrics.json`` as written by :func:`finish_run`, or None when not completed.
@@ -261,7 +259,7 @@ def train_scene(
     into it fails at once, naming the first one's pid.
 
     Args:
-        scene: the scene of a new run (:func:`scene_ref`); None with ``resume``.
+        scene: the scene of a new run (:func:`~vadgs.train.scenes.scene_ref`); None with ``resume``.
         config: its :class:`~vadgs.train.config.TrainConfig` (default: the defaults).
         out_dir: the run folder.
         resume: continue the checkpoint in ``out_dir`` exactly; the scene and configuration are
@@ -269,7 +267,7 @@ def train_scene(
             and checked by its fingerprint (:func:`open_run_scene`).
         overwrite: a new run may replace a previous run in ``out_dir`` (else that is an error).
         config_changes: what a resumed run may change (:data:`~vadgs.train.checkpoint.RESUMABLE_CHANGES`).
-        init_points: :class:`~vadgs.data.colmap.ColmapPoints` that initialise a new run (with
+        init_points: :class:`~vadgs.data.scene.ColmapPoints` that initialise a new run (with
             their TRACK table) besides the scene's own points, or a function of the opened scene
             that returns them (e.g. after checking that a COLMAP model matches its views).
         progress: progress bars.

@@ -502,7 +502,7 @@ def locate_scene(
             located["path"] = str(given)
         else:
             from vadgs.data import find_colmap_model
-            from vadgs.data.colmap import _find_images_dir
+            from vadgs.data.colmap import find_images_dir
 
             model = find_colmap_model(given)
             if model is None:  # found as a COLMAP project just above: gone since
@@ -510,7 +510,7 @@ def locate_scene(
             located["source"] = str(model)
             if not Path(located["path"]).is_relative_to(run_dir):  # not an undistorted copy in the run
                 located["path"] = str(model)
-                images = _find_images_dir(model)
+                images = find_images_dir(model)
                 located["images"] = str(images) if images is not None else located.get("images")
     else:
         for key in keys:

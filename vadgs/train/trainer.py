@@ -9,15 +9,17 @@ or any given one. The trainer hands strategies gsplat's arguments (``model.param
 the state, the step, the render's ``info``) and, for VAD-GS, a
 :class:`~vadgs.train.vad.StrategyContext`; strategies never see the trainer. This module holds the
 trainer's state and one step (:meth:`Trainer.train_step`); :mod:`vadgs.train.loop` drives the steps
-(progress bar, log, signals, checkpoints on the way, failure path) and defines :class:`TrainResult`.
+(progress bar, log, signals, checkpoints on the way, failure path) and defines
+:class:`~vadgs.train.loop.TrainResult`.
 
 Checkpoints (:class:`~vadgs.train.checkpoint.Checkpoint`, ``checkpoint.pt`` in the run folder)
 hold everything the run depends on, so ``resume`` continues *exactly*. They are written atomically
 every ``checkpoint_every`` steps and ``checkpoint_minutes``, at the end of the first sampling
 cycle, at the end, when SIGINT / SIGTERM stop the loop (:func:`~vadgs.train.session.stop_on_signals`)
 and when an exception stops it (the last completed step; see :meth:`Trainer.train`); saving never
-changes the trajectory. A non-finite loss or parameter raises :class:`NonFiniteLossError`, a
-diverging model :class:`DivergenceError`, both naming the step; nothing is saved over the last
+changes the trajectory. A non-finite loss or parameter raises
+:class:`~vadgs.train.divergence.NonFiniteLossError`, a diverging model
+:class:`~vadgs.train.divergence.DivergenceError`, both naming the step; nothing is saved over the last
 good checkpoint then. A run folder that holds a run is never reused by a new :class:`Trainer`
 unless ``overwrite=True``; :meth:`Trainer.from_checkpoint` continues it.
 """
@@ -30,23 +32,20 @@ import time
 import warnings
 from collections.abc import Callable, MutableMapping
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 
 from vadgs.checks import checks_enabled
-from vadgs.data.lidar import lidar_depth_map
 from vadgs.data.scene import Scene
+from vadgs.deprecation import moved_names
 from vadgs.runfolder import check_output_folder, check_removable, record_files
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
-    RESUMABLE_CHANGES,
     Checkpoint,
     StepSnapshot,
     capture_rng,
-    checkpoint_checksum,
-    clear_run,
     describe_run,
     held_run_message,
     load_checkpoint,
@@ -54,11 +53,10 @@ from vadgs.train.checkpoint import (
     resumed_config,
     save_checkpoint,
 )
-from vadgs.train.config import LearningRates, TrainConfig, refine_steps
-from vadgs.train.divergence import DivergenceError, DivergenceMonitor, NonFiniteLossError
+from vadgs.train.config import TrainConfig, refine_steps
+from vadgs.train.divergence import DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
-from vadgs.train.loop import TrainResult, run_loop
-from vadgs.train.losses import GeometryTargets
+from vadgs.train.loop import run_loop
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender, make_optimizer
 from vadgs.train.objective import Objective
 from vadgs.train.sampler import ViewSampler
@@ -73,23 +71,26 @@ from vadgs.train.vad import (
 )
 from vadgs.train.vad.inputs import VisibilityInputs
 
-__all__ = [
-    "CHECKPOINT_NAME",
-    "RESUMABLE_CHANGES",
-    "DivergenceError",
-    "GeometryTargets",
-    "LearningRates",
-    "NonFiniteLossError",
-    "TrainConfig",
-    "TrainResult",
-    "Trainer",
-    "checkpoint_checksum",
-    "clear_run",
-    "describe_run",
-    "lidar_depth_map",
-    "load_checkpoint",
-    "open_scene",
-]
+if TYPE_CHECKING:
+    from vadgs.train.loop import TrainResult
+    from vadgs.train.losses import GeometryTargets
+
+__all__ = ["Trainer"]
+
+if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
+    __getattr__ = moved_names(
+        __name__,
+        {
+            "checkpoint_checksum": "vadgs.train.checkpoint",
+            "clear_run": "vadgs.train.checkpoint",
+            "DivergenceError": "vadgs.train.divergence",
+            "GeometryTargets": "vadgs.train.losses",
+            "LearningRates": "vadgs.train.config",
+            "lidar_depth_map": "vadgs.data.lidar",
+            "RESUMABLE_CHANGES": "vadgs.train.checkpoint",
+            "TrainResult": "vadgs.train.loop",
+        },
+    )
 
 
 def _scene_scale(scene: Scene, views: list[int]) -> float:

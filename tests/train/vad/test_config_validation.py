@@ -19,13 +19,13 @@ import torch
 
 from vadgs.train.strategy import DefaultStrategy
 from vadgs.train.vad import (
+    ReconstructConfig,
     StrategyContext,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
     VisibilityInputs,
 )
 from vadgs.train.vad.incomplete import IncompleteConfig
-from vadgs.train.vad.reconstruct import ReconstructConfig
 
 NAN, INF = float("nan"), float("inf")
 CONFIGS = (VisibilityDensifyConfig, ReconstructConfig, IncompleteConfig)

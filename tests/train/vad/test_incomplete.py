@@ -4,7 +4,8 @@ import pytest
 import torch
 
 import vadgs.geometry
-from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete, voxel_labels
+from vadgs.geometry.voxel import voxel_labels
+from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete
 
 
 def _naive(ins, vox, ren, alpha, cfg, vindex=None, vlabels=None):

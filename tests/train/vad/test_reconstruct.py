@@ -12,15 +12,10 @@ from tests.train.vad.test_vad import BUILDING, _model, _trainer
 from tests.train.vad.test_vad import gt_points as gt_points
 from tests.train.vad.test_vad import index as index
 from tests.train.vad.test_vad import scene as scene
-from vadgs.train.vad import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import (
-    MatchScale,
-    ReconstructConfig,
-    ViewRender,
-    match_scale,
-    reconstruct_instance,
-    thin_points,
-)
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
+from vadgs.train.vad.crops import MatchScale, match_scale
+from vadgs.train.vad.fusion import thin_points
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
 
 
 class TestMatchScale:
@@ -292,7 +287,8 @@ class TestEventLog:
     def test_same_model_under_a_slow_clock(self, monkeypatch):
         """One config and seed, one model: training with a clock 1000x slower gives the same bits."""
         from vadgs.data import load_scene, sample_scene_path
-        from vadgs.train.trainer import TrainConfig, Trainer
+        from vadgs.train.config import TrainConfig
+        from vadgs.train.trainer import Trainer
 
         scene = load_scene(sample_scene_path(), scale=0.5)  # 120x72: 18 views, the event after step 17
         small = ReconstructConfig(max_crop=32)
@@ -343,7 +339,8 @@ class TestEventLog:
 class TestViewCache:
     def test_bounded_index_gives_the_same_maps(self, scene, index):
         """A tiny byte budget drops views and recomputes them identically."""
-        from vadgs.train.vad.reconstruct import ViewCache, build_visibility_index
+        from vadgs.train.vad import build_visibility_index
+        from vadgs.train.vad.visibility import ViewCache
 
         small = build_visibility_index(scene)
         small.view_cache = ViewCache(max_bytes=3 * 120 * 72 * 12)
@@ -363,7 +360,8 @@ class TestViewsOfDifferentSizes:
     def test_event_adds_gaussians_from_both_sizes(self, tmp_path):
         from tests.data.multisize_sample import write_multisize_sample
         from vadgs.data import load_scene
-        from vadgs.train.trainer import TrainConfig, Trainer
+        from vadgs.train.config import TrainConfig
+        from vadgs.train.trainer import Trainer
 
         sc = load_scene(write_multisize_sample(tmp_path))
         sizes = {sc.image_size(v) for v in range(sc.num_views)}

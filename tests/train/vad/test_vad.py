@@ -7,17 +7,20 @@ import torch
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth, project_points
 from vadgs.mvs import PlanarCompletionConfig
+from vadgs.train.config import TrainConfig
 from vadgs.train.model import GaussianModel
-from vadgs.train.trainer import TrainConfig, Trainer
+from vadgs.train.trainer import Trainer
 from vadgs.train.vad import (
+    ReconstructConfig,
     StrategyContext,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
+    build_visibility_index,
     normals_to_quats,
     pick_references,
     rank_instances,
 )
-from vadgs.train.vad.reconstruct import ReconstructConfig, build_visibility_index, reconstruct_instance
+from vadgs.train.vad.reconstruct import reconstruct_instance
 
 BUILDING = 9  # a large facade of the sample scene with LiDAR on its lower part
 CAR = 65  # the overtaken moving car

@@ -14,13 +14,14 @@ import torch
 from vadgs.data import load_colmap
 from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, DefaultStrategyConfig, ops
 from vadgs.train.vad import (
+    ReconstructConfig,
     StrategyContext,
     ViewRender,
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
     VisibilityInputs,
+    build_visibility_index,
 )
-from vadgs.train.vad.reconstruct import ReconstructConfig, build_visibility_index
 
 from ..gsplat_parser import facade_splats
 

@@ -16,8 +16,12 @@
 - :mod:`~vadgs.train.vad.detect`: an event's detection (per view, from the loop's renders);
 - :mod:`~vadgs.train.vad.references`: which instances to reconstruct, from which reference views;
 - :mod:`~vadgs.train.vad.reconstruct` and its settings :mod:`~vadgs.train.vad.reconstruct_config`:
-  an instance's reconstruction (view selection, PatchMatch, consistency, fusion);
-- :mod:`~vadgs.train.vad.crops`: the crops of an instance's views that PatchMatch runs on;
+  an instance's reconstruction (:func:`reconstruct_instance`: its frame, view selection, PatchMatch,
+  then the steps of the next two modules);
+- :mod:`~vadgs.train.vad.crops`: the crops of an instance's views that PatchMatch runs on, at the
+  instance's matching scale;
+- :mod:`~vadgs.train.vad.fusion`: from the matched depth to points and priors (consistency, what
+  the Gaussians already explain, fusion and thinning, each view's depth prior);
 - :mod:`~vadgs.train.vad.gaussians`: the new flat Gaussians of the fused points;
 - :mod:`~vadgs.train.vad.priors`: the MVS depth and normals kept as the geometric losses' targets.
 

@@ -27,7 +27,8 @@ from vadgs.checks import (
 )
 from vadgs.config import RemovedField
 from vadgs.train.vad.incomplete import IncompleteConfig
-from vadgs.train.vad.reconstruct import ReconstructConfig, ViewRender
+from vadgs.train.vad.reconstruct import ViewRender
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
 
 __all__ = ["RANKINGS", "StrategyContext", "VisibilityDensifyConfig"]
 

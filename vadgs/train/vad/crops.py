@@ -2,10 +2,13 @@
 
 :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` matches an instance on crops around it in
 each group view, at a scale of its own (:func:`match_scale`): finer than the scene's resolution
-for small instances (a sign), coarser for large ones (a facade). ``_crop_group`` makes the
-crops; the helpers resample maps between the scene's resolution and the matching scale (nearest
-upsampling, means of the valid pixels of each block) and shift intrinsics to a crop. Importable
-from :mod:`vadgs.train.vad.reconstruct`.
+for small instances (a sign), coarser for large ones (a facade). :func:`crop_group` makes the
+crops (:class:`Crops`), which PatchMatch turns into :class:`MatchedCrops`; :func:`render_maps`
+reads the Gaussians' render of a view (the matching's initialisation and the test of what is
+already explained); the helpers resample maps between the scene's resolution and the matching
+scale (:func:`repeat`: nearest upsampling; :func:`pool_valid`: means of the valid pixels of each
+block; :func:`to_scale`: either, as the scale asks) and shift intrinsics to a crop
+(:func:`shift_K`).
 """
 
 from __future__ import annotations
@@ -17,10 +20,22 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.geometry.camera import scale_intrinsics
+from vadgs.mvs.patchmatch import PatchMatchResult
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
 
-__all__ = ["MatchScale", "match_scale"]
+__all__ = [
+    "Crops",
+    "MatchScale",
+    "MatchedCrops",
+    "crop_group",
+    "match_scale",
+    "pool_valid",
+    "render_maps",
+    "repeat",
+    "shift_K",
+    "to_scale",
+]
 
 
 class MatchScale(NamedTuple):
@@ -98,12 +113,12 @@ def _align_crops(
     return out, ch2, cw2
 
 
-def _repeat(x: torch.Tensor, f: int) -> torch.Tensor:
+def repeat(x: torch.Tensor, f: int) -> torch.Tensor:
     """Nearest upsampling of the last two dims by ``f`` (pixel (y, x) -> block (fy.., fx..))."""
     return x if f == 1 else x.repeat_interleave(f, -2).repeat_interleave(f, -1)
 
 
-def _pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False) -> torch.Tensor:
+def pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False) -> torch.Tensor:
     """``(C, H, W)`` → ``(C, H/f, W/f)``: the mean of the valid pixels of each ``f x f`` block.
 
     Zero where fewer than half are valid (``unit``: renormalised, for normals); at ``f = 1``, ``x``
@@ -128,21 +143,42 @@ def _pool_mask(m: torch.Tensor, f: int) -> torch.Tensor:
     return (x >= 0.5).reshape(*lead, *x.shape[-2:])
 
 
-def _to_scale(x: torch.Tensor, valid: torch.Tensor, scale: MatchScale, unit: bool = False) -> torch.Tensor:
+def to_scale(x: torch.Tensor, valid: torch.Tensor, scale: MatchScale, unit: bool = False) -> torch.Tensor:
     """A scene-resolution map ``(C, H, W)`` at the matching scale (valid-pixel means when coarser)."""
     if scale.up > 1:
-        return _repeat(torch.where(valid, x, torch.zeros_like(x)), scale.up)
-    return _pool_valid(x, valid, scale.down, unit)
+        return repeat(torch.where(valid, x, torch.zeros_like(x)), scale.up)
+    return pool_valid(x, valid, scale.down, unit)
 
 
-def _shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
+def shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
+    """Intrinsics ``(..., 3, 3)`` of the crop whose top-left corner is pixel ``(x0, y0)`` (a copy).
+
+    Example:
+        >>> shift_K(torch.eye(3), 2, 5)[:2, 2].tolist()
+        [-2.0, -5.0]
+    """
     K = K.clone()
     K[..., 0, 2] -= x0
     K[..., 1, 2] -= y0
     return K
 
 
-class _Crops(NamedTuple):
+def render_maps(
+    render_prior, view: int, index: VisibilityIndex | None = None
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """``(depth, alpha or None, normals)`` of a render prior's answer (a ViewRender or a pair).
+
+    Padded to the index's size when ``index`` is given (views of different sizes).
+    """
+    out = render_prior(view)
+    d, a, n = (out[0], None, out[1]) if isinstance(out, tuple) and len(out) == 2 else out
+    if index is not None:
+        d, n = index.pad(d), index.pad(n)
+        a = None if a is None else index.pad(a)
+    return d, a, n
+
+
+class Crops(NamedTuple):
     """Step 3's input: the group's images and masks cropped around the instance, at the matching scale."""
 
     members: list[int]  # group positions whose instance mask is large enough to be a reference
@@ -157,14 +193,14 @@ class _Crops(NamedTuple):
     scale: MatchScale
 
 
-def _crop_group(
+def crop_group(
     index: VisibilityIndex,
     group: list[int],
     instance: int,
     track: int | None,
     cfg: ReconstructConfig,
     device: torch.device,
-) -> _Crops | str:
+) -> Crops | str:
     """Step 3a: crops around the instance in each group view, at its matching scale (:func:`match_scale`).
 
     Sources match only inside their region: static pixels for a static instance, the object's own
@@ -196,8 +232,8 @@ def _crop_group(
     corners_lo, size_lo = corners, (ch, cw)
     if scale.up > 1:
         f = scale.up
-        masks = [_repeat(m, f) for m in masks]
-        regions = _repeat(regions, f)
+        masks = [repeat(m, f) for m in masks]
+        regions = repeat(regions, f)
         corners, ch, cw = [(y0 * f, x0 * f) for y0, x0 in corners], ch * f, cw * f
         K = scale_intrinsics(K, f)
         images = torch.stack([index.image(v, f) for v in group])
@@ -212,4 +248,14 @@ def _crop_group(
             images = F.avg_pool2d(images, f)
     images, regions, K = images.to(device), regions.to(device), K.to(device)
     masks = [m.to(device) for m in masks]
-    return _Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
+    return Crops(members, images, masks, regions, K, corners, (ch, cw), corners_lo, size_lo, scale)
+
+
+class MatchedCrops(NamedTuple):
+    """Step 3b's result: PatchMatch of each member's crop, with that crop's inputs."""
+
+    result: PatchMatchResult
+    images: torch.Tensor  # (b, 3, ch, cw) the members' crops
+    masks: torch.Tensor  # (b, 1, ch, cw)
+    K: torch.Tensor  # (b, 3, 3) of the crops
+    world_to_cam: torch.Tensor  # (b, 4, 4)

@@ -16,11 +16,9 @@ import torch
 
 from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
 from vadgs.train.vad.inputs import VisibilityInputs
-from vadgs.train.vad.reconstruct import (
-    ViewRender,
-    VisibilityIndex,
-)
+from vadgs.train.vad.reconstruct import ViewRender
 from vadgs.train.vad.state import compact_render, expand_render
+from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
     "EventRenders",

@@ -21,13 +21,10 @@ from vadgs.train.vad.config import VisibilityDensifyConfig
 from vadgs.train.vad.detect import EventRenders, detect
 from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.priors import merge_priors
-from vadgs.train.vad.reconstruct import (
-    ReconstructConfig,
-    ViewRender,
-    VisibilityIndex,
-    reconstruct_instance,
-)
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.references import pick_references, rank_instances
+from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
     "EventInputs",

@@ -1,7 +1,7 @@
 """What VAD-GS needs of the data, as data: :class:`VisibilityInputs` (no vadgs ``Scene`` required).
 
 :class:`~vadgs.train.vad.VisibilityAwareDensification` and the visibility index
-(:func:`~vadgs.train.vad.reconstruct.build_visibility_index`) read a dataset only through this
+(:func:`~vadgs.train.vad.visibility.build_visibility_index`) read a dataset only through this
 input: every view's camera (intrinsics ``K``, ``world_to_cam``, image size), an image loader, an
 instance-mask loader or none (then the derived ground cells of the voxels stand in, as for a
 COLMAP scene), the visibility observations — LiDAR (:class:`~vadgs.data.lidar.AccumulatedLidar`
@@ -72,7 +72,7 @@ class VisibilityInputs:
             ``native_factor`` times).
         load_instances: ``view -> (H, W)`` int64 instance map (0 = none) for the views of
             ``instance_views``; None: no instance maps, the derived ground cells stand in
-            (:func:`~vadgs.train.vad.reconstruct.derive_instance_map`).
+            (:func:`~vadgs.train.vad.instances.derive_instance_map`).
         instance_views: the views that have a map (default: every view when ``load_instances`` is
             given). A view without one makes the index derive instances for the views without.
         lidar: LiDAR observations, frame by frame: ``(track_id, views) ->`` an iterable of

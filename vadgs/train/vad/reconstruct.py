@@ -1,8 +1,8 @@
-r"""Reconstruct one flagged instance by multi-view stereo (paper, Fig. 2 and 4).
+r"""Reconstruct one flagged instance by multi-view stereo (paper, Sec. 4.3, Fig. 2 and 4).
 
 :func:`reconstruct_instance`, given the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex`
-(:mod:`vadgs.train.vad.visibility`; re-exported here with :func:`build_visibility_index`), a
-reference view and an instance flagged by :func:`~vadgs.train.vad.incomplete.find_incomplete`:
+(:func:`~vadgs.train.vad.visibility.build_visibility_index`), a reference view and an instance
+flagged by :func:`~vadgs.train.vad.incomplete.find_incomplete`:
 
 1. takes the instance's voxels (their visibility sets are the candidate views) — or, when the
    instance has almost no voxels of its own (the LiDAR missed it), the voxels the z-buffer sees
@@ -21,65 +21,62 @@ reference view and an instance flagged by :func:`~vadgs.train.vad.incomplete.fin
    object's own frame), with :func:`vadgs.mvs.fuse_depth_maps` (one point per consistent pixel);
 6. returns each member's consistent depth and normals at the scene's resolution as priors.
 
-Each step is a small function (``_instance_frame``, :func:`~vadgs.select.select_views`,
-``_crop_group`` and ``_match``, ``_consistent``, fusion, ``_depth_priors``) on the device of the
-index. The settings, :class:`ReconstructConfig`, live in :mod:`vadgs.train.vad.reconstruct_config`; the
-crops and the matching scale (:func:`match_scale`, ``_crop_group``) in
-:mod:`vadgs.train.vad.crops`; both are re-exported here.
+This module holds steps 1–3 (``_instance_frame``, ``_select_supports``, ``_match``, and
+:func:`match_work`, the matching's cost) and :func:`reconstruct_instance`, which runs them all on
+the device of the index; step 3's crops and matching scale live in :mod:`vadgs.train.vad.crops`
+(:func:`~vadgs.train.vad.crops.crop_group`, :func:`~vadgs.train.vad.crops.match_scale`), steps 4–6
+in :mod:`vadgs.train.vad.fusion` (:func:`~vadgs.train.vad.fusion.consistent_depth`,
+:func:`~vadgs.train.vad.fusion.explained_pixels`, :func:`~vadgs.train.vad.fusion.fuse_points`,
+:func:`~vadgs.train.vad.fusion.depth_priors`), the settings, :class:`ReconstructConfig`, in
+:mod:`vadgs.train.vad.reconstruct_config`. The names this module re-exported before
+(:class:`ReconstructConfig`, :class:`VisibilityIndex`, :func:`thin_points`, ...) are imported from
+those modules, or from :mod:`vadgs.train.vad`; the old imports still work, with a
+``DeprecationWarning``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
-import torch.nn.functional as F
 
-from vadgs.geometry.camera import invert_rigid
-from vadgs.mvs.consistency import geometric_consistency
-from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
-from vadgs.mvs.planar import complete_planar
+from vadgs.deprecation import moved_names
+from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
-from vadgs.train.vad.crops import (
-    MatchScale,
-    _crop_group,
-    _Crops,
-    _pool_valid,
-    _repeat,
-    _shift_K,
-    _to_scale,
-    match_scale,
-)
-from vadgs.train.vad.inputs import sfm_observations
-from vadgs.train.vad.reconstruct_config import ReconstructConfig
-from vadgs.train.vad.visibility import (
-    REFERENCE_DEPTH,
-    ViewCache,
-    VisibilityIndex,
-    build_visibility_index,
-    derive_instance_map,
-    scene_lengths,
-)
+from vadgs.train.vad import reconstruct_config
+from vadgs.train.vad.crops import Crops, MatchedCrops, crop_group, render_maps, shift_K, to_scale
+from vadgs.train.vad.fusion import consistent_depth, depth_priors, explained_pixels, fuse_points
+from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
+
+if TYPE_CHECKING:
+    from vadgs.train.vad.reconstruct_config import ReconstructConfig
+    from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
     "InstanceReconstruction",
-    "MatchScale",
-    "ReconstructConfig",
-    "ViewCache",
     "ViewRender",
-    "VisibilityIndex",
-    "build_visibility_index",
-    "derive_instance_map",
-    "match_scale",
     "match_work",
     "reconstruct_instance",
-    "sfm_observations",
-    "thin_points",
 ]
+
+if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
+    __getattr__ = moved_names(
+        __name__,
+        {
+            "MatchScale": "vadgs.train.vad.crops",
+            "ReconstructConfig": "vadgs.train.vad.reconstruct_config",
+            "ViewCache": "vadgs.train.vad.visibility",
+            "VisibilityIndex": "vadgs.train.vad.visibility",
+            "build_visibility_index": "vadgs.train.vad.visibility",
+            "derive_instance_map": "vadgs.train.vad.instances",
+            "match_scale": "vadgs.train.vad.crops",
+            "sfm_observations": "vadgs.train.vad.inputs",
+            "thin_points": "vadgs.train.vad.fusion",
+        },
+    )
 
 
 class InstanceReconstruction(NamedTuple):
@@ -137,24 +134,6 @@ class _InstanceFrame(NamedTuple):
     voxels: torch.Tensor  # (M,) bool
     world_to_cam: torch.Tensor  # (V, 4, 4): world (static) or object frame (track) to each view
     allowed: torch.Tensor  # (V,) bool: views that may support
-
-
-class _Matched(NamedTuple):
-    """Step 3b's result: PatchMatch of each member's crop, with that crop's inputs."""
-
-    result: PatchMatchResult
-    images: torch.Tensor  # (b, 3, ch, cw) the members' crops
-    masks: torch.Tensor  # (b, 1, ch, cw)
-    K: torch.Tensor  # (b, 3, 3) of the crops
-    world_to_cam: torch.Tensor  # (b, 4, 4)
-
-
-class _Consistent(NamedTuple):
-    """Step 4's result, per member crop."""
-
-    depth: torch.Tensor  # (b, 1, ch, cw)
-    normal: torch.Tensor  # (b, 3, ch, cw) camera frame
-    keep: torch.Tensor  # (b, 1, ch, cw) bool: consistent (or planar-completed)
 
 
 def _instance_frame(
@@ -227,30 +206,15 @@ def _depth_range(
     return lo, max(hi, lo * 4, lengths["min_depth_span"])
 
 
-def _renders(
-    render_prior, view: int, index: VisibilityIndex | None = None
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """``(depth, alpha or None, normals)`` of a render prior's answer (a ViewRender or a pair).
-
-    Padded to the index's size when ``index`` is given (views of different sizes).
-    """
-    out = render_prior(view)
-    d, a, n = (out[0], None, out[1]) if isinstance(out, tuple) and len(out) == 2 else out
-    if index is not None:
-        d, n = index.pad(d), index.pad(n)
-        a = None if a is None else index.pad(a)
-    return d, a, n
-
-
 def _match(
     index: VisibilityIndex,
-    crops: _Crops,
+    crops: Crops,
     group: list[int],
     world_to_cam: torch.Tensor,
     depth_range: tuple[float, float],
     cfg: ReconstructConfig,
     render_prior: Callable[[int], ViewRender] | None,
-) -> _Matched:
+) -> MatchedCrops:
     """Step 3b: PatchMatch on the group, each member's crop as reference against all other views."""
     ch, cw = crops.size
     dev = crops.images.device
@@ -258,12 +222,12 @@ def _match(
     for i, (y0, x0) in zip(crops.members, crops.corners):
         ref_imgs.append(crops.images[i, :, y0 : y0 + ch, x0 : x0 + cw])
         ref_masks.append(crops.masks[i][None, y0 : y0 + ch, x0 : x0 + cw])
-        ref_K.append(_shift_K(crops.K[i], x0, y0))
+        ref_K.append(shift_K(crops.K[i], x0, y0))
         if render_prior is not None:
-            d, _, n = _renders(render_prior, group[i], index)
+            d, _, n = render_maps(render_prior, group[i], index)
             d, n = d.to(dev), n.to(dev)
             known = d > 0
-            d, n = _to_scale(d, known, crops.scale), _to_scale(n, known, crops.scale, unit=True)
+            d, n = to_scale(d, known, crops.scale), to_scale(n, known, crops.scale, unit=True)
             init_d.append(d[:, y0 : y0 + ch, x0 : x0 + cw])
             init_n.append(n[:, y0 : y0 + ch, x0 : x0 + cw])
     others = [[j for j in range(len(group)) if j != i] for i in crops.members]
@@ -281,144 +245,9 @@ def _match(
         mask=torch.stack(ref_masks),
         src_masks=torch.stack([crops.regions[o] for o in others]),
     )
-    return _Matched(
+    return MatchedCrops(
         res, torch.stack(ref_imgs), torch.stack(ref_masks), torch.stack(ref_K), world_to_cam[crops.members]
     )
-
-
-def _consistent(
-    matched: _Matched,
-    crops: _Crops,
-    group: list[int],
-    world_to_cam: torch.Tensor,
-    planar: bool,
-    cfg: ReconstructConfig,
-    generator: torch.Generator | None,
-) -> _Consistent:
-    """Step 4: keep the pixels that other members confirm; planar completion of static instances."""
-    res, w2c = matched.result, matched.world_to_cam
-    depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
-    b = len(crops.members)
-    src = [[j for j in range(b) if j != i] for i in range(b)]
-    cons = geometric_consistency(
-        depth,
-        matched.K,
-        w2c,
-        torch.stack([depth[o] for o in src]),
-        torch.stack([matched.K[o] for o in src]),
-        torch.stack([w2c[o] for o in src]),
-        cfg.max_reproj_error,
-        cfg.max_rel_depth,
-        min(cfg.min_consistent_views, b - 1),
-    )
-    keep = cons.mask & res.mask
-    normal = res.normal
-    if planar:
-        normal = res.normal.clone()
-        c2w = invert_rigid(w2c)
-        for k in range(b):
-            o = [j for j in range(len(group)) if j != crops.members[k]]
-            d_k, n_k, add = complete_planar(
-                depth[k], keep[k], matched.masks[k], matched.images[k], matched.K[k], c2w[k],
-                crops.images[o], torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o],
-                world_to_cam[o], cfg.planar, generator, res.normal[k],
-            )  # fmt: skip
-            depth[k] = d_k
-            keep[k] |= add
-            normal[k] = torch.where(add, n_k[:, None, None].expand_as(normal[k]), normal[k])
-    return _Consistent(depth, normal, keep)
-
-
-def _explained(
-    index: VisibilityIndex,
-    cons: _Consistent,
-    crops: _Crops,
-    group: list[int],
-    cfg: ReconstructConfig,
-    render_prior: Callable[[int], ViewRender] | None,
-) -> torch.Tensor:
-    """Step 5a: ``(b, 1, ch, cw)`` consistent pixels that an opaque rendered surface already explains.
-
-    Each member's MVS depth is compared with that member's own render (at the matching scale):
-    explained where the render has opacity ``>= explained_alpha`` and a depth in front of, or within
-    ``explained_tolerance`` of, the MVS depth. Those pixels give priors but no new point.
-    """
-    out = torch.zeros_like(cons.keep)
-    if render_prior is None:
-        return out
-    ch, cw = crops.size
-    dev = cons.depth.device
-    for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
-        d, a, _ = _renders(render_prior, group[i], index)
-        if a is None:
-            continue
-        d, a = d.to(dev), a.to(dev)
-        if crops.scale.up > 1:
-            d, a = _repeat(d, crops.scale.up), _repeat(a, crops.scale.up)
-        elif crops.scale.down > 1:
-            d = _pool_valid(d, d > 0, crops.scale.down)
-            a = F.avg_pool2d(a[None], crops.scale.down)[0]
-        d, a = d[:, y0 : y0 + ch, x0 : x0 + cw], a[:, y0 : y0 + ch, x0 : x0 + cw]
-        mvs = cons.depth[k]
-        out[k] = (a >= cfg.explained_alpha) & (d > 0) & (d <= mvs * (1 + cfg.explained_tolerance))
-    return out & cons.keep
-
-
-def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None = None) -> torch.Tensor:
-    """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
-
-    Args:
-        points: ``(P, 3)``, in their priority order (the first point of a voxel is kept).
-        cell: voxel edge.
-        existing: optional ``(Q, 3)`` points (same frame) whose voxels are taken.
-
-    Returns:
-        ``(P,)`` bool: the points kept. On the device of ``points``.
-
-    Example:
-        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.31, 0.0, 0.0]])
-        >>> thin_points(p, 0.1).tolist()
-        [True, False, True]
-        >>> thin_points(p, 0.1, existing=torch.tensor([[0.35, 0.05, 0.05]])).tolist()
-        [True, False, False]
-    """
-    if points.shape[0] == 0:
-        return torch.zeros(0, dtype=torch.bool, device=points.device)
-    cell = max(float(cell), 1e-6)
-    every = points if existing is None else torch.cat([existing.to(points), points])
-    q = torch.floor(every / cell).long()
-    q = q - q.min(0).values
-    span = q.max(0).values + 1
-    keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-    uniq, inv = torch.unique(keys, return_inverse=True)
-    order = torch.arange(keys.shape[0], device=keys.device)
-    first = torch.full((uniq.shape[0],), keys.shape[0], dtype=torch.long, device=keys.device)
-    first = first.scatter_reduce(0, inv, order, reduce="amin")
-    keep = first[inv] == order
-    return keep[every.shape[0] - points.shape[0] :]
-
-
-def _depth_priors(cons: _Consistent, crops: _Crops, size: tuple[int, int]) -> tuple[list, list]:
-    """Step 6: each member's consistent depth and normals in its full image at the scene's resolution."""
-    h, w = size
-    ch, cw = crops.size_lo
-    full_depth, full_normal = [], []
-    for k, (y0, x0) in enumerate(crops.corners_lo):
-        fd = cons.depth.new_zeros(1, h, w)
-        fn = cons.normal.new_zeros(3, h, w)
-        if crops.scale.up > 1:
-            f = crops.scale.up
-            d = _pool_valid(cons.depth[k], cons.keep[k], f)
-            n = _pool_valid(cons.normal[k], cons.keep[k], f, unit=True)
-        else:
-            f = crops.scale.down
-            d = _repeat(torch.where(cons.keep[k], cons.depth[k], torch.zeros_like(cons.depth[k])), f)
-            n = _repeat(torch.where(cons.keep[k], cons.normal[k], torch.zeros_like(cons.normal[k])), f)
-        fd[:, y0 : y0 + ch, x0 : x0 + cw] = d
-        fn[:, y0 : y0 + ch, x0 : x0 + cw] = n
-        full_depth.append(fd)
-        full_normal.append(fn)
-    return full_depth, full_normal
 
 
 def match_work(masks: torch.Tensor, sources: int, config: PatchMatchConfig) -> float:
@@ -457,17 +286,17 @@ def reconstruct_instance(
 
     Not differentiable (a search). The steps (see the module docstring): the instance's voxels and
     frame, view selection (:func:`~vadgs.select.select_views`), crops at the instance's matching
-    scale (:func:`match_scale`), PatchMatch (:func:`~vadgs.mvs.patchmatch`), consistency
-    (:func:`~vadgs.mvs.geometric_consistency`) and planar completion
+    scale (:func:`~vadgs.train.vad.crops.match_scale`), PatchMatch (:func:`~vadgs.mvs.patchmatch`),
+    consistency (:func:`~vadgs.mvs.geometric_consistency`) and planar completion
     (:func:`~vadgs.mvs.complete_planar`), the pixels the Gaussians already explain, fusion
     (:func:`~vadgs.mvs.fuse_depth_maps`, one point per consistent unexplained pixel, thinned to one
-    per cell of the point spacing by :func:`thin_points`), depth priors.
+    per cell of the point spacing by :func:`~vadgs.train.vad.fusion.thin_points`), depth priors.
 
     Args:
-        index: the scene's :class:`VisibilityIndex`.
+        index: the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex`.
         ref: the reference view.
         instance: the instance id (a track id for a moving object: matched in its own frame).
-        config: :class:`ReconstructConfig`.
+        config: :class:`~vadgs.train.vad.reconstruct_config.ReconstructConfig`.
         generator: seeds the selection noise ``ξ`` (a CPU generator).
         render_prior: optional ``view -> ViewRender`` rendered by the Gaussians (camera-frame
             normals), the PatchMatch initialisation and the test of what is already explained;
@@ -481,7 +310,7 @@ def reconstruct_instance(
     Returns:
         :class:`InstanceReconstruction` (possibly empty, with the reason).
     """
-    cfg = config or ReconstructConfig()
+    cfg = config or reconstruct_config.ReconstructConfig()
     unit = index.scene_depth / REFERENCE_DEPTH  # the lengths follow the scene (scene_lengths)
     lengths = scene_lengths(
         index.scene_depth, fallback_depth_range=cfg.fallback_depth_range, min_depth=cfg.min_depth
@@ -492,7 +321,7 @@ def reconstruct_instance(
         raise ValueError(f"ref: expected a view in [0, {inputs.num_views}), got {ref}")
     track = instance if instance in inputs.tracks else None
     if device is None and render_prior is not None:
-        device = _renders(render_prior, ref)[0].device
+        device = render_maps(render_prior, ref)[0].device
     dev = torch.device(device) if device is not None else index.cameras.K.device
     empty3 = torch.zeros(0, 3, device=dev)
 
@@ -510,7 +339,7 @@ def reconstruct_instance(
     group = [ref, *sel.views.tolist()]
     if len(group) < 2:
         return nothing(f"selection:{sel.reason}")
-    crops = _crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
+    crops = crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
     if isinstance(crops, str):
         return nothing(crops, group)
     w2c = frame.world_to_cam[group]
@@ -519,29 +348,12 @@ def reconstruct_instance(
     matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
     work = match_work(matched.masks, len(group) - 1, cfg.patchmatch)
     planar = cfg.planar is not None and track is None  # a car is not planar
-    cons = _consistent(matched, crops, group, w2c, planar, cfg, generator)  # 4.
-    new = cons.keep & ~_explained(index, cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
-    fused = fuse_depth_maps(  # one point per such pixel, in the instance's frame
-        cons.depth, matched.images, matched.K, matched.world_to_cam, cons.normal, new,
-        FusionConfig(min_views=0, deduplicate=False),
-    )  # fmt: skip
-    seed_w2c, seed_K = matched.world_to_cam[fused.view_index], matched.K[fused.view_index]
-    z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
-    points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
-    if (
-        cfg.thin_points and points.shape[0]
-    ):  # one point per cell of the scene resolution's spacing, or coarser
-        spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
-        local, taken = points, None if occupied is None else occupied.to(dev)
-        if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
-            local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
-        keep = thin_points(local, float(spacing.median()), taken)
-        points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
-    if points.shape[0] > cfg.max_points:
-        g = generator or torch.Generator().manual_seed(0)
-        sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].to(dev)
-        points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
-    full_depth, full_normal = _depth_priors(cons, crops, index.cameras.image_size)  # 6.
+    cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
+    new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
+    points, normals, colors, spacing = fuse_points(
+        index, cons, matched, crops, new, track, cfg, occupied, generator, dev
+    )  # one point per such pixel, in the instance's frame, thinned
+    full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
     views = [group[i] for i in crops.members]
     reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
     return InstanceReconstruction(

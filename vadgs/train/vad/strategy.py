@@ -42,13 +42,9 @@ from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.info import check_info, check_info_values
 from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.priors import view_targets
-from vadgs.train.vad.reconstruct import (
-    InstanceReconstruction,
-    ReconstructConfig,
-    ViewRender,
-    VisibilityIndex,
-    build_visibility_index,
-)
+from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
+from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = ["VisibilityAwareDensification"]
 
@@ -330,7 +326,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             inputs: :class:`~vadgs.train.vad.inputs.VisibilityInputs` (e.g.
                 ``VisibilityInputs.from_scene(scene)`` or ``.from_gsplat_parser(parser)``).
             context: :class:`StrategyContext`: the loop's render function, step counts, generator.
-            index: a prebuilt :class:`~vadgs.train.vad.reconstruct.VisibilityIndex` of these inputs
+            index: a prebuilt :class:`~vadgs.train.vad.visibility.VisibilityIndex` of these inputs
                 (its own inputs are used when ``inputs`` is None).
 
         Returns:
@@ -365,7 +361,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         )
 
     def visibility_index(self) -> VisibilityIndex:
-        """The :class:`~vadgs.train.vad.reconstruct.VisibilityIndex` (see :meth:`prepare`)."""
+        """The :class:`~vadgs.train.vad.visibility.VisibilityIndex` (see :meth:`prepare`)."""
         if self.index is None:
             self.index = self._build_index()
         return self.index

@@ -1,0 +1,223 @@
+"""From an instance's matched crops to points and priors: steps 4–6 of reconstructing it by MVS.
+
+After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, paper Sec. 4.3):
+
+4. :func:`consistent_depth` keeps the pixels whose depth at least ``min_consistent_views`` other
+   members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
+   relative depth) and completes the textureless parts of static planar instances
+   (:func:`~vadgs.mvs.complete_planar`);
+5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
+   explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
+   in the instance's frame), thinned to one per cell of the point spacing (:func:`thin_points`);
+6. :func:`depth_priors` gives each member's consistent depth and normals at the scene's
+   resolution, the geometric losses' priors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from vadgs.geometry.camera import invert_rigid
+from vadgs.mvs.consistency import geometric_consistency
+from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
+from vadgs.mvs.planar import complete_planar
+from vadgs.train.vad.crops import Crops, MatchedCrops, pool_valid, render_maps, repeat
+from vadgs.train.vad.reconstruct_config import ReconstructConfig
+from vadgs.train.vad.visibility import VisibilityIndex
+
+__all__ = [
+    "ConsistentDepth",
+    "consistent_depth",
+    "depth_priors",
+    "explained_pixels",
+    "fuse_points",
+    "thin_points",
+]
+
+
+class ConsistentDepth(NamedTuple):
+    """Step 4's result, per member crop."""
+
+    depth: torch.Tensor  # (b, 1, ch, cw)
+    normal: torch.Tensor  # (b, 3, ch, cw) camera frame
+    keep: torch.Tensor  # (b, 1, ch, cw) bool: consistent (or planar-completed)
+
+
+def consistent_depth(
+    matched: MatchedCrops,
+    crops: Crops,
+    group: list[int],
+    world_to_cam: torch.Tensor,
+    planar: bool,
+    cfg: ReconstructConfig,
+    generator: torch.Generator | None,
+) -> ConsistentDepth:
+    """Step 4: keep the pixels that other members confirm; planar completion of static instances."""
+    res, w2c = matched.result, matched.world_to_cam
+    depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
+    b = len(crops.members)
+    src = [[j for j in range(b) if j != i] for i in range(b)]
+    cons = geometric_consistency(
+        depth,
+        matched.K,
+        w2c,
+        torch.stack([depth[o] for o in src]),
+        torch.stack([matched.K[o] for o in src]),
+        torch.stack([w2c[o] for o in src]),
+        cfg.max_reproj_error,
+        cfg.max_rel_depth,
+        min(cfg.min_consistent_views, b - 1),
+    )
+    keep = cons.mask & res.mask
+    normal = res.normal
+    if planar:
+        normal = res.normal.clone()
+        c2w = invert_rigid(w2c)
+        for k in range(b):
+            o = [j for j in range(len(group)) if j != crops.members[k]]
+            d_k, n_k, add = complete_planar(
+                depth[k], keep[k], matched.masks[k], matched.images[k], matched.K[k], c2w[k],
+                crops.images[o], torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o],
+                world_to_cam[o], cfg.planar, generator, res.normal[k],
+            )  # fmt: skip
+            depth[k] = d_k
+            keep[k] |= add
+            normal[k] = torch.where(add, n_k[:, None, None].expand_as(normal[k]), normal[k])
+    return ConsistentDepth(depth, normal, keep)
+
+
+def explained_pixels(
+    index: VisibilityIndex,
+    cons: ConsistentDepth,
+    crops: Crops,
+    group: list[int],
+    cfg: ReconstructConfig,
+    render_prior: Callable[[int], Any] | None,
+) -> torch.Tensor:
+    """Step 5a: ``(b, 1, ch, cw)`` consistent pixels that an opaque rendered surface already explains.
+
+    Each member's MVS depth is compared with that member's own render (``render_prior``, ``view ->``
+    :class:`~vadgs.train.vad.reconstruct.ViewRender`, at the matching scale): explained where the
+    render has opacity ``>= explained_alpha`` and a depth in front of, or within
+    ``explained_tolerance`` of, the MVS depth. Those pixels give priors but no new point.
+    """
+    out = torch.zeros_like(cons.keep)
+    if render_prior is None:
+        return out
+    ch, cw = crops.size
+    dev = cons.depth.device
+    for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
+        d, a, _ = render_maps(render_prior, group[i], index)
+        if a is None:
+            continue
+        d, a = d.to(dev), a.to(dev)
+        if crops.scale.up > 1:
+            d, a = repeat(d, crops.scale.up), repeat(a, crops.scale.up)
+        elif crops.scale.down > 1:
+            d = pool_valid(d, d > 0, crops.scale.down)
+            a = F.avg_pool2d(a[None], crops.scale.down)[0]
+        d, a = d[:, y0 : y0 + ch, x0 : x0 + cw], a[:, y0 : y0 + ch, x0 : x0 + cw]
+        mvs = cons.depth[k]
+        out[k] = (a >= cfg.explained_alpha) & (d > 0) & (d <= mvs * (1 + cfg.explained_tolerance))
+    return out & cons.keep
+
+
+def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None = None) -> torch.Tensor:
+    """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
+
+    Args:
+        points: ``(P, 3)``, in their priority order (the first point of a voxel is kept).
+        cell: voxel edge.
+        existing: optional ``(Q, 3)`` points (same frame) whose voxels are taken.
+
+    Returns:
+        ``(P,)`` bool: the points kept. On the device of ``points``.
+
+    Example:
+        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.31, 0.0, 0.0]])
+        >>> thin_points(p, 0.1).tolist()
+        [True, False, True]
+        >>> thin_points(p, 0.1, existing=torch.tensor([[0.35, 0.05, 0.05]])).tolist()
+        [True, False, False]
+    """
+    if points.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.bool, device=points.device)
+    cell = max(float(cell), 1e-6)
+    every = points if existing is None else torch.cat([existing.to(points), points])
+    q = torch.floor(every / cell).long()
+    q = q - q.min(0).values
+    span = q.max(0).values + 1
+    keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
+    uniq, inv = torch.unique(keys, return_inverse=True)
+    order = torch.arange(keys.shape[0], device=keys.device)
+    first = torch.full((uniq.shape[0],), keys.shape[0], dtype=torch.long, device=keys.device)
+    first = first.scatter_reduce(0, inv, order, reduce="amin")
+    keep = first[inv] == order
+    return keep[every.shape[0] - points.shape[0] :]
+
+
+def fuse_points(
+    index: VisibilityIndex,
+    cons: ConsistentDepth,
+    matched: MatchedCrops,
+    crops: Crops,
+    new: torch.Tensor,
+    track: int | None,
+    cfg: ReconstructConfig,
+    occupied: torch.Tensor | None,
+    generator: torch.Generator | None,
+    device: torch.device,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Step 5b: ``(points, normals, colors, spacing)`` of the ``new`` pixels, in the instance's frame.
+
+    One point per pixel (:func:`~vadgs.mvs.fuse_depth_maps`), its spacing the pixel footprint at its
+    depth; with ``cfg.thin_points``, one per cell of the spacing (times ``thin_factor`` for a
+    coarsely matched instance; cells of the static grid's frame, or a moving object's own) and none
+    in a cell of ``occupied``; at most ``cfg.max_points``, drawn with ``generator``.
+    """
+    fused = fuse_depth_maps(  # one point per such pixel, in the instance's frame
+        cons.depth, matched.images, matched.K, matched.world_to_cam, cons.normal, new,
+        FusionConfig(min_views=0, deduplicate=False),
+    )  # fmt: skip
+    seed_w2c, seed_K = matched.world_to_cam[fused.view_index], matched.K[fused.view_index]
+    z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
+    points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
+    if cfg.thin_points and points.shape[0]:  # one per cell of the scene resolution's spacing, or coarser
+        spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
+        local, taken = points, None if occupied is None else occupied.to(device)
+        if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
+            local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
+        keep = thin_points(local, float(spacing.median()), taken)
+        points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
+    if points.shape[0] > cfg.max_points:
+        g = generator or torch.Generator().manual_seed(0)
+        sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].to(device)
+        points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
+    return points, normals, colors, spacing
+
+
+def depth_priors(cons: ConsistentDepth, crops: Crops, size: tuple[int, int]) -> tuple[list, list]:
+    """Step 6: each member's consistent depth and normals in its full image at the scene's resolution."""
+    h, w = size
+    ch, cw = crops.size_lo
+    full_depth, full_normal = [], []
+    for k, (y0, x0) in enumerate(crops.corners_lo):
+        fd = cons.depth.new_zeros(1, h, w)
+        fn = cons.normal.new_zeros(3, h, w)
+        if crops.scale.up > 1:
+            f = crops.scale.up
+            d = pool_valid(cons.depth[k], cons.keep[k], f)
+            n = pool_valid(cons.normal[k], cons.keep[k], f, unit=True)
+        else:
+            f = crops.scale.down
+            d = repeat(torch.where(cons.keep[k], cons.depth[k], torch.zeros_like(cons.depth[k])), f)
+            n = repeat(torch.where(cons.keep[k], cons.normal[k], torch.zeros_like(cons.normal[k])), f)
+        fd[:, y0 : y0 + ch, x0 : x0 + cw] = d
+        fn[:, y0 : y0 + ch, x0 : x0 + cw] = n
+        full_depth.append(fd)
+        full_normal.append(fn)
+    return full_depth, full_normal
