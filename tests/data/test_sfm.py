@@ -203,9 +203,9 @@ class TestRunSfm:
         assert "not registered: photo_03.png" in out
         assert sfm(proj / "images", proj) == 2
         assert "--overwrite" in capsys.readouterr().err
-        t0 = time.time()
+        t0 = time.process_time()  # CPU seconds (threads included), not wall-clock under load
         assert sfm(proj / "images", proj, "--overwrite") == 0
-        assert time.time() - t0 < 120
+        assert time.process_time() - t0 < 120
         assert sorted(p.name for p in (proj / "images").iterdir()) == names  # never removed
         link = tmp_path / "linked"
         assert sfm(proj / "images", link, "--link", "--matcher", "sequential") == 0

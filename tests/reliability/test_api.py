@@ -156,13 +156,16 @@ def test_valid_inputs_still_give_the_reference_values():
 class TestCliqueIsBounded:
     @pytest.mark.parametrize(("n", "k"), [(40, 10), (30, 8), (60, 30)])
     def test_refused_within_a_second(self, n, k):
-        """n = 40, k = 10 used ~21 GB in 71 s until the kernel killed it."""
-        t0 = time.monotonic()
+        """n = 40, k = 10 used ~21 GB in 71 s until the kernel killed it.
+
+        CPU seconds of this process (``time.process_time``), not wall-clock: other processes on a
+        loaded machine do not count against the bound."""
+        t0 = time.process_time()
         with pytest.raises(
             ValueError, match=rf"k = {k} over {n} nodes .* means ([\d.e+]+) subsets to score"
         ) as e:
             max_weight_clique(torch.rand(n), torch.rand(n, n), k)
-        assert time.monotonic() - t0 < 1.0
+        assert time.process_time() - t0 < 1.0
         assert f"{math.comb(n, k):.3g} subsets" in str(e.value)
 
     def test_many_maximal_cliques_refused_within_a_second(self):
@@ -170,10 +173,10 @@ class TestCliqueIsBounded:
         adj = torch.ones(n, n, dtype=torch.bool)
         for i in range(0, n, 3):
             adj[i : i + 3, i : i + 3] = False
-        t0 = time.monotonic()
+        t0 = time.process_time()  # CPU seconds (see above)
         with pytest.raises(ValueError, match=f"more than MAX_CLIQUES = {MAX_CLIQUES} maximal cliques"):
             max_weight_clique(torch.rand(n), torch.rand(n, n), 4, adj)
-        assert time.monotonic() - t0 < 2.0  # 0.85 s measured on the shared 2-core machine
+        assert time.process_time() - t0 < 2.0  # 0.85 s measured on the shared 2-core machine
 
     def test_within_the_bound_it_is_exact(self):
         gen = torch.Generator().manual_seed(0)

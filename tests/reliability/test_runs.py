@@ -135,11 +135,11 @@ def test_threads_cover_loading_and_the_final_evaluation(tmp_path, monkeypatch):
 )
 def test_train_flags_fail_early_in_one_line(tmp_path, capsys, argv, message):
     out = ["--out", str(tmp_path / "run")] if "--out" not in argv else []
-    t0 = time.monotonic()
+    t0 = time.process_time()  # CPU seconds: a loaded machine does not count against the bound
     assert main(["train", "--sample", *out, "--no-progress", "--threads", "1", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
-    assert time.monotonic() - t0 < 30  # before any training
+    assert time.process_time() - t0 < 30  # before any training
     assert not (tmp_path / "run" / CHECKPOINT_NAME).exists()
 
 
