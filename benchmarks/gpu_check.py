@@ -117,7 +117,9 @@ class Check:
     """The run: mode, sizes, deadline and the JSON, written after each section."""
 
     def __init__(self, out: Path, device: str, mode: str, budget: float):
-        self.out, self.device, self.mode, self.sizes = out, device, mode, SIZES[mode]
+        self.out, self.device, self.mode = out, device, mode
+        self.sizes = dict(SIZES[mode])  # this run's (--seg-frames), the module's table untouched
+        self.budgets = dict(BUDGET_S)  # this run's seconds per section (--section-budget)
         self.t0 = time.monotonic()
         self.deadline = self.t0 + budget
         self.cuda = device == "cuda"
@@ -144,7 +146,7 @@ class Check:
         return self.deadline - time.monotonic()
 
     def run(self, name: str, fn) -> dict[str, Any]:
-        budget = min(BUDGET_S[name], self.left() - 5)
+        budget = min(self.budgets[name], self.left() - 5)
         t = time.monotonic()
         print(f"[gpu_check] {name} (budget {budget:.0f} s) ...", flush=True)
         if budget < 3:
@@ -289,7 +291,7 @@ def gsplat_build(chk: Check, budget: float) -> dict[str, Any]:
         "max_jobs": os.environ.get("MAX_JOBS"),
         "arch_list": os.environ.get("TORCH_CUDA_ARCH_LIST"),
     }
-    wait = max(BUDGET_S["gsplat_build"] - (time.monotonic() - chk.build_t0), 1.0)
+    wait = max(chk.budgets["gsplat_build"] - (time.monotonic() - chk.build_t0), 1.0)
     wait = min(wait, budget - 2)
     try:
         rc = chk.build.wait(timeout=wait)
@@ -301,7 +303,8 @@ def gsplat_build(chk: Check, budget: float) -> dict[str, Any]:
     log = (Path(tempfile.gettempdir()) / "gsplat_build.log").read_text(errors="replace")
     res["log_tail"] = log[-3000:]
     if rc is None:
-        res.update(status="failed", reason=f"compile not done within {BUDGET_S['gsplat_build']} s (killed)")
+        limit = chk.budgets["gsplat_build"]
+        res.update(status="failed", reason=f"compile not done within {limit} s (killed)")
         return res
     if rc != 0:
         res.update(status="failed", reason=f"compile exited {rc}")
@@ -672,11 +675,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--seg-frames", type=int, help="segment_memory: its frames")
     ap.add_argument("--section-budget", nargs="+", default=[], metavar="NAME=S", help="seconds per section")
     args = ap.parse_args(argv)
+    budgets = {}
     for item in args.section_budget:
         name, _, seconds = item.partition("=")
         if name not in BUDGET_S:
             ap.error(f"--section-budget: expected NAME=S with NAME one of {SECTIONS}, got {item!r}")
-        BUDGET_S[name] = float(seconds)
+        budgets[name] = float(seconds)
     if args.cpu:
         device, mode = "cpu", "tiny" if args.tiny else "cpu"
     elif torch.cuda.is_available():
@@ -685,6 +689,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print("[gpu_check] no CUDA device: running the CPU mode (--cpu)", flush=True)
         device, mode = "cpu", "cpu"
     chk = Check(args.out, device, mode, args.budget)
+    chk.budgets.update(budgets)
     if args.seg_frames:
         chk.sizes["seg"] = {**chk.sizes["seg"], "frames": args.seg_frames}
     todo = args.only or SECTIONS

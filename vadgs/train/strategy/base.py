@@ -45,6 +45,7 @@ rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with i
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import MutableMapping
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
@@ -172,5 +173,6 @@ class ConfiguredStrategy:
         object.__setattr__(self, name, value)
 
 
+@functools.cache  # read at every attribute set (the strategy sets some at every step)
 def _field_names(cls: type) -> frozenset[str]:
     return frozenset(f.name for f in dataclasses.fields(cls))
