@@ -45,7 +45,6 @@ rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with i
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import MutableMapping
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
@@ -134,6 +133,13 @@ class ConfiguredStrategy:
 
     config_type: ClassVar[type[Any]]
     config: Any
+    # the config's field names, once per class: read at every attribute set (some at every step)
+    _setting_names: ClassVar[frozenset[str]] = frozenset()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if hasattr(cls, "config_type"):
+            cls._setting_names = _field_names(cls.config_type)
 
     def _take_config(self, config: Any, settings: dict[str, Any]) -> None:
         """Set ``config`` (default: the config type's defaults) with ``settings`` replaced in it.
@@ -145,11 +151,11 @@ class ConfiguredStrategy:
         cls = type(self).config_type
         config = cls() if config is None else config
         if settings:
-            unknown = sorted(set(settings) - _field_names(cls))
+            unknown = sorted(set(settings) - self._setting_names)
             if unknown:
                 raise TypeError(
                     f"{type(self).__name__}: unexpected keyword argument(s) {unknown}: expected the "
-                    f"fields of {cls.__name__} ({', '.join(sorted(_field_names(cls)))})"
+                    f"fields of {cls.__name__} ({', '.join(sorted(self._setting_names))})"
                 )
             if not isinstance(config, cls):
                 raise ValueError(f"config: expected a {cls.__name__}, got {type(config).__name__}")
@@ -168,11 +174,10 @@ class ConfiguredStrategy:
         if name == "config":
             if not isinstance(value, cls):
                 raise ValueError(f"config: expected a {cls.__name__}, got {type(value).__name__}")
-        elif name in _field_names(cls):
+        elif name in self._setting_names:
             name, value = "config", dataclasses.replace(self.config, **{name: value})
         object.__setattr__(self, name, value)
 
 
-@functools.cache  # read at every attribute set (the strategy sets some at every step)
 def _field_names(cls: type) -> frozenset[str]:
     return frozenset(f.name for f in dataclasses.fields(cls))
