@@ -120,3 +120,30 @@ class TestDefaultStrategy:
             s.step_post_backward(m.params, opt, state, 1, info, **kwargs)
             stats.append((state["grad2d"].tolist(), state["count"].tolist()))
         assert stats == [stats[0]] * 4 and stats[0][0][0] == 10.0
+
+
+class TestInitializeBaseState:
+    """``initialize_base_state``: a wrapped strategy's state, with ``scene_scale`` only when it takes one."""
+
+    class _NoScale:  # gsplat's MCMCStrategy's signature
+        def initialize_state(self):
+            return {"calls": "no-arg"}
+
+    class _Scale:
+        def initialize_state(self, scene_scale=1.0):
+            return {"scale": scene_scale}
+
+    def test_with_and_without_scene_scale(self):
+        from vadgs.train.strategy import initialize_base_state
+
+        assert initialize_base_state(self._NoScale(), 3.0) == {"calls": "no-arg"}
+        assert initialize_base_state(self._Scale(), 3.0) == {"scale": 3.0}
+        assert initialize_base_state(DefaultStrategy(), 2.5)["scene_scale"] == 2.5
+
+    def test_the_vad_strategy_wraps_a_base_without_scene_scale(self):
+        from vadgs.train.vad import VisibilityAwareDensification
+
+        state = VisibilityAwareDensification(base=self._NoScale()).initialize_state(4.0)
+        assert state["calls"] == "no-arg" and state["vad_events"] == [] and state["vad_cycle"] == 0
+        with pytest.raises(ValueError, match="scene_scale: expected a finite number > 0, got -1"):
+            VisibilityAwareDensification(base=self._Scale()).initialize_state(-1)

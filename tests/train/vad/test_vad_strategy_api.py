@@ -101,7 +101,7 @@ class TestSettings:
         s = VisibilityAwareDensification(view_selection=False)
         assert s.reconstruct == ReconstructConfig()  # as given
         assert s.reconstruct.selection.method != "consecutive"
-        assert s._reconstruct_config().selection.method == "consecutive"  # what the event uses
+        assert s.config.effective_reconstruct().selection.method == "consecutive"  # what the event uses
         assert s.config == VisibilityDensifyConfig(view_selection=False)
 
     def test_from_config_round_trip_and_checks(self):

@@ -9,7 +9,7 @@
 VAD-GS's strategy is in :mod:`vadgs.train.vad`. Add a strategy as a module here.
 """
 
-from vadgs.train.strategy.base import ConfiguredStrategy, GeometryPriors, Strategy
+from vadgs.train.strategy.base import ConfiguredStrategy, GeometryPriors, Strategy, initialize_base_state
 from vadgs.train.strategy.default import DefaultStrategy, DefaultStrategyConfig
 
 __all__ = [
@@ -18,4 +18,5 @@ __all__ = [
     "DefaultStrategyConfig",
     "GeometryPriors",
     "Strategy",
+    "initialize_base_state",
 ]

@@ -45,6 +45,7 @@ rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with i
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import MutableMapping
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
@@ -52,7 +53,7 @@ import torch
 
 from vadgs.train.losses import GeometryTargets
 
-__all__ = ["ConfiguredStrategy", "GeometryPriors", "Strategy"]
+__all__ = ["ConfiguredStrategy", "GeometryPriors", "Strategy", "initialize_base_state"]
 
 
 @runtime_checkable
@@ -177,6 +178,20 @@ class ConfiguredStrategy:
         elif name in self._setting_names:
             name, value = "config", dataclasses.replace(self.config, **{name: value})
         object.__setattr__(self, name, value)
+
+
+def initialize_base_state(strategy: Any, scene_scale: float) -> dict[str, Any]:
+    """``strategy.initialize_state(scene_scale)``, or without the argument when it takes none.
+
+    For a strategy that wraps another: gsplat's ``MCMCStrategy.initialize_state`` takes no
+    ``scene_scale``, its ``DefaultStrategy`` and vadgs's do.
+    """
+    init = strategy.initialize_state
+    try:
+        takes = len(inspect.signature(init).parameters) > 0
+    except (TypeError, ValueError):  # a builtin or C callable: assume gsplat's signature
+        takes = True
+    return init(scene_scale) if takes else init()
 
 
 def _field_names(cls: type) -> frozenset[str]:

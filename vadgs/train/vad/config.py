@@ -10,7 +10,7 @@ the strategy needs of the loop (a render function, step counts, a generator). Bo
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import torch
@@ -144,6 +144,18 @@ class VisibilityDensifyConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
+
+    def effective_reconstruct(self) -> ReconstructConfig:
+        """``reconstruct`` as the event runs it: consecutive-frame selection when ``view_selection`` is off.
+
+        Example:
+            >>> VisibilityDensifyConfig(view_selection=False).effective_reconstruct().selection.method
+            'consecutive'
+        """
+        if self.view_selection:
+            return self.reconstruct
+        selection = replace(self.reconstruct.selection, method="consecutive")
+        return replace(self.reconstruct, selection=selection)
 
 
 RANKINGS = ("class_round_robin", "pixels")

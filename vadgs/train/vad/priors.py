@@ -8,18 +8,16 @@ back, with the voxel depth where no MVS depth exists, as the targets of
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.vad.reconstruct import (
-    InstanceReconstruction,
-)
+from vadgs.train.vad.reconstruct import InstanceReconstruction
 from vadgs.train.vad.visibility import VisibilityIndex
 
-__all__ = [
-    "merge_priors",
-    "view_targets",
-]
+__all__ = ["merge_priors", "state_priors", "view_targets"]
 
 
 def merge_priors(priors: dict[int, tuple[torch.Tensor, torch.Tensor]], rec: InstanceReconstruction) -> None:
@@ -34,6 +32,20 @@ def merge_priors(priors: dict[int, tuple[torch.Tensor, torch.Tensor]], rec: Inst
             d = torch.where(has, d, old[0])
             n = torch.where(has, n, old[1])
         priors[v] = (d, n)
+
+
+def state_priors(state: Any) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """The priors kept in a strategy's ``state`` (``state["vad_priors"]``, see :func:`merge_priors`).
+
+    Raises:
+        ValueError: ``state`` is not a state made by the strategy's ``initialize_state``.
+    """
+    if not isinstance(state, Mapping) or "vad_priors" not in state:
+        got = f"keys {sorted(state)}" if isinstance(state, Mapping) else type(state).__name__
+        raise ValueError(
+            f"state: expected the strategy's state (from initialize_state(), with 'vad_priors'), got {got}"
+        )
+    return state["vad_priors"]
 
 
 def view_targets(

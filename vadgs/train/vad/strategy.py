@@ -1,39 +1,26 @@
 r"""VAD-GS: the visibility-aware densification strategy (paper, Sec. "Methodology").
 
-:class:`VisibilityAwareDensification` is a gsplat-style strategy that wraps a standard one (vadgs's
-or gsplat's ``DefaultStrategy``, gsplat's ``MCMCStrategy``) and never sees the training loop nor a
-vadgs ``Scene``: :meth:`~VisibilityAwareDensification.prepare` gives it a
-:class:`~vadgs.train.vad.inputs.VisibilityInputs` and a :class:`StrategyContext` (render a view,
-step counts, the generator of its selection noise).
-Every ``every_cycles`` complete sampling cycles of the training views it runs one event
-(:func:`~vadgs.train.vad.event.run_event`, given an :class:`~vadgs.train.vad.event.EventInputs`):
-detection from the visibility index (built once, :mod:`~vadgs.train.vad.visibility`;
-:mod:`~vadgs.train.vad.detect`), ranking and reference views (:mod:`~vadgs.train.vad.references`),
-multi-view stereo per instance (:mod:`~vadgs.train.vad.reconstruct`), new flat Gaussians
-(:mod:`~vadgs.train.vad.gaussians`) and the geometric priors (:mod:`~vadgs.train.vad.priors`),
-returned by :meth:`VisibilityAwareDensification.geometry_targets` for
-:func:`vadgs.train.losses.geometric_losses`. ``docs/vad.md`` maps the paper's sections to them.
-
-Ablation switches (:class:`VisibilityDensifyConfig`): ``view_selection=False`` uses consecutive
-frames of the reference camera, ``geometric_losses=False`` drops the priors; the paper's "w/o voxel
-visibility reasoning", which disables everything else, is the base strategy alone (no VAD-GS:
-``TrainConfig.vad = None``). Every event's cost is logged in
-``state["vad_events"]`` (seconds of detection, selection + MVS, and densification).
+:class:`VisibilityAwareDensification` is a gsplat-style strategy that wraps a standard one and never
+sees the training loop nor a vadgs ``Scene``. Every ``every_cycles`` complete sampling cycles of the
+training views it runs one event (:func:`~vadgs.train.vad.event.run_event`): detection
+(:mod:`~vadgs.train.vad.detect`), references (:mod:`~vadgs.train.vad.references`), multi-view
+stereo (:mod:`~vadgs.train.vad.reconstruct`), new Gaussians (:mod:`~vadgs.train.vad.gaussians`)
+and the priors of the geometric losses (:mod:`~vadgs.train.vad.priors`). ``docs/vad.md`` maps the
+paper's sections to these modules; each event's cost is logged in ``state["vad_events"]``.
 """
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Callable, Mapping, MutableMapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import torch
 
 from vadgs.checks import float_field, int_field
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, ops
+from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, initialize_base_state, ops
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig
 from vadgs.train.vad.detect import detect, observe_view
 from vadgs.train.vad.event import EventInputs, run_event
@@ -41,9 +28,8 @@ from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.info import check_info, check_info_values
 from vadgs.train.vad.inputs import VisibilityInputs
-from vadgs.train.vad.priors import view_targets
+from vadgs.train.vad.priors import state_priors, view_targets
 from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender
-from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = ["VisibilityAwareDensification"]
@@ -59,14 +45,10 @@ class VisibilityAwareDensification(ConfiguredStrategy):
     """The VAD-GS densification strategy (gsplat ``Strategy`` interface). See the module docstring.
 
     Its settings are a :class:`VisibilityDensifyConfig` in ``config``, given whole or as keywords
-    (``VisibilityAwareDensification(every_cycles=5)``, as gsplat's strategies are called) and
-    readable / assignable as attributes, each checked as the config's field is
-    (:class:`~vadgs.train.strategy.base.ConfiguredStrategy`, the shape of vadgs's
-    :class:`~vadgs.train.strategy.DefaultStrategy` too); :meth:`from_config` is the same with
-    the config first. It holds no dataset: :meth:`prepare` gives it a
-    :class:`~vadgs.train.vad.inputs.VisibilityInputs` (per-view cameras, loaders, LiDAR or TRACK
-    observations, tracks) and the loop's :class:`StrategyContext`, and builds the visibility
-    index once. Use::
+    and readable / assignable as attributes, each checked as the config's field is
+    (:class:`~vadgs.train.strategy.ConfiguredStrategy`). It holds no dataset: :meth:`prepare`
+    gives it a :class:`~vadgs.train.vad.inputs.VisibilityInputs` and the loop's
+    :class:`StrategyContext`, and builds the visibility index once. Use::
 
         strategy = VisibilityAwareDensification(base=DefaultStrategy(), every_cycles=5)
         strategy.check_sanity(params, optimizers)
@@ -90,9 +72,6 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         log_size: at most this many events are kept in ``state["pending_log"]`` for the loop to
             pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
         **settings: fields of :class:`VisibilityDensifyConfig` replaced in ``config``.
-
-    A view trained since the last event is tested from the loop's own render when ``info``
-    carries it (:func:`~vadgs.train.vad.detect.observe_view`); the others are rendered at the event.
 
     Example:
         >>> s = VisibilityAwareDensification(every_cycles=2)
@@ -132,7 +111,6 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         self._last_call: float | None = None
         self._info_checked = self._post_info_checked = False
         self._train_views: set[int] | None = None
-        self._mean_pixels: float | None = None
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "log_size":
@@ -149,32 +127,16 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         index: VisibilityIndex | None = None,
         on_addition: Callable[[dict[str, Any]], None] | None = None,
     ) -> VisibilityAwareDensification:
-        """A strategy with the settings of ``config``; :meth:`prepare` d when ``inputs`` or ``index``.
-
-        Example:
-            >>> s = VisibilityAwareDensification.from_config(VisibilityDensifyConfig(every_cycles=2))
-            >>> s.every_cycles, s.config == VisibilityDensifyConfig(every_cycles=2)
-            (2, True)
-        """
+        """The strategy of ``config`` and ``base``; :meth:`prepare` d when given its other arguments."""
         out = cls(config, base=base, on_addition=on_addition)
         if inputs is not None or index is not None or context is not None:
             out.prepare(inputs, context, index)
         return out
 
-    def _reconstruct_config(self) -> ReconstructConfig:
-        """``reconstruct``, with consecutive-frame selection when ``view_selection`` is off."""
-        if self.config.view_selection:
-            return self.config.reconstruct
-        sel = replace(self.config.reconstruct.selection, method="consecutive")
-        return replace(self.config.reconstruct, selection=sel)
-
     # -- Strategy interface ----------------------------------------------------------------------------
 
     def check_sanity(self, params: Mapping[str, torch.Tensor], optimizers: Any) -> None:
-        """Check ``params`` and ``optimizers`` before training (gsplat's ``check_sanity``).
-
-        :func:`~vadgs.train.strategy.ops.check_params`, then the base's own ``check_sanity`` when it has
-        one.
+        """:func:`~vadgs.train.strategy.ops.check_params`, then the base's ``check_sanity`` if it has one.
 
         Raises:
             ValueError: naming the key, what was expected and what was found.
@@ -192,13 +154,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         Raises:
             ValueError: ``scene_scale`` is not a finite number > 0.
         """
-        scene_scale = _SCENE_SCALE("scene_scale", scene_scale)
-        init = self.base.initialize_state
-        try:
-            takes = len(inspect.signature(init).parameters) > 0
-        except (TypeError, ValueError):
-            takes = True
-        state = init(scene_scale) if takes else init()
+        state = initialize_base_state(self.base, _SCENE_SCALE("scene_scale", scene_scale))
         state.update(
             vad_events=[], vad_priors={}, vad_cycle=0, vad_last_done={}, vad_tests={}, vad_train_s=0.0
         )
@@ -213,11 +169,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         info: dict[str, Any],
         **kwargs: Any,
     ) -> None:
-        """The base's ``step_pre_backward``; at the first step, checks ``info`` for the base.
-
-        ``kwargs`` go to the base (gsplat's loop passes none here).
-
-        (``step_post_backward`` checks it again at its first call, with its ``packed=``.)
+        """The base's ``step_pre_backward`` (given ``kwargs``); at the first step, checks ``info`` for it.
 
         Raises:
             ValueError: a key the base reads is missing from ``info`` (see :func:`check_info`).
@@ -273,7 +225,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
                 self._last_call = time.perf_counter()  # the event's time is not training time
 
     def _observe(self, state: dict[str, Any], info: Mapping[str, Any]) -> None:
-        """Test the view the loop just trained, from its own render (see the class docstring)."""
+        """Test the view just trained from the loop's render (the others are rendered at the event)."""
         view = info.get("view") if isinstance(info, Mapping) else None
         if view is None or int(view) not in self._train_set():
             return
@@ -286,11 +238,9 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         The scale of the event's ``work_budget`` (a function of the step, hence the same on any
         machine and on resume).
         """
-        if self._mean_pixels is None:
-            inputs = self._inputs()
-            sizes = [inputs.size(v) for v in inputs.train_views]
-            self._mean_pixels = sum(h * w for h, w in sizes) / max(len(sizes), 1)
-        return (step + 1) * self._mean_pixels
+        inputs = self._inputs()
+        sizes = [inputs.size(v) for v in inputs.train_views]
+        return (step + 1) * sum(h * w for h, w in sizes) / max(len(sizes), 1)
 
     def _train_set(self) -> set[int]:
         if self._train_views is None:
@@ -319,8 +269,8 @@ class VisibilityAwareDensification(ConfiguredStrategy):
     ) -> VisibilityIndex:
         """Give the strategy its data and the loop's context, and build the visibility index once.
 
-        Call it before the first step (vadgs's trainer does, at construction). Later calls without
-        arguments return the index.
+        Call it before the first step (vadgs's trainer does, at construction); without arguments
+        it returns the index.
 
         Args:
             inputs: :class:`~vadgs.train.vad.inputs.VisibilityInputs` (e.g.
@@ -328,9 +278,6 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             context: :class:`StrategyContext`: the loop's render function, step counts, generator.
             index: a prebuilt :class:`~vadgs.train.vad.visibility.VisibilityIndex` of these inputs
                 (its own inputs are used when ``inputs`` is None).
-
-        Returns:
-            The index.
 
         Raises:
             ValueError: on arguments of the wrong type.
@@ -343,39 +290,17 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         if index is not None:
             self.index = index
             self.inputs = inputs if inputs is not None else index.inputs
-            self._train_views = self._mean_pixels = None
+            self._train_views = None
         elif inputs is not None and inputs is not self.inputs:
-            self.inputs, self.index, self._train_views, self._mean_pixels = inputs, None, None, None
+            self.inputs, self.index, self._train_views = inputs, None, None
         if context is not None:
             self.context = context
         if self.index is None:
-            self.index = self._build_index()
+            cfg = self.config
+            self.index = build_visibility_index(
+                self._inputs(), cfg.voxel_size, cell_size=cfg.cell_size, scene_depth=cfg.scene_depth
+            )
         return self.index
-
-    def _build_index(self) -> VisibilityIndex:
-        return build_visibility_index(
-            self._inputs(),
-            self.config.voxel_size,
-            cell_size=self.config.cell_size,
-            scene_depth=self.config.scene_depth,
-        )
-
-    def visibility_index(self) -> VisibilityIndex:
-        """The :class:`~vadgs.train.vad.visibility.VisibilityIndex` (see :meth:`prepare`)."""
-        if self.index is None:
-            self.index = self._build_index()
-        return self.index
-
-    @property
-    def lengths(self) -> dict[str, Any]:
-        """The lengths in use (world units; empty before :meth:`prepare`).
-
-        ``scene_depth``, ``voxel_size`` and ``cell_size`` of the visibility index.
-        """
-        if self.index is None:
-            return {}
-        i = self.index
-        return {"scene_depth": i.scene_depth, "voxel_size": i.grid.voxel_size, "cell_size": i.cell_size}
 
     @torch.no_grad()
     def detect(
@@ -412,11 +337,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         state: dict[str, Any],
         step: int,
     ) -> dict[str, Any]:
-        """One visibility-aware densification event (detect, reconstruct, add); returns its log.
-
-        See :func:`vadgs.train.vad.event.run_event`, given this strategy's parts as an
-        :class:`~vadgs.train.vad.event.EventInputs`.
-        """
+        """One event (:func:`~vadgs.train.vad.event.run_event` on this strategy's parts); returns its log."""
         context = self._context()
         event = EventInputs(
             index=self.prepare(),
@@ -424,7 +345,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             render=context.render,
             generator=context.generator,
             config=self.config,
-            reconstruct=self._reconstruct_config(),
+            reconstruct=self.config.effective_reconstruct(),
             add=self._add,
             trained_pixels=None if self.config.work_budget is None else self.trained_pixels(step),
             on_progress=self.on_progress,
@@ -464,20 +385,13 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             ValueError: before :meth:`prepare` or with a ``state`` not made by
                 :meth:`initialize_state`, or a ``view`` that is not one of the inputs'.
         """
-        cfg = self.config
-        if not cfg.geometric_losses:
+        if not self.config.geometric_losses:
             return None
         if self.inputs is None and self.index is None:
             raise ValueError(
                 "geometry_targets: expected a prepared strategy, got none: call prepare(inputs, "
                 "context) and initialize_state() first"
             )
-        if not isinstance(state, Mapping) or "vad_priors" not in state:
-            got = f"keys {sorted(state)}" if isinstance(state, Mapping) else type(state).__name__
-            raise ValueError(
-                "state: expected the strategy's state (from initialize_state(), with 'vad_priors'), "
-                f"got {got}"
-            )
         n = self._inputs().num_views
         view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
-        return view_targets(state["vad_priors"], self.prepare(), view, cfg.voxel_depth_prior)
+        return view_targets(state_priors(state), self.prepare(), view, self.config.voxel_depth_prior)
