@@ -25,7 +25,7 @@ from vadgs.geometry.camera_path import (
     orbit_path,
     spline_path,
 )
-from vadgs.geometry.ground import ground_frame, points_in_frame
+from vadgs.geometry.ground import ground_frame, points_in_frame, sample_rows
 from vadgs.geometry.homography import (
     apply_homography,
     homography_warp,
@@ -84,6 +84,7 @@ __all__ = [
     "rasterize_voxels",
     "relative_pose",
     "rotation_to_quat",
+    "sample_rows",
     "scale_intrinsics",
     "spline_path",
     "unique_cells",

@@ -3,12 +3,14 @@
 :func:`ground_frame` measures it (optionally turned onto the scene's walls); :func:`points_in_frame`
 expresses points in it. Pure geometry: VAD-GS's visibility index cuts its derived instances
 (:func:`vadgs.train.vad.instances.ground_cells`) and thins new points in this frame, so that a
-rotated, shifted or rescaled copy of a scene gets the same cells.
+rotated, shifted or rescaled copy of a scene gets the same cells. :func:`sample_rows` bounds the
+points it is measured on (a segment's LiDAR, read chunk by chunk).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import torch
 
@@ -17,6 +19,7 @@ from vadgs.geometry.camera import level_up
 __all__ = [
     "ground_frame",
     "points_in_frame",
+    "sample_rows",
 ]
 
 
@@ -114,3 +117,35 @@ def _align_walls(
     c, s = math.cos(angle), math.sin(angle)
     a, b = rotation[0], rotation[1]
     return torch.stack([c * a + s * b, -s * a + c * b, rotation[2]])
+
+
+_GOLDEN = 2654435761  # 2**32 / golden ratio: Fibonacci hashing of a row's position
+
+
+def sample_rows(chunks: Iterable[torch.Tensor], budget: int) -> torch.Tensor:
+    """At most ``budget`` rows of the chunks concatenated, spread evenly, chosen by position only.
+
+    Row ``i`` is kept when ``(i * 2654435761) mod 2**32 < 2**32 / s``, ``s`` the smallest power of
+    two that keeps at most ``budget`` (every row when there are no more than that): Fibonacci
+    hashing spreads the kept rows without a period (a stride of 8 would take one LiDAR beam in
+    8). Only the sample is held (halving ``2**32 / s`` thins it); the rows chosen depend on their
+    positions alone, so a moved copy of the points gives the moved sample.
+    """
+    sample: torch.Tensor | None = None
+    keys = torch.zeros(0, dtype=torch.int64)
+    limit, total = 1 << 32, 0
+    for chunk in chunks:
+        key = (torch.arange(total, total + chunk.shape[0]) * _GOLDEN) & 0xFFFFFFFF
+        keep = key < limit
+        sample = (
+            chunk[keep.to(chunk.device)]
+            if sample is None
+            else torch.cat([sample, chunk[keep.to(chunk.device)]])
+        )
+        keys = torch.cat([keys, key[keep]])
+        total += chunk.shape[0]
+        while keys.shape[0] > budget:
+            limit //= 2
+            keep = keys < limit
+            sample, keys = sample[keep.to(sample.device)], keys[keep]
+    return sample if sample is not None else torch.zeros(0, 3)

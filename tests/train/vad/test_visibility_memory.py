@@ -12,8 +12,9 @@ import torch
 
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.data.lidar import accumulate_lidar
+from vadgs.geometry import sample_rows
 from vadgs.train.vad import visibility
-from vadgs.train.vad.visibility import _sample_rows, build_visibility_index
+from vadgs.train.vad.visibility import build_visibility_index
 
 
 @pytest.mark.parametrize("budget", [1, 7, 64, 1000, 10_000])
@@ -21,7 +22,7 @@ def test_row_sample_takes_rows_by_position(budget):
     g = torch.Generator().manual_seed(budget)
     chunks = [torch.rand(int(n), 3, generator=g) for n in torch.randint(0, 900, (12,), generator=g)]
     rows = torch.cat(chunks)
-    got = _sample_rows(iter(chunks), budget)
+    got = sample_rows(iter(chunks), budget)
     # the reference: the largest threshold 2**32 / 2**k of the rows' hashes that keeps <= budget
     key = (torch.arange(rows.shape[0]) * 2654435761) % 2**32
     limit = 2**32
@@ -29,13 +30,13 @@ def test_row_sample_takes_rows_by_position(budget):
         limit //= 2
     assert torch.equal(got, rows[key < limit]) and got.shape[0] <= budget
     assert budget >= rows.shape[0] or got.shape[0] > budget // 4  # thinned by halves, not more
-    assert _sample_rows(iter([]), budget).shape == (0, 3)
+    assert sample_rows(iter([]), budget).shape == (0, 3)
 
 
 def test_row_sample_does_not_alias_with_a_scan_pattern():
     """64 beams, one row each in turn: a stride of 64 would keep one beam; the sample keeps all."""
     beams = torch.arange(64).repeat(2000).double()[:, None].expand(-1, 3)
-    got = _sample_rows(beams.split(5000), 2000)
+    got = sample_rows(beams.split(5000), 2000)
     counts = torch.bincount(got[:, 0].long(), minlength=64)
     assert 1000 < got.shape[0] <= 2000 and int(counts.min()) > 0.5 * float(counts.double().mean())
 

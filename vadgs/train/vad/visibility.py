@@ -14,7 +14,7 @@ not have, and :mod:`vadgs.train.vad.lengths` scales its lengths to the scene.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from vadgs.data.cache import ByteCache
 from vadgs.geometry.camera import Cameras, invert_rigid
-from vadgs.geometry.ground import ground_frame, points_in_frame
+from vadgs.geometry.ground import ground_frame, points_in_frame, sample_rows
 from vadgs.geometry.voxel import PointChunk, VoxelGrid, voxelize, voxelize_chunks
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
@@ -266,40 +266,8 @@ def _covis(
 
 
 #: The most points :func:`ground_frame` is measured on when building a visibility index: beyond,
-#: a sample of them (:func:`_sample_rows`).
+#: a sample of them (:func:`~vadgs.geometry.ground.sample_rows`).
 GROUND_FRAME_POINTS = 1 << 22
-
-
-_GOLDEN = 2654435761  # 2**32 / golden ratio: Fibonacci hashing of a row's position
-
-
-def _sample_rows(chunks: Iterable[torch.Tensor], budget: int) -> torch.Tensor:
-    """At most ``budget`` rows of the chunks concatenated, spread evenly, chosen by position only.
-
-    Row ``i`` is kept when ``(i * 2654435761) mod 2**32 < 2**32 / s``, ``s`` the smallest power of
-    two that keeps at most ``budget`` (every row when there are no more than that): Fibonacci
-    hashing spreads the kept rows without a period (a stride of 8 would take one LiDAR beam in
-    8). Only the sample is held (halving ``2**32 / s`` thins it); the rows chosen depend on their
-    positions alone, so a moved copy of the points gives the moved sample.
-    """
-    sample: torch.Tensor | None = None
-    keys = torch.zeros(0, dtype=torch.int64)
-    limit, total = 1 << 32, 0
-    for chunk in chunks:
-        key = (torch.arange(total, total + chunk.shape[0]) * _GOLDEN) & 0xFFFFFFFF
-        keep = key < limit
-        sample = (
-            chunk[keep.to(chunk.device)]
-            if sample is None
-            else torch.cat([sample, chunk[keep.to(chunk.device)]])
-        )
-        keys = torch.cat([keys, key[keep]])
-        total += chunk.shape[0]
-        while keys.shape[0] > budget:
-            limit //= 2
-            keep = keys < limit
-            sample, keys = sample[keep.to(sample.device)], keys[keep]
-    return sample if sample is not None else torch.zeros(0, 3)
 
 
 def build_visibility_index(
@@ -352,7 +320,7 @@ def build_visibility_index(
         inputs = VisibilityInputs.from_scene(source, frames)
     lidar = inputs.lidar
     if lidar is not None:  # frame by frame: the sweeps are never held together
-        points = _sample_rows((a.points for a in lidar(None, False)), GROUND_FRAME_POINTS)
+        points = sample_rows((a.points for a in lidar(None, False)), GROUND_FRAME_POINTS)
         what = "static LiDAR points"
     elif inputs.sfm is not None:
         points, point_views = inputs.sfm.points, (inputs.sfm.point_idx, inputs.sfm.view_idx)
