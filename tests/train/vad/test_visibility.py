@@ -118,6 +118,15 @@ class TestDeriveInstanceMap:
         vox = torch.full((H, W), -1, dtype=torch.int64)
         assert (derive_instance_map(_index(vox, torch.tensor([5]), 6), 0) == 0).all()
 
+    def test_no_static_voxel_in_the_scene(self):
+        """A scene whose static grid is empty (every point on a moving object): no cells; a box is still painted."""
+        vox = torch.full((H, W), -1, dtype=torch.int64)
+        empty = torch.zeros(0, dtype=torch.int64)
+        assert (derive_instance_map(_index(vox, empty, 6), 0) == 0).all()
+        tracks, boxes = {7: _track((0.0, 0.0, 20.0))}, {7: _box((0.0, 0.0, 0.0), 2.0)}
+        got = _compare(_index(vox, empty, 6, tracks=tracks, boxes=boxes))
+        assert set(np.unique(got)) == {0, 7}
+
     def test_boxes_far_to_near_against_naive(self):
         """Tracks' boxes painted over the cells, the near one over the far one; a track without a
         pose at the frame and a box across the image plane are not painted."""

@@ -132,7 +132,10 @@ def derive_instance_map(index: Any, view: int) -> torch.Tensor:
     inputs = index.inputs
     _, vox = index.voxel_raster(view)
     cells = index.cell_ids()
-    lab = torch.where(vox >= 0, cells[vox.clamp_min(0)], torch.zeros_like(vox)).numpy()
+    if cells.numel():
+        lab = torch.where(vox >= 0, cells[vox.clamp_min(0)], torch.zeros_like(vox)).numpy()
+    else:  # no static voxel in the scene (every point on a moving object)
+        lab = np.zeros(tuple(vox.shape), dtype=np.int64)
     if index.grow > 0 and (lab > 0).any():
         dist, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
         lab = np.where((lab == 0) & (dist <= index.grow), lab[iy, ix], lab)
