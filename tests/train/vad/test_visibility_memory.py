@@ -107,3 +107,34 @@ def test_index_peak_memory_does_not_grow_with_the_frames(tmp_path):
     assert out[32]["voxels"] > 1.5 * out[8]["voxels"]
     assert per_voxel[32] < 1.25 * per_voxel[8], out  # measured 1.07 and 1.14 kB a voxel
     assert out[32]["peak"] < 1500 * out[32]["voxels"] + 16 * 2**20, out
+
+
+def test_index_cache_is_bounded_by_its_setting():
+    """``cache_mb`` (``VisibilityDensifyConfig.index_cache_mb``) bounds the per-view maps; a view
+    dropped from the cache is recomputed to the same values."""
+    from vadgs.train.vad import StrategyContext, VisibilityAwareDensification
+    from vadgs.train.vad.inputs import VisibilityInputs
+
+    scene = load_scene(sample_scene_path())
+    inputs = VisibilityInputs.from_scene(scene)
+    views = list(inputs.train_views)
+    per_view = sum(x.numel() * x.element_size() for x in build_visibility_index(inputs).voxel_depth(0))
+    bound_mb = 3.5 * per_view / 2**20  # room for about three views' voxel depth
+    index = build_visibility_index(inputs, cache_mb=bound_mb)
+    assert index.view_cache.max_bytes == int(bound_mb * 2**20)
+    first = [t.clone() for t in index.voxel_depth(views[0])]
+    for v in views:
+        index.voxel_depth(v)
+        assert index.view_cache.nbytes <= index.view_cache.max_bytes
+    misses = index.view_cache.misses
+    again = index.voxel_depth(views[0])  # dropped long ago: recomputed
+    assert index.view_cache.misses > misses
+    assert all(torch.equal(a, b) for a, b in zip(first, again))
+    strategy = VisibilityAwareDensification(index_cache_mb=2.0)
+    ctx = StrategyContext(render=lambda v: None, total_steps=10, steps_per_cycle=len(views))
+    assert strategy.prepare(inputs, ctx).view_cache.max_bytes == 2 * 2**20
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="cache_mb: expected"):
+            build_visibility_index(inputs, cache_mb=bad)
+        with pytest.raises(ValueError, match="index_cache_mb: expected"):
+            VisibilityAwareDensification(index_cache_mb=bad)

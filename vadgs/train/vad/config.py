@@ -78,6 +78,11 @@ class VisibilityDensifyConfig:
             between the strategy's calls, events excluded), logged as skipped (``"time_budget"``)
             with a note in the event's summary. A run it cuts depends on the machine's speed and
             load. ``None`` (default): no cap.
+        index_cache_mb: the bound of the visibility index's per-view maps (voxel z-buffer and
+            depth, instance map, image; :class:`~vadgs.train.vad.visibility.ViewCache`), in MiB;
+            views dropped are recomputed identically when an event needs them again. 1024 by
+            default (every view of the benchmark streets; about a hundred at 1920×1280: lower it
+            to bound an event's memory on a long segment, ``docs/scale.md``).
         render_cache_mb: the loop's renders of the views trained since the last event (depth
             float16, opacity uint8, normals as two int8 octahedral codes: 5 bytes a pixel, see
             :func:`~vadgs.train.vad.state.compact_render`; in the strategy's state, so checkpoints
@@ -118,6 +123,7 @@ class VisibilityDensifyConfig:
     max_instances: int | None = None
     work_budget: float | None = 0.1
     time_budget: float | None = None
+    index_cache_mb: float = 1024.0
     render_cache_mb: float = 256.0
     references: int = 3
     min_frame_gap: int = 3
@@ -172,6 +178,7 @@ _FIELDS: dict[str, FieldCheck] = {
     "max_instances": int_field(0, optional=True),
     "work_budget": float_field(0, lo_open=True, optional=True),
     "time_budget": float_field(0, lo_open=True, optional=True),
+    "index_cache_mb": float_field(0, lo_open=True),
     "render_cache_mb": float_field(0),
     "references": int_field(1),
     "min_frame_gap": int_field(0),

@@ -298,7 +298,11 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         if self.index is None:
             cfg = self.config
             self.index = build_visibility_index(
-                self._inputs(), cfg.voxel_size, cell_size=cfg.cell_size, scene_depth=cfg.scene_depth
+                self._inputs(),
+                cfg.voxel_size,
+                cell_size=cfg.cell_size,
+                scene_depth=cfg.scene_depth,
+                cache_mb=cfg.index_cache_mb,
             )
         return self.index
 

@@ -21,6 +21,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from vadgs.checks import float_field
 from vadgs.data.cache import ByteCache
 from vadgs.geometry.camera import Cameras, invert_rigid
 from vadgs.geometry.ground import ground_frame, points_in_frame, sample_rows
@@ -40,8 +41,9 @@ __all__ = [
 
 
 ViewCache = ByteCache
-"""The visibility index's per-view cache: a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default:
-every view of the street scenes at 240×144; some hundred views at 1920×1280)."""
+"""The visibility index's per-view cache: a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default,
+``build_visibility_index(cache_mb=)``, ``VisibilityDensifyConfig.index_cache_mb``: every view of
+the street scenes at 240×144; some hundred views at 1920×1280)."""
 
 
 @dataclass
@@ -269,6 +271,8 @@ def _covis(
 #: a sample of them (:func:`~vadgs.geometry.ground.sample_rows`).
 GROUND_FRAME_POINTS = 1 << 22
 
+_CACHE_MB = float_field(0, lo_open=True)
+
 
 def build_visibility_index(
     source: VisibilityInputs | Any,
@@ -277,6 +281,7 @@ def build_visibility_index(
     zbuffer: ZBufferConfig | None = None,
     cell_size: float | None = None,
     scene_depth: float | None = None,
+    cache_mb: float = 1024.0,
 ) -> VisibilityIndex:
     """Voxelise the LiDAR (static in world, each track in its frame) or SfM points with visibility sets.
 
@@ -299,12 +304,15 @@ def build_visibility_index(
         cell_size: ground-cell edge of derived instances; None: 10 at a scene depth of 10.
         scene_depth: the scene's length unit; None: the inputs'
             (:meth:`~vadgs.train.vad.inputs.VisibilityInputs.median_view_depth`).
+        cache_mb: the bound of the index's per-view cache (:class:`ViewCache`), in MiB: views
+            dropped from it are recomputed identically when needed again.
 
     Returns:
         The :class:`VisibilityIndex`.
 
     Raises:
-        ValueError: if there are no static points to voxelise (no LiDAR and no SfM points).
+        ValueError: if there are no static points to voxelise (no LiDAR and no SfM points), or
+            ``cache_mb`` is not a positive number.
 
     Example:
         >>> from vadgs.data import load_scene, sample_scene_path
@@ -312,6 +320,7 @@ def build_visibility_index(
         >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.inputs.tracks)
         (True, True)
     """
+    view_cache = ViewCache(_CACHE_MB("cache_mb", cache_mb) * 2**20)
     if isinstance(source, VisibilityInputs):
         if frames is not None:
             raise ValueError(f"frames: expected None with VisibilityInputs, got {list(frames)}")
@@ -372,6 +381,7 @@ def build_visibility_index(
         cell_size=lengths["cell_size"],
         scene_depth=depth,
         static_to_world=static_to_world,
+        view_cache=view_cache,
     )
     track_lidar = lidar if lidar is not None else (lambda _tid, _views: ())
     for tid in inputs.tracks if lidar is not None else ():
