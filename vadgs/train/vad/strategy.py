@@ -240,7 +240,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         """
         inputs = self._inputs()
         sizes = [inputs.size(v) for v in inputs.train_views]
-        return (step + 1) * sum(h * w for h, w in sizes) / max(len(sizes), 1)
+        return (step + 1) * (sum(h * w for h, w in sizes) / max(len(sizes), 1))
 
     def _train_set(self) -> set[int]:
         if self._train_views is None:
