@@ -20,6 +20,8 @@ from typing import Any
 
 import torch
 
+from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+
 
 def _status(key: str) -> float:
     with open("/proc/self/status") as f:
@@ -31,12 +33,11 @@ def _status(key: str) -> float:
 
 def stage(name: str, fn: Callable[[], Any]) -> Any:
     """Run ``fn``, print its seconds, its peak resident GB and the GB resident after it."""
-    with open("/proc/self/clear_refs", "w") as f:
-        f.write("5")
+    reset_peak_rss()
     t = time.perf_counter()
     out = fn()
     dt = time.perf_counter() - t
-    print(f"  {name:24s} {dt:7.1f} s  peak {_status('VmHWM'):5.2f} GB  after {_status('VmRSS'):5.2f} GB")
+    print(f"  {name:24s} {dt:7.1f} s  peak {peak_rss_mb() / 1024:5.2f} GB  after {_status('VmRSS'):5.2f} GB")
     return out
 
 

@@ -167,8 +167,9 @@ def _hwm_gb() -> float:
 
 
 def _reset_hwm() -> None:
-    with open("/proc/self/clear_refs", "w") as f:
-        f.write("5")  # the peak from here on
+    from vadgs.train.loop import reset_peak_rss
+
+    reset_peak_rss()  # the peak from here on
 
 
 def fit_exponent(frames: list[float], cost: list[float]) -> float:

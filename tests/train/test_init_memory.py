@@ -48,20 +48,15 @@ class TestVoxelAccumulator:
 _PEAK = r"""
 import json, sys, torch
 torch.set_num_threads(1)
+from vadgs.train.loop import peak_rss_mb, reset_peak_rss
 from vadgs.data import load_scene
 from vadgs.train.init import InitConfig, init_gaussians
 
-def hwm():
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM"):
-            return int(line.split()[1]) * 1024
-
 scene = load_scene(sys.argv[1])
-with open("/proc/self/clear_refs", "w") as f:
-    f.write("5")  # the peak from here on
-before = hwm()
+assert reset_peak_rss()  # the peak from here on
+before = peak_rss_mb() * 2**20
 model = init_gaussians(scene, InitConfig(voxel_size=0.5, max_points=20000, max_object_points=100))
-print(json.dumps({"peak": hwm() - before, "gaussians": model.num_gaussians}))
+print(json.dumps({"peak": peak_rss_mb() * 2**20 - before, "gaussians": model.num_gaussians}))
 """
 
 
@@ -82,3 +77,24 @@ def test_init_peak_memory_does_not_grow_with_the_frames(tmp_path):
     # 32 frames read 24 training sweeps of 60k points (~1.4M points, ~100 MB held at once before);
     # frame by frame the peak is a sweep's work plus the voxels
     assert peaks[32]["peak"] < 1.6 * peaks[8]["peak"] + 8 * 2**20, peaks
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
+def test_reset_peak_rss_starts_the_peak_over():
+    """In a fresh process: 400 MB touched then freed raise the peak; after ``reset_peak_rss`` the
+    peak is the resident set again, and a 100 MB stage reads as about 100 MB."""
+    script = r"""
+import json, numpy as np
+from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+a = np.ones(400 * 2**20, dtype=np.uint8); del a
+high = peak_rss_mb()
+ok = reset_peak_rss()
+low = peak_rss_mb()
+b = np.ones(100 * 2**20, dtype=np.uint8)
+print(json.dumps({"high": high, "ok": ok, "low": low, "stage": peak_rss_mb() - low}))
+"""
+    out = json.loads(
+        subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    )
+    assert out["ok"] and out["high"] - out["low"] > 300
+    assert 95 < out["stage"] < 110

@@ -25,7 +25,15 @@ from vadgs.runfolder import record_files, recorded_files
 from vadgs.train.checkpoint import CHECKPOINT_NAME, StepSnapshot, clear_run, remove_run_tmp
 from vadgs.train.session import RunLog, stop_on_signals
 
-__all__ = ["LoopTrainer", "TrainResult", "checkpoint_due", "peak_rss_mb", "run_loop", "save_after_failure"]
+__all__ = [
+    "LoopTrainer",
+    "TrainResult",
+    "checkpoint_due",
+    "peak_rss_mb",
+    "reset_peak_rss",
+    "run_loop",
+    "save_after_failure",
+]
 
 
 class LoopTrainer(Protocol):
@@ -240,6 +248,21 @@ def peak_rss_mb() -> float:
         pass
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 1024.0 if sys.platform.startswith("linux") else rss / 2**20  # kB on Linux, bytes on macOS
+
+
+def reset_peak_rss() -> bool:
+    """Start :func:`peak_rss_mb` over from the memory resident now (Linux: ``/proc/self/clear_refs``).
+
+    For measuring one stage's peak in a process that did other work before (a benchmark, a test's
+    subprocess). Returns False where the peak cannot be reset (not Linux, or not permitted): then
+    :func:`peak_rss_mb` keeps the process's whole peak.
+    """
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")  # Linux: reset the peak resident set size (VmHWM) to the current one
+    except OSError:
+        return False
+    return True
 
 
 def _add_note(e: BaseException, note: str) -> None:

@@ -119,7 +119,7 @@ class TestDeriveInstanceMap:
         assert (derive_instance_map(_index(vox, torch.tensor([5]), 6), 0) == 0).all()
 
     def test_no_static_voxel_in_the_scene(self):
-        """A scene whose static grid is empty (every point on a moving object): no cells; a box is still painted."""
+        """An empty static grid (every point on a moving object): no cells; a box is still painted."""
         vox = torch.full((H, W), -1, dtype=torch.int64)
         empty = torch.zeros(0, dtype=torch.int64)
         assert (derive_instance_map(_index(vox, empty, 6), 0) == 0).all()

@@ -67,22 +67,18 @@ def test_sampled_ground_frame_keeps_the_grid(monkeypatch):
 _PEAK = r"""
 import json, sys, torch
 torch.set_num_threads(1)
+from vadgs.train.loop import peak_rss_mb, reset_peak_rss
 from vadgs.data import load_scene
 from vadgs.train.vad import visibility
 
 visibility.GROUND_FRAME_POINTS = 50_000  # below both scenes' points: what is left grows with voxels
 
-def hwm():
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM"):
-            return int(line.split()[1]) * 1024
-
 scene = load_scene(sys.argv[1])
-with open("/proc/self/clear_refs", "w") as f:
-    f.write("5")  # the peak from here on
-before = hwm()
+assert reset_peak_rss()  # the peak from here on
+before = peak_rss_mb() * 2**20
 index = visibility.build_visibility_index(scene)
-print(json.dumps({"peak": hwm() - before, "voxels": len(index.grid), "tracks": len(index.track_grids)}))
+peak = peak_rss_mb() * 2**20 - before
+print(json.dumps({"peak": peak, "voxels": len(index.grid), "tracks": len(index.track_grids)}))
 """
 
 
