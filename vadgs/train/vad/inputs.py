@@ -6,16 +6,13 @@ input: every view's camera (intrinsics ``K``, ``world_to_cam``, image size), an 
 instance-mask loader or none (then the derived ground cells of the voxels stand in, as for a
 COLMAP scene), the visibility observations — LiDAR (:class:`~vadgs.data.lidar.AccumulatedLidar`
 per frame set, with each point's observing views) or SfM points with their TRACK table
-(:class:`TrackTable`) —, and the moving-object tracks or none. Two constructors:
+(:class:`TrackTable`) —, and the moving-object tracks or none, on the device the source gives
+(the CPU for both constructors):
 
 - :meth:`VisibilityInputs.from_scene` for a vadgs :class:`~vadgs.data.scene.Scene` (street, DGP,
   nuScenes, Waymo, COLMAP through :func:`vadgs.data.load_colmap`);
 - :meth:`VisibilityInputs.from_gsplat_parser` for gsplat's COLMAP ``Parser``
-  (``examples/datasets/colmap.py``): its ``point_indices`` (image name → indices of the points
-  it sees) are the TRACK table.
-
-Nothing here is differentiable; tensors stay on the device the source gives them (the CPU for
-both constructors).
+  (``examples/datasets/colmap.py``): its ``point_indices`` are the TRACK table.
 """
 
 from __future__ import annotations

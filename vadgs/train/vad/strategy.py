@@ -259,8 +259,6 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             raise RuntimeError("VisibilityAwareDensification: call prepare(inputs, context) before training")
         return self.inputs
 
-    # -- the event ---------------------------------------------------------------------------------------
-
     def prepare(
         self,
         inputs: VisibilityInputs | None = None,

@@ -4,12 +4,10 @@
 (its own frame), each voxel's instance label and visibility set (the views that observed it: the
 LiDAR frames, or COLMAP's TRACK table), and the cameras of every view, as
 :class:`~vadgs.select.Covisibility` objects for view selection; per-view maps (voxel depth,
-pixel → voxel index, instance masks) are computed on demand and kept in a :class:`ViewCache` with
-an explicit bound. :func:`build_visibility_index` builds it from
-:class:`~vadgs.train.vad.inputs.VisibilityInputs` (or a vadgs scene);
-:func:`~vadgs.train.vad.instances.derive_instance_map` stands in for instance masks a dataset does
-not have, and :mod:`vadgs.train.vad.lengths` scales its lengths to the scene.
-:mod:`vadgs.train.vad.reconstruct` and the VAD-GS strategy (:mod:`vadgs.train.vad`) read it.
+pixel → voxel index, instance masks) are computed on demand and kept in a bounded
+:class:`ViewCache`. :func:`build_visibility_index` builds it from
+:class:`~vadgs.train.vad.inputs.VisibilityInputs` (or a vadgs scene), its lengths scaled to the
+scene (:mod:`vadgs.train.vad.lengths`), derived instance maps where a dataset has no masks.
 """
 
 from __future__ import annotations
@@ -41,18 +39,16 @@ __all__ = [
 
 
 ViewCache = ByteCache
-"""The visibility index's per-view cache: a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default,
-``build_visibility_index(cache_mb=)``, ``VisibilityDensifyConfig.index_cache_mb``: every view of
-the street scenes at 240×144; some hundred views at 1920×1280)."""
+"""The visibility index's per-view cache, a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default:
+every view of the street scenes at 240×144; some hundred views at 1920×1280)."""
 
 
 @dataclass
 class VisibilityIndex:
     """Voxel grids, labels and covisibility of a scene, built once by :func:`build_visibility_index`.
 
-    The grids, labels and covisibility are fixed once built; what is computed per view (voxel
-    z-buffer, voxel depth, instance map, image) is kept in ``view_cache``, a :class:`ViewCache` with
-    an explicit byte bound.
+    What is computed per view (voxel z-buffer and depth, instance map, image) is kept in
+    ``view_cache``, a byte-bounded :class:`ViewCache`.
 
     Attributes:
         inputs: the :class:`~vadgs.train.vad.inputs.VisibilityInputs` it was built from (loaders,
@@ -74,7 +70,7 @@ class VisibilityIndex:
             unchanged by such padding. :meth:`size` is a view's own size, :meth:`valid` its area.
         cell_size: ground-cell edge of derived instances (scenes without instance maps).
         grow: pixels a derived instance map grows beyond the voxels.
-        view_cache: the per-view cache.
+        view_cache: the per-view cache (``build_visibility_index(cache_mb=)``).
         static_to_world: ``(4, 4)`` rigid transform of the static grid's frame to the world
             (:func:`ground_frame`: the cameras' up, the points' principal ground axes, their
             median); the identity for a grid built in the world.
