@@ -137,7 +137,7 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
         "scale": scale,
         "size_wh": [w, h],
         "gaussians": trainer.model.num_gaussians,
-        "voxels": len(strategy.visibility_index().grid),
+        "voxels": len(strategy.prepare().grid),
         "load": load_s,
         "init": sum(calls["init"]),
         "index": sum(calls["index"]),

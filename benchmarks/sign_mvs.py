@@ -68,7 +68,7 @@ def main() -> None:
         out = trainer.render_view(v)
         return out.raster.depth[0].detach(), out.raster.normals[0].detach()
 
-    index = strategy.visibility_index()
+    index = strategy.prepare()
     print("| setting | groups | points | within 5 cm | within 10 cm | sign compl. | board compl. | s |")
     print("|---|---|---|---|---|---|---|---|")
     for name, cfg in SETTINGS.items():

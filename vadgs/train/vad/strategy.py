@@ -196,9 +196,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
 
         Raises:
             ValueError: a key the base reads is missing from ``info`` (:func:`check_info`), or a
-                value in it is out of range: ``view`` not a view of the inputs, ``image_size``,
-                ``width`` or ``height`` not positive, a ``depth`` / ``alpha`` of the wrong shape
-                (naming the key, the expected and the actual).
+                value in it is out of range (:func:`check_info_values`), naming the key.
         """
         now = time.perf_counter()
         if self._last_call is not None:
@@ -304,6 +302,18 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             )
         return self.index
 
+    def visibility_index(self) -> VisibilityIndex:
+        """The visibility index, built if needed: :meth:`prepare` without arguments."""
+        return self.prepare()
+
+    @property
+    def lengths(self) -> dict[str, float]:
+        """The lengths in use (world units; empty before :meth:`prepare`): the index's scale."""
+        i = self.index
+        if i is None:
+            return {}
+        return {"scene_depth": i.scene_depth, "voxel_size": i.grid.voxel_size, "cell_size": i.cell_size}
+
     @torch.no_grad()
     def detect(
         self,
@@ -311,18 +321,11 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         renders: Callable[[int], ViewRender] | None = None,
         tests: Mapping[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None,
     ) -> tuple[IncompleteInstances, list[int]]:
-        """Run the incompleteness test on training views (default all of them).
+        """:func:`~vadgs.train.vad.detect.detect` on ``views`` (default: every training view).
 
-        Args:
-            views: view indices.
-            renders: the render function (default the context's).
-            tests: per view, a test already made from the loop's render (``state["vad_tests"]``:
-                the fields of its one-view :class:`~vadgs.train.vad.incomplete.IncompleteInstances`);
-                those views are not rendered again.
-
-        Returns:
-            ``(rows, views)``: :class:`~vadgs.train.vad.incomplete.IncompleteInstances` (``rows.view``
-            indexes ``views``) and the views tested.
+        ``renders`` defaults to the context's; a view in ``tests`` (``state["vad_tests"]``: tests
+        made from the loop's renders) is not rendered again. Returns ``(rows, views tested)``,
+        ``rows.view`` indexing the views tested.
         """
         return detect(
             self.prepare(),
@@ -373,15 +376,12 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             return self.context.track_nodes
         return {t: k for k, t in enumerate(sorted(self._inputs().tracks))}
 
-    # -- geometric priors ------------------------------------------------------------------------------
-
     def geometry_targets(self, state: dict[str, Any], view: int) -> GeometryTargets | None:
         """The priors of a view for :func:`vadgs.train.losses.geometric_losses`.
 
         :func:`~vadgs.train.vad.priors.view_targets`: the MVS depth and normals of the events so
-        far, the voxel depth of the pixel's own instance where no MVS depth exists; ``None`` when
-        the losses are off (``geometric_losses``) or the view has no prior. Move the tensors to the
-        render's device.
+        far, the voxel depth of the pixel's own instance elsewhere; ``None`` when the losses are off
+        (``geometric_losses``) or the view has no prior. Move the tensors to the render's device.
 
         Raises:
             ValueError: before :meth:`prepare` or with a ``state`` not made by
