@@ -31,7 +31,17 @@ Sections, in the order they run, each a function returning a dict; each records 
   alpha and of the gradients w.r.t. means, quats, scales, opacities, colours; forward + backward
   time of both.
 - ``train_step``: ms per ``Trainer.train_step`` on the bundled sample (240x144) with each available
-  raster backend, then one VAD-GS event's seconds.
+  raster backend, then one VAD-GS event's seconds and its operations' median ms (as ``vad_ops``,
+  but after the compile: ``vad_ops`` runs while gsplat compiles on most of the cores).
+- ``simple_trainer``: gsplat v1.5.3's own ``examples/simple_trainer.py`` patched with vadgs's diff
+  (``examples/gsplat_simple_trainer.diff``), ``default`` and ``vad``, on the COLMAP sample (24 images,
+  120x72) with gsplat's CUDA rasterizer (``tests/train/gsplat_simple_trainer.py``, ``device="cuda"``:
+  stand-ins only for what a machine without network lacks). Per run: seconds, ms per step, the
+  Gaussians, the VAD-GS events (every row of params, moments and strategy state kept), the
+  validation PSNR / SSIM. gsplat's examples and the sample as a text COLMAP model travel in
+  ``.whl/data`` (``gpu_wheels.sh``; the device has no pycolmap). On the CPU: 3 steps of ``vad``
+  with the CPU stand-ins and a bare machine's (no pycolmap, viser, ...), when ``../shared`` has
+  gsplat's examples.
 
 ``--cpu`` runs them on the CPU at reduced sizes (``--tiny``: the smallest, for the test); the
 sections that need CUDA report ``skipped: no CUDA device``. The JSON is rewritten after every
@@ -75,6 +85,7 @@ BUDGET_S = {
     "cuda_tests": 90,
     "gsplat_vs_torch": 35,
     "train_step": 60,
+    "simple_trainer": 90,
 }
 # sizes per mode: "cuda" (the device), "cpu" (--cpu), "tiny" (--cpu --tiny, the test)
 SIZES: dict[str, dict[str, Any]] = {
@@ -584,13 +595,19 @@ def train_step(chk: Check, budget: float) -> dict[str, Any]:
             "steps": s["train_steps"],
         }
         if s["train_event"]:
+            record: dict[str, dict[str, Any]] = {}
             t = time.perf_counter()
-            event = _event(trainer)
+            with _timed_ops(chk.device, record):  # after the compile: no build beside it (vad_ops had one)
+                event = _event(trainer)
             _sync(chk.device)
             row.update(
                 event_s=time.perf_counter() - t,
                 event_attempted=event["attempted"],
                 event_added=event["added"],
+                event_ops_median_ms={
+                    label: statistics.median(r["calls_ms"]) for label, r in record.items() if r["calls_ms"]
+                },
+                event_ops_calls={label: len(r["calls_ms"]) for label, r in record.items()},
             )
         del trainer
     return res
@@ -659,6 +676,81 @@ def segment_memory(chk: Check, budget: float) -> dict[str, Any]:
             res["peak_gpu_reserved_gib"] = torch.cuda.max_memory_reserved() / 2**30
         res["peak_host_rss_gib"] = _rss_peak_gib()
         del trainer, scene
+    return res
+
+
+# --- f. gsplat's own simple_trainer.py with vadgs's diff -----------------------------------------
+def _simple_trainer_inputs(root: Path) -> Path | None:
+    """Write the COLMAP sample (text model, its images) under ``root``; gsplat's examples, or None.
+
+    From ``.whl/data`` (``gpu_wheels.sh``) where it is, else ``../shared`` and pycolmap.
+    """
+    from tests.train import gsplat_simple_trainer as st
+    from vadgs.data import sample_scene_path
+
+    data = REPO / ".whl" / "data"
+    examples = data / "gsplat-v1.5.3" / "examples"
+    examples = examples if examples.is_dir() else st.GSPLAT_EXAMPLES
+    if not examples.is_dir():
+        return None
+    sparse = root / "sparse" / "0"
+    if (data / "colmap_sample").is_dir():
+        shutil.copytree(data / "colmap_sample" / "sparse" / "0", sparse)
+    else:
+        from tests.data.colmap_sample import write_sample_colmap
+
+        write_sample_colmap(root, n_points=1500, link_images=False, text=True)
+    shutil.copytree(sample_scene_path() / "images", root / "images")
+    return examples
+
+
+def simple_trainer(chk: Check, budget: float) -> dict[str, Any]:
+    if str(REPO) not in sys.path:  # the harness is tests/train/gsplat_simple_trainer.py
+        sys.path.insert(0, str(REPO))
+    from tests.train import gsplat_simple_trainer as st
+
+    if chk.cuda and not _gsplat_ready(chk):
+        return {"status": "skipped", "reason": "gsplat's CUDA extension not available"}
+    # on the CPU (the test): 3 steps of the vad run alone, with a bare machine's stand-ins
+    steps, every, names = (300, 2, ("default", "vad")) if chk.cuda else (3, 1, ("vad",))
+    res = chk.partial
+    res.update(steps=steps, every_cycles=every, runs={})
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "colmap"
+        examples = _simple_trainer_inputs(root)
+        if examples is None:
+            return {"status": "skipped", "reason": "no gsplat examples (.whl/data or ../shared/third_party)"}
+        st.prepare_data(root, 2)
+        patched = st.prepare_examples(Path(tmp), src=examples)
+        for name in names:
+            extra = ["--vad.every-cycles", str(every)] if name == "vad" else []
+            out = Path(tmp) / f"results_{name}"
+            argv = [
+                name, "--data_dir", str(root), "--data_factor", "2", "--result_dir", str(out),
+                "--max_steps", str(steps), "--eval_steps", str(steps), "--save_steps", str(steps),
+                "--disable_viewer", "--disable_video", *extra,
+            ]  # fmt: skip
+            record, timeout = Path(tmp) / f"{name}.json", max(budget - 10, 10)
+            rec = st.run_trainer(patched, argv, record, timeout, device=chk.device, bare=not chk.cuda)
+            val = json.loads((out / "stats" / f"val_step{steps - 1:04d}.json").read_text())
+            events = rec["events"]
+            rows_ok = all(
+                set(e["rows"]["params"].values()) | set(e["rows"]["moments"].values()) == {e["n_after"]}
+                for e in events
+            )
+            res["runs"][name] = {
+                "wall_s": rec["wall_s"],
+                "stand_ins": rec["config"].get("stand_ins"),
+                "gaussians": rec["steps"][-1][1] if rec["steps"] else None,
+                "events": [{k: e[k] for k in ("step", "attempted", "added", "total_s")} for e in events],
+                "rows_consistent": rows_ok,
+                "val": {k: val.get(k) for k in ("psnr", "ssim", "num_GS", "ellipse_time")},
+            }
+            if not rows_ok:
+                res.update(status="failed", reason=f"{name}: rows of params / moments differ after an event")
+    vad = res["runs"]["vad"]
+    if chk.cuda and not vad["events"]:
+        res.update(status="failed", reason="the vad run held no VAD-GS event")
     return res
 
 

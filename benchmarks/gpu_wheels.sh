@@ -4,6 +4,9 @@
 #
 #   bash benchmarks/gpu_wheels.sh      # then: run(command='bash benchmarks/gpu_check.sh "$OUT"', carry=[".whl"])
 #
+# Also writes .whl/data (gsplat's examples, the COLMAP sample as text) for the simple_trainer section:
+# run it with the development venv's python (PYTHON=...; it needs vadgs and pycolmap).
+#
 # Versions: those of the development venv (pip show). The device has torch, numpy, scipy,
 # scikit-image, networkx, pillow, matplotlib, tqdm, ... but not these. Left out: pycolmap (large;
 # imported lazily, only by COLMAP input/export: vadgs, vadgs.train, the renderer, the strategy and
@@ -27,5 +30,18 @@ for w in "${WHEELS[@]}"; do
         --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
         --platform manylinux_2_5_x86_64 --platform manylinux1_x86_64 -d .whl "$w"
 done
+# the simple_trainer section's inputs (no network nor pycolmap there): gsplat's examples from
+# ../shared and the COLMAP sample as a text model (tests/data/colmap_sample.py, with pycolmap here)
+rm -rf .whl/data && mkdir -p .whl/data
+if [ -d ../shared/third_party/gsplat-v1.5.3 ]; then
+    cp -r ../shared/third_party/gsplat-v1.5.3 .whl/data/
+else
+    echo "gpu_wheels.sh: no ../shared/third_party/gsplat-v1.5.3: the simple_trainer section will be skipped"
+fi
+"${PYTHON:-python3}" -c "import sys; sys.path.insert(0, '.')
+from pathlib import Path
+from tests.data.colmap_sample import write_sample_colmap
+write_sample_colmap(Path('.whl/data/colmap_sample'), n_points=1500, link_images=False, text=True)"
 ls -l .whl
-echo "wheels: $(ls .whl/*.whl | wc -l), total $(du -cb .whl/*.whl | tail -1 | awk '{printf "%.1f MiB", $1 / 2^20}')"
+echo "wheels: $(ls .whl/*.whl | wc -l), total $(du -cb .whl/*.whl | tail -1 | awk '{printf "%.1f MiB", $1 / 2^20}');" \
+    "data $(du -sb .whl/data | awk '{printf "%.1f MiB", $1 / 2^20}')"

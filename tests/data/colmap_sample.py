@@ -27,6 +27,7 @@ def write_sample_colmap(
     name_prefix: str = "",
     shift: tuple[float, float, float] = (0.0, 0.0, 0.0),
     crop: dict[str, tuple[int, int]] | None = None,
+    text: bool = False,
 ) -> dict:
     """Write ``root/sparse/0`` (and ``root/images`` -> the sample's images).
 
@@ -41,6 +42,7 @@ def write_sample_colmap(
         crop: ``{camera: (H, W)}``: that camera's images keep their top-left ``H x W`` (same
             intrinsics, observations outside dropped): a rig of several image sizes. The
             images are then copied into ``root/images`` (``link_images`` ignored).
+        text: write the model as text (``cameras.txt``, ...) instead of binary.
 
     Returns:
         ``{"scene", "names", "points", "obs"}``: the sample scene (full resolution), the image
@@ -103,7 +105,7 @@ def write_sample_colmap(
         rec.add_point3D(pts[j].numpy(), track, np.array([128, 128, 128], dtype=np.uint8))
     sparse = root / "sparse" / "0"
     sparse.mkdir(parents=True, exist_ok=True)
-    rec.write(str(sparse))
+    rec.write_text(str(sparse)) if text else rec.write(str(sparse))
     if crop:
         from PIL import Image
 

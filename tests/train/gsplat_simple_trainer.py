@@ -1,6 +1,7 @@
-"""Run gsplat v1.5.3's own ``examples/simple_trainer.py``, patched with vadgs's diff, on the CPU.
+"""Run gsplat v1.5.3's own ``examples/simple_trainer.py``, patched with vadgs's diff, on the CPU or a GPU.
 
-The GPU-only parts of gsplat's example get stand-ins here, in the test harness (never in the diff):
+On the CPU (``device="cpu"``, the tests) the GPU-only parts of gsplat's example get stand-ins here, in
+the test harness (never in the diff):
 
 - gsplat's CUDA ``rasterization`` → gsplat's own pure-torch path ``gsplat.rendering._rasterization``
   (``gsplat.cuda._torch_impl``: covariances, projection, SH, offsets), with torch stand-ins for the
@@ -16,6 +17,13 @@ The GPU-only parts of gsplat's example get stand-ins here, in the test harness (
 - the forked ``pycolmap.SceneManager`` → :class:`SceneManager` over the official pycolmap 4.x;
 - the ``cuda:{rank}`` device → ``cpu`` (``Runner.device``), ``torch.cuda`` timing calls → no-ops,
   ``gsplat.distributed.cli`` → one process.
+
+On a CUDA device (``device="cuda"``, ``benchmarks/gpu_check.py``) gsplat's own CUDA rasterization,
+SH and timing run; only what a machine without network lacks gets a stand-in: LPIPS (its weights
+are a download), and each of ``fused_ssim``, ``nerfview``, ``viser`` (the viewer, off) and the forked
+``pycolmap`` that is not installed — the last as :class:`TextSceneManager` when pycolmap itself is
+missing, which reads a COLMAP model written as text. ``bare=True`` uses those stand-ins whether
+the packages are installed or not (the CPU test of that path).
 
 :func:`prepare_examples` copies gsplat's ``examples/`` to a folder and applies the diff;
 :func:`run_trainer` runs the patched script in a subprocess through this module
@@ -47,11 +55,15 @@ GSPLAT_EXAMPLES = SHARED / "third_party" / "gsplat-v1.5.3" / "examples"
 DIFF = REPO / "examples" / "gsplat_simple_trainer.diff"
 
 
-def prepare_examples(dst: Path, diff: Path = DIFF) -> Path:
-    """Copy gsplat's ``examples/`` to ``dst/examples`` and apply ``diff`` there; returns that folder."""
+def prepare_examples(dst: Path, diff: Path = DIFF, src: Path = GSPLAT_EXAMPLES) -> Path:
+    """Copy gsplat's ``examples/`` (``src``) to ``dst/examples``, apply ``diff``; returns that folder."""
     out = dst / "examples"
-    shutil.copytree(GSPLAT_EXAMPLES, out)
-    subprocess.run(["git", "apply", "--unsafe-paths", str(diff)], cwd=dst, check=True, capture_output=True)
+    shutil.copytree(src, out)
+    if shutil.which("git"):
+        cmd = ["git", "apply", "--unsafe-paths", str(diff)]
+    else:  # a machine without git (the GPU machine may lack it): GNU patch reads the same diff
+        cmd = ["patch", "-p1", "--forward", "-i", str(diff)]
+    subprocess.run(cmd, cwd=dst, check=True, capture_output=True)
     return out
 
 
@@ -72,8 +84,18 @@ def prepare_data(colmap_root: Path, factor: int) -> None:
             Image.fromarray(np.asarray(im.resize(size, Image.BICUBIC))).save(out)
 
 
-def run_trainer(examples: Path, argv: list[str], record: Path, timeout: float = 1800) -> dict:
+def run_trainer(
+    examples: Path,
+    argv: list[str],
+    record: Path,
+    timeout: float = 1800,
+    device: str = "cpu",
+    bare: bool = False,
+) -> dict:
     """Run the patched ``simple_trainer.py`` with ``argv`` in a subprocess; returns the record.
+
+    ``device``: ``"cpu"`` (the stand-ins of the module docstring) or ``"cuda"`` (gsplat's own CUDA
+    path); ``bare``: the stand-ins of a machine without the optional packages, installed or not.
 
     Raises:
         RuntimeError: the run failed (its last output lines in the message).
@@ -81,7 +103,17 @@ def run_trainer(examples: Path, argv: list[str], record: Path, timeout: float = 
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     env.setdefault("OMP_NUM_THREADS", "1")
-    cmd = [sys.executable, "-m", "tests.train.gsplat_simple_trainer", str(examples), str(record), "--", *argv]
+    opts = ["--device", device] + (["--bare"] if bare else [])
+    cmd = [
+        sys.executable,
+        "-m",
+        "tests.train.gsplat_simple_trainer",
+        str(examples),
+        str(record),
+        *opts,
+        "--",
+        *argv,
+    ]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
@@ -144,6 +176,76 @@ class SceneManager:
         self.point3D_id_to_point3D_idx = {p: i for i, p in enumerate(pids)}
         self.point3D_id_to_images = {
             p: np.array([(e.image_id, e.point2D_idx) for e in pt.track.elements]) for p, pt in zip(pids, pts)
+        }
+
+
+#: COLMAP camera models: id and parameter names (``cameras.txt``)
+_COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": (0, "f cx cy"),
+    "PINHOLE": (1, "fx fy cx cy"),
+    "SIMPLE_RADIAL": (2, "f cx cy k"),
+    "RADIAL": (3, "f cx cy k1 k2"),
+    "OPENCV": (4, "fx fy cx cy k1 k2 p1 p2"),
+    "OPENCV_FISHEYE": (5, "fx fy cx cy k1 k2 k3 k4"),
+}
+
+
+class TextSceneManager(SceneManager):
+    """:class:`SceneManager` without pycolmap: a COLMAP model written as text (``*.txt``), read in numpy."""
+
+    def __init__(self, colmap_dir: str) -> None:
+        self._dir = Path(colmap_dir)
+
+    def _rows(self, name: str):
+        with open(self._dir / name) as f:
+            return [line.split() for line in f if line.strip() and not line.startswith("#")]
+
+    def load_cameras(self) -> None:
+        from types import SimpleNamespace
+
+        self.cameras = {}
+        for row in self._rows("cameras.txt"):
+            cid, model, w, h = int(row[0]), row[1], int(row[2]), int(row[3])
+            type_id, names = _COLMAP_MODELS[model]
+            p = dict(zip(names.split(), (float(x) for x in row[4:])))
+            p.setdefault("fx", p.get("f"))
+            p.setdefault("fy", p.get("f"))
+            p.setdefault("k1", p.get("k", 0.0))
+            self.cameras[cid] = SimpleNamespace(camera_type=type_id, width=w, height=h, **p)
+
+    def load_images(self) -> None:
+        from types import SimpleNamespace
+
+        import numpy as np
+
+        self.images, self.name_to_image_id = {}, {}
+        # an image is two lines (its pose, then its 2D points); the second may be empty
+        with open(self._dir / "images.txt") as f:
+            lines = [line.rstrip("\n") for line in f if not line.startswith("#")]
+        for pose in lines[0::2]:
+            if not pose.strip():
+                continue
+            row = pose.split()
+            iid, (qw, qx, qy, qz), t = int(row[0]), map(float, row[1:5]), np.array(row[5:8], dtype=np.float64)
+            r = np.array([
+                [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)],
+                [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
+                [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)],
+            ])  # fmt: skip
+            self.images[iid] = SimpleNamespace(R=lambda r=r: r, tvec=t, camera_id=int(row[8]), name=row[9])
+            self.name_to_image_id[row[9]] = iid
+
+    def load_points3D(self) -> None:
+        import numpy as np
+
+        rows = sorted(self._rows("points3D.txt"), key=lambda r: int(r[0]))
+        pids = [int(r[0]) for r in rows]
+        self.points3D = np.array([r[1:4] for r in rows], dtype=np.float64).reshape(-1, 3)
+        self.point3D_colors = np.array([r[4:7] for r in rows], dtype=np.uint8).reshape(-1, 3)
+        self.point3D_errors = np.array([r[7] for r in rows], dtype=np.float64)
+        self.point3D_id_to_point3D_idx = {p: i for i, p in enumerate(pids)}
+        self.point3D_id_to_images = {
+            p: np.array(r[8:], dtype=np.int64).reshape(-1, 2) for p, r in zip(pids, rows)
         }
 
 
@@ -227,15 +329,25 @@ def _module(name: str, **attrs) -> ModuleType:
     return mod
 
 
-def install_stand_ins() -> None:
+def _missing(name: str, bare: bool) -> bool:
+    """Whether ``name`` gets a stand-in: ``bare``, or it cannot be imported here."""
+    if bare:
+        return True
+    try:
+        __import__(name)
+    except ImportError:
+        return True
+    return False
+
+
+def install_stand_ins(device: str = "cpu", bare: bool = False) -> None:
     """Put the stand-ins in place (see the module docstring); call before running the script."""
-    import gsplat.cuda._torch_impl as torch_impl
-    import gsplat.distributed
-    import gsplat.rendering
     import kornia
-    import pycolmap
     import torch
     import torchmetrics.image.lpip
+
+    global DEVICE
+    DEVICE = device
 
     def fused_ssim(img1, img2, padding="same", train=True):
         return kornia.metrics.ssim(img1, img2, 11, padding=padding).mean()
@@ -253,10 +365,31 @@ def install_stand_ins() -> None:
         def forward(self, a, b):
             return torch.tensor(float("nan"))
 
-    _module("fused_ssim", fused_ssim=fused_ssim)
-    _module("nerfview", CameraState=_Stub, RenderTabState=_Stub, Viewer=_Stub, apply_float_colormap=None)
+    cpu = device == "cpu"
+    if cpu or _missing("fused_ssim", bare):
+        _module("fused_ssim", fused_ssim=fused_ssim)
+    if cpu or _missing("nerfview", bare):
+        _module("nerfview", CameraState=_Stub, RenderTabState=_Stub, Viewer=_Stub, apply_float_colormap=None)
+    if _missing("viser", bare):  # the viewer (off: --disable_viewer) and gsplat_viewer.py import it
+        _module("viser", ViserServer=_Stub)
+        _module("gsplat_viewer", GsplatViewer=_Stub, GsplatRenderTabState=_Stub)
     torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity = _NoLPIPS
-    pycolmap.SceneManager = SceneManager
+    if _missing("pycolmap", bare):
+        _module("pycolmap", SceneManager=TextSceneManager)
+    else:
+        import pycolmap
+
+        pycolmap.SceneManager = SceneManager
+    stubs = [m for m in ("fused_ssim", "nerfview", "viser", "pycolmap") if sys.modules.get(m) is not None]
+    RECORD["config"]["stand_ins"] = [m for m in stubs if getattr(sys.modules[m], "__file__", None) is None]
+    import gsplat.distributed
+
+    gsplat.distributed.cli = _one_process
+    if not cpu:
+        return
+    import gsplat.cuda._torch_impl as torch_impl
+    import gsplat.rendering
+
     gsplat.rendering.rasterization = _rasterization
     gsplat.rendering.isect_tiles = _isect_tiles
     gsplat.rendering.isect_offset_encode = torch_impl._isect_offset_encode
@@ -264,12 +397,12 @@ def install_stand_ins() -> None:
     torch_impl._rasterize_to_pixels = _rasterize_to_pixels
     torch.cuda.synchronize = lambda *a, **k: None
     torch.cuda.max_memory_allocated = lambda *a, **k: 0
-    gsplat.distributed.cli = _one_process
 
 
 # -- the record ----------------------------------------------------------------------------------------
 
 RECORD: dict = {"steps": [], "events": [], "config": {}}
+DEVICE = "cpu"  # the Runner's device (install_stand_ins)
 
 
 def _rows(params, optimizers, state) -> dict:
@@ -320,9 +453,10 @@ def _recording(cls) -> None:
 
 
 def _one_process(fn, args, verbose=False):
-    """``gsplat.distributed.cli`` for one CPU process: the Runner's device is the CPU."""
+    """``gsplat.distributed.cli`` for one process; on the CPU, the Runner's device is the CPU."""
     runner_cls = fn.__globals__["Runner"]
-    runner_cls.device = property(lambda self: "cpu", lambda self, value: None)
+    if DEVICE == "cpu":
+        runner_cls.device = property(lambda self: "cpu", lambda self, value: None)
     if getattr(args, "vad", None) is not None:
         from vadgs.train.vad import VisibilityAwareDensification
 
@@ -345,12 +479,20 @@ def _one_process(fn, args, verbose=False):
 
 
 def main() -> None:
-    """``python -m tests.train.gsplat_simple_trainer EXAMPLES RECORD -- ARGV...``."""
+    """``python -m tests.train.gsplat_simple_trainer EXAMPLES RECORD [--device D] [--bare] -- ARGV...``."""
+    import argparse
     import runpy
 
-    examples, record = Path(sys.argv[1]), Path(sys.argv[2])
-    argv = sys.argv[sys.argv.index("--") + 1 :]
-    install_stand_ins()
+    cut = sys.argv.index("--")
+    ap = argparse.ArgumentParser()
+    ap.add_argument("examples", type=Path)
+    ap.add_argument("record", type=Path)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--bare", action="store_true")
+    opts = ap.parse_args(sys.argv[1:cut])
+    examples, record, argv = opts.examples, opts.record, sys.argv[cut + 1 :]
+    install_stand_ins(opts.device, opts.bare)
+    RECORD["config"]["device"] = opts.device
     sys.path.insert(0, str(examples))
     sys.argv = [str(examples / "simple_trainer.py"), *argv]
     try:

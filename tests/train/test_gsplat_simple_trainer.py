@@ -92,3 +92,34 @@ def test_vad_events_flag_add_and_keep_every_row(runs):
     first = rec["steps"][0][1]
     assert rec["steps"][-1][1] == first + sum(e["added"] for e in events) == rec["val"]["num_GS"]
     assert math.isfinite(rec["val"]["psnr"]) and rec["val"]["psnr"] > 10
+
+
+def test_text_scene_manager_reads_what_pycolmap_reads(tmp_path):
+    """:class:`TextSceneManager` (no pycolmap) against the pycolmap-based stand-in, on one model."""
+    import numpy as np
+
+    from .gsplat_simple_trainer import SceneManager, TextSceneManager
+
+    write_sample_colmap(tmp_path, n_points=1500, text=True)  # what a machine without pycolmap is given
+    sparse = tmp_path / "sparse" / "0"
+    assert {"cameras.txt", "images.txt", "points3D.txt"} <= {f.name for f in sparse.iterdir()}
+    assert not list(sparse.glob("*.bin"))
+    a, b = SceneManager(str(sparse)), TextSceneManager(str(sparse))
+    for m in (a, b):
+        m.load_cameras(), m.load_images(), m.load_points3D()
+    assert a.cameras.keys() == b.cameras.keys()
+    for cid in a.cameras:
+        assert vars(a.cameras[cid]) == pytest.approx(vars(b.cameras[cid]), rel=1e-12), cid
+    assert a.name_to_image_id == b.name_to_image_id and len(a.images) == 24
+    for iid, ia in a.images.items():
+        ib = b.images[iid]
+        assert (ia.camera_id, ia.name) == (ib.camera_id, ib.name)
+        np.testing.assert_allclose(ib.R(), ia.R(), atol=1e-12)
+        np.testing.assert_allclose(ib.tvec, ia.tvec, atol=1e-12)
+    np.testing.assert_array_equal(b.points3D, a.points3D)
+    np.testing.assert_array_equal(b.point3D_colors, a.point3D_colors)
+    np.testing.assert_allclose(b.point3D_errors, a.point3D_errors)
+    assert b.point3D_id_to_point3D_idx == a.point3D_id_to_point3D_idx
+    assert a.point3D_id_to_images.keys() == b.point3D_id_to_images.keys()
+    for pid, track in a.point3D_id_to_images.items():
+        np.testing.assert_array_equal(b.point3D_id_to_images[pid], track.reshape(-1, 2))  # (0,) when empty
