@@ -184,17 +184,34 @@ def _last_step(run: Path) -> int:
     return json.loads(lines[-1])["step"] if lines else 0
 
 
-def _kill_after_first_checkpoint(run: Path, killed: dict, sig: int = signal.SIGKILL) -> None:
-    """Send ``sig`` to the worker training ``run`` a few steps after its first checkpoint."""
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
+def _kill_after_first_checkpoint(
+    run: Path, killed: dict, batch_over: threading.Event, sig: int = signal.SIGKILL
+) -> None:
+    """Send ``sig`` to the worker training ``run`` a few steps after its first checkpoint.
+
+    It watches until ``batch_over`` is set, not for a fixed time: on a loaded machine Ray's start
+    and the scene's first steps took over 120 s (a former deadline), and the kill never came.
+    """
+    while not batch_over.is_set():
         if (run / "checkpoint.pt").is_file() and _last_step(run) >= TINY["checkpoint_every"] + 3:
             task = json.loads((run / "batch_task.json").read_text())
             killed["done"] = (run / "metrics.json").exists()
             os.kill(task["pid"], sig)
             killed["pid"] = task["pid"]
             return
-        time.sleep(0.005)
+        batch_over.wait(0.005)
+
+
+def _batch_with_kill(run: Path, killed: dict, sig: int, *batch_args) -> BatchSummary:
+    """``run_batch(*batch_args)`` while :func:`_kill_after_first_checkpoint` watches ``run``."""
+    over = threading.Event()
+    killer = threading.Thread(target=_kill_after_first_checkpoint, args=(run, killed, over, sig))
+    killer.start()
+    try:
+        return run_batch(*batch_args)
+    finally:
+        over.set()
+        killer.join()
 
 
 @pytest.fixture(scope="module")
@@ -203,12 +220,10 @@ def batch(local_ray, scenes, tmp_path_factory):
     root, _ = scenes
     out = tmp_path_factory.mktemp("batch")
     killed: dict = {}
-    killer = threading.Thread(target=_kill_after_first_checkpoint, args=(out / "seg_a", killed))
-    killer.start()
     t0 = time.perf_counter()
-    summary = run_batch([root / "seg_a", root / "seg_b", root / "seg_bad"], out, _tiny())
+    scenes = [root / "seg_a", root / "seg_b", root / "seg_bad"]
+    summary = _batch_with_kill(out / "seg_a", killed, signal.SIGKILL, scenes, out, _tiny())
     wall = time.perf_counter() - t0
-    killer.join()
     return summary, out, killed, wall
 
 
@@ -280,11 +295,10 @@ class TestRunBatch:
     def test_sigterm_checkpoints_and_is_retried(self, batch, scenes, tmp_path):
         root, _ = scenes
         killed: dict = {}
-        args = (tmp_path / "seg_a", killed, signal.SIGTERM)
-        killer = threading.Thread(target=_kill_after_first_checkpoint, args=args)
-        killer.start()
-        summary = run_batch([root / "seg_a"], tmp_path, _tiny(progress=False))
-        killer.join()
+        run = tmp_path / "seg_a"
+        summary = _batch_with_kill(
+            run, killed, signal.SIGTERM, [root / "seg_a"], tmp_path, _tiny(progress=False)
+        )
         assert "pid" in killed and not killed["done"]
         # the trainer checkpointed at the signal, the task raised RunInterrupted, Ray retried it
         (r,) = summary.results
