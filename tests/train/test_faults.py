@@ -126,6 +126,23 @@ class TestExceptions:
         ckpt = load_checkpoint(tmp_path)
         assert int(ckpt.step) == 2 and bool(torch.isfinite(ckpt.model["params.means"]).all())
 
+    @pytest.mark.parametrize("key", ["log_scales", "sh_dc"])
+    def test_non_finite_parameter_after_the_update_is_named(self, tiny_scene, tiny_config, key):
+        """A parameter that the optimizer step made NaN: named (all are checked in one device read)."""
+        tr = Trainer(tiny_scene, tiny_config, progress=False)
+        tr.train_step()
+        step = tr.optimizer.step
+
+        def poisoned_step(*a, **k):
+            out = step(*a, **k)
+            with torch.no_grad():
+                tr.model.params[key][0].fill_(float("nan"))
+            return out
+
+        tr.optimizer.step = poisoned_step
+        with pytest.raises(NonFiniteLossError, match=f"step 1: .*parameter '{key}' after the optimizer step"):
+            tr.train_step()
+
     def test_disk_full_keeps_the_previous_checkpoint(self, tiny_scene, tiny_config, tmp_path, monkeypatch):
         config = dataclasses.replace(tiny_config, checkpoint_every=4, checkpoint_minutes=0.0)
         real_save = torch.save

@@ -224,3 +224,28 @@ class TestHardDepth:
     def test_bad_stride(self):
         with pytest.raises(ValueError, match="hard_stride: expected an integer >= 1, got 0"):
             TrainConfig(geometry=GeometricLossConfig(hard_stride=0))
+
+
+def test_a_step_reads_the_device_three_times_itself(tiny_scene, tiny_config, monkeypatch):
+    """The trainer's own reads of tensor values in a step (each a synchronisation on a GPU): the
+    loss's finiteness before ``backward``, the parameters' after the update, and every logged
+    number together (9 before, here: one per term and parameter). The renderer's, the strategy's and
+    torch's own reads are not counted."""
+    import traceback
+
+    tr = Trainer(tiny_scene, tiny_config, progress=False)
+    tr.train_step()
+    where: list[str] = []
+    for name in ("__bool__", "__int__", "__float__", "__index__", "item", "tolist"):
+        orig = getattr(torch.Tensor, name)
+
+        def counted(t, *a, _orig=orig, **k):
+            caller = traceback.extract_stack()[-2]  # torch's own reads (Adam's step counts) are not ours
+            where.append(f"{caller.filename.rsplit('/vadgs/', 1)[-1]}:{caller.lineno}")
+            return _orig(t, *a, **k)
+
+        monkeypatch.setattr(torch.Tensor, name, counted)
+    res = tr.train_step()
+    own = [w for w in where if w.startswith("train/trainer.py:")]
+    assert len(own) == 3, own
+    assert {"color", "total", "psnr"} <= set(res) and all(isinstance(v, float) for v in res.values())

@@ -501,26 +501,40 @@ class Trainer:
             self.appearance_optimizer.zero_grad(set_to_none=True)
         self.strategy.step_post_backward(params, self.optimizer, self.state, step, info)
         if checks_enabled():
-            for k in ("means", "log_scales", "opacity_logits", "sh_dc"):
-                if not bool(torch.isfinite(self.model.params[k]).all()):
-                    raise NonFiniteLossError(step, f"parameter {k!r} after the optimizer step")
-            if self.appearance is not None:
-                for k, p in self.appearance.named_parameters():
-                    if not bool(torch.isfinite(p).all()):
-                        raise NonFiniteLossError(step, f"appearance parameter {k!r} after the optimizer step")
+            self._check_parameters(step)
         self.step = step + 1
         with torch.no_grad():
             color = self.objective.corrected_color(view, out.color.detach())
             mse = torch.mean((color.clamp(0, 1) - self.objective.image(view)) ** 2)
-        res = {k: float(v.detach()) for k, v in terms.items()}
-        res["total"] = float(total.detach())
-        res["psnr"] = float(-10 * torch.log10(mse.clamp(min=1e-10)))
+            psnr = -10 * torch.log10(mse.clamp(min=1e-10))
+            # every logged number in one read from the device (float64: each float32 exactly)
+            read = torch.stack([t.reshape(()).double() for t in (*terms.values(), total, psnr)]).tolist()
+        res = dict(zip(terms, read[: len(terms)]))
+        res["total"], res["psnr"] = read[-2], read[-1]
         if not math.isfinite(res["total"]):  # the floats above are read anyway: no extra sync
             raise NonFiniteLossError(
                 step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"
             )
         self._updating = False
         return res
+
+    def _check_parameters(self, step: int) -> None:
+        """Raise :class:`NonFiniteLossError` naming a parameter with a NaN / inf after the update.
+
+        One read from the device for all of them (a synchronisation on a GPU); the names only on a failure.
+        """
+        named = [
+            (f"parameter {k!r}", self.model.params[k])
+            for k in ("means", "log_scales", "opacity_logits", "sh_dc")
+        ]
+        if self.appearance is not None:
+            named += [(f"appearance parameter {k!r}", p) for k, p in self.appearance.named_parameters()]
+        with torch.no_grad():
+            ok = torch.stack([torch.isfinite(t).all().to(named[0][1].device) for _, t in named])
+        if bool(ok.all()):
+            return
+        first = next(name for (name, _), good in zip(named, ok.tolist()) if not good)
+        raise NonFiniteLossError(step, f"{first} after the optimizer step")
 
     def check_divergence(self, res: dict[str, float]) -> None:
         """Raise :class:`DivergenceError` if the model diverged (:class:`DivergenceMonitor`).
