@@ -277,8 +277,11 @@ class TestRunBatch:
         assert "not valid JSON" in bad.error and "\n" not in bad.error
         assert summary.counts() == {"done": 2, "failed": 1}
 
-    def test_finished_runs_are_not_recomputed(self, batch, scenes, capsys):
-        _, out, _, _ = batch
+    def test_finished_runs_are_not_recomputed(self, batch, scenes, capsys, tmp_path):
+        # a copy of the module's batch folder: the other tests read that one as the batch left it
+        # (in random order, this test's second batch once ran before test_two_scenes_run)
+        out = tmp_path / "batch"
+        shutil.copytree(batch[1], out, symlinks=True)
         root, train_args = scenes
         before = {n: (out / n / "metrics.json").stat().st_mtime_ns for n in ("seg_a", "seg_b")}
         argv = ["batch", str(root / "seg_a"), str(root / "seg_b"), str(root / "seg_bad"), "--out", str(out)]
