@@ -58,6 +58,7 @@ __all__ = [
     "checking",
     "checks_enabled",
     "choice_field",
+    "first_false",
     "float_field",
     "instance_field",
     "int_field",
@@ -177,6 +178,25 @@ def check_finite(x: torch.Tensor, name: str) -> None:
             raise ValueError(
                 f"{name}: expected finite values, got {int(bad.sum())} non-finite of {x.numel()}"
             )
+
+
+def first_false(flags: Sequence[torch.Tensor]) -> int | None:
+    """The index of the first 0-d boolean tensor of ``flags`` that is False, or None if all hold.
+
+    The flags are read back together, once (a host synchronisation on a GPU): value checks that
+    would each read their own result cost one read, and the failing one is named only on a failure.
+
+    Example:
+        >>> x = torch.tensor([1.0, 2.0])
+        >>> first_false([torch.isfinite(x).all(), (x > 1).all()]), first_false([(x > 0).all()])
+        (1, None)
+    """
+    if not flags:
+        return None
+    ok = torch.stack([f.reshape(()).to(flags[0].device) for f in flags])
+    if bool(ok.all()):
+        return None
+    return ok.tolist().index(False)
 
 
 def check_intrinsics(K: torch.Tensor, name: str = "K") -> None:

@@ -190,8 +190,8 @@ _COLMAP_MODELS = {
 }
 
 
-class TextSceneManager(SceneManager):
-    """:class:`SceneManager` without pycolmap: a COLMAP model written as text (``*.txt``), read in numpy."""
+class TextSceneManager:
+    """What :class:`SceneManager` gives, without pycolmap: a COLMAP model written as text (``*.txt``)."""
 
     def __init__(self, colmap_dir: str) -> None:
         self._dir = Path(colmap_dir)

@@ -9,12 +9,14 @@ load time.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_finite, check_same_device, check_shape, checks_enabled
+from vadgs.checks import check_finite, check_same_device, check_shape, checks_enabled, first_false
 
 __all__ = [
     "RasterConfig",
@@ -176,77 +178,89 @@ def check_raster_inputs(
         raise ValueError(f"expected one floating dtype for all inputs, got {dtypes}")
     if not means.is_floating_point():
         raise ValueError(f"means: expected a floating dtype, got {means.dtype}")
-    if checks_enabled() and not _values_ok(named, K, quats, scales, opacities):
-        _raise_bad_values(named, K, quats, scales, opacities)  # which one, named (only on a failure)
+    if checks_enabled():
+        checks = _value_checks(named, K, quats, scales, opacities)
+        failed = first_false([ok for ok, _ in checks])  # one read from the device for all of them
+        if failed is not None:
+            checks[failed][1]()
     return dims
 
 
-def _scale_limit(scales: torch.Tensor) -> float:
-    return math.sqrt(torch.finfo(scales.dtype).max) / 1e3  # larger overflows the covariance
-
-
-def _values_ok(
+def _value_checks(
     named: list[tuple[str, torch.Tensor]],
     K: torch.Tensor,
     quats: torch.Tensor,
     scales: torch.Tensor,
     opacities: torch.Tensor,
-) -> bool:
-    """Every value check of :func:`check_raster_inputs` at once, read back in one host sync.
+) -> list[tuple[torch.Tensor, Callable[[], None]]]:
+    """The value checks of :func:`check_raster_inputs`, in order: ``(holds, raise its error)`` each.
 
-    A GPU waits for each read: one wait per render instead of one per check.
+    Each condition is computed once; its error (with counts and values) only when it is raised.
     """
     with torch.no_grad():
-        flags = [torch.isfinite(t).all() for _, t in named if t.is_floating_point()]
-        flags.append((K[:, [0, 1], [0, 1]] > 0).all())
-        if quats.shape[0]:
-            flags += [
-                (quats.norm(dim=-1) >= 1e-12).all(),
+        checks: list[tuple[torch.Tensor, Callable[[], None]]] = [
+            (torch.isfinite(t).all(), partial(check_finite, t, name))
+            for name, t in named
+            if t.is_floating_point()
+        ]
+        focal = K[:, [0, 1], [0, 1]]
+
+        def bad_focal() -> str:
+            b = int((~(focal > 0).all(-1)).nonzero()[0, 0])
+            return (
+                f"K: expected positive focal lengths fx = K[b, 0, 0], fy = K[b, 1, 1] (an invertible "
+                f"pinhole K), got fx={float(focal[b, 0]):.4g}, fy={float(focal[b, 1]):.4g} for camera b={b}"
+            )
+
+        checks.append(((focal > 0).all(), _raises(bad_focal)))
+        if not quats.shape[0]:
+            return checks
+        zero = quats.norm(dim=-1) < 1e-12
+        limit = math.sqrt(torch.finfo(scales.dtype).max) / 1e3  # larger overflows the covariance
+        smax = scales.max()
+        checks += [
+            (
+                ~zero.any(),
+                _raises(lambda: f"quats: expected non-zero quaternions, got {int(zero.sum())} of norm 0"),
+            ),
+            (
                 (scales >= 0).all(),
+                _raises(
+                    lambda: (
+                        "scales: expected activated (non-negative) scales, got negative values; "
+                        "pass exp(log_scales)"
+                    )
+                ),
+            ),
+            (
                 ((opacities >= 0) & (opacities <= 1)).all(),
-                scales.max() < _scale_limit(scales),
-            ]
-        return bool(torch.stack(flags).all())  # the inputs share one device (checked before)
+                _raises(
+                    lambda: (
+                        "opacities: expected activated opacities in [0, 1], got values outside; "
+                        "pass sigmoid(logits)"
+                    )
+                ),
+            ),
+            (
+                smax < limit,
+                _raises(
+                    lambda: (
+                        f"scales: expected < {limit:.3g} (larger overflows the {scales.dtype} covariance), "
+                        f"got max {float(smax):.3g}; pass exp(log_scales) of a sane model"
+                    )
+                ),
+            ),
+        ]
+    return checks
 
 
-def _raise_bad_values(
-    named: list[tuple[str, torch.Tensor]],
-    K: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-) -> None:
-    """Raise the error of the first value check of :func:`check_raster_inputs` that fails."""
-    for name, t in named:
-        check_finite(t, name)
-    f = K.detach()[:, [0, 1], [0, 1]]
-    bad = ~(f > 0).all(-1)
-    if bool(bad.any()):
-        b = int(bad.nonzero()[0, 0])
-        raise ValueError(
-            f"K: expected positive focal lengths fx = K[b, 0, 0], fy = K[b, 1, 1] (an invertible "
-            f"pinhole K), got fx={float(f[b, 0]):.4g}, fy={float(f[b, 1]):.4g} for camera b={b}"
-        )
-    if not quats.shape[0]:
-        return
-    qn = quats.detach().norm(dim=-1)
-    if bool((qn < 1e-12).any()):
-        raise ValueError(f"quats: expected non-zero quaternions, got {int((qn < 1e-12).sum())} of norm 0")
-    if bool((scales < 0).any()):
-        raise ValueError(
-            "scales: expected activated (non-negative) scales, got negative values; pass exp(log_scales)"
-        )
-    if bool(((opacities < 0) | (opacities > 1)).any()):
-        raise ValueError(
-            "opacities: expected activated opacities in [0, 1], got values outside; pass sigmoid(logits)"
-        )
-    limit = _scale_limit(scales)
-    smax = float(scales.detach().max())
-    if smax >= limit:
-        raise ValueError(
-            f"scales: expected < {limit:.3g} (larger overflows the {scales.dtype} covariance), "
-            f"got max {smax:.3g}; pass exp(log_scales) of a sane model"
-        )
+def _raises(message: Callable[[], str]) -> Callable[[], None]:
+    """A function that raises ``ValueError(message())``."""
+
+    def raise_it() -> None:
+        raise ValueError(message())
+
+    return raise_it
 
 
 def check_no_sh_degree(colors: torch.Tensor, sh_degree: int | None) -> None:

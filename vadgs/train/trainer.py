@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import torch
 
-from vadgs.checks import checks_enabled
+from vadgs.checks import checks_enabled, first_false
 from vadgs.data.scene import Scene
 from vadgs.deprecation import moved_names
 from vadgs.runfolder import check_output_folder, check_removable, record_files
@@ -530,11 +530,9 @@ class Trainer:
         if self.appearance is not None:
             named += [(f"appearance parameter {k!r}", p) for k, p in self.appearance.named_parameters()]
         with torch.no_grad():
-            ok = torch.stack([torch.isfinite(t).all().to(named[0][1].device) for _, t in named])
-        if bool(ok.all()):
-            return
-        first = next(name for (name, _), good in zip(named, ok.tolist()) if not good)
-        raise NonFiniteLossError(step, f"{first} after the optimizer step")
+            failed = first_false([torch.isfinite(t).all() for _, t in named])
+        if failed is not None:
+            raise NonFiniteLossError(step, f"{named[failed][0]} after the optimizer step")
 
     def check_divergence(self, res: dict[str, float]) -> None:
         """Raise :class:`DivergenceError` if the model diverged (:class:`DivergenceMonitor`).
