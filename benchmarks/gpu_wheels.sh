@@ -32,7 +32,11 @@ for w in "${WHEELS[@]}"; do
 done
 # the simple_trainer section's inputs (no network nor pycolmap there): gsplat's examples from
 # ../shared and the COLMAP sample as a text model (tests/data/colmap_sample.py, with pycolmap here)
-rm -rf .whl/data && mkdir -p .whl/data
+if [ -e .whl/data ] && [ ! -e .whl/data/.gpu_wheels ]; then  # never remove a folder this script did not write
+    echo "gpu_wheels.sh: .whl/data exists and was not written by this script: move it away first" >&2
+    exit 1
+fi
+rm -rf .whl/data && mkdir -p .whl/data && touch .whl/data/.gpu_wheels
 if [ -d ../shared/third_party/gsplat-v1.5.3 ]; then
     cp -r ../shared/third_party/gsplat-v1.5.3 .whl/data/
 else
