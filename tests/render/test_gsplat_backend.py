@@ -133,6 +133,39 @@ class TestGsplatBackendTorch:
             err = (a - b).abs().max().item()
             assert err <= TOL[dtype]["grad"] * max(a.abs().max().item(), 1.0), (name, err)
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_gaussian_in_a_cameras_plane_gets_no_gradient(self, dtype):
+        """A Gaussian exactly in a camera's plane (z = 0) or behind it is culled, as CUDA culls it:
+        no NaN in the backward (the torch reference divided by z = 0 there: the bundled sample's
+        NaN at step 2), no gradient to it, and every other gradient as without it."""
+        means, quats, scales, opac, sh, w2c, K, size = street_scene(dtype, n=60)
+        w2c = w2c.clone()  # camera 0 at (0, 0, 0.5) looking along world x, exactly: z_cam = x_world
+        w2c[0] = torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0.5], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=dtype)
+        extra = torch.tensor([[0.0, 0.3, 0.6], [-2.0, 0.0, 0.5]], dtype=dtype)  # z = 0; z = -2
+        assert (extra @ w2c[0, :3, :3].T + w2c[0, :3, 3])[:, 2].tolist() == [0.0, -2.0]
+        target = torch.rand(2, 3, *size, generator=torch.Generator().manual_seed(1), dtype=dtype)
+        grads, images = [], []
+        for k in (0, 2):  # without and with the two Gaussians (camera 0's plane, behind camera 0)
+            leaves = [
+                torch.cat([means, extra[:k]]),
+                torch.cat([quats, quats[:k]]),
+                torch.cat([scales, scales[:k]]),
+                torch.cat([opac, opac.new_full((k,), 0.9)]),
+                torch.cat([sh, sh[:k]]),
+            ]
+            leaves = [x.clone().requires_grad_(True) for x in leaves]
+            out = rasterize_gaussians_gsplat(*leaves, w2c[:1], K[:1], size, impl="torch")
+            loss = (out.color - target[:1]).square().sum() + 0.1 * out.depth.sum() + out.alpha.sum()
+            loss.backward()
+            grads.append([x.grad for x in leaves])
+            images.append(out.color.detach())
+            assert (out.radii[0, 60:] == 0).all()
+        assert torch.equal(images[0], images[1])
+        for a, b in zip(*grads):
+            assert torch.isfinite(b).all()
+            assert torch.equal(b[60:], torch.zeros_like(b[60:]))
+            torch.testing.assert_close(b[:60], a, rtol=0, atol=0)
+
     def test_one_gaussian_closed_form(self):
         # docs/render.md's worked example: alpha(u, v) = 0.8 exp(-|d|^2 / 8.6) around pixel (12, 10)
         # (a flat z scale does not change the screen covariance on the axis; it sets the normal).
@@ -169,6 +202,22 @@ class TestGsplatBackendTorch:
             rasterize_gaussians_gsplat(*scene[:3], scene[3] + 2.0, *scene[4:])
         with pytest.raises(ValueError, match="backend"):
             RasterConfig(backend="cuda")
+
+
+def test_trainer_on_the_sample_stays_finite():
+    """The trainer with gsplat's CPU path on the bundled sample: NaN at step 2 before culling
+    matched CUDA's (a Gaussian exactly in a camera's plane); now every step is finite."""
+    from vadgs.data import load_scene, sample_scene_path
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.trainer import Trainer
+
+    torch.manual_seed(0)
+    cfg = TrainConfig(iterations=30, checkpoint_every=10**6, raster=RasterConfig(backend="gsplat"))
+    with pytest.warns(UserWarning, match="no densification"):
+        trainer = Trainer(load_scene(sample_scene_path(), scale=0.5), cfg, progress=False)
+    losses = [trainer.train_step()["total"] for _ in range(4)]
+    assert all(math.isfinite(x) for x in losses), losses
+    assert all(torch.isfinite(p).all() for p in trainer.model.params.values())
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat's CUDA rasterizer needs a CUDA device")

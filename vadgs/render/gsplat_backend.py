@@ -152,6 +152,22 @@ def _rasterize_to_pixels_torch(
     return img, 1.0 - t
 
 
+def _culled(
+    means: torch.Tensor, viewmats: torch.Tensor, near_plane: float, far_plane: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which Gaussians each camera culls, and where to project them instead.
+
+    Returns ``(C, N)`` the Gaussians outside ``(near_plane, far_plane)`` of each camera, and
+    ``(C, 3)`` a world point straight ahead of each camera at a depth between the two.
+    """
+    z = means @ viewmats[:, 2, :3].T + viewmats[:, 2, 3]  # (N, C)
+    culled = ((z <= near_plane) | (z >= far_plane)).T
+    rot, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
+    centre = -(rot.transpose(1, 2) @ t[..., None])[..., 0]
+    ahead = centre + rot[:, 2] * (0.5 * (near_plane + far_plane))
+    return culled, ahead
+
+
 def _gsplat_torch_rasterization(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -191,11 +207,19 @@ def _gsplat_torch_rasterization(
 
     c, n = viewmats.shape[0], means.shape[0]
     covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False)
+    # CUDA culls a Gaussian outside (near_plane, far_plane) before projecting it, so it gets no
+    # gradient; the torch reference projects it all the same, and one exactly in a camera's plane
+    # (z = 0) divides by zero: 0 * inf = NaN in the backward (seen on the bundled sample at step
+    # 2). Such a Gaussian is projected, per camera, from a point straight ahead instead (no
+    # gradient reaches it) and culled after, as CUDA does.
+    culled, ahead = _culled(means.detach(), viewmats, near_plane, far_plane)
+    safe_means = torch.where(culled[..., None], ahead[:, None], means[None])
+    safe_covars = torch.where(culled[..., None, None], torch.eye(3).to(covars), covars[None])
     radii, means2d, depths, conics, comp = _fully_fused_projection(
-        means,
-        covars,
-        viewmats,
-        Ks,
+        safe_means,
+        safe_covars,
+        viewmats[:, None],
+        Ks[:, None],
         width,
         height,
         eps2d=eps2d,
@@ -203,6 +227,9 @@ def _gsplat_torch_rasterization(
         far_plane=far_plane,
         calc_compensations=rasterize_mode == "antialiased",
     )
+    radii, means2d, depths, conics = (x.squeeze(1) for x in (radii, means2d, depths, conics))
+    comp = comp.squeeze(1) if comp is not None else None
+    radii = torch.where(culled[..., None], torch.zeros_like(radii), radii)
     opac = opacities[None].expand(c, n)
     if comp is not None:
         opac = opac * comp

@@ -9,6 +9,7 @@ reconstruction of an instance (a few points, no PatchMatch), so that each rule i
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from types import SimpleNamespace
 
@@ -27,6 +28,8 @@ from vadgs.train.vad import (
 )
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.priors import merge_priors
+from vadgs.train.vad.reconstruct import ViewRender
+from vadgs.train.vad.state import compact_render
 
 C0 = 0.28209479177387814  # the SH band-0 constant
 
@@ -205,6 +208,64 @@ class TestEventLog:
         )  # two references of the one view: two reconstructions
         entry = ev.run(_splats())
         assert (entry["instances"][0]["points"], entry["instances"][0]["added"]) == (18, 12)
+
+
+class TestRendersOfAnEvent:
+    """Every render an event uses is of the Gaussians as the event began: its additions are made when
+    the last instance is done, so what an instance sees does not depend on whether a view was kept
+    from the loop or rendered during the event, before or after another instance's reconstruction."""
+
+    @pytest.mark.parametrize("kept", [False, True])
+    def test_later_instances_see_the_model_before_the_event(self, monkeypatch, kept):
+        ev = _Event(monkeypatch, {1: 400, 2: 300, 3: 200}, made={1: (5, 5), 2: (4, 4), 3: (0, 0)})
+        params = _splats()
+        rendered_with: list[int] = []
+
+        def render(view):  # a render that says how many Gaussians it saw
+            rendered_with.append(params["means"].shape[0])
+            n = float(params["means"].shape[0])
+            return ViewRender(torch.full((1, 4, 4), n), torch.ones(1, 4, 4), torch.zeros(3, 4, 4))
+
+        ev.strategy.context = dataclasses.replace(ev.strategy.context, render=render)
+        if kept:  # the loop trained view 0 before the event: its render is kept
+            ev.state["vad_renders"] = {0: compact_render(*render(0))}
+        seen: list[tuple[int, float, int]] = []
+
+        def reconstruct(index, ref, instance, config, generator, renders, **kwargs):
+            seen.append((instance, float(renders(0).depth.max()), float(renders(instance + 10).depth.max())))
+            n, c = {1: (5, 5), 2: (4, 4)}.get(instance, (0, 0))
+            return _rec(instance, n, c)
+
+        monkeypatch.setattr(event_module, "reconstruct_instance", reconstruct)
+        entry = ev.run(params)
+        assert seen == [(1, 4.0, 4.0), (2, 4.0, 4.0), (3, 4.0, 4.0)]  # views 0, 11, 12, 13: the model before
+        assert rendered_with == [4] * 4  # each view rendered once (view 0 kept or rendered at the first ask)
+        assert params["means"].shape[0] == 4 + 5 + 4 == 4 + entry["added"]  # both added, in order
+        assert torch.equal(params["means"][4:9], _rec(1, 5, 5).points)
+        assert torch.equal(params["means"][9:], _rec(2, 4, 4).points)
+
+    def test_on_addition_gets_the_render_before(self, monkeypatch):
+        got = []
+        ev = _Event(monkeypatch, {1: 400, 2: 300}, made={1: (5, 5), 2: (0, 0)})
+        ev.strategy.on_addition = got.append
+        params = _splats()
+
+        def render(view):
+            n = float(params["means"].shape[0])
+            return ViewRender(torch.full((1, 4, 4), n), torch.ones(1, 4, 4), torch.zeros(3, 4, 4))
+
+        ev.strategy.context = dataclasses.replace(ev.strategy.context, render=render)
+
+        def reconstruct(index, ref, instance, config, generator, renders, **kwargs):
+            renders(ref)
+            return _rec(instance, 5 if instance == 1 else 0, 5)
+
+        monkeypatch.setattr(event_module, "reconstruct_instance", reconstruct)
+        monkeypatch.setattr(event_module, "pick_references", lambda candidates, *a, **k: [0])
+        ev.run(params)
+        got = [(g["instance"], g["view"], g["added"], float(g["depth"].max())) for g in got]
+        assert got == [(1, 0, 5, 4.0)]
+        assert params["means"].shape[0] == 9
 
 
 # -- merge_priors ------------------------------------------------------------------------------------

@@ -122,7 +122,10 @@ def run_event(
     :func:`rank_instances`, then per instance, within ``max_instances`` and the budgets (PatchMatch
     work against ``work_budget`` x ``ev.trained_pixels``; the opt-in wall-clock ``time_budget``):
     :func:`pick_references`, :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` per
-    reference, ``ev.add`` of the new points, :func:`merge_priors`. The log entry is appended
+    reference, :func:`merge_priors`; ``ev.add`` of the new points when the last instance is done, so
+    that every render the event uses (kept from the loop or made during the event) is of the
+    Gaussians as they were when it began, whatever the order in which views are first asked for
+    (later instances skip the cells earlier ones took instead). The log entry is appended
     to ``state["vad_events"]`` and, with its summary, to ``state["pending_log"]`` (at most
     ``ev.log_size`` kept).
 
@@ -187,6 +190,7 @@ def run_event(
         time_cap = cfg.time_budget * float(state.get("vad_train_s", 0.0))
     work = 0.0  # PatchMatch pixel-sweeps of this event so far (match_work)
     occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
+    additions: list[tuple[int, int, Any]] = []  # (instance, reference, reconstruction), added at the end
     done = repaired = 0
     for k, inst in enumerate(ranked):
         if cfg.max_instances is not None and done >= cfg.max_instances:
@@ -220,15 +224,9 @@ def run_event(
             t_mvs += time.perf_counter() - ta
             work += rec.work
             n_new = int(rec.points.shape[0])
-            if n_new:
-                ev.add(params, optimizers, state, rec, event=event + 1)
+            if n_new:  # added when the event ends: every render of the event is of the model before it
+                additions.append((inst, ref, rec))
                 occupied.setdefault(frame_key, []).append(rec.points)
-                if ev.on_addition is not None:
-                    before = renders(ref)
-                    ev.on_addition(
-                        {"instance": inst, "view": ref, "step": step, "added": n_new,
-                         "depth": before.depth[0], "alpha": before.alpha[0]}
-                    )  # fmt: skip
             if cfg.geometric_losses:
                 merge_priors(state["vad_priors"], rec)
             entry_views.append(rec.views)
@@ -251,6 +249,14 @@ def run_event(
                 "reason": "; ".join(dict.fromkeys(reasons)),
             }
         )
+    for inst, ref, rec in additions:
+        before = renders(ref) if ev.on_addition is not None else None
+        ev.add(params, optimizers, state, rec, event=event + 1)
+        if ev.on_addition is not None and before is not None:
+            ev.on_addition(
+                {"instance": inst, "view": ref, "step": step, "added": int(rec.points.shape[0]),
+                 "depth": before.depth[0], "alpha": before.alpha[0]}
+            )  # fmt: skip
     t2 = time.perf_counter()
     state["vad_tests"] = {}  # the next event tests (and renders) the views trained after this one
     state["vad_renders"] = {}
