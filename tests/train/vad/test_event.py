@@ -188,6 +188,13 @@ class TestStaticModel:
 
 
 class TestEventLog:
+    def test_outcome_names(self):
+        assert event_module._outcome("ok") == "ok"
+        assert event_module._outcome("ok (seen)") == "ok (seen)"
+        why = "selection:no_candidates: no view shares >= 2 voxels and a baseline with it"
+        assert event_module._outcome(why) == "selection:no_candidates"
+        assert event_module._outcome(why + " (seen)") == "selection:no_candidates (seen)"
+
     def test_points_and_added(self, monkeypatch):
         """``points``: the consistent MVS points of the instance's references; ``added``: the
         Gaussians it got (what remains once the explained points are left out and the rest thinned)."""
@@ -198,6 +205,7 @@ class TestEventLog:
         assert got == {1: (500, 20, "ok"), 2: (80, 0, "explained"), 3: (0, 0, "explained")}
         assert entry["added"] == 20 == params["means"].shape[0] - 4
         assert entry["attempted"] == 3 and entry["repaired"] == 1
+        assert entry["outcomes"] == {"explained": 2, "ok": 1}
         assert "2 added nothing" in ev.state["pending_log"][-1]["summary"]
 
     def test_points_sum_over_references(self, monkeypatch):

@@ -361,6 +361,7 @@ class TestWholeViews:
                         index,
                         ref,
                         inst,
+                        None,
                         frame,
                         ReconstructConfig(whole_supports=whole, selection=selection),
                         torch.Generator().manual_seed(0),
@@ -373,3 +374,57 @@ class TestWholeViews:
                 assert len(sel[True]) == 2 and not any(index.cut_by_border(v, inst) for v in sel[True])
                 assert any(index.cut_by_border(v, inst) for v in sel[False])
         assert changed >= 5  # 13 (reference, instance) pairs of the sample
+
+
+class TestSeenSupports:
+    """A static instance whose visibility sets give its reference nothing (the LiDAR of a real log hits
+    a far facade only from closer frames) is selected on what the views' z-buffers show."""
+
+    def _blind(self, index, ref):
+        """The index with ``ref`` removed from every visibility set (its frame's LiDAR saw nothing)."""
+        import dataclasses
+
+        from vadgs.select import Covisibility
+
+        cov = index.covis
+        visible = [
+            torch.zeros(0, dtype=torch.long) if v == ref else cov.voxels_of(v) for v in range(cov.num_views)
+        ]
+        blind = Covisibility.from_visible(
+            visible, cov.voxel_centers, cov.world_to_cam, cov.camera_ids, cov.frame_ids
+        )
+        return dataclasses.replace(index, covis=blind)
+
+    @staticmethod
+    def _ref(scene, index):
+        return max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+
+    def test_seen_covis_against_the_zbuffer(self, scene, index):
+        voxels = index.labels == BUILDING
+        ref = self._ref(scene, index)
+        views = [ref, 3]
+        cov = index.seen_covis(voxels, views)
+        ids = torch.nonzero(voxels).flatten()
+        for v in range(len(scene.views)):
+            expect = set(index.covis.voxels_of(v).tolist())
+            if v in views:
+                vidx = index.voxel_raster(v)[1]
+                expect |= set(vidx[vidx >= 0].tolist())
+            expect = {int(i) for i in torch.nonzero(torch.isin(ids, torch.tensor(sorted(expect)))).flatten()}
+            assert set(cov.voxels_of(v).tolist()) == expect, v
+        assert len(cov.voxels_of(ref)) > len(index.covis.restrict(voxels).voxels_of(ref))  # the z-buffer adds
+
+    def test_blind_reference_is_selected_on_its_zbuffer(self, scene, index):
+        ref = self._ref(scene, index)
+        assert int((index.instances(ref) == BUILDING).sum()) > 100
+        blind = self._blind(index, ref)
+        cfg = ReconstructConfig(seen_supports=False)
+        off = reconstruct_instance(blind, ref, BUILDING, cfg, torch.Generator().manual_seed(0))
+        assert off.reason.startswith("selection:no_voxels") and off.points.shape[0] == 0
+        on = reconstruct_instance(blind, ref, BUILDING, ReconstructConfig(), torch.Generator().manual_seed(0))
+        assert len(on.views) == 5 and on.points.shape[0] > 100, on.reason
+        # its points lie on the facade: as close to the ground truth as the unblinded reconstruction's
+        full = reconstruct_instance(
+            index, ref, BUILDING, ReconstructConfig(), torch.Generator().manual_seed(0)
+        )
+        assert full.reason == "ok" and on.points.shape[0] >= 0.3 * full.points.shape[0]

@@ -72,6 +72,16 @@ def _failed(instances: list[Mapping[str, Any]]) -> str:
     return f"{len(failed)} added nothing ({why}{more}), "
 
 
+def _outcome(reason: str) -> str:
+    """An :class:`~vadgs.train.vad.reconstruct.InstanceReconstruction` reason without its detail.
+
+    ``"selection:no_voxels: the reference sees none ..."`` → ``"selection:no_voxels"``; ``"ok"``,
+    ``"ok (seen)"``, ``"explained"`` stay as they are.
+    """
+    head = reason.split(": ")[0]
+    return head + " (seen)" if head != reason and reason.endswith("(seen)") else head
+
+
 @dataclass(frozen=True)
 class EventInputs:
     """What one event (:func:`run_event`) reads: built by the strategy's ``densify`` for each event.
@@ -135,7 +145,9 @@ def run_event(
     <vadgs.train.vad.reconstruct.InstanceReconstruction>`: before those the Gaussians already
     explain are left out and the rest thinned), ``added`` (the Gaussians added: what remains of
     ``points``), ``work`` (PatchMatch pixel-sweeps) and ``reason`` (each reference's
-    ``InstanceReconstruction.reason``, joined).
+    ``InstanceReconstruction.reason``, joined); the entry's ``outcomes`` counts the event's
+    (instance, reference) reconstructions by reason (without its detail: ``"ok"``, ``"ok (seen)"``,
+    ``"explained"``, ``"selection:no_voxels"``, ...).
     """
     cfg = ev.config
     inputs = ev.inputs
@@ -191,6 +203,7 @@ def run_event(
     work = 0.0  # PatchMatch pixel-sweeps of this event so far (match_work)
     occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
     additions: list[tuple[int, int, Any]] = []  # (instance, reference, reconstruction), added at the end
+    outcomes: dict[str, int] = {}  # how each (instance, reference) reconstruction ended (_outcome)
     done = repaired = 0
     for k, inst in enumerate(ranked):
         if cfg.max_instances is not None and done >= cfg.max_instances:
@@ -233,6 +246,7 @@ def run_event(
             points += rec.consistent
             n_new_total += n_new
             reasons.append(rec.reason)
+            outcomes[_outcome(rec.reason)] = outcomes.get(_outcome(rec.reason), 0) + 1
         added += n_new_total
         done += n_new_total > 0  # an instance that added nothing does not use up a max_instances slot
         repaired += n_new_total > 0
@@ -269,6 +283,7 @@ def run_event(
         "candidates": len(best),
         "attempted": len(log),
         "repaired": repaired,
+        "outcomes": dict(sorted(outcomes.items())),
         "skipped": skipped,
         "instances": log,
         "added": added,

@@ -92,7 +92,9 @@ class InstanceReconstruction(NamedTuple):
         depth: per group member, ``(1, H, W)`` consistent MVS depth in its full image (0 elsewhere),
             usable as a depth prior.
         normal: per group member, ``(3, H, W)`` MVS normals (camera frame), zeros elsewhere.
-        reason: ``"ok"`` or why nothing (or little) was reconstructed.
+        reason: ``"ok"`` or why nothing (or little) was reconstructed; `` (seen)`` is appended when
+            the supporting views were selected on the views' voxel z-buffers
+            (``ReconstructConfig.seen_supports``).
         work: the PatchMatch work done, in pixel-sweeps (:func:`match_work`; 0 when nothing was
             matched): a count that does not depend on the machine, for the event's budget.
         consistent: the group's consistent MVS pixels (at the matching scale): the points fusion
@@ -175,12 +177,34 @@ def _select_supports(
     index: VisibilityIndex,
     ref: int,
     instance: int,
+    track: int | None,
     frame: _InstanceFrame,
     cfg: ReconstructConfig,
     generator: torch.Generator | None,
 ) -> ViewSelection:
-    """Step 2: the supporting views (``cfg.whole_supports``: among the views showing all of the instance)."""
-    covis = frame.covis.restrict(frame.voxels)
+    """Step 2: the supporting views (``cfg.whole_supports``: among the views showing all of the instance).
+
+    ``cfg.seen_supports``: a static instance whose visibility sets give nothing to select from is
+    selected again on what the views' voxel z-buffers show (:meth:`VisibilityIndex.seen_covis`).
+    """
+    sel = _select_among(index, ref, instance, frame.covis.restrict(frame.voxels), frame, cfg, generator)
+    if not (cfg.seen_supports and track is None and sel.reason.startswith(("no_voxels", "no_candidates"))):
+        return sel
+    views = [ref, *torch.nonzero(frame.allowed).flatten().tolist()]
+    seen = _select_among(index, ref, instance, index.seen_covis(frame.voxels, views), frame, cfg, generator)
+    return replace(seen, reason=f"{seen.reason} (seen)") if len(seen.views) else sel
+
+
+def _select_among(
+    index: VisibilityIndex,
+    ref: int,
+    instance: int,
+    covis: Covisibility,
+    frame: _InstanceFrame,
+    cfg: ReconstructConfig,
+    generator: torch.Generator | None,
+) -> ViewSelection:
+    """:func:`select_views` on ``covis``, among the views showing the whole instance when it can."""
     if cfg.whole_supports and not index.cut_by_border(ref, instance):
         views = torch.nonzero(frame.allowed).flatten().tolist()
         cut = torch.tensor([index.cut_by_border(v, instance) for v in views], dtype=torch.bool)
@@ -335,7 +359,7 @@ def reconstruct_instance(
     frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
     if isinstance(frame, str):
         return nothing(frame)
-    sel = _select_supports(index, ref, instance, frame, cfg, generator)  # 2.
+    sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
     group = [ref, *sel.views.tolist()]
     if len(group) < 2:
         return nothing(f"selection:{sel.reason}")
@@ -356,6 +380,7 @@ def reconstruct_instance(
     full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
     views = [group[i] for i in crops.members]
     reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
+    reason += " (seen)" if sel.reason.endswith("(seen)") else ""  # selected on the z-buffers
     return InstanceReconstruction(
         points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work,
         int(cons.keep.sum()),

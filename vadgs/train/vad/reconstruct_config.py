@@ -88,6 +88,12 @@ class ReconstructConfig:
             there are ``selection.k`` of them (else among all). A view that cuts the instance off
             cannot confirm the part it does not show (e.g. the top of a sign above the frame of the
             close views the voxels favour, which stays empty).
+        seen_supports: when a static instance's voxels give its reference none in its visibility
+            sets, or no view shares them with it (the LiDAR of a real log hits a far facade only
+            from closer frames), select again where the reference and the training views see the
+            voxels in their voxel z-buffer as well (:meth:`VisibilityIndex.seen_covis
+            <vadgs.train.vad.visibility.VisibilityIndex.seen_covis>`); the reason then ends in
+            ``"(seen)"``. ``False``: the visibility sets only, as the paper's supplement.
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
@@ -112,6 +118,7 @@ class ReconstructConfig:
     thin_points: bool = True
     thin_factor: float = 1.5
     whole_supports: bool = True
+    seen_supports: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
@@ -142,4 +149,5 @@ _FIELDS = {
     "thin_points": bool_field(),
     "thin_factor": float_field(1),
     "whole_supports": bool_field(),
+    "seen_supports": bool_field(),
 }

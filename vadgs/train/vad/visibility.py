@@ -238,6 +238,43 @@ class VisibilityIndex:
             label = torch.where(closer[0], torch.full_like(label, tid), label)
         return depth, label
 
+    def seen_voxels(self, view: int) -> torch.Tensor:
+        """Sorted ids of the static voxels a view's z-buffer shows (occlusion included; cached)."""
+
+        def make() -> torch.Tensor:
+            vidx = self.voxel_raster(view)[1]
+            return torch.unique(vidx[vidx >= 0])
+
+        return self.view_cache.get(("seen", view), make)
+
+    def seen_covis(self, voxels: torch.Tensor, views: Sequence[int]) -> Covisibility:
+        """Covisibility of some static voxels where ``views`` see them: visibility sets or z-buffer.
+
+        A voxel is seen by one of ``views`` when it is in its visibility set (the LiDAR frame's
+        points, the TRACK table) or its voxel z-buffer shows it (:meth:`seen_voxels`); by any other
+        view only through its visibility set. A far facade that the LiDAR hit only from closer
+        frames is thus seen by a reference in front of it, which its visibility sets do not say.
+
+        Args:
+            voxels: ``(M,)`` bool over the static grid: the voxels kept (e.g. one instance's).
+            views: the views whose z-buffer counts too.
+
+        Returns:
+            :meth:`~vadgs.select.Covisibility.restrict` of that covisibility to ``voxels``.
+        """
+        covis, zbuf = self.covis, set(views)
+        keep = voxels.to(covis.voxel_centers.device)
+        visible = []
+        for v in range(covis.num_views):
+            ids = covis.voxels_of(v)
+            if v in zbuf:
+                ids = torch.unique(torch.cat([ids, self.seen_voxels(v).to(ids)]))
+            visible.append(ids[keep[ids]])
+        out = Covisibility.from_visible(
+            visible, covis.voxel_centers, covis.world_to_cam, covis.camera_ids, covis.frame_ids
+        )
+        return out.restrict(keep)
+
     def object_cameras(self, track: int) -> torch.Tensor:
         """``(V, 4, 4)`` object-to-camera transforms of every view for a track."""
         t = self.inputs.tracks[track]
