@@ -30,7 +30,11 @@ SWEEP_NS = 100_000_000
 CAMERA_NS = 50_000_000
 LOG_ID = "0c6e62d7-bdfa-3061-8d3d-03b13aa21f68"
 #: camera → (yaw in the ego frame, image phase relative to the sweeps in ns)
-CAMERAS = {"ring_front_center": (0.0, 3_000_000), "ring_front_left": (0.8, 17_000_000), "ring_side_right": (-1.4, -21_000_000)}
+CAMERAS = {
+    "ring_front_center": (0.0, 3_000_000),
+    "ring_front_left": (0.8, 17_000_000),
+    "ring_side_right": (-1.4, -21_000_000),
+}
 WIDTH, HEIGHT = 40, 30
 FOCAL = 24.0
 #: ego → city at time t (seconds since T0): yaw rate 0.3 rad/s, velocity (8, 1.5, 0.05) m/s
@@ -121,7 +125,9 @@ def write_feather(path: Path, columns: dict) -> None:
     feather.write_feather(pa.table(columns), path)
 
 
-def write_log(split_dir: Path, num_sweeps: int = 8, k123: tuple[float, float, float] = (-0.1, 0.02, 0.0)) -> Truth:
+def write_log(
+    split_dir: Path, num_sweeps: int = 8, k123: tuple[float, float, float] = (-0.1, 0.02, 0.0)
+) -> Truth:
     """Write the log to ``split_dir/LOG_ID``; the true timestamps."""
     log = split_dir / LOG_ID
     sweeps = [T0 + k * SWEEP_NS + int(k * 137) for k in range(num_sweeps)]  # slightly irregular
@@ -174,20 +180,44 @@ def write_log(split_dir: Path, num_sweeps: int = 8, k123: tuple[float, float, fl
         images[n] = [min(stamps, key=lambda t, s=s: abs(t - s)) for s in sweeps]
 
     static = static_points()
-    uuids = {"moving": "9a1f0c22-2d6e-4b3f-9a55-6f0f1e2d3c4b", "parked": "1b2c3d4e-0000-4a4a-8b8b-000000000001",
-             "walker": "77777777-aaaa-4bbb-8ccc-dddddddddddd"}
-    ann: dict[str, list] = {k: [] for k in ("timestamp_ns", "track_uuid", "category", "length_m", "width_m",
-                                               "height_m", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m",
-                                               "num_interior_pts")}
+    uuids = {
+        "moving": "9a1f0c22-2d6e-4b3f-9a55-6f0f1e2d3c4b",
+        "parked": "1b2c3d4e-0000-4a4a-8b8b-000000000001",
+        "walker": "77777777-aaaa-4bbb-8ccc-dddddddddddd",
+    }
+    ann: dict[str, list] = {
+        k: []
+        for k in (
+            "timestamp_ns",
+            "track_uuid",
+            "category",
+            "length_m",
+            "width_m",
+            "height_m",
+            "qw",
+            "qx",
+            "qy",
+            "qz",
+            "tx_m",
+            "ty_m",
+            "tz_m",
+            "num_interior_pts",
+        )
+    }
     for k, s in enumerate(sweeps):
         t = (s - T0) * 1e-9
         ego = city_SE3_ego(t)
         city_to_ego = np.linalg.inv(ego)
-        boxes = {"moving": (moving_box(t), CAR_LWH, "REGULAR_VEHICLE"),
-                 "parked": (parked_box(k), CAR_LWH, "REGULAR_VEHICLE"),
-                 "walker": (pedestrian_box(t), np.array([0.6, 0.6, 1.8]), "PEDESTRIAN")}
-        pts = [static, box_surface(boxes["moving"][0], CAR_LWH, 200, k),
-               box_surface(boxes["parked"][0], CAR_LWH, 150, 100 + k)]
+        boxes = {
+            "moving": (moving_box(t), CAR_LWH, "REGULAR_VEHICLE"),
+            "parked": (parked_box(k), CAR_LWH, "REGULAR_VEHICLE"),
+            "walker": (pedestrian_box(t), np.array([0.6, 0.6, 1.8]), "PEDESTRIAN"),
+        }
+        pts = [
+            static,
+            box_surface(boxes["moving"][0], CAR_LWH, 200, k),
+            box_surface(boxes["parked"][0], CAR_LWH, 150, 100 + k),
+        ]
         city = np.concatenate(pts)
         local = city @ city_to_ego[:3, :3].T + city_to_ego[:3, 3]
         n = len(local)

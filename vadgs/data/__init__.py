@@ -1,4 +1,4 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes, Waymo, Argoverse 2.
+"""Scene loaders: the benchmark scene format, COLMAP reconstructions, DGP, nuScenes, Waymo, Argoverse 2.
 
 A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``);
 :func:`make_segment` writes a procedural driving segment in the benchmark format at any size, and

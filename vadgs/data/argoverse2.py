@@ -290,7 +290,8 @@ def interpolate_city_SE3_ego(poses: Argoverse2Poses, query_ns: Sequence[int] | n
     outside = q[(q < ts[0]) | (q > ts[-1])]
     if len(outside):
         raise ValueError(
-            f"query_ns: timestamp {int(outside[0])} is outside the recorded poses [{int(ts[0])}, {int(ts[-1])}]"
+            f"query_ns: timestamp {int(outside[0])} is outside the recorded poses "
+            f"[{int(ts[0])}, {int(ts[-1])}]"
         )
     out = poses.city_SE3_ego[np.clip(np.searchsorted(ts, q), 0, len(ts) - 1)].copy()
     between = ts[np.clip(np.searchsorted(ts, q), 0, len(ts) - 1)] != q
@@ -311,7 +312,9 @@ def interpolate_city_SE3_ego(poses: Argoverse2Poses, query_ns: Sequence[int] | n
 
 def _timestamps(folder: Path, suffix: str) -> np.ndarray:
     """The sorted int64 timestamps of the ``<timestamp_ns><suffix>`` files of ``folder``."""
-    stamps = [int(p.name[: -len(suffix)]) for p in folder.glob(f"*{suffix}") if p.name[: -len(suffix)].isdigit()]
+    stamps = [
+        int(p.name[: -len(suffix)]) for p in folder.glob(f"*{suffix}") if p.name[: -len(suffix)].isdigit()
+    ]
     return np.array(sorted(stamps), dtype=np.int64)
 
 
@@ -342,7 +345,9 @@ class Argoverse2Sync(NamedTuple):
         for c in self.cameras:
             off = np.abs(np.array(self.offsets_ms[c]))
             if len(off):
-                lines.append(f"  {c}: image - sweep offset |mean| {off.mean():.1f} ms, max {off.max():.1f} ms")
+                lines.append(
+                    f"  {c}: image - sweep offset |mean| {off.mean():.1f} ms, max {off.max():.1f} ms"
+                )
         for ts, why in self.dropped:
             lines.append(f"  dropped sweep {ts}: {why}")
         if self.missing_sweeps:
@@ -439,7 +444,8 @@ def argoverse2_sync(
                 break
             j = int(np.argmin(np.abs(ts - sweep)))
             if abs(int(ts[j]) - sweep) > window:
-                why = f"no {c} image within {max_image_offset_ms:g} ms (nearest {(int(ts[j]) - sweep) / 1e6:+.1f} ms)"
+                near = (int(ts[j]) - sweep) / 1e6
+                why = f"no {c} image within {max_image_offset_ms:g} ms (nearest {near:+.1f} ms)"
                 break
             if not lo <= int(ts[j]) <= hi:
                 why = f"no ego pose at the {c} image's time {int(ts[j])}"
@@ -458,7 +464,9 @@ def argoverse2_sync(
         )
     missing: tuple[int, ...] = ()
     if (log_dir / _ANNOTATIONS).is_file():
-        annotated = np.unique(read_feather_columns(log_dir / _ANNOTATIONS, {"timestamp_ns": "int"})["timestamp_ns"])
+        annotated = np.unique(
+            read_feather_columns(log_dir / _ANNOTATIONS, {"timestamp_ns": "int"})["timestamp_ns"]
+        )
         missing = tuple(int(t) for t in np.setdiff1d(annotated, all_sweeps))
     return Argoverse2Sync(
         tuple(names),
@@ -538,7 +546,9 @@ def load_argoverse2(
     if lidars is not None:
         bad = [n for n in lidars if n not in ARGOVERSE2_LIDARS]
         if bad or not lidars:
-            raise ValueError(f"lidars: expected names of {list(ARGOVERSE2_LIDARS)} or None, got {list(lidars)}")
+            raise ValueError(
+                f"lidars: expected names of {list(ARGOVERSE2_LIDARS)} or None, got {list(lidars)}"
+            )
     sync = argoverse2_sync(log_dir, cameras, frames, max_image_offset_ms)
     log_dir = Path(log_dir)
     if sync.dropped or sync.missing_sweeps:
@@ -568,7 +578,11 @@ def load_argoverse2(
         if w < 1 or h < 1:
             raise ValueError(f"{what}: expected a positive width_px and height_px, got {w}x{h}")
         raw_K = torch.tensor(
-            [[intr["fx_px"][r], 0.0, intr["cx_px"][r]], [0.0, intr["fy_px"][r], intr["cy_px"][r]], [0.0, 0.0, 1.0]],
+            [
+                [intr["fx_px"][r], 0.0, intr["cx_px"][r]],
+                [0.0, intr["fy_px"][r], intr["cy_px"][r]],
+                [0.0, 0.0, 1.0],
+            ],
             dtype=torch.float64,
         )
         k1, k2, k3 = (float(intr[k][r]) for k in ("k1", "k2", "k3"))
@@ -638,10 +652,12 @@ def load_argoverse2(
         box_to_ego = _se3(ann, ann_path)
         frame_of = {ts: fi for fi, ts in enumerate(sync.sweeps_ns)}
         id_of: dict[str, int] = {}
-        rows = sorted(range(len(ann["timestamp_ns"])), key=lambda i: (int(ann["timestamp_ns"][i]), ann["track_uuid"][i]))
+        rows = sorted(
+            range(len(ann["timestamp_ns"])), key=lambda i: (int(ann["timestamp_ns"][i]), ann["track_uuid"][i])
+        )
         for i in rows:
-            fi = frame_of.get(int(ann["timestamp_ns"][i]))
-            if fi is None:
+            pos = frame_of.get(int(ann["timestamp_ns"][i]))
+            if pos is None:
                 continue
             uuid = str(ann["track_uuid"][i])
             if uuid not in id_of:
@@ -651,8 +667,8 @@ def load_argoverse2(
             if category in ARGOVERSE2_VEHICLES:
                 rigid.add(category.lower())
             size = np.array([ann[s][i] for s in sizes])
-            boxes.setdefault(id_of[uuid], {})[fi] = BoxObservation(
-                ego_to_world[fi] @ box_to_ego[i], size, category.lower()
+            boxes.setdefault(id_of[uuid], {})[pos] = BoxObservation(
+                ego_to_world[pos] @ box_to_ego[i], size, category.lower()
             )
     instances, tracks = build_instances(boxes, box_names, num_frames, lambda cls: cls in rigid, min_motion_m)
 
@@ -661,11 +677,15 @@ def load_argoverse2(
     if lidars is not None:
         missing = [n for n in lidars if n not in sensor_to_ego]
         if missing:
-            raise ValueError(f"{extr_path}: no row of sensor_name {missing[0]!r}, have {sorted(sensor_to_ego)}")
+            raise ValueError(
+                f"{extr_path}: no row of sensor_name {missing[0]!r}, have {sorted(sensor_to_ego)}"
+            )
         lidar_names = tuple(lidars)
 
         def read_lidar(frame: int, path: Path) -> LidarFrame:
-            cols = read_feather_columns(path, {"x": "float", "y": "float", "z": "float", "laser_number": "int"})
+            cols = read_feather_columns(
+                path, {"x": "float", "y": "float", "z": "float", "laser_number": "int"}
+            )
             laser = cols["laser_number"]
             keep = np.zeros(len(laser), dtype=bool)
             for n in lidar_names:
