@@ -316,6 +316,10 @@ class TestRefused:
             ValueError, match=r"size 20x20 differs from calibration/intrinsics.feather's 40x30"
         ):
             s.load_images([0])
+        path.write_bytes(path.read_bytes()[:50])  # a truncated JPEG
+        with pytest.raises(ValueError, match="not a decodable image") as err:
+            s.load_images([0])
+        assert str(path) in str(err.value)
 
     def test_no_pyarrow(self, log, monkeypatch):
         monkeypatch.setitem(sys.modules, "pyarrow.feather", None)
