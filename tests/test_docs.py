@@ -10,6 +10,7 @@ says what it needs:
   it the block is skipped (the others run, the file's test is then reported as skipped);
 - ``<!-- setup: colmap_project -->``: a small COLMAP project (``project/sparse/0``, ``project/images``)
   is written into the working directory first;
+- ``<!-- setup: argoverse2_log -->``: a small Argoverse 2 log (``av2/val/<log_id>``) is written first;
 - ``<!-- no-run: reason -->``: not run (an outline of a loop, a cluster command); rare.
 """
 
@@ -51,7 +52,13 @@ def _colmap_project(folder: Path) -> None:
     write_sample_colmap(folder / "project", n_points=400)
 
 
-SETUPS = {"colmap_project": _colmap_project}
+def _argoverse2_log(folder: Path) -> None:
+    from tests.data.argoverse2_log import write_log
+
+    write_log(folder / "av2" / "val")
+
+
+SETUPS = {"colmap_project": _colmap_project, "argoverse2_log": _argoverse2_log}
 
 
 def _run(code: str, namespace: dict, where: str) -> None:

@@ -149,16 +149,20 @@ class VisibilityCommand(Command):
 
 @dataclass(frozen=True)
 class ConvertCommand(Command):
-    """Convert a nuScenes scene or a Waymo v2 segment into the benchmark format (``scene.json``)."""
+    """Convert a nuScenes scene, Waymo v2 segment or Argoverse 2 log to the benchmark format (scene.json)."""
 
-    dataset: Annotated[Literal["nuscenes", "waymo"], Positional, tyro.conf.arg(metavar="{nuscenes,waymo}")]
+    dataset: Annotated[
+        Literal["nuscenes", "waymo", "argoverse2"],
+        Positional,
+        tyro.conf.arg(metavar="{nuscenes,waymo,argoverse2}"),
+    ]
     """the dataset of SRC"""
     src: Annotated[str, Positional, tyro.conf.arg(metavar="SRC")]
-    """nuScenes dataroot, or the Waymo v2 split folder holding the components"""
-    scene: str
-    """nuScenes scene name (scene-0061) or Waymo segment name"""
+    """nuScenes dataroot, the Waymo v2 split folder holding the components, or the Argoverse 2 log folder"""
     out: str
     """output folder for scene.json, images/, lidar/"""
+    scene: str | None = None
+    """nuScenes scene name (scene-0061) or Waymo segment name (Argoverse 2: none, SRC is the log)"""
     version: str = "v1.0-mini"
     """nuScenes table folder (v1.0-mini, v1.0-trainval)"""
     cameras: str | None = None
@@ -166,15 +170,24 @@ class ConvertCommand(Command):
     scale: float = 1.0
     """image resolution factor"""
     frames: str | None = None
-    """frame positions START:STOP or one position (keyframes for nuScenes; default all)"""
+    """frame positions START:STOP or one position (nuScenes keyframes, Argoverse 2 sweeps; default all)"""
     no_lidar: Flag = False
     """no LiDAR (Waymo: needs no lidar file)"""
+    lidars: str | None = None
+    """Argoverse 2: comma-separated LiDARs of each frame, up_lidar,down_lidar (default both)"""
+    undistort: Flag = False
+    """Argoverse 2: undistort the images with k1, k2, k3 (default: ignore them, as the av2 devkit)"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive(self, "scale")
         if self.frames is not None and not re.fullmatch(r"\d*:\d+|\d+", self.frames):
             raise ValueError(f"frames: expected START:STOP or one position, got {self.frames!r}")
+        if self.dataset != "argoverse2" and self.scene is None:
+            raise ValueError(f"scene: required for {self.dataset} (the scene or segment name)")
+        for name, value in (("lidars", self.lidars is not None), ("undistort", self.undistort)):
+            if self.dataset != "argoverse2" and value:
+                raise ValueError(f"{name}: an Argoverse 2 option, got dataset {self.dataset}")
 
     def main(self) -> int:
         """Write the scene in the benchmark format; 0."""
@@ -185,11 +198,15 @@ class ConvertCommand(Command):
         if self.frames:
             start, _, stop = self.frames.partition(":")
             frames = range(int(start or 0), int(stop)) if stop else [int(start)]
-        if self.dataset == "nuscenes":
+        if self.dataset == "argoverse2":
+            scene = self._argoverse2(cameras, frames)
+        elif self.dataset == "nuscenes":
+            assert self.scene is not None  # __post_init__
             scene = load_nuscenes(
                 self.src, self.scene, version=self.version, cameras=cameras, scale=self.scale, frames=frames
             )
         else:
+            assert self.scene is not None  # __post_init__
             lasers = None if self.no_lidar else ("TOP",)  # --no-lidar: a segment without the lidar component
             scene = load_waymo(
                 self.src, self.scene, cameras=cameras, scale=self.scale, frames=frames, lasers=lasers
@@ -197,6 +214,23 @@ class ConvertCommand(Command):
         path = export_scene(scene, self.out, lidar=not self.no_lidar)
         print(f"{scene!r} -> {path}")
         return 0
+
+    def _argoverse2(self, cameras, frames):
+        """The Argoverse 2 log SRC, its image/sweep matching printed (dropped sweeps once, not warned)."""
+        from vadgs.data.argoverse2 import ARGOVERSE2_LIDARS, argoverse2_sync, load_argoverse2
+
+        lidars = None if self.no_lidar else (self.lidars.split(",") if self.lidars else ARGOVERSE2_LIDARS)
+        print(argoverse2_sync(self.src, cameras, frames).summary())
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Argoverse 2 log", category=UserWarning)
+            return load_argoverse2(
+                self.src,
+                cameras=cameras,
+                scale=self.scale,
+                frames=frames,
+                lidars=lidars,
+                undistort=self.undistort,
+            )
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
+"""Scene loaders: the benchmark scene format, COLMAP reconstructions, DGP, nuScenes, Waymo, Argoverse 2.
 
 A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``);
 :func:`make_segment` writes a procedural driving segment in the benchmark format at any size, and
@@ -11,6 +11,7 @@ maps are read lazily.
 
 from pathlib import Path
 
+from vadgs.data.argoverse2 import load_argoverse2
 from vadgs.data.checks import ValidationReport, ValidationRow
 from vadgs.data.colmap import ColmapScene, load_colmap, open_colmap_project, reopen_colmap_project
 from vadgs.data.colmap_model import find_colmap_model, match_colmap_views
@@ -50,6 +51,7 @@ __all__ = [
     "ViewInfo",
     "export_scene",
     "find_colmap_model",
+    "load_argoverse2",
     "load_colmap",
     "load_dgp",
     "load_nuscenes",
