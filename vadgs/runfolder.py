@@ -48,6 +48,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from vadgs.io import atomic_write
 
 __all__ = [
+    "CHECKPOINT_FORMAT",
     "LEGACY_PATTERNS",
     "MANIFEST",
     "ManifestError",
@@ -70,6 +71,10 @@ MANIFEST = Path(".vadgs") / "manifest.json"
 """The manifest of a folder vadgs writes, relative to the folder."""
 
 _FORMAT = "vadgs-folder-manifest"
+
+CHECKPOINT_FORMAT = "vadgs-train-checkpoint"
+"""The format marker of a vadgs training checkpoint (:mod:`vadgs.train.checkpoint`): what makes a
+``checkpoint.pt`` vadgs's."""
 
 LEGACY_PATTERNS = (
     "checkpoint.pt",
@@ -97,8 +102,8 @@ LEGACY_PATTERNS = (
 
 _LEGACY_DIRS = ("ply", "renders", "export")  # where the legacy files live (checked for links)
 # entries that do not make a folder "not empty": the manifest's folder, the run lock, vadgs's
-# write test and temporary files
-_OWN = (".vadgs", ".vadgs.lock", ".vadgs-write-test-*", ".vadgs-sfm-*", ".*.tmp*")
+# write test and temporary files, a COLMAP run's undistorted copy (written before the manifest)
+_OWN = (".vadgs", ".vadgs.lock", ".vadgs-write-test-*", ".vadgs-sfm-*", ".*.tmp*", "undistorted")
 
 
 class ManifestError(ValueError):
@@ -229,15 +234,13 @@ def _is_vadgs_checkpoint(path: Path) -> bool:
 
     import torch
 
-    from vadgs.train.checkpoint import is_checkpoint_content
-
     try:
         if not zipfile.is_zipfile(path):  # vadgs's checkpoints are torch.save's zip files
             return False
         data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # a pickle weights_only refuses, another project's objects: not vadgs's
         return False
-    return is_checkpoint_content(data)
+    return isinstance(data, dict) and data.get("format") == CHECKPOINT_FORMAT
 
 
 def is_legacy_run(folder: str | Path) -> bool:

@@ -56,3 +56,133 @@ def test_manifest_entry_outside_the_run_stops_overwrite(run, tmp_path, capsys, e
     assert _tree(tmp_path) == before
     assert victim.read_text() == "victim"
     assert load_checkpoint(run).step == 2  # the old run is whole
+
+
+def test_absolute_manifest_entry_stops_overwrite(run, tmp_path, capsys):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("victim")
+    _add_entry(run, str(victim))
+    before = _tree(tmp_path)
+    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
+    line = _error(capsys)
+    assert f"entry {str(victim)!r} is an absolute path" in line and "nothing was removed" in line
+    assert _tree(tmp_path) == before
+
+
+def test_manifest_entry_through_a_symlinked_folder_stops_overwrite(run, tmp_path, capsys):
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "v.txt").write_text("victim")
+    (run / "notes").symlink_to(user)  # a link the user made inside the run
+    _add_entry(run, "notes/v.txt")
+    before = _tree(tmp_path)
+    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
+    line = _error(capsys)
+    assert f"entry 'notes/v.txt' passes through {run / 'notes'}, a symbolic link" in line
+    assert str(run / MANIFEST) in line and "nothing was removed" in line
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("damage", ["cut", "not_json", "other_format"])
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+def test_unreadable_manifest_stops_and_says_how_to_go_on(run, tmp_path, capsys, damage, overwrite):
+    path = run / MANIFEST
+    text = path.read_text()
+    path.write_text(
+        {"cut": text[: len(text) // 2], "not_json": "\0\0", "other_format": '{"files": {}}'}[damage]
+    )
+    before = _tree(tmp_path)
+    assert main(["train", "--sample", "--out", str(run), *TINY, *overwrite]) == 2
+    line = _error(capsys)
+    assert (
+        f"{path}: unreadable" in line and "cannot tell which files" in line and "nothing was changed" in line
+    )
+    assert "give another folder" in line and "--overwrite" not in line and "--resume" not in line
+    assert _tree(tmp_path) == before
+
+
+def test_overwrite_line_lists_what_it_removes_first(run, capsys):
+    recorded = json.loads((run / MANIFEST).read_text())["files"]
+    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    shown = next(i for i, s in enumerate(out) if "is removed as training starts:" in s)
+    removed = next(i for i, s in enumerate(out) if s.startswith("overwrite: removed"))
+    assert shown < removed  # shown before, as git clean -n
+    first = ", ".join(sorted(recorded)[:6])
+    assert out[shown].endswith(f"training starts: {first}, ... ({len(recorded)} files)"), out[shown]
+    assert out[removed].startswith(f"overwrite: removed {len(recorded)} files of the previous run")
+
+
+# -- item 2: a folder is a vadgs run by what vadgs wrote
+
+
+def _foreign(kind: str, folder: Path) -> None:
+    import torch
+
+    folder.mkdir()
+    if kind == "metrics":
+        (folder / "metrics.json").write_text('{"acc": 0.93}')
+    elif kind == "checkpoint":
+        torch.save({"epoch": 3, "state_dict": {"w": torch.ones(2)}}, folder / CHECKPOINT_NAME)
+    elif kind == "config":
+        (folder / "config.json").write_text('{"config": {"lr": 0.1}, "scene": {}}')
+    elif kind == "log":
+        (folder / "log.jsonl").write_text('{"step": 1}\n')
+    (folder / "results.csv").write_text("a,b\n")
+
+
+@pytest.mark.parametrize("kind", ["metrics", "checkpoint", "config", "log"])
+@pytest.mark.parametrize("flags", [[], ["--overwrite"], ["--resume"]])
+def test_another_tools_files_are_not_a_run(tmp_path, capsys, kind, flags):
+    folder = tmp_path / "theirs"
+    _foreign(kind, folder)
+    before = _tree(tmp_path)
+    assert main(["train", *([] if flags == ["--resume"] else ["--sample"]), "--out", str(folder), *TINY,
+                 *flags]) == 2  # fmt: skip
+    line = _error(capsys)
+    if flags != ["--resume"]:
+        names = {"metrics": "metrics.json", "checkpoint": CHECKPOINT_NAME, "config": "config.json"}
+        assert f"holds {names.get(kind, 'log.jsonl')}, results.csv) nor a vadgs run folder" in line
+    assert "--overwrite" not in line and "use --resume" not in line
+    assert _tree(tmp_path) == before
+
+
+def test_resume_refuses_another_projects_checkpoint(tmp_path, capsys):
+    folder = tmp_path / "theirs"
+    _foreign("checkpoint", folder)
+    before = _tree(tmp_path)
+    assert main(["train", "--out", str(folder), "--resume", "--no-progress"]) == 2
+    assert "not a vadgs training checkpoint" in _error(capsys)
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("keep", ["config", "checkpoint"])
+def test_run_of_an_older_vadgs_recognised_by_what_vadgs_wrote(run, capsys, keep):
+    shutil.rmtree(run / ".vadgs")  # written before the manifest
+    (run / ("config.json" if keep == "checkpoint" else CHECKPOINT_NAME)).unlink()
+    assert main(["train", "--sample", "--out", str(run), *TINY]) == 2
+    assert "holds a" in _error(capsys)  # a run: --resume / --overwrite offered
+    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 0
+    assert load_checkpoint(run).step == 2
+
+
+def test_another_projects_checkpoint_in_a_run_folder_is_not_written_over(run, tmp_path, capsys):
+    import torch
+
+    (run / CHECKPOINT_NAME).unlink()  # the run's own, gone from the folder and its manifest
+    data = json.loads((run / MANIFEST).read_text())
+    del data["files"][CHECKPOINT_NAME]
+    (run / MANIFEST).write_text(json.dumps(data))
+    torch.save({"epoch": 3}, run / CHECKPOINT_NAME)  # another project's, put there
+    before = _tree(tmp_path)
+    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
+    assert f"holds {CHECKPOINT_NAME} that vadgs did not write" in _error(capsys)
+    assert _tree(tmp_path) == before
+
+
+def test_eval_of_a_users_metrics_folder_does_not_call_it_a_run(tmp_path, capsys):
+    folder = tmp_path / "theirs"
+    _foreign("metrics", folder)
+    assert main(["eval", str(folder)]) == 2
+    line = _error(capsys)
+    assert "finished run" not in line

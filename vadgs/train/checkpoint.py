@@ -24,6 +24,7 @@ from typing import Any, NamedTuple
 import torch
 
 from vadgs.io import atomic_write, remove_stale_tmp
+from vadgs.runfolder import CHECKPOINT_FORMAT
 from vadgs.train.config import TrainConfig
 
 __all__ = [
@@ -47,7 +48,7 @@ __all__ = [
 ]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-_FORMAT = "vadgs-train-checkpoint"
+_FORMAT = CHECKPOINT_FORMAT
 _VERSION = 1
 _REQUIRED = ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
 

@@ -46,6 +46,7 @@ from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,
     check_new_run,
+    describe_run,  # noqa: F401  (importable from here before: tests/test_imports.py KEPT)
     load_checkpoint,
 )
 from vadgs.train.scenes import (

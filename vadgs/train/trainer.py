@@ -47,6 +47,7 @@ from vadgs.train.checkpoint import (
     StepSnapshot,
     capture_rng,
     check_new_run,
+    describe_run,  # noqa: F401  (importable from here before: tests/test_imports.py KEPT)
     load_checkpoint,
     restore_rng,
     resumed_config,
