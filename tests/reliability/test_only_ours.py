@@ -186,3 +186,22 @@ def test_eval_of_a_users_metrics_folder_does_not_call_it_a_run(tmp_path, capsys)
     assert main(["eval", str(folder)]) == 2
     line = _error(capsys)
     assert "finished run" not in line
+
+
+def test_batch_recognises_its_summary_by_content(tmp_path, capsys):
+    from vadgs.batch import BatchSummary, check_batch_folder, write_summary
+    from vadgs.data import sample_scene_path
+
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "summary.json").write_text('{"acc": 0.93}')  # another tool's summary
+    before = _tree(tmp_path)
+    assert main(["batch", str(sample_scene_path()), "--out", str(theirs)]) == 2
+    line = _error(capsys)
+    assert "holds summary.json) nor a vadgs batch folder" in line and "--overwrite" not in line
+    assert _tree(tmp_path) == before
+
+    ours = tmp_path / "ours"  # a batch of an older vadgs: its summary, no manifest
+    write_summary(BatchSummary(str(ours), (), 0.0))
+    shutil.rmtree(ours / ".vadgs")
+    assert check_batch_folder(ours) == ours
