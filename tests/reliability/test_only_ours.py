@@ -205,3 +205,102 @@ def test_batch_recognises_its_summary_by_content(tmp_path, capsys):
     write_summary(BatchSummary(str(ours), (), 0.0))
     shutil.rmtree(ours / ".vadgs")
     assert check_batch_folder(ours) == ours
+
+
+# -- vadgs sfm: a project is vadgs's when its sfm.json says so
+
+
+def _sfm(photos: Path, out: Path, *flags: str) -> int:
+    return main(["--threads", "1", "sfm", str(photos), "--out", str(out), "--no-progress", *flags])
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory) -> Path:
+    """Four photos of the test room, as tests/data/test_sfm.py's small project (three register)."""
+    from tests.data.photo_sample import write_photo_set
+
+    root = tmp_path_factory.mktemp("photos")
+    keep = write_photo_set(root / "all")["names"][:4]
+    (root / "photos").mkdir()
+    for name in keep:
+        shutil.copy(root / "all" / name, root / "photos" / name)
+    return root / "photos"
+
+
+@pytest.mark.parametrize("sfm_json", [None, '{"colmap": "3.9", "images": 4}'])
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+def test_sfm_never_writes_into_a_colmap_project_made_elsewhere(photos, tmp_path, capsys, sfm_json, overwrite):
+    pytest.importorskip("pycolmap")
+    project = tmp_path / "theirs"
+    (project / "sparse" / "0").mkdir(parents=True)
+    (project / "sparse" / "0" / "cameras.bin").write_bytes(b"\0" * 8)
+    (project / "images").mkdir()
+    (project / "images" / "IMG_0001.jpg").write_bytes(b"the only copy")
+    (project / "database.db").write_bytes(b"SQLite format 3\0")
+    if sfm_json is not None:
+        (project / "sfm.json").write_text(sfm_json)
+    before = _tree(tmp_path)
+    assert _sfm(photos, project, *overwrite) == 2
+    line = _error(capsys)
+    assert f"--out {project}: holds a COLMAP project that vadgs sfm did not write" in line
+    assert ("its sfm.json is not vadgs sfm's" if sfm_json else "no sfm.json of vadgs sfm") in line
+    assert "--overwrite" not in line
+    assert _tree(tmp_path) == before
+
+
+def test_sfm_overwrite_replaces_only_what_it_wrote_and_cleans_a_killed_runs_work(photos, tmp_path, capsys):
+    import os
+
+    pytest.importorskip("pycolmap")
+    project = tmp_path / "proj"
+    assert _sfm(photos, project) == 0
+    summary = json.loads((project / "sfm.json").read_text())
+    assert summary["format"] == "vadgs-sfm-project"
+    assert summary["images_written"] == sorted(p.name for p in photos.iterdir())
+    # the user's files in the project: a photo added to images/, notes, a second model
+    (project / "images" / "extra.jpg").write_bytes(b"mine")
+    (project / "notes.txt").write_text("notes")
+    (project / "sparse" / "1").mkdir()
+    (project / "sparse" / "1" / "cameras.txt").write_text("# mine")
+    # work folders: a killed run's (marker, dead pid), one of a live process, one without a marker
+    dead = project / ".vadgs-sfm-dead"
+    dead.mkdir()
+    import socket
+    import subprocess
+    import sys
+
+    gone = [sys.executable, "-c", "import os; print(os.getpid())"]  # a pid no longer running
+    proc = subprocess.run(gone, capture_output=True, text=True)
+    marker = {"pid": int(proc.stdout), "host": socket.gethostname(), "started": 0}
+    (dead / "vadgs-sfm-work.json").write_text(json.dumps(marker))
+    (dead / "database.db").write_bytes(b"partial")
+    live = project / ".vadgs-sfm-live"
+    live.mkdir()
+    (live / "vadgs-sfm-work.json").write_text(json.dumps({**marker, "pid": os.getppid()}))
+    unmarked = project / ".vadgs-sfm-unmarked"
+    unmarked.mkdir()
+    capsys.readouterr()
+    assert _sfm(photos, project, "--overwrite") == 0
+    out = capsys.readouterr().out
+    assert f"removed {dead}: the work folder of a killed vadgs sfm (pid {marker['pid']}, not running)" in out
+    assert not dead.exists() and live.is_dir() and unmarked.is_dir()
+    assert (project / "images" / "extra.jpg").read_bytes() == b"mine"
+    assert (project / "notes.txt").read_text() == "notes"
+    assert (project / "sparse" / "1" / "cameras.txt").read_text() == "# mine"
+    names = sorted(["extra.jpg", *summary["images_written"]])
+    assert sorted(p.name for p in (project / "images").iterdir()) == names
+    for name in summary["images_written"]:
+        assert (project / "images" / name).read_bytes() == (photos / name).read_bytes()
+
+
+def test_sfm_project_of_an_older_vadgs_is_still_ours(photos, tmp_path, capsys):
+    pytest.importorskip("pycolmap")
+    project = tmp_path / "proj"
+    assert _sfm(photos, project) == 0
+    summary = json.loads((project / "sfm.json").read_text())
+    for key in ("format", "images_written"):  # what an older vadgs wrote
+        del summary[key]
+    (project / "sfm.json").write_text(json.dumps(summary))
+    (project / "images" / "extra.jpg").write_bytes(b"mine")
+    assert _sfm(photos, project, "--overwrite") == 0
+    assert (project / "images" / "extra.jpg").read_bytes() == b"mine"
