@@ -57,6 +57,7 @@ __all__ = [
     "check_removable",
     "check_unrecorded",
     "describe_files",
+    "entry_problem",
     "foreign_entries",
     "has_manifest",
     "is_legacy_run",
@@ -64,6 +65,7 @@ __all__ = [
     "read_manifest",
     "record_files",
     "recorded_files",
+    "remove_files",
     "remove_recorded",
 ]
 
@@ -334,8 +336,17 @@ def _links_on_the_way(folder: Path, path: Path) -> Path | None:
     return None
 
 
-def _entry_problem(folder: Path, rel: str) -> str | None:
-    """Why manifest entry ``rel`` is not a file path inside ``folder``, or None when it is."""
+def entry_problem(folder: str | Path, rel: str) -> str | None:
+    """Why ``rel`` (a manifest entry) is not a file path inside ``folder``, or None when it is.
+
+    Checked as a resolved path: a relative path, no ``..``, no symbolic link among its folders
+    (the file itself may be a link), inside ``folder`` once resolved.
+
+    Example:
+        >>> entry_problem("/tmp", "../victim.txt"), entry_problem("/tmp", "/etc/passwd")
+        ("goes up with '..'", 'is an absolute path')
+    """
+    folder = Path(folder)
     if not isinstance(rel, str) or not rel or "\0" in rel:
         return "is not a file path"
     pure = PurePosixPath(rel)
@@ -371,7 +382,7 @@ def check_entries(folder: str | Path, files: Iterable[str]) -> list[Path]:
     folder = Path(folder)
     out = []
     for rel in sorted(files):
-        problem = _entry_problem(folder, rel)
+        problem = entry_problem(folder, rel)
         if problem is not None:
             raise ManifestError(
                 f"{folder / MANIFEST}: entry {rel!r} {problem}; vadgs removes only the files it wrote "
@@ -449,6 +460,28 @@ def describe_files(folder: str | Path, files: Iterable[Path], limit: int = 6) ->
     return ", ".join(names[:limit]) + more
 
 
+def remove_files(folder: str | Path, files: Iterable[Path]) -> list[Path]:
+    """Remove ``files`` (checked paths inside ``folder``), then the folders on their way left empty.
+
+    Returns:
+        The files removed (those that existed).
+    """
+    folder = Path(folder)
+    files = list(files)
+    removed = []
+    for p in files:
+        if p.is_file() or p.is_symlink():
+            p.unlink()
+            removed.append(p)
+    parents = {q for p in files for q in p.parents if q != folder and folder in q.parents}
+    for d in sorted(parents, key=lambda q: len(q.parts), reverse=True):
+        if d.is_symlink():
+            continue
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only when empty
+    return removed
+
+
 def remove_recorded(folder: str | Path) -> list[Path]:
     """Remove what vadgs wrote into ``folder`` (:func:`recorded_files`), after checking it all.
 
@@ -462,16 +495,5 @@ def remove_recorded(folder: str | Path) -> list[Path]:
     """
     folder = Path(folder)
     files = check_removable(folder)
-    removed = []
-    for p in files:
-        p.unlink(missing_ok=True)
-        removed.append(p)
-    (folder / MANIFEST).unlink(missing_ok=True)
-    written = [*files, folder / MANIFEST]
-    parents = {q for p in written for q in p.parents if q != folder and folder in q.parents}
-    for d in sorted(parents, key=lambda q: len(q.parts), reverse=True):
-        if d.is_symlink():
-            continue
-        with contextlib.suppress(OSError):
-            d.rmdir()  # only when empty
-    return removed
+    removed = remove_files(folder, [*files, folder / MANIFEST])
+    return [p for p in removed if p != folder / MANIFEST]

@@ -304,3 +304,80 @@ def test_sfm_project_of_an_older_vadgs_is_still_ours(photos, tmp_path, capsys):
     (project / "images" / "extra.jpg").write_bytes(b"mine")
     assert _sfm(photos, project, "--overwrite") == 0
     assert (project / "images" / "extra.jpg").read_bytes() == b"mine"
+
+
+# -- make_segment: only what it wrote
+
+SEG = {"frames": 3, "cameras": 1, "width": 32, "height": 24, "lidar_points": 200, "progress": False}
+
+
+def _segment_script(argv: list[str]) -> int:
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "make_segment.py"
+    spec = importlib.util.spec_from_file_location("_vadgs_make_segment", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main(argv)
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_make_segment_refuses_a_folder_it_did_not_write(tmp_path, capsys, overwrite):
+    from vadgs.data.synthetic import make_segment
+
+    folder = tmp_path / "mine"
+    (folder / "images").mkdir(parents=True)
+    (folder / "images" / "holiday.jpg").write_text("jpeg")
+    (folder / "scene.json").write_text('{"name": "my scene"}')  # another tool's scene
+    before = _tree(tmp_path)
+    with pytest.raises(ValueError, match="not empty") as e:
+        make_segment(folder, overwrite=overwrite, **SEG)
+    assert "nor a segment that make_segment wrote" in str(e.value) and "overwrite" not in str(e.value)
+    with pytest.raises(SystemExit):
+        _segment_script([str(folder), "--frames", "2", *(["--overwrite"] if overwrite else [])])
+    line = capsys.readouterr().err.strip().splitlines()[-1]  # argparse's usage, then the error
+    assert (
+        "holds images, scene.json) nor a segment that make_segment wrote" in line
+        and "--overwrite" not in line
+    )
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("older", [False, True])
+def test_make_segment_overwrite_removes_only_what_it_wrote(tmp_path, older):
+    from vadgs.data import load_scene
+    from vadgs.data.synthetic import make_segment
+
+    seg = make_segment(tmp_path / "seg", **SEG)
+    if older:  # written before the manifest: its scene.json says what it wrote
+        shutil.rmtree(seg / ".vadgs")
+    (seg / "notes.txt").write_text("notes")
+    (seg / "images" / "front" / "mine.png").write_text("mine")
+    with pytest.raises(
+        ValueError, match=r"not empty: a segment make_segment wrote \(overwrite=True replaces it\)"
+    ):
+        make_segment(seg, **SEG)
+    make_segment(seg, overwrite=True, **{**SEG, "frames": 2})
+    assert (seg / "notes.txt").read_text() == "notes"
+    assert (seg / "images" / "front" / "mine.png").read_text() == "mine"
+    assert sorted(p.name for p in (seg / "images" / "front").iterdir()) == ["000.jpg", "001.jpg", "mine.png"]
+    assert sorted(p.name for p in (seg / "lidar").iterdir()) == ["000.npz", "001.npz"]  # frame 002's gone
+    assert len(load_scene(seg).frames) == 2
+
+
+def test_make_segment_killed_is_still_its_own_and_a_users_file_in_the_way_is_refused(tmp_path):
+    from vadgs.data.synthetic import make_segment
+
+    seg = make_segment(tmp_path / "seg", **SEG)
+    (seg / "scene.json").unlink()  # killed before its last write: the manifest knows its files
+    make_segment(seg, overwrite=True, **SEG)
+    assert (seg / "scene.json").is_file()
+    seg2 = make_segment(tmp_path / "seg2", **SEG)
+    data = json.loads((seg2 / MANIFEST).read_text())
+    del data["files"]["lidar/000.npz"]  # a file of that name that it did not record
+    (seg2 / MANIFEST).write_text(json.dumps(data))
+    before = _tree(tmp_path)
+    with pytest.raises(ValueError, match=r"lidar/000\.npz is not a file make_segment wrote"):
+        make_segment(seg2, overwrite=True, **SEG)
+    assert _tree(tmp_path) == before
