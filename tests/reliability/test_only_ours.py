@@ -381,3 +381,17 @@ def test_make_segment_killed_is_still_its_own_and_a_users_file_in_the_way_is_ref
     with pytest.raises(ValueError, match=r"lidar/000\.npz is not a file make_segment wrote"):
         make_segment(seg2, overwrite=True, **SEG)
     assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("command", ["export", "render"])
+@pytest.mark.parametrize("kind", ["metrics", "checkpoint"])
+def test_export_and_render_out_into_another_tools_folder_refused(run, tmp_path, capsys, command, kind):
+    folder = tmp_path / "theirs"
+    _foreign(kind, folder)  # a metrics.json / checkpoint.pt made vadgs take it for its own before
+    before = _tree(tmp_path)
+    extra = ["--no-progress", "--views", "0"] if command == "render" else []
+    assert main([command, str(run), "--out", str(folder), *extra]) == 2
+    line = _error(capsys)
+    assert "already exists and is not an empty directory" in line and "nor a vadgs output folder" in line
+    assert "--overwrite" not in line
+    assert _tree(tmp_path) == before
