@@ -51,6 +51,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "LEGACY_PATTERNS",
     "MANIFEST",
+    "SFM_FORMAT",
     "ManifestError",
     "check_entries",
     "check_output_folder",
@@ -61,6 +62,7 @@ __all__ = [
     "foreign_entries",
     "has_manifest",
     "is_legacy_run",
+    "is_sfm_project",
     "is_vadgs_folder",
     "read_manifest",
     "record_files",
@@ -77,6 +79,32 @@ _FORMAT = "vadgs-folder-manifest"
 CHECKPOINT_FORMAT = "vadgs-train-checkpoint"
 """The format marker of a vadgs training checkpoint (:mod:`vadgs.train.checkpoint`): what makes a
 ``checkpoint.pt`` vadgs's."""
+
+
+SFM_FORMAT = "vadgs-sfm-project"
+"""The ``format`` of the ``sfm.json`` that ``vadgs sfm`` (:func:`vadgs.data.sfm.run_sfm`) writes:
+what makes a COLMAP project vadgs's."""
+
+_OLD_SFM_KEYS = ("photos", "num_photos", "registered", "matcher", "camera_mode", "camera_model", "seed")
+
+
+def is_sfm_project(project: str | Path) -> bool:
+    """Whether ``vadgs sfm`` wrote the COLMAP project ``project``: its ``sfm.json`` says so.
+
+    The ``format`` :data:`SFM_FORMAT`, or (a project of an older vadgs) the summary's own keys
+    (``photos``, ``num_photos``, ``registered``, ``matcher``, ...). A COLMAP project made
+    elsewhere (COLMAP's GUI, nerfstudio, another tool's ``sfm.json``) is not.
+    """
+    try:
+        data = json.loads((Path(project) / "sfm.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return False
+    if not isinstance(data, dict):
+        return False
+    return data.get("format") == SFM_FORMAT or (
+        "format" not in data and all(k in data for k in _OLD_SFM_KEYS)
+    )
+
 
 LEGACY_PATTERNS = (
     "checkpoint.pt",

@@ -522,7 +522,7 @@ def _undistort_cached(model: Path, images_dir: Path, undistort_dir: Path) -> tup
     hard links to it in ``undistort_dir`` (copies across file systems): no undistortion, no second
     200 MB. Projects made elsewhere are never written to: undistorted into ``undistort_dir`` each time.
     """
-    from vadgs.data.sfm import is_sfm_project
+    from vadgs.runfolder import is_sfm_project
 
     project = model.parent.parent
     owned = (

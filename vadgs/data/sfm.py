@@ -44,7 +44,7 @@ Nothing is written next to the photos; the work happens in a temporary folder in
 (``.vadgs-sfm-*``, with a marker file naming its process: the next run into the project removes
 the folder of a killed one) and moves into place only when a model was made, so a failed run
 leaves ``PROJECT`` as it was. An existing project is replaced only with ``overwrite=True``, and
-only when ``vadgs sfm`` wrote it (its ``sfm.json`` says so, :func:`is_sfm_project`): a COLMAP
+only when ``vadgs sfm`` wrote it (its ``sfm.json`` says so, :func:`vadgs.runfolder.is_sfm_project`): a COLMAP
 project made elsewhere is never written to, and in one of its own only what it wrote is
 replaced (``sparse/0``, ``database.db``, ``sfm.json``, the photos it put into ``images/``, listed
 in ``sfm.json``'s ``images_written``); the project's other files stay.
@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, NamedTuple
 from PIL import Image
 
 from vadgs.data.images import read_image, upright_image
+from vadgs.runfolder import SFM_FORMAT, is_sfm_project
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
     import pycolmap
@@ -76,10 +77,8 @@ __all__ = [
     "MATCHERS",
     "PHOTO_SUFFIXES",
     "SEQUENTIAL_OVERLAP",
-    "SFM_FORMAT",
     "SfmResult",
     "find_photos",
-    "is_sfm_project",
     "photo_groups",
     "run_sfm",
 ]
@@ -235,10 +234,6 @@ def _groups(headers: dict[str, _PhotoHeader], camera_mode: str) -> list[list[str
     return list(groups.values())
 
 
-#: The ``format`` of the ``sfm.json`` that :func:`run_sfm` writes: what makes a project vadgs's.
-SFM_FORMAT = "vadgs-sfm-project"
-
-_OLD_SFM_KEYS = ("photos", "num_photos", "registered", "matcher", "camera_mode", "camera_model", "seed")
 _WORK_PREFIX = ".vadgs-sfm-"
 _WORK_MARKER = "vadgs-sfm-work.json"
 
@@ -249,21 +244,6 @@ def _read_summary(project: Path) -> dict | None:
     except (OSError, ValueError, RecursionError):
         return None
     return data if isinstance(data, dict) else None
-
-
-def is_sfm_project(project: str | Path) -> bool:
-    """Whether ``vadgs sfm`` wrote the COLMAP project ``project``: its ``sfm.json`` says so.
-
-    The ``format`` :data:`SFM_FORMAT`, or (a project of an older vadgs) the summary's own keys
-    (``photos``, ``num_photos``, ``registered``, ``matcher``, ...). A COLMAP project made
-    elsewhere (COLMAP's GUI, nerfstudio, another tool's ``sfm.json``) is not.
-    """
-    data = _read_summary(Path(project))
-    if data is None:
-        return False
-    return data.get("format") == SFM_FORMAT or (
-        "format" not in data and all(k in data for k in _OLD_SFM_KEYS)
-    )
 
 
 def _written_images(project: Path) -> list[str]:
@@ -320,12 +300,12 @@ class _Replaced(NamedTuple):
 def _check_project(project: Path, photos: Path, overwrite: bool, names: Sequence[str] = ()) -> _Replaced:
     """What of ``project`` a run replaces; refuses a project that vadgs sfm did not write.
 
-    A project is ``vadgs sfm``'s when its ``sfm.json`` says so (:func:`is_sfm_project`); any other
-    COLMAP project (or a folder of other files) is never written to, with or without
-    ``overwrite``. In one of its own, only what it wrote is replaced: ``sparse/0``,
-    ``database.db``, ``sfm.json`` and the photos it put into ``images/`` (:func:`_written_images`),
-    never the project's other files, and never a file of ``images/`` that a new photo would
-    land on but that it did not write.
+    A project is ``vadgs sfm``'s when its ``sfm.json`` says so
+    (:func:`vadgs.runfolder.is_sfm_project`); any other COLMAP project (or a folder of other
+    files) is never written to, with or without ``overwrite``. In one of its own, only what it
+    wrote is replaced: ``sparse/0``, ``database.db``, ``sfm.json`` and the photos it put into
+    ``images/`` (:func:`_written_images`), never the project's other files, and never a file of
+    ``images/`` that a new photo would land on but that it did not write.
     """
     if project.exists() and not project.is_dir():
         raise ValueError(f"--out {project}: expected a folder, got an existing file")
