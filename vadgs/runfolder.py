@@ -170,7 +170,9 @@ def read_manifest(folder: str | Path) -> dict[str, dict] | None:
         raise ManifestError(
             f"{path}: unreadable ({' '.join(why.split())[:200]}): vadgs cannot tell which files in "
             f"{folder} it wrote, so it neither removes nor replaces any; nothing was changed: give "
-            f"another folder, or move what you keep out of {folder} and delete it yourself"
+            f"another folder, or move what you keep out of {folder} and delete it yourself (for a "
+            "vadgs run: delete the manifest, and vadgs takes the folder for a run of an older vadgs, "
+            "whose files are the names it writes)"
         )
     return dict(data["files"])
 

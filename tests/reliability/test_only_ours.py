@@ -395,3 +395,12 @@ def test_export_and_render_out_into_another_tools_folder_refused(run, tmp_path, 
     assert "already exists and is not an empty directory" in line and "nor a vadgs output folder" in line
     assert "--overwrite" not in line
     assert _tree(tmp_path) == before
+
+
+def test_eval_into_a_run_whose_manifest_is_unreadable_writes_nothing(run, tmp_path, capsys):
+    (run / MANIFEST).write_text('{"format": "vadgs-folder-manifest", "files": {')  # cut short
+    before = _tree(tmp_path)
+    assert main(["eval", str(run), "--no-progress"]) == 2
+    line = _error(capsys)
+    assert f"{run / MANIFEST}: unreadable" in line and "delete the manifest" in line
+    assert _tree(tmp_path) == before  # no eval.json written beside a manifest that cannot record it
