@@ -64,6 +64,7 @@ __all__ = [
     "is_legacy_run",
     "is_sfm_project",
     "is_vadgs_folder",
+    "manifest_kind",
     "read_manifest",
     "record_files",
     "recorded_files",
@@ -193,11 +194,32 @@ def _relative(folder: Path, path: Path) -> str | None:
     return rel.as_posix() if rel.parts and ".." not in rel.parts else None
 
 
-def record_files(folder: str | Path, paths: Iterable[str | Path]) -> Path | None:
+def manifest_kind(folder: str | Path) -> str | None:
+    """The ``kind`` a folder's manifest declares, or None (a run or an output folder; no manifest).
+
+    ``"segment"``: a scene that :func:`vadgs.data.synthetic.make_segment` wrote.
+
+    Raises:
+        ManifestError: an unreadable manifest (:func:`read_manifest`).
+    """
+    folder = Path(folder)
+    if read_manifest(folder) is None:
+        return None
+    kind = json.loads((folder / MANIFEST).read_text(encoding="utf-8")).get("kind")
+    return kind if isinstance(kind, str) else None
+
+
+def record_files(folder: str | Path, paths: Iterable[str | Path], kind: str | None = None) -> Path | None:
     """Record in ``folder``'s manifest that vadgs wrote ``paths`` (those outside ``folder`` are skipped).
 
     The manifest is rewritten atomically, and only when something new is recorded (a file's size
     is kept as written). Call it right after each write, while the folder's lock is held.
+
+    Args:
+        folder: the folder.
+        paths: the files written.
+        kind: what the folder is, when it is no run nor output folder (``"segment"``): kept in the
+            manifest; :func:`check_output_folder` refuses such a folder to other writers.
 
     Returns:
         The manifest's path, or None when nothing was inside ``folder``.
@@ -208,6 +230,7 @@ def record_files(folder: str | Path, paths: Iterable[str | Path]) -> Path | None
     """
     folder = Path(folder)
     files = read_manifest(folder) or {}
+    kind = kind or manifest_kind(folder)
     changed, inside = False, False
     for p in paths:
         rel = _relative(folder, Path(p))
@@ -218,14 +241,16 @@ def record_files(folder: str | Path, paths: Iterable[str | Path]) -> Path | None
             size = (folder / rel).stat().st_size
         except OSError:
             size = None
-        if files.get(rel, {}).get("size", -1) != size or rel not in files:
+        entry = files.get(rel)
+        if not isinstance(entry, dict) or entry.get("size", -1) != size:
             files[rel] = {"size": size}
             changed = True
     if not inside:
         return None
     path = folder / MANIFEST
     if changed or not path.is_file():
-        atomic_write(path, json.dumps({"format": _FORMAT, "version": 1, "files": files}, indent=1) + "\n")
+        data: dict = {"format": _FORMAT, "version": 1, **({"kind": kind} if kind else {}), "files": files}
+        atomic_write(path, json.dumps(data, indent=1) + "\n")
     return path
 
 
@@ -343,7 +368,13 @@ def check_output_folder(folder: str | Path, flag: str = "--out", what: str = "va
     folder = Path(folder)
     if not folder.is_dir():
         return folder
-    if read_manifest(folder) is not None or is_legacy_run(folder):
+    kind = manifest_kind(folder)
+    if kind is not None:  # vadgs wrote it, as something else (a scene make_segment wrote)
+        raise ValueError(
+            f"{flag} {folder}: holds a {kind} that vadgs wrote (its manifest says so), not a {what} "
+            "folder; nothing was changed: give a new or empty folder"
+        )
+    if has_manifest(folder) or is_legacy_run(folder):
         return folder
     entries = foreign_entries(folder)
     if not entries:

@@ -404,3 +404,19 @@ def test_eval_into_a_run_whose_manifest_is_unreadable_writes_nothing(run, tmp_pa
     line = _error(capsys)
     assert f"{run / MANIFEST}: unreadable" in line and "delete the manifest" in line
     assert _tree(tmp_path) == before  # no eval.json written beside a manifest that cannot record it
+
+
+def test_a_segment_folder_is_no_run_folder_and_a_run_folder_no_segment(run, tmp_path, capsys):
+    from vadgs.data.synthetic import make_segment
+
+    seg = make_segment(tmp_path / "seg", **SEG)
+    before = _tree(tmp_path)
+    assert main(["train", "--sample", "--out", str(seg), *TINY, "--overwrite"]) == 2
+    line = _error(capsys)
+    assert (
+        f"--out {seg}: holds a segment that vadgs wrote (its manifest says so), not a vadgs run folder"
+        in line
+    )
+    with pytest.raises(ValueError, match="holds a vadgs run or output folder, not a segment"):
+        make_segment(run, overwrite=True, **SEG)
+    assert _tree(tmp_path) == before

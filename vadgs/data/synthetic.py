@@ -673,7 +673,7 @@ def check_segment_folder(out: str | Path, overwrite: bool, flag: str = "overwrit
         ValueError: one line naming ``out`` (and ``flag`` only for a segment make_segment wrote).
         vadgs.runfolder.ManifestError: an unreadable manifest, or an entry outside ``out``.
     """
-    from vadgs.runfolder import check_removable, entry_problem, foreign_entries, read_manifest
+    from vadgs.runfolder import check_removable, entry_problem, foreign_entries, manifest_kind, read_manifest
 
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -682,6 +682,10 @@ def check_segment_folder(out: str | Path, overwrite: bool, flag: str = "overwrit
     if not entries:
         return []
     meta: Any = None
+    if read_manifest(out) is not None and manifest_kind(out) != "segment":  # a run or an output folder
+        raise ValueError(
+            f"out: {out} holds a vadgs run or output folder, not a segment; give a new or empty folder"
+        )
     if read_manifest(out) is None:
         try:
             meta = json.loads((out / "scene.json").read_text())
@@ -757,7 +761,8 @@ def make_segment(
     old = check_segment_folder(out, overwrite)
     world = _build_world(cfg)
     written = [out / rel for rel in _segment_files(cfg, world)]
-    theirs = [p for p in written if (p.exists() or p.is_symlink()) and p not in set(old)]
+    replaced = set(old)
+    theirs = [p for p in written if p not in replaced and (p.exists() or p.is_symlink())]
     if theirs:  # a file of the user's where the segment writes one (in a folder make_segment wrote)
         raise ValueError(
             f"out: {theirs[0]} is not a file make_segment wrote ({len(theirs)} such), where the segment "
@@ -767,7 +772,7 @@ def make_segment(
 
     remove_files(out, old)
     out.mkdir(parents=True, exist_ok=True)
-    record_files(out, written)  # before they are written: a killed run's files are known too
+    record_files(out, written, kind="segment")  # before they are written: a killed run's are known too
     for sub in ("images", "depth", "instances"):
         for c in cfg.camera_names:
             (out / sub / c).mkdir(parents=True, exist_ok=True)
