@@ -18,7 +18,10 @@ get one too. The manifest is what lets ``--overwrite`` remove exactly what vadgs
   or (a run of an older vadgs) a ``config.json`` that parses as a vadgs run's or a
   ``checkpoint.pt`` that loads as a vadgs checkpoint (:func:`is_legacy_run`), never by file
   names; :func:`check_output_folder` refuses any other non-empty folder, as ``git clone``
-  refuses a non-empty destination, and a folder whose manifest cannot be read.
+  refuses a non-empty destination, and a folder whose manifest cannot be read;
+- a manifest's ``kind`` (``"segment"``: a scene :func:`vadgs.data.synthetic.make_segment`
+  wrote) keeps such a folder from the other writers (:func:`manifest_kind`);
+  :func:`is_sfm_project` says whether ``vadgs sfm`` wrote a COLMAP project (its ``sfm.json``).
 
 Files a user put into a run folder (a video in ``renders/``, notes) are never recorded, so they
 survive an overwrite.
