@@ -23,7 +23,7 @@ import os
 import time
 from pathlib import Path
 
-from vadgs.data.synthetic import SegmentConfig, make_segment
+from vadgs.data.synthetic import SegmentConfig, check_segment_folder, make_segment
 
 WAYMO = SegmentConfig(
     frames=200, cameras=5, width=1920, height=1280, side_height=886, lidar_points=150_000, moving_cars=4,
@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path, help="the scene folder to write")
     ap.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
     ap.add_argument("--workers", type=int, default=2, help="processes rendering frames (default 2)")
-    ap.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    ap.add_argument(
+        "--overwrite", action="store_true", help="replace the segment it wrote in OUT (its files only)"
+    )
     ap.add_argument("--no-progress", action="store_true")
     for f in dataclasses.fields(SegmentConfig):
         if f.name == "lidar_vfov":
@@ -66,8 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         fields["lidar_vfov"] = tuple(fields["lidar_vfov"])
     try:
         cfg = dataclasses.replace(PRESETS[args.preset], **fields)
-        if args.out.exists() and any(args.out.iterdir()) and not args.overwrite:
-            raise ValueError(f"{args.out} exists and is not empty (--overwrite replaces it)")
+        check_segment_folder(args.out, args.overwrite, "--overwrite")  # refused before any work
     except ValueError as e:
         ap.error(str(e))
     print(cfg)

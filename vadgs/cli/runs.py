@@ -23,7 +23,7 @@ from vadgs.checks import check_at_least, check_at_most, check_positive
 from vadgs.cli._common import Command, Flag, Positional, check_out_dir, run_dir
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
-from vadgs.runfolder import check_output_folder, record_files, recorded_files
+from vadgs.runfolder import check_output_folder, read_manifest, record_files, recorded_files
 from vadgs.train.results.trajectory import MAX_FRAMES
 from vadgs.train.run import Run, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_METHODS
@@ -43,6 +43,7 @@ def _writing(run: str | Path, into: str | Path, command: str) -> contextlib.Abst
     folder = run_dir(run).resolve()
     into = Path(into).resolve()
     if folder.is_dir() and (into == folder or into.is_relative_to(folder)):
+        read_manifest(folder)  # an unreadable manifest: refused before anything is written
         return RunLock(folder, command)
     return contextlib.nullcontext()
 

@@ -105,8 +105,7 @@ class TrainCommand:
 
     def main(self) -> int:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
-        from vadgs.runfolder import check_output_folder, check_removable
-        from vadgs.train.checkpoint import CHECKPOINT_NAME, describe_run, held_run_message
+        from vadgs.train.checkpoint import CHECKPOINT_NAME, check_new_run
         from vadgs.train.run import train_scene
         from vadgs.train.session import RunLock
 
@@ -124,12 +123,9 @@ class TrainCommand:
         else:
             if self.scene is None and not self.sample:
                 raise ValueError("train: give a SCENE folder (or --sample for the bundled sample)")
-            check_output_folder(out, "--out", "vadgs run")  # with or without --overwrite
-            held = describe_run(out) if out.is_dir() else None
-            if held is not None and not self.overwrite:
-                raise ValueError(held_run_message(out, held))
-            if self.overwrite:
-                check_removable(out)  # a symlinked ply/, a read-only folder: refused before any work
+            # a folder vadgs did not write, with or without --overwrite; a manifest entry outside
+            # the run, a symlinked ply/, a read-only folder: refused before any work
+            check_new_run(out, self.overwrite)
             scene = _scene(self)
             outcome = train_scene(
                 scene,

@@ -522,10 +522,12 @@ def _undistort_cached(model: Path, images_dir: Path, undistort_dir: Path) -> tup
     hard links to it in ``undistort_dir`` (copies across file systems): no undistortion, no second
     200 MB. Projects made elsewhere are never written to: undistorted into ``undistort_dir`` each time.
     """
+    from vadgs.runfolder import is_sfm_project
+
     project = model.parent.parent
     owned = (
         model.parent.name == "sparse"
-        and (project / "sfm.json").is_file()
+        and is_sfm_project(project)  # its sfm.json says so: not a project made elsewhere
         and images_dir.resolve() == (project / "images").resolve()
     )
     if not owned:

@@ -41,8 +41,13 @@ the project's lock (:class:`vadgs.train.session.RunLock`, ``PROJECT/.vadgs.lock`
 to it instead of undistorting again; a new model (``overwrite``) removes it.
 
 Nothing is written next to the photos; the work happens in a temporary folder inside ``PROJECT``
-and moves into place only when a model was made, so a failed run leaves ``PROJECT`` as it was.
-An existing project is replaced only with ``overwrite=True``.
+(``.vadgs-sfm-*``, with a marker file naming its process: the next run into the project removes
+the folder of a killed one) and moves into place only when a model was made, so a failed run
+leaves ``PROJECT`` as it was. An existing project is replaced only with ``overwrite=True``, and
+only when ``vadgs sfm`` wrote it (its ``sfm.json`` says so, :func:`vadgs.runfolder.is_sfm_project`): a COLMAP
+project made elsewhere is never written to, and in one of its own only what it wrote is
+replaced (``sparse/0``, ``database.db``, ``sfm.json``, the photos it put into ``images/``, listed
+in ``sfm.json``'s ``images_written``); the project's other files stay.
 """
 
 from __future__ import annotations
@@ -61,6 +66,7 @@ from typing import TYPE_CHECKING, NamedTuple
 from PIL import Image
 
 from vadgs.data.images import read_image, upright_image
+from vadgs.runfolder import SFM_FORMAT, is_sfm_project
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
     import pycolmap
@@ -228,35 +234,136 @@ def _groups(headers: dict[str, _PhotoHeader], camera_mode: str) -> list[list[str
     return list(groups.values())
 
 
-def _check_project(project: Path, photos: Path, overwrite: bool) -> list[Path]:
-    """The entries of ``project`` to replace; refuses an existing project without ``overwrite``."""
+_WORK_PREFIX = ".vadgs-sfm-"
+_WORK_MARKER = "vadgs-sfm-work.json"
+
+
+def _read_summary(project: Path) -> dict | None:
+    try:
+        data = json.loads((project / "sfm.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _written_images(project: Path) -> list[str]:
+    """The files of ``project/images`` that ``vadgs sfm`` wrote there (names relative to it).
+
+    The list in its ``sfm.json`` (``images_written``); for a project of an older vadgs, which has
+    none: the photos of its model and those it left out (``unregistered``).
+
+    Raises:
+        ValueError: an older project whose model cannot be read (nothing can tell which files are its).
+    """
+    data = _read_summary(project) or {}
+    written = data.get("images_written")
+    if isinstance(written, list) and all(isinstance(n, str) for n in written):
+        names = list(written)
+    else:
+        from vadgs.data.colmap_model import read_colmap_model
+
+        try:
+            rec = read_colmap_model(project / "sparse" / "0", "--out")
+        except (OSError, ValueError) as e:
+            raise ValueError(
+                f"--out {project}: cannot tell which files of {project / 'images'} vadgs sfm wrote (a "
+                f"project of an older vadgs, its model unreadable: {' '.join(str(e).split())[:160]}); "
+                "nothing was changed: give a new or empty folder"
+            ) from None
+        names = [im.name for im in rec.images.values()] + [str(n) for n in data.get("unregistered", [])]
+    images = project / "images"
+    return sorted({n for n in names if _inside(images, n)})
+
+
+def _inside(folder: Path, name: str) -> bool:
+    """``folder / name`` is a path below ``folder`` (no absolute path, ``..`` or symlinked folder)."""
+    from pathlib import PurePosixPath
+
+    pure = PurePosixPath(name)
+    if not name or pure.is_absolute() or ".." in pure.parts:
+        return False
+    cur = folder
+    for part in pure.parts[:-1]:
+        cur = cur / part
+        if cur.is_symlink():
+            return False
+    return True
+
+
+class _Replaced(NamedTuple):
+    """What a run replaces in an existing project of its own (all empty for a new project)."""
+
+    entries: list[Path]  # database.db, sparse/0
+    images: list[Path]  # the photos it wrote into images/ before
+
+
+def _check_project(project: Path, photos: Path, overwrite: bool, names: Sequence[str] = ()) -> _Replaced:
+    """What of ``project`` a run replaces; refuses a project that vadgs sfm did not write.
+
+    A project is ``vadgs sfm``'s when its ``sfm.json`` says so
+    (:func:`vadgs.runfolder.is_sfm_project`); any other COLMAP project (or a folder of other
+    files) is never written to, with or without ``overwrite``. In one of its own, only what it
+    wrote is replaced: ``sparse/0``, ``database.db``, ``sfm.json`` and the photos it put into
+    ``images/`` (:func:`_written_images`), never the project's other files, and never a file of
+    ``images/`` that a new photo would land on but that it did not write.
+    """
     if project.exists() and not project.is_dir():
         raise ValueError(f"--out {project}: expected a folder, got an existing file")
     in_place = (project / "images").resolve() == photos.resolve()
     held = [
-        project / e
+        e
         for e in PROJECT_ENTRIES
         if (project / e).exists() or (project / e).is_symlink()
         if not (e == "images" and in_place)
     ]
-    if not held and project.is_dir():  # a non-empty folder with no project in it: not ours to write
-        from vadgs.runfolder import foreign_entries
+    from vadgs.runfolder import foreign_entries
 
-        others = [e for e in foreign_entries(project) if not (e == "images" and in_place)]
-        if others:
-            shown = ", ".join(others[:5]) + (f", ... ({len(others)} entries)" if len(others) > 5 else "")
+    others = [e for e in foreign_entries(project) if not (e == "images" and in_place)]
+    ours = project.is_dir() and is_sfm_project(project)
+    if others and not ours:  # a COLMAP project made elsewhere, or other files: not ours to write
+        shown = ", ".join(others[:5]) + (f", ... ({len(others)} entries)" if len(others) > 5 else "")
+        if {"sparse", "database.db", "sfm.json"} & set(held):
+            why = "its sfm.json is not vadgs sfm's" if "sfm.json" in held else "no sfm.json of vadgs sfm"
             raise ValueError(
-                f"--out {project}: destination path '{project}' already exists and is not an empty "
-                f"directory (holds {shown}) nor a COLMAP project; nothing was changed: "
-                "give a new or empty folder"
+                f"--out {project}: holds a COLMAP project that vadgs sfm did not write ({shown}; {why}); "
+                "vadgs sfm never writes into it, its images/ least of all: nothing was changed: give a "
+                "new or empty folder"
             )
-    if held and not overwrite:
-        names = ", ".join(p.name for p in held)
-        raise ValueError(f"--out {project}: already holds {names}; --overwrite replaces them")
-    for entry in held:
+        raise ValueError(
+            f"--out {project}: destination path '{project}' already exists and is not an empty "
+            f"directory (holds {shown}) nor a vadgs sfm project; nothing was changed: give a new or "
+            "empty folder"
+        )
+    if not ours:
+        return _Replaced([], [])
+    if not overwrite:
+        raise ValueError(f"--out {project}: already holds {', '.join(held)}; --overwrite replaces them")
+    for link in ("sparse", "sparse/0", "images"):
+        if (project / link).is_symlink() and not (link == "images" and in_place):
+            raise ValueError(
+                f"--out {project}: {project / link} is a symbolic link (to {os.readlink(project / link)}); "
+                "vadgs sfm does not replace through links; nothing was changed"
+            )
+    entries = [p for p in (project / "database.db", project / "sparse" / "0") if p.exists() or p.is_symlink()]
+    images = [] if in_place else [project / "images" / n for n in _written_images(project)]
+    images = [p for p in images if p.is_file() or p.is_symlink()]
+    for entry in (*entries, *images):
         if photos.resolve().is_relative_to(entry.resolve()):
             raise ValueError(f"PHOTOS {photos}: is inside {entry}, which --overwrite would replace")
-    return held
+    if not in_place:
+        mine = {p.absolute() for p in images}
+        clash = [
+            n
+            for n in names
+            if (project / "images" / n).exists() and (project / "images" / n).absolute() not in mine
+        ]
+        if clash:
+            raise ValueError(
+                f"--out {project}: {project / 'images'} holds {', '.join(clash[:3])} that vadgs sfm did not "
+                "write, where it would put a photo of that name; nothing was changed: move it away or give "
+                "a new folder"
+            )
+    return _Replaced(entries, images)
 
 
 def _remove(path: Path) -> None:
@@ -264,6 +371,41 @@ def _remove(path: Path) -> None:
         shutil.rmtree(path)
     else:
         path.unlink(missing_ok=True)
+
+
+def _move_into(src: Path, dst: Path) -> None:
+    """Move the tree ``src`` into ``dst`` file by file (``dst``'s other files stay)."""
+    for path in sorted(src.rglob("*")):
+        if path.is_dir() and not path.is_symlink():
+            continue
+        target = dst / path.relative_to(src)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(path, target)
+
+
+def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
+    """Remove the work folders (``.vadgs-sfm-*``) of killed runs into ``project``.
+
+    Only those it can prove are its own: their marker file names a process of this host that is
+    no longer running. Called with the project's lock held (no live run of this host writes there).
+    """
+    import socket
+
+    from vadgs.train.session import pid_alive
+
+    for work in sorted(project.glob(_WORK_PREFIX + "*")):
+        marker = work / _WORK_MARKER
+        if work.is_symlink() or not work.is_dir() or not marker.is_file():
+            continue
+        try:
+            owner = json.loads(marker.read_text())
+            pid, host = int(owner["pid"]), owner["host"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if host != socket.gethostname() or pid_alive(pid):
+            continue
+        shutil.rmtree(work, ignore_errors=True)
+        say(f"removed {work}: the work folder of a killed vadgs sfm (pid {pid}, not running)")
 
 
 @contextlib.contextmanager
@@ -400,7 +542,8 @@ def _run_sfm_locked(
     import pycolmap
     from tqdm import tqdm
 
-    replaced = _check_project(out, photos, overwrite)
+    replaced = _check_project(out, photos, overwrite, names)
+    _remove_dead_work(out, say)
     in_place = (out / "images").resolve() == photos.resolve()
     turned = {n: o for n in names if (o := _read_header(photos / n).orientation) != 1}
     if in_place and turned:
@@ -425,8 +568,12 @@ def _run_sfm_locked(
     nthreads = int(threads) or -1
 
     out.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".vadgs-sfm-", dir=out))
+    work = Path(tempfile.mkdtemp(prefix=_WORK_PREFIX, dir=out))
     try:
+        import socket
+
+        owner = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()}
+        (work / _WORK_MARKER).write_text(json.dumps(owner))  # a killed run's folder: removed next time
         # -- 0. the photos in place, the rotated ones upright: SfM runs on what the project holds
         if not in_place:
             _place_photos(photos, names, work / "images", link)
@@ -538,46 +685,58 @@ def _run_sfm_locked(
             )
         (work / "sparse" / "0").mkdir(parents=True)
         best.write(work / "sparse" / "0")
-        # -- 4. the project: the old entries replaced, the new ones moved in
-        for entry in replaced:
+        result = SfmResult(
+            project=out,
+            model=out / "sparse" / "0",
+            images=out / "images",
+            num_photos=len(names),
+            registered=len(registered),
+            num_points=best.num_points3D(),
+            mean_reprojection_error=float(best.compute_mean_reprojection_error()),
+            num_cameras=len({best.images[i].camera_id for i in best.reg_image_ids()}),
+            unregistered=tuple(n for n in names if n not in registered),
+            matcher=matcher,
+            seconds=seconds,
+        )
+        summary = {
+            "format": SFM_FORMAT,
+            "photos": str(photos.resolve()),
+            **{k: v for k, v in result._asdict().items() if k not in ("project", "model", "images")},
+            "camera_mode": camera_mode,
+            "camera_model": camera_model,
+            "max_image_size": int(max_image_size),
+            "seed": int(seed),
+            "exif_rotated": turned,
+            "duplicates": duplicates,
+            "images_written": [] if in_place else list(names),
+        }
+        summary["unregistered"] = list(result.unregistered)
+        (work / "sfm.json").write_text(json.dumps(summary, indent=2) + "\n")
+        # -- 4. the project: sfm.json first (a run killed from here on leaves a project of its own),
+        # then what the old run wrote removed, the new files moved in; the project's other files stay
+        os.replace(work / "sfm.json", out / "sfm.json")
+        for entry in replaced.entries:
             _remove(entry)
+        for photo in replaced.images:
+            photo.unlink(missing_ok=True)
+        for folder in sorted({q for p in replaced.images for q in p.parents if out / "images" in q.parents},
+                             key=lambda q: len(q.parts), reverse=True):  # fmt: skip
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only when empty
         from vadgs.data.colmap import UNDISTORT_CACHE
 
         _remove(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
-        for name in ("database.db", "sparse", "images"):
+        if (work / "database.db").exists():
+            os.replace(work / "database.db", out / "database.db")
+        for name in ("sparse", "images"):
             if (work / name).exists():
-                os.replace(work / name, out / name)
+                _move_into(work / name, out / name)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise
     shutil.rmtree(work, ignore_errors=True)
-    result = SfmResult(
-        project=out,
-        model=out / "sparse" / "0",
-        images=out / "images",
-        num_photos=len(names),
-        registered=len(registered),
-        num_points=best.num_points3D(),
-        mean_reprojection_error=float(best.compute_mean_reprojection_error()),
-        num_cameras=len({best.images[i].camera_id for i in best.reg_image_ids()}),
-        unregistered=tuple(n for n in names if n not in registered),
-        matcher=matcher,
-        seconds=seconds,
-    )
-    summary = {
-        "photos": str(photos.resolve()),
-        **{k: v for k, v in result._asdict().items() if k not in ("project", "model", "images")},
-        "camera_mode": camera_mode,
-        "camera_model": camera_model,
-        "max_image_size": int(max_image_size),
-        "seed": int(seed),
-        "exif_rotated": turned,
-        "duplicates": duplicates,
-    }
-    summary["unregistered"] = list(result.unregistered)
-    (out / "sfm.json").write_text(json.dumps(summary, indent=2) + "\n")
     return result
 
 

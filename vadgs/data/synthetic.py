@@ -24,7 +24,6 @@ import dataclasses
 import json
 import math
 import multiprocessing
-import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +34,7 @@ from PIL import Image
 
 from vadgs.checks import check_fields, choice_field, float_field, int_field
 
-__all__ = ["RIG", "SegmentConfig", "make_segment"]
+__all__ = ["RIG", "SegmentConfig", "check_segment_folder", "make_segment"]
 
 RIG: dict[str, tuple[float, bool]] = {
     "front": (0.0, False),
@@ -640,6 +639,84 @@ def _progress(it: Iterator[int], total: int, show: bool) -> Iterator[int]:
     return tqdm(it, total=total, desc="segment", unit="frame")
 
 
+def _segment_files(cfg: SegmentConfig, world: _World) -> list[str]:
+    """Every file :func:`make_segment` writes for ``cfg`` (relative paths; ``scene.json`` last)."""
+    files = ["gt/static.ply", "gt/static_face_instance.npy"]
+    b = world.boxes
+    files += [f"gt/object_{b.instance[i]}.ply" for i in np.flatnonzero(b.track >= 0)]
+    for f in range(cfg.frames):
+        files += [path for c in cfg.camera_names for path in _view_files(cfg, c, f).values()]
+        files.append(f"lidar/{_names(cfg, f)}.npz")
+    return [*files, "scene.json"]
+
+
+def _scene_json_files(meta: dict) -> list[str]:
+    """The files a ``scene.json`` that :func:`make_segment` wrote names (and ``scene.json``)."""
+    files = [meta.get("gt_static_mesh"), "gt/static_face_instance.npy"]
+    for frame in meta.get("frames") or []:
+        views = frame.get("views") or [] if isinstance(frame, dict) else []
+        files += [v.get(k) for v in views if isinstance(v, dict) for k in ("image", "depth", "instances")]
+        files.append(frame.get("lidar") if isinstance(frame, dict) else None)
+    files += [t.get("mesh") for t in meta.get("tracks") or [] if isinstance(t, dict)]
+    return [f for f in files if isinstance(f, str)] + ["scene.json"]
+
+
+def check_segment_folder(out: str | Path, overwrite: bool, flag: str = "overwrite=True") -> list[Path]:
+    """Check ``out`` for :func:`make_segment`: the files of an earlier segment to replace (``[]``: none).
+
+    A new path or an empty folder is fine. A folder that :func:`make_segment` wrote (its manifest,
+    :mod:`vadgs.runfolder`, or the ``scene.json`` of an older one, whose ``generator`` is this
+    module) is replaced with ``overwrite``: the files it wrote, never the folder's other files.
+    Any other non-empty folder is refused with or without ``overwrite``.
+
+    Raises:
+        ValueError: one line naming ``out`` (and ``flag`` only for a segment make_segment wrote).
+        vadgs.runfolder.ManifestError: an unreadable manifest, or an entry outside ``out``.
+    """
+    from vadgs.runfolder import check_removable, entry_problem, foreign_entries, manifest_kind, read_manifest
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} exists and is a file; give a folder")
+    entries = foreign_entries(out)
+    if not entries:
+        return []
+    meta: Any = None
+    if read_manifest(out) is not None and manifest_kind(out) != "segment":  # a run or an output folder
+        raise ValueError(
+            f"out: {out} holds a vadgs run or output folder, not a segment; give a new or empty folder"
+        )
+    if read_manifest(out) is None:
+        try:
+            meta = json.loads((out / "scene.json").read_text())
+        except (OSError, ValueError, RecursionError):
+            meta = None
+        ours = isinstance(meta, dict) and (meta.get("generator") or {}).get("module") == __name__
+    else:
+        ours = True
+    if not ours:
+        shown = ", ".join(entries[:5]) + (f", ... ({len(entries)} entries)" if len(entries) > 5 else "")
+        raise ValueError(
+            f"out: {out} exists and is not empty (holds {shown}) nor a segment that make_segment wrote; "
+            "nothing was changed: give a new or empty folder"
+        )
+    if not overwrite:
+        raise ValueError(
+            f"out: {out} exists and is not empty: a segment make_segment wrote ({flag} replaces it)"
+        )
+    if meta is None:
+        return [*check_removable(out), out / ".vadgs" / "manifest.json"]
+    files = _scene_json_files(meta)
+    for rel in files:
+        problem = entry_problem(out, rel)
+        if problem is not None:
+            raise ValueError(
+                f"out: {out / 'scene.json'}: file {rel!r} {problem}; make_segment replaces only the files "
+                "it wrote inside the folder: nothing was removed"
+            )
+    return [out / rel for rel in files]
+
+
 def make_segment(
     out: str | Path,
     config: SegmentConfig | None = None,
@@ -656,7 +733,9 @@ def make_segment(
         config: the scene's :class:`SegmentConfig` (default: the tiny default one).
         workers: processes rendering frames in parallel (1: in this process).
         progress: show a progress bar over frames.
-        overwrite: replace an existing ``out`` (refused otherwise when it is not empty).
+        overwrite: replace the segment in ``out`` that make_segment wrote: the files it wrote, not
+            the folder's other files (:func:`check_segment_folder`). Refused otherwise when ``out``
+            is not empty; a non-empty folder make_segment did not write is refused either way.
         **fields: :class:`SegmentConfig` fields overriding ``config`` (``frames=200``, ...).
 
     Returns:
@@ -664,8 +743,8 @@ def make_segment(
         scene), ``images/``, ``depth/``, ``instances/``, ``lidar/`` and ``gt/``.
 
     Raises:
-        ValueError: on a bad setting (the message names it) or an existing non-empty ``out``
-            without ``overwrite``.
+        ValueError: on a bad setting (the message names it), an existing non-empty ``out``
+            without ``overwrite``, or one that make_segment did not write.
 
     Example:
         >>> import tempfile
@@ -679,11 +758,21 @@ def make_segment(
     if not (isinstance(workers, int) and workers >= 1):
         raise ValueError(f"workers: expected a positive integer, got {workers!r}")
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise ValueError(f"out: {out} exists and is not empty (pass overwrite=True to replace it)")
-        shutil.rmtree(out)
+    old = check_segment_folder(out, overwrite)
     world = _build_world(cfg)
+    written = [out / rel for rel in _segment_files(cfg, world)]
+    replaced = set(old)
+    theirs = [p for p in written if p not in replaced and (p.exists() or p.is_symlink())]
+    if theirs:  # a file of the user's where the segment writes one (in a folder make_segment wrote)
+        raise ValueError(
+            f"out: {theirs[0]} is not a file make_segment wrote ({len(theirs)} such), where the segment "
+            "writes one; nothing was changed: move it away or give a new folder"
+        )
+    from vadgs.runfolder import record_files, remove_files
+
+    remove_files(out, old)
+    out.mkdir(parents=True, exist_ok=True)
+    record_files(out, written, kind="segment")  # before they are written: a killed run's are known too
     for sub in ("images", "depth", "instances"):
         for c in cfg.camera_names:
             (out / sub / c).mkdir(parents=True, exist_ok=True)
@@ -700,8 +789,7 @@ def make_segment(
         with ctx.Pool(workers, initializer=_init_worker, initargs=(cfg, world, out)) as pool:
             for _ in _progress(pool.imap(_write_frame, frames), cfg.frames, progress):
                 pass
-    meta = _scene_json(cfg, world)
-    tmp = out / "scene.json.tmp"
-    tmp.write_text(json.dumps(meta, indent=1))
-    tmp.replace(out / "scene.json")
+    from vadgs.io import atomic_write
+
+    atomic_write(out / "scene.json", json.dumps(_scene_json(cfg, world), indent=1))
     return out

@@ -24,18 +24,22 @@ from typing import Any, NamedTuple
 import torch
 
 from vadgs.io import atomic_write, remove_stale_tmp
+from vadgs.runfolder import CHECKPOINT_FORMAT
 from vadgs.train.config import TrainConfig
 
 __all__ = [
     "CHECKPOINT_NAME",
     "RESUMABLE_CHANGES",
+    "RUN_FILES",
     "Checkpoint",
     "StepSnapshot",
     "capture_rng",
+    "check_new_run",
     "checkpoint_checksum",
     "clear_run",
     "describe_run",
     "held_run_message",
+    "is_checkpoint_content",
     "load_checkpoint",
     "remove_run_tmp",
     "restore_rng",
@@ -44,7 +48,7 @@ __all__ = [
 ]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-_FORMAT = "vadgs-train-checkpoint"
+_FORMAT = CHECKPOINT_FORMAT
 _VERSION = 1
 _REQUIRED = ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
 
@@ -213,6 +217,18 @@ def save_checkpoint(ckpt: Checkpoint, path: str | Path) -> Path:
     return path
 
 
+def is_checkpoint_content(data: Any) -> bool:
+    """Whether ``data`` (what ``torch.load`` returned) is a vadgs training checkpoint: its format marker.
+
+    Example:
+        >>> is_checkpoint_content({"format": "vadgs-train-checkpoint", "version": 1})
+        True
+        >>> is_checkpoint_content({"epoch": 3, "state_dict": {}})
+        False
+    """
+    return isinstance(data, dict) and data.get("format") == _FORMAT
+
+
 def load_checkpoint(path: str | Path) -> Checkpoint:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only`` unpickling).
 
@@ -231,7 +247,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"checkpoint {path} is corrupt or unreadable ({type(e).__name__}: {e})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != _FORMAT:
+    if not is_checkpoint_content(ckpt):
         raise ValueError(f"checkpoint {path}: not a vadgs training checkpoint")
     if int(ckpt.get("version", -1)) != _VERSION:
         raise ValueError(f"checkpoint {path}: unsupported version {ckpt.get('version')}")
@@ -332,6 +348,45 @@ def held_run_message(
             f"use {overwrite} to start over or another folder"
         )
     return f"{folder} holds a run ({held}); use {resume} to continue or {overwrite} to start over"
+
+
+#: The files a run writes at the top of its folder (a file of these names that vadgs did not write
+#: is refused rather than written over: :func:`check_new_run`).
+RUN_FILES = (CHECKPOINT_NAME, "config.json", "log.jsonl", "metrics.json")
+
+
+def check_new_run(
+    folder: str | Path,
+    overwrite: bool,
+    flag: str = "--out",
+    resume: str = "--resume",
+    overwrite_flag: str = "--overwrite",
+) -> tuple[str | None, list[Path]]:
+    """Check ``folder`` for a new run, before any work; ``(the run it holds or None, files to remove)``.
+
+    A new path or an empty folder is fine; a folder vadgs did not write is refused with or without
+    ``overwrite`` (:func:`vadgs.runfolder.check_output_folder`), as is a vadgs folder holding,
+    under a name the run writes (:data:`RUN_FILES`), a file vadgs did not write; a folder holding
+    a run needs ``overwrite``, and then every file to remove is checked
+    (:func:`vadgs.runfolder.check_removable`: a manifest entry outside the folder, a symbolic
+    link on the way, a read-only folder stop it here, before anything is removed).
+
+    Raises:
+        ValueError: one line, naming the folder and (for a run) ``resume`` / ``overwrite_flag``.
+        vadgs.runfolder.ManifestError: an unreadable manifest, or an entry outside the folder.
+        PermissionError: a folder of a file to remove is not writable.
+    """
+    from vadgs.runfolder import check_output_folder, check_removable, check_unrecorded
+
+    folder = Path(folder)
+    check_output_folder(folder, flag, "vadgs run")
+    held = describe_run(folder) if folder.is_dir() else None
+    if held is not None and not overwrite:
+        raise ValueError(held_run_message(folder, held, resume, overwrite_flag))
+    files = check_removable(folder) if overwrite and folder.is_dir() else []
+    doomed = {p.absolute() for p in files}
+    check_unrecorded(folder, [n for n in RUN_FILES if (folder / n).absolute() not in doomed], flag)
+    return held, files
 
 
 def clear_run(folder: str | Path) -> list[Path]:

@@ -41,12 +41,12 @@ import torch
 from vadgs.data.scene import Scene
 from vadgs.deprecation import moved_names
 from vadgs.io import write_json
-from vadgs.runfolder import check_output_folder, check_removable, record_files
+from vadgs.runfolder import describe_files, is_vadgs_folder, record_files
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,
-    describe_run,
-    held_run_message,
+    check_new_run,
+    describe_run,  # noqa: F401  (importable from here before: tests/test_imports.py KEPT)
     load_checkpoint,
 )
 from vadgs.train.scenes import (
@@ -196,7 +196,7 @@ def _check_is_run(path: Path) -> None:
             f"RUN {path}: is {what}, not a run (no {CHECKPOINT_NAME}): train it first, "
             f"vadgs train {path} --out RUN, then give RUN"
         )
-    if (path / "metrics.json").is_file():
+    if (path / "metrics.json").is_file() and is_vadgs_folder(path):
         raise FileNotFoundError(
             f"RUN {path}: a finished run whose {CHECKPOINT_NAME} is missing (its metrics.json is "
             "there): the model is gone, nothing to evaluate, render or export"
@@ -347,12 +347,10 @@ def _start(
         return trainer
     config = TrainConfig() if config is None else config
     # the Trainer checks these too; here before opening the scene, which may undistort into out_dir
-    check_output_folder(out, "out_dir", "vadgs run")
-    held = describe_run(out) if out.is_dir() else None
-    if held is not None and not overwrite:
-        raise ValueError(held_run_message(out, held, "resume=True", "overwrite=True"))
-    if overwrite:
-        check_removable(out)  # a refused overwrite changes nothing
+    held, doomed = check_new_run(out, overwrite, "out_dir", "resume=True", "overwrite=True")
+    if held is not None:  # shown before anything is removed, as git clean -n does
+        say(f"overwrite: the previous run in {out} ({held}) is removed as training starts: "
+            f"{describe_files(out, doomed)}")  # fmt: skip
     assert scene is not None  # train_scene refuses a new run without a scene
     opened, stored = prepare_scene(scene, out, say)
     if callable(init_points):
@@ -367,8 +365,6 @@ def _start(
         overwrite=overwrite,
         log=log,
     )
-    if held is not None:
-        say(f"overwrite: the previous run in {out} ({held}) is removed as training starts")
     n = trainer.model.num_gaussians
     say(f"{opened}: {len(opened.train_views)} training views, {n} initial Gaussians")
     return trainer

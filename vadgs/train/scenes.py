@@ -198,6 +198,7 @@ def folder_kind(path: str | Path) -> str | None:
     """
     from vadgs.data import find_colmap_model
     from vadgs.data.sfm import PHOTO_SUFFIXES
+    from vadgs.runfolder import is_vadgs_folder
     from vadgs.train.checkpoint import CHECKPOINT_NAME
 
     path = Path(path)
@@ -205,8 +206,8 @@ def folder_kind(path: str | Path) -> str | None:
         return "benchmark"
     if find_colmap_model(path) is not None:
         return "colmap"
-    if (path / CHECKPOINT_NAME).is_file() or (path / "metrics.json").is_file():
-        return "run"
+    if ((path / CHECKPOINT_NAME).is_file() or (path / "metrics.json").is_file()) and is_vadgs_folder(path):
+        return "run"  # by what vadgs wrote: another tool's metrics.json or checkpoint.pt is no run
     if path.is_dir() and any(p.suffix.lower() in PHOTO_SUFFIXES for p in path.iterdir()):
         return "photos"
     return None

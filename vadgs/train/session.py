@@ -30,7 +30,15 @@ try:
 except ImportError:  # not POSIX: run folders are not locked
     fcntl = None  # type: ignore[assignment]  # the module's stand-in where it is missing
 
-__all__ = ["LOCK_NAME", "RunInUseError", "RunLock", "RunLog", "reclaim_signals", "stop_on_signals"]
+__all__ = [
+    "LOCK_NAME",
+    "RunInUseError",
+    "RunLock",
+    "RunLog",
+    "pid_alive",
+    "reclaim_signals",
+    "stop_on_signals",
+]
 
 _BUSY = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
 
@@ -42,7 +50,8 @@ class RunInUseError(OSError):
     """A run folder is locked by another live process (``filename``: the folder; the message: its pid)."""
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this host is running (one of another user counts as running)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -149,7 +158,7 @@ class RunLock:
             old = json.loads(os.pread(fd, 1 << 16, 0) or b"null") or {}
         if isinstance(old, dict) and old.get("pid") is not None:
             host = old.get("host")
-            dead = host == socket.gethostname() and not _pid_alive(int(old["pid"]))
+            dead = host == socket.gethostname() and not pid_alive(int(old["pid"]))
             state = "not running" if dead else "no longer holding it"
             self._warn(
                 f"{self.folder}: took over the lock of {old.get('command', 'a vadgs process')} (pid "

@@ -39,15 +39,15 @@ import torch
 from vadgs.checks import checks_enabled, first_false
 from vadgs.data.scene import Scene
 from vadgs.deprecation import moved_names
-from vadgs.runfolder import check_output_folder, check_removable, record_files
+from vadgs.runfolder import record_files
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,
     StepSnapshot,
     capture_rng,
-    describe_run,
-    held_run_message,
+    check_new_run,
+    describe_run,  # noqa: F401  (importable from here before: tests/test_imports.py KEPT)
     load_checkpoint,
     restore_rng,
     resumed_config,
@@ -161,14 +161,8 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.clear_previous = False
         if self.out_dir is not None and not _resuming:
-            check_output_folder(self.out_dir, "out_dir", "vadgs run")
-            held = describe_run(self.out_dir)
-            if held is not None and not overwrite:
-                raise ValueError(
-                    held_run_message(self.out_dir, held, "Trainer.from_checkpoint", "overwrite=True")
-                )
-            if overwrite:
-                check_removable(self.out_dir)  # before any work: a refused overwrite changes nothing
+            # before any work: a refused overwrite changes nothing
+            check_new_run(self.out_dir, overwrite, "out_dir", "Trainer.from_checkpoint", "overwrite=True")
             self.clear_previous = overwrite
         if scene_ref is None and scene.root is not None and (Path(scene.root) / "scene.json").is_file():
             scene_ref = {"kind": "benchmark", "path": str(Path(scene.root).resolve()), "scale": scene.scale}
