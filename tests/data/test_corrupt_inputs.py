@@ -276,3 +276,148 @@ def test_writer_refuses_ranges_beyond_the_top_laser(tmp_path):
         ValueError, match=r"scene: frame 0 has LiDAR points \d+\.\d m from the sensor; .* 82.5 m"
     ):
         write_waymo_segment(src, tmp_path / "training", "far")
+
+
+# -- nuScenes, DGP, COLMAP ----------------------------------------------------------------------------
+
+
+def _first(root: Path, pattern: str) -> Path:
+    return sorted(root.rglob(pattern))[0]
+
+
+class TestCorruptNuScenes:
+    """A ``.pcd.bin`` sweep is raw float32 without a checksum: cut, empty and implausible values are
+    refused naming the file (bytes that still decode as plausible coordinates cannot be told)."""
+
+    @pytest.fixture
+    def nus(self, tmp_path):
+        from tests.data.test_nuscenes import _write_nuscenes
+
+        _write_nuscenes(tmp_path / "nuscenes")
+        return tmp_path / "nuscenes"
+
+    def _lidar(self, root: Path):
+        from vadgs.data import load_nuscenes
+
+        scene = load_nuscenes(root, "scene-0061")
+        return [scene.lidar(f.index) for f in scene.frames]
+
+    def test_cut_empty_and_implausible(self, nus):
+        path = _first(nus, "*.pcd.bin")
+        data = path.read_bytes()
+        assert len(self._lidar(nus)) > 1
+        for size, match in (
+            (0, r"an empty file \(0 bytes\)"),
+            (len(data) - 7, rf"got {len(data) - 7} bytes"),
+        ):
+            path.write_bytes(data[:size])
+            with pytest.raises(ValueError, match=rf"^nuScenes LiDAR {re.escape(str(path))}: .*{match}"):
+                self._lidar(nus)
+        for value, match in ((np.nan, "1 non-finite points"), (2.5e38, "more than 1000 m from the sensor")):
+            arr = np.frombuffer(data, np.float32).copy()
+            arr[5] = value  # point 1's x
+            path.write_bytes(arr.tobytes())
+            with pytest.raises(ValueError, match=rf"^nuScenes LiDAR {re.escape(str(path))}: .*{match}"):
+                self._lidar(nus)
+
+    def test_cut_table(self, nus):
+        from vadgs.data import load_nuscenes
+
+        table = nus / "v1.0-mini" / "sample_data.json"
+        table.write_text(table.read_text()[:-30])
+        with pytest.raises(ValueError, match=rf"{re.escape(str(table))} is not valid JSON"):
+            load_nuscenes(nus, "scene-0061")
+
+
+class TestCorruptDgp:
+    """DGP sweeps are ``.npz`` archives: zip CRC-32 checks every member, so bytes anywhere are found."""
+
+    @pytest.fixture
+    def dgp(self, tmp_path):
+        from tests.data.test_dgp import _write_dgp
+
+        _write_dgp(tmp_path / "dgp")
+        return tmp_path / "dgp"
+
+    def _lidar(self, root: Path):
+        from vadgs.data import load_dgp
+
+        scene = load_dgp(root)
+        return [scene.lidar(f.index).points for f in scene.frames]
+
+    def test_cut_empty_random(self, dgp):
+        path = _first(dgp, "point_cloud/LIDAR/*.npz")
+        data = path.read_bytes()
+        ref = self._lidar(dgp)
+        for size in (0, 10, len(data) // 2, len(data) - 5):
+            path.write_bytes(data[:size])
+            with pytest.raises(ValueError, match=re.escape(str(path))):
+                self._lidar(dgp)
+        rng = np.random.default_rng(3)
+        refused = 0
+        for frac in np.linspace(0.0, 0.98, 20):
+            for n in (1, 8):
+                at = int(frac * (len(data) - n))
+                bad = bytearray(data)
+                bad[at : at + n] = rng.bytes(n)
+                if bad == data:
+                    continue
+                path.write_bytes(bytes(bad))
+                try:
+                    got = self._lidar(dgp)
+                except ValueError as e:
+                    assert str(path) in str(e), str(e)
+                    refused += 1
+                    continue
+                for g, r in zip(got, ref):
+                    torch.testing.assert_close(g, r, atol=0, rtol=0)
+        assert refused >= 30  # of 40
+
+    def test_implausible_values(self, dgp):
+        path = _first(dgp, "point_cloud/LIDAR/*.npz")
+        with np.load(path) as z:
+            pts = z["data"].copy()
+        for value, match in ((np.inf, "non-finite"), (-3e38, "more than 1000 m")):
+            bad = pts.copy()
+            bad[0, 1] = value
+            np.savez(path, data=bad)
+            with pytest.raises(ValueError, match=rf"^DGP point cloud {re.escape(str(path))}: .*{match}"):
+                self._lidar(dgp)
+
+    def test_cut_scene_json(self, dgp):
+        from vadgs.data import load_dgp
+
+        scene_json = _first(dgp, "scene*.json")
+        scene_json.write_text(scene_json.read_text()[:-50])
+        with pytest.raises(ValueError, match=rf"{re.escape(str(scene_json))} is not valid JSON"):
+            load_dgp(dgp)
+
+
+class TestCorruptColmap:
+    def test_non_finite_point(self, tmp_path):
+        pytest.importorskip("pycolmap")
+        from tests.data.test_colmap import _synthetic_model
+        from vadgs.data import load_colmap
+
+        _synthetic_model(tmp_path / "m")
+        path = tmp_path / "m" / "points3D.bin"
+        data = bytearray(path.read_bytes())
+        # uint64 count, then the first point: uint64 id, 3 float64 x y z
+        (pid,) = np.frombuffer(bytes(data[8:16]), np.uint64)
+        data[16:24] = np.float64(np.nan).tobytes()
+        path.write_bytes(bytes(data))
+        with pytest.raises(
+            ValueError, match=rf"^{re.escape(str(path))}: point {pid}: expected finite coordinates"
+        ):
+            load_colmap(tmp_path / "m")
+
+    @pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
+    def test_empty_file(self, tmp_path, name):
+        pytest.importorskip("pycolmap")
+        from tests.data.test_colmap import _synthetic_model
+        from vadgs.data import load_colmap
+
+        _synthetic_model(tmp_path / "m")
+        (tmp_path / "m" / name).write_bytes(b"")
+        with pytest.raises(ValueError, match=re.escape(str(tmp_path / "m" / name))):
+            load_colmap(tmp_path / "m")
