@@ -1,0 +1,94 @@
+"""Rough edges of issue 49: each a one-line answer instead of silence, a raw warning or a deep failure."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from vadgs.cli import main
+from vadgs.data.images import exif_orientation, upright_image
+from vadgs.data.sfm import _read_header, find_photos, unsupported_photos
+
+
+def _photo(path: Path, seed: int, exif: Image.Exif | None = None) -> None:
+    rng = np.random.default_rng(seed)
+    img = Image.fromarray(rng.integers(0, 255, (30, 40, 3), dtype=np.uint8))
+    img.save(path, quality=95, **({"exif": exif} if exif is not None else {}))
+
+
+class TestPhotos:
+    def test_unsupported_formats_named_in_one_line(self, tmp_path, capsys):
+        pytest.importorskip("pycolmap")
+        photos = tmp_path / "photos"
+        (photos / "sub").mkdir(parents=True)
+        _photo(photos / "a.jpg", 0)
+        (photos / "b.jpg").write_bytes((photos / "a.jpg").read_bytes())  # one distinct photo: stops early
+        Image.new("RGB", (40, 30)).save(photos / "c.webp")
+        (photos / "sub" / "d.HEIC").write_bytes(b"\0" * 10)
+        (photos / "notes.txt").write_text("not a photo")
+        assert find_photos(photos) == ["a.jpg", "b.jpg"]
+        assert unsupported_photos(photos) == ["c.webp", "sub/d.HEIC"]
+        assert main(["sfm", str(photos), "--out", str(tmp_path / "p"), "--no-progress"]) == 2
+        out = capsys.readouterr().out
+        line = [ln for ln in out.splitlines() if "formats vadgs sfm does not take" in ln]
+        assert line == [
+            f"PHOTOS {photos}: left out 2 photo(s) in formats vadgs sfm does not take (.heic, .webp): "
+            "c.webp, sub/d.HEIC; convert them to JPEG or PNG to use them"
+        ]
+        only = tmp_path / "only"
+        only.mkdir()
+        Image.new("RGB", (40, 30)).save(only / "x.webp")
+        with pytest.raises(
+            ValueError, match=r"got none \(1 other file\(s\)\); left out 1 photo\(s\) .*\(\.webp\): x\.webp"
+        ):
+            find_photos(only)
+
+    @pytest.mark.parametrize("tag", [0, 9, 200])
+    def test_out_of_range_orientation_is_upright_and_said(self, tmp_path, tag):
+        exif = Image.Exif()
+        exif[0x0112] = tag
+        path = tmp_path / "a.jpg"
+        _photo(path, 1, exif)
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            header = _read_header(path)  # what vadgs sfm reads: not "turned"
+            assert header.orientation == 1 and header.size == (40, 30)
+            assert exif_orientation(path) == 1  # what loading a COLMAP project reads
+            assert upright_image(path, tmp_path / "b.jpg") == 1  # what vadgs sfm copies: as stored
+        assert not (tmp_path / "b.jpg").exists()
+        msgs = {str(x.message) for x in w}
+        assert msgs == {
+            f"{path}: EXIF orientation {tag} is not one of 1-8: taken as 1 (upright, the pixels as stored)"
+        }
+        exif[0x0112] = 6  # a real rotation still turns
+        _photo(path, 1, exif)
+        assert _read_header(path).orientation == 6 and upright_image(path, tmp_path / "b.jpg") == 6
+        assert Image.open(tmp_path / "b.jpg").size == (30, 40)
+
+    def test_corrupt_exif_warning_names_the_photo(self, tmp_path):
+        exif = Image.Exif()
+        exif[0x010F] = "Canon"
+        path = tmp_path / "a.jpg"
+        _photo(path, 2, exif)
+        data = bytearray(path.read_bytes())
+        at = data.find(b"Exif\0\0")
+        data[at + 14 : at + 34] = bytes(range(200, 220))  # the IFD entries, inside the 38-byte block
+        path.write_bytes(bytes(data))
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            header = _read_header(path)
+        assert header.size == (40, 30) and header.orientation == 1
+        assert w, "PIL warns about the damaged EXIF block"
+        for x in w:
+            assert str(x.message).startswith(f"{path}: "), str(x.message)
+        assert any("Corrupt EXIF data" in str(x.message) for x in w)
+        from vadgs.data.images import read_image
+
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always")
+            assert read_image(path).shape == (30, 40, 3)  # what sfm decodes for its duplicate check
+        assert w and all(str(x.message).startswith(f"{path}: ") for x in w)
