@@ -92,3 +92,41 @@ class TestPhotos:
             warnings.simplefilter("always")
             assert read_image(path).shape == (30, 40, 3)  # what sfm decodes for its duplicate check
         assert w and all(str(x.message).startswith(f"{path}: ") for x in w)
+
+
+class TestStrategyAttributes:
+    def test_unknown_attribute_refused(self):
+        from vadgs.train.strategy import DefaultStrategy
+        from vadgs.train.vad import VisibilityAwareDensification
+
+        s = VisibilityAwareDensification()
+        with pytest.raises(
+            AttributeError, match=r"VisibilityAwareDensification: no setting or attribute 'typo_setting'"
+        ):
+            s.typo_setting = 3
+        with pytest.raises(AttributeError, match=r"'every_cycle'; did you mean 'every_cycles'\?"):
+            s.every_cycle = 3
+        assert (
+            not hasattr(s, "typo_setting") and s.every_cycles == VisibilityAwareDensification().every_cycles
+        )
+        s.every_cycles = 7  # a setting: checked, into the config
+        s.on_progress = print  # its own attributes
+        s.index = None
+        assert s.config.every_cycles == 7 and s.on_progress is print
+        d = DefaultStrategy()
+        with pytest.raises(AttributeError, match=r"'refine_evrey'; did you mean 'refine_every'\?"):
+            d.refine_evrey = 50
+
+    def test_subclass_init_adds_attributes(self):
+        from vadgs.train.strategy import DefaultStrategy
+
+        class Traced(DefaultStrategy):
+            def __init__(self, *args, **kwargs):
+                super().__init__(*args, **kwargs)
+                self.trace, self.model = [], None
+
+        t = Traced(refine_every=50)
+        t.model = "set later"  # an attribute its __init__ made
+        assert t.refine_every == 50 and t.trace == [] and t.model == "set later"
+        with pytest.raises(AttributeError, match="no setting or attribute 'tracee'"):
+            t.tracee = []
