@@ -130,3 +130,32 @@ class TestStrategyAttributes:
         assert t.refine_every == 50 and t.trace == [] and t.model == "set later"
         with pytest.raises(AttributeError, match="no setting or attribute 'tracee'"):
             t.tracee = []
+
+
+class TestTrainConfigFields:
+    @pytest.mark.parametrize(
+        ("changes", "message"),
+        [
+            ({"iterations": 2.5}, "iterations: expected an integer, got float 2.5"),
+            ({"iterations": True}, "iterations: expected an integer, got bool True"),
+            ({"seed": -1}, r"seed: expected an integer in \[0, 2\^63 - 1\], got -1"),
+            ({"seed": 2**64}, r"seed: expected an integer in \[0, 2\^63 - 1\]"),
+            ({"cache_gb": "2"}, "cache_gb: expected a number, got str '2'"),
+            ({"max_minutes": None}, "max_minutes: expected a number, got NoneType None"),
+            ({"vad": {}}, r"vad: expected None or a VisibilityDensifyConfig, got dict \{\}"),
+            ({"strategy": None}, "strategy: expected a DefaultStrategyConfig, got NoneType None"),
+            ({"device": 0}, "device: expected a torch device name such as 'cpu' or 'cuda', got int 0"),
+        ],
+    )
+    def test_refused_at_construction(self, changes, message):
+        from vadgs.train.config import TrainConfig
+
+        with pytest.raises(ValueError, match=f"^{message}"):
+            TrainConfig(**changes)
+
+    def test_accepted(self):
+        from vadgs.train.config import TrainConfig
+        from vadgs.train.vad import VisibilityDensifyConfig
+
+        c = TrainConfig(iterations=np.int64(10), seed=2**63 - 1, cache_gb=1, vad=VisibilityDensifyConfig())
+        assert c.iterations == 10 and c.cache_gb == 1 and TrainConfig.from_dict(c.to_dict()) == c
