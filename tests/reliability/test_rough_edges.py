@@ -159,3 +159,47 @@ class TestTrainConfigFields:
 
         c = TrainConfig(iterations=np.int64(10), seed=2**63 - 1, cache_gb=1, vad=VisibilityDensifyConfig())
         assert c.iterations == 10 and c.cache_gb == 1 and TrainConfig.from_dict(c.to_dict()) == c
+
+
+class TestSegmentConfigFields:
+    @pytest.mark.parametrize(
+        ("changes", "message"),
+        [
+            (
+                {"width": 200_000, "height": 200_000},
+                r"width: expected an integer in \[1, 65536\], got 200000",
+            ),
+            (
+                {"width": 10_000, "height": 10_000},
+                r"width, height: 10000x10000 is 100000000 pixels per image",
+            ),
+            ({"width": 10_000, "side_height": 9_000}, r"width, side_height: 10000x9000 is 90000000 pixels"),
+            ({"lidar_points": 10**9}, r"lidar_points: expected an integer in \[1, 4000000\], got 1000000000"),
+            ({"jpeg_quality": 0}, r"jpeg_quality: expected an integer in \[1, 100\], got 0"),
+            ({"jpeg_quality": 101}, r"jpeg_quality: expected an integer in \[1, 100\], got 101"),
+            (
+                {"lidar_vfov": (5.0, -5.0)},
+                r"lidar_vfov: expected \(min, max\) degrees with min < max, got \(5.0, -5.0\)",
+            ),
+            (
+                {"lidar_vfov": (-95.0, 5.0)},
+                r"lidar_vfov: expected \(min, max\) degrees with -90 <= min < max <= 90",
+            ),
+            ({"lidar_vfov": 5.0}, r"lidar_vfov: expected \(min, max\) degrees"),
+            ({"seed": -1}, r"seed: expected an integer in \[0, 9223372036854775807\], got -1"),
+            ({"seed": 1.5}, r"seed: expected an integer"),
+            ({"moving_cars": 10**6}, r"moving_cars: expected an integer in \[0, 1000\]"),
+            ({"lidar_beams": 10**6}, r"lidar_beams: expected an integer in \[1, 4096\]"),
+        ],
+    )
+    def test_refused(self, changes, message):
+        from vadgs.data import SegmentConfig
+
+        with pytest.raises(ValueError, match=f"^{message}"):
+            SegmentConfig(**changes)
+
+    def test_accepted(self):
+        from vadgs.data import SegmentConfig
+
+        c = SegmentConfig(width=1920, height=1280, side_height=886, lidar_vfov=[-30, 10], jpeg_quality=100)
+        assert c.lidar_vfov == (-30.0, 10.0) and c.image_size("side_left") == (886, 1920)
