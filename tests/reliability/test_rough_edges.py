@@ -203,3 +203,46 @@ class TestSegmentConfigFields:
 
         c = SegmentConfig(width=1920, height=1280, side_height=886, lidar_vfov=[-30, 10], jpeg_quality=100)
         assert c.lidar_vfov == (-30.0, 10.0) and c.image_size("side_left") == (886, 1920)
+
+
+class TestInterruptedVideo:
+    def test_sigterm_exits_130_and_leaves_no_temporary_file(self, tmp_path):
+        """``render --video`` stopped by SIGTERM (a job scheduler's stop): exit 130, as Ctrl+C, and
+        the temporary video removed (was exit 143 and a ``.v.*.tmp.mp4`` left beside the output)."""
+        pytest.importorskip("imageio_ffmpeg")
+        import os
+        import signal
+        import subprocess
+        import sys
+        import time
+
+        run = tmp_path / "run"
+        tiny = ["--scale", "0.25", "--no-progress", "--init.max-points", "300", "--init.voxel-size", "1.0"]
+        assert (
+            main(["--threads", "1", "train", "--sample", "--out", str(run), "--iterations", "1", *tiny]) == 0
+        )
+        out = tmp_path / "videos"
+        out.mkdir()
+        argv = ["render", str(run), "--video", str(out / "v.mp4"), "--trajectory", "orbit:20000"]
+        argv += ["--max-frames", "20000", "--no-progress"]
+        root = Path(__file__).resolve().parents[2]
+        env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "vadgs.cli", "--threads", "1", *argv],
+            env=env,
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        deadline = time.monotonic() + 240
+        while not list(out.iterdir()) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)  # until the temporary video exists: frames are being written
+        assert proc.poll() is None, proc.communicate()
+        assert [p.name.endswith(".tmp.mp4") for p in out.iterdir()] == [True]
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 130, err
+        assert err.strip().splitlines()[-1] == "vadgs render: interrupted"
+        assert list(out.iterdir()) == []
