@@ -262,6 +262,31 @@ class TestCheckFullLidar:
         assert "1 of" in bad[0].message and "more than 1000 m from the sensor" in bad[0].message
         assert validate_scene(root).ok  # the headers level does not decode the sweeps
 
+    def test_without_origin_only_finiteness(self, tmp_path):
+        """A sweep without ``origin`` reads as seen from (0, 0, 0): far points are not flagged, NaN is."""
+        root = self._scene(tmp_path)
+        lidar = sorted((root / "lidar").glob("*.npz"))[0]
+        with np.load(lidar) as z:
+            pts = z["points"] + np.float32(5000.0)  # a world far from its origin
+        np.savez(lidar, points=pts)
+        assert validate_scene(root, full=True).ok
+        pts[0, 0] = np.nan
+        np.savez(lidar, points=pts)
+        bad = [r for r in validate_scene(root, full=True).rows if r.status == "error"]
+        assert len(bad) == 1 and "non-finite" in bad[0].message
+
+    def test_loader_lidar_decoded(self, tmp_path):
+        """A loaded Waymo scene (LiDAR read from the parquet files): ``full`` decodes it."""
+        root = tmp_path / "training"
+        _write_waymo(root)
+        scene = load_waymo(root, SEG)
+        report = validate_scene(scene, full=True)
+        assert report.ok and sum(r.item.startswith("lidar (frame") for r in report.rows) == 0
+        assert [r.message for r in report.rows if r.item == "lidar"] == [
+            f"{N_FRAMES} files, {N_FRAMES} points"
+        ]
+        assert not any(r.item == "lidar" for r in validate_scene(scene).rows)  # headers: not read
+
 
 def test_writer_refuses_ranges_beyond_the_top_laser(tmp_path):
     """write_waymo_segment does not write ranges that load_waymo would refuse."""
