@@ -381,10 +381,10 @@ class TestCorruptDgp:
         rng = np.random.default_rng(3)
         refused = 0
         for frac in np.linspace(0.0, 0.98, 20):
-            for n in (1, 8):
-                at = int(frac * (len(data) - n))
+            for n in (1, 8, 0):  # 0: 16 zeroed bytes
+                at = int(frac * (len(data) - max(n, 16)))
                 bad = bytearray(data)
-                bad[at : at + n] = rng.bytes(n)
+                bad[at : at + max(n, 16)] = rng.bytes(n) if n else bytes(16)
                 if bad == data:
                     continue
                 path.write_bytes(bytes(bad))
@@ -396,7 +396,7 @@ class TestCorruptDgp:
                     continue
                 for g, r in zip(got, ref):
                     torch.testing.assert_close(g, r, atol=0, rtol=0)
-        assert refused >= 30  # of 40
+        assert refused >= 45  # of 60
 
     def test_implausible_values(self, dgp):
         path = _first(dgp, "point_cloud/LIDAR/*.npz")
