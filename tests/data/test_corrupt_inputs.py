@@ -221,6 +221,24 @@ class TestCorruptWaymo:
         with pytest.raises(ValueError, match=re.escape(str(path))):
             _all_lidar(wod)
 
+    def test_decoded_image_corrupted(self, wod):
+        """A JPEG cut short inside its parquet row: the image's error names the file, row group and frame."""
+        path = wod / "camera_image" / f"{SEG}.parquet"
+        table = pq.read_table(path)
+        col = "[CameraImageComponent].image"
+        images = table.column(col).to_pylist()
+        images[3] = images[3][
+            : len(images[3]) // 3
+        ]  # row 3: frame 1's FRONT (rows: SIDE_LEFT, FRONT per frame)
+        pq.write_table(
+            table.set_column(table.schema.get_field_index(col), col, pa.array(images, pa.binary())), path
+        )
+        scene = load_waymo(wod, SEG)
+        scene.load_images([scene.view_id(0, "FRONT")])  # the others decode
+        want = rf"^{_named(path)}, row group 0, row 3: Waymo FRONT image at frame 1: not a decodable image"
+        with pytest.raises(ValueError, match=want):
+            scene.load_images([scene.view_id(1, "FRONT")])
+
     def test_cli_convert_refuses(self, wod, tmp_path, capsys):
         from vadgs.cli import main
 
