@@ -12,14 +12,16 @@ shows a command's flags. ``--threads`` and ``--debug`` go before or after the co
 - :mod:`vadgs.cli.demo`: ``demo``
 
 Errors are one line, ``vadgs COMMAND: error: ...`` naming the flag or file, with exit code 2
-(3 for a diverged run, 130 when interrupted); ``--debug`` adds the traceback.
+(3 for a diverged run, 130 when interrupted: Ctrl+C or SIGTERM); ``--debug`` adds the traceback.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import sys
+import threading
 import traceback
 from typing import Any, Protocol
 
@@ -76,6 +78,30 @@ COMMANDS: dict[str, _CommandType] = {
 _GLOBAL_FLAGS = {"--threads": 1, "--debug": 0}  # flag: the number of values it takes
 
 
+def _interrupt(_signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Any:
+    """While a command runs, SIGTERM raises ``KeyboardInterrupt``: exit 130, every ``finally`` run.
+
+    Without it SIGTERM kills the process at once (exit 143): ``render --video`` left its temporary
+    video behind. Only where nobody handles SIGTERM yet (the default), from the main thread; the
+    handlers of a command (training's stop at the end of a step) replace it while they run.
+    """
+    if threading.current_thread() is not threading.main_thread() or (
+        signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+    ):
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``vadgs`` console script: ``vadgs [--threads N] [--debug] COMMAND ...``."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -104,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         threads = (
             cmd.threads if isinstance(cmd, Command) else getattr(getattr(cmd, "train", None), "threads", 0)
         )
-        with _torch_threads(threads), _colmap_log_level(0 if debug else None):
+        with _torch_threads(threads), _colmap_log_level(0 if debug else None), _sigterm_interrupts():
             return cmd.main()
     except KeyboardInterrupt:
         if debug:

@@ -13,7 +13,11 @@
   they are read only at the end of a training run, so a fault there would otherwise surface
   after the whole run; they are a quarter of the views and decode in about a millisecond each.
 - **full** (``vadgs check SCENE --full``): also decodes every image, depth map, instance map and
-  LiDAR sweep and checks their values (finite depth and points, non-empty sweeps).
+  LiDAR sweep and checks their values (finite depth; finite points within
+  :data:`LIDAR_MAX_RANGE_M` of their sensor, :func:`check_lidar_points`), and the SfM points of a
+  COLMAP scene (finite). Sweeps a loader reads from its own files (Waymo's parquet) are decoded
+  through the scene at this level; LiDAR files that are not ``.npz`` (nuScenes' ``.pcd.bin``) at
+  both levels.
 
 The single checks (:func:`check_intrinsics`, :func:`check_rigid`, :func:`check_split`) are also
 what the readers run on the metadata they parse. Imports go one way: :mod:`vadgs.data.scene` ←
@@ -42,10 +46,12 @@ from vadgs.data.images import SUPPORTED_MODES, read_image
 from vadgs.data.scene import Scene, npz_headers, read_depth
 
 __all__ = [
+    "LIDAR_MAX_RANGE_M",
     "RIGID_TOLERANCE",
     "ValidationReport",
     "ValidationRow",
     "check_intrinsics",
+    "check_lidar_points",
     "check_png",
     "check_rigid",
     "check_scene",
@@ -55,6 +61,10 @@ __all__ = [
 #: Absolute tolerance on ``R^T R - I``, ``det R - 1`` and the last row of a rigid transform.
 #: Poses stored with 6 decimals are off by about 1e-6; a 1 % scale is off by 0.02.
 RIGID_TOLERANCE = 1e-3
+#: No LiDAR point lies farther from its sensor (metres): the longest-range automotive sensors
+#: reach 250-500 m. A point beyond is what a corrupt file decodes into (random float32 bytes are
+#: up to 3.4e38).
+LIDAR_MAX_RANGE_M = 1000.0
 _INSTANCE_MODES = ("I;16", "I;16B", "I;16L", "I", "L")  # what an instance map's PNG may hold
 
 
@@ -254,9 +264,12 @@ def _check_depth(path: Path, size: tuple[int, int], scale: float, full: bool) ->
         read_depth(path)
 
 
-def _lidar_count(path: Path) -> int:
+def _lidar_count(path: Path) -> int | None:
+    """The point count from an ``.npz``'s headers; None for another format (decoded instead)."""
     if not path.is_file():
         raise FileNotFoundError(path)
+    if path.suffix != ".npz":
+        return None
     heads = npz_headers(path)
     if "points" in heads:  # the benchmark format
         shape, dtype = heads["points"]
@@ -358,22 +371,27 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
             how = "decoded" if full else ("headers" if kind != "depth" else "headers; test views decoded")
             col.rows.append(ValidationRow(kind, "", "ok", f"{n} files ({how})"))
 
-    lidar = [(f.index, f.lidar) for f in scene.frames if f.lidar is not None]
+    # frames whose LiDAR is a file, and (full) those a loader reads from its own files (Waymo)
+    lidar: list[tuple[int, Path | None]] = [
+        (f.index, f.lidar)
+        for f in scene.frames
+        if f.lidar is not None or (full and scene.lidar_loader is not None)
+    ]
     if lidar:
         total, good = 0, 0
         for frame, p in lidar:
             box: dict[str, int] = {}
 
-            def one(frame: int = frame, p: Path = p, box: dict = box) -> None:
-                box["n"] = _lidar_count(p)
-                if full:
+            def one(frame: int = frame, p: Path | None = p, box: dict = box) -> None:
+                n = _lidar_count(p) if p is not None else None
+                if full or n is None:
                     lf = scene.lidar(frame)
-                    bad = ~torch.isfinite(lf.points)
-                    if bool(bad.any()):
-                        raise ValueError(
-                            f"points: expected finite values, got {int(bad.any(-1).sum())} non-finite points "
-                            f"of {len(lf.points)}"
-                        )
+                    n = len(lf.points)
+                    # a benchmark .npz without 'origin' reads as (0, 0, 0): its distances mean nothing
+                    heads = npz_headers(p) if p is not None and p.suffix == ".npz" else {}
+                    has_origin = "points" not in heads or "origin" in heads
+                    check_lidar_points(lf.points, lf.origin if has_origin else None)
+                box["n"] = n
 
             if col.run(f"lidar (frame {frame})", p, one):
                 good += 1
@@ -386,7 +404,55 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
                 ))  # fmt: skip
             else:
                 col.rows.append(ValidationRow("lidar", "", "ok", f"{len(lidar)} files, {total} points"))
+    if full and scene.sfm_points is not None:
+
+        def sfm(pts: torch.Tensor = scene.sfm_points.points) -> str:
+            bad = ~torch.isfinite(pts)
+            if bool(bad.any()):
+                raise ValueError(
+                    f"expected finite points, got {int(bad.any(-1).sum())} non-finite of {len(pts)}"
+                )
+            return f"{len(pts)} points"
+
+        col.run("sfm_points", None, sfm)
     return ValidationReport(name, tuple(col.rows), full)
+
+
+def check_lidar_points(
+    points: torch.Tensor,
+    origin: torch.Tensor | None,
+    what: str = "points",
+    max_range: float = LIDAR_MAX_RANGE_M,
+) -> None:
+    """Raise a :class:`ValueError` if a sweep has non-finite points or points beyond ``max_range``.
+
+    Args:
+        points: ``(N, 3)`` points.
+        origin: ``(3,)`` the sensor's position in the same frame, or None (only finiteness is
+            checked: a world frame may lie anywhere).
+        what: what the error calls the points.
+        max_range: metres (:data:`LIDAR_MAX_RANGE_M`).
+
+    Example:
+        >>> check_lidar_points(torch.tensor([[1.0, 2.0, 3.0], [2.5e38, 0.0, 0.0]]), torch.zeros(3))
+        Traceback (most recent call last):
+        ...
+        ValueError: points: 1 of 2 points lie more than 1000 m from the sensor (up to 2.5e+38 m); ...
+    """
+    bad = ~torch.isfinite(points)
+    if bool(bad.any()):
+        raise ValueError(
+            f"{what}: expected finite values, got {int(bad.any(-1).sum())} non-finite points of {len(points)}"
+        )
+    if origin is None or len(points) == 0:
+        return
+    dist = torch.linalg.vector_norm(points.double() - origin.double(), dim=-1)
+    far = dist > max_range
+    if bool(far.any()):
+        raise ValueError(
+            f"{what}: {int(far.sum())} of {len(points)} points lie more than {max_range:g} m from the sensor "
+            f"(up to {float(dist.max()):.3g} m); the file is corrupt"
+        )
 
 
 def check_split(frames: list[int], frame_ids: list[int], what: str) -> None:

@@ -77,7 +77,8 @@ def check_reconstruction(rec: pycolmap.Reconstruction, sparse_dir: Path) -> None
     Raises:
         ValueError: naming the model folder and the image or camera: an unsafe or duplicate image
             name, a non-finite pose, a quaternion that is not of unit norm (zero), an image of an
-            unknown camera, a camera of non-positive size or with non-finite parameters.
+            unknown camera, a camera of non-positive size or with non-finite parameters, a 3D
+            point with non-finite coordinates (named with the ``points3D`` file).
     """
     for cid, cam in rec.cameras.items():
         params = np.asarray(cam.params, dtype=np.float64)
@@ -115,6 +116,13 @@ def check_reconstruction(rec: pycolmap.Reconstruction, sparse_dir: Path) -> None
                 f"{what} {im.name!r}: cam_from_world: expected a unit quaternion, got {q.tolist()} "
                 f"(norm {norm:.4g})"
             )
+    pids = sorted(rec.point3D_ids()) if hasattr(rec, "point3D_ids") else sorted(rec.points3D)
+    for pid in pids:
+        xyz = np.asarray(rec.points3D[pid].xyz, dtype=np.float64)
+        if not np.isfinite(xyz).all():
+            found = [p for p in (sparse_dir / "points3D.bin", sparse_dir / "points3D.txt") if p.is_file()]
+            where = found[0] if found else sparse_dir
+            raise ValueError(f"{where}: point {pid}: expected finite coordinates, got {xyz.tolist()}")
 
 
 def check_colmap_images(rec: pycolmap.Reconstruction, images_dir: Path, full: bool = True) -> None:

@@ -60,7 +60,8 @@ from vadgs.data.assemble import (
     file_image_loader,
     pinhole_camera,
 )
-from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
+from vadgs.data.checks import check_lidar_points
+from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, npz_headers
 from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
 from vadgs.deprecation import moved_names
 
@@ -398,12 +399,23 @@ def load_dgp(
 
     def read_lidar(frame: int, path: Path) -> LidarFrame:
         sensor_to_world = lidar_to_world[frame]
-        with np.load(path) as z:
-            if "data" not in z:
-                raise ValueError(f"DGP point cloud {path}: missing key 'data'")
-            raw = np.asarray(z["data"], dtype=np.float64)
+        npz_headers(path)  # a clear error for a file that is not an .npz (0 bytes, truncated)
+        try:
+            with np.load(path) as z:
+                if "data" not in z:
+                    raise ValueError(f"DGP point cloud {path}: missing key 'data'")
+                raw = np.asarray(z["data"], dtype=np.float64)
+        except ValueError as e:
+            if str(path) in str(e):
+                raise
+            raise ValueError(f"DGP point cloud {path}: corrupt archive ({type(e).__name__}: {e})") from None
+        except Exception as e:  # zlib.error, BadZipFile (a CRC-32 mismatch), EOFError on a corrupt member
+            raise ValueError(f"DGP point cloud {path}: corrupt archive ({type(e).__name__}: {e})") from None
         if raw.ndim != 2 or raw.shape[1] < 3:
             raise ValueError(f"DGP point cloud {path}: expected (N, >=3) X, Y, Z, ..., got {raw.shape}")
+        check_lidar_points(
+            torch.from_numpy(raw[:, :3]), torch.zeros(3, dtype=torch.float64), f"DGP point cloud {path}"
+        )
         world = raw[:, :3] @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
         return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 

@@ -27,19 +27,33 @@ naming the file, the mode and the modes read.
 **Orientation.** :func:`read_image` returns the *stored* pixel grid and ignores an EXIF orientation
 tag, as COLMAP does: the cameras of a COLMAP model are those of the stored grid. ``vadgs sfm``
 turns rotated photos upright when it copies them into its project (:func:`upright_image`), and
-loading a COLMAP project whose images carry a rotation warns (:func:`exif_orientation`).
+loading a COLMAP project whose images carry a rotation warns (:func:`exif_orientation`). A tag
+outside 1–8 (0, 9, ...) is taken as 1 (upright: the pixels as stored) with a warning naming the
+photo, by all three (:func:`exif_orientation_tag`); PIL's warnings about a corrupt EXIF block are
+re-issued naming the photo (:func:`warnings_naming`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 from PIL import Image, ImageOps
 
-__all__ = ["SUPPORTED_MODES", "decode_image", "exif_orientation", "read_image", "upright_image"]
+__all__ = [
+    "SUPPORTED_MODES",
+    "decode_image",
+    "exif_orientation",
+    "exif_orientation_tag",
+    "read_image",
+    "upright_image",
+    "warnings_naming",
+]
 
 #: The PIL modes :func:`read_image` reads (see the module docstring for how).
 SUPPORTED_MODES = (
@@ -145,7 +159,7 @@ def decode_image(data: bytes, name: str) -> np.ndarray:
 
 def _decode(source: Path | IO[bytes], name: object, nbytes: int) -> np.ndarray:
     try:
-        with Image.open(source) as im:
+        with warnings_naming(name), Image.open(source) as im:
             im.load()
             return _as_rgb(im, name)
     except ValueError as e:
@@ -161,6 +175,60 @@ def _undecodable(name: object, nbytes: int, e: BaseException) -> ValueError:
     return ValueError(f"{name}: not a decodable image ({what})")
 
 
+@contextlib.contextmanager
+def warnings_naming(name: object) -> Iterator[None]:
+    """Re-issue the warnings raised inside the block with ``name`` first (PIL's name no file).
+
+    PIL warns ``Corrupt EXIF data.  Expecting to read 12 bytes but only got 10.`` for a photo whose
+    EXIF block is damaged; inside this block the warning reads ``<name>: Corrupt EXIF data. ...``.
+
+    Example:
+        >>> with warnings.catch_warnings(record=True) as w:
+        ...     warnings.simplefilter("always")
+        ...     with warnings_naming("a.jpg"):
+        ...         warnings.warn("Corrupt EXIF data.")
+        >>> str(w[0].message)
+        'a.jpg: Corrupt EXIF data.'
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        text = str(w.message).strip()
+        warnings.warn(text if text.startswith(f"{name}: ") else f"{name}: {text}", w.category, stacklevel=3)
+
+
+def exif_orientation_tag(exif: Image.Exif, name: object) -> int:
+    """The orientation tag of an EXIF block: 1–8 (1 when absent); any other value is taken as 1.
+
+    A value outside 1–8 (0, 9, text) names no rotation: it is taken as upright (the pixels as
+    stored) and a warning naming ``name`` says so.
+
+    Example:
+        >>> exif = Image.Exif()
+        >>> exif[0x0112] = 9
+        >>> with warnings.catch_warnings(record=True) as w:
+        ...     warnings.simplefilter("always")
+        ...     exif_orientation_tag(exif, "a.jpg")
+        1
+        >>> str(w[0].message)
+        'a.jpg: EXIF orientation 9 is not one of 1-8: taken as 1 (upright, the pixels as stored)'
+    """
+    raw = exif.get(_EXIF_ORIENTATION, 1)
+    try:
+        value = int(raw) if raw is not None else 1
+    except (TypeError, ValueError):
+        value = 0
+    if 1 <= value <= 8:
+        return value
+    warnings.warn(
+        f"{name}: EXIF orientation {raw!r} is not one of 1-8: taken as 1 (upright, the pixels as stored)",
+        UserWarning,
+        stacklevel=2,
+    )
+    return 1
+
+
 def exif_orientation(path: str | Path) -> int:
     """The EXIF orientation tag of an image file (1–8; 1, as stored, when absent or unreadable).
 
@@ -174,11 +242,10 @@ def exif_orientation(path: str | Path) -> int:
         6
     """
     try:
-        with Image.open(path) as im:
-            value = int(im.getexif().get(_EXIF_ORIENTATION, 1) or 1)
+        with warnings_naming(path), Image.open(path) as im:
+            return exif_orientation_tag(im.getexif(), path)
     except (*_DECODE_ERRORS, TypeError):
         return 1
-    return value if 1 <= value <= 8 else 1
 
 
 def upright_image(src: str | Path, dst: str | Path) -> int:
@@ -201,9 +268,9 @@ def upright_image(src: str | Path, dst: str | Path) -> int:
         (6, (2, 4))
     """
     src, dst = Path(src), Path(dst)
-    with Image.open(src) as im:
-        orientation = int(im.getexif().get(_EXIF_ORIENTATION, 1) or 1)
-        if orientation == 1 or not 1 <= orientation <= 8:
+    with warnings_naming(src), Image.open(src) as im:
+        orientation = exif_orientation_tag(im.getexif(), src)
+        if orientation == 1:
             return 1
         fmt = im.format
         icc = im.info.get("icc_profile")

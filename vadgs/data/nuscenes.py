@@ -64,6 +64,7 @@ from vadgs.data._tracks import (
     select_positions,
 )
 from vadgs.data.assemble import assemble_scene, check_scale, file_image_loader
+from vadgs.data.checks import check_lidar_points
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
 from vadgs.geometry.camera import scale_intrinsics
@@ -404,11 +405,16 @@ def load_nuscenes(
     def read_lidar(frame: int, path: Path) -> LidarFrame:
         sensor_to_world = lidar_to_world[frame]
         data = np.fromfile(path, dtype=np.float32)
-        if data.size % 5:
+        if data.size == 0 or data.size % 5:
+            got = "an empty file (0 bytes)" if data.size == 0 else f"{path.stat().st_size} bytes"
             raise ValueError(
-                f"nuScenes LiDAR {path}: expected float32 x, y, z, intensity, ring (5 per point)"
+                f"nuScenes LiDAR {path}: expected float32 x, y, z, intensity, ring (5 per point, "
+                f"20 bytes), got {got}: truncated or not a sweep"
             )
         local = data.reshape(-1, 5)[:, :3].astype(np.float64)
+        check_lidar_points(
+            torch.from_numpy(local), torch.zeros(3, dtype=torch.float64), f"nuScenes LiDAR {path}"
+        )
         world = local @ sensor_to_world[:3, :3].T + sensor_to_world[:3, 3]
         return labelled_lidar(world, sensor_to_world[:3, 3], boxes, frame)
 

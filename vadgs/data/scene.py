@@ -527,7 +527,7 @@ def npz_headers(path: str | Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]
                     )
                     shape, _, dtype = read(f)
                 out[name[: -len(".npy")]] = (tuple(shape), dtype)
-    except (OSError, zipfile.BadZipFile, ValueError, EOFError) as e:
+    except (OSError, zipfile.BadZipFile, ValueError, EOFError, NotImplementedError, RuntimeError) as e:
         size = path.stat().st_size if path.is_file() else None
         what = "an empty file (0 bytes)" if size == 0 else f"{type(e).__name__}: {e}"
         raise ValueError(f"{path}: not a readable .npz archive ({what})") from None

@@ -65,7 +65,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 from PIL import Image
 
-from vadgs.data.images import read_image, upright_image
+from vadgs.data.images import exif_orientation_tag, read_image, upright_image, warnings_naming
 from vadgs.runfolder import SFM_FORMAT, is_sfm_project
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
@@ -75,16 +75,24 @@ __all__ = [
     "CAMERA_MODES",
     "EXHAUSTIVE_MAX",
     "MATCHERS",
+    "OTHER_PHOTO_SUFFIXES",
     "PHOTO_SUFFIXES",
     "SEQUENTIAL_OVERLAP",
     "SfmResult",
     "find_photos",
     "photo_groups",
     "run_sfm",
+    "unsupported_photos",
 ]
 
 #: The photo files :func:`find_photos` takes (case-insensitive): what both COLMAP and PIL read.
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+#: Photo files :func:`find_photos` leaves out (COLMAP's image reader does not take them) and
+#: :func:`run_sfm` names in one line, with :func:`unsupported_photos`.
+OTHER_PHOTO_SUFFIXES = (
+    ".webp", ".avif", ".heic", ".heif", ".gif", ".jxl", ".jp2",
+    ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raw",
+)  # fmt: skip
 
 #: ``matcher="auto"`` matches every pair up to this many photos, else sequentially.
 EXHAUSTIVE_MAX = 100
@@ -104,7 +112,6 @@ CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE
 #: What :func:`run_sfm` writes into the project (and ``overwrite`` replaces).
 PROJECT_ENTRIES = ("images", "sparse", "database.db", "sfm.json")
 
-_EXIF_ORIENTATION = 0x0112
 _EXIF_CAMERA = (0x010F, 0x0110)  # Make, Model (IFD0)
 _EXIF_FOCAL = 0x920A  # FocalLength (Exif IFD)
 
@@ -161,20 +168,56 @@ def find_photos(folder: str | Path) -> list[str]:
     if not folder.is_dir():
         raise FileNotFoundError(f"PHOTOS {folder}: no such folder")
     names, other = [], 0
-    for path in sorted(folder.rglob("*")):
-        rel = path.relative_to(folder)
-        if any(part.startswith(".") for part in rel.parts) or not path.is_file():
-            continue
-        if path.suffix.lower() in PHOTO_SUFFIXES:
+    for rel in _visible_files(folder):
+        if rel.suffix.lower() in PHOTO_SUFFIXES:
             names.append(rel.as_posix())
         else:
             other += 1
     if not names:
+        left = unsupported_photos(folder)
+        also = f"; {_left_out(left)}" if left else ""
         raise ValueError(
             f"PHOTOS {folder}: expected photos ({', '.join(PHOTO_SUFFIXES)}), got none "
-            f"({other} other file(s))"
+            f"({other} other file(s)){also}"
         )
     return names
+
+
+def _visible_files(folder: Path) -> list[Path]:
+    """The files under ``folder`` (relative), hidden ones and those in hidden folders left out."""
+    out = []
+    for path in sorted(folder.rglob("*")):
+        rel = path.relative_to(folder)
+        if not any(part.startswith(".") for part in rel.parts) and path.is_file():
+            out.append(rel)
+    return out
+
+
+def unsupported_photos(folder: str | Path) -> list[str]:
+    """The photos in ``folder`` that :func:`find_photos` leaves out (:data:`OTHER_PHOTO_SUFFIXES`).
+
+    Example:
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp())
+        >>> for name in ("a.jpg", "b.webp", "c.HEIC", "notes.txt"):
+        ...     _ = (d / name).write_bytes(b"")
+        >>> unsupported_photos(d)
+        ['b.webp', 'c.HEIC']
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return [r.as_posix() for r in _visible_files(folder) if r.suffix.lower() in OTHER_PHOTO_SUFFIXES]
+
+
+def _left_out(names: Sequence[str]) -> str:
+    """One line naming the photos of formats that vadgs sfm does not take."""
+    kinds = sorted({Path(n).suffix.lower() for n in names})
+    shown = ", ".join(names[:5]) + (f", ... ({len(names) - 5} more)" if len(names) > 5 else "")
+    return (
+        f"left out {len(names)} photo(s) in formats vadgs sfm does not take ({', '.join(kinds)}): {shown}; "
+        "convert them to JPEG or PNG to use them"
+    )
 
 
 class _PhotoHeader(NamedTuple):
@@ -185,11 +228,11 @@ class _PhotoHeader(NamedTuple):
 
 def _read_header(path: Path) -> _PhotoHeader:
     try:
-        with Image.open(path) as im:
+        with warnings_naming(path), Image.open(path) as im:
             exif = im.getexif()
             focal = exif.get_ifd(0x8769).get(_EXIF_FOCAL, "")
             camera = (*(str(exif.get(tag, "")).strip() for tag in _EXIF_CAMERA), str(focal))
-            return _PhotoHeader(im.size, camera, int(exif.get(_EXIF_ORIENTATION, 1) or 1))
+            return _PhotoHeader(im.size, camera, exif_orientation_tag(exif, path))
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise ValueError(f"PHOTOS: {path} is not a readable photo ({type(e).__name__}: {e})") from None
 
@@ -489,6 +532,9 @@ def run_sfm(
     if int(threads) < 0:
         raise ValueError(f"threads: expected >= 0 (0: all cores), got {threads}")
     names = find_photos(photos)
+    left = unsupported_photos(photos)
+    if left:
+        say(f"PHOTOS {photos}: {_left_out(left)}")
     _check_out_outside(photos, out)
     if len(names) < 2:
         raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)} ({names[0]})")

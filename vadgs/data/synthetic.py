@@ -33,6 +33,7 @@ import numpy as np
 from PIL import Image
 
 from vadgs.checks import check_fields, choice_field, float_field, int_field
+from vadgs.data.assemble import MAX_IMAGE_PIXELS
 
 __all__ = ["RIG", "SegmentConfig", "check_segment_folder", "make_segment"]
 
@@ -73,13 +74,18 @@ class SegmentConfig:
             oncoming.
         parked_cars: static cars on the parking strips.
         signs: traffic signs; boards at 5.3–6.3 m, above every beam of the LiDAR within range.
-        seed: the random layout (building sizes and colours, car colours, sign places).
+        seed: the random layout (building sizes and colours, car colours, sign places), >= 0.
         speed: ego speed in m/s.
         rate_hz: frame rate.
         image_format: ``"jpg"`` or ``"png"``.
-        jpeg_quality: JPEG quality.
+        jpeg_quality: JPEG quality (1-100).
         lidar_beams: beams of the spinning LiDAR.
-        lidar_vfov: its vertical field of view ``(min, max)`` in degrees.
+        lidar_vfov: its vertical field of view ``(min, max)`` in degrees, ``-90 <= min < max <= 90``.
+
+    Sizes are bounded so that a typo fails here rather than as an allocation of gigabytes: each
+    image at most :data:`~vadgs.data.assemble.MAX_IMAGE_PIXELS` pixels, ``lidar_points`` at most
+    :data:`MAX_SEGMENT_LIDAR_POINTS`, ``lidar_beams`` 4096, ``frames`` 100,000, 1000 objects of a
+    kind, ``speed`` 100 m/s, ``lidar_range`` 1000 m.
         lidar_range: its range in metres.
     """
 
@@ -104,6 +110,13 @@ class SegmentConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, _SEGMENT_FIELDS)
+        for name in ("height", "side_height"):
+            h = getattr(self, name)
+            if h is not None and h * self.width > MAX_IMAGE_PIXELS:
+                raise ValueError(
+                    f"width, {name}: {self.width}x{h} is {h * self.width} pixels per image; expected at "
+                    f"most {MAX_IMAGE_PIXELS} (the largest image the loaders read)"
+                )
 
     @property
     def camera_names(self) -> list[str]:
@@ -121,18 +134,45 @@ class SegmentConfig:
 # the world: boxes with a bottom-centre origin
 
 
+#: The most LiDAR points per frame :func:`make_segment` casts (about 1.6 rays each): 25 Waymo
+#: TOP sweeps, 6.4M rays, about 0.5 GB of ray arrays.
+MAX_SEGMENT_LIDAR_POINTS = 4_000_000
+#: The most objects of each kind (moving cars, parked cars, signs).
+MAX_SEGMENT_OBJECTS = 1000
+
+
+def _vfov(name: str, value: Any) -> tuple[float, float]:
+    """``(min, max)`` elevation in degrees: two finite numbers, ``-90 <= min < max <= 90``."""
+    try:
+        lo, hi = (float_field(-90, 90)(name, v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name}: expected (min, max) degrees with -90 <= min < max <= 90, got {value!r}"
+        ) from None
+    if not lo < hi:
+        raise ValueError(f"{name}: expected (min, max) degrees with min < max, got {value!r}")
+    return (lo, hi)
+
+
 _SEGMENT_FIELDS = {
-    **{name: int_field(1) for name in ("frames", "width", "height", "lidar_points", "lidar_beams")},
+    "frames": int_field(1, 100_000),
+    **{name: int_field(1, 1 << 16) for name in ("width", "height")},
+    "lidar_points": int_field(1, MAX_SEGMENT_LIDAR_POINTS),
+    "lidar_beams": int_field(1, 4096),
     "cameras": int_field(1, len(RIG)),
-    "side_height": int_field(1, optional=True),
-    **{name: int_field(0) for name in ("moving_cars", "parked_cars", "signs")},
+    "side_height": int_field(1, 1 << 16, optional=True),
+    **{name: int_field(0, MAX_SEGMENT_OBJECTS) for name in ("moving_cars", "parked_cars", "signs")},
+    "seed": int_field(0, 2**63 - 1),
     "image_format": choice_field(("jpg", "png")),
+    "jpeg_quality": int_field(1, 100),
     "hfov_deg": float_field(0, 170, lo_open=True, hi_open=True),
-    "speed": float_field(0),
-    "rate_hz": float_field(0, lo_open=True),
-    "lidar_range": float_field(0, lo_open=True),
+    "speed": float_field(0, 100),
+    "rate_hz": float_field(0, 1000, lo_open=True),
+    "lidar_vfov": _vfov,
+    "lidar_range": float_field(0, 1000, lo_open=True),
 }
-"""The check of each :class:`SegmentConfig` field (:func:`vadgs.checks.check_fields`)."""
+"""The check of each :class:`SegmentConfig` field (:func:`vadgs.checks.check_fields`); every image
+also at most :data:`~vadgs.data.assemble.MAX_IMAGE_PIXELS` (what the loaders read)."""
 
 
 class _Boxes(NamedTuple):

@@ -54,8 +54,9 @@ How Waymo maps to vadgs:
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -77,7 +78,13 @@ from vadgs.data.assemble import assemble_scene, check_scale, pinhole_camera
 from vadgs.data.images import decode_image
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo
 from vadgs.data.undistort import ImageUndistorter
-from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_range_image_to_points
+from vadgs.data.waymo_lidar import (
+    WAYMO_MAX_RANGE_M,
+    waymo_beam_inclinations,
+    waymo_check_pixel_pose,
+    waymo_check_range_image,
+    waymo_range_image_to_points,
+)
 
 __all__ = [
     "WAYMO_BOX_TYPES",
@@ -94,6 +101,7 @@ __all__ = [
     "WAYMO_VEHICLE_POSE",
     "WaymoPoses",
     "load_waymo",
+    "parquet_error",
     "pyarrow_parquet",
     "read_waymo_poses",
     "waymo_camera_name",
@@ -167,49 +175,162 @@ def _matrix(value: object, what: str) -> np.ndarray:
     return m.reshape(4, 4)
 
 
+def parquet_error(path: Path, e: BaseException, at: str = "") -> ValueError:
+    """The error for a parquet file that pyarrow cannot read: names the file (and ``at``) and says why.
+
+    Example:
+        >>> str(parquet_error(Path("x.parquet"), OSError("Parquet magic bytes not found")))
+        'x.parquet: not a readable parquet file, truncated or corrupt (OSError: Parquet magic bytes ...)'
+    """
+    try:
+        empty = path.stat().st_size == 0
+    except OSError:
+        empty = False
+    what = "an empty file (0 bytes)" if empty else f"{type(e).__name__}: {e}"
+    return ValueError(f"{path}{at}: not a readable parquet file, truncated or corrupt ({what})")
+
+
+@contextlib.contextmanager
+def _reading(path: Path, at: str = "") -> Iterator[None]:
+    """Turn pyarrow's errors while reading ``path`` into :func:`parquet_error` (naming the file)."""
+    try:
+        yield
+    except Exception as e:
+        import pyarrow as pa  # imported by pyarrow_parquet() before any read
+
+        if isinstance(e, (pa.ArrowException, OSError, ValueError)):
+            raise parquet_error(path, e, at) from e
+        raise
+
+
 class _Component:
-    """One component file of one segment: its path, and columns read on demand."""
+    """One component file of one segment: its path, and columns read on demand.
+
+    Every read verifies the pages' CRC checksums where the file has them
+    (:func:`~vadgs.data.waymo_writer.write_waymo_segment` writes them), and a file pyarrow cannot
+    read is a ``ValueError`` naming it.
+    """
 
     def __init__(self, pq, dataset_dir: Path, name: str, segment: str, required: bool = True):
-        self.pq, self.name = pq, name
+        self.pq, self.name, self.segment = pq, name, segment
         self.path = dataset_dir / name / f"{segment}.parquet"
         self.exists = self.path.is_file()
+        self._file = None
+        self._index: dict[tuple[int, int], tuple[int, int]] | None = None
         if required and not self.exists:
             raise FileNotFoundError(f"Waymo component {name!r}: missing file {self.path}")
 
+    @property
+    def where(self) -> str:
+        """``Waymo component 'lidar' (<path>)``: how errors name the file."""
+        return f"Waymo component {self.name!r} ({self.path})"
+
+    def parquet_file(self):
+        """The ``pyarrow.parquet.ParquetFile`` (opened once)."""
+        if self._file is None:
+            with _reading(self.path):
+                self._file = self.pq.ParquetFile(self.path, page_checksum_verification=True)
+        return self._file
+
+    def names(self) -> set[str]:
+        """The file's column names."""
+        return set(self.parquet_file().schema_arrow.names)
+
+    def read_row_group(self, rg: int, columns: Sequence[str], at: str = ""):
+        """Row group ``rg``'s ``columns`` as a pyarrow table (``at``: more for the error, e.g. the frame)."""
+        with _reading(self.path, f", row group {rg}{at}"):
+            return self.parquet_file().read_row_group(rg, columns=list(columns))
+
     def read_table(self, columns: Sequence[str], optional: Sequence[str] = (), filters=None):
         """The pyarrow table of ``columns`` (each required) and those of ``optional`` the file has."""
-        names = set(self.pq.read_schema(self.path).names)
+        names = self.names()
         missing = [c for c in columns if c not in names]
         if missing:
             raise ValueError(f"Waymo component {self.name!r} ({self.path.name}): missing column(s) {missing}")
         cols = list(columns) + [c for c in optional if c in names]
-        return self.pq.read_table(self.path, columns=cols, filters=filters)
+        with _reading(self.path):
+            return self.pq.read_table(
+                self.path, columns=cols, filters=filters, page_checksum_verification=True
+            )
 
     def read(self, columns: Sequence[str], optional: Sequence[str] = (), filters=None) -> dict[str, list]:
         """Column name → Python values (None for an absent optional column), as ``read_table``."""
         table = self.read_table(columns, optional, filters)
-        out = table.to_pydict()
+        with _reading(self.path):
+            out = table.to_pydict()
         return {c: out.get(c, [None] * table.num_rows) for c in [*columns, *optional]}
 
-    def range_images(self, component: str, filters) -> dict[int, np.ndarray]:
-        """``key.laser_name`` → the ``(H, W, C)`` float32 first-return range image of the matching rows.
+    def range_image_rows(self) -> dict[tuple[int, int], tuple[int, int]]:
+        """``(key.frame_timestamp_micros, key.laser_name)`` → ``(row group, row)`` of the segment's rows."""
+        if self._index is None:
+            names = self.names()
+            missing = [c for c in (_SEG, _TS, _LASER) if c not in names]
+            if missing:
+                raise ValueError(f"{self.where}: missing column(s) {missing}")
+            self._index = {}
+            for rg in range(self.parquet_file().num_row_groups):
+                d = self.read_row_group(rg, [_SEG, _TS, _LASER]).to_pydict()
+                for r, (seg, ts, laser) in enumerate(zip(d[_SEG], d[_TS], d[_LASER])):
+                    if seg == self.segment and ts is not None and laser is not None:
+                        key = (int(ts), int(laser))
+                        if key in self._index:
+                            raise ValueError(
+                                f"{self.where}: two range images of laser {laser} at timestamp {ts} µs "
+                                f"(row group {self._index[key][0]} row {self._index[key][1]}, row group {rg} "
+                                f"row {r}); the file is corrupt"
+                            )
+                        self._index[key] = (rg, r)
+        return self._index
+
+    def range_images(
+        self, component: str, ts: int, frame: int, lasers: Sequence[int], channels: int | None = None
+    ) -> dict[int, tuple[np.ndarray, str]]:
+        """``key.laser_name`` → ``(image, where)``: a frame's range images of ``lasers`` the file has.
+
+        ``image`` is the ``(H, W, C)`` float32 first-return range image of frame ``frame``
+        (timestamp ``ts``), ``where`` names the file, row group, row, frame and laser for the
+        errors about it.
 
         The values stay in numpy (a range image is ~700k floats: no Python list of them).
+
+        Raises:
+            ValueError: naming the file, row group, frame and laser: a shape that is not three
+                positive sizes (``C == channels`` if given), or a value count that differs from it.
         """
         values, shape = _columns(component, *_RANGE_IMAGE)
-        table = self.read_table([_LASER, values, shape], filters=filters)
-        out = {}
-        for laser, vals, shp in zip(
-            table.column(_LASER).to_pylist(), table.column(values), table.column(shape).to_pylist()
-        ):
-            if vals.is_valid and shp is not None:
-                flat = vals.values.to_numpy(zero_copy_only=False)
-                if flat.size != int(np.prod(shp)):
+        names = self.names()
+        missing = [c for c in (values, shape) if c not in names]
+        if missing:
+            raise ValueError(f"{self.where}: missing column(s) {missing}")
+        rows = {k: self.range_image_rows().get((ts, k)) for k in lasers}
+        out: dict[int, tuple[np.ndarray, str]] = {}
+        for rg in sorted({v[0] for v in rows.values() if v is not None}):
+            table = self.read_row_group(rg, [values, shape], f" (frame {frame}, timestamp {ts} µs)")
+            for laser, at in rows.items():
+                if at is None or at[0] != rg:
+                    continue
+                r = at[1]
+                name = WAYMO_LASERS.get(laser, str(laser))
+                where = (
+                    f"{self.where}, row group {rg}, row {r} (frame {frame}, timestamp {ts} µs, laser {name})"
+                )
+                vals, shp = table.column(values)[r], table.column(shape)[r].as_py()
+                if not vals.is_valid or shp is None:
+                    raise ValueError(f"{where}: no range image (null values or shape)")
+                if (
+                    len(shp) != 3
+                    or any(v is None or v <= 0 for v in shp)
+                    or (channels is not None and shp[2] != channels)
+                ):
+                    want = f"(H, W, {channels})" if channels is not None else "(H, W, C)"
                     raise ValueError(
-                        f"Waymo component {self.name!r}: a range image of shape {shp} has {flat.size} values"
+                        f"{where}: expected a range image shape {want} of positive sizes, got {shp}"
                     )
-                out[int(laser)] = flat.reshape(shp)
+                with _reading(self.path):
+                    flat = vals.values.to_numpy(zero_copy_only=False)
+                if flat.size != int(np.prod(shp)):
+                    raise ValueError(f"{where}: a range image of shape {shp} has {flat.size} values")
+                out[laser] = (flat.reshape(shp), where)
         return out
 
 
@@ -414,17 +535,14 @@ def load_waymo(
     cols = [_SEG, _TS, _CAM, f"{_CI}.pose.transform"]
     image_rows: dict[tuple[int, int], tuple[int, int]] = {}  # (frame, camera id) -> (row group, row)
     image_pose: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
-    pf = pq.ParquetFile(ci.path)
-    names = set(pf.schema_arrow.names)
+    names = ci.names()
     missing = [c for c in [*cols, f"{_CI}.image"] if c not in names]
     if missing:
         raise ValueError(f"Waymo component 'camera_image' ({ci.path.name}): missing column(s) {missing}")
     wanted_ids = {cam_id[n] for n in cam_names}
     has_pose_ts = f"{_CI}.pose_timestamp" in names
-    for rg in range(pf.num_row_groups):
-        d = pf.read_row_group(
-            rg, columns=cols + ([f"{_CI}.pose_timestamp"] if has_pose_ts else [])
-        ).to_pydict()
+    for rg in range(ci.parquet_file().num_row_groups):
+        d = ci.read_row_group(rg, cols + ([f"{_CI}.pose_timestamp"] if has_pose_ts else [])).to_pydict()
         for r, (seg, ts, cam_value) in enumerate(zip(d[_SEG], d[_TS], d[_CAM])):
             fi = frame_of.get(int(ts))
             if seg != segment or fi is None:
@@ -457,11 +575,15 @@ def load_waymo(
 
     @functools.lru_cache(maxsize=2)
     def row_group_images(rg: int) -> list:
-        return pf.read_row_group(rg, columns=[f"{_CI}.image"]).column(0).to_pylist()
+        return ci.read_row_group(rg, [f"{_CI}.image"]).column(0).to_pylist()
 
     def image_loader(view: ViewInfo) -> torch.Tensor:
         rg, r = image_rows[(view.frame, cam_id[view.camera])]
-        arr = decode_image(row_group_images(rg)[r], f"Waymo {view.camera} image at frame {view.frame}")
+        data = row_group_images(rg)[r]
+        where = f"{ci.where}, row group {rg}, row {r}: Waymo {view.camera} image at frame {view.frame}"
+        if data is None:
+            raise ValueError(f"{where}: no image (null)")
+        arr = decode_image(data, where)
         w, h = full_size[view.camera]
         if arr.shape[:2] != (h, w):
             raise ValueError(
@@ -530,23 +652,31 @@ def load_waymo(
         def lidar_loader(frame: int) -> LidarFrame:
             if not 0 <= frame < num_frames:
                 raise FileNotFoundError(f"Waymo segment {segment}: no LiDAR for frame {frame}")
-            flt = [*seg_filter, (_TS, "=", frame_ts[frame])]
-            by_laser = lidar_comp.range_images(_L, flt)
-            pix = pose_comp.range_images(_LP, flt) if pose_comp.exists else {}
+            ts, ids = frame_ts[frame], [laser_id[n] for n in lasers]
+            by_laser = lidar_comp.range_images(_L, ts, frame, ids)
+            pix = pose_comp.range_images(_LP, ts, frame, ids, channels=6) if pose_comp.exists else {}
             out = []
             for n in lasers:
                 if laser_id[n] not in by_laser:
-                    raise ValueError(f"Waymo segment {segment}: frame {frame} has no {n} range image")
-                img = by_laser[laser_id[n]]
+                    raise ValueError(
+                        f"{lidar_comp.where}: frame {frame} (timestamp {ts} µs) has no {n} range image"
+                    )
+                img, where = by_laser[laser_id[n]]
                 row = lcal[laser_id[n]]
-                incl = waymo_beam_inclinations(
-                    img.shape[0],
-                    float(lc[f"{_LC}.beam_inclination.min"][row]),
-                    float(lc[f"{_LC}.beam_inclination.max"][row]),
-                    lc[f"{_LC}.beam_inclination.values"][row],
-                )
+                try:
+                    incl = waymo_beam_inclinations(
+                        img.shape[0],
+                        float(lc[f"{_LC}.beam_inclination.min"][row]),
+                        float(lc[f"{_LC}.beam_inclination.max"][row]),
+                        lc[f"{_LC}.beam_inclination.values"][row],
+                    )
+                except ValueError as e:
+                    raise ValueError(f"{where}: {e} (lidar_calibration's beam inclinations)") from None
+                waymo_check_range_image(img, WAYMO_MAX_RANGE_M[n], where)
                 if laser_id[n] in pix:
-                    pts = waymo_range_image_to_points(img[..., 0], extr[n], incl, pix[laser_id[n]]) - offset
+                    pose_img, pose_where = pix[laser_id[n]]
+                    waymo_check_pixel_pose(pose_img, img[..., 0], all_poses[positions[frame]], pose_where)
+                    pts = waymo_range_image_to_points(img[..., 0], extr[n], incl, pose_img) - offset
                 else:
                     e2w = ego_to_world[frame]
                     pts = waymo_range_image_to_points(img[..., 0], extr[n], incl) @ e2w[:3, :3].T + e2w[:3, 3]

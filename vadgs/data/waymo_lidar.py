@@ -6,6 +6,8 @@ the world with the per-pixel vehicle poses of the ``lidar_pose`` component. Used
 :func:`vadgs.data.waymo.load_waymo`, and importable from :mod:`vadgs.data.waymo`.
 :func:`waymo_points_to_range_image` is the inverse (to a cell's resolution), used by
 :func:`vadgs.data.waymo_writer.write_waymo_segment`.
+:func:`waymo_check_range_image` and :func:`waymo_check_pixel_pose` refuse a decoded range image
+(or per-pixel pose) that no Waymo laser produces: what a corrupt file decodes into.
 """
 
 from __future__ import annotations
@@ -14,7 +16,26 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["waymo_beam_inclinations", "waymo_points_to_range_image", "waymo_range_image_to_points"]
+__all__ = [
+    "WAYMO_MAX_RANGE_M",
+    "WAYMO_MAX_SWEEP_ROTATION",
+    "WAYMO_MAX_SWEEP_TRANSLATION_M",
+    "waymo_beam_inclinations",
+    "waymo_check_pixel_pose",
+    "waymo_check_range_image",
+    "waymo_points_to_range_image",
+    "waymo_range_image_to_points",
+]
+
+#: The largest range (metres) a laser's range image may hold: the dataset truncates the TOP
+#: (mid-range) laser at 75 m and the four short-range ones at 20 m (Sun et al. 2020, table 1);
+#: 10 % is added for calibration. A range beyond it is what a corrupt file decodes into.
+WAYMO_MAX_RANGE_M = {"TOP": 82.5, "FRONT": 22.0, "SIDE_LEFT": 22.0, "SIDE_RIGHT": 22.0, "REAR": 22.0}
+#: How far (metres) a per-pixel vehicle pose (``lidar_pose``) may lie from the frame's vehicle
+#: pose: a sweep lasts 0.1 s, in which a vehicle at 200 km/h moves 5.6 m.
+WAYMO_MAX_SWEEP_TRANSLATION_M = 20.0
+#: How far (radians) a per-pixel vehicle pose may be turned from the frame's (about 29°).
+WAYMO_MAX_SWEEP_ROTATION = 0.5
 
 
 def waymo_beam_inclinations(
@@ -185,3 +206,98 @@ def waymo_points_to_range_image(
     out = np.full(len(incl) * width, -1.0)
     out[cell] = rng[order][first]
     return out.reshape(len(incl), width)
+
+
+def waymo_check_range_image(image: np.ndarray, max_range: float, what: str) -> None:
+    """Refuse a decoded first-return range image that no Waymo laser produces.
+
+    A range image holds finite values; its range channel (0) holds, at each pixel, either a
+    return in ``(0, max_range]`` metres or Waymo's "no return" (``-1``, or ``0``). Random bytes in a
+    parquet file decode into values that are mostly neither (about three quarters of random
+    float32 values are negative, non-finite or beyond 82.5 m): what was silently dropped (the
+    negative ones) or kept at up to 3e38 m before.
+
+    Args:
+        image: ``(H, W, C)`` range image, ``C >= 1``.
+        max_range: the laser's limit (:data:`WAYMO_MAX_RANGE_M`).
+        what: what the error calls the image (file, row group, frame and laser).
+
+    Raises:
+        ValueError: naming ``what``, the number of bad values and the first few.
+
+    Example:
+        >>> waymo_check_range_image(np.array([[[-1.0], [20.0]]]), 82.5, "x")
+        >>> waymo_check_range_image(np.array([[[-5.0], [3e38]]]), 82.5, "x")
+        Traceback (most recent call last):
+        ...
+        ValueError: x: 2 of 2 ranges are neither a return in (0, 82.5] m nor -1 / 0 (no return), e.g. ...
+    """
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[-1] < 1:
+        raise ValueError(f"{what}: expected a range image of shape (H, W, C >= 1), got {image.shape}")
+    finite = np.isfinite(image)
+    if not finite.all():
+        n = int((~finite).sum())
+        raise ValueError(f"{what}: {n} of {image.size} values are not finite; the file is corrupt")
+    r = image[..., 0]
+    bad = ~(((r > 0) & (r <= max_range)) | (r == -1) | (r == 0))
+    if bad.any():
+        eg = [float(v) for v in r[bad][:3]]
+        raise ValueError(
+            f"{what}: {int(bad.sum())} of {r.size} ranges are neither a return in (0, {max_range:g}] m "
+            f"nor -1 / 0 (no return), e.g. {eg}; the file is corrupt"
+        )
+
+
+def waymo_check_pixel_pose(
+    pixel_pose: np.ndarray, ranges: np.ndarray, world_from_vehicle: np.ndarray, what: str
+) -> None:
+    """Refuse per-pixel vehicle poses (``lidar_pose``) that no sweep of the frame has.
+
+    Each pixel with a return (``ranges > 0``) must hold finite ``roll, pitch, yaw, x, y, z`` within
+    :data:`WAYMO_MAX_SWEEP_TRANSLATION_M` and :data:`WAYMO_MAX_SWEEP_ROTATION` of the frame's
+    vehicle pose (pixels without a return are not read, so not checked).
+
+    Args:
+        pixel_pose: ``(H, W, 6)`` per-pixel pose.
+        ranges: ``(H, W)`` ranges of the same laser and frame.
+        world_from_vehicle: ``(4, 4)`` the frame's vehicle pose (``vehicle_pose``, not recentred).
+        what: what the error calls the image.
+
+    Raises:
+        ValueError: naming ``what``, the number of bad pixels and the largest offset.
+
+    Example:
+        >>> pose = np.zeros((1, 2, 6)); pose[0, 1, 3] = 100.0
+        >>> waymo_check_pixel_pose(pose, np.array([[10.0, -1.0]]), np.eye(4), "x")  # no return at the bad one
+        >>> waymo_check_pixel_pose(pose, np.array([[10.0, 10.0]]), np.eye(4), "x")
+        Traceback (most recent call last):
+        ...
+        ValueError: x: 1 of 2 per-pixel vehicle poses (pixels with a return) lie more than 20 m or 0.5 rad ...
+    """
+    h, w = np.shape(ranges)
+    if np.shape(pixel_pose) != (h, w, 6):
+        raise ValueError(
+            f"{what}: expected per-pixel poses of shape ({h}, {w}, 6), got {np.shape(pixel_pose)}"
+        )
+    pp = np.asarray(pixel_pose, dtype=np.float64)[np.asarray(ranges) > 0]
+    if len(pp) == 0:
+        return
+    finite = np.isfinite(pp).all(-1)
+    if not finite.all():
+        raise ValueError(
+            f"{what}: {int((~finite).sum())} of {len(pp)} per-pixel vehicle poses are not finite; "
+            "the file is corrupt"
+        )
+    frame = np.asarray(world_from_vehicle, dtype=np.float64)
+    dist = np.linalg.norm(pp[:, 3:] - frame[:3, 3], axis=-1)
+    rel = np.einsum("ji,njk->nik", frame[:3, :3], _euler_to_matrix(pp[:, 0], pp[:, 1], pp[:, 2]))
+    angle = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
+    bad = (dist > WAYMO_MAX_SWEEP_TRANSLATION_M) | (angle > WAYMO_MAX_SWEEP_ROTATION)
+    if bad.any():
+        raise ValueError(
+            f"{what}: {int(bad.sum())} of {len(pp)} per-pixel vehicle poses (pixels with a return) lie more "
+            f"than {WAYMO_MAX_SWEEP_TRANSLATION_M:g} m or {WAYMO_MAX_SWEEP_ROTATION:g} rad from the frame's "
+            f"vehicle pose (up to {float(dist.max()):.3g} m, {float(angle.max()):.3g} rad); "
+            "the file is corrupt"
+        )

@@ -59,7 +59,7 @@ from vadgs.data.waymo import (
     WAYMO_VEHICLE_POSE,
     pyarrow_parquet,
 )
-from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_points_to_range_image
+from vadgs.data.waymo_lidar import WAYMO_MAX_RANGE_M, waymo_beam_inclinations, waymo_points_to_range_image
 from vadgs.io import safe_filename
 
 __all__ = ["BOX_TYPE_OF_CLASS", "MAX_COLUMNS", "WaymoSegmentSummary", "write_waymo_segment"]
@@ -304,7 +304,10 @@ def write_waymo_segment(
         tmp.replace(paths[component])
 
     def small(component: str, table: dict) -> None:
-        finish(component, lambda tmp: pq.write_table(pa.table(table), tmp, compression="zstd"))
+        finish(
+            component,
+            lambda tmp: pq.write_table(pa.table(table), tmp, compression="zstd", write_page_checksum=True),
+        )
 
     def keys(count: int, ts: Sequence[int] | None = None) -> dict:
         cols = {"key.segment_context_name": pa.array([segment] * count, pa.string())}
@@ -381,8 +384,14 @@ def write_waymo_segment(
     )
     tmp_images = paths["camera_image"].with_suffix(".parquet.tmp")
     tmp_lidar = paths["lidar"].with_suffix(".parquet.tmp")
-    image_writer = pq.ParquetWriter(tmp_images, image_schema)  # JPEG bytes: no compression to gain
-    lidar_writer = pq.ParquetWriter(tmp_lidar, lidar_schema, compression="zstd") if lidar else None
+    # JPEG bytes: no compression to gain; CRC checksums on every page, so that the reader refuses a
+    # corrupt page of these files (load_waymo verifies them)
+    image_writer = pq.ParquetWriter(tmp_images, image_schema, write_page_checksum=True)
+    lidar_writer = (
+        pq.ParquetWriter(tmp_lidar, lidar_schema, compression="zstd", write_page_checksum=True)
+        if lidar
+        else None
+    )
     n_views = n_points = n_returns = 0
     frames = range(len(sc.frames))
     if progress:
@@ -420,6 +429,11 @@ def write_waymo_segment(
                 pts = sc.lidar(f.index).points.double().numpy()
                 vehicle = (pts - ego[p][:3, 3]) @ ego[p][:3, :3]
                 ranges = waymo_points_to_range_image(vehicle, extrinsic, rows_incl, width)
+                if ranges.max(initial=0.0) > WAYMO_MAX_RANGE_M["TOP"]:
+                    raise ValueError(
+                        f"scene: frame {f.index} has LiDAR points {ranges.max():.1f} m from the sensor; "
+                        f"Waymo's TOP laser reaches {WAYMO_MAX_RANGE_M['TOP']:g} m (load_waymo refuses more)"
+                    )
                 img = _ranges_to_image(ranges)
                 n_points += len(pts)
                 n_returns += int((ranges > 0).sum())

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -152,6 +153,28 @@ class TrainConfig:
     """Settings older runs' files hold flat, now in ``geometry`` (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
+        # types first (as from_dict checks them): a bool, 2.5 or "2" fails here, not deep in a run
+        for name in _INT_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
+            if type(value) is not int:  # a numpy integer: stored as an int (the JSON of to_dict)
+                object.__setattr__(self, name, int(value))
+        for name in _NUMBER_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise ValueError(f"{name}: expected a number, got {type(value).__name__} {value!r}")
+            if type(value) not in (int, float):  # a numpy number: stored as a float
+                object.__setattr__(self, name, float(value))
+        for name, cls in _NESTED_FIELDS.items():
+            instance_field(cls, optional=name in ("vad", "appearance"))(name, getattr(self, name))
+        if not isinstance(self.device, str):
+            raise ValueError(
+                f"device: expected a torch device name such as 'cpu' or 'cuda', got "
+                f"{type(self.device).__name__} {self.device!r}"
+            )
+        if not 0 <= self.seed <= _MAX_SEED:
+            raise ValueError(f"seed: expected an integer in [0, 2^63 - 1], got {self.seed}")
         check_at_least(self, 1, "iterations")
         check_non_negative(self, "ssim_weight", "lambda_lidar")
         check_non_negative(
@@ -168,7 +191,6 @@ class TrainConfig:
             raise ValueError(f"cache_gb: expected a finite number of GB > 0, got {self.cache_gb}")
         check_at_most(self, MAX_THREADS, "threads")
         check_at_least(self, 1, "sh_degree_interval", "log_every")
-        instance_field(GeometricLossConfig)("geometry", self.geometry)
         g = self.geometry
         if g.hard_fused and (g.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased):
             raise ValueError(
@@ -219,6 +241,22 @@ class TrainConfig:
             target[parts[-1]] = v
         return TrainConfig.from_dict(flat)
 
+
+_INT_FIELDS = ("iterations", "seed", "sh_degree_interval", "checkpoint_every", "log_every", "threads")
+_NUMBER_FIELDS = (
+    "ssim_weight", "lambda_lidar", "checkpoint_minutes", "max_minutes", "cache_gb",
+    "diverge_distance", "diverge_share", "diverge_loss_factor",
+)  # fmt: skip
+_NESTED_FIELDS: dict[str, type] = {
+    "init": InitConfig,
+    "strategy": DefaultStrategyConfig,
+    "raster": RasterConfig,
+    "lr": LearningRates,
+    "geometry": GeometricLossConfig,
+    "vad": VisibilityDensifyConfig,
+    "appearance": AppearanceConfig,
+}
+_MAX_SEED = 2**63 - 1  # torch.manual_seed takes up to 2^64 - 1; the sampler adds to it
 
 SCHEDULE_ITERATIONS = 3000
 """The run length the step counts of the default schedule are set for (``TrainConfig.iterations``):

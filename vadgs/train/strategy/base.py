@@ -35,7 +35,9 @@ validated config dataclass held in ``strategy.config`` (``DefaultStrategyConfig`
 ``VisibilityDensifyConfig``: what ``TrainConfig`` and the CLI hold), given as ``config=`` or as
 keyword settings (``DefaultStrategy(refine_every=50)``, as gsplat's strategies are called), and
 readable and assignable as attributes (``strategy.refine_every = 0`` is checked as the config's
-field is, then replaces the config).
+field is, then replaces the config). An attribute that is neither a setting nor one the strategy
+has (a typo: ``strategy.refine_evrey = 50``) is refused with an ``AttributeError``, as a frozen
+dataclass refuses it; a subclass's ``__init__`` may add its own attributes.
 
 ``info`` is either vadgs's (``raster``: the :class:`~vadgs.render.RenderOutput`, ``ids``: the model
 rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with its gradient,
@@ -45,6 +47,8 @@ rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with i
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import functools
 import inspect
 from collections.abc import MutableMapping
 from typing import Any, ClassVar, Protocol, runtime_checkable
@@ -141,6 +145,19 @@ class ConfiguredStrategy:
         super().__init_subclass__(**kwargs)
         if hasattr(cls, "config_type"):
             cls._setting_names = _field_names(cls.config_type)
+        init = cls.__dict__.get("__init__")
+        if init is not None:  # while an __init__ runs, it may add attributes (see __setattr__)
+
+            @functools.wraps(init)
+            def constructing(self: Any, *args: Any, **kw: Any) -> None:
+                depth = self.__dict__.get("_constructing", 0)
+                object.__setattr__(self, "_constructing", depth + 1)
+                try:
+                    init(self, *args, **kw)
+                finally:
+                    object.__setattr__(self, "_constructing", depth)
+
+            cls.__init__ = constructing  # type: ignore[method-assign]
 
     def _take_config(self, config: Any, settings: dict[str, Any]) -> None:
         """Set ``config`` (default: the config type's defaults) with ``settings`` replaced in it.
@@ -177,6 +194,19 @@ class ConfiguredStrategy:
                 raise ValueError(f"config: expected a {cls.__name__}, got {type(value).__name__}")
         elif name in self._setting_names:
             name, value = "config", dataclasses.replace(self.config, **{name: value})
+        elif not (
+            name.startswith("_")
+            or name in self.__dict__
+            or hasattr(type(self), name)
+            or self.__dict__.get("_constructing", 0)
+        ):
+            known = sorted(self._setting_names | {k for k in self.__dict__ if not k.startswith("_")})
+            near = difflib.get_close_matches(name, known, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise AttributeError(
+                f"{type(self).__name__}: no setting or attribute {name!r}{hint} (settings: the fields of "
+                f"{cls.__name__}: {', '.join(sorted(self._setting_names))})"
+            )
         object.__setattr__(self, name, value)
 
 
