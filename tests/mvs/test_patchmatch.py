@@ -22,7 +22,7 @@ from vadgs.mvs import (
     propagation_regions,
     reference_patches,
 )
-from vadgs.mvs.patchmatch import _Colour, _pixel_homographies, _Sources
+from vadgs.mvs.patchmatch import _Pixels, _Sources, _window_maps
 
 from .mvs_scenes import plane_scene, texture
 
