@@ -204,19 +204,16 @@ def _to_gray(x: torch.Tensor) -> torch.Tensor:
 
 def _random_normals(rays: torch.Tensor, gen: torch.Generator | None) -> torch.Tensor:
     n = torch.randn(rays.shape, generator=gen, device=rays.device, dtype=rays.dtype)
-    n = F.normalize(n, dim=-1)
-    return _face_camera(n, rays)
+    return _face_camera(n / torch.linalg.vector_norm(n, dim=-1, keepdim=True), rays)
 
 
 def _face_camera(n: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
-    sign = torch.where((n * rays).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(n)
-    return n * sign
+    return torch.where((n * rays).sum(-1, keepdim=True) > 0, -n, n)
 
 
 def _random_depth(shape, lo, hi, gen, like) -> torch.Tensor:
     u = torch.rand(shape, generator=gen, device=like.device, dtype=like.dtype)
-    inv = 1 / hi + u * (1 / lo - 1 / hi)
-    return 1 / inv
+    return u.mul_(1 / lo - 1 / hi).add_(1 / hi).reciprocal_()
 
 
 class _Pixels(NamedTuple):
@@ -227,27 +224,20 @@ class _Pixels(NamedTuple):
 
     idx: torch.Tensor  # (P,) flat pixel indices
     rays: torch.Tensor  # (B, P, 3) K^-1 p~
-    cols: torch.Tensor  # (B, 3, P, 3) rows K^-1 e_x, K^-1 e_y, K^-1 p~ (n^T times them: see _window_maps)
+    cols: torch.Tensor  # (B, 3, 3, P) [m, j]: m-th entry of K^-1 e_x, K^-1 e_y, K^-1 p~ (see _window_maps)
     rows: torch.Tensor  # (B, V, 3, P, 3) A e_x, A e_y, A p~: the hypothesis-free part of the maps
-    weights: torch.Tensor  # (B, S, P) bilateral weights
-    normalized: torch.Tensor  # (B, S, P) w (r - mean) / std (zero where the reference is flat)
-    unscorable: torch.Tensor  # (B, V, 1, P) bool: flat reference window, or a degenerate source
+    ref: torch.Tensor  # (B, 2, S, P) bilateral weights (zero where the reference window is flat or
+    #   outside the region: such a pixel scores the worst cost) and w (r - mean) / std
 
     def part(self, sl: slice) -> _Pixels:
         """The pixels of ``sl`` (a view of every field)."""
         return _Pixels(
-            self.idx[sl],
-            self.rays[:, sl],
-            self.cols[:, :, sl],
-            self.rows[:, :, :, sl],
-            self.weights[..., sl],
-            self.normalized[..., sl],
-            self.unscorable[..., sl],
+            self.idx[sl], self.rays[:, sl], self.cols[..., sl], self.rows[:, :, :, sl], self.ref[..., sl]
         )
 
 
 class _Sources(NamedTuple):
-    gray: torch.Tensor  # (B*V, 1, Hs, Ws)
+    gray: torch.Tensor  # (B*V, 1, Hs, Ws), zero (flat: the worst cost) for a degenerate source
     masks: torch.Tensor | None  # (B*V, 1, Hs, Ws) float or None
     b: torch.Tensor  # (B, V, 3) N K_s t
     offsets: torch.Tensor  # (B*V, S, 3) window offsets (o_x, o_y, 1) (expanded)
@@ -267,16 +257,14 @@ def _window_maps(src: _Sources, px: _Pixels, hyp: torch.Tensor) -> tuple[torch.T
     ``u = (-m_x, -m_y, 1 / z) = (n^T K^-1 e_x, n^T K^-1 e_y, nr) / (z nr)`` (because
     ``m^T p~ = -1 / z``): a few fused multiply-adds over every view and hypothesis.
     """
-    z = hyp[..., 0]
-    cols = px.cols[:, :, None]  # (B, 3, 1, P, 3)
-    t = hyp[..., 1:2] * cols[:, 0]
-    t = torch.addcmul(t, hyp[..., 2:3], cols[:, 1])
-    t = torch.addcmul(t, hyp[..., 3:4], cols[:, 2])  # (B, K, P, 3): n^T K^-1 (e_x, e_y, p~)
-    nr = t[..., 2]
-    u = t / (z * nr.clamp_max(-1e-6))[..., None]  # finite even where the plane is rejected
-    C = torch.addcmul(
-        px.rows[:, :, :, None], src.b[:, :, None, None, None], u.permute(0, 3, 1, 2)[:, None, ..., None]
-    )
+    z, n = hyp[..., 0], hyp[..., 1:]
+    cols = px.cols[:, :, :, None]  # (B, 3, 3, 1, P)
+    t = n[:, None, ..., 0] * cols[:, 0]
+    t = torch.addcmul(t, n[:, None, ..., 1], cols[:, 1])
+    t = torch.addcmul(t, n[:, None, ..., 2], cols[:, 2])  # (B, 3, K, P): n^T K^-1 (e_x, e_y, p~)
+    nr = t[:, 2]
+    u = t / (z * nr.clamp_max(-1e-6))[:, None]  # finite even where the plane is rejected
+    C = torch.addcmul(px.rows[:, :, :, None], src.b[:, :, None, None, None], u[:, None, ..., None])
     return C, nr
 
 
@@ -286,14 +274,17 @@ def _chunk_size(cfg_chunk: int | None, device: torch.device, views: int) -> int:
     return max(1, cfg_chunk // views)
 
 
-def _costs(src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, chunk: int) -> torch.Tensor:
-    """Per-view costs ``(B, V, K, P)`` of ``K`` hypotheses per pixel, ``hyp`` ``(B, K, P, 4)``.
+def _costs(
+    src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, chunk: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view costs ``(B, V, K, P)`` of ``K`` hypotheses per pixel, ``hyp`` ``(B, K, P, 4)``, and ``nr``.
 
     Every hypothesis of every pixel in every view is one sample grid of one
     :func:`torch.nn.functional.grid_sample` call (a handful of kernels whatever ``K``, ``V`` and
     ``P``), scored ``chunk`` pixel-hypotheses at a time so that the temporaries stay in cache on the
     CPU (one chunk on other devices). The cost is :func:`vadgs.mvs.ncc_cost_from_stats` (``tests/mvs``
     checks the two against each other) with every reason for the worst cost folded into one mask.
+    ``nr`` ``(B, K, P)`` is ``n^T K^-1 p~`` of each hypothesis (see :func:`_window_maps`).
     """
     C, nr = _window_maps(src, px, hyp)
     bsz, v, _, k, p, _ = C.shape
@@ -306,11 +297,10 @@ def _costs(src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, c
         xyz = torch.bmm(src.offsets, cc).view(bsz * v, s, k * pc, 3)  # (o_x, o_y, 1) @ C
         grid = xyz[..., :2] / xyz[..., 2:].clamp_min(1e-9)  # behind the camera: far outside
         x = F.grid_sample(src.gray, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-        x = x.view(bsz, v, s, k, pc)
-        xw = x * px.weights[:, None, :, None, p0 : p0 + pc]
-        mean = xw.sum(2)
-        var = torch.addcmul((xw * x).sum(2), mean, mean, value=-1)
-        cov = (x * px.normalized[:, None, :, None, p0 : p0 + pc]).sum(2)
+        x = x.view(bsz, v, 1, s, k, pc)
+        prod = x * px.ref[:, None, :, :, None, p0 : p0 + pc]  # (B, V, 2, S, K, pc): w x, w x (r - mean) / std
+        mean, cov = prod.sum(3).unbind(2)
+        var = torch.addcmul((prod[:, :, 0] * x[:, :, 0]).sum(2), mean, mean, value=-1)
         costs.append(
             torch.addcmul(src.one, cov, var.clamp_min(min_variance).rsqrt(), value=-1).clamp_(0, MAX_COST)
         )
@@ -321,7 +311,7 @@ def _costs(src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, c
     # centre does not land in front of the source camera inside its image (and mask).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    bad = (var < min_variance) | (c0[..., :2].abs().amax(-1).clamp_min(1e-9) > cz) | (nr >= -1e-6)[:, None]
+    bad = (var < min_variance) | (c0[..., :2].abs().amax(-1).clamp_min(1e-9) > cz) | (nr >= -1e-6)[:, None]  # fmt: skip
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
         m = F.grid_sample(
@@ -332,7 +322,7 @@ def _costs(src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, c
             align_corners=True,
         )
         bad = bad | (m.view(bsz, v, k, p) < 0.5)
-    return cost.masked_fill_(bad | px.unscorable, MAX_COST)
+    return cost.masked_fill_(bad, MAX_COST), nr
 
 
 def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig) -> torch.Tensor:
@@ -381,34 +371,36 @@ def _propagate(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(B, R, P, 4)`` the best-cost neighbour's plane of each region, re-intersected with each ray.
 
-    ``hyp`` ``(B, N + 1, 5)`` holds depth, normal and ``z n^T K^-1 p~`` (minus the plane's
-    distance) of every scored pixel and the sentinel, ``agg`` ``(B, N + 1)`` their costs. Also
-    returns the neighbours' costs ``(B, R, P)``.
+    ``hyp`` ``(B, N + 1, 5+)`` holds depth, normal and ``n^T K^-1 p~`` of every scored pixel and
+    the sentinel, ``agg`` ``(B, N + 1)`` their costs. Also returns the neighbours' costs ``(B, R, P)``.
     """
     bsz = hyp.shape[0]
     p, r, _ = nbr.shape
     nb_cost, best = agg[:, nbr].min(-1, keepdim=True)  # (B, P, R, 1)
     q = torch.gather(nbr.expand(bsz, -1, -1, -1), 3, best)
-    hq = torch.gather(hyp, 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5).transpose(1, 2)
+    hq = (
+        torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5))
+        .view(bsz, p, r, 5)
+        .transpose(1, 2)
+    )
     den = (hq[..., 1:4] * rays[:, None]).sum(-1)  # n_q^T K^-1 p~, (B, R, P)
-    z = torch.where(den < -1e-6, hq[..., 4] / den, hq[..., 0]).clamp_(lo, hi)
+    # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den
+    z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0]).clamp_(lo, hi)
     return torch.cat([z[..., None], hq[..., 1:4]], -1), nb_cost[..., 0].transpose(1, 2)
 
 
 def _refinements(
-    cur: torch.Tensor, rays: torch.Tensor, scale: tuple[torch.Tensor, torch.Tensor],
-    kinds: list[tuple[str, str]], lo: float, hi: float, gen: torch.Generator | None,
+    cur: torch.Tensor, rays: torch.Tensor, noise: torch.Tensor, kinds: list[tuple[str, str]], lo: float,
+    hi: float, gen: torch.Generator | None,
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
-    Two perturbed depths (relative, uniform in ``±s_z``) and two perturbed normals (uniform in
-    ``±s_n`` per component, kept only when they face the camera), ``scale`` holding
-    ``-(s_z, s_z, s_n x 6)`` and twice that, combined as ``kinds`` says: ``"p"`` perturbed (the
+    Two perturbed depths (relative: ``z exp(noise[..., i])``) and two perturbed normals (``n``
+    plus ``noise[..., 2 + 3 i : 5 + 3 i]``, normalised, kept only when they face the camera), the
+    ``noise`` ``(B, P, 8)`` uniform, combined as ``kinds`` says: ``"p"`` perturbed (the
     ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random.
     """
     z, n = cur[..., 0], cur[..., 1:]
-    u = torch.rand((*z.shape, 8), generator=gen, device=z.device, dtype=z.dtype)
-    noise = torch.addcmul(scale[0], u, scale[1])  # (B, P, 8)
     pd = (z[..., None] * noise[..., :2].exp()).clamp_(lo, hi)  # (B, P, 2)
     m = n[:, :, None] + noise[..., 2:].unflatten(-1, (2, 3))  # (B, P, 2, 3), |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
@@ -527,7 +519,7 @@ def _check_finite_together(named: list[tuple[str, torch.Tensor]]) -> None:
     if not checks_enabled():
         return
     sums = torch.stack([t.sum() for _, t in named])
-    if bool(torch.isfinite(sums).all()):
+    if bool((sums - sums == 0).all()):  # x - x is 0 for finite x, NaN for NaN and infinities
         return
     for name, t in named:
         check_finite(t, name)
@@ -610,9 +602,10 @@ def patchmatch(
             f"src_world_to_cam: every source of reference(s) {bad} has the reference's camera centre "
             "(zero baseline): depth is unobservable"
         )
+    offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=image.device, dtype=image.dtype)
     level = _pyramid(
-        image, src_images, K, src_K, src_from_ref, usable, (lo, hi), cfg, init_depth, init_normal, mask,
-        src_masks, cfg.pyramid_levels,
+        image, src_images, K, src_K, (src_from_ref, usable, offsets), (lo, hi), cfg, init_depth, init_normal,
+        mask, src_masks, cfg.pyramid_levels,
     )  # fmt: skip
     bsz, nv = src_images.shape[:2]
     return _result(level, cfg, bsz, nv, *image.shape[-2:])
@@ -639,16 +632,16 @@ def _downsample(x: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tens
 
 
 def _pyramid(
-    image, src_images, K, src_K, src_from_ref, usable, depth_range, cfg, init_depth, init_normal, mask,
-    src_masks, levels: int, final: bool = True,
+    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+    levels: int, final: bool = True,
 ) -> _Level:  # fmt: skip
     """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at this one."""
     h, w = image.shape[-2:]
     hs, ws = src_images.shape[-2:]
     if levels <= 1 or cfg.iterations == 0 or min(h, w, hs, ws) < 8:
         return _patchmatch_level(
-            image, src_images, K, src_K, src_from_ref, usable, depth_range, cfg, init_depth, init_normal,
-            mask, src_masks, 0, cfg.iterations, None, final,
+            image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+            0, cfg.iterations, None, final,
         )  # fmt: skip
     hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
     coarse = _pyramid(
@@ -656,8 +649,7 @@ def _pyramid(
         _downsample(src_images, (hsc, wsc), "area"),
         scale_intrinsics(K, (wc / w, hc / h)),
         scale_intrinsics(src_K, (wsc / ws, hsc / hs)),
-        src_from_ref,
-        usable,
+        shared,
         depth_range,
         cfg,
         None if init_depth is None else _downsample(init_depth, (hc, wc), "nearest"),
@@ -673,16 +665,16 @@ def _pyramid(
     done = cfg.iterations + (levels - 2) * cfg.fine_iterations
     fine = cfg if cfg.fine_propagation is None else replace(cfg, propagation=cfg.fine_propagation)
     return _patchmatch_level(
-        image, src_images, K, src_K, src_from_ref, usable, depth_range, fine, up_depth, up_normal, mask,
-        src_masks, done, cfg.fine_iterations,
+        image, src_images, K, src_K, shared, depth_range, fine, up_depth, up_normal, mask, src_masks, done,
+        cfg.fine_iterations,
         None if init_depth is None and init_normal is None else (init_depth, init_normal), final,
     )  # fmt: skip
 
 
 def _patchmatch_level(
-    image, src_images, K, src_K, src_from_ref, usable, depth_range, cfg, init_depth, init_normal, mask,
-    src_masks, start_iteration: int, iterations: int,
-    alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None, final: bool,
+    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+    start_iteration: int, iterations: int, alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None,
+    final: bool,
 ) -> _Level:  # fmt: skip
     """PatchMatch at one resolution (inputs already checked).
 
@@ -692,8 +684,11 @@ def _patchmatch_level(
     propagated planes and the random refinements are scored in one :func:`_costs` call, and the
     winner (or the current hypothesis) is picked by one ``min``. The refinements perturb the
     likeliest winner known before scoring: the plane of lowest cost where it was last scored (this
-    pixel's, or one of the neighbours' it propagates).
+    pixel's, or one of the neighbours' it propagates). The initial hypotheses are scored with the
+    candidates of the first half-sweep of their colour (before it, the other colour's costs are
+    unknown: its regions propagate their first neighbour).
     """
+    src_from_ref, usable, offsets = shared
     lo, hi = depth_range
     bsz, nv = src_images.shape[:2]
     h, w = image.shape[-2:]
@@ -704,7 +699,7 @@ def _patchmatch_level(
         gen = torch.Generator(device=dev)
         gen.manual_seed(cfg.seed)
 
-    # Sources: grey images, normalised homography parts.
+    # Sources: grey images (flat for a degenerate source: the worst cost), homography parts.
     norm = torch.tensor(
         [[2 / max(ws - 1, 1), 0, -1], [0, 2 / max(hs - 1, 1), -1], [0, 0, 1]], device=dev, dtype=dt
     )
@@ -712,16 +707,14 @@ def _patchmatch_level(
     NK = norm @ src_K  # (B, V, 3, 3)
     A = NK @ src_from_ref[..., :3, :3] @ Kinv[:, None]  # (B, V, 3, 3)
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
-    offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=dev, dtype=dt)
-    src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws))
+    src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
     off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
     src = _Sources(src_gray, smasks, bvec, off3, torch.ones((), device=dev, dtype=dt))
     chunk = _chunk_size(cfg.chunk_size, dev, nv)
 
     # Reference: windows, bilateral weights (zero outside the region).
-    gray = _to_gray(image)
-    patches = reference_patches(gray, offsets)  # (B, S, HW)
+    patches = reference_patches(_to_gray(image), offsets)  # (B, S, HW)
     sigma_s = cfg.sigma_spatial if cfg.sigma_spatial is not None else float(cfg.window_radius)
     weights = bilateral_weights(patches, offsets, sigma_s, cfg.sigma_color, dim=1)
     if mask is not None:
@@ -737,8 +730,8 @@ def _patchmatch_level(
     # The scored pixels: those of the region (of any batch element), the first checkerboard colour
     # then the second. With a small object in a large crop the cost follows the object, not the
     # crop; pixels outside are never propagated from (as when they were scored with the worst cost).
-    ys, xs = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
-    xs, ys = xs.reshape(-1), ys.reshape(-1)
+    flat = torch.arange(h * w, device=dev)
+    xs, ys = flat % w, flat // w
     even = (xs + ys) % 2 == 0
     by_colour = [
         torch.nonzero(active & even).flatten(),
@@ -753,14 +746,7 @@ def _patchmatch_level(
     pix, rays = pix_all[idx], rays_all[:, idx]
     st = reference_patch_stats(patches[:, :, idx], weights[:, :, idx], cfg.min_variance)
     textured = st.valid if region is None else st.valid & region[:, idx]
-    cols = torch.stack(
-        [
-            Kinv[:, :, None, 0].expand(-1, -1, n_act),
-            Kinv[:, :, None, 1].expand(-1, -1, n_act),
-            rays.transpose(1, 2),
-        ],
-        dim=-1,
-    )  # (B, 3, P, 3)
+    cols = torch.cat([Kinv[..., :2, None].expand(-1, -1, -1, n_act), rays.transpose(1, 2)[:, :, None]], 2)
     rows = torch.stack(
         [
             A[:, :, None, :, 0].expand(-1, -1, n_act, -1),
@@ -769,8 +755,8 @@ def _patchmatch_level(
         ],
         dim=2,
     )  # (B, V, 3, P, 3)
-    unscorable = ~(usable[:, :, None, None] & textured[:, None, None])
-    pixels = _Pixels(idx, rays, cols, rows, st.weights, st.normalized, unscorable)
+    ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
+    pixels = _Pixels(idx, rays, cols, rows, ref)
     nbr = _neighbour_table(xs[idx], ys[idx], h, w, lut, cfg.propagation)
     del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
@@ -781,21 +767,22 @@ def _patchmatch_level(
     normal = _random_normals(rays_all, gen)
     depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
     if n_act:
-        init = [torch.cat([depth[:, idx, None], normal[:, idx]], -1)]
+        # State of the scored pixels and the sentinel (infinite cost, never chosen when another
+        # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs.
+        nr0 = (normal * rays_all).sum(-1, keepdim=True)
+        hyp = torch.cat([depth[..., None], normal, nr0], -1)[:, idx]
+        init = [hyp[..., :4]]
         if alt_init is not None:
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
-            init.append(torch.cat([alt_d[:, idx, None], alt_n[:, idx]], -1))
-        init = torch.stack(init, 1)  # (B, K, P, 4)
-        costs = _costs(src, pixels, init, cfg.min_variance, chunk)  # (B, V, K, P)
-        a, best = _aggregate(costs, None, cfg).min(1)
-        cur = torch.gather(init, 1, best[:, None, :, None].expand(-1, -1, -1, 4))[:, 0]
-        pd = cur[..., 0] * (cur[..., 1:] * rays).sum(-1)
-        # State of the scored pixels and the sentinel (infinite cost): depth, normal, z n^T K^-1 p~.
-        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0], device=dev, dtype=dt)  # z = 1 facing the camera
-        hyp = torch.cat([torch.cat([cur, pd[..., None]], -1), sentinel.expand(bsz, 1, 5)], 1)
-        agg = F.pad(a, (0, 1), value=float("inf"))
-        vcost = torch.gather(costs, 2, best[:, None, None].expand(-1, nv, -1, -1))[:, :, 0]
-
+            init.append(torch.cat([alt_d[..., None], alt_n], -1)[:, idx])
+        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, float("inf")], device=dev, dtype=dt)
+        state = torch.cat(
+            [
+                F.pad(hyp, (0, 1 + nv), value=MAX_COST),
+                F.pad(sentinel, (0, nv), value=MAX_COST).expand(bsz, 1, -1),
+            ],
+            1,
+        )
         kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
         its = range(start_iteration, start_iteration + iterations)
         half = torch.tensor(
@@ -805,55 +792,63 @@ def _patchmatch_level(
         )  # (iterations, 8): noise = (2u - 1) * half
         neg_half, twice = -half, 2 * half
         n_prop = nbr.shape[1] + 1
+
+        def keep_best(sl: slice, cands, costs, nr, vw) -> None:
+            """Write the best candidate of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
+            agg_all = _aggregate(costs, vw, cfg)  # (B, N, P)
+            best = agg_all.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+            record = torch.cat([cands, nr[..., None], agg_all[..., None], costs.permute(0, 2, 3, 1)], -1)
+            state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
+
+        init = torch.stack(init, 1)  # (B, K, P, 4)
+        costs, nr = _costs(src, pixels, init, cfg.min_variance, chunk)
+        keep_best(slice(0, n_act), init, costs, nr, None)
         for i in range(iterations):
+            if kinds:  # the random numbers of the refinements of both colours
+                u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
+                noise = torch.addcmul(neg_half[i], u, twice[i])
             for sl in colours:
                 px = pixels.part(sl)
-                cur = hyp[:, sl, :4]
-                prop, nb_cost = _propagate(hyp, agg, nbr[sl], px.rays, lo, hi)
-                cands = [cur[:, None], prop]
+                cur = state[:, sl]
+                agg = state[..., 5]
+                prop, nb_cost = _propagate(state, agg, nbr[sl], px.rays, lo, hi)
+                cands = [cur[:, None, :, :4], prop]
                 if kinds:
                     # Refine the likeliest winner: the plane of lowest cost where it was scored
                     # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
                     likely = torch.cat([agg[:, None, sl], nb_cost], 1).argmin(1)  # (B, P)
-                    base = torch.gather(
-                        torch.cat(cands, 1), 1, likely[:, None, :, None].expand(-1, -1, -1, 4)
-                    )
-                    cands.append(
-                        _refinements(base[:, 0], px.rays, (neg_half[i], twice[i]), kinds, lo, hi, gen)
-                    )
+                    cands = [torch.cat(cands, 1)]
+                    base = torch.gather(cands[0], 1, likely[:, None, :, None].expand(-1, -1, -1, 4))[:, 0]
+                    cands.append(_refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen))
                 cands = torch.cat(cands, 1)  # (B, N, P, 4): current, propagated, refined
-                c = _costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
-                costs = torch.cat([vcost[:, :, None, sl], c], 2)  # (B, V, N, P)
+                c, nr = _costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
+                costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
+                nr = torch.cat([cur[:, None, :, 4], nr], 1)
                 vw = _view_weights(costs[:, :, :n_prop], cfg) if cfg.view_selection == "acmh" else None
-                a, best = _aggregate(costs, vw, cfg).min(1)  # (B, P)
-                new = torch.gather(cands, 1, best[:, None, :, None].expand(-1, -1, -1, 4))[:, 0]
-                pd = new[..., 0] * (new[..., 1:] * px.rays).sum(-1)  # z n^T K^-1 p~
-                hyp[:, sl] = torch.cat([new, pd[..., None]], -1)
-                agg[:, sl] = a
-                vcost[:, :, sl] = torch.gather(costs, 2, best[:, None, None].expand(-1, nv, -1, -1))[:, :, 0]
-        depth[:, idx] = hyp[:, :n_act, 0]
-        normal[:, idx] = hyp[:, :n_act, 1:4]
+                keep_best(sl, cands, costs, nr, vw)
+        depth[:, idx] = state[:, :n_act, 0]
+        normal[:, idx] = state[:, :n_act, 1:4]
     if not final:
         return _Level(depth, normal, None, None, None)
     agg_full = torch.full((bsz, h * w), MAX_COST, device=dev, dtype=dt)
     view_cost = torch.full((bsz, nv, h * w), MAX_COST, device=dev, dtype=dt)
     valid = torch.zeros(bsz, h * w, dtype=torch.bool, device=dev)
     if n_act:
-        agg_full[:, idx] = agg[:, :n_act]
-        view_cost[:, :, idx] = vcost
+        agg_full[:, idx] = state[:, :n_act, 5]
+        view_cost[:, :, idx] = state[:, :n_act, 6:].transpose(1, 2)
         valid[:, idx] = textured
     return _Level(depth, normal, agg_full, view_cost, valid)
 
 
 def _result(level: _Level, cfg: PatchMatchConfig, bsz: int, nv: int, h: int, w: int) -> PatchMatchResult:
     assert level.agg is not None and level.view_cost is not None and level.textured is not None
-    valid = level.textured & (level.agg <= cfg.max_cost) & torch.isfinite(level.depth) & (level.depth > 0)
+    valid = level.textured & (level.agg <= cfg.max_cost)  # depths are in [near, far] by construction
     raw = level.depth.reshape(bsz, 1, h, w)
     valid = valid.reshape(bsz, 1, h, w)
     normal_map = level.normal.transpose(1, 2).reshape(bsz, 3, h, w)
     return PatchMatchResult(
-        depth=torch.where(valid, raw, 0.0),
-        normal=torch.where(valid, normal_map, 0.0),
+        depth=raw * valid,
+        normal=normal_map * valid,
         cost=level.agg.reshape(bsz, 1, h, w),
         view_costs=level.view_cost.reshape(bsz, nv, h, w),
         mask=valid,
