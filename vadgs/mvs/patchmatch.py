@@ -49,7 +49,7 @@ from kornia.color import rgb_to_grayscale
 from torch import nn
 
 from vadgs.checks import check_finite, check_shape, checks_enabled
-from vadgs.geometry import relative_pose, scale_intrinsics
+from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
     bilateral_weights,
@@ -242,6 +242,7 @@ class _Sources(NamedTuple):
     b: torch.Tensor  # (B, V, 3) N K_s t
     offsets: torch.Tensor  # (B*V, S, 3) window offsets (o_x, o_y, 1) (expanded)
     one: torch.Tensor  # () 1, for the fused 1 - ncc
+    zero: torch.Tensor  # () 0
 
 
 def _window_maps(src: _Sources, px: _Pixels, hyp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -301,9 +302,8 @@ def _costs(
         prod = x * px.ref[:, None, :, :, None, p0 : p0 + pc]  # (B, V, 2, S, K, pc): w x, w x (r - mean) / std
         mean, cov = prod.sum(3).unbind(2)
         var = torch.addcmul((prod[:, :, 0] * x[:, :, 0]).sum(2), mean, mean, value=-1)
-        costs.append(
-            torch.addcmul(src.one, cov, var.clamp_min(min_variance).rsqrt(), value=-1).clamp_(0, MAX_COST)
-        )
+        # 1 - ncc, in [0, 2] up to rounding (clamped once, in the result)
+        costs.append(torch.addcmul(src.one, cov, var.clamp_min(min_variance).rsqrt(), value=-1))
         variances.append(var)
     cost = torch.cat(costs, dim=-1) if len(costs) > 1 else costs[0]
     var = torch.cat(variances, dim=-1) if len(variances) > 1 else variances[0]
@@ -311,7 +311,8 @@ def _costs(
     # centre does not land in front of the source camera inside its image (and mask).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    bad = (var < min_variance) | (c0[..., :2].abs().amax(-1).clamp_min(1e-9) > cz) | (nr >= -1e-6)[:, None]  # fmt: skip
+    outside = torch.linalg.vector_norm(c0[..., :2], ord=float("inf"), dim=-1) > cz  # or behind
+    bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
         m = F.grid_sample(
@@ -325,12 +326,12 @@ def _costs(
     return cost.masked_fill_(bad, MAX_COST), nr
 
 
-def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig) -> torch.Tensor:
+def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor) -> torch.Tensor:
     """ACMH view weights ``(B, V, P)`` from the costs ``(B, V, N, P)`` of N hypotheses."""
     good = costs < cfg.good_threshold
     n_good = good.sum(2)
     dropped = (n_good < 2) | ((costs > cfg.bad_threshold).sum(2) > 3)
-    conf = (costs * costs).mul_(-0.5 / cfg.beta**2).exp_().mul_(good)
+    conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
     return (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
 
 
@@ -349,12 +350,12 @@ def _aggregate(costs: torch.Tensor, weights: torch.Tensor | None, cfg: PatchMatc
 def _neighbour_table(
     xs: torch.Tensor, ys: torch.Tensor, h: int, w: int, lut: torch.Tensor, kind: str
 ) -> torch.Tensor:
-    """``(P, R, L)`` indices into the scored pixels of each region's neighbours of pixels ``(xs, ys)``.
+    """``(P, 1 + R, L)`` indices into the scored pixels of the pixels ``(xs, ys)`` and of their regions' neighbours.
 
     Regions are padded to the longest; padding, neighbours outside the image and unscored
     neighbours point to the sentinel ``lut[h * w]`` (whose cost is infinite). One broadcast.
     """
-    regions = propagation_regions(kind)
+    regions = [[(0, 0)], *propagation_regions(kind)]  # the pixel itself, then its R regions
     longest = max(len(r) for r in regions)
     far = 2 * (h + w)  # a padding offset that always lands outside the image
     off = torch.tensor(
@@ -369,21 +370,20 @@ def _neighbour_table(
 def _propagate(
     hyp: torch.Tensor, agg: torch.Tensor, nbr: torch.Tensor, rays: torch.Tensor, lo: float, hi: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(B, R, P, 4)`` the best-cost neighbour's plane of each region, re-intersected with each ray.
+    """``(B, 1 + R, P, 4)`` each pixel's plane, then the best-cost neighbour's plane of each region.
 
+    The planes are re-intersected with the pixels' rays (a pixel's own: up to rounding, its depth).
     ``hyp`` ``(B, N + 1, 5+)`` holds depth, normal and ``n^T K^-1 p~`` of every scored pixel and
-    the sentinel, ``agg`` ``(B, N + 1)`` their costs. Also returns the neighbours' costs ``(B, R, P)``.
+    the sentinel, ``agg`` ``(B, N + 1)`` their costs. Also returns the costs ``(B, 1 + R, P)``
+    where they were last scored.
     """
     bsz = hyp.shape[0]
     p, r, _ = nbr.shape
     nb_cost, best = agg[:, nbr].min(-1, keepdim=True)  # (B, P, R, 1)
     q = torch.gather(nbr.expand(bsz, -1, -1, -1), 3, best)
-    hq = (
-        torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5))
-        .view(bsz, p, r, 5)
-        .transpose(1, 2)
-    )
-    den = (hq[..., 1:4] * rays[:, None]).sum(-1)  # n_q^T K^-1 p~, (B, R, P)
+    hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
+    den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
+    hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
     # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den
     z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0]).clamp_(lo, hi)
     return torch.cat([z[..., None], hq[..., 1:4]], -1), nb_cost[..., 0].transpose(1, 2)
@@ -404,7 +404,8 @@ def _refinements(
     pd = (z[..., None] * noise[..., :2].exp()).clamp_(lo, hi)  # (B, P, 2)
     m = n[:, :, None] + noise[..., 2:].unflatten(-1, (2, 3))  # (B, P, 2, 3), |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
-    pn = torch.where((m * rays[:, :, None]).sum(-1, keepdim=True) < -1e-3, m, n[:, :, None])
+    facing = torch.bmm(m.view(-1, 2, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1) < -1e-3
+    pn = torch.where(facing, m, n[:, :, None])
     rd = rn = None
     if any("r" in kind for kind in kinds):
         rd = _random_depth(z.shape, lo, hi, gen, z)
@@ -594,7 +595,9 @@ def patchmatch(
         (init_depth, init_normal), mask, src_masks,
     )  # fmt: skip
     _check_images(image, src_images, K, src_K, world_to_cam, src_world_to_cam, cfg)
-    src_from_ref = relative_pose(world_to_cam[:, None], src_world_to_cam)  # (B, V, 4, 4)
+    bsz, nv = src_images.shape[:2]
+    ref_to_world = invert_rigid(world_to_cam)
+    src_from_ref = torch.bmm(src_world_to_cam.reshape(bsz, nv * 4, 4), ref_to_world).view(bsz, nv, 4, 4)
     usable = src_from_ref[..., :3, 3].norm(dim=-1) > 1e-6 * lo  # (B, V): non-degenerate baseline
     if not bool(usable.any(-1).all()):
         bad = [int(i) for i in torch.nonzero(~usable.any(-1)).flatten()]
@@ -607,7 +610,6 @@ def patchmatch(
         image, src_images, K, src_K, (src_from_ref, usable, offsets), (lo, hi), cfg, init_depth, init_normal,
         mask, src_masks, cfg.pyramid_levels,
     )  # fmt: skip
-    bsz, nv = src_images.shape[:2]
     return _result(level, cfg, bsz, nv, *image.shape[-2:])
 
 
@@ -631,6 +633,14 @@ def _downsample(x: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tens
     return out.reshape(*lead, *out.shape[-3:])
 
 
+def _scaled(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """:func:`vadgs.geometry.scale_intrinsics` as one product (``K``'s last row is ``(0, 0, 1)``)."""
+    m = torch.tensor(
+        [[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], dtype=K.dtype, device=K.device
+    )
+    return m @ K
+
+
 def _pyramid(
     image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
     levels: int, final: bool = True,
@@ -647,8 +657,8 @@ def _pyramid(
     coarse = _pyramid(
         _downsample(image, (hc, wc), "area"),
         _downsample(src_images, (hsc, wsc), "area"),
-        scale_intrinsics(K, (wc / w, hc / h)),
-        scale_intrinsics(src_K, (wsc / ws, hsc / hs)),
+        _scaled(K, wc / w, hc / h),
+        _scaled(src_K, wsc / ws, hsc / hs),
         shared,
         depth_range,
         cfg,
@@ -667,7 +677,7 @@ def _pyramid(
     return _patchmatch_level(
         image, src_images, K, src_K, shared, depth_range, fine, up_depth, up_normal, mask, src_masks, done,
         cfg.fine_iterations,
-        None if init_depth is None and init_normal is None else (init_depth, init_normal), final,
+        (init_depth, init_normal), final,
     )  # fmt: skip
 
 
@@ -705,12 +715,12 @@ def _patchmatch_level(
     )
     Kinv = torch.linalg.inv(K)
     NK = norm @ src_K  # (B, V, 3, 3)
-    A = NK @ src_from_ref[..., :3, :3] @ Kinv[:, None]  # (B, V, 3, 3)
+    A = torch.bmm((NK @ src_from_ref[..., :3, :3]).view(bsz, nv * 3, 3), Kinv).view(bsz, nv, 3, 3)
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
     src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
     off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
-    src = _Sources(src_gray, smasks, bvec, off3, torch.ones((), device=dev, dtype=dt))
+    src = _Sources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
     chunk = _chunk_size(cfg.chunk_size, dev, nv)
 
     # Reference: windows, bilateral weights (zero outside the region).
@@ -760,19 +770,23 @@ def _patchmatch_level(
     nbr = _neighbour_table(xs[idx], ys[idx], h, w, lut, cfg.propagation)
     del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
+    parts = [pixels.part(sl)._replace(rays=rays[:, sl].clone()) for sl in colours]  # contiguous
 
     # Initial hypotheses: random, overridden where an init is given; with an alternative
     # (coarse-to-fine: the caller's full-resolution init), the better-scoring of the two.
-    depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
-    normal = _random_normals(rays_all, gen)
-    depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
+    if alt_init is not None:  # a finer pyramid level: the upsampled coarse maps are complete
+        depth, normal = init_depth.reshape(bsz, h * w), init_normal.reshape(bsz, 3, h * w).transpose(1, 2)
+    else:
+        depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
+        normal = _random_normals(rays_all, gen)
+        depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
     if n_act:
         # State of the scored pixels and the sentinel (infinite cost, never chosen when another
         # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs.
         nr0 = (normal * rays_all).sum(-1, keepdim=True)
         hyp = torch.cat([depth[..., None], normal, nr0], -1)[:, idx]
         init = [hyp[..., :4]]
-        if alt_init is not None:
+        if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
             init.append(torch.cat([alt_d[..., None], alt_n], -1)[:, idx])
         sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, float("inf")], device=dev, dtype=dt)
@@ -791,7 +805,7 @@ def _patchmatch_level(
             dtype=dt,
         )  # (iterations, 8): noise = (2u - 1) * half
         neg_half, twice = -half, 2 * half
-        n_prop = nbr.shape[1] + 1
+        n_prop = nbr.shape[1]  # the current hypothesis and the propagated ones
 
         def keep_best(sl: slice, cands, costs, nr, vw) -> None:
             """Write the best candidate of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
@@ -807,24 +821,24 @@ def _patchmatch_level(
             if kinds:  # the random numbers of the refinements of both colours
                 u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
                 noise = torch.addcmul(neg_half[i], u, twice[i])
-            for sl in colours:
-                px = pixels.part(sl)
+            for sl, px in zip(colours, parts):
                 cur = state[:, sl]
-                agg = state[..., 5]
-                prop, nb_cost = _propagate(state, agg, nbr[sl], px.rays, lo, hi)
-                cands = [cur[:, None, :, :4], prop]
+                cands, nb_cost = _propagate(state, state[..., 5], nbr[sl], px.rays, lo, hi)
                 if kinds:
                     # Refine the likeliest winner: the plane of lowest cost where it was scored
                     # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
-                    likely = torch.cat([agg[:, None, sl], nb_cost], 1).argmin(1)  # (B, P)
-                    cands = [torch.cat(cands, 1)]
-                    base = torch.gather(cands[0], 1, likely[:, None, :, None].expand(-1, -1, -1, 4))[:, 0]
-                    cands.append(_refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen))
-                cands = torch.cat(cands, 1)  # (B, N, P, 4): current, propagated, refined
+                    likely = nb_cost.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+                    base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
+                    refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
+                    cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
                 c, nr = _costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
                 costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
                 nr = torch.cat([cur[:, None, :, 4], nr], 1)
-                vw = _view_weights(costs[:, :, :n_prop], cfg) if cfg.view_selection == "acmh" else None
+                vw = (
+                    _view_weights(costs[:, :, :n_prop], cfg, src.zero)
+                    if cfg.view_selection == "acmh"
+                    else None
+                )
                 keep_best(sl, cands, costs, nr, vw)
         depth[:, idx] = state[:, :n_act, 0]
         normal[:, idx] = state[:, :n_act, 1:4]
@@ -849,8 +863,8 @@ def _result(level: _Level, cfg: PatchMatchConfig, bsz: int, nv: int, h: int, w: 
     return PatchMatchResult(
         depth=raw * valid,
         normal=normal_map * valid,
-        cost=level.agg.reshape(bsz, 1, h, w),
-        view_costs=level.view_cost.reshape(bsz, nv, h, w),
+        cost=level.agg.reshape(bsz, 1, h, w).clamp(0, MAX_COST),
+        view_costs=level.view_cost.reshape(bsz, nv, h, w).clamp(0, MAX_COST),
         mask=valid,
         raw_depth=raw,
         raw_normal=normal_map,
