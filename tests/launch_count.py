@@ -13,7 +13,7 @@ Example:
     ...     x = torch.ones(3) * 2
     ...     _ = bool(x.sum() > 0)
     >>> c.launches, c.host_reads
-    (4, 1)
+    (5, 1)
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ class LaunchCounter(TorchDispatchMode):
         """Record the counts so far under ``label``."""
         self.marks.append((label, self.launches, self.host_reads))
 
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: D105
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = _packet(func)
         self.all_ops += 1
         if getattr(func, "is_view", False) or name in _NO_KERNEL:  # a view launches no kernel
@@ -84,7 +84,7 @@ class LaunchCounter(TorchDispatchMode):
             self.host_reads += 1  # boolean-mask indexing: a nonzero inside
         return func(*args, **(kwargs or {}))
 
-    def __enter__(self):  # noqa: D105
+    def __enter__(self):
         # .tolist() reads values without going through the dispatcher: count it by hand.
         self._tolist = torch.Tensor.tolist
         counter = self
@@ -96,6 +96,6 @@ class LaunchCounter(TorchDispatchMode):
         torch.Tensor.tolist = tolist  # type: ignore[method-assign]
         return super().__enter__()
 
-    def __exit__(self, *exc):  # noqa: D105
+    def __exit__(self, *exc):
         torch.Tensor.tolist = self._tolist  # type: ignore[method-assign]
         return super().__exit__(*exc)

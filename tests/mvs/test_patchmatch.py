@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import types
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -22,7 +24,7 @@ from vadgs.mvs import (
     propagation_regions,
     reference_patches,
 )
-from vadgs.mvs.patchmatch import _Pixels, _Sources, _window_maps
+from vadgs.mvs.patchmatch import _map_tables, _Pixels, _window_maps
 
 from .mvs_scenes import plane_scene, texture
 
@@ -59,17 +61,18 @@ class TestPlaneWarp:
         norm = torch.tensor([[2 / (w - 1), 0, -1], [0, 2 / (h - 1), -1], [0, 0, 1]])
         A = norm @ sc.src_K @ src_from_ref[..., :3, :3] @ torch.linalg.inv(K)[:, None]
         b = (norm @ sc.src_K @ src_from_ref[..., :3, 3:]).squeeze(-1)
-        src = _Sources(None, None, A, b, torch.linalg.inv(K), torch.ones(1, v, dtype=torch.bool), None)
-        col = _Colour(idx, pix, rays, None, None, None, [])
-        C, ok = _pixel_homographies(src, col, depth, normal)
-        assert ok.all()
+        cols, rows = _map_tables(A, torch.linalg.inv(K), pix, rays)
+        src = types.SimpleNamespace(b=b)
+        hyp = torch.cat([depth[..., None], normal], -1)[:, None]  # (1, K=1, P, 4)
+        C, nr = _window_maps(src, _Pixels(idx, rays, cols, rows, None), hyp)
+        assert (nr < -1e-6).all()
         off = torch.tensor([[0.0, 0.0], [3.0, -2.0], [-5.0, 5.0]])
         for j in range(v):
             dist = -depth * (normal * rays).sum(-1)
             H = plane_homography(K, sc.src_K[:, j], src_from_ref[:, j], normal, dist)  # (1, P, 3, 3)
             for o in off:
                 want = apply_homography(H, pix[None, :, :2] + o)
-                xyz = torch.cat([o, torch.ones(1)]) @ C[0, j].transpose(0, 1)  # (P, 3)
+                xyz = torch.cat([o, torch.ones(1)]) @ C[0, j, :, 0].transpose(0, 1)  # (P, 3)
                 got = xyz[:, :2] / xyz[:, 2:]
                 got = (got + 1) / 2 * torch.tensor([w - 1.0, h - 1.0])
                 assert torch.allclose(got, want[0], atol=1e-3)

@@ -269,6 +269,28 @@ def _window_maps(src: _Sources, px: _Pixels, hyp: torch.Tensor) -> tuple[torch.T
     return C, nr
 
 
+def _map_tables(
+    A: torch.Tensor, Kinv: torch.Tensor, pix: torch.Tensor, rays: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hypothesis-free tables of :func:`_window_maps`, ``cols`` and ``rows``.
+
+    ``A`` ``(B, V, 3, 3)`` is ``N K_s R K_r^-1``, ``pix`` ``(P, 3)`` the homogeneous pixels, ``rays``
+    ``(B, P, 3)`` their ``K_r^-1 p~``. Returns ``cols`` ``(B, 3, 3, P)`` and ``rows``
+    ``(B, V, 3, P, 3)`` (see :class:`_Pixels`).
+    """
+    p = pix.shape[0]
+    cols = torch.cat([Kinv[..., :2, None].expand(-1, -1, -1, p), rays.transpose(1, 2)[:, :, None]], 2)
+    rows = torch.stack(
+        [
+            A[:, :, None, :, 0].expand(-1, -1, p, -1),
+            A[:, :, None, :, 1].expand(-1, -1, p, -1),
+            torch.einsum("bvij,pj->bvpi", A, pix),
+        ],
+        dim=2,
+    )
+    return cols, rows
+
+
 def _chunk_size(cfg_chunk: int | None, device: torch.device, views: int) -> int:
     if cfg_chunk is None:
         cfg_chunk = 4096 if device.type == "cpu" else 1 << 30
@@ -350,7 +372,7 @@ def _aggregate(costs: torch.Tensor, weights: torch.Tensor | None, cfg: PatchMatc
 def _neighbour_table(
     xs: torch.Tensor, ys: torch.Tensor, h: int, w: int, lut: torch.Tensor, kind: str
 ) -> torch.Tensor:
-    """``(P, 1 + R, L)`` indices into the scored pixels of the pixels ``(xs, ys)`` and of their regions' neighbours.
+    """``(P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
 
     Regions are padded to the longest; padding, neighbours outside the image and unscored
     neighbours point to the sentinel ``lut[h * w]`` (whose cost is infinite). One broadcast.
@@ -406,10 +428,9 @@ def _refinements(
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
     facing = torch.bmm(m.view(-1, 2, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1) < -1e-3
     pn = torch.where(facing, m, n[:, :, None])
-    rd = rn = None
+    rd, rn = z, n  # random hypotheses, drawn only when a kind asks for them
     if any("r" in kind for kind in kinds):
-        rd = _random_depth(z.shape, lo, hi, gen, z)
-        rn = _random_normals(rays, gen)
+        rd, rn = _random_depth(z.shape, lo, hi, gen, z), _random_normals(rays, gen)
     depths = [{"p": pd[..., i % 2], "c": z, "r": rd}[kd] for i, (kd, _) in enumerate(kinds)]
     normals = [{"p": pn[:, :, i % 2], "c": n, "r": rn}[kn] for i, (_, kn) in enumerate(kinds)]
     return torch.cat([torch.stack(depths, 1)[..., None], torch.stack(normals, 1)], -1)
@@ -756,15 +777,7 @@ def _patchmatch_level(
     pix, rays = pix_all[idx], rays_all[:, idx]
     st = reference_patch_stats(patches[:, :, idx], weights[:, :, idx], cfg.min_variance)
     textured = st.valid if region is None else st.valid & region[:, idx]
-    cols = torch.cat([Kinv[..., :2, None].expand(-1, -1, -1, n_act), rays.transpose(1, 2)[:, :, None]], 2)
-    rows = torch.stack(
-        [
-            A[:, :, None, :, 0].expand(-1, -1, n_act, -1),
-            A[:, :, None, :, 1].expand(-1, -1, n_act, -1),
-            torch.einsum("bvij,pj->bvpi", A, pix),
-        ],
-        dim=2,
-    )  # (B, V, 3, P, 3)
+    cols, rows = _map_tables(A, Kinv, pix, rays)
     ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
     pixels = _Pixels(idx, rays, cols, rows, ref)
     nbr = _neighbour_table(xs[idx], ys[idx], h, w, lut, cfg.propagation)
@@ -808,15 +821,15 @@ def _patchmatch_level(
         n_prop = nbr.shape[1]  # the current hypothesis and the propagated ones
 
         def keep_best(sl: slice, cands, costs, nr, vw) -> None:
-            """Write the best candidate of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
+            """Write the best of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
             agg_all = _aggregate(costs, vw, cfg)  # (B, N, P)
             best = agg_all.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
             record = torch.cat([cands, nr[..., None], agg_all[..., None], costs.permute(0, 2, 3, 1)], -1)
             state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
 
-        init = torch.stack(init, 1)  # (B, K, P, 4)
-        costs, nr = _costs(src, pixels, init, cfg.min_variance, chunk)
-        keep_best(slice(0, n_act), init, costs, nr, None)
+        first_hyp = torch.stack(init, 1)  # (B, K, P, 4)
+        costs, nr = _costs(src, pixels, first_hyp, cfg.min_variance, chunk)
+        keep_best(slice(0, n_act), first_hyp, costs, nr, None)
         for i in range(iterations):
             if kinds:  # the random numbers of the refinements of both colours
                 u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
