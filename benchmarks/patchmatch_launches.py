@@ -19,6 +19,7 @@ frame, regions) when ``../shared/data/street_a`` is there.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import os
@@ -94,14 +95,21 @@ def count(rounds: int) -> dict:
             with counter() as c:
                 patchmatch(*args, PatchMatchConfig(chunk_size=chunk), **kw)
             row[key] = (c.launches, c.host_reads)
-        cfg = PatchMatchConfig()
-        patchmatch(*args, cfg, **kw)  # warm-up
-        times = []
-        for _ in range(rounds):
-            t = time.perf_counter()
-            patchmatch(*args, cfg, **kw)
-            times.append(time.perf_counter() - t)
-        row["seconds"] = statistics.median(times)
+        configs = {"seconds": PatchMatchConfig()}
+        if "joint_scoring" in {f.name for f in dataclasses.fields(PatchMatchConfig)}:
+            configs["joint_seconds"] = PatchMatchConfig(joint_scoring=True)
+            with counter() as c:
+                patchmatch(*args, PatchMatchConfig(chunk_size=ONE_CHUNK, joint_scoring=True), **kw)
+            row["joint"] = c.launches
+        times: dict = {key: [] for key in configs}
+        for cfg in configs.values():
+            patchmatch(*args, cfg, **kw)  # warm-up
+        for _ in range(rounds):  # interleaved: the machine's load moves
+            for key, cfg in configs.items():
+                t = time.perf_counter()
+                patchmatch(*args, cfg, **kw)
+                times[key].append(time.perf_counter() - t)
+        row.update({key: statistics.median(ts) for key, ts in times.items()})
         out[name] = row
     return out
 
@@ -130,8 +138,8 @@ def _street_problems():
     return probs
 
 
-def results(path: str) -> None:
-    """Run the comparison problems with this tree's vadgs and save the results to ``path``."""
+def results(path: str, seed: int = 0) -> None:
+    """Run the comparison problems with this tree's vadgs (``seed``) and save the results to ``path``."""
     from vadgs.mvs import PatchMatchConfig, patchmatch
 
     probs = {}
@@ -145,7 +153,7 @@ def results(path: str) -> None:
     out = {}
     for name, (args, kw, gt, cfg) in probs.items():
         t = time.perf_counter()
-        res = patchmatch(*args, cfg, **kw)
+        res = patchmatch(*args, dataclasses.replace(cfg, seed=seed), **kw)
         out[name] = dict(depth=res.depth, raw=res.raw_depth, mask=res.mask, gt=gt, s=time.perf_counter() - t)
     torch.save(out, path)
 
@@ -170,6 +178,7 @@ def main() -> None:
     ap.add_argument("--old", help="a tree whose vadgs to run the same problems with (subprocess)")
     ap.add_argument("--rounds", type=int, default=5, help="timed calls per problem (after a warm-up)")
     ap.add_argument("--out", help=argparse.SUPPRESS)
+    ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(1)
     import vadgs
@@ -178,18 +187,17 @@ def main() -> None:
         print(json.dumps(count(args.rounds)))
         return
     if args.what == "_results":
-        results(args.out)
+        results(args.out, args.seed)
         return
     if args.what == "count":
         new = count(args.rounds)
         old = (
             json.loads(_in_tree(args.old, "_count_json", "--rounds", str(args.rounds))) if args.old else None
         )
-        print(
-            f"vadgs from {Path(vadgs.__file__).parent}; old: {args.old}; target: <= 1000 launches, equal for every problem"
-        )
-        print("| problem | launches (one chunk) | host reads | launches (CPU chunks) | CPU ms (median) |")
-        print("|---|---|---|---|---|")
+        print(f"vadgs from {Path(vadgs.__file__).parent}; old: {args.old}")
+        head = "launches (one chunk) | host reads | launches (CPU chunks) | CPU ms (median)"
+        print(f"| problem | {head} | joint_scoring: launches, CPU ms |")
+        print("|---|---|---|---|---|---|")
         for name, row in new.items():
             o = old[name] if old else None
 
@@ -201,31 +209,41 @@ def main() -> None:
                 if o
                 else f"{row['seconds'] * 1e3:.0f}"
             )
+            joint = f"{row['joint']:,}, {row['joint_seconds'] * 1e3:.0f}" if "joint" in row else "–"
             print(
-                f"| {name} | {cell('one_chunk', 0)} | {cell('one_chunk', 1)} | {cell('cpu_chunks', 0)} | {ms} |"
+                f"| {name} | {cell('one_chunk', 0)} | {cell('one_chunk', 1)} | {cell('cpu_chunks', 0)} "
+                f"| {ms} | {joint} |"
             )
         return
     if not args.old:
         raise SystemExit("compare: --old TREE is required")
     with tempfile.TemporaryDirectory() as tmp:
         _in_tree(args.old, "_results", "--out", f"{tmp}/old.pt")
+        _in_tree(args.old, "_results", "--out", f"{tmp}/old1.pt", "--seed", "1")
         results(f"{tmp}/new.pt")
         old, new = torch.load(f"{tmp}/old.pt"), torch.load(f"{tmp}/new.pt")
+        old1 = torch.load(f"{tmp}/old1.pt")
     print(f"old: {args.old}; new: {Path(vadgs.__file__).parent}")
-    print("| problem | both valid: within 1e-3 / 1e-2 rel. | masks agree | GT within 1 % old → new | completeness old → new | s old → new |")  # fmt: skip
+    print("new vs old (seed 0), and in brackets old seed 1 vs old seed 0: the spread of the search itself")
+    head = "both valid: depth within 1e-3 / 1e-2 rel. | masks agree | GT within 1 % old → new"
+    print(f"| problem | {head} | completeness old → new | s old → new |")
     print("|---|---|---|---|---|---|")
+
+    def agreement(a, b):
+        both = a["mask"] & b["mask"]
+        rel = (b["raw"] - a["raw"]).abs() / a["raw"]
+        nb = max(int(both.sum()), 1)
+        close = [float((rel[both] <= tol).sum()) / nb for tol in (1e-3, 1e-2)]
+        return close, float((a["mask"] == b["mask"]).float().mean())
+
     for name in new:
         o, n = old[name], new[name]
-        both = o["mask"] & n["mask"]
-        rel = (n["raw"] - o["raw"]).abs() / o["raw"]
-        nb = max(int(both.sum()), 1)
-        close3, close2 = float((rel[both] <= 1e-3).sum()) / nb, float((rel[both] <= 1e-2).sum()) / nb
-        agree = float((o["mask"] == n["mask"]).float().mean())
+        (c3, c2), agree = agreement(o, n)
+        (s3, s2), s_agree = agreement(o, old1[name])
         (ao, co), (an, cn) = _accuracy(o["depth"], o["gt"]), _accuracy(n["depth"], n["gt"])
-        print(
-            f"| {name} | {close3:.3f} / {close2:.3f} | {agree:.3f} | {ao:.3f} → {an:.3f} | {co:.3f} → {cn:.3f} | "
-            f"{o['s']:.1f} → {n['s']:.1f} |"
-        )
+        cells = [f"{c3:.3f} / {c2:.3f} ({s3:.3f} / {s2:.3f})", f"{agree:.3f} ({s_agree:.3f})"]
+        cells += [f"{ao:.3f} → {an:.3f}", f"{co:.3f} → {cn:.3f}", f"{o['s']:.1f} → {n['s']:.1f}"]
+        print(f"| {name} | {' | '.join(cells)} |")
 
 
 if __name__ == "__main__":
