@@ -340,7 +340,7 @@ def _costs(
     # centre does not land in front of the source camera inside its image (and mask).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    outside = torch.linalg.vector_norm(c0[..., :2], ord=float("inf"), dim=-1) > cz  # or behind
+    outside = c0[..., :2].abs().amax(-1) > cz  # or behind (vector_norm(ord=inf) is 10x slower on CPU)
     bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
