@@ -83,7 +83,7 @@ COUNT_PROBLEMS = {
 
 
 def count(rounds: int) -> dict:
-    """Launches, host reads (one chunk and CPU chunks) and median CPU seconds per problem."""
+    """Launches, host reads (one chunk and CPU chunks) and ``rounds`` CPU times per problem."""
     from vadgs.mvs import PatchMatchConfig, patchmatch
 
     counter = _load("_launch_count", REPO / "tests" / "launch_count.py").LaunchCounter
@@ -102,14 +102,14 @@ def count(rounds: int) -> dict:
                 patchmatch(*args, PatchMatchConfig(chunk_size=ONE_CHUNK, joint_scoring=True), **kw)
             row["joint"] = c.launches
         times: dict = {key: [] for key in configs}
-        for cfg in configs.values():
+        for cfg in configs.values() if rounds else ():
             patchmatch(*args, cfg, **kw)  # warm-up
         for _ in range(rounds):  # interleaved: the machine's load moves
             for key, cfg in configs.items():
                 t = time.perf_counter()
                 patchmatch(*args, cfg, **kw)
                 times[key].append(time.perf_counter() - t)
-        row.update({key: statistics.median(ts) for key, ts in times.items()})
+        row.update(times)
         out[name] = row
     return out
 
@@ -190,11 +190,23 @@ def main() -> None:
         results(args.out, args.seed)
         return
     if args.what == "count":
-        new = count(args.rounds)
-        old = (
-            json.loads(_in_tree(args.old, "_count_json", "--rounds", str(args.rounds))) if args.old else None
-        )
-        print(f"vadgs from {Path(vadgs.__file__).parent}; old: {args.old}")
+        new = json.loads(_in_tree(REPO, "_count_json", "--rounds", "0"))
+        old = json.loads(_in_tree(args.old, "_count_json", "--rounds", "0")) if args.old else None
+        for _ in range(2):  # timing phases alternate between the trees: the machine's load moves
+            for rows, tree in ((old, args.old), (new, REPO)):
+                if rows is None:
+                    continue
+                timed = json.loads(_in_tree(tree, "_count_json", "--rounds", str(args.rounds)))
+                for name, row in rows.items():
+                    for key in ("seconds", "joint_seconds"):
+                        if key in timed[name]:
+                            row[key] = row.get(key, []) + timed[name][key]
+        for rows in (new, old):
+            for row in rows.values() if rows else ():
+                for key in ("seconds", "joint_seconds"):
+                    if key in row:
+                        row[key] = statistics.median(row[key])
+        print(f"new: {REPO}; old: {args.old}")
         head = "launches (one chunk) | host reads | launches (CPU chunks) | CPU ms (median)"
         print(f"| problem | {head} | joint_scoring: launches, CPU ms |")
         print("|---|---|---|---|---|---|")

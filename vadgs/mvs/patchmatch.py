@@ -100,7 +100,7 @@ class PatchMatchConfig:
         joint_scoring: score the random refinements together with the propagated planes, in one
             cost evaluation per half-sweep, around the likeliest winner known before scoring (the
             plane of lowest cost where it was last scored) instead of around the propagation's
-            winner: about a quarter fewer kernel launches (982 instead of 1,3xx for the defaults,
+            winner: about a quarter fewer kernel launches (992 instead of 1,288 for the defaults,
             ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.6 % instead of
             32.4 % of the depths within 1 %, mean of 3 seeds).
     """
