@@ -87,7 +87,7 @@ class PatchMatchConfig:
         beta: confidence width of the view weights (ACMH: 0.3).
         max_cost: pixels with a final aggregated cost above it are invalid in the result mask.
         seed: seed of the random hypotheses (``None``: torch's global generator).
-        chunk_size: pixel-views scored at once; ``None``: 4096 on CPU (temporaries stay in
+        chunk_size: pixel-views (times hypotheses) scored at once; ``None``: 4096 on CPU (temporaries stay in
             cache, about 3x faster than one pass), everything at once on other devices.
         pyramid_levels: coarse-to-fine levels (ACMM-style; default 2). ``1``: a single scale. ``L > 1``: the
             ``iterations`` run on images downsampled ``2^(L-1)`` times, then at each finer level
@@ -723,6 +723,10 @@ def _patchmatch_level(
     by one ``argmin``, its random refinements are scored in a second call (or, with
     ``joint_scoring``, with the propagated planes in the first, around the likeliest winner), and
     the best of all is kept by one ``gather``. The initial hypotheses are scored first, once.
+
+    ``alt_init`` is given at a finer pyramid level: ``init_depth`` / ``init_normal`` are then the
+    upsampled coarse maps (complete), and ``alt_init`` the caller's full-resolution init maps (or
+    ``None``), scored against them.
     """
     src_from_ref, usable, offsets = shared
     lo, hi = depth_range
