@@ -149,16 +149,20 @@ class VisibilityCommand(Command):
 
 @dataclass(frozen=True)
 class ConvertCommand(Command):
-    """Convert a nuScenes scene or a Waymo v2 segment into the benchmark format (``scene.json``)."""
+    """Convert a nuScenes scene, a Waymo v2 segment or a PandaSet sequence to the benchmark format."""
 
-    dataset: Annotated[Literal["nuscenes", "waymo"], Positional, tyro.conf.arg(metavar="{nuscenes,waymo}")]
+    dataset: Annotated[
+        Literal["nuscenes", "waymo", "pandaset"],
+        Positional,
+        tyro.conf.arg(metavar="{nuscenes,waymo,pandaset}"),
+    ]
     """the dataset of SRC"""
     src: Annotated[str, Positional, tyro.conf.arg(metavar="SRC")]
-    """nuScenes dataroot, or the Waymo v2 split folder holding the components"""
-    scene: str
-    """nuScenes scene name (scene-0061) or Waymo segment name"""
+    """nuScenes dataroot, the Waymo v2 split folder holding the components, or a PandaSet sequence folder"""
     out: str
     """output folder for scene.json, images/, lidar/"""
+    scene: str | None = None
+    """nuScenes scene name (scene-0061) or Waymo segment name (required for those two)"""
     version: str = "v1.0-mini"
     """nuScenes table folder (v1.0-mini, v1.0-trainval)"""
     cameras: str | None = None
@@ -169,32 +173,49 @@ class ConvertCommand(Command):
     """frame positions START:STOP or one position (keyframes for nuScenes; default all)"""
     no_lidar: Flag = False
     """no LiDAR (Waymo: needs no lidar file)"""
+    lidar: Literal["pandar64", "pandargt", "both"] = "pandar64"
+    """PandaSet: the LiDAR points kept (pandar64: the 360 one, pandargt: the forward one, both)"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive(self, "scale")
         if self.frames is not None and not re.fullmatch(r"\d*:\d+|\d+", self.frames):
             raise ValueError(f"frames: expected START:STOP or one position, got {self.frames!r}")
+        if self.scene is None and self.dataset in ("nuscenes", "waymo"):
+            raise ValueError(f"--scene: required for {self.dataset} (the scene or segment name in SRC)")
 
     def main(self) -> int:
         """Write the scene in the benchmark format; 0."""
-        from vadgs.data import export_scene, load_nuscenes, load_waymo
+        from vadgs.data import export_scene
 
         cameras = self.cameras.split(",") if self.cameras else None
         frames = None
         if self.frames:
             start, _, stop = self.frames.partition(":")
             frames = range(int(start or 0), int(stop)) if stop else [int(start)]
+        box_masks = False
         if self.dataset == "nuscenes":
+            from vadgs.data import load_nuscenes
+
+            assert self.scene is not None  # checked in __post_init__
             scene = load_nuscenes(
                 self.src, self.scene, version=self.version, cameras=cameras, scale=self.scale, frames=frames
             )
-        else:
+        elif self.dataset == "waymo":
+            from vadgs.data import load_waymo
+
+            assert self.scene is not None
             lasers = None if self.no_lidar else ("TOP",)  # --no-lidar: a segment without the lidar component
             scene = load_waymo(
                 self.src, self.scene, cameras=cameras, scale=self.scale, frames=frames, lasers=lasers
             )
-        path = export_scene(scene, self.out, lidar=not self.no_lidar)
+        else:
+            from vadgs.data import load_pandaset
+
+            lidar = None if self.no_lidar else self.lidar
+            scene = load_pandaset(self.src, cameras=cameras, scale=self.scale, frames=frames, lidar=lidar)
+            box_masks = True  # the test views' instance maps from the cuboids: PSNR* is measured
+        path = export_scene(scene, self.out, lidar=not self.no_lidar, box_masks=box_masks)
         print(f"{scene!r} -> {path}")
         return 0
 

@@ -1,4 +1,4 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions, TRI's DGP format, nuScenes and Waymo.
+"""Scene loaders: the benchmark format, COLMAP reconstructions, TRI's DGP format, nuScenes, Waymo, PandaSet.
 
 A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``);
 :func:`make_segment` writes a procedural driving segment in the benchmark format at any size, and
@@ -17,6 +17,7 @@ from vadgs.data.colmap_model import find_colmap_model, match_colmap_views
 from vadgs.data.dgp import load_dgp
 from vadgs.data.export import export_scene
 from vadgs.data.nuscenes import load_nuscenes
+from vadgs.data.pandaset import load_pandaset
 from vadgs.data.scene import (
     CameraInfo,
     ColmapPoints,
@@ -53,6 +54,7 @@ __all__ = [
     "load_colmap",
     "load_dgp",
     "load_nuscenes",
+    "load_pandaset",
     "load_scene",
     "load_waymo",
     "make_segment",
