@@ -46,6 +46,8 @@ PARKED_JITTER = 0.15
 BOX_MARGIN = 0.05
 #: the extra (parked, walking) boxes float this high above the source scene: no point falls in them.
 EXTRA_HEIGHT = 30.0
+#: returns off the recording car's roof written into each sweep (d = 0), inside the loader's ego box.
+ROOF_POINTS = 40
 T0 = 1557539956.5
 _CUBOID_COLUMNS = [
     "uuid",
@@ -180,7 +182,12 @@ def write_pandaset_sequence(src: Scene, root: Path) -> dict:
         ego = f.ego_to_world.double().numpy()
         local = (pts - ego[:3, 3]) @ ego[:3, :3]  # ego frame: x forward
         ahead = (local[:, 0] > 0) & (np.abs(local[:, 1]) < 0.6 * local[:, 0])  # the PandarGT's ±31°
-        d = ahead.astype(np.int64)
+        # returns off the car's own roof (in the Pandar64 frame: x right, y forward, z up), as in PandaSet
+        roof_local = np.stack([np.linspace(-0.9, 0.7, ROOF_POINTS), np.linspace(-0.8, 1.9, ROOF_POINTS),
+                               np.full(ROOF_POINTS, -0.4)], 1)  # fmt: skip
+        roof = roof_local @ lidar_poses[fi][:3, :3].T + lidar_poses[fi][:3, 3] - GLOBAL
+        pts = np.concatenate([pts, roof])
+        d = np.concatenate([ahead, np.zeros(ROOF_POINTS, dtype=bool)]).astype(np.int64)
         truth["d"][fi] = d
         world = pts + GLOBAL
         df = pd.DataFrame(

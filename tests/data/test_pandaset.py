@@ -27,6 +27,7 @@ from tests.data.pandaset_sample import (
     BOX_MARGIN,
     CAMERA_NAMES,
     PARKED_JITTER,
+    ROOF_POINTS,
     SIBLING_SHIFT,
     write_pandaset_sequence,
     write_pickle,
@@ -236,7 +237,9 @@ class TestLoadPandaset:
             name: len(load_pandaset(seq, lidar=name).lidar(3).points)
             for name in ("pandar64", "pandargt", "both")
         }
-        assert n == {"pandar64": int((d == 0).sum()), "pandargt": int((d == 1).sum()), "both": len(d)}
+        n64 = int((d == 0).sum()) - ROOF_POINTS  # the roof returns are dropped
+        assert n == {"pandar64": n64, "pandargt": int((d == 1).sum()), "both": len(d) - ROOF_POINTS}
+        assert len(load_pandaset(seq, drop_ego=False).lidar(3).points) == n64 + ROOF_POINTS
         assert 0 < n["pandargt"] < n["pandar64"]
         assert load_pandaset(seq, lidar=None).lidar_loader is None
         with pytest.raises(ValueError, match=r"lidar: expected one of \['both', 'pandar64', 'pandargt'\]"):

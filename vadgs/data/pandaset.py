@@ -28,8 +28,12 @@ How PandaSet maps to vadgs (conventions of the devkit, ``pandaset/geometry.py``)
   (PandaSet has no separate vehicle frame); timestamps are seconds since the first selected
   LiDAR timestamp.
 - **LiDAR.** ``lidar="pandar64"`` keeps the points with ``d == 0``, ``"pandargt"`` those with
-  ``d == 1``, ``"both"`` all; the origin is the Pandar64's position (for the PandarGT's points
-  too: its pose is not in the sequence). A missing sweep gives an empty sweep and a warning.
+  ``d == 1``, ``"both"`` all; the returns off the car's own roof (:data:`PANDASET_EGO_BOX`) are
+  dropped. ``LidarFrame.origin`` is the position in ``lidar/poses.json`` (for the PandarGT's points
+  too: its pose is not in the sequence); in sequence 002 that position lies 1.8 m below the
+  cameras and the roof returns 1.3-1.7 m above it, so it is not where the Pandar64 sits (vadgs
+  uses the origin nowhere but in the exported ``lidar/*.npz``). A missing sweep gives an empty
+  sweep and a warning.
 - **Boxes.** A cuboid's centre is ``position``; ``yaw`` turns it about the world z axis, with 0
   facing ``(0, 1, 0)``; ``dimensions.x`` is the width, ``dimensions.y`` the length (the devkit's
   ``center_box_to_corners``). In vadgs' box frame (x along the length) that is
@@ -78,6 +82,7 @@ from vadgs.geometry.camera import scale_intrinsics
 
 __all__ = [
     "PANDASET_CAMERAS",
+    "PANDASET_EGO_BOX",
     "PANDASET_LIDARS",
     "PANDASET_VEHICLES",
     "load_pandaset",
@@ -122,6 +127,12 @@ PANDASET_VEHICLES = frozenset(
         "Tram / Subway",
     }
 )
+
+#: the returns off the recording car's own roof (the sensor rack), in the frame of ``lidar/poses.json``
+#: (x right, y forward, z up): ``((x_min, x_max), (y_min, y_max), (z_min, z_max))`` in metres. In
+#: sequence 002 they lie within x -1..0.75, y -1..2, z 1.3..1.7 and nothing else comes within 0.2 m
+#: of this box; ``drop_ego=True`` removes them (they would sit right in front of the cameras).
+PANDASET_EGO_BOX = ((-1.2, 1.2), (-1.5, 2.5), (-1.0, 2.5))
 
 _LIDAR_COLUMNS = ("x", "y", "z", "d")
 _CUBOID_COLUMNS = (
@@ -241,6 +252,7 @@ def load_pandaset(
     lidar: str | None = "pandar64",
     recenter: bool = True,
     check_files: bool = True,
+    drop_ego: bool = True,
 ) -> Scene:
     """Load one PandaSet sequence (cameras, LiDAR, cuboids) as a :class:`Scene`.
 
@@ -259,6 +271,7 @@ def load_pandaset(
         lidar: ``"pandar64"`` (360°), ``"pandargt"`` (forward), ``"both"``, or None for no LiDAR.
         recenter: translate the world so that the LiDAR at frame 0 sits at the origin.
         check_files: verify that every image exists.
+        drop_ego: remove the LiDAR returns inside :data:`PANDASET_EGO_BOX` (the car's own roof).
 
     Returns:
         The :class:`Scene`.
@@ -465,6 +478,13 @@ def load_pandaset(
             except (TypeError, ValueError) as e:
                 raise ValueError(f"PandaSet LiDAR sweep {path}: x, y, z, d: expected numbers ({e})") from None
             xyz = xyz[np.isin(d, keep) & np.isfinite(xyz).all(1)] - offset
+            if drop_ego:
+                pose = lidar_to_world[frame]
+                local = (xyz - pose[:3, 3]) @ pose[:3, :3]
+                ego = np.ones(len(xyz), dtype=bool)
+                for axis, (lo, hi) in enumerate(PANDASET_EGO_BOX):
+                    ego &= (local[:, axis] > lo) & (local[:, axis] < hi)
+                xyz = xyz[~ego]
             return labelled_lidar(xyz, origin, boxes, frame)
 
     if missing:
