@@ -416,11 +416,15 @@ def load_pandaset(
             raise ValueError(f"PandaSet cuboids {path}: row(s) {np.flatnonzero(bad)[:5].tolist()} not finite")
         uuids = [str(u) for u in df["uuid"]]
         labels = [str(x) for x in df["label"]]
-        sensor = (
-            df["cuboids.sensor_id"].to_numpy().astype(np.int64)
-            if "cuboids.sensor_id" in df.columns
-            else np.full(len(df), -1)
-        )
+        sensor = np.full(len(df), -1, dtype=np.int64)  # -1: a box of neither LiDAR alone
+        if "cuboids.sensor_id" in df.columns:
+            try:
+                ids = df["cuboids.sensor_id"].to_numpy(dtype=np.float64)
+            except (TypeError, ValueError) as e:
+                raise ValueError(
+                    f"PandaSet cuboids {path}: cuboids.sensor_id: expected numbers ({e})"
+                ) from None
+            sensor = np.where(np.isfinite(ids), ids, -1).astype(np.int64)
         if "cuboids.sibling_id" in df.columns:
             for u, s, sib in zip(uuids, sensor, df["cuboids.sibling_id"]):
                 if s in (0, 1) and isinstance(sib, str) and sib not in ("", "-"):
