@@ -87,7 +87,7 @@ class TestArguments:
             ),
             (
                 ["convert", "waymo", "src", "--out", "o"],
-                "vadgs convert: error: --scene: required for waymo (the scene or segment name)",
+                "vadgs convert: error: --scene: required for waymo (the scene or segment name in SRC)",
             ),
             (
                 ["convert", "waymo", "src", "--scene", "s", "--out", "o", "--frames", "a:b"],

@@ -149,20 +149,21 @@ class VisibilityCommand(Command):
 
 @dataclass(frozen=True)
 class ConvertCommand(Command):
-    """Convert a nuScenes scene, Waymo v2 segment or Argoverse 2 log to the benchmark format (scene.json)."""
+    """Convert a nuScenes scene, Waymo v2 segment, PandaSet sequence or Argoverse 2 log (scene.json)."""
 
     dataset: Annotated[
-        Literal["nuscenes", "waymo", "argoverse2"],
+        Literal["nuscenes", "waymo", "pandaset", "argoverse2"],
         Positional,
-        tyro.conf.arg(metavar="{nuscenes,waymo,argoverse2}"),
+        tyro.conf.arg(metavar="{nuscenes,waymo,pandaset,argoverse2}"),
     ]
     """the dataset of SRC"""
     src: Annotated[str, Positional, tyro.conf.arg(metavar="SRC")]
-    """nuScenes dataroot, the Waymo v2 split folder holding the components, or the Argoverse 2 log folder"""
+    """nuScenes dataroot, the Waymo v2 split folder holding the components, a PandaSet sequence folder
+    or an Argoverse 2 log folder"""
     out: str
     """output folder for scene.json, images/, lidar/"""
     scene: str | None = None
-    """nuScenes scene name (scene-0061) or Waymo segment name (Argoverse 2: none, SRC is the log)"""
+    """nuScenes scene name (scene-0061) or Waymo segment name (required for those two)"""
     version: str = "v1.0-mini"
     """nuScenes table folder (v1.0-mini, v1.0-trainval)"""
     cameras: str | None = None
@@ -173,6 +174,8 @@ class ConvertCommand(Command):
     """frame positions START:STOP or one position (nuScenes keyframes, Argoverse 2 sweeps; default all)"""
     no_lidar: Flag = False
     """no LiDAR (Waymo: needs no lidar file)"""
+    lidar: Literal["pandar64", "pandargt", "both"] = "pandar64"
+    """PandaSet: the LiDAR points kept (pandar64: the 360 one, pandargt: the forward one, both)"""
     lidars: str | None = None
     """Argoverse 2: comma-separated LiDARs of each frame, up_lidar,down_lidar (default both)"""
     undistort: Flag = False
@@ -183,35 +186,48 @@ class ConvertCommand(Command):
         check_positive(self, "scale")
         if self.frames is not None and not re.fullmatch(r"\d*:\d+|\d+", self.frames):
             raise ValueError(f"frames: expected START:STOP or one position, got {self.frames!r}")
-        if self.dataset != "argoverse2" and self.scene is None:
-            raise ValueError(f"scene: required for {self.dataset} (the scene or segment name)")
+        if self.scene is None and self.dataset in ("nuscenes", "waymo"):
+            raise ValueError(f"--scene: required for {self.dataset} (the scene or segment name in SRC)")
         for name, value in (("lidars", self.lidars is not None), ("undistort", self.undistort)):
             if self.dataset != "argoverse2" and value:
                 raise ValueError(f"{name}: an Argoverse 2 option, got dataset {self.dataset}")
+        if self.dataset != "pandaset" and self.lidar != "pandar64":
+            raise ValueError(f"lidar: a PandaSet option, got dataset {self.dataset}")
 
     def main(self) -> int:
         """Write the scene in the benchmark format; 0."""
-        from vadgs.data import export_scene, load_nuscenes, load_waymo
+        from vadgs.data import export_scene
 
         cameras = self.cameras.split(",") if self.cameras else None
         frames = None
         if self.frames:
             start, _, stop = self.frames.partition(":")
             frames = range(int(start or 0), int(stop)) if stop else [int(start)]
+        box_masks = False
         if self.dataset == "argoverse2":
             scene = self._argoverse2(cameras, frames)
         elif self.dataset == "nuscenes":
-            assert self.scene is not None  # __post_init__
+            from vadgs.data import load_nuscenes
+
+            assert self.scene is not None  # checked in __post_init__
             scene = load_nuscenes(
                 self.src, self.scene, version=self.version, cameras=cameras, scale=self.scale, frames=frames
             )
-        else:
-            assert self.scene is not None  # __post_init__
+        elif self.dataset == "waymo":
+            from vadgs.data import load_waymo
+
+            assert self.scene is not None
             lasers = None if self.no_lidar else ("TOP",)  # --no-lidar: a segment without the lidar component
             scene = load_waymo(
                 self.src, self.scene, cameras=cameras, scale=self.scale, frames=frames, lasers=lasers
             )
-        path = export_scene(scene, self.out, lidar=not self.no_lidar)
+        else:
+            from vadgs.data import load_pandaset
+
+            lidar = None if self.no_lidar else self.lidar
+            scene = load_pandaset(self.src, cameras=cameras, scale=self.scale, frames=frames, lidar=lidar)
+            box_masks = True  # the test views' instance maps from the cuboids: PSNR* is measured
+        path = export_scene(scene, self.out, lidar=not self.no_lidar, box_masks=box_masks)
         print(f"{scene!r} -> {path}")
         return 0
 

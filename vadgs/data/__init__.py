@@ -1,4 +1,4 @@
-"""Scene loaders: the benchmark scene format, COLMAP reconstructions, DGP, nuScenes, Waymo, Argoverse 2.
+"""Scene loaders: the benchmark format, COLMAP, TRI's DGP, nuScenes, Waymo, PandaSet, Argoverse 2.
 
 A folder of photos becomes a COLMAP project with :func:`run_sfm` (``vadgs sfm``);
 :func:`make_segment` writes a procedural driving segment in the benchmark format at any size, and
@@ -18,6 +18,7 @@ from vadgs.data.colmap_model import find_colmap_model, match_colmap_views
 from vadgs.data.dgp import load_dgp
 from vadgs.data.export import export_scene
 from vadgs.data.nuscenes import load_nuscenes
+from vadgs.data.pandaset import load_pandaset
 from vadgs.data.scene import (
     CameraInfo,
     ColmapPoints,
@@ -55,6 +56,7 @@ __all__ = [
     "load_colmap",
     "load_dgp",
     "load_nuscenes",
+    "load_pandaset",
     "load_scene",
     "load_waymo",
     "make_segment",

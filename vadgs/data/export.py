@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from vadgs.data.box_masks import box_instance_map
 from vadgs.data.scene import Scene
 from vadgs.io import atomic_write, safe_filename, write_json
 
@@ -23,14 +24,15 @@ def _list(t) -> list:
     return [[float(v) for v in row] for row in t.double().tolist()]
 
 
-def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
+def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True, box_masks: bool = False) -> Path:
     """Write a scene as ``scene.json`` + ``images/<camera>/<frame>.png`` + ``lidar/<frame>.npz``.
 
     Images are written as 8-bit PNG at the scene's resolution (``image_size``, i.e. after the
     ``scale`` it was loaded with), with ``K`` to match; loading the result with
     :func:`~vadgs.data.load_scene` (``scale=1``) gives the same cameras, poses, LiDAR (world
     points, instance ids, origin), instances, tracks (the valid frames of each) and split.
-    Depth and instance maps are not written (a converted real scene has none); the tracks' meshes are
+    Depth and instance maps are not written (a converted real scene has none; ``box_masks`` paints
+    the test views' from the boxes); the tracks' meshes are
     copied to ``gt/`` so that the folder is self-contained. Camera names become folder names made
     safe by :func:`vadgs.io.safe_filename`.
 
@@ -38,6 +40,9 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         scene: the scene (e.g. from :func:`~vadgs.data.load_nuscenes`).
         out_dir: the folder to write (created; existing files are overwritten).
         lidar: also write each frame's LiDAR (if the scene has any).
+        box_masks: write an instance map for each test view, painted from the tracks' boxes
+            (:func:`~vadgs.data.box_masks.box_instance_map`; uint16 PNG in ``instances/``), so that
+            PSNR* is measured on the converted scene.
 
     Returns:
         The path of the written ``scene.json``.
@@ -63,6 +68,7 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         for name, c in scene.cameras_info.items()
     }
     frames = []
+    test_views = set(scene.test_views) if box_masks else set()
     for f in scene.frames:
         views = []
         for vid in f.view_ids:
@@ -71,7 +77,10 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
             img = scene.load_images([vid])[0]  # a fresh tensor: rounded to 8 bits in place
             pil = Image.fromarray(img.clamp_(0, 1).mul_(255).round_().byte().permute(1, 2, 0).numpy())
             atomic_write(out / rel, functools.partial(pil.save, format="PNG"))
-            views.append({"camera": v.camera, "image": rel, "cam_to_world": _list(v.cam_to_world)})
+            vm = {"camera": v.camera, "image": rel, "cam_to_world": _list(v.cam_to_world)}
+            if vid in test_views:
+                vm["instances"] = _write_box_mask(scene, vid, out, f"{safe_filename(v.camera)}/{f.index:06d}")
+            views.append(vm)
         fm: dict = {"index": f.index, "timestamp": f.timestamp, "views": views}
         if f.ego_to_world is not None:
             fm["ego_to_world"] = _list(f.ego_to_world)
@@ -118,6 +127,17 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True) -> Path:
         "split": {"train_frames": list(scene.train_frames), "test_frames": list(scene.test_frames)},
     }
     return write_json(out / "scene.json", meta, indent=None)  # last: a folder with it is complete
+
+
+def _write_box_mask(scene: Scene, view: int, out: Path, stem: str) -> str:
+    """Write the view's :func:`box_instance_map` as a uint16 PNG under ``out/instances/``; its path there."""
+    ids = box_instance_map(scene, view)
+    if int(ids.max()) > 65535:
+        raise ValueError(f"box_masks: track id {int(ids.max())} does not fit a uint16 instance map")
+    rel = f"instances/{stem}.png"
+    pil = Image.fromarray(ids.numpy().astype(np.uint16))
+    atomic_write(out / rel, functools.partial(pil.save, format="PNG"))
+    return rel
 
 
 def _copy_mesh(mesh: Path, out: Path, track_id: int) -> str:
