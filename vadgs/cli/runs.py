@@ -153,11 +153,13 @@ class RenderCommand(Command):
     """Render a run's test views as PNG panels, or a video along a camera path (``--video``).
 
     Panels: image, GT, error, depth, GT depth, normals per view. ``--video OUT.mp4``: colour |
-    depth | normals side by side along ``--trajectory``: one rig camera along the ego path
-    (``ego``) or shifted in the ego frame (``shift:METRES``, + = left; ``shift:X,Y,Z``), moving
-    cars at their poses (interpolated between frames with ``--frames-between``); or, on any
-    scene (a photo collection has no ego path), a smooth path through the training cameras
-    (``interpolate``) or a circle around the scene's centre (``orbit``, ``orbit:FRAMES``).
+    depth | normals side by side (``--video-layout color``: the colour alone; the depth colours
+    keep one range over the video, from 8 frames along the path) along ``--trajectory``: one rig
+    camera along the ego path (``ego``) or shifted in the ego frame (``shift:METRES``, + = left;
+    ``shift:X,Y,Z``), moving cars at their poses (interpolated between frames with
+    ``--frames-between``); or, on any scene (a photo collection has no ego path), a smooth path
+    through the training cameras (``interpolate``) or a circle around the scene's centre
+    (``orbit``, ``orbit:FRAMES``).
     ``--trajectory list`` prints what the run's scene offers.
 
     Before any rendering: the video's name (``.mp4``, ``.mov`` or ``.mkv``, at most 241 bytes), its
@@ -174,6 +176,8 @@ class RenderCommand(Command):
     """view indices (default: the test views)"""
     video: str | None = None
     """write a video (.mp4, .mov or .mkv) along --trajectory instead of panels"""
+    video_layout: Literal["strip", "color"] = "strip"
+    """the video's frames: colour | depth | normals side by side (strip), or the colour alone (color)"""
     trajectory: str | None = None
     """ego (the rig's path), shift:METRES (sideways in the ego frame, + = left), shift:X,Y,Z,
     interpolate (through the training cameras), orbit or orbit:FRAMES (around the centre);
@@ -272,6 +276,7 @@ class RenderCommand(Command):
                 fps=self.fps,
                 config=config.raster,
                 progress=not self.no_progress,
+                layout=self.video_layout,
             )
             assert info.size is not None  # a trajectory has at least one pose
             size = f"{info.size[1]}x{info.size[0]}"
