@@ -295,6 +295,23 @@ def colmap_run(tmp_path_factory):
     return root / "run"
 
 
+class TestColmapRunWords:
+    def test_photos_are_spoken_of_as_photos(self, colmap_run, capsys):
+        """A photo collection's lines say photos, and leave out PSNR* (moving objects) or say why."""
+        import json
+
+        from vadgs.cli import main
+        from vadgs.cli._common import metrics_summary
+
+        metrics = json.loads((colmap_run / "metrics.json").read_text())
+        assert metrics["test"]["psnr_star"] is None and metrics["gaussians_per_node"].keys() == {"static"}
+        line = metrics_summary(metrics)
+        assert "test PSNR" in line and "PSNR*" not in line
+        assert main(["--threads", "1", "eval", str(colmap_run), "--no-progress"]) == 0
+        said = capsys.readouterr().out
+        assert "psnr_star: null: PSNR* scores moving objects only, and photos have none" in said
+
+
 class TestColmapRunVideo:
     def test_render_video_of_a_photo_collection(self, colmap_run, capsys):
         from vadgs.cli import main

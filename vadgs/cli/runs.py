@@ -142,6 +142,9 @@ class EvalCommand(Command):
         if any(g.get("psnr_star") is None for g in metrics):
             print(
                 "psnr_star: null: PSNR* (moving objects only) needs moving-object pixels; the views have none"
+                if len(run.model.track_ids)
+                else "psnr_star: null: PSNR* scores moving objects only, and "
+                + ("photos have none" if _scene(run).is_photo_collection else "the scene has none")
             )
         print(f"scene checked: {_checked(m['scene'])}")
         print(f"wrote {path}")
@@ -415,10 +418,12 @@ class ViewCommand(Command):
             try:
                 viewer = build_viewer(model, scene, server, position, max_gaussians=self.max_gaussians)
                 shown = sum(int(g.rows.numel()) for g in viewer.groups)
-                print(
-                    f"viewing {run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
-                    f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
+                what = (
+                    f"{len(scene.frames)} photos"
+                    if scene.is_photo_collection
+                    else f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
                 )
+                print(f"viewing {run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, {what}")
                 print(_listening(self.host, server.get_port()), flush=True)
                 deadline = None if self.timeout is None else time.monotonic() + self.timeout
                 while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
