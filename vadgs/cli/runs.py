@@ -319,12 +319,18 @@ class ExportCommand(Command):
     """output folder (default RUN/export/frame<F>)"""
     inria: Flag = False
     """INRIA model layout (point_cloud/iteration_N/, cameras.json, cfg_args)"""
+    up: Literal["z", "-y", "y"] = "z"
+    """the PLY's up axis: z (vadgs's world), -y (3DGS/COLMAP files: SuperSplat and most splat viewers
+    show it upright) or y (y-up tools); z only with --inria"""
     scene: SceneOpt = None
     """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
 
     def main(self) -> int:
         """Write the PLY and the sky map; 0."""
         from vadgs.train.results.export import export_world
+
+        if self.inria and self.up != "z":
+            raise ValueError(f"--up {self.up}: not with --inria (its cameras.json and source model are z up)")
 
         with _writing(self.run, self.out or run_dir(self.run), "vadgs export"):
             run = load_run(self.run, scene=self.scene)
@@ -334,12 +340,15 @@ class ExportCommand(Command):
                 _check_inria_out(out, _owner(self.run, out), run.scene_ref or {})
             owner = _check_into(self.run, out)
             res = export_world(run.model, _scene(run), frame, out, inria=self.inria, iteration=run.step,
-                               scene_ref=run.scene_ref)  # fmt: skip
+                               scene_ref=run.scene_ref, up=self.up)  # fmt: skip
             written = [p for p in res[:5] if p is not None]
             if (out / "sparse" / "0").is_dir():
                 written += [p for p in (out / "sparse" / "0").iterdir() if p.is_file()]
             record_files(owner, written)
-        print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
+        print(
+            f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}, {self.up} up) "
+            f"and {res.sky_png}"
+        )
         return 0
 
 
