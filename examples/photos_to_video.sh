@@ -39,6 +39,14 @@ if [ "${NO_PROGRESS:-0}" = 1 ]; then progress=(--no-progress); fi
 scale=()
 if [ -n "${SCALE:-}" ]; then scale=(--scale "$SCALE"); fi
 
+# what to expect, before anything runs: the photos found and the times measured on two machines
+count=$(find "$photos" -type f \( -iname '*.jpg' -o -iname '*.jpeg' -o -iname '*.png' -o -iname '*.tif' \
+    -o -iname '*.tiff' -o -iname '*.bmp' \) 2>/dev/null | wc -l | tr -d ' ')
+echo "$count photos in $photos; ${ITERATIONS:-3000} training steps. Times measured (README), for scale:"
+echo "  11 photos of 6 MP, idle 2-core CPU, 1000 steps at 368x272: SfM 44 s, training 6.5 min, the rest 30 s"
+echo "  23 photos of 12 MP, busy 2-core CPU, 300 steps (working resolution): SfM 19 min, training 19-25 min, video 8 min"
+echo "  (SfM grows with the photos' number and size; training with the steps and the pixels per step)"
+
 start=$SECONDS
 last=$SECONDS
 step() {

@@ -84,7 +84,9 @@ class TestLoadColmap:
         scene, points = out
         assert isinstance(scene, Scene) and isinstance(points, ColmapPoints)
         assert scene.lidar_loader is None and scene.tracks == {}
-        assert "4 views" in repr(scene)
+        # a photo collection is spoken of as photos: no frames, views or tracks
+        assert scene.is_photo_collection
+        assert repr(scene) == f"Scene({tmp_path.name!r}, 4 photos, 1 camera, 40 SfM points, scale=1.0)"
 
     def test_cardinality(self, tmp_path):
         _synthetic_model(tmp_path / "m")

@@ -41,6 +41,7 @@ def test_photos_to_video(tmp_path):
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     said = proc.stdout
     assert "registered 10 of 10 photos" in said and "== step 5/5" in said and "Traceback" not in proc.stderr
+    assert said.startswith(f"10 photos in {tmp_path / 'photos'}; 16 training steps. Times measured")
     project, run = out / "project", out / "run"
     assert sorted(p.name for p in (project / "images").iterdir()) == truth["names"]
     metrics = json.loads((run / "metrics.json").read_text())

@@ -137,6 +137,11 @@ def test_psnr_star_none_is_explained():
         "test": {"psnr": 20.0, "psnr_star": None, "ssim": 0.5, "depth": {}},
     }
     assert "PSNR* n/a (no moving-object pixels in the test views)" in metrics_summary(metrics)
+    metrics["gaussians_per_node"] = {"static": 90, "track_3": 10}  # a moving object, none in the views
+    assert "PSNR* n/a (no moving-object pixels in the test views)" in metrics_summary(metrics)
+    metrics["gaussians_per_node"] = {"static": 100}  # no moving object (photos): PSNR* is left out
+    assert "test PSNR 20.00 dB, SSIM 0.500" in metrics_summary(metrics)
+    assert "PSNR*" not in metrics_summary(metrics)
     metrics["test"]["psnr_star"] = 18.123
     assert "PSNR* 18.12 dB" in metrics_summary(metrics)
 

@@ -80,3 +80,13 @@ class TestCliNovel:
         first = scene.frames[0].index
         assert (run / "export" / f"frame{first:03d}" / f"world_frame{first:03d}.ply").is_file()
         assert main(["export", str(run), "--frame", "999"]) == 2
+
+    def test_export_up_axis(self, run, tmp_path, capsys):
+        """``--up -y``: the z-up export's points with their up on -y (y, z) -> (-z, y), exactly."""
+        assert main(["export", str(run), "--out", str(tmp_path / "z")]) == 0
+        assert main(["export", str(run), "--out", str(tmp_path / "y"), "--up", "-y"]) == 0
+        assert "-y up) and" in capsys.readouterr().out
+        a, b = (PlyData.read(str(next((tmp_path / d).glob("*.ply"))))["vertex"] for d in ("z", "y"))
+        assert (b["x"] == a["x"]).all() and (b["y"] == -a["z"]).all() and (b["z"] == a["y"]).all()
+        assert main(["export", str(run), "--out", str(tmp_path / "i"), "--inria", "--up", "y"]) == 2
+        assert "--up y: not with --inria" in capsys.readouterr().err

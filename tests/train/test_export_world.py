@@ -8,9 +8,11 @@ import torch
 import torch.nn.functional as F
 from plyfile import PlyData
 
+from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.render import eval_sh, load_ply
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.results.export import (
+    UP_AXES,
     equirect_directions,
     export_world,
     sky_equirect,
@@ -111,6 +113,30 @@ class TestExportWorld:
         view = tiny_scene.views[tiny_scene.frames[2].view_ids[0]]
         np.testing.assert_allclose(cams[0]["position"], view.cam_to_world[:3, 3].numpy(), atol=1e-6)
         assert "sh_degree=1" in out.cfg_args.read_text()
+
+    @pytest.mark.parametrize("up", ["-y", "y"])
+    def test_up_axis_rotates_the_world_exactly(self, model, tiny_scene, up, tmp_path):
+        """``up="-y"`` / ``"y"``: the file's points are the z-up export's rotated about x, exactly."""
+        frame = _frame_with_cars(model, tiny_scene)
+        ref = load_ply(export_world(model, tiny_scene, frame, tmp_path / "z").ply)
+        out = load_ply(export_world(model, tiny_scene, frame, tmp_path / "up", up=up).ply)
+        x, y, z = ref.means.unbind(-1)
+        rotated = torch.stack([x, -z, y] if up == "-y" else [x, z, -y], -1)  # the scene's up (+z) on the axis
+        assert torch.equal(out.means, rotated)  # a rotation of 0s and 1s: no rounding
+        assert torch.equal(out.scales, ref.scales) and torch.equal(out.opacities, ref.opacities)
+        R = torch.tensor(UP_AXES[up], dtype=torch.float64)
+        torch.testing.assert_close(
+            quaternion_to_rotation(out.quats.double()), R @ quaternion_to_rotation(ref.quats.double()),
+            atol=1e-5, rtol=0,
+        )  # fmt: skip
+        d = F.normalize(torch.randn(len(ref.means), 3, dtype=torch.float64), dim=-1)
+        torch.testing.assert_close(
+            eval_sh(out.sh.double(), d @ R.T), eval_sh(ref.sh.double(), d), atol=1e-4, rtol=0
+        )
+        with pytest.raises(ValueError, match="up: expected one of z, y, -y, got 'x'"):
+            export_world(model, tiny_scene, frame, tmp_path / "x", up="x")
+        with pytest.raises(ValueError, match="up: expected 'z' with inria"):
+            export_world(model, tiny_scene, frame, tmp_path / "i", up=up, inria=True)
 
     def test_unknown_frame(self, model, tiny_scene, tmp_path):
         with pytest.raises(KeyError, match="no frame 999"):

@@ -21,7 +21,14 @@ from vadgs.train.results.trajectory import (
     scene_up,
     trajectory_choices,
 )
-from vadgs.train.results.video import TIMELINE_ROWS, model_at_time, object_poses_at, render_video
+from vadgs.train.results.video import (
+    TIMELINE_ROWS,
+    depth_percentiles,
+    model_at_time,
+    object_poses_at,
+    render_video,
+    video_frame,
+)
 
 from ..data.photo_sample import SIDEWAYS, photo_cameras, sideways
 
@@ -142,6 +149,46 @@ class TestRenderVideo:
         assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"] and path.read_bytes() == b"previous"
 
 
+class TestVideoLayout:
+    def test_color_layout_is_the_strips_colour_panel(self, tiny_model, tiny_scene):
+        v = tiny_scene.test_views[0]
+        cams = tiny_scene.cameras([v])
+        with torch.no_grad():
+            out = tiny_model.render(cams.world_to_cam, cams.K, cams.image_size, 0)
+        h, w = cams.image_size
+        strip = video_frame(out, (1.0, 50.0), 0.5)
+        color = video_frame(out, None, 0.5, layout="color")
+        assert strip.shape == (h + TIMELINE_ROWS, 3 * w, 3) and color.shape == (h + TIMELINE_ROWS, w, 3)
+        assert (color[:h] == strip[:h, :w]).all()  # the same pixels, the same bar
+        with pytest.raises(ValueError, match="layout: expected one of strip, color, got 'depth'"):
+            video_frame(out, layout="depth")
+
+    def test_color_video_and_one_depth_range_over_the_path(
+        self, tiny_model, tiny_scene, tmp_path, monkeypatch
+    ):
+        """The depth range is the widest of the frames along the path, not the first frame's."""
+        import vadgs.train.results.video as video
+
+        traj = ego_trajectory(tiny_scene, "front")  # 8 poses: every one is a depth sample
+        info = render_video(tiny_model, tiny_scene, tmp_path / "c.mp4", traj, progress=False, layout="color")
+        h, w = tiny_scene.cameras_info["front"].image_size
+        assert info.num_frames == 8 and info.size == (h + TIMELINE_ROWS + (h + TIMELINE_ROWS) % 2, w + w % 2)
+        ranges = []
+        for c2w, t in zip(traj.cam_to_world, traj.time.tolist()):
+            w2c = torch.linalg.inv(c2w[None])
+            K = tiny_scene.cameras_info["front"].K[None]
+            with torch.no_grad():
+                ranges.append(depth_percentiles(model_at_time(tiny_model, t).render(w2c, K, (h, w), 0)))
+        expected = (min(r[0] for r in ranges), max(r[1] for r in ranges))
+        assert expected != ranges[0]  # the path's frames differ: the first frame's range is narrower
+        seen = []
+        frame = video.video_frame
+        monkeypatch.setattr(video, "video_frame", lambda r, d, *a: seen.append(d) or frame(r, d, *a))
+        render_video(tiny_model, tiny_scene, tmp_path / "s.mp4", traj, progress=False)
+        assert len(seen) == 8 and set(seen) == {seen[0]}
+        assert seen[0] == pytest.approx(expected, rel=1e-5)
+
+
 # -- camera paths of photo collections ---------------------------------------------------------------
 
 
@@ -248,6 +295,23 @@ def colmap_run(tmp_path_factory):
     return root / "run"
 
 
+class TestColmapRunWords:
+    def test_photos_are_spoken_of_as_photos(self, colmap_run, capsys):
+        """A photo collection's lines say photos, and leave out PSNR* (moving objects) or say why."""
+        import json
+
+        from vadgs.cli import main
+        from vadgs.cli._common import metrics_summary
+
+        metrics = json.loads((colmap_run / "metrics.json").read_text())
+        assert metrics["test"]["psnr_star"] is None and metrics["gaussians_per_node"].keys() == {"static"}
+        line = metrics_summary(metrics)
+        assert "test PSNR" in line and "PSNR*" not in line
+        assert main(["--threads", "1", "eval", str(colmap_run), "--no-progress"]) == 0
+        said = capsys.readouterr().out
+        assert "psnr_star: null: PSNR* scores moving objects only, and photos have none" in said
+
+
 class TestColmapRunVideo:
     def test_render_video_of_a_photo_collection(self, colmap_run, capsys):
         from vadgs.cli import main
@@ -264,6 +328,10 @@ class TestColmapRunVideo:
         assert len(frames) == 41 and frames[0].shape == (36 + TIMELINE_ROWS, 3 * 60, 3)
         assert main([*argv, "--video", str(out), "--trajectory", "orbit:6", "--camera", "camera_2"]) == 0
         assert "6 frames" in capsys.readouterr().out
+        assert main([*argv, "--video", str(out), "--trajectory", "orbit:4", "--video-layout", "color"]) == 0
+        assert "4 frames of 60x40 at" in capsys.readouterr().out  # the colour alone (and the bar)
+        with imageio.get_reader(out, format="FFMPEG") as reader:
+            assert [f.shape for f in reader] == [(36 + TIMELINE_ROWS, 60, 3)] * 4
         assert main([*argv, "--trajectory", "list"]) == 0
         said = capsys.readouterr().out
         assert "trajectories of scene 'proj', camera camera_1: interpolate, orbit, orbit:FRAMES" in said

@@ -50,6 +50,20 @@ class TestWorkingResolution:
         assert "resolution: 600x400 (--scale 0.25 of 2400x1600" in r.describe()
         assert working_resolution(model, "colmap").scale == 0.25
 
+    def test_each_size_is_named_with_its_photos(self, tmp_path):
+        """Photos upright and sideways: the line names each size at the factor, and how many have it."""
+        sizes = [(4032, 3024)] * 3 + [(3024, 4032), (1600, 1200)]
+        r = working_resolution(_colmap_model(tmp_path / "p" / "sparse" / "0", sizes), "colmap")
+        assert r.counts == (((756, 1008), 3), ((1008, 756), 1), ((300, 400), 1)) and r.unit == "photos"
+        assert r.describe().startswith(
+            "resolution: 1008x756 (--scale 0.25 of 4032x3024: the working resolution, longest side "
+            "<= 1024 px); 3 sizes: 1008x756 (3 photos), 756x1008 (1), 400x300 (1); --scale 1 trains"
+        )
+        one = working_resolution(_colmap_model(tmp_path / "q" / "sparse" / "0", [(640, 480)] * 2), "colmap")
+        assert one.counts == (((480, 640), 2),) and "sizes" not in one.describe()
+        # a rig counts cameras (the sample: three cameras of 240x144)
+        assert working_resolution(sample_scene_path(), "benchmark").counts == (((72, 120), 3),)
+
     def test_rendered_benchmark_keeps_half_a_converted_scene_is_not_halved(self, tmp_path):
         sample = working_resolution(sample_scene_path(), "benchmark")
         assert (sample.scale, sample.size) == (0.5, (72, 120))

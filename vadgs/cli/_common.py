@@ -208,8 +208,14 @@ def scene_arg(value: str | None) -> Path:
 
 
 def metrics_summary(metrics: dict) -> str:
-    """A run's ``metrics.json`` as the one line the commands print (steps, Gaussians, test metrics)."""
+    """A run's ``metrics.json`` as the one line the commands print (steps, Gaussians, test metrics).
+
+    PSNR* (moving objects only) is left out for a model without moving objects (a photo collection:
+    ``gaussians_per_node`` has no track), and said ``n/a`` where the test views show none.
+    """
     t = metrics.get("test")
+    nodes = metrics.get("gaussians_per_node")
+    static = isinstance(nodes, dict) and not any(k.startswith("track_") for k in nodes)
     parts = [
         f"{metrics['steps']} steps in {metrics['train_s']:.0f} s",
         f"{metrics['num_gaussians']} Gaussians",
@@ -217,7 +223,8 @@ def metrics_summary(metrics: dict) -> str:
     if t:
         star = t["psnr_star"]
         star = f"{star:.2f} dB" if star is not None else "n/a (no moving-object pixels in the test views)"
-        parts.append(f"test PSNR {t['psnr']:.2f} dB, PSNR* {star}, SSIM {t['ssim']:.3f}")
+        star = "" if static and t["psnr_star"] is None else f", PSNR* {star}"
+        parts.append(f"test PSNR {t['psnr']:.2f} dB{star}, SSIM {t['ssim']:.3f}")
         raw = t.get("uncorrected")
         if raw:
             parts.append(

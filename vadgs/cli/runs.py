@@ -142,6 +142,9 @@ class EvalCommand(Command):
         if any(g.get("psnr_star") is None for g in metrics):
             print(
                 "psnr_star: null: PSNR* (moving objects only) needs moving-object pixels; the views have none"
+                if len(run.model.track_ids)
+                else "psnr_star: null: PSNR* scores moving objects only, and "
+                + ("photos have none" if _scene(run).is_photo_collection else "the scene has none")
             )
         print(f"scene checked: {_checked(m['scene'])}")
         print(f"wrote {path}")
@@ -153,11 +156,13 @@ class RenderCommand(Command):
     """Render a run's test views as PNG panels, or a video along a camera path (``--video``).
 
     Panels: image, GT, error, depth, GT depth, normals per view. ``--video OUT.mp4``: colour |
-    depth | normals side by side along ``--trajectory``: one rig camera along the ego path
-    (``ego``) or shifted in the ego frame (``shift:METRES``, + = left; ``shift:X,Y,Z``), moving
-    cars at their poses (interpolated between frames with ``--frames-between``); or, on any
-    scene (a photo collection has no ego path), a smooth path through the training cameras
-    (``interpolate``) or a circle around the scene's centre (``orbit``, ``orbit:FRAMES``).
+    depth | normals side by side (``--video-layout color``: the colour alone; the depth colours
+    keep one range over the video, from 8 frames along the path) along ``--trajectory``: one rig
+    camera along the ego path (``ego``) or shifted in the ego frame (``shift:METRES``, + = left;
+    ``shift:X,Y,Z``), moving cars at their poses (interpolated between frames with
+    ``--frames-between``); or, on any scene (a photo collection has no ego path), a smooth path
+    through the training cameras (``interpolate``) or a circle around the scene's centre
+    (``orbit``, ``orbit:FRAMES``).
     ``--trajectory list`` prints what the run's scene offers.
 
     Before any rendering: the video's name (``.mp4``, ``.mov`` or ``.mkv``, at most 241 bytes), its
@@ -174,6 +179,8 @@ class RenderCommand(Command):
     """view indices (default: the test views)"""
     video: str | None = None
     """write a video (.mp4, .mov or .mkv) along --trajectory instead of panels"""
+    video_layout: Literal["strip", "color"] = "strip"
+    """the video's frames: colour | depth | normals side by side (strip), or the colour alone (color)"""
     trajectory: str | None = None
     """ego (the rig's path), shift:METRES (sideways in the ego frame, + = left), shift:X,Y,Z,
     interpolate (through the training cameras), orbit or orbit:FRAMES (around the centre);
@@ -272,6 +279,7 @@ class RenderCommand(Command):
                 fps=self.fps,
                 config=config.raster,
                 progress=not self.no_progress,
+                layout=self.video_layout,
             )
             assert info.size is not None  # a trajectory has at least one pose
             size = f"{info.size[1]}x{info.size[0]}"
@@ -311,12 +319,18 @@ class ExportCommand(Command):
     """output folder (default RUN/export/frame<F>)"""
     inria: Flag = False
     """INRIA model layout (point_cloud/iteration_N/, cameras.json, cfg_args)"""
+    up: Literal["z", "-y", "y"] = "z"
+    """the PLY's up axis: z (vadgs's world), -y (3DGS/COLMAP files: SuperSplat and most splat viewers
+    show it upright) or y (y-up tools); z only with --inria"""
     scene: SceneOpt = None
     """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
 
     def main(self) -> int:
         """Write the PLY and the sky map; 0."""
         from vadgs.train.results.export import export_world
+
+        if self.inria and self.up != "z":
+            raise ValueError(f"--up {self.up}: not with --inria (its cameras.json and source model are z up)")
 
         with _writing(self.run, self.out or run_dir(self.run), "vadgs export"):
             run = load_run(self.run, scene=self.scene)
@@ -326,12 +340,15 @@ class ExportCommand(Command):
                 _check_inria_out(out, _owner(self.run, out), run.scene_ref or {})
             owner = _check_into(self.run, out)
             res = export_world(run.model, _scene(run), frame, out, inria=self.inria, iteration=run.step,
-                               scene_ref=run.scene_ref)  # fmt: skip
+                               scene_ref=run.scene_ref, up=self.up)  # fmt: skip
             written = [p for p in res[:5] if p is not None]
             if (out / "sparse" / "0").is_dir():
                 written += [p for p in (out / "sparse" / "0").iterdir() if p.is_file()]
             record_files(owner, written)
-        print(f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}) and {res.sky_png}")
+        print(
+            f"wrote {res.ply} ({res.num_gaussians} Gaussians, world at frame {frame}, {self.up} up) "
+            f"and {res.sky_png}"
+        )
         return 0
 
 
@@ -410,10 +427,12 @@ class ViewCommand(Command):
             try:
                 viewer = build_viewer(model, scene, server, position, max_gaussians=self.max_gaussians)
                 shown = sum(int(g.rows.numel()) for g in viewer.groups)
-                print(
-                    f"viewing {run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, "
-                    f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
+                what = (
+                    f"{len(scene.frames)} photos"
+                    if scene.is_photo_collection
+                    else f"{len(model.track_ids)} moving objects, {len(scene.frames)} frames"
                 )
+                print(f"viewing {run_dir(self.run)}: {shown} of {model.num_gaussians} Gaussians, {what}")
                 print(_listening(self.host, server.get_port()), flush=True)
                 deadline = None if self.timeout is None else time.monotonic() + self.timeout
                 while not stop.is_set() and (deadline is None or time.monotonic() < deadline):

@@ -7,10 +7,16 @@ gsplat's ``data_factor`` and nerfstudio's automatic downscale do: the largest fa
 ``--scale 0.5`` to 800×450 as it is). A rendered benchmark scene (with ground-truth depth maps,
 as ``street_a`` / ``street_b`` and the bundled sample) trains at half its rendered resolution, the
 resolution of its published results (:data:`BENCHMARK_SCALE`). ``--scale`` overrides both.
+
+A scene of several image sizes (photos taken upright and sideways, cameras of a rig) trains each at
+the same factor; the line that says the resolution (:meth:`WorkingResolution.describe`) names each
+size at it and how many photos (COLMAP) or cameras have it: ``2 sizes: 1008x756 (20 photos),
+756x1008 (3)``.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import NamedTuple
 
@@ -28,15 +34,21 @@ class WorkingResolution(NamedTuple):
 
     Attributes:
         scale: the resolution factor.
-        size: ``(height, width)`` of the largest camera at that factor.
-        full: ``(height, width)`` of the largest camera as stored.
+        size: ``(height, width)`` of the largest camera at that factor (of those with the longest
+            side, the most common: photos upright rather than sideways).
+        full: ``(height, width)`` of that camera as stored.
         why: the reason, for the line that says it.
+        counts: ``((height, width), count)`` of each size at ``scale``, the most common first
+            (count: photos of a COLMAP scene, else cameras).
+        unit: what ``counts`` counts: ``"photos"`` or ``"cameras"``.
     """
 
     scale: float
     size: tuple[int, int]
     full: tuple[int, int]
     why: str
+    counts: tuple[tuple[tuple[int, int], int], ...] = ()
+    unit: str = "cameras"
 
     def describe(self) -> str:
         """One line: what was chosen, why, and how to change it."""
@@ -46,7 +58,15 @@ class WorkingResolution(NamedTuple):
             if self.scale != 1.0
             else "--scale S (e.g. 0.5) trains at S times it"
         )
-        return f"resolution: {w}x{h} (--scale {self.scale:g} of {fw}x{fh}: {self.why}); {change}"
+        sizes = ""
+        if len(self.counts) > 1:  # photos upright and sideways, a rig of several cameras: each size
+            unit = self.unit if self.counts[0][1] != 1 else self.unit[:-1]
+            shown = [
+                f"{sw}x{sh} ({n}{' ' + unit if i == 0 else ''})"
+                for i, ((sh, sw), n) in enumerate(self.counts)
+            ]
+            sizes = f"; {len(self.counts)} sizes: {', '.join(shown)}"
+        return f"resolution: {w}x{h} (--scale {self.scale:g} of {fw}x{fh}: {self.why}){sizes}; {change}"
 
 
 def working_scale(longest: int, side: int = WORKING_SIDE) -> float:
@@ -65,7 +85,7 @@ def working_scale(longest: int, side: int = WORKING_SIDE) -> float:
 
 
 def _sizes(path: Path, kind: str, cameras: list[str] | None) -> tuple[list[tuple[int, int]], bool]:
-    """The cameras' ``(height, width)`` as stored, and whether the scene is a rendered benchmark."""
+    """The ``(height, width)`` as stored of each camera (each posed photo's), and if rendered."""
     if kind == "benchmark":
         from vadgs.data._json import read_json
 
@@ -82,8 +102,9 @@ def _sizes(path: Path, kind: str, cameras: list[str] | None) -> tuple[list[tuple
         if model is None:
             raise FileNotFoundError(f"{path}: no COLMAP model")
         rec = read_colmap_model(model, "SCENE")
-        used = {im.camera_id for im in rec.images.values() if im.has_pose}
-        return [(int(c.height), int(c.width)) for cid, c in rec.cameras.items() if cid in used], False
+        cams = rec.cameras
+        posed = [im.camera_id for im in rec.images.values() if im.has_pose and im.camera_id in cams]
+        return [(int(cams[cid].height), int(cams[cid].width)) for cid in posed], False
     if kind == "dgp":
         from vadgs.data import load_dgp
 
@@ -119,7 +140,8 @@ def working_resolution(
     sizes, rendered = _sizes(Path(path), kind, cameras)
     if not sizes:
         raise ValueError(f"{path}: no camera with an image size")
-    full = max(sizes, key=max)
+    stored = Counter(sizes)
+    full = max(stored, key=lambda hw: (max(hw), stored[hw]))  # the largest; of those, the most common
     if scale is not None:
         why = "as given"
     elif rendered:
@@ -132,4 +154,6 @@ def working_resolution(
             else f"longest side <= {side} px, kept as it is"
         )
     size = (round(full[0] * scale), round(full[1] * scale))
-    return WorkingResolution(scale, size, full, why)
+    at_scale = Counter((round(h * scale), round(w * scale)) for h, w in sizes)
+    counts = tuple(sorted(at_scale.items(), key=lambda kv: (-kv[1], -max(kv[0]))))
+    return WorkingResolution(scale, size, full, why, counts, "photos" if kind == "colmap" else "cameras")

@@ -239,6 +239,25 @@ class Scene:
         return list(self.cameras_info)
 
     @property
+    def is_photo_collection(self) -> bool:
+        """Whether the scene is a collection of photos (a COLMAP scene), not a recording.
+
+        One photo per frame, structure-from-motion points, no LiDAR and no moving objects: what
+        the commands call photos rather than frames, tracks and moving objects.
+
+        Example:
+            >>> from vadgs.data import load_scene, sample_scene_path
+            >>> load_scene(sample_scene_path()).is_photo_collection
+            False
+        """
+        return (
+            self.sfm_points is not None
+            and self.lidar_loader is None
+            and not self.tracks
+            and all(len(f.view_ids) == 1 for f in self.frames)
+        )
+
+    @property
     def train_views(self) -> list[int]:
         """Indices of the recorded views of the training frames."""
         frames = set(self.train_frames)
@@ -443,6 +462,11 @@ class Scene:
 
     def __repr__(self) -> str:
         sfm = f", {self.sfm_points.points.shape[0]} SfM points" if self.sfm_points is not None else ""
+        if self.is_photo_collection:  # photos: no frames, tracks or rig to speak of
+            return (
+                f"Scene({self.name!r}, {len(self.frames)} photos, {len(self.cameras_info)} "
+                f"camera{'s' if len(self.cameras_info) != 1 else ''}{sfm}, scale={self.scale})"
+            )
         return (
             f"Scene({self.name!r}, {len(self.frames)} frames, {self.num_views} views, "
             f"cameras={self.camera_names}, {len(self.tracks)} tracks{sfm}, scale={self.scale})"

@@ -17,6 +17,15 @@ at the direction in the car's frame. Only the SH degrees the model renders with
 (``active_sh_degree``) are written. Optionally the INRIA model layout
 (``point_cloud/iteration_N/point_cloud.ply``, ``cameras.json``, ``cfg_args``).
 
+**Axes.** The PLY is in vadgs's world: **z up** (a driving scene's ground frame; a COLMAP scene
+normalised with its cameras' mean up on ``+z``), metres (or the normalised units). Many splat
+viewers take a PLY's up to be ``-y``, the convention of 3DGS models trained on COLMAP
+reconstructions (SuperSplat rotates such a file 180° about z to show it upright in its y-up world),
+and y-up tools (three.js, Unity) ``+y``: ``up="-y"`` (``vadgs export --up -y``) or ``up="y"``
+writes the world rotated so that its up lies on that axis (:data:`UP_AXES`: means, quaternions
+and SH coefficients rotated exactly, a rotation about ``x``). ``sky.json``'s mapping stays in
+vadgs's world (z up).
+
 **The sky** is written beside it as an equirectangular environment map ``sky.png``
 (:func:`sky_equirect`, 256×128 by default, 8-bit, the model's sky colour, linear values as the
 model renders them) and ``sky.json`` (its SH coefficients and the mapping). Pixel ``(u, v)`` (column,
@@ -42,6 +51,7 @@ from vadgs.render.ply import write_raw_ply
 from vadgs.train.model import GaussianModel
 
 __all__ = [
+    "UP_AXES",
     "WorldExport",
     "equirect_directions",
     "export_model",
@@ -49,6 +59,36 @@ __all__ = [
     "sky_equirect",
     "world_gaussians",
 ]
+
+
+#: ``vadgs export --up``: the rotation from vadgs's world (z up) to a PLY whose up is that axis.
+UP_AXES: dict[str, tuple[tuple[float, ...], ...]] = {
+    "z": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),  # as trained
+    "y": ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0)),  # -90° about x: z -> y
+    "-y": ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),  # 90° about x: z -> -y (3DGS, COLMAP)
+}
+
+
+def rotate_world(gaussians: dict[str, torch.Tensor], R: torch.Tensor) -> dict[str, torch.Tensor]:
+    """:func:`world_gaussians`'s output rotated by ``(3, 3)`` ``R``: means, quaternions and SH.
+
+    Means ``R μ``, quaternions ``q(R) ⊗ q``, SH :func:`~vadgs.render.rotate_sh` (a viewer looking
+    along ``R d`` sees what the model shows along ``d``); scales and opacities as they are.
+
+    Example:
+        >>> g = {"means": torch.tensor([[0.0, 0, 1]]), "quats": torch.tensor([[1.0, 0, 0, 0]]),
+        ...      "sh": torch.zeros(1, 1, 3)}
+        >>> rotate_world(g, torch.tensor(UP_AXES["-y"]))["means"].tolist()
+        [[0.0, -1.0, 0.0]]
+    """
+    from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
+
+    R = R.to(gaussians["means"])
+    out = dict(gaussians)
+    out["means"] = gaussians["means"] @ R.T
+    out["quats"] = quat_multiply(rotation_to_quat(R).expand_as(gaussians["quats"]), gaussians["quats"])
+    out["sh"] = rotate_sh(gaussians["sh"], R)
+    return out
 
 
 def export_model(
@@ -175,6 +215,7 @@ def export_world(
     iteration: int = 0,
     sky_size: tuple[int, int] = (128, 256),
     scene_ref: dict[str, Any] | None = None,
+    up: str = "z",
 ) -> WorldExport:
     """Write the world at one frame as one standard 3DGS PLY, and the sky as an environment map.
 
@@ -197,12 +238,16 @@ def export_world(
         sky_size: ``(H, W)`` of ``sky.png``.
         scene_ref: the run's scene reference (:func:`~vadgs.train.scenes.open_scene`): with
             ``inria``, a COLMAP reference's ``transform`` and ``images`` give the source model.
+        up: the PLY's up axis (:data:`UP_AXES`): ``"z"`` (vadgs's world, as trained), ``"-y"``
+            (the 3DGS / COLMAP convention most splat viewers expect) or ``"y"``; only ``"z"``
+            with ``inria`` (its ``cameras.json`` and source model are in the world's frame).
 
     Returns:
         :class:`WorldExport`.
 
     Raises:
         KeyError: if the scene has no such frame.
+        ValueError: for an ``up`` not in :data:`UP_AXES`, or not ``"z"`` with ``inria``.
 
     Example:
         >>> import tempfile
@@ -218,9 +263,17 @@ def export_world(
 
     from vadgs.viz import image_to_uint8
 
+    if up not in UP_AXES:
+        raise ValueError(f"up: expected one of {', '.join(UP_AXES)}, got {up!r}")
+    if inria and up != "z":
+        raise ValueError(
+            f"up: expected 'z' with inria (cameras.json and the source model are z up), got {up!r}"
+        )
     out_dir = Path(out_dir)
     fpos = scene.frame_position(frame)
     w = world_gaussians(model, fpos)
+    if up != "z":
+        w = rotate_world(w, torch.tensor(UP_AXES[up], dtype=w["means"].dtype))
     ply = (
         out_dir / "point_cloud" / f"iteration_{int(iteration)}" / "point_cloud.ply"
         if inria

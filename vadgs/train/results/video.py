@@ -1,12 +1,17 @@
-r"""Videos of a trained model along the ego path: colour | depth | normals side by side.
+r"""Videos of a trained model along a camera path: colour | depth | normals side by side, or colour only.
 
 The camera path is a :class:`~vadgs.train.results.trajectory.Trajectory` (ego path, shifted,
 ``interpolate`` through the training cameras, ``orbit``: :mod:`vadgs.train.results.trajectory`).
 The moving objects are interpolated between frames as the ego poses are
 (:func:`object_poses_at`).
 
-Every video frame (:func:`video_frame`) is colour | depth | normals over a thin timeline bar
-(:data:`TIMELINE_ROWS` rows: white up to the frame's position in the video). Videos are written
+Every video frame (:func:`video_frame`) is colour | depth | normals (layout ``"strip"``) or the
+colour alone (``"color"``, :data:`VIDEO_LAYOUTS`) over a thin timeline bar (:data:`TIMELINE_ROWS`
+rows: white up to the frame's position in the video). The depth colours (inverse depth, turbo)
+keep one range over the whole video, so that they do not flicker: :func:`video_depth_range`, the
+lowest 2nd and highest 98th depth percentile of :data:`DEPTH_SAMPLES` frames spread along the path,
+rendered up front (a close-up later in the path keeps its colours, as it would not with the first
+frame's range). Videos are written
 with imageio's ffmpeg plugin (the ``imageio-ffmpeg`` wheel bundles ffmpeg):
 H.264 in ``yuv420p``, the frame padded with black to even sizes (:func:`write_video`). Frames go
 to the encoder one by one as they are rendered, so memory does not grow with the video's length;
@@ -36,21 +41,31 @@ from vadgs.train.model import GaussianModel, ModelRender
 from vadgs.train.results.trajectory import Trajectory, make_trajectory
 
 __all__ = [
+    "DEPTH_SAMPLES",
     "NAME_MAX",
     "TIMELINE_ROWS",
+    "VIDEO_LAYOUTS",
     "VIDEO_SUFFIXES",
     "VideoInfo",
     "check_video_path",
+    "depth_percentiles",
     "gaussians_in_view",
     "model_at_time",
     "object_poses_at",
     "render_video",
+    "video_depth_range",
     "video_frame",
     "write_video",
 ]
 
 #: Height in pixels of the timeline bar under each video frame.
 TIMELINE_ROWS = 4
+
+#: The frame layouts of a video: colour | depth | normals side by side, or the colour alone.
+VIDEO_LAYOUTS = ("strip", "color")
+
+#: The frames along the path whose depths set a video's depth colour range (:func:`video_depth_range`).
+DEPTH_SAMPLES = 8
 
 #: The containers :func:`write_video` writes (H.264 in each, by ffmpeg).
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv")
@@ -156,31 +171,73 @@ def model_at_time(model: GaussianModel, time: float) -> GaussianModel:
     return out
 
 
+def _check_layout(layout: str) -> None:
+    if layout not in VIDEO_LAYOUTS:
+        raise ValueError(f"layout: expected one of {', '.join(VIDEO_LAYOUTS)}, got {layout!r}")
+
+
+def depth_percentiles(render: ModelRender) -> tuple[float, float] | None:
+    """The 2nd and 98th percentile of a render's depth on its opaque pixels (alpha > 0.5), or None.
+
+    Only the opaque pixels: a faint Gaussian at the camera would squash the range.
+    """
+    depth, alpha = render.raster.depth, render.raster.alpha
+    d = depth[(depth > 0) & (alpha > 0.5)]
+    if not d.numel():
+        return None
+    return float(d.quantile(0.02)), float(d.quantile(0.98))
+
+
+def video_depth_range(
+    renders: Iterable[ModelRender], default: tuple[float, float] = (1.0, 100.0)
+) -> tuple[float, float]:
+    """One depth colour range for a whole video: the lowest 2nd and highest 98th percentile of ``renders``.
+
+    Each render's percentiles are of its opaque pixels (:func:`depth_percentiles`);
+    :func:`render_video` passes :data:`DEPTH_SAMPLES` frames spread along the path. ``default``
+    when no render has an opaque pixel.
+
+    Example:
+        >>> from types import SimpleNamespace as NS
+        >>> near = NS(raster=NS(depth=torch.full((1, 1, 2, 2), 2.0), alpha=torch.ones(1, 1, 2, 2)))
+        >>> far = NS(raster=NS(depth=torch.full((1, 1, 2, 2), 30.0), alpha=torch.ones(1, 1, 2, 2)))
+        >>> video_depth_range([near, far])
+        (2.0, 30.0)
+    """
+    ranges = [r for r in map(depth_percentiles, renders) if r is not None]
+    if not ranges:
+        return default
+    return min(r[0] for r in ranges), max(r[1] for r in ranges)
+
+
 def video_frame(
-    render: ModelRender, depth_range: tuple[float, float] | None = None, progress: float | None = None
+    render: ModelRender,
+    depth_range: tuple[float, float] | None = None,
+    progress: float | None = None,
+    layout: str = "strip",
 ) -> np.ndarray:
-    """One video frame ``(H, 3W, 3)`` uint8: colour | depth (inverse, turbo) | normals.
+    """One video frame ``(H, 3W, 3)`` uint8: colour | depth (inverse, turbo) | normals, or ``(H, W, 3)``.
 
     Args:
         render: a :meth:`GaussianModel.render` output.
         depth_range: ``(near, far)`` metres of the depth colour map (default: this frame's 2nd and
             98th percentiles); keep it fixed over a video so that colours do not flicker
-            (:func:`render_video` takes the first frame's, on pixels of alpha > 0.5).
+            (:func:`render_video` takes :func:`video_depth_range`'s).
         progress: position in the video in ``[0, 1]``: adds a timeline bar of
             :data:`TIMELINE_ROWS` rows below (``(H + TIMELINE_ROWS, 3W, 3)``).
+        layout: ``"strip"`` (colour | depth | normals) or ``"color"`` (the colour alone, ``(H, W, 3)``).
     """
     from vadgs.viz import colorize_depth, colorize_normals, image_to_uint8
 
-    depth = render.raster.depth[0, 0]
-    near, far = depth_range if depth_range is not None else (None, None)
-    frame = np.concatenate(
-        [
-            image_to_uint8(render.color[0]),
-            colorize_depth(depth, near, far),
+    _check_layout(layout)
+    panels = [image_to_uint8(render.color[0])]
+    if layout == "strip":
+        near, far = depth_range if depth_range is not None else (None, None)
+        panels += [
+            colorize_depth(render.raster.depth[0, 0], near, far),
             colorize_normals(render.raster.normals[0]),
-        ],
-        axis=1,
-    )
+        ]
+    frame = np.concatenate(panels, axis=1)
     if progress is None:
         return frame
     bar = np.full((TIMELINE_ROWS, frame.shape[1], 3), 64, dtype=np.uint8)
@@ -311,8 +368,9 @@ def render_video(
     fps: float = 10.0,
     config: RasterConfig | None = None,
     progress: bool = True,
+    layout: str = "strip",
 ) -> VideoInfo:
-    """Render a trajectory and write it as an MP4: colour | depth | normals per frame, a timeline bar below.
+    """Render a trajectory as an MP4: colour | depth | normals (or colour) per frame, a timeline bar below.
 
     Args:
         model: the trained model.
@@ -324,14 +382,18 @@ def render_video(
         fps: frames per second.
         config: rasterizer settings.
         progress: tqdm bar.
+        layout: ``"strip"``: colour | depth | normals, the depth colours over
+            :func:`video_depth_range` of :data:`DEPTH_SAMPLES` frames spread along the path
+            (rendered first); ``"color"``: the colour alone.
 
     Returns:
         :class:`VideoInfo`.
 
     Raises:
         ImportError: without imageio and imageio-ffmpeg (the ``video`` extra).
-        ValueError: for a path :func:`check_video_path` refuses.
+        ValueError: for a path :func:`check_video_path` refuses, or a layout not in :data:`VIDEO_LAYOUTS`.
     """
+    _check_layout(layout)
     try:
         import imageio.v2  # noqa: F401
         import imageio_ffmpeg  # noqa: F401
@@ -347,18 +409,20 @@ def render_video(
     K = info.K[None]
     last = max(len(trajectory.time) - 1, 1)
 
+    times = trajectory.time.tolist()
+
+    def render(i: int) -> ModelRender:
+        w2c = invert_rigid(trajectory.cam_to_world[i][None].to(K.dtype))
+        return model_at_time(model, times[i]).render(w2c, K, info.image_size, 0, config)
+
+    depth_range = None
+    if layout == "strip" and times:  # one range for the whole video, from frames along the path
+        picks = sorted({round(x) for x in np.linspace(0, len(times) - 1, min(DEPTH_SAMPLES, len(times)))})
+        depth_range = video_depth_range(render(i) for i in picks)
+
     def frames() -> Iterable[np.ndarray]:  # one at a time: the encoder takes each as it is made
-        depth_range = None
-        for i, (c2w, t) in enumerate(zip(trajectory.cam_to_world, trajectory.time.tolist())):
-            w2c = invert_rigid(c2w[None].to(K.dtype))
-            out = model_at_time(model, t).render(w2c, K, info.image_size, 0, config)
-            if depth_range is None:
-                # the opaque pixels only: a faint Gaussian at the camera would squash the range
-                d = out.raster.depth[(out.raster.depth > 0) & (out.raster.alpha > 0.5)]
-                depth_range = (
-                    (float(d.quantile(0.02)), float(d.quantile(0.98))) if d.numel() else (1.0, 100.0)
-                )
-            yield video_frame(out, depth_range, i / last)
+        for i in range(len(times)):
+            yield video_frame(render(i), depth_range, i / last, layout)
 
     count, size = write_video(path, frames(), fps, total=len(trajectory.time), progress=progress)
     return VideoInfo(path, count, size)
