@@ -188,6 +188,15 @@ class TestStaticModel:
 
 
 class TestEventLog:
+    def test_derived_instances_are_cells_in_the_summary(self, monkeypatch):
+        """A derived instance (class "static": a ground cell, a photo set's) reads "cell 10"."""
+        ev = _Event(monkeypatch, {10: 400, 11: 300}, made={10: (0, 0), 11: (4, 4)})
+        ev.strategy.index.classes = lambda: {10: "static", 11: "sign"}
+        ev.run(_splats())
+        summary = ev.state["pending_log"][-1]["summary"]
+        assert "1 added nothing (cell 10: explained)" in summary and "added to sign 11 (+4)" in summary
+        assert "static 10" not in summary
+
     def test_outcome_names(self):
         assert event_module._outcome("ok") == "ok"
         assert event_module._outcome("ok (seen)") == "ok (seen)"

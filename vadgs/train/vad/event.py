@@ -37,7 +37,7 @@ def _event_summary(entry: Mapping[str, Any], config: Any) -> str:
 
     ``config``: the strategy's :class:`~vadgs.train.vad.config.VisibilityDensifyConfig` (its budgets).
     """
-    added = [f"{e['class']} {e['instance']} (+{e['added']})" for e in entry["instances"] if e["added"]]
+    added = [f"{_label(e['class'], e['instance'])} (+{e['added']})" for e in entry["instances"] if e["added"]]
     cut = ", ".join(f"{n} {why}" for why, n in entry["skipped"].items()) or "none"
     summary = (
         f"visibility-aware densification: {entry['flagged_instances']} instances flagged, "
@@ -67,9 +67,20 @@ def _failed(instances: list[Mapping[str, Any]]) -> str:
     failed = [e for e in instances if not e["added"]]
     if not failed:
         return ""
-    why = "; ".join(f"{e['class']} {e['instance']}: {e['reason'] or 'no new points'}" for e in failed[:4])
+    why = "; ".join(
+        f"{_label(e['class'], e['instance'])}: {e['reason'] or 'no new points'}" for e in failed[:4]
+    )
     more = f"; {len(failed) - 4} more in the log" if len(failed) > 4 else ""
     return f"{len(failed)} added nothing ({why}{more}), "
+
+
+def _label(cls: str, instance: int) -> str:
+    """How the log names an instance: ``"sign 7"``, or ``"cell 10"`` for a derived one.
+
+    A derived instance (class ``"static"``) is a cell of the ground grid standing in for a
+    segmentation (a photo set's, a real log's).
+    """
+    return f"cell {instance}" if cls == "static" else f"{cls} {instance}"
 
 
 def _outcome(reason: str) -> str:
@@ -217,7 +228,8 @@ def run_event(
             continue
         say(
             f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
-            f"{k + 1}/{len(ranked)} ({classes.get(inst, '?')} {inst}), {time.perf_counter() - t0:.0f} s"
+            f"{k + 1}/{len(ranked)} ({_label(classes.get(inst, '?'), inst)}), "
+            f"{time.perf_counter() - t0:.0f} s"
         )
         whole = (
             [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
