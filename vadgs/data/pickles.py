@@ -7,14 +7,14 @@ only the pandas and numpy classes that a DataFrame of numbers and strings needs
 an error naming it. pandas is needed (``pip install 'vadgs[pandaset]'``).
 
 Example:
-    >>> import io, pickle  # doctest: +ELLIPSIS
+    >>> import io, os, pickle  # doctest: +ELLIPSIS
     >>> class Evil:
     ...     def __reduce__(self):
-    ...         return (print, ("ran",))
+    ...         return (os.getcwd, ())
     >>> RestrictedUnpickler(io.BytesIO(pickle.dumps(Evil()))).load()
     Traceback (most recent call last):
         ...
-    _pickle.UnpicklingError: refused to load builtins.print: not one of the pandas/numpy classes ...
+    _pickle.UnpicklingError: refused to load ...getcwd: not one of the pandas/numpy classes ...
 """
 
 from __future__ import annotations
