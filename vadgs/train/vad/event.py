@@ -250,7 +250,7 @@ def run_event(
             work += rec.work
             n_new = int(rec.points.shape[0])
             if n_new:  # added when the event ends: every render of the event is of the model before it
-                additions.append((inst, ref, rec))
+                additions.append((inst, ref, rec._replace(depth=[], normal=[])))  # priors merged below
                 occupied.setdefault(frame_key, []).append(rec.points)
             if cfg.geometric_losses:
                 merge_priors(state["vad_priors"], rec)
