@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.checks import check_size
-from vadgs.geometry.camera import camera_centers
+from vadgs.geometry.camera import camera_centers, invert_rigid
 from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.render.common import RasterConfig, RenderOutput, check_no_sh_degree, check_raster_inputs
 
@@ -162,9 +162,8 @@ def _culled(
     """
     z = means @ viewmats[:, 2, :3].T + viewmats[:, 2, 3]  # (N, C)
     culled = ((z <= near_plane) | (z >= far_plane)).T
-    rot, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
-    centre = -(rot.transpose(1, 2) @ t[..., None])[..., 0]
-    ahead = centre + rot[:, 2] * (0.5 * (near_plane + far_plane))
+    cam_to_world = invert_rigid(viewmats)
+    ahead = cam_to_world[:, :3, 3] + cam_to_world[:, :3, 2] * (0.5 * (near_plane + far_plane))
     return culled, ahead
 
 

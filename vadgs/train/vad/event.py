@@ -258,7 +258,8 @@ def run_event(
             points += rec.consistent
             n_new_total += n_new
             reasons.append(rec.reason)
-            outcomes[_outcome(rec.reason)] = outcomes.get(_outcome(rec.reason), 0) + 1
+            outcome = _outcome(rec.reason)
+            outcomes[outcome] = outcomes.get(outcome, 0) + 1
         added += n_new_total
         done += n_new_total > 0  # an instance that added nothing does not use up a max_instances slot
         repaired += n_new_total > 0
