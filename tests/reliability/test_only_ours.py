@@ -15,25 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from tests.reliability.test_run_folder import TINY, _error, _tree
+from tests.reliability.conftest import TINY
+from tests.reliability.test_run_folder import _error, _tree
 from vadgs.cli import main
 from vadgs.runfolder import MANIFEST
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> Path:
-    """A tiny finished run (2 steps of the bundled sample), copied by each test."""
-    run = tmp_path_factory.mktemp("trained") / "run"
-    assert main(["train", "--sample", "--out", str(run), *TINY]) == 0
-    return run
-
-
-@pytest.fixture
-def run(trained, tmp_path) -> Path:
-    dst = tmp_path / "run"
-    shutil.copytree(trained, dst, symlinks=True)
-    return dst
 
 
 def _add_entry(run: Path, entry: str) -> None:

@@ -16,12 +16,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.reliability.conftest import TINY
 from vadgs.cli import main
 from vadgs.runfolder import MANIFEST, check_output_folder, recorded_files
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-
-TINY = ["--scale", "0.25", "--no-progress", "--init.max-points", "300", "--init.voxel-size", "1.0"]
-TINY += ["--init.sh-degree", "0", "--iterations", "2"]
 
 
 def _tree(root: Path) -> dict[str, str]:
@@ -61,21 +59,6 @@ def _user_folder(path: Path) -> Path:
         (path / rel).parent.mkdir(parents=True, exist_ok=True)
         (path / rel).write_text(text)
     return path
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> Path:
-    """A tiny finished run (2 steps of the bundled sample), copied by each test."""
-    run = tmp_path_factory.mktemp("trained") / "run"
-    assert main(["train", "--sample", "--out", str(run), *TINY]) == 0
-    return run
-
-
-@pytest.fixture
-def run(trained, tmp_path) -> Path:
-    dst = tmp_path / "run"
-    shutil.copytree(trained, dst, symlinks=True)
-    return dst
 
 
 @pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
