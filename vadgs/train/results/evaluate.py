@@ -313,6 +313,7 @@ def evaluate(
                 depth_stats.add(name, d, gtd, mask)
         lid = _lidar_depth(scene, v)
         if lid is not None:
+            lid = lid.to(out.raster.depth.device)
             depth_stats.add("lidar", out.raster.depth, lid, lid > 0)
     depth = depth_stats.summary()
     return EvalMetrics(
