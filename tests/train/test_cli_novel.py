@@ -8,6 +8,7 @@ import pytest
 from plyfile import PlyData
 
 from vadgs.cli import main
+from vadgs.cli._common import lidar_depth_line, metrics_summary
 from vadgs.data import load_scene, sample_scene_path
 
 
@@ -31,15 +32,25 @@ def run(tmp_path_factory):
 
 
 class TestCliNovel:
-    def test_eval_novel(self, run):
+    def test_eval_novel(self, run, capsys):
         assert main(["eval", str(run), "--split", "novel", "--no-progress"]) == 0
         novel = json.loads((run / "eval_novel.json").read_text())
         assert novel["split"] == "novel" and list(novel["groups"]) == ["shift+0.0"]
+        said_novel = capsys.readouterr().out
         assert main(["eval", str(run / "checkpoint.pt"), "--no-progress"]) == 0
         test = json.loads((run / "eval.json").read_text())
         # the "novel" views are the test views again: the same numbers
         assert novel["groups"]["shift+0.0"]["psnr"] == test["psnr"]
         assert novel["groups"]["shift+0.0"]["depth"] == test["depth"]
+        # depth against the frames' own LiDAR sweeps, recorded and said in a line of its own
+        lidar = test["depth"]["lidar"]
+        assert lidar["pixels"] > 1000 and 0 < lidar["absrel"] < 1
+        line = lidar_depth_line(lidar)
+        assert line.startswith("depth vs the test frames' LiDAR AbsRel ")
+        assert f"\n{line}\n" in capsys.readouterr().out
+        assert f"\nshift+0.0: {line}\n" in said_novel
+        metrics = json.loads((run / "metrics.json").read_text())
+        assert metrics["test"]["depth"] == test["depth"] and line in metrics_summary(metrics)
 
     def test_eval_novel_without_novel_views(self, tmp_path, capsys):
         out = tmp_path / "r"

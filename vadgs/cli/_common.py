@@ -30,6 +30,7 @@ __all__ = [
     "as_flag",
     "check_out_dir",
     "help_text",
+    "lidar_depth_line",
     "metrics_summary",
     "parse_command",
     "run_dir",
@@ -235,4 +236,19 @@ def metrics_summary(metrics: dict) -> str:
                 f"depth AbsRel {t['depth']['all']['absrel']:.3f}, "
                 f"d<1.05 {t['depth']['all']['delta_1.05']:.3f}"
             )
+        if "lidar" in t["depth"]:
+            parts.append(lidar_depth_line(t["depth"]["lidar"]))
     return "; ".join(parts)
+
+
+def lidar_depth_line(group: dict) -> str:
+    """The ``lidar`` depth group of the test metrics in words: AbsRel, δ<1.05 and its pixels.
+
+    Example:
+        >>> lidar_depth_line({"absrel": 0.1234, "delta_1.05": 0.5, "pixels": 1200})
+        "depth vs the test frames' LiDAR AbsRel 0.123, d<1.05 0.500 (1200 LiDAR pixels)"
+    """
+    return (
+        f"depth vs the test frames' LiDAR AbsRel {group['absrel']:.3f}, "
+        f"d<1.05 {group['delta_1.05']:.3f} ({group['pixels']} LiDAR pixels)"
+    )

@@ -20,7 +20,7 @@ from typing import Annotated, Literal
 import tyro
 
 from vadgs.checks import check_at_least, check_at_most, check_positive
-from vadgs.cli._common import Command, Flag, Positional, check_out_dir, run_dir
+from vadgs.cli._common import Command, Flag, Positional, check_out_dir, lidar_depth_line, run_dir
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, read_manifest, record_files, recorded_files
@@ -146,6 +146,9 @@ class EvalCommand(Command):
                 else "psnr_star: null: PSNR* scores moving objects only, and "
                 + ("photos have none" if _scene(run).is_photo_collection else "the scene has none")
             )
+        for name, g in zip(["test"] if self.split == "test" else list(shown), metrics, strict=True):
+            if "lidar" in g["depth"]:
+                print(("" if self.split == "test" else f"{name}: ") + lidar_depth_line(g["depth"]["lidar"]))
         print(f"scene checked: {_checked(m['scene'])}")
         print(f"wrote {path}")
         return 0
