@@ -173,3 +173,17 @@ class TestLidarDepth:
         assert got["lidar"]["absrel"] == pytest.approx(np.concatenate(rel).mean(), abs=1e-5)
         assert got["lidar"]["delta_1.05"] == pytest.approx((np.concatenate(ratio) < 1.05).mean(), abs=1e-5)
         assert got["lidar"]["absrel"] > 0.02 and got["lidar"]["delta_1.05"] < 0.9
+
+
+def test_a_model_on_the_device_is_scored_as_on_the_cpu(device):
+    """Render on the model's device, metrics beside the ground truth on the CPU: the same figures."""
+    from vadgs.data import load_scene, sample_scene_path
+
+    scene = load_scene(sample_scene_path(), scale=0.25)
+    model = init_gaussians(scene, InitConfig(voxel_size=1.0, max_points=500, sh_degree=0))
+    ref = evaluate(model, scene, with_lpips=False)
+    got = evaluate(model.to(device), scene, with_lpips=False)
+    assert got.psnr == pytest.approx(ref.psnr, abs=1e-3)
+    assert got.depth.keys() == ref.depth.keys() and "lidar" in got.depth
+    for k in ref.depth:
+        assert got.depth[k]["absrel"] == pytest.approx(ref.depth[k]["absrel"], abs=1e-3)

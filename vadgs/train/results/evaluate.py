@@ -287,17 +287,17 @@ def evaluate(
         inst = scene.load_instances([v]) if vi.instances is not None else None
         dynamic = torch.isin(inst, dynamic_ids) if inst is not None and dynamic_ids.numel() else None
         color = correct_view(appearance, scene, v, out.color)
-        pred = color.clamp(0, 1)
+        pred = color.clamp(0, 1).cpu()  # the metrics on the CPU, beside the ground truth
+        depth_map = out.raster.depth.cpu()
         p, s = stats.add(pred, gt, dynamic)
         per_view.append({"view": v, "image": view_name(scene, v), "psnr": round(p, 4), "ssim": round(s, 4)})
         if appearance is not None:
-            p, s = raw_stats.add(out.color.clamp(0, 1), gt, dynamic)
+            p, s = raw_stats.add(out.color.clamp(0, 1).cpu(), gt, dynamic)
             per_view[-1].update(psnr_uncorrected=round(p, 4), ssim_uncorrected=round(s, 4))
         if lpips_fn is not None:
             lp.append(float(lpips_fn(pred * 2 - 1, gt * 2 - 1).mean()))
         if vi.depth is not None:
             gtd = scene.load_depths([v])
-            d = out.raster.depth
             valid = gtd > 0
             regions = {"all": valid}
             if inst is not None:
@@ -310,11 +310,10 @@ def evaluate(
                         valid & torch.isin(inst, building_ids)[:, None] & (world[:, 2:3] > 5.0)
                     )
             for name, mask in regions.items():
-                depth_stats.add(name, d, gtd, mask)
+                depth_stats.add(name, depth_map, gtd, mask)
         lid = _lidar_depth(scene, v)
         if lid is not None:
-            lid = lid.to(out.raster.depth.device)
-            depth_stats.add("lidar", out.raster.depth, lid, lid > 0)
+            depth_stats.add("lidar", depth_map, lid.cpu(), lid > 0)
     depth = depth_stats.summary()
     return EvalMetrics(
         **stats.summary(),
