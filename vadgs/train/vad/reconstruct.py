@@ -184,14 +184,16 @@ def _select_supports(
 ) -> ViewSelection:
     """Step 2: the supporting views (``cfg.whole_supports``: among the views showing all of the instance).
 
-    ``cfg.seen_supports``: a static instance whose visibility sets give nothing to select from is
-    selected again on what the views' voxel z-buffers show (:meth:`VisibilityIndex.seen_covis`).
+    ``cfg.seen_supports``: an instance whose visibility sets give nothing to select from is selected
+    again on what the views' voxel z-buffers show (:meth:`VisibilityIndex.seen_covis`; a moving
+    object's grid in its own frame, at each view's timestamp).
     """
     sel = _select_among(index, ref, instance, frame.covis.restrict(frame.voxels), frame, cfg, generator)
-    if not (cfg.seen_supports and track is None and sel.reason.startswith(("no_voxels", "no_candidates"))):
+    if not (cfg.seen_supports and sel.reason.startswith(("no_voxels", "no_candidates"))):
         return sel
     views = [ref, *torch.nonzero(frame.allowed).flatten().tolist()]
-    seen = _select_among(index, ref, instance, index.seen_covis(frame.voxels, views), frame, cfg, generator)
+    covis = index.seen_covis(frame.voxels, views, track)
+    seen = _select_among(index, ref, instance, covis, frame, cfg, generator)
     return replace(seen, reason=f"{seen.reason} (seen)") if len(seen.views) else sel
 
 
