@@ -47,6 +47,12 @@ def _kind(index: Any, inst: int) -> str:
     return "static cell" if cls == "static" else f"static {cls}"
 
 
+def _outcome(reason: str) -> str:
+    """A reason without its detail, as the event's ``outcomes`` counts it."""
+    head = reason.split(": ")[0]
+    return head + " (seen)" if head != reason and reason.endswith("(seen)") else head
+
+
 def why_none(index: Any, inst: int, ref: int) -> dict[str, Any]:
     """What reference ``ref`` sees of instance ``inst``'s voxels, and why that is none.
 
@@ -106,7 +112,11 @@ def why_none(index: Any, inst: int, ref: int) -> dict[str, Any]:
 
 
 def _breakdown(index: Any, pairs: list[tuple[int, int, str]]) -> None:
-    """Print why the ``no_voxels`` (instance, reference) pairs of one event saw none."""
+    """Print an event's (instance, reference) pairs by kind and outcome; why the ``no_voxels`` saw none."""
+    kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason in pairs)
+    print("  (instance, reference) pairs by kind and outcome:")
+    for (kind, outcome), n in sorted(kinds.items()):
+        print(f"    {kind:22s} {outcome:52s} {n:3d}")
     rows = [(i, r, why_none(index, i, r)) for i, r, reason in pairs if "no_voxels" in reason]
     if not rows:
         print("  no (instance, reference) pair ended no_voxels")

@@ -429,6 +429,55 @@ class TestSeenSupports:
         )
         assert full.reason == "ok" and on.points.shape[0] >= 0.3 * full.points.shape[0]
 
+    def test_reference_seeing_one_voxel_asks_supports_to_share_it(self, scene, index):
+        """A far cell of a real log's ground grid shows its reference one voxel: supports share that one."""
+        from vadgs.select import ViewSelectionConfig, select_views
+        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
+
+        ref = self._ref(scene, index)
+        blind = self._blind(index, ref)
+        frame = _instance_frame(blind, ref, BUILDING, None, ReconstructConfig())
+        ids = torch.nonzero(frame.voxels).flatten()
+        shown = ids[torch.isin(ids, index.seen_voxels(ref))].tolist()
+        others = [v for v in scene.train_views if v != ref]
+
+        def seen_by(vox):  # the training views whose z-buffer or visibility set hold the voxel
+            return {
+                v
+                for v in others
+                if vox in set(index.seen_voxels(v).tolist()) | set(index.covis.voxels_of(v).tolist())
+            }
+
+        vox = next(x for x in shown if len(seen_by(x)) >= 4)
+        one = torch.zeros_like(frame.voxels)
+        one[vox] = True
+        one_frame = frame._replace(voxels=one)
+        sel = _select_supports(
+            blind, ref, BUILDING, None, one_frame, ReconstructConfig(), torch.Generator().manual_seed(0)
+        )
+        assert sel.reason == "ok (seen)" and len(sel.views) == 4
+        assert set(sel.views.tolist()) <= seen_by(vox)
+        # the selection's own rule (two shared voxels) finds nobody to share one voxel with
+        covis = blind.seen_covis(one, [ref, *others])
+        two = select_views(ref, covis, ViewSelectionConfig(min_shared=2), torch.Generator().manual_seed(0))
+        assert two.reason.startswith("no_candidates") and len(two.views) == 0
+        # a voxel no other view shows: no support, and the reason says the z-buffers were asked
+        alone = next(x for x in shown if not seen_by(x))
+        one = torch.zeros_like(frame.voxels)
+        one[alone] = True
+        sel = _select_supports(
+            blind,
+            ref,
+            BUILDING,
+            None,
+            frame._replace(voxels=one),
+            ReconstructConfig(),
+            torch.Generator().manual_seed(0),
+        )
+        assert (
+            len(sel.views) == 0 and sel.reason.startswith("no_candidates") and sel.reason.endswith("(seen)")
+        )
+
 
 class TestSeenSupportsOfATrack:
     """A moving object whose reference's LiDAR frame missed it (a real log's far car: its grid gathers the
