@@ -14,7 +14,8 @@ reason). Used for issue 47 on a converted PandaSet log (docs/results.md, "A real
 ``no_voxels`` (the reference sees none of the instance's voxels) did: the instance's kind (a moving
 object's track, a derived static cell, a labelled static instance) and what the reference sees of
 its voxels (none at all; in its visibility set; in its voxel z-buffer; inside its frustum but behind
-other voxels; outside its frustum). ``--cycle PATH`` keeps the trained cycle: a checkpoint written
+other voxels; outside its frustum), after the pairs by kind and outcome and how far the static points
+each outcome added lie from the LiDAR's voxels. ``--cycle PATH`` keeps the trained cycle: a checkpoint written
 there after training, and resumed from (exactly: ``Trainer.from_checkpoint``) when it exists.
 """
 
@@ -111,17 +112,51 @@ def why_none(index: Any, inst: int, ref: int) -> dict[str, Any]:
     return out
 
 
-def _breakdown(index: Any, pairs: list[tuple[int, int, str]]) -> None:
+def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+    """Print how far the static points each outcome added lie from the LiDAR's voxels, by shown voxels.
+
+    For each static (instance, reference) pair that added points: the distance of each point to
+    the nearest voxel centre of the static grid (the training frames' LiDAR), relative to its
+    depth in the reference; grouped by outcome and by how many of the instance's voxels the
+    reference's z-buffer shows (1-2: a far cell, below the selection's ``min_shared``, or more).
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(index.covis.voxel_centers.double().numpy())
+    groups: dict[tuple[str, str], list[torch.Tensor]] = {}
+    for inst, ref, reason, points in pairs:
+        if inst in index.inputs.tracks or not len(points):
+            continue
+        shown = why_none(index, inst, ref).get("zbuffer", 0)
+        w2c = index.cameras.world_to_cam[ref].double()
+        depth = points.double() @ w2c[2, :3] + w2c[2, 3]
+        dist = torch.from_numpy(tree.query(points.double().numpy())[0])
+        key = (_outcome(reason), "1-2 voxels shown" if shown <= 2 else "3+ voxels shown")
+        groups.setdefault(key, []).append(torch.stack([dist, dist / depth.clamp_min(1e-6), depth], 1))
+    print("  added static points: distance to the nearest LiDAR voxel (median; relative to depth), depth:")
+    for (outcome, shown), rows in sorted(groups.items()):
+        x = torch.cat(rows)
+        med = x.median(0).values.tolist()
+        print(
+            f"    {outcome:14s} {shown:18s} {len(rows):3d} pairs, {len(x):6d} points: {med[0]:.2f} m "
+            f"({100 * med[1]:.1f} % of depth), depth {med[2]:.0f} m"
+        )
+
+
+def _breakdown(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
     """Print an event's (instance, reference) pairs by kind and outcome; why the ``no_voxels`` saw none."""
-    kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason in pairs)
+    kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason, _ in pairs)
     print("  (instance, reference) pairs by kind and outcome:")
     for (kind, outcome), n in sorted(kinds.items()):
         print(f"    {kind:22s} {outcome:52s} {n:3d}")
-    rows = [(i, r, why_none(index, i, r)) for i, r, reason in pairs if "no_voxels" in reason]
+    _where_points_lie(index, pairs)
+    rows = [(i, r, why_none(index, i, r)) for i, r, reason, _ in pairs if "no_voxels" in reason]
     if not rows:
         print("  no (instance, reference) pair ended no_voxels")
         return
-    print(f"  {len(rows)} no_voxels pairs ({len({i for i, _, _ in rows})} instances) by kind and why:")
+    shown = Counter(d.get("zbuffer", 0) for _, _, d in rows)
+    print(f"  {len(rows)} no_voxels pairs ({len({i for i, _, _ in rows})} instances); voxels their"
+          f" reference's z-buffer shows: {dict(sorted(shown.items()))}; by kind and why:")  # fmt: skip
     for (kind, why), n in sorted(Counter((d["kind"], d["why"]) for _, _, d in rows).items()):
         sel = [d for _, _, d in rows if (d["kind"], d["why"]) == (kind, why)]
         depth = [d["depth"] for d in sel if d.get("depth") is not None]
@@ -163,12 +198,12 @@ def main() -> None:
         print(f"{n - 1} steps in {time.perf_counter() - t0:.0f} s", flush=True)
         if args.cycle is not None:
             on.save_checkpoint(args.cycle)
-    pairs: list[tuple[int, int, str]] = []  # (instance, reference, reason) of the event running
+    pairs: list[tuple[int, int, str, torch.Tensor]] = []  # (instance, reference, reason, points)
     reconstruct = event_module.reconstruct_instance
 
     def recorded(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
         rec = reconstruct(index, ref, inst, *a, **k)
-        pairs.append((inst, ref, rec.reason))
+        pairs.append((inst, ref, rec.reason, rec.points.cpu()))
         return rec
 
     if args.breakdown:
