@@ -9,6 +9,14 @@ reason). Used for issue 47 on a converted PandaSet log (docs/results.md, "A real
     vadgs convert pandaset /data/pandaset/002 --frames 0:36 \\
         --cameras front_left_camera,front_camera,front_right_camera --scale 0.25 --out scenes/ps002
     OMP_NUM_THREADS=1 python benchmarks/event_outcomes.py scenes/ps002 --scale 0.5 --off seen_supports
+
+``--breakdown`` then tells, for each event, why the (instance, reference) reconstructions that ended
+``no_voxels`` (the reference sees none of the instance's voxels) did: the instance's kind (a moving
+object's track, a derived static cell, a labelled static instance) and what the reference sees of
+its voxels (none at all; in its visibility set; in its voxel z-buffer; inside its frustum but behind
+other voxels; outside its frustum), after the pairs by kind and outcome and how far the static points
+each outcome added lie from the LiDAR's voxels. ``--cycle PATH`` keeps the trained cycle: a checkpoint written
+there after training, and resumed from (exactly: ``Trainer.from_checkpoint``) when it exists.
 """
 
 from __future__ import annotations
@@ -18,13 +26,149 @@ import copy
 import dataclasses
 import time
 import warnings
+from collections import Counter
+from pathlib import Path
+from typing import Any
 
 import torch
 
+import vadgs.train.vad.event as event_module
 from vadgs.data import load_scene
+from vadgs.geometry.camera import project_points
 from vadgs.train.config import TrainConfig, scale_schedule
 from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig
+
+
+def _kind(index: Any, inst: int) -> str:
+    """``"track car"``, ``"static cell"`` (a derived ground cell) or ``"static <class>"``."""
+    cls = index.classes().get(inst, "?")
+    if inst in index.inputs.tracks:
+        return f"track {cls}"
+    return "static cell" if cls == "static" else f"static {cls}"
+
+
+def _outcome(reason: str) -> str:
+    """A reason without its detail, as the event's ``outcomes`` counts it."""
+    head = reason.split(": ")[0]
+    return head + " (seen)" if head != reason and reason.endswith("(seen)") else head
+
+
+def why_none(index: Any, inst: int, ref: int) -> dict[str, Any]:
+    """What reference ``ref`` sees of instance ``inst``'s voxels, and why that is none.
+
+    Returns ``kind``, ``why`` and the counts it is decided on: ``voxels`` (the instance's: a track's
+    whole grid; a static instance's labelled voxels, or those seen through its mask when it has
+    fewer than 8), ``visibility`` (those in the reference's visibility set), ``zbuffer`` (those its
+    voxel z-buffer shows: for a track, where the track is the nearest surface), ``frustum`` (those
+    whose centre projects into its image in front of it), ``views_vis`` / ``views_zbuf`` (training
+    views whose visibility set / z-buffer hold any of them), ``depth`` (the median depth of the
+    frustum's ones), ``pixels`` (its mask in the reference).
+    """
+    track = inst if inst in index.inputs.tracks else None
+    out: dict[str, Any] = {"kind": _kind(index, inst), "pixels": int((index.instances(ref) == inst).sum())}
+    if track is not None:
+        if track not in index.track_covis:
+            return {**out, "why": "no voxels (no LiDAR point on the track)", "voxels": 0}
+        covis = index.track_covis[track]
+        voxels = torch.ones(covis.num_voxels, dtype=torch.bool)
+    else:
+        covis = index.covis
+        voxels = index.labels == inst
+        if int(voxels.sum()) < 8:
+            _, vidx = index.voxel_raster(ref)
+            voxels = voxels.clone()
+            voxels[torch.unique(vidx[(index.instances(ref) == inst) & (vidx >= 0)])] = True
+    ids = torch.nonzero(voxels).flatten()
+    out["voxels"] = len(ids)
+    if not len(ids):
+        return {**out, "why": "no voxels (no LiDAR on it, none seen through its mask)"}
+    train = [v for v in index.inputs.train_views]
+
+    def count(seen: torch.Tensor) -> int:
+        return int(torch.isin(ids, seen.to(ids)).sum())
+
+    out["visibility"] = count(covis.voxels_of(ref))
+    out["zbuffer"] = count(index.seen_voxels(ref, track))
+    out["views_vis"] = sum(count(covis.voxels_of(v)) > 0 for v in train if v != ref)
+    out["views_zbuf"] = sum(count(index.seen_voxels(v, track)) > 0 for v in train if v != ref)
+    h, w = index.size(ref)
+    uv, z = project_points(covis.voxel_centers[ids][None].float(), index.cameras.K[ref : ref + 1],
+                           covis.world_to_cam[ref : ref + 1].float())  # fmt: skip
+    uv, z = uv[0], z[0]
+    inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
+    if track is not None and not bool(index.inputs.tracks[track].valid[index.inputs.frame_position(ref)]):
+        inside[:] = False  # no pose at the reference's frame
+    out["frustum"] = int(inside.sum())
+    out["depth"] = float(z[inside].median()) if bool(inside.any()) else None
+    if out["visibility"]:
+        out["why"] = "in its visibility set (selection found no support)"
+    elif out["zbuffer"]:
+        out["why"] = "not in its visibility set, in its z-buffer"
+    elif out["frustum"]:
+        out["why"] = "in its frustum, behind other voxels"
+    else:
+        out["why"] = "outside its frustum"
+    return out
+
+
+def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+    """Print how far the static points each outcome added lie from the LiDAR's voxels, by shown voxels.
+
+    For each static (instance, reference) pair that added points: the distance of each point to
+    the nearest voxel centre of the static grid (the training frames' LiDAR), relative to its
+    depth in the reference; grouped by outcome and by how many of the instance's voxels the
+    reference's z-buffer shows (1-2: a far cell, below the selection's ``min_shared``, or more).
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(index.covis.voxel_centers.double().numpy())
+    groups: dict[tuple[str, str], list[torch.Tensor]] = {}
+    for inst, ref, reason, points in pairs:
+        if inst in index.inputs.tracks or not len(points):
+            continue
+        shown = why_none(index, inst, ref).get("zbuffer", 0)
+        w2c = index.cameras.world_to_cam[ref].double()
+        depth = points.double() @ w2c[2, :3] + w2c[2, 3]
+        dist = torch.from_numpy(tree.query(points.double().numpy())[0])
+        key = (_outcome(reason), "1-2 voxels shown" if shown <= 2 else "3+ voxels shown")
+        groups.setdefault(key, []).append(torch.stack([dist, dist / depth.clamp_min(1e-6), depth], 1))
+    print("  added static points: distance to the nearest LiDAR voxel (median; relative to depth), depth:")
+    for (outcome, shown), rows in sorted(groups.items()):
+        x = torch.cat(rows)
+        med = x.median(0).values.tolist()
+        print(
+            f"    {outcome:14s} {shown:18s} {len(rows):3d} pairs, {len(x):6d} points: {med[0]:.2f} m "
+            f"({100 * med[1]:.1f} % of depth), depth {med[2]:.0f} m"
+        )
+
+
+def _breakdown(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+    """Print an event's (instance, reference) pairs by kind and outcome; why the ``no_voxels`` saw none."""
+    kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason, _ in pairs)
+    print("  (instance, reference) pairs by kind and outcome:")
+    for (kind, outcome), n in sorted(kinds.items()):
+        print(f"    {kind:22s} {outcome:52s} {n:3d}")
+    _where_points_lie(index, pairs)
+    rows = [(i, r, why_none(index, i, r)) for i, r, reason, _ in pairs if "no_voxels" in reason]
+    if not rows:
+        print("  no (instance, reference) pair ended no_voxels")
+        return
+    shown = Counter(d.get("zbuffer", 0) for _, _, d in rows)
+    print(f"  {len(rows)} no_voxels pairs ({len({i for i, _, _ in rows})} instances); voxels their"
+          f" reference's z-buffer shows: {dict(sorted(shown.items()))}; by kind and why:")  # fmt: skip
+    for (kind, why), n in sorted(Counter((d["kind"], d["why"]) for _, _, d in rows).items()):
+        sel = [d for _, _, d in rows if (d["kind"], d["why"]) == (kind, why)]
+        depth = [d["depth"] for d in sel if d.get("depth") is not None]
+        others = sum(d.get("views_vis", 0) + d.get("views_zbuf", 0) > 0 for d in sel)
+        print(
+            f"    {kind:22s} {why:52s} {n:3d}  (other training views see it: {others}; median depth "
+            f"{sorted(depth)[len(depth) // 2] if depth else float('nan'):.1f})"
+        )
+    for i, r, d in rows:
+        facts = ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
+                          for k, v in d.items() if k not in ("kind", "why"))  # fmt: skip
+        print(f"    instance {i} ref {r}: {d['kind']}; {d['why']}; {facts}")
 
 
 def main() -> None:
@@ -33,22 +177,41 @@ def main() -> None:
     ap.add_argument("scene", help="a scene folder (scene.json)")
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--off", default="seen_supports", help="a boolean ReconstructConfig field")
+    ap.add_argument("--breakdown", action="store_true", help="why the no_voxels pairs saw none")
+    ap.add_argument("--cycle", type=Path, help="checkpoint of the trained cycle: resumed, or written")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore", UserWarning)
     scene = load_scene(args.scene, scale=args.scale)
     n = len(scene.train_views)
-    vad = VisibilityDensifyConfig(every_cycles=1, work_budget=None)
-    cfg = scale_schedule(TrainConfig(iterations=3 * n, checkpoint_every=10**6, vad=vad))
     t0 = time.perf_counter()
-    on = Trainer(scene, cfg, progress=False)
-    print(f"{n} training views, {on.model.num_gaussians} Gaussians at the start", flush=True)
-    for _ in range(n - 1):
-        on.train_step()
-    print(f"{n - 1} steps in {time.perf_counter() - t0:.0f} s", flush=True)
+    if args.cycle is not None and args.cycle.exists():
+        on = Trainer.from_checkpoint(args.cycle, scene, out_dir=None, progress=False)
+        print(f"{n} training views, resumed at step {on.step} from {args.cycle}", flush=True)
+    else:
+        vad = VisibilityDensifyConfig(every_cycles=1, work_budget=None)
+        cfg = scale_schedule(TrainConfig(iterations=3 * n, checkpoint_every=10**6, vad=vad))
+        on = Trainer(scene, cfg, progress=False)
+        print(f"{n} training views, {on.model.num_gaussians} Gaussians at the start", flush=True)
+        for _ in range(n - 1):
+            on.train_step()
+        print(f"{n - 1} steps in {time.perf_counter() - t0:.0f} s", flush=True)
+        if args.cycle is not None:
+            on.save_checkpoint(args.cycle)
+    pairs: list[tuple[int, int, str, torch.Tensor]] = []  # (instance, reference, reason, points)
+    reconstruct = event_module.reconstruct_instance
+
+    def recorded(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
+        rec = reconstruct(index, ref, inst, *a, **k)
+        pairs.append((inst, ref, rec.reason, rec.points.cpu()))
+        return rec
+
+    if args.breakdown:
+        event_module.reconstruct_instance = recorded  # type: ignore[assignment]
     off = copy.deepcopy(on)
     off.strategy.reconstruct = dataclasses.replace(off.strategy.reconstruct, **{args.off: False})
     for name, trainer in ((f"{args.off}=False", off), (f"{args.off}=True", on)):
+        pairs.clear()
         t1 = time.perf_counter()
         trainer.train_step()  # the event's step
         e = trainer.state["vad_events"][-1]
@@ -57,6 +220,8 @@ def main() -> None:
             f" +{e['added']} Gaussians, {time.perf_counter() - t1:.0f} s\n  outcomes {e['outcomes']}",
             flush=True,
         )
+        if args.breakdown:
+            _breakdown(trainer.strategy.index, list(pairs))
 
 
 if __name__ == "__main__":

@@ -428,3 +428,134 @@ class TestSeenSupports:
             index, ref, BUILDING, ReconstructConfig(), torch.Generator().manual_seed(0)
         )
         assert full.reason == "ok" and on.points.shape[0] >= 0.3 * full.points.shape[0]
+
+    def test_reference_seeing_one_voxel_asks_supports_to_share_it(self, scene, index):
+        """A far cell of a real log's ground grid shows its reference one voxel: supports share that one."""
+        from vadgs.select import ViewSelectionConfig, select_views
+        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
+
+        ref = self._ref(scene, index)
+        blind = self._blind(index, ref)
+        frame = _instance_frame(blind, ref, BUILDING, None, ReconstructConfig())
+        ids = torch.nonzero(frame.voxels).flatten()
+        shown = ids[torch.isin(ids, index.seen_voxels(ref))].tolist()
+        others = [v for v in scene.train_views if v != ref]
+
+        def seen_by(vox):  # the training views whose z-buffer or visibility set hold the voxel
+            return {
+                v
+                for v in others
+                if vox in set(index.seen_voxels(v).tolist()) | set(index.covis.voxels_of(v).tolist())
+            }
+
+        vox = next(x for x in shown if len(seen_by(x)) >= 4)
+        one = torch.zeros_like(frame.voxels)
+        one[vox] = True
+        one_frame = frame._replace(voxels=one)
+        sel = _select_supports(
+            blind, ref, BUILDING, None, one_frame, ReconstructConfig(), torch.Generator().manual_seed(0)
+        )
+        assert sel.reason == "ok (seen)" and len(sel.views) == 4
+        assert set(sel.views.tolist()) <= seen_by(vox)
+        # the selection's own rule (two shared voxels) finds nobody to share one voxel with
+        covis = blind.seen_covis(one, [ref, *others])
+        two = select_views(ref, covis, ViewSelectionConfig(min_shared=2), torch.Generator().manual_seed(0))
+        assert two.reason.startswith("no_candidates") and len(two.views) == 0
+        # a voxel no other view shows: no support, and the reason says the z-buffers were asked
+        alone = next(x for x in shown if not seen_by(x))
+        one = torch.zeros_like(frame.voxels)
+        one[alone] = True
+        sel = _select_supports(
+            blind,
+            ref,
+            BUILDING,
+            None,
+            frame._replace(voxels=one),
+            ReconstructConfig(),
+            torch.Generator().manual_seed(0),
+        )
+        assert (
+            len(sel.views) == 0 and sel.reason.startswith("no_candidates") and sel.reason.endswith("(seen)")
+        )
+
+
+class TestSeenSupportsOfATrack:
+    """A moving object whose reference's LiDAR frame missed it (a real log's far car: its grid gathers the
+    points of other frames) is selected on what the views' z-buffers show of its grid at their timestamp."""
+
+    def _blind(self, index, ref):
+        """The index with ``ref`` removed from the car's visibility sets (its frame's LiDAR missed it)."""
+        import dataclasses
+
+        from vadgs.select import Covisibility
+
+        cov = index.track_covis[CAR]
+        visible = [
+            torch.zeros(0, dtype=torch.long) if v == ref else cov.voxels_of(v) for v in range(cov.num_views)
+        ]
+        blind = Covisibility.from_visible(
+            visible, cov.voxel_centers, cov.world_to_cam, cov.camera_ids, cov.frame_ids
+        )
+        return dataclasses.replace(index, track_covis={**index.track_covis, CAR: blind})
+
+    @staticmethod
+    def _ref(scene, index):
+        return max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
+
+    def test_seen_voxels_of_a_track_are_its_front(self, scene, index):
+        grid = index.track_grids[CAR]
+        track = scene.tracks[CAR]
+        behind = {"seen": [], "all": []}  # voxels > 3 voxel edges behind the true surface (depth maps)
+        for v in scene.train_views:
+            fpos = scene.frame_position(scene.views[v].frame)
+            ids = index.seen_voxels(v, CAR)
+            if not bool(track.valid[fpos]):
+                assert len(ids) == 0
+                continue
+            o2w = track.object_to_world[fpos]
+            cams = scene.cameras([v])
+            h, w = cams.image_size
+            gt = scene.load_depths([v])[0, 0]
+            for name, kept in (("seen", ids), ("all", torch.arange(len(grid)))):
+                world = grid.centers[kept] @ o2w[:3, :3].T + o2w[:3, 3]
+                uv, z = project_points(world[None], cams.K, cams.world_to_cam)
+                u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+                ok = (z[0] > 0) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
+                behind[name] += (z[0][ok] - gt[vv[ok], u[ok]] > 3 * 0.2).tolist()
+        assert len(behind["seen"]) > 1000
+        # the z-buffer keeps the car's visible side: almost none of its voxels behind what the view sees,
+        # where its whole grid, posed there, has its far side behind it
+        assert sum(behind["seen"]) / len(behind["seen"]) < 0.005
+        assert sum(behind["all"]) / len(behind["all"]) > 0.03
+        with pytest.raises(ValueError, match="track: expected one of the tracks"):
+            index.seen_voxels(scene.train_views[0], 10**6)
+
+    def test_blind_track_reference_is_selected_on_its_zbuffer(self, scene, index):
+        ref = self._ref(scene, index)
+        blind = self._blind(index, ref)
+        off = reconstruct_instance(
+            blind, ref, CAR, ReconstructConfig(seen_supports=False), torch.Generator().manual_seed(0)
+        )
+        assert off.reason.startswith("selection:no_voxels") and off.points.shape[0] == 0
+        on = reconstruct_instance(blind, ref, CAR, ReconstructConfig(), torch.Generator().manual_seed(0))
+        assert on.reason == "ok (seen)" and on.track == CAR and len(on.views) == 5
+        full = reconstruct_instance(index, ref, CAR, ReconstructConfig(), torch.Generator().manual_seed(0))
+        assert full.reason == "ok" and on.points.shape[0] >= 0.5 * full.points.shape[0]
+        # its points, in the car's frame, land on the car in the other views of the reference's camera
+        track = scene.tracks[CAR]
+        hits = []
+        for v in scene.train_views:
+            if scene.views[v].camera != scene.views[ref].camera or v == ref:
+                continue
+            fpos = scene.frame_position(scene.views[v].frame)
+            o2w = track.object_to_world[fpos]
+            world = on.points @ o2w[:3, :3].T + o2w[:3, 3]
+            cams = scene.cameras([v])
+            uv, z = project_points(world[None], cams.K, cams.world_to_cam)
+            h, w = cams.image_size
+            u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+            ok = (z[0] > 0) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
+            if int(ok.sum()) < 50:
+                continue
+            hits.append(float((scene.load_instances([v])[0][vv[ok], u[ok]] == CAR).float().mean()))
+        assert len(hits) >= 2 and min(hits) > 0.7, hits

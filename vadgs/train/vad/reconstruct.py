@@ -184,15 +184,26 @@ def _select_supports(
 ) -> ViewSelection:
     """Step 2: the supporting views (``cfg.whole_supports``: among the views showing all of the instance).
 
-    ``cfg.seen_supports``: a static instance whose visibility sets give nothing to select from is
-    selected again on what the views' voxel z-buffers show (:meth:`VisibilityIndex.seen_covis`).
+    ``cfg.seen_supports``: an instance whose visibility sets give nothing to select from is selected
+    again on what the views' voxel z-buffers show (:meth:`VisibilityIndex.seen_covis`; a moving
+    object's grid in its own frame, at each view's timestamp). A reference that shows fewer of its
+    voxels than ``selection.min_shared`` (a far cell of the ground grid seen through one voxel)
+    then asks its supports to share all it shows. The reason ends in ``" (seen)"`` when the
+    z-buffers were used: the selection's on them when the reference shows any voxel there, else
+    the visibility sets'.
     """
     sel = _select_among(index, ref, instance, frame.covis.restrict(frame.voxels), frame, cfg, generator)
-    if not (cfg.seen_supports and track is None and sel.reason.startswith(("no_voxels", "no_candidates"))):
+    if not (cfg.seen_supports and sel.reason.startswith(("no_voxels", "no_candidates"))):
         return sel
     views = [ref, *torch.nonzero(frame.allowed).flatten().tolist()]
-    seen = _select_among(index, ref, instance, index.seen_covis(frame.voxels, views), frame, cfg, generator)
-    return replace(seen, reason=f"{seen.reason} (seen)") if len(seen.views) else sel
+    covis = index.seen_covis(frame.voxels, views, track)
+    shown = len(covis.voxels_of(ref))
+    if not shown:
+        return sel
+    if shown < cfg.selection.min_shared:
+        cfg = replace(cfg, selection=replace(cfg.selection, min_shared=shown))
+    seen = _select_among(index, ref, instance, covis, frame, cfg, generator)
+    return replace(seen, reason=f"{seen.reason} (seen)")
 
 
 def _select_among(

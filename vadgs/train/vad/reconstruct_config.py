@@ -88,12 +88,14 @@ class ReconstructConfig:
             there are ``selection.k`` of them (else among all). A view that cuts the instance off
             cannot confirm the part it does not show (e.g. the top of a sign above the frame of the
             close views the voxels favour, which stays empty).
-        seen_supports: when a static instance's voxels give its reference none in its visibility
+        seen_supports: when an instance's voxels give its reference none in its visibility
             sets, or no view shares them with it (the LiDAR of a real log hits a far facade only
-            from closer frames), select again where the reference and the training views see the
-            voxels in their voxel z-buffer as well (:meth:`VisibilityIndex.seen_covis
-            <vadgs.train.vad.visibility.VisibilityIndex.seen_covis>`); the reason then ends in
-            ``"(seen)"``. ``False``: the visibility sets only, as the paper's supplement.
+            from closer frames; a moving car's grid gathers the points of the frames that hit
+            it), select again where the reference and the training views see the voxels in their
+            voxel z-buffer as well (:meth:`VisibilityIndex.seen_covis
+            <vadgs.train.vad.visibility.VisibilityIndex.seen_covis>`; a moving object's grid posed
+            at each view's timestamp); the reason then ends in ``"(seen)"``. ``False``: the
+            visibility sets only, as the paper's supplement.
     """
 
     selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))

@@ -238,37 +238,70 @@ class VisibilityIndex:
             label = torch.where(closer[0], torch.full_like(label, tid), label)
         return depth, label
 
-    def seen_voxels(self, view: int) -> torch.Tensor:
-        """Sorted ids of the static voxels a view's z-buffer shows (occlusion included; cached)."""
+    def seen_voxels(self, view: int, track: int | None = None) -> torch.Tensor:
+        """Sorted ids of the voxels a view's z-buffer shows (occlusion included; cached).
 
-        def make() -> torch.Tensor:
-            vidx = self.voxel_raster(view)[1]
-            return torch.unique(vidx[vidx >= 0])
+        ``track``: of that moving object's grid (its own frame), rasterised at the view's
+        timestamp (none when its pose is unknown there or it has no LiDAR point), where it is the
+        nearest voxel surface of :meth:`voxel_depth` (not behind static voxels or another object);
+        None: the static grid's.
 
-        return self.view_cache.get(("seen", view), make)
+        Raises:
+            ValueError: if ``track`` is not a track of the inputs.
+        """
+        if track is not None and track not in self.inputs.tracks:
+            raise ValueError(f"track: expected one of the tracks {sorted(self.inputs.tracks)}, got {track}")
+        if track is None:
 
-    def seen_covis(self, voxels: torch.Tensor, views: Sequence[int]) -> Covisibility:
-        """Covisibility of some static voxels where ``views`` see them: visibility sets or z-buffer.
+            def make() -> torch.Tensor:
+                vidx = self.voxel_raster(view)[1]
+                return torch.unique(vidx[vidx >= 0])
+
+            return self.view_cache.get(("seen", view), make)
+        return self.view_cache.get(("seen_track", view, track), lambda: self._seen_track(view, track))
+
+    def _seen_track(self, view: int, track: int) -> torch.Tensor:
+        grid = self.track_grids.get(track)
+        dev = self.cameras.K.device
+        fpos = self.inputs.frame_position(view)
+        if grid is None or not bool(self.inputs.tracks[track].valid[fpos]):
+            return torch.zeros(0, dtype=torch.long, device=dev)
+        cams = self.camera(view)
+        o2w = self.inputs.tracks[track].object_to_world[fpos].to(cams.world_to_cam)
+        r = rasterize_voxels(
+            grid, Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size), config=self.zbuffer
+        )
+        vidx = self.pad(r.index[0], -1)
+        front = self.voxel_depth(view)[1] == track  # its surface is the nearest there
+        return torch.unique(vidx[front & (vidx >= 0)])
+
+    def seen_covis(
+        self, voxels: torch.Tensor, views: Sequence[int], track: int | None = None
+    ) -> Covisibility:
+        """Covisibility of some voxels where ``views`` see them: visibility sets or z-buffer.
 
         A voxel is seen by one of ``views`` when it is in its visibility set (the LiDAR frame's
         points, the TRACK table) or its voxel z-buffer shows it (:meth:`seen_voxels`); by any other
         view only through its visibility set. A far facade that the LiDAR hit only from closer
-        frames is thus seen by a reference in front of it, which its visibility sets do not say.
+        frames is thus seen by a reference in front of it, which its visibility sets do not say;
+        so is a moving car whose points came from other frames (its grid gathers them all).
 
         Args:
-            voxels: ``(M,)`` bool over the static grid: the voxels kept (e.g. one instance's).
+            voxels: ``(M,)`` bool over the grid: the voxels kept (e.g. one instance's).
             views: the views whose z-buffer counts too.
+            track: a moving object's id: its grid (:attr:`track_covis`, in its own frame); None:
+                the static grid.
 
         Returns:
             :meth:`~vadgs.select.Covisibility.restrict` of that covisibility to ``voxels``.
         """
-        covis, zbuf = self.covis, set(views)
+        covis, zbuf = (self.covis if track is None else self.track_covis[track]), set(views)
         keep = voxels.to(covis.voxel_centers.device)
         visible = []
         for v in range(covis.num_views):
             ids = covis.voxels_of(v)
             if v in zbuf:
-                ids = torch.unique(torch.cat([ids, self.seen_voxels(v).to(ids)]))
+                ids = torch.unique(torch.cat([ids, self.seen_voxels(v, track).to(ids)]))
             visible.append(ids[keep[ids]])
         out = Covisibility.from_visible(
             visible, covis.voxel_centers, covis.world_to_cam, covis.camera_ids, covis.frame_ids
