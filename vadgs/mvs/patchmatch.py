@@ -410,6 +410,10 @@ def _propagate(
     p, r, _ = nbr.shape
     nb_cost, best = agg[:, nbr].min(-1, keepdim=True)  # (B, P, R, 1)
     q = torch.gather(nbr.expand(bsz, -1, -1, -1), 3, best)
+    # A region wholly outside the image (or unscored) offers only the sentinel: the pixel's own
+    # plane stands in for it (a tie with the current plane, which argmin keeps), so that no plane
+    # of fixed absolute depth is ever a candidate (the result stays equivariant to the world's scale).
+    q = torch.where(torch.isinf(nb_cost), nbr[:, :1, :1], q)
     hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
     den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
     hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
