@@ -72,7 +72,9 @@ def test_loop_flags_and_repopulates_a_deleted_facade(setup):
     # the new Gaussians lie on the deleted facade (they trained two more steps)
     new = params["means"][n0:].detach()
     d = torch.cdist(new[::3], pts[~keep]).min(1).values
-    assert float(d.median()) < 0.15
+    # 0.11-0.16 m over PatchMatch seeds 1-6 of both the batched and the per-candidate search
+    # (a seed's draws, not the search, set where in that range a run falls); metres off otherwise
+    assert float(d.median()) < 0.2
     assert float((d < 0.3).float().mean()) > 0.8
     # every optimizer of the dict follows the new rows; the priors feed the loss
     for name, opt in optimizers.items():

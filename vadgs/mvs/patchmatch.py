@@ -48,13 +48,11 @@ import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from torch import nn
 
-from vadgs.checks import check_finite, check_shape
-from vadgs.geometry import relative_pose, scale_intrinsics
+from vadgs.checks import check_finite, check_shape, checks_enabled
+from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
-    ReferencePatchStats,
     bilateral_weights,
-    ncc_cost_from_stats,
     patch_offsets,
     reference_patch_stats,
     reference_patches,
@@ -89,7 +87,7 @@ class PatchMatchConfig:
         beta: confidence width of the view weights (ACMH: 0.3).
         max_cost: pixels with a final aggregated cost above it are invalid in the result mask.
         seed: seed of the random hypotheses (``None``: torch's global generator).
-        chunk_size: pixel-views scored at once; ``None``: 4096 on CPU (temporaries stay in
+        chunk_size: pixel-views (times hypotheses) scored at once; ``None``: 4096 on CPU (temporaries stay in
             cache, about 3x faster than one pass), everything at once on other devices.
         pyramid_levels: coarse-to-fine levels (ACMM-style; default 2). ``1``: a single scale. ``L > 1``: the
             ``iterations`` run on images downsampled ``2^(L-1)`` times, then at each finer level
@@ -99,6 +97,12 @@ class PatchMatchConfig:
         fine_iterations: sweeps at each level finer than the coarsest (``pyramid_levels > 1``).
         fine_propagation: propagation pattern of the finer levels (``None``: ``propagation``);
             ``"cross"`` halves their cost once the coarse level has spread good planes.
+        joint_scoring: score the random refinements together with the propagated planes, in one
+            cost evaluation per half-sweep, around the likeliest winner known before scoring (the
+            plane of lowest cost where it was last scored) instead of around the propagation's
+            winner: about a quarter fewer kernel launches (992 instead of 1,288 for the defaults,
+            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.6 % instead of
+            32.4 % of the depths within 1 %, mean of 3 seeds).
     """
 
     iterations: int = 3
@@ -122,6 +126,7 @@ class PatchMatchConfig:
     pyramid_levels: int = 2
     fine_iterations: int = 1
     fine_propagation: str | None = None
+    joint_scoring: bool = False
 
     def __post_init__(self) -> None:
         if self.pyramid_levels < 1 or self.fine_iterations < 0:
@@ -206,66 +211,91 @@ def _to_gray(x: torch.Tensor) -> torch.Tensor:
 
 def _random_normals(rays: torch.Tensor, gen: torch.Generator | None) -> torch.Tensor:
     n = torch.randn(rays.shape, generator=gen, device=rays.device, dtype=rays.dtype)
-    n = F.normalize(n, dim=-1)
-    return _face_camera(n, rays)
+    return _face_camera(n / torch.linalg.vector_norm(n, dim=-1, keepdim=True), rays)
 
 
 def _face_camera(n: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
-    sign = torch.where((n * rays).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(n)
-    return n * sign
+    return torch.where((n * rays).sum(-1, keepdim=True) > 0, -n, n)
 
 
 def _random_depth(shape, lo, hi, gen, like) -> torch.Tensor:
     u = torch.rand(shape, generator=gen, device=like.device, dtype=like.dtype)
-    inv = 1 / hi + u * (1 / lo - 1 / hi)
-    return 1 / inv
+    return u.mul_(1 / lo - 1 / hi).add_(1 / hi).reciprocal_()
 
 
-class _Colour(NamedTuple):
-    """Per-checkerboard-colour precomputation (pixels of one colour)."""
+class _Pixels(NamedTuple):
+    """The scored reference pixels of one level, the first colour's then the second's.
+
+    A colour is a slice (:meth:`part`), so that a half-sweep reads and writes contiguous runs.
+    """
 
     idx: torch.Tensor  # (P,) flat pixel indices
-    pix: torch.Tensor  # (P, 3) homogeneous pixel coordinates
-    rays: torch.Tensor  # (B, P, 3) K^-1 p
-    stats: ReferencePatchStats  # (B, P, S)
-    nbr: torch.Tensor  # (P, N) flat neighbour indices (clamped), a pixel's neighbours contiguous
-    nbr_ok: torch.Tensor  # (P, N) neighbour inside the image
-    region_sizes: list[int]
+    rays: torch.Tensor  # (B, P, 3) K^-1 p~
+    cols: torch.Tensor  # (B, 3, 3, P) [m, j]: m-th entry of K^-1 e_x, K^-1 e_y, K^-1 p~ (see _window_maps)
+    rows: torch.Tensor  # (B, V, 3, P, 3) A e_x, A e_y, A p~: the hypothesis-free part of the maps
+    ref: torch.Tensor  # (B, 2, S, P) bilateral weights (zero where the reference window is flat or
+    #   outside the region: such a pixel scores the worst cost) and w (r - mean) / std
+
+    def part(self, sl: slice) -> _Pixels:
+        """The pixels of ``sl`` (a view of every field)."""
+        return _Pixels(
+            self.idx[sl], self.rays[:, sl], self.cols[..., sl], self.rows[:, :, :, sl], self.ref[..., sl]
+        )
 
 
 class _Sources(NamedTuple):
-    gray: torch.Tensor  # (B*V, 1, Hs, Ws)
+    gray: torch.Tensor  # (B*V, 1, Hs, Ws), zero (flat: the worst cost) for a degenerate source
     masks: torch.Tensor | None  # (B*V, 1, Hs, Ws) float or None
-    A: torch.Tensor  # (B, V, 3, 3) N K_s R K_r^-1
     b: torch.Tensor  # (B, V, 3) N K_s t
-    Kinv: torch.Tensor  # (B, 3, 3)
-    usable: torch.Tensor  # (B, V) bool: non-degenerate baseline
-    axis: torch.Tensor  # (n,) window offsets along x and along y (the window is an n x n grid)
+    offsets: torch.Tensor  # (B*V, S, 3) window offsets (o_x, o_y, 1) (expanded)
+    one: torch.Tensor  # () 1, for the fused 1 - ncc
+    zero: torch.Tensor  # () 0
 
 
-def _pixel_homographies(
-    src: _Sources, col: _Colour, depth: torch.Tensor, normal: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel plane homographies in grid_sample coordinates, ``(B, V, 3, P, 3)``, and validity ``(B, P)``.
+def _window_maps(src: _Sources, px: _Pixels, hyp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Plane homographies of ``K`` hypotheses per pixel in grid_sample coordinates, and their validity.
 
+    ``hyp`` is ``(B, K, P, 4)``: depth and normal. Returns ``C`` ``(B, V, 3, K, P, 3)`` with
     ``C[:, :, 0] = H e_x``, ``C[:, :, 1] = H e_y`` and ``C[:, :, 2] = H p~`` (rows as vectors), so
     the window sample at offset ``o`` maps to ``(o_x, o_y, 1) @ C`` (homogeneous coordinates,
-    normalised to [-1, 1] for :func:`torch.nn.functional.grid_sample`). Algebraically
-    ``N K_s (R - t n^T / d) K_r^-1`` of :func:`vadgs.geometry.plane_homography`, with
-    ``H p~ = N K_s (R K_r^-1 p~ + t / z)`` because ``n^T K_r^-1 p~ / d = -1 / z``.
+    normalised to [-1, 1] for :func:`torch.nn.functional.grid_sample`), and ``nr`` ``(B, K, P)``,
+    ``n^T K^-1 p~`` (the plane is seen edge-on or from behind where ``nr >= -1e-6``).
+    ``H = N K_s (R - t n^T / d) K_r^-1`` of :func:`vadgs.geometry.plane_homography` is
+    ``A - b m^T`` with ``m = K_r^-T n / d`` and ``d = -z nr``, so ``C = rows + b u^T`` with
+    ``u = (-m_x, -m_y, 1 / z) = (n^T K^-1 e_x, n^T K^-1 e_y, nr) / (z nr)`` (because
+    ``m^T p~ = -1 / z``): a few fused multiply-adds over every view and hypothesis.
     """
-    rays = col.rays
-    dist = -depth * (normal * rays).sum(-1)  # plane_distance, (B, P)
-    ok = dist > 1e-6 * depth
-    dist = torch.where(ok, dist, torch.ones_like(dist))
-    n_k = normal @ src.Kinv  # (B, P, 3): n^T K^-1
-    A, b = src.A, src.b  # (B, V, 3, 3), (B, V, 3)
-    bb = b[:, :, None, :]
-    c0 = torch.einsum("bvij,pj->bvpi", A, col.pix) + bb / depth[:, None, :, None]
-    scale = (n_k[..., :2] / dist[..., None])[:, None]  # (B, 1, P, 2)
-    c1 = A[:, :, None, :, 0] - bb * scale[..., 0:1]
-    c2 = A[:, :, None, :, 1] - bb * scale[..., 1:2]
-    return torch.stack([c1, c2, c0], dim=2), ok
+    z, n = hyp[..., 0], hyp[..., 1:]
+    cols = px.cols[:, :, :, None]  # (B, 3, 3, 1, P)
+    t = n[:, None, ..., 0] * cols[:, 0]
+    t = torch.addcmul(t, n[:, None, ..., 1], cols[:, 1])
+    t = torch.addcmul(t, n[:, None, ..., 2], cols[:, 2])  # (B, 3, K, P): n^T K^-1 (e_x, e_y, p~)
+    nr = t[:, 2]
+    u = t / (z * nr.clamp_max(-1e-6))[:, None]  # finite even where the plane is rejected
+    C = torch.addcmul(px.rows[:, :, :, None], src.b[:, :, None, None, None], u[:, None, ..., None])
+    return C, nr
+
+
+def _map_tables(
+    A: torch.Tensor, Kinv: torch.Tensor, pix: torch.Tensor, rays: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hypothesis-free tables of :func:`_window_maps`, ``cols`` and ``rows``.
+
+    ``A`` ``(B, V, 3, 3)`` is ``N K_s R K_r^-1``, ``pix`` ``(P, 3)`` the homogeneous pixels, ``rays``
+    ``(B, P, 3)`` their ``K_r^-1 p~``. Returns ``cols`` ``(B, 3, 3, P)`` and ``rows``
+    ``(B, V, 3, P, 3)`` (see :class:`_Pixels`).
+    """
+    p = pix.shape[0]
+    cols = torch.cat([Kinv[..., :2, None].expand(-1, -1, -1, p), rays.transpose(1, 2)[:, :, None]], 2)
+    rows = torch.stack(
+        [
+            A[:, :, None, :, 0].expand(-1, -1, p, -1),
+            A[:, :, None, :, 1].expand(-1, -1, p, -1),
+            torch.einsum("bvij,pj->bvpi", A, pix),
+        ],
+        dim=2,
+    )
+    return cols, rows
 
 
 def _chunk_size(cfg_chunk: int | None, device: torch.device, views: int) -> int:
@@ -274,91 +304,149 @@ def _chunk_size(cfg_chunk: int | None, device: torch.device, views: int) -> int:
     return max(1, cfg_chunk // views)
 
 
-def _view_costs(
-    src: _Sources, col: _Colour, depth: torch.Tensor, normal: torch.Tensor, min_variance: float, chunk: int
-) -> torch.Tensor:
-    """Per-view costs ``(B, V, P)`` of the hypotheses ``depth (B, P)``, ``normal (B, P, 3)``.
+def _costs(
+    src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, chunk: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view costs ``(B, V, K, P)`` of ``K`` hypotheses per pixel, ``hyp`` ``(B, K, P, 4)``, and ``nr``.
 
-    Scored ``chunk`` pixels at a time so that the ``(V, S, chunk)`` temporaries stay in cache.
+    Every hypothesis of every pixel in every view is one sample grid of one
+    :func:`torch.nn.functional.grid_sample` call (a handful of kernels whatever ``K``, ``V`` and
+    ``P``), scored ``chunk`` pixel-hypotheses at a time so that the temporaries stay in cache on the
+    CPU (one chunk on other devices). The cost is :func:`vadgs.mvs.ncc_cost_from_stats` (``tests/mvs``
+    checks the two against each other) with every reason for the worst cost folded into one mask.
+    ``nr`` ``(B, K, P)`` is ``n^T K^-1 p~`` of each hypothesis (see :func:`_window_maps`).
     """
-    C, ok = _pixel_homographies(src, col, depth, normal)
-    b, v, _, p, _ = C.shape
-    n = src.axis.shape[0]
-    ax = src.axis.view(1, n, 1)
-    out = []
-    for p0 in range(0, p, chunk):
-        cc = C[:, :, :, p0 : p0 + chunk].reshape(b * v, 3, -1, 3)
-        pc = cc.shape[2]
-        # The window is a grid: sample (ix, iy) maps to o_x[ix] C1 + o_y[iy] C2 + C0, a broadcast
-        # add of a per-column and a per-row term, one contiguous plane per coordinate.
-        planes = []
-        for k in range(3):
-            c1, c2, c0 = (cc[:, j, None, :, k] for j in range(3))  # (BV, 1, pc)
-            row = torch.addcmul(c0, ax, c2)  # (BV, n_y, pc)
-            planes.append(row[:, :, None] + ax[:, None] * c1[:, None])  # (BV, n_y, n_x, pc)
-        inv_z = planes[2].clamp_min_(1e-9).reciprocal_()  # behind the camera: far outside
-        grid = torch.empty(b * v, n, n, pc, 2, device=inv_z.device, dtype=inv_z.dtype)
-        torch.mul(planes[0], inv_z, out=grid[..., 0])
-        torch.mul(planes[1], inv_z, out=grid[..., 1])
-        grid = grid.view(b * v, n * n, pc, 2)
-        samples = F.grid_sample(src.gray, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-        stats = ReferencePatchStats(
-            col.stats.weights[..., p0 : p0 + chunk],
-            col.stats.normalized[..., p0 : p0 + chunk],
-            col.stats.valid[..., p0 : p0 + chunk],
-        )
-        out.append(ncc_cost_from_stats(samples.view(b, v, n * n, pc), stats, min_variance))
-    cost = torch.cat(out, dim=-1) if len(out) > 1 else out[0]
-    # The window centre must land in front of the source camera, inside its image (and mask).
-    c0 = C[:, :, 2]  # (B, V, P, 3)
+    C, nr = _window_maps(src, px, hyp)
+    bsz, v, _, k, p, _ = C.shape
+    s = src.offsets.shape[1]
+    step = max(1, chunk // k)
+    costs, variances = [], []
+    for p0 in range(0, p, step):
+        pc = min(step, p - p0)
+        cc = C[..., p0 : p0 + pc, :].reshape(bsz * v, 3, k * pc * 3)
+        xyz = torch.bmm(src.offsets, cc).view(bsz * v, s, k * pc, 3)  # (o_x, o_y, 1) @ C
+        grid = xyz[..., :2] / xyz[..., 2:].clamp_min(1e-9)  # behind the camera: far outside
+        x = F.grid_sample(src.gray, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        x = x.view(bsz, v, 1, s, k, pc)
+        prod = x * px.ref[:, None, :, :, None, p0 : p0 + pc]  # (B, V, 2, S, K, pc): w x, w x (r - mean) / std
+        mean, cov = prod.sum(3).unbind(2)
+        var = torch.addcmul((prod[:, :, 0] * x[:, :, 0]).sum(2), mean, mean, value=-1)
+        # 1 - ncc, in [0, 2] up to rounding (clamped once, in the result)
+        costs.append(torch.addcmul(src.one, cov, var.clamp_min(min_variance).rsqrt(), value=-1))
+        variances.append(var)
+    cost = torch.cat(costs, dim=-1) if len(costs) > 1 else costs[0]
+    var = torch.cat(variances, dim=-1) if len(variances) > 1 else variances[0]
+    # The worst cost where a window is flat, where the plane is seen edge-on, where the window
+    # centre does not land in front of the source camera inside its image (and mask).
+    c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
-    good = (cz > 1e-9) & (cxy.abs() <= 1).all(-1) & ok[:, None] & src.usable[..., None]
+    outside = c0[..., :2].abs().amax(-1) > cz  # or behind (vector_norm(ord=inf) is 10x slower on CPU)
+    bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
     if src.masks is not None:
+        cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
         m = F.grid_sample(
-            src.masks, cxy.reshape(b * v, p, 1, 2), mode="nearest", padding_mode="zeros", align_corners=True
-        ).reshape(b, v, p)
-        good = good & (m > 0.5)
-    return torch.where(good, cost, torch.full_like(cost, MAX_COST))
+            src.masks,
+            cxy.reshape(bsz * v, k * p, 1, 2),
+            mode="nearest",
+            padding_mode="zeros",
+            align_corners=True,
+        )
+        bad = bad | (m.view(bsz, v, k, p) < 0.5)
+    return cost.masked_fill_(bad, MAX_COST), nr
 
 
-def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig) -> torch.Tensor:
-    """ACMH view weights ``(B, V, P)`` from the costs ``(N, B, V, P)`` of N hypotheses."""
+def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor) -> torch.Tensor:
+    """ACMH view weights ``(B, V, P)`` from the costs ``(B, V, N, P)`` of N hypotheses."""
     good = costs < cfg.good_threshold
-    bad = costs > cfg.bad_threshold
-    n_good = good.sum(0)
-    selected = (n_good >= 2) & (bad.sum(0) <= 3)
-    conf = torch.exp(-(costs**2) / (2 * cfg.beta**2)) * good
-    return conf.sum(0) / n_good.clamp_min(1) * selected
+    n_good = good.sum(2)
+    dropped = (n_good < 2) | ((costs > cfg.bad_threshold).sum(2) > 3)
+    conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
+    return (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
 
 
 def _aggregate(costs: torch.Tensor, weights: torch.Tensor | None, cfg: PatchMatchConfig) -> torch.Tensor:
-    """Aggregated costs ``(N, B, P)`` of per-view costs ``(N, B, V, P)``."""
-    v = costs.shape[-2]
+    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``."""
     if cfg.view_selection == "mean":
-        return costs.mean(-2)
-    k = min(cfg.top_k, v)
-    topk = costs.topk(k, dim=-2, largest=False).values.mean(-2) if k < v else costs.mean(-2)
+        return costs.mean(1)
+    topk = costs.topk(min(cfg.top_k, costs.shape[1]), dim=1, largest=False).values.mean(1)
     if cfg.view_selection == "topk" or weights is None:
         return topk
-    wsum = weights.sum(-2)  # (B, P)
-    weighted = (costs * weights).sum(-2) / wsum.clamp_min(1e-12)
+    wsum = weights.sum(1, keepdim=True)  # (B, 1, P)
+    weighted = (costs * weights[:, :, None]).sum(1) / wsum
     return torch.where(wsum > 0, weighted, topk)
 
 
-def _propagate_depth(z_q, n, rays_q, rays_p, lo, hi):
-    """Depth at ``p`` of the plane through neighbour ``q`` (re-intersected with p's ray)."""
-    num = (n * rays_q).sum(-1)
-    den = (n * rays_p).sum(-1)
-    z = z_q * num / torch.where(den < -1e-6, den, torch.full_like(den, -1.0))
-    z = torch.where((den < -1e-6) & torch.isfinite(z), z, z_q)
-    return z.clamp(lo, hi)
+def _neighbour_table(
+    xs: torch.Tensor, ys: torch.Tensor, h: int, w: int, lut: torch.Tensor, kind: str
+) -> torch.Tensor:
+    """``(P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
+
+    Regions are padded to the longest; padding, neighbours outside the image and unscored
+    neighbours point to the sentinel ``lut[h * w]`` (whose cost is infinite), a region with no
+    other neighbour to the pixel itself. A few broadcasts, once per level.
+    """
+    regions = [[(0, 0)], *propagation_regions(kind)]  # the pixel itself, then its R regions
+    longest = max(len(r) for r in regions)
+    far = 2 * (h + w)  # a padding offset that always lands outside the image
+    off = torch.tensor(
+        [[list(o) for o in r] + [[far, far]] * (longest - len(r)) for r in regions], device=xs.device
+    )  # (R, L, 2)
+    qx = xs[:, None, None] + off[..., 0]
+    qy = ys[:, None, None] + off[..., 1]
+    outside = (qx < 0) | (qx >= w) | (qy < 0) | (qy >= h)
+    table = lut[(qy * w + qx).masked_fill_(outside, h * w)]
+    # A region wholly outside the image (or unscored) would offer only the sentinel, a plane of
+    # fixed absolute depth: it offers the pixel's own plane instead (a tie with the current plane,
+    # which argmin keeps), so that the search is equivariant to the scale of the world.
+    empty = (table == lut[h * w]).all(-1, keepdim=True)
+    return torch.where(empty, table[:, :1, :1], table)
 
 
-def _perturb_normals(n, rays, scale, gen):
-    noise = (torch.rand(n.shape, generator=gen, device=n.device, dtype=n.dtype) * 2 - 1) * scale
-    m = F.normalize(n + noise, dim=-1)
-    return torch.where(((m * rays).sum(-1, keepdim=True) < -1e-3), m, n)
+def _propagate(
+    hyp: torch.Tensor, agg: torch.Tensor, nbr: torch.Tensor, rays: torch.Tensor, lo: float, hi: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(B, 1 + R, P, 4)`` each pixel's plane, then the best-cost neighbour's plane of each region.
+
+    The planes are re-intersected with the pixels' rays (a pixel's own: up to rounding, its depth).
+    ``hyp`` ``(B, N + 1, 5+)`` holds depth, normal and ``n^T K^-1 p~`` of every scored pixel and
+    the sentinel, ``agg`` ``(B, N + 1)`` their costs. Also returns the costs ``(B, 1 + R, P)``
+    where they were last scored.
+    """
+    bsz = hyp.shape[0]
+    p, r, _ = nbr.shape
+    nb_cost, best = agg[:, nbr].min(-1, keepdim=True)  # (B, P, R, 1)
+    q = torch.gather(nbr.expand(bsz, -1, -1, -1), 3, best)
+    hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
+    den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
+    hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
+    # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den
+    z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0]).clamp_(lo, hi)
+    return torch.cat([z[..., None], hq[..., 1:4]], -1), nb_cost[..., 0].transpose(1, 2)
+
+
+def _refinements(
+    cur: torch.Tensor, rays: torch.Tensor, noise: torch.Tensor, kinds: list[tuple[str, str]], lo: float,
+    hi: float, gen: torch.Generator | None,
+) -> torch.Tensor:  # fmt: skip
+    """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
+
+    Two perturbed depths (relative: ``z exp(noise[..., i])``) and two perturbed normals (``n``
+    plus ``noise[..., 2 + 3 i : 5 + 3 i]``, normalised, kept only when they face the camera), the
+    ``noise`` ``(B, P, 8)`` uniform, combined as ``kinds`` says: ``"p"`` perturbed (the
+    ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random.
+    """
+    z, n = cur[..., 0], cur[..., 1:]
+    pd = (z[..., None] * noise[..., :2].exp()).clamp_(lo, hi)  # (B, P, 2)
+    m = n[:, :, None] + noise[..., 2:].unflatten(-1, (2, 3))  # (B, P, 2, 3), |m| >= 1/2
+    m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
+    facing = torch.bmm(m.view(-1, 2, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1) < -1e-3
+    pn = torch.where(facing, m, n[:, :, None])
+    rd, rn = z, n  # random hypotheses, drawn only when a kind asks for them
+    if any("r" in kind for kind in kinds):
+        rd, rn = _random_depth(z.shape, lo, hi, gen, z), _random_normals(rays, gen)
+    depths = [{"p": pd[..., i % 2], "c": z, "r": rd}[kd] for i, (kd, _) in enumerate(kinds)]
+    normals = [{"p": pn[:, :, i % 2], "c": n, "r": rn}[kn] for i, (_, kn) in enumerate(kinds)]
+    return torch.cat([torch.stack(depths, 1)[..., None], torch.stack(normals, 1)], -1)
 
 
 def _apply_init(depth, normal, init_depth, init_normal, rays, lo, hi):
@@ -391,9 +479,6 @@ def _check_inputs(
     check_shape(src_K, "src_K", ("B", "V", 3, 3), dims)
     check_shape(world_to_cam, "world_to_cam", ("B", 4, 4), dims)
     check_shape(src_world_to_cam, "src_world_to_cam", ("B", "V", 4, 4), dims)
-    for name, t in (("K", K), ("src_K", src_K), ("world_to_cam", world_to_cam)):
-        check_finite(t, name)
-    check_finite(src_world_to_cam, "src_world_to_cam")
     init_depth, init_normal = init
     if init_depth is not None:
         check_shape(init_depth, "init_depth", ("B", 1, "H", "W"), dims)
@@ -428,8 +513,16 @@ def _check_inputs(
     return dims, lo, hi
 
 
-def _check_images(image: torch.Tensor, src_images: torch.Tensor, cfg: PatchMatchConfig) -> None:
-    """Float images at least ``window_radius + 1`` pixels per side, finite (a value check)."""
+def _check_images(
+    image: torch.Tensor,
+    src_images: torch.Tensor,
+    K,
+    src_K,
+    world_to_cam,
+    src_world_to_cam,
+    cfg: PatchMatchConfig,
+) -> None:
+    """Float images at least ``window_radius + 1`` pixels per side; images, cameras finite (a value check)."""
     for name, t in (("image", image), ("src_images", src_images)):
         if not t.is_floating_point():
             raise ValueError(
@@ -443,8 +536,28 @@ def _check_images(image: torch.Tensor, src_images: torch.Tensor, cfg: PatchMatch
                 f"{name}: expected (H, W) of at least ({need}, {need}) pixels (window_radius + 1, so "
                 f"that every matching window holds image pixels), got {size}"
             )
-    check_finite(image, "image")
-    check_finite(src_images, "src_images")
+    named = [
+        ("K", K),
+        ("src_K", src_K),
+        ("world_to_cam", world_to_cam),
+        ("src_world_to_cam", src_world_to_cam),
+    ]
+    _check_finite_together([*named, ("image", image), ("src_images", src_images)])
+
+
+def _check_finite_together(named: list[tuple[str, torch.Tensor]]) -> None:
+    """:func:`vadgs.checks.check_finite` of every tensor with one host read when all pass.
+
+    The sums of the tensors are finite when the tensors are (unless a sum overflows; then the
+    tensors are checked one by one, which names the first non-finite one or passes).
+    """
+    if not checks_enabled():
+        return
+    sums = torch.stack([t.sum() for _, t in named])
+    if bool((sums - sums == 0).all()):  # x - x is 0 for finite x, NaN for NaN and infinities
+        return
+    for name, t in named:
+        check_finite(t, name)
 
 
 @torch.no_grad()
@@ -515,11 +628,33 @@ def patchmatch(
         image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range,
         (init_depth, init_normal), mask, src_masks,
     )  # fmt: skip
-    _check_images(image, src_images, cfg)
-    return _pyramid(
-        image, src_images, K, src_K, world_to_cam, src_world_to_cam, (lo, hi), cfg,
-        init_depth, init_normal, mask, src_masks, cfg.pyramid_levels,
+    _check_images(image, src_images, K, src_K, world_to_cam, src_world_to_cam, cfg)
+    bsz, nv = src_images.shape[:2]
+    ref_to_world = invert_rigid(world_to_cam)
+    src_from_ref = torch.bmm(src_world_to_cam.reshape(bsz, nv * 4, 4), ref_to_world).view(bsz, nv, 4, 4)
+    usable = src_from_ref[..., :3, 3].norm(dim=-1) > 1e-6 * lo  # (B, V): non-degenerate baseline
+    if not bool(usable.any(-1).all()):
+        bad = [int(i) for i in torch.nonzero(~usable.any(-1)).flatten()]
+        raise ValueError(
+            f"src_world_to_cam: every source of reference(s) {bad} has the reference's camera centre "
+            "(zero baseline): depth is unobservable"
+        )
+    offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=image.device, dtype=image.dtype)
+    level = _pyramid(
+        image, src_images, K, src_K, (src_from_ref, usable, offsets), (lo, hi), cfg, init_depth, init_normal,
+        mask, src_masks, cfg.pyramid_levels,
     )  # fmt: skip
+    return _result(level, cfg, bsz, nv, *image.shape[-2:])
+
+
+class _Level(NamedTuple):
+    """What one pyramid level hands on: full-image maps, flat (``HW`` last but for the normals)."""
+
+    depth: torch.Tensor  # (B, HW) raw depth
+    normal: torch.Tensor  # (B, HW, 3) raw normals
+    agg: torch.Tensor | None  # (B, HW) aggregated cost (finest level only)
+    view_cost: torch.Tensor | None  # (B, V, HW) (finest level only)
+    textured: torch.Tensor | None  # (B, HW) scored, in the region, textured (finest level only)
 
 
 def _downsample(x: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tensor:
@@ -532,26 +667,33 @@ def _downsample(x: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tens
     return out.reshape(*lead, *out.shape[-3:])
 
 
+def _scaled(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """:func:`vadgs.geometry.scale_intrinsics` as one product (``K``'s last row is ``(0, 0, 1)``)."""
+    m = torch.tensor(
+        [[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], dtype=K.dtype, device=K.device
+    )
+    return m @ K
+
+
 def _pyramid(
-    image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg, init_depth,
-    init_normal, mask, src_masks, levels: int, start_iteration: int = 0,
-) -> PatchMatchResult:  # fmt: skip
+    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+    levels: int, final: bool = True,
+) -> _Level:  # fmt: skip
     """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at this one."""
     h, w = image.shape[-2:]
     hs, ws = src_images.shape[-2:]
     if levels <= 1 or cfg.iterations == 0 or min(h, w, hs, ws) < 8:
         return _patchmatch_level(
-            image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg,
-            init_depth, init_normal, mask, src_masks, start_iteration, cfg.iterations,
+            image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+            0, cfg.iterations, None, final,
         )  # fmt: skip
     hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
     coarse = _pyramid(
         _downsample(image, (hc, wc), "area"),
         _downsample(src_images, (hsc, wsc), "area"),
-        scale_intrinsics(K, (wc / w, hc / h)),
-        scale_intrinsics(src_K, (wsc / ws, hsc / hs)),
-        world_to_cam,
-        src_world_to_cam,
+        _scaled(K, wc / w, hc / h),
+        _scaled(src_K, wsc / ws, hsc / hs),
+        shared,
         depth_range,
         cfg,
         None if init_depth is None else _downsample(init_depth, (hc, wc), "nearest"),
@@ -559,212 +701,206 @@ def _pyramid(
         None if mask is None else _downsample(mask, (hc, wc), "nearest"),
         None if src_masks is None else _downsample(src_masks, (hsc, wsc), "nearest"),
         levels - 1,
+        final=False,
     )
-    up_depth = _downsample(coarse.raw_depth, (h, w), "nearest")
-    up_normal = _downsample(coarse.raw_normal, (h, w), "nearest")
+    bsz = image.shape[0]
+    up_depth = _downsample(coarse.depth.view(bsz, 1, hc, wc), (h, w), "nearest")
+    up_normal = _downsample(coarse.normal.transpose(1, 2).reshape(bsz, 3, hc, wc), (h, w), "nearest")
     done = cfg.iterations + (levels - 2) * cfg.fine_iterations
     fine = cfg if cfg.fine_propagation is None else replace(cfg, propagation=cfg.fine_propagation)
     return _patchmatch_level(
-        image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, fine,
-        up_depth, up_normal, mask, src_masks, done, cfg.fine_iterations,
-        None if init_depth is None and init_normal is None else (init_depth, init_normal),
+        image, src_images, K, src_K, shared, depth_range, fine, up_depth, up_normal, mask, src_masks, done,
+        cfg.fine_iterations,
+        (init_depth, init_normal), final,
     )  # fmt: skip
 
 
 def _patchmatch_level(
-    image, src_images, K, src_K, world_to_cam, src_world_to_cam, depth_range, cfg, init_depth,
-    init_normal, mask, src_masks, start_iteration: int, iterations: int,
-    alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None = None,
-) -> PatchMatchResult:  # fmt: skip
-    """PatchMatch at one resolution (inputs already checked)."""
+    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+    start_iteration: int, iterations: int, alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None,
+    final: bool,
+) -> _Level:  # fmt: skip
+    """PatchMatch at one resolution (inputs already checked).
+
+    Every half-sweep is a fixed handful of batched tensor operations whatever the batch, the views
+    and the image size (``tests/mvs/test_patchmatch_launches.py`` counts them), and reads no tensor
+    value back to the host: the neighbours' planes of all regions come out of one gather (with the
+    pixel's own, whose costs are kept) and are scored in one :func:`_costs` call, the winner is picked
+    by one ``argmin``, its random refinements are scored in a second call (or, with
+    ``joint_scoring``, with the propagated planes in the first, around the likeliest winner), and
+    the best of all is kept by one ``gather``. The initial hypotheses are scored first, once.
+
+    ``alt_init`` is given at a finer pyramid level: ``init_depth`` / ``init_normal`` are then the
+    upsampled coarse maps (complete), and ``alt_init`` the caller's full-resolution init maps (or
+    ``None``), scored against them.
+    """
+    src_from_ref, usable, offsets = shared
     lo, hi = depth_range
-    dims = {"B": image.shape[0], "V": src_images.shape[1], "H": image.shape[-2], "W": image.shape[-1]}
-    dims["Hs"], dims["Ws"] = src_images.shape[-2:]
-    bsz, nv, h, w = dims["B"], dims["V"], dims["H"], dims["W"]
-    hs, ws = dims["Hs"], dims["Ws"]
+    bsz, nv = src_images.shape[:2]
+    h, w = image.shape[-2:]
+    hs, ws = src_images.shape[-2:]
     dev, dt = image.device, image.dtype
     gen = None
     if cfg.seed is not None:
         gen = torch.Generator(device=dev)
         gen.manual_seed(cfg.seed)
 
-    # Sources: grey images, normalised homography parts, degenerate views.
-    src_from_ref = relative_pose(world_to_cam[:, None], src_world_to_cam)  # (B, V, 4, 4)
-    baseline = src_from_ref[..., :3, 3].norm(dim=-1)
-    usable = baseline > 1e-6 * lo
-    if not bool(usable.any(-1).all()):
-        bad = [int(i) for i in torch.nonzero(~usable.any(-1)).flatten()]
-        raise ValueError(
-            f"src_world_to_cam: every source of reference(s) {bad} has the reference's camera centre "
-            "(zero baseline): depth is unobservable"
-        )
+    # Sources: grey images (flat for a degenerate source: the worst cost), homography parts.
     norm = torch.tensor(
         [[2 / max(ws - 1, 1), 0, -1], [0, 2 / max(hs - 1, 1), -1], [0, 0, 1]], device=dev, dtype=dt
     )
     Kinv = torch.linalg.inv(K)
-    A = norm @ src_K @ src_from_ref[..., :3, :3] @ Kinv[:, None]
-    bvec = (norm @ src_K @ src_from_ref[..., :3, 3:]).squeeze(-1)
-    offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=dev, dtype=dt)
-    n_axis = math.isqrt(offsets.shape[0])
-    axis = offsets[:n_axis, 0]  # row-major grid: the first row holds the x offsets (= the y offsets)
-    src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws))
+    NK = norm @ src_K  # (B, V, 3, 3)
+    A = torch.bmm((NK @ src_from_ref[..., :3, :3]).view(bsz, nv * 3, 3), Kinv).view(bsz, nv, 3, 3)
+    bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
+    src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
-    src = _Sources(src_gray, smasks, A, bvec, Kinv, usable, axis)
+    off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
+    src = _Sources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
     chunk = _chunk_size(cfg.chunk_size, dev, nv)
 
-    # Reference: windows, bilateral weights (zero outside the region), statistics per colour.
-    gray = _to_gray(image)
-    patches = reference_patches(gray, offsets)  # (B, S, HW)
+    # Reference: windows, bilateral weights (zero outside the region).
+    patches = reference_patches(_to_gray(image), offsets)  # (B, S, HW)
     sigma_s = cfg.sigma_spatial if cfg.sigma_spatial is not None else float(cfg.window_radius)
     weights = bilateral_weights(patches, offsets, sigma_s, cfg.sigma_color, dim=1)
-    region = torch.ones(bsz, 1, h, w, dtype=torch.bool, device=dev) if mask is None else mask.bool()
     if mask is not None:
-        inside = reference_patches(region.to(dt), offsets) > 0.5
+        region = mask.bool().reshape(bsz, h * w)
+        inside = reference_patches(mask.bool().to(dt), offsets) > 0.5
         weights = weights * inside
         weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
-    region_flat = region.reshape(bsz, h * w)
+        active = region.any(0)
+    else:
+        region = None
+        active = torch.ones(h * w, dtype=torch.bool, device=dev)
 
-    ys, xs = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
-    xs, ys = xs.reshape(-1), ys.reshape(-1)
+    # The scored pixels: those of the region (of any batch element), the first checkerboard colour
+    # then the second. With a small object in a large crop the cost follows the object, not the
+    # crop; pixels outside are never propagated from (as when they were scored with the worst cost).
+    flat = torch.arange(h * w, device=dev)
+    xs, ys = flat % w, flat // w
+    even = (xs + ys) % 2 == 0
+    by_colour = [
+        torch.nonzero(active & even).flatten(),
+        torch.nonzero(active & ~even).flatten(),
+    ]  # host reads
+    idx = torch.cat(by_colour)
+    n_act, first = idx.shape[0], by_colour[0].shape[0]
+    lut = torch.full((h * w + 1,), n_act, dtype=torch.long, device=dev)
+    lut[idx] = torch.arange(n_act, device=dev)
     pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
     rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
-    regions = propagation_regions(cfg.propagation)
-    flat_off = [o for r in regions for o in r]
-    # Only the pixels of the region (of any batch element) are scored: with a small object in a
-    # large crop, the cost follows the object, not the crop. Pixels outside keep the worst cost, so
-    # they never win a propagation (as when they were scored: the region zeroes their statistics).
-    active = region_flat.any(0)
-    colours = []
-    for c in (0, 1):
-        sel = ((xs + ys) % 2 == c) & active
-        idx = torch.nonzero(sel).flatten()
-        px, py = xs[idx], ys[idx]
-        nbr, nbr_ok = [], []
-        for dx, dy in flat_off:
-            qx, qy = px + dx, py + dy
-            ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
-            nbr.append(qy.clamp(0, h - 1) * w + qx.clamp(0, w - 1))
-            nbr_ok.append(ok)
-        st = reference_patch_stats(patches[:, :, idx], weights[:, :, idx], cfg.min_variance)
-        st = ReferencePatchStats(st.weights, st.normalized, st.valid & region_flat[:, idx])
-        colours.append(
-            _Colour(
-                idx,
-                pix_all[idx],
-                rays_all[:, idx],
-                st,
-                torch.stack(nbr, dim=1),
-                torch.stack(nbr_ok, dim=1),
-                [len(r) for r in regions],
-            )
-        )
+    pix, rays = pix_all[idx], rays_all[:, idx]
+    st = reference_patch_stats(patches[:, :, idx], weights[:, :, idx], cfg.min_variance)
+    textured = st.valid if region is None else st.valid & region[:, idx]
+    cols, rows = _map_tables(A, Kinv, pix, rays)
+    ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
+    pixels = _Pixels(idx, rays, cols, rows, ref)
+    nbr = _neighbour_table(xs[idx], ys[idx], h, w, lut, cfg.propagation)
     del patches, weights
-    colours = [col for col in colours if col.idx.numel()]  # an empty region scores nothing
+    colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
+    parts = [pixels.part(sl)._replace(rays=rays[:, sl].clone()) for sl in colours]  # contiguous
 
     # Initial hypotheses: random, overridden where an init is given; with an alternative
     # (coarse-to-fine: the caller's full-resolution init), the better-scoring of the two.
-    depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
-    normal = _random_normals(rays_all, gen)
-    depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
-    view_cost = torch.full((bsz, nv, h * w), MAX_COST, device=dev, dtype=dt)
-    agg = torch.full((bsz, h * w), MAX_COST, device=dev, dtype=dt)
-    for col in colours:
-        vc = _view_costs(src, col, depth[:, col.idx], normal[:, col.idx], cfg.min_variance, chunk)
-        view_cost[:, :, col.idx] = vc
-        agg[:, col.idx] = _aggregate(vc[None], None, cfg)[0]
-    if alt_init is not None:
-        alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
-        for col in colours:
-            vc = _view_costs(src, col, alt_d[:, col.idx], alt_n[:, col.idx], cfg.min_variance, chunk)
-            a = _aggregate(vc[None], None, cfg)[0]
-            better = a < agg[:, col.idx]
-            idx = col.idx
-            depth[:, idx] = torch.where(better, alt_d[:, idx], depth[:, idx])
-            normal[:, idx] = torch.where(better[..., None], alt_n[:, idx], normal[:, idx])
-            view_cost[:, :, idx] = torch.where(better[:, None], vc, view_cost[:, :, idx])
-            agg[:, idx] = torch.where(better, a, agg[:, idx])
+    if alt_init is not None:  # a finer pyramid level: the upsampled coarse maps are complete
+        depth, normal = init_depth.reshape(bsz, h * w), init_normal.reshape(bsz, 3, h * w).transpose(1, 2)
+    else:
+        depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
+        normal = _random_normals(rays_all, gen)
+        depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
+    if n_act:
+        # State of the scored pixels and the sentinel (infinite cost, never chosen when another
+        # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs.
+        nr0 = (normal * rays_all).sum(-1, keepdim=True)
+        hyp = torch.cat([depth[..., None], normal, nr0], -1)[:, idx]
+        init = [hyp[..., :4]]
+        if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
+            alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
+            init.append(torch.cat([alt_d[..., None], alt_n], -1)[:, idx])
+        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, float("inf")], device=dev, dtype=dt)
+        state = torch.cat(
+            [
+                F.pad(hyp, (0, 1 + nv), value=MAX_COST),
+                F.pad(sentinel, (0, nv), value=MAX_COST).expand(bsz, 1, -1),
+            ],
+            1,
+        )
+        kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
+        its = range(start_iteration, start_iteration + iterations)
+        half = torch.tensor(
+            [[cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its],
+            device=dev,
+            dtype=dt,
+        )  # (iterations, 8): noise = (2u - 1) * half
+        neg_half, twice = -half, 2 * half
+        n_prop = nbr.shape[1]  # the current hypothesis and the propagated ones
 
-    refine_kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
-    for it in range(start_iteration, start_iteration + iterations):
-        dscale = cfg.depth_perturbation * 0.5**it
-        nscale = cfg.normal_perturbation * 0.5**it
-        for col in colours:
-            idx, rays = col.idx, col.rays
-            cur_d, cur_n = depth[:, idx], normal[:, idx]
-            # Propagation: best-cost neighbour of each region, its plane re-intersected.
-            nbr_t = col.nbr  # (P, N): the regions' neighbours of a pixel are contiguous
-            nb_cost = agg[:, nbr_t]  # (B, P, N)
-            nb_cost = torch.where(col.nbr_ok, nb_cost, torch.full_like(nb_cost, float("inf")))
-            cands_d, cands_n = [], []
-            start = 0
-            for size in col.region_sizes:
-                best = nb_cost[..., start : start + size].argmin(-1)  # (B, P)
-                q = torch.gather(nbr_t[:, start : start + size].expand(bsz, -1, -1), 2, best[..., None])[
-                    ..., 0
-                ]
-                start += size
-                zq = torch.gather(depth, 1, q)
-                nq = torch.gather(normal, 1, q[..., None].expand(-1, -1, 3))
-                rq = torch.gather(rays_all, 1, q[..., None].expand(-1, -1, 3))
-                cands_d.append(_propagate_depth(zq, nq, rq, rays, lo, hi))
-                cands_n.append(nq)
-            cand_costs = torch.stack(
-                [_view_costs(src, col, d, n, cfg.min_variance, chunk) for d, n in zip(cands_d, cands_n)]
-            )  # (N, B, V, P)
-            all_costs = torch.cat([view_cost[None, :, :, idx], cand_costs])
-            vw = _view_weights(all_costs, cfg) if cfg.view_selection == "acmh" else None
-            all_agg = _aggregate(all_costs, vw, cfg)  # (N+1, B, P)
-            all_d = torch.stack([cur_d, *cands_d])
-            all_n = torch.stack([cur_n, *cands_n])
-            best_agg, best = all_agg.min(0)
-            cur_d = torch.gather(all_d, 0, best[None])[0]
-            cur_n = torch.gather(all_n, 0, best[None, ..., None].expand(1, -1, -1, 3))[0]
-            cur_vc = torch.gather(all_costs, 0, best[None, :, None].expand(1, -1, nv, -1))[0]
-            # Random refinement around the winner, scored with the same view weights.
-            if refine_kinds:
-                rd = [
-                    cur_d
-                    * torch.exp(
-                        (torch.rand(cur_d.shape, generator=gen, device=dev, dtype=dt) * 2 - 1) * dscale
-                    )
-                    for _ in range(2)
-                ]
-                rn = [_perturb_normals(cur_n, rays, nscale, gen) for _ in range(2)]
-                rand_d = _random_depth(cur_d.shape, lo, hi, gen, cur_d)
-                rand_n = _random_normals(rays, gen)
-                ref_d, ref_n = [], []
-                for i, (kd, kn) in enumerate(refine_kinds):
-                    ref_d.append({"p": rd[i % 2].clamp(lo, hi), "c": cur_d, "r": rand_d}[kd])
-                    ref_n.append({"p": rn[i % 2], "c": cur_n, "r": rand_n}[kn])
-                ref_costs = torch.stack(
-                    [_view_costs(src, col, d, n, cfg.min_variance, chunk) for d, n in zip(ref_d, ref_n)]
+        def keep_best(sl: slice, cands, costs, nr, vw) -> None:
+            """Write the best of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
+            agg_all = _aggregate(costs, vw, cfg)  # (B, N, P)
+            best = agg_all.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+            record = torch.cat([cands, nr[..., None], agg_all[..., None], costs.permute(0, 2, 3, 1)], -1)
+            state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
+
+        first_hyp = torch.stack(init, 1)  # (B, K, P, 4)
+        costs, nr = _costs(src, pixels, first_hyp, cfg.min_variance, chunk)
+        keep_best(slice(0, n_act), first_hyp, costs, nr, None)
+        for i in range(iterations):
+            if kinds:  # the random numbers of the refinements of both colours
+                u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
+                noise = torch.addcmul(neg_half[i], u, twice[i])
+            for sl, px in zip(colours, parts):
+                cur = state[:, sl]
+                cands, nb_cost = _propagate(state, state[..., 5], nbr[sl], px.rays, lo, hi)
+                if kinds and cfg.joint_scoring:
+                    # Refine the likeliest winner: the plane of lowest cost where it was scored
+                    # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
+                    likely = nb_cost.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+                    base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
+                    refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
+                    cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
+                c, nr = _costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
+                costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
+                nr = torch.cat([cur[:, None, :, 4], nr], 1)
+                vw = (
+                    _view_weights(costs[:, :, :n_prop], cfg, src.zero)
+                    if cfg.view_selection == "acmh"
+                    else None
                 )
-                ref_agg = _aggregate(ref_costs, vw, cfg)
-                r_best_agg, r_best = ref_agg.min(0)
-                better = r_best_agg < best_agg
-                new_d = torch.gather(torch.stack(ref_d), 0, r_best[None])[0]
-                new_n = torch.gather(torch.stack(ref_n), 0, r_best[None, ..., None].expand(1, -1, -1, 3))[0]
-                new_vc = torch.gather(ref_costs, 0, r_best[None, :, None].expand(1, -1, nv, -1))[0]
-                cur_d = torch.where(better, new_d, cur_d)
-                cur_n = torch.where(better[..., None], new_n, cur_n)
-                cur_vc = torch.where(better[:, None], new_vc, cur_vc)
-                best_agg = torch.where(better, r_best_agg, best_agg)
-            depth[:, idx] = cur_d
-            normal[:, idx] = cur_n
-            view_cost[:, :, idx] = cur_vc
-            agg[:, idx] = best_agg
+                if kinds and not cfg.joint_scoring:
+                    # Refine the propagation's winner (ACMH), scored with the same view weights.
+                    win = _aggregate(costs, vw, cfg).argmin(1)[:, None, :, None]
+                    base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
+                    refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
+                    c, r_nr = _costs(src, px, refined, cfg.min_variance, chunk)
+                    cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
+                    costs, nr = torch.cat([costs, c], 2), torch.cat([nr, r_nr], 1)
+                keep_best(sl, cands, costs, nr, vw)
+        depth[:, idx] = state[:, :n_act, 0]
+        normal[:, idx] = state[:, :n_act, 1:4]
+    if not final:
+        return _Level(depth, normal, None, None, None)
+    agg_full = torch.full((bsz, h * w), MAX_COST, device=dev, dtype=dt)
+    view_cost = torch.full((bsz, nv, h * w), MAX_COST, device=dev, dtype=dt)
+    valid = torch.zeros(bsz, h * w, dtype=torch.bool, device=dev)
+    if n_act:
+        agg_full[:, idx] = state[:, :n_act, 5]
+        view_cost[:, :, idx] = state[:, :n_act, 6:].transpose(1, 2)
+        valid[:, idx] = textured
+    return _Level(depth, normal, agg_full, view_cost, valid)
 
-    valid = region_flat & (agg <= cfg.max_cost) & torch.isfinite(depth) & (depth > 0)
-    for col in colours:
-        valid[:, col.idx] &= col.stats.valid
-    raw = depth.reshape(bsz, 1, h, w)
+
+def _result(level: _Level, cfg: PatchMatchConfig, bsz: int, nv: int, h: int, w: int) -> PatchMatchResult:
+    assert level.agg is not None and level.view_cost is not None and level.textured is not None
+    valid = level.textured & (level.agg <= cfg.max_cost)  # depths are in [near, far] by construction
+    raw = level.depth.reshape(bsz, 1, h, w)
     valid = valid.reshape(bsz, 1, h, w)
-    normal_map = normal.transpose(1, 2).reshape(bsz, 3, h, w)
+    normal_map = level.normal.transpose(1, 2).reshape(bsz, 3, h, w)
     return PatchMatchResult(
-        depth=torch.where(valid, raw, torch.zeros_like(raw)),
-        normal=torch.where(valid, normal_map, torch.zeros_like(normal_map)),
-        cost=agg.reshape(bsz, 1, h, w),
-        view_costs=view_cost.reshape(bsz, nv, h, w),
+        depth=raw * valid,
+        normal=normal_map * valid,
+        cost=level.agg.reshape(bsz, 1, h, w).clamp(0, MAX_COST),
+        view_costs=level.view_cost.reshape(bsz, nv, h, w).clamp(0, MAX_COST),
         mask=valid,
         raw_depth=raw,
         raw_normal=normal_map,
