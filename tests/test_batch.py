@@ -145,12 +145,14 @@ class TestRunScene:
 class TestSummary:
     def test_markdown_and_files(self, tmp_path):
         rows = (
-            SceneResult("/s/a", "a", "/o/a", "done", 25.123, 24.0, 0.8, 0.05, 1000, 12.0, 1),
+            SceneResult(
+                "/s/a", "a", "/o/a", "done", 25.123, 24.0, 0.8, 0.05, 1000, 12.0, 1, lidar_absrel=0.1
+            ),
             SceneResult("/s/b", "b", "/o/b", "failed", error="ValueError: bad | worse"),
         )
         summary = BatchSummary(str(tmp_path), rows, 3.0)
         md = summary.to_markdown()
-        assert "| a | done | 25.12 | 24.00 | 0.800 | 0.050 | 1000 | 12.0 | 1 |  |" in md
+        assert "| a | done | 25.12 | 24.00 | 0.800 | 0.050 | 0.100 | 1000 | 12.0 | 1 |  |" in md
         assert "bad \\| worse" in md and "2 scenes: 1 done, 1 failed" in md
         path = write_summary(summary)
         d = json.loads(path.read_text())
@@ -243,6 +245,7 @@ class TestRunBatch:
             assert metrics["completed"] and metrics["steps"] == TINY["iterations"]
             assert r.psnr == metrics["test"]["psnr"] and r.num_gaussians == metrics["num_gaussians"]
             assert r.ssim is not None and r.depth_absrel is not None and r.train_s > 0
+            assert r.lidar_absrel is not None and 0 < r.lidar_absrel < 1  # the sample has LiDAR
         on_disk = json.loads((out / "summary.json").read_text())
         assert on_disk["scenes"] == [r.to_dict() for r in summary.results]
         assert (out / "summary.md").read_text() == summary.to_markdown()

@@ -11,7 +11,8 @@ that fails with an error (a bad folder, a corrupt checkpoint, NaNs) is not retri
 into the summary and the other scenes go on.
 
 The summary (``out_dir/summary.json`` and ``out_dir/summary.md``: scene, PSNR, PSNR*, SSIM, depth
-AbsRel, Gaussians, training seconds, retries) is rewritten atomically each time a run ends.
+AbsRel against dense ground truth and against the test frames' LiDAR, Gaussians, training seconds,
+retries) is rewritten atomically each time a run ends.
 
 Run folders are named after the scene folder (``.../segment-123/`` → ``segment-123``); scenes that
 share a folder name get ``<name>-<8 hex digits of the SHA-1 of the scene's absolute path>``, and a
@@ -125,6 +126,8 @@ class SceneResult:
             ``"stopped"`` (``--max-minutes`` reached; re-submit to continue) or ``"pending"``.
         psnr, psnr_star, ssim, depth_absrel: test metrics from ``metrics.json`` (None when the run
             has none: not finished, or a scene without test views / depth).
+        lidar_absrel: depth AbsRel against the test frames' own LiDAR sweeps (``depth["lidar"]``:
+            real logs, which have no dense depth; None without LiDAR).
         num_gaussians: Gaussians at the end.
         train_s: training time in seconds (of the steps kept: the part a killed attempt did after
             its last checkpoint is not counted).
@@ -145,6 +148,7 @@ class SceneResult:
     train_s: float | None = None
     retries: int = 0
     error: str | None = None
+    lidar_absrel: float | None = None  # last: positional construction keeps its meaning
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready fields."""
@@ -193,14 +197,16 @@ class BatchSummary:
             return "" if v is None else format(v, spec)
 
         lines = [
-            "| scene | status | PSNR | PSNR* | SSIM | depth AbsRel | Gaussians | train s | retries | error |",
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---|",
+            "| scene | status | PSNR | PSNR* | SSIM | depth AbsRel | LiDAR AbsRel | Gaussians | train s "
+            "| retries | error |",
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
         ]
         for r in self.results:
             error = (r.error or "").replace("|", "\\|")
             lines.append(
                 f"| {r.name} | {r.status} | {fmt(r.psnr, '.2f')} | {fmt(r.psnr_star, '.2f')} "
-                f"| {fmt(r.ssim, '.3f')} | {fmt(r.depth_absrel, '.3f')} | {fmt(r.num_gaussians)} "
+                f"| {fmt(r.ssim, '.3f')} | {fmt(r.depth_absrel, '.3f')} | {fmt(r.lidar_absrel, '.3f')} "
+                f"| {fmt(r.num_gaussians)} "
                 f"| {fmt(r.train_s, '.1f')} | {r.retries} | {error} |"
             )
         counts = ", ".join(f"{n} {s}" for s, n in self.counts().items())
@@ -293,12 +299,14 @@ def _skipped(base: SceneResult, run: Path, metrics: dict[str, Any]) -> SceneResu
 def _from_metrics(base: SceneResult, metrics: dict[str, Any], **changes: Any) -> SceneResult:
     test = metrics.get("test") or {}
     depth = (test.get("depth") or {}).get("all") or {}
+    lidar = (test.get("depth") or {}).get("lidar") or {}
     return replace(
         base,
         psnr=test.get("psnr"),
         psnr_star=test.get("psnr_star"),
         ssim=test.get("ssim"),
         depth_absrel=depth.get("absrel"),
+        lidar_absrel=lidar.get("absrel"),
         num_gaussians=metrics.get("num_gaussians"),
         train_s=metrics.get("train_s"),
         **changes,
