@@ -87,6 +87,26 @@ def _flagged(rows, instance):
     return rows.flagged[sel], rows.pixels[sel]
 
 
+def _hits_on_car(scene, ref, points, instances):
+    """Per other view of ``ref``'s camera with >= 50 of the object-frame ``points`` in the image
+    (posed by the car's track at that frame): the fraction that lands on the car's mask."""
+    track = scene.tracks[CAR]
+    hits = []
+    for v in scene.train_views:
+        if scene.views[v].camera != scene.views[ref].camera or v == ref:
+            continue
+        o2w = track.object_to_world[scene.frame_position(scene.views[v].frame)]
+        world = points @ o2w[:3, :3].T + o2w[:3, 3]
+        cams = scene.cameras([v])
+        uv, z = project_points(world[None], cams.K, cams.world_to_cam)
+        h, w = cams.image_size
+        u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+        ok = (z[0] > 0) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
+        if int(ok.sum()) >= 50:
+            hits.append(float((instances(v)[vv[ok], u[ok]] == CAR).float().mean()))
+    return hits
+
+
 class TestIncompleteOnSample:
     def test_complete_geometry_is_not_flagged(self, scene, index, gt_points):
         pts, col, _, spc = gt_points
@@ -139,23 +159,8 @@ class TestMovingObject:
         )
         assert rec.reason == "ok" and rec.track == CAR
         assert rec.points.shape[0] > 200
-        track = scene.tracks[CAR]
-        hits = []
         # posed by the track at other frames, the points land on the car in those images
-        for v in scene.train_views:
-            if scene.views[v].camera != scene.views[ref].camera or v == ref:
-                continue
-            fpos = scene.frame_position(scene.views[v].frame)
-            o2w = track.object_to_world[fpos]
-            world = rec.points @ o2w[:3, :3].T + o2w[:3, 3]
-            cams = scene.cameras([v])
-            uv, z = project_points(world[None], cams.K, cams.world_to_cam)
-            h, w = cams.image_size
-            u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
-            ok = (z[0] > 0) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
-            if int(ok.sum()) < 50:
-                continue
-            hits.append(float((index.instances(v)[vv[ok], u[ok]] == CAR).float().mean()))
+        hits = _hits_on_car(scene, ref, rec.points, index.instances)
         assert len(hits) >= 2
         assert min(hits) > 0.7
 
@@ -542,20 +547,5 @@ class TestSeenSupportsOfATrack:
         full = reconstruct_instance(index, ref, CAR, ReconstructConfig(), torch.Generator().manual_seed(0))
         assert full.reason == "ok" and on.points.shape[0] >= 0.5 * full.points.shape[0]
         # its points, in the car's frame, land on the car in the other views of the reference's camera
-        track = scene.tracks[CAR]
-        hits = []
-        for v in scene.train_views:
-            if scene.views[v].camera != scene.views[ref].camera or v == ref:
-                continue
-            fpos = scene.frame_position(scene.views[v].frame)
-            o2w = track.object_to_world[fpos]
-            world = on.points @ o2w[:3, :3].T + o2w[:3, 3]
-            cams = scene.cameras([v])
-            uv, z = project_points(world[None], cams.K, cams.world_to_cam)
-            h, w = cams.image_size
-            u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
-            ok = (z[0] > 0) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
-            if int(ok.sum()) < 50:
-                continue
-            hits.append(float((scene.load_instances([v])[0][vv[ok], u[ok]] == CAR).float().mean()))
+        hits = _hits_on_car(scene, ref, on.points, lambda v: scene.load_instances([v])[0])
         assert len(hits) >= 2 and min(hits) > 0.7, hits
