@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -93,6 +94,7 @@ SIZES: dict[str, dict[str, Any]] = {
         gs_gaussians=4000, gs_size=(192, 256), gs_reps=20,  # gsplat_vs_torch
         ops_scale=1.0, ops_steps=30, ops_reps=10, ops_max_instances=4, max_crop=None,  # vad_ops
         train_scale=1.0, train_steps=20, train_warmup=3, train_event=True,  # train_step
+        train_cycle=True, st_steps=300, st_factor=1,  # steady state; simple_trainer at train_step's size
         seg=dict(frames=50, cameras=5, width=1920, height=1280), seg_steps=100,  # segment_memory
         seg_scale=None, seg_max_instances=None,  # None: the working resolution, every instance
     ),
@@ -100,6 +102,7 @@ SIZES: dict[str, dict[str, Any]] = {
         gs_gaussians=300, gs_size=(48, 64), gs_reps=2,
         ops_scale=0.5, ops_steps=6, ops_reps=3, ops_max_instances=2, max_crop=None,
         train_scale=0.5, train_steps=5, train_warmup=1, train_event=True,
+        train_cycle=True, st_steps=3, st_factor=2,
         seg=dict(frames=4, cameras=2, width=128, height=96), seg_steps=10,
         seg_scale=None, seg_max_instances=2,
     ),
@@ -107,6 +110,7 @@ SIZES: dict[str, dict[str, Any]] = {
         gs_gaussians=60, gs_size=(24, 32), gs_reps=1,
         ops_scale=0.25, ops_steps=2, ops_reps=1, ops_max_instances=1, max_crop=32,
         train_scale=0.25, train_steps=2, train_warmup=1, train_event=False,
+        train_cycle=False, st_steps=3, st_factor=2,
         seg=dict(frames=2, cameras=1, width=64, height=48), seg_steps=3,
         seg_scale=0.25, seg_max_instances=1,
     ),
@@ -587,12 +591,16 @@ def train_step(chk: Check, budget: float) -> dict[str, Any]:
     for backend in backends:
         trainer = _vad_trainer(chk.device, s["train_scale"], backend, s)
         h, w = trainer.scene.cameras([0]).image_size
-        ms = _median_ms(trainer.train_step, s["train_steps"], chk.device, warmup=s["train_warmup"])
+        # steady state: after one full sampling cycle every view's caches are filled (a view's
+        # first visit reads its image, LiDAR map and z-buffer from the host)
+        warmup = s["train_warmup"] + (len(trainer.train_views) if s["train_cycle"] else 0)
+        ms = _median_ms(trainer.train_step, s["train_steps"], chk.device, warmup=warmup)
         row = res["backends"][backend] = {
             "image_size_wh": [w, h],
             "gaussians": trainer.model.num_gaussians,
             "step_ms_median": ms,
             "steps": s["train_steps"],
+            "warmup_steps": warmup,
         }
         if s["train_event"]:
             record: dict[str, dict[str, Any]] = {}
@@ -608,6 +616,7 @@ def train_step(chk: Check, budget: float) -> dict[str, Any]:
                     label: statistics.median(r["calls_ms"]) for label, r in record.items() if r["calls_ms"]
                 },
                 event_ops_calls={label: len(r["calls_ms"]) for label, r in record.items()},
+                paper_ms_per_operation_rtx4090=PAPER_MS_PER_OP,
             )
         del trainer
     return res
@@ -704,6 +713,19 @@ def _simple_trainer_inputs(root: Path) -> Path | None:
     return examples
 
 
+def _steady_step_ms(steps: list[list[float]], event_steps: list[int]) -> float | None:
+    """Median ms between consecutive steps of the second half of a run, event steps left out.
+
+    ``steps`` are the harness's ``[step, gaussians, seconds]`` records (the time at the end of
+    each step; simple_trainer reads the loss every step, so a step's kernels are done by then).
+    """
+    timed = [r for r in steps if len(r) > 2]
+    half = timed[len(timed) // 2 :]
+    skip = set(event_steps)
+    deltas = [1e3 * (b[2] - a[2]) for a, b in itertools.pairwise(half) if int(b[0]) not in skip]
+    return statistics.median(deltas) if deltas else None
+
+
 def simple_trainer(chk: Check, budget: float) -> dict[str, Any]:
     if str(REPO) not in sys.path:  # the harness is tests/train/gsplat_simple_trainer.py
         sys.path.insert(0, str(REPO))
@@ -712,21 +734,22 @@ def simple_trainer(chk: Check, budget: float) -> dict[str, Any]:
     if chk.cuda and not _gsplat_ready(chk):
         return {"status": "skipped", "reason": "gsplat's CUDA extension not available"}
     # on the CPU (the test): 3 steps of the vad run alone, with a bare machine's stand-ins
-    steps, every, names = (300, 2, ("default", "vad")) if chk.cuda else (3, 1, ("vad",))
+    steps, factor = chk.sizes["st_steps"], chk.sizes["st_factor"]
+    every, names = (2, ("default", "vad")) if chk.cuda else (1, ("vad",))
     res = chk.partial
-    res.update(steps=steps, every_cycles=every, runs={})
+    res.update(steps=steps, every_cycles=every, data_factor=factor, runs={})
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "colmap"
         examples = _simple_trainer_inputs(root)
         if examples is None:
             return {"status": "skipped", "reason": "no gsplat examples (.whl/data or ../shared/third_party)"}
-        st.prepare_data(root, 2)
+        st.prepare_data(root, factor)
         patched = st.prepare_examples(Path(tmp), src=examples)
         for name in names:
             extra = ["--vad.every-cycles", str(every)] if name == "vad" else []
             out = Path(tmp) / f"results_{name}"
             argv = [
-                name, "--data_dir", str(root), "--data_factor", "2", "--result_dir", str(out),
+                name, "--data_dir", str(root), "--data_factor", str(factor), "--result_dir", str(out),
                 "--max_steps", str(steps), "--eval_steps", str(steps), "--save_steps", str(steps),
                 "--disable_viewer", "--disable_video", *extra,
             ]  # fmt: skip
@@ -745,10 +768,18 @@ def simple_trainer(chk: Check, budget: float) -> dict[str, Any]:
                 "events": [{k: e[k] for k in ("step", "attempted", "added", "total_s")} for e in events],
                 "rows_consistent": rows_ok,
                 "val": {k: val.get(k) for k in ("psnr", "ssim", "num_GS", "ellipse_time")},
+                "step_ms_median": _steady_step_ms(rec["steps"], [e["step"] for e in events]),
             }
             if not rows_ok:
                 res.update(status="failed", reason=f"{name}: rows of params / moments differ after an event")
     vad = res["runs"]["vad"]
+    ours = chk.data["sections"].get("train_step", {}).get("backends", {}).get("gsplat", {})
+    theirs = res["runs"].get("default", {}).get("step_ms_median")
+    if ours.get("step_ms_median") and theirs:
+        # the figure: vadgs's steady-state step (gsplat's rasterizer, VAD-GS attached, no event in
+        # the timed steps) over simple_trainer's own at the same scene and size, in the same run
+        res["vadgs_step_over_simple_trainer"] = ours["step_ms_median"] / theirs
+        res["sizes_wh"] = {"vadgs": ours.get("image_size_wh"), "simple_trainer_factor": factor}
     if chk.cuda and not vad["events"]:
         res.update(status="failed", reason="the vad run held no VAD-GS event")
     return res

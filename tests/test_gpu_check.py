@@ -84,6 +84,7 @@ def test_cpu_mode_writes_every_section(tmp_path, stand_in_segment):
         vad = st["runs"]["vad"]
         assert vad["stand_ins"] == ["fused_ssim", "nerfview", "viser", "pycolmap"] and vad["rows_consistent"]
         assert vad["gaussians"] == vad["val"]["num_GS"] == 1500 and vad["val"]["psnr"] > 5
+        assert vad["step_ms_median"] > 0 and st["data_factor"] == gc.SIZES["tiny"]["st_factor"]
     else:
         assert st["status"] == "skipped" and "no gsplat examples" in st["reason"]
 
@@ -97,3 +98,16 @@ def test_compare_renderers_on_the_cpu():
     assert set(res["gradients"]) == {"means", "quats", "scales", "opacities", "colors"}
     for name, e in {**res["images"], **res["gradients"]}.items():
         assert e["max_rel"] < 1e-3, (name, e)
+
+
+def test_steady_step_time_of_a_record():
+    """simple_trainer's step time: the second half of the run, the steps that held an event left out."""
+    gc = _gpu_check()
+    # 10 steps 20 ms apart but step 7, an event, took 500 ms; the first half (a slow start) is left out
+    t, steps = 0.0, []
+    for i in range(10):
+        t += 0.5 if i in (1, 7) else 0.02
+        steps.append([i, 100, t])
+    assert gc._steady_step_ms(steps, [7]) == pytest.approx(20.0)
+    assert gc._steady_step_ms(steps, []) == pytest.approx(20.0)  # the median: one slow step of four
+    assert gc._steady_step_ms([[0, 100], [1, 100]], []) is None  # an old record without times

@@ -435,7 +435,7 @@ def _recording(cls) -> None:
         before = len(state.get("vad_events", []))
         out = orig(self, *args, **kwargs)
         n = int(params["means"].shape[0])
-        RECORD["steps"].append([int(step), n])
+        RECORD["steps"].append([int(step), n, time.perf_counter()])
         for ev in state.get("vad_events", [])[before:]:
             keep = ("step", "flagged", "tested", "flagged_instances", "candidates", "attempted", "repaired",
                     "skipped", "added", "views_rendered", "tests_reused", "total_s")  # fmt: skip

@@ -62,7 +62,7 @@ def runs(tmp_path_factory):
 
 def test_default_trains_through_the_harness(runs):
     rec = runs["default"]
-    assert [s for s, _ in rec["steps"]] == list(range(STEPS))
+    assert [s for s, *_ in rec["steps"]] == list(range(STEPS))
     assert rec["events"] == []
     assert rec["val"]["num_GS"] == rec["steps"][-1][1] == 1500  # SfM init, no ADC before step 500
     assert math.isfinite(rec["val"]["psnr"]) and rec["val"]["psnr"] > 10
@@ -74,10 +74,10 @@ def test_vad_events_flag_add_and_keep_every_row(runs):
     # many voxels as in the sample's own metres
     assert rec["config"]["lengths"]["scene_depth"] == pytest.approx(0.80, abs=0.01)
     assert abs(rec["config"]["voxels"] - runs["metric_voxels"]) <= 0.02 * runs["metric_voxels"]
-    assert [s for s, _ in rec["steps"]] == list(range(STEPS))
+    assert [s for s, *_ in rec["steps"]] == list(range(STEPS))
     events = rec["events"]
     assert [e["step"] for e in events] == [CYCLE - 1, 2 * CYCLE - 1]
-    n_before = dict(rec["steps"])
+    n_before = {s: n for s, n, *_ in rec["steps"]}
     for e in events:
         assert e["flagged_instances"] >= 1 and e["attempted"] >= 1
         assert e["added"] > 0 and e["repaired"] >= 1, e
