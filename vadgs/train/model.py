@@ -33,10 +33,12 @@ from vadgs.render import RasterConfig, RenderOutput, eval_sh, num_sh_bases, rast
 
 __all__ = [
     "PER_GAUSSIAN",
+    "FramePlan",
     "GaussianModel",
     "Gaussians",
     "ModelRender",
     "adam",
+    "frame_plan",
     "gaussians_at",
     "make_optimizer",
 ]
@@ -90,6 +92,7 @@ def gaussians_at(
     object_to_world: torch.Tensor,
     track_valid: torch.Tensor,
     frame: int,
+    plan: FramePlan | None = None,
 ) -> Gaussians:
     r"""Compose static and moving Gaussians of one frame in the world.
 
@@ -105,6 +108,8 @@ def gaussians_at(
         object_to_world: ``(T, F, 4, 4)`` poses of the track nodes.
         track_valid: ``(T, F)`` bool.
         frame: frame position (index into ``Scene.frames`` and ``Track.object_to_world``).
+        plan: :func:`frame_plan` of these arguments, made before (what does not depend on the
+            parameters' values): without it, made here (a read or two by the host).
 
     Returns:
         :class:`Gaussians`.
@@ -119,30 +124,85 @@ def gaussians_at(
         ([0.0, 5.0], [0, 1])
     """
     means, quats = params["means"], params["quats"]
+    if plan is None:
+        plan = frame_plan(node_ids, object_to_world, track_valid, frame, means.dtype)
     n = means.shape[0]
-    num_tracks = object_to_world.shape[0]
-    present = node_ids < 0
-    if num_tracks:
-        node_valid = track_valid[:, frame]
-        present = present | ((node_ids >= 0) & node_valid[node_ids.clamp(min=0)])
-    ids = torch.nonzero(present).squeeze(1) if n else torch.zeros(0, dtype=torch.long, device=means.device)
-    nid = node_ids[ids]
-    m, q = means[ids], quats[ids]
+    if plan.present == n:  # every Gaussian: no gather
+        ids = torch.arange(n, device=means.device)
+    else:
+        present = node_ids < 0
+        if object_to_world.shape[0]:
+            node_valid = track_valid[:, frame]
+            present = present | ((node_ids >= 0) & node_valid[node_ids.clamp(min=0)])
+        ids = torch.nonzero_static(present, size=plan.present).squeeze(1)
+
+    def take(t: torch.Tensor) -> torch.Tensor:
+        return t if plan.present == n else t[ids]
+
+    m, q = take(means), take(quats)
     eye = torch.eye(3, device=means.device, dtype=means.dtype)
-    rot = eye.expand(ids.shape[0], 3, 3)
-    if num_tracks and bool((nid >= 0).any()):
-        o2w = object_to_world[:, frame].to(means.dtype)  # (T, 4, 4)
-        node_rot = torch.cat([eye[None], o2w[:, :3, :3]])  # slot 0 = static
-        node_t = torch.cat([torch.zeros(1, 3, device=means.device, dtype=means.dtype), o2w[:, :3, 3]])
-        node_q = rotation_to_quat(node_rot)
-        slot = nid + 1
-        rot = node_rot[slot]
-        m = (rot @ m[:, :, None]).squeeze(-1) + node_t[slot]
-        q = quat_multiply(node_q[slot], q)
-    sh = torch.cat([params["sh_dc"][ids], params["sh_rest"][ids]], 1)
+    rot = eye.expand(plan.present, 3, 3)
+    if plan.node_rot is not None:
+        assert plan.node_t is not None and plan.node_q is not None  # made together
+        slot = take(node_ids) + 1
+        rot = plan.node_rot[slot]
+        m = (rot @ m[:, :, None]).squeeze(-1) + plan.node_t[slot]
+        q = quat_multiply(plan.node_q[slot], q)
+    sh = torch.cat([take(params["sh_dc"]), take(params["sh_rest"])], 1)
     return Gaussians(
-        m, q, params["log_scales"][ids].exp(), torch.sigmoid(params["opacity_logits"][ids]), sh, ids, rot
+        m, q, take(params["log_scales"]).exp(), torch.sigmoid(take(params["opacity_logits"])), sh, ids, rot
     )
+
+
+class FramePlan(NamedTuple):
+    """What :func:`gaussians_at` needs of a frame besides the parameters' values (:func:`frame_plan`).
+
+    Attributes:
+        present: Gaussians present at the frame (static ones and those of nodes valid there).
+        node_rot: ``(T + 1, 3, 3)`` rotation of each node at the frame (slot 0: static, identity);
+            None when no Gaussian of a valid node is present (every Gaussian is placed as it is).
+        node_t: ``(T + 1, 3)`` translations, likewise.
+        node_q: ``(T + 1, 4)`` the rotations as ``wxyz`` quaternions, likewise.
+    """
+
+    present: int
+    node_rot: torch.Tensor | None
+    node_t: torch.Tensor | None
+    node_q: torch.Tensor | None
+
+
+def frame_plan(
+    node_ids: torch.Tensor,
+    object_to_world: torch.Tensor,
+    track_valid: torch.Tensor,
+    frame: int,
+    dtype: torch.dtype,
+    node_counts: list[int] | None = None,
+) -> FramePlan:
+    """The :class:`FramePlan` of :func:`gaussians_at`'s arguments at ``frame``.
+
+    Reads the frame's node validity and, without ``node_counts`` (Gaussians of each node slot,
+    ``[static, node 0, node 1, ...]``), the node of every Gaussian: a model keeps both
+    (:meth:`GaussianModel.gaussians_at`) and makes a frame's plan again only when they change.
+
+    Example:
+        >>> o2w = torch.eye(4).repeat(1, 2, 1, 1); valid = torch.tensor([[True, False]])
+        >>> [frame_plan(torch.tensor([-1, 0, 0]), o2w, valid, f, torch.float32).present for f in (0, 1)]
+        [3, 1]
+    """
+    num_tracks = object_to_world.shape[0]
+    if node_counts is None:
+        node_counts = torch.bincount(node_ids + 1, minlength=num_tracks + 1).tolist()
+    valid = track_valid[:, frame].tolist() if num_tracks else []
+    moving = sum(c for c, v in zip(node_counts[1:], valid) if v)
+    if not moving:
+        return FramePlan(node_counts[0] + moving, None, None, None)
+    dev = object_to_world.device
+    o2w = object_to_world[:, frame].to(dtype)  # (T, 4, 4)
+    eye = torch.eye(3, device=dev, dtype=dtype)
+    node_rot = torch.cat([eye[None], o2w[:, :3, :3]])  # slot 0 = static
+    node_t = torch.cat([torch.zeros(1, 3, device=dev, dtype=dtype), o2w[:, :3, 3]])
+    return FramePlan(node_counts[0] + moving, node_rot, node_t, rotation_to_quat(node_rot))
 
 
 class GaussianModel(nn.Module):
@@ -235,6 +295,7 @@ class GaussianModel(nn.Module):
         self.sh_degree = sh_degree
         self.sky_degree = sky_degree
         self.active_sh_degree = 0
+        self._plans: dict = {}  # _plan's
 
     # -- sizes ----------------------------------------------------------------------------------------
 
@@ -286,8 +347,30 @@ class GaussianModel(nn.Module):
     # -- composition and rendering --------------------------------------------------------------------
 
     def gaussians_at(self, frame: int) -> Gaussians:
-        """Activated Gaussians of a frame in the world; see :func:`gaussians_at`."""
-        return gaussians_at(dict(self.params), self.node_ids, self.object_to_world, self.track_valid, frame)
+        """Activated Gaussians of a frame in the world; see :func:`gaussians_at`.
+
+        The frame's :class:`FramePlan` is kept until the nodes of the Gaussians or the poses
+        change (a strategy's refinement, an event): a step composes its frame without a read.
+        """
+        return gaussians_at(
+            dict(self.params), self.node_ids, self.object_to_world, self.track_valid, frame, self._plan(frame)
+        )
+
+    def _plan(self, frame: int) -> FramePlan:
+        """The frame's :class:`FramePlan`, kept while ``node_ids``, the poses and the dtype are the same."""
+        tensors = (self.node_ids, self.object_to_world, self.track_valid)
+        # the tensors themselves are held: a new one cannot reuse their storage while the key is kept
+        key = (*tensors, *(t._version for t in tensors), self.params["means"].dtype)
+        cached = self._plans
+        old = cached.get("key")
+        if old is None or any(a is not b for a, b in zip(old[:3], key[:3])) or old[3:] != key[3:]:
+            counts = torch.bincount(tensors[0] + 1, minlength=tensors[1].shape[0] + 1).tolist()
+            cached.clear()
+            cached.update(key=key, counts=counts, frames={})
+        frames = cached["frames"]
+        if frame not in frames:
+            frames[frame] = frame_plan(*tensors, frame, key[-1], cached["counts"])
+        return frames[frame]
 
     def sky_color(
         self, world_to_cam: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
@@ -296,13 +379,18 @@ class GaussianModel(nn.Module):
 
         Differentiable w.r.t. :attr:`sky`.
         """
+        return self._sky_color(invert_rigid(world_to_cam), K, image_size)
+
+    def _sky_color(
+        self, cam_to_world: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
+    ) -> torch.Tensor:
+        """:meth:`sky_color` of cameras given as camera-to-world transforms (already inverted)."""
         h, w = image_size
         pix = pixel_grid(image_size, device=K.device, dtype=K.dtype).reshape(-1, 2)
         ones = torch.ones_like(pix[:, :1])
         rays = torch.cat([pix, ones], -1) @ torch.linalg.inv(K).transpose(-1, -2)  # (B, HW, 3) camera
-        cam_to_world = invert_rigid(world_to_cam)
         dirs = F.normalize(rays @ cam_to_world[:, :3, :3].transpose(-1, -2), dim=-1)
-        b = world_to_cam.shape[0]
+        b = cam_to_world.shape[0]
         coeffs = self.sky[None].expand(h * w, -1, -1)
         col = eval_sh(coeffs, dirs.reshape(b, h * w, 3), self.sky_degree).clamp(max=1.0)
         return col.reshape(b, h, w, 3).permute(0, 3, 1, 2)
@@ -349,7 +437,8 @@ class GaussianModel(nn.Module):
             :class:`ModelRender`.
         """
         g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
-        center = invert_rigid(world_to_cam)[0, :3, 3]
+        cam_to_world = invert_rigid(world_to_cam)  # its value check: one read a render
+        center = cam_to_world[0, :3, 3]
         dirs = F.normalize(g.means.detach() - center, dim=-1)
         dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)
         colors = eval_sh(g.sh, dirs_local, self.active_sh_degree)
@@ -357,7 +446,7 @@ class GaussianModel(nn.Module):
             g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config,
             hard_depth=hard_depth,
         )  # fmt: skip
-        sky = self.sky_color(world_to_cam, K, image_size)
+        sky = self._sky_color(cam_to_world, K, image_size)
         color = raster.color + (1.0 - raster.alpha) * sky
         return ModelRender(color, raster, sky, g.ids)
 

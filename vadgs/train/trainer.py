@@ -174,6 +174,7 @@ class Trainer:
         self.log = log
         self.callback = callback
         self.train_views = list(scene.train_views)
+        self._cameras: dict[int, tuple[torch.Tensor, torch.Tensor, tuple[int, int]]] = {}  # camera()
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
         torch.manual_seed(self.config.seed)
@@ -412,16 +413,22 @@ class Trainer:
 
     def render_view(self, view: int, **kwargs: Any) -> ModelRender:
         """Render a scene view with the current model (on the trainer's device)."""
-        cams = self.scene.cameras([view])
+        world_to_cam, K, size = self.camera(view)
         frame = self.scene.view_frame_position(view)
-        return self.model.render(
-            cams.world_to_cam.to(self.device),
-            cams.K.to(self.device),
-            cams.image_size,
-            frame,
-            self.config.raster,
-            **kwargs,
-        )
+        return self.model.render(world_to_cam, K, size, frame, self.config.raster, **kwargs)
+
+    def camera(self, view: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
+        """A view's ``world_to_cam (1, 4, 4)`` and ``K (1, 3, 3)`` on the device, and its ``(H, W)``.
+
+        Made from ``scene.cameras([view])`` (its value checks) at a view's first use and kept: 100
+        bytes a view, so that a step neither checks nor copies its camera again.
+        """
+        cam = self._cameras.get(view)
+        if cam is None:
+            cams = self.scene.cameras([view])
+            cam = (cams.world_to_cam.to(self.device), cams.K.to(self.device), cams.image_size)
+            self._cameras[view] = cam
+        return cam
 
     def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
         """The depth ``(1, 1, ceil(H / s), ceil(W / s))`` of a view with every opacity fixed to 1.
@@ -431,13 +438,12 @@ class Trainer:
         compares it with the target depth at those pixels.
         """
         s = self.config.geometry.hard_stride if stride is None else stride
-        cams = self.scene.cameras([view])
-        K = cams.K.clone()
+        world_to_cam, K, (h, w) = self.camera(view)
+        K = K.clone()
         K[:, :2] /= s
-        h, w = cams.image_size
         return self.model.render_depth(
-            cams.world_to_cam.to(self.device),
-            K.to(self.device),
+            world_to_cam,
+            K,
             (-(-h // s), -(-w // s)),
             self.scene.view_frame_position(view),
             self.config.raster,
