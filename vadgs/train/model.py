@@ -28,7 +28,7 @@ from torch import nn
 
 from vadgs.checks import check_shape
 from vadgs.geometry.camera import invert_rigid, pixel_grid
-from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
+from vadgs.geometry.rotation import quat_left_matrix, rotation_to_quat
 from vadgs.render import RasterConfig, RenderOutput, eval_sh, num_sh_bases, rasterize_gaussians, rgb_to_sh
 
 __all__ = [
@@ -147,7 +147,7 @@ def gaussians_at(
         slot = take(node_ids) + 1
         rot = plan.node_rot[slot]
         m = (rot @ m[:, :, None]).squeeze(-1) + plan.node_t[slot]
-        q = quat_multiply(plan.node_q[slot], q)
+        q = (plan.node_q[slot] @ q[:, :, None]).squeeze(-1)  # q(R_k) ⊗ q (quat_left_matrix)
     sh = torch.cat([take(params["sh_dc"]), take(params["sh_rest"])], 1)
     return Gaussians(
         m, q, take(params["log_scales"]).exp(), torch.sigmoid(take(params["opacity_logits"])), sh, ids, rot
@@ -162,7 +162,8 @@ class FramePlan(NamedTuple):
         node_rot: ``(T + 1, 3, 3)`` rotation of each node at the frame (slot 0: static, identity);
             None when no Gaussian of a valid node is present (every Gaussian is placed as it is).
         node_t: ``(T + 1, 3)`` translations, likewise.
-        node_q: ``(T + 1, 4)`` the rotations as ``wxyz`` quaternions, likewise.
+        node_q: ``(T + 1, 4, 4)`` the rotations as ``wxyz`` quaternions, as the matrices of
+            their left multiplication (:func:`~vadgs.geometry.rotation.quat_left_matrix`), likewise.
     """
 
     present: int
@@ -202,7 +203,7 @@ def frame_plan(
     eye = torch.eye(3, device=dev, dtype=dtype)
     node_rot = torch.cat([eye[None], o2w[:, :3, :3]])  # slot 0 = static
     node_t = torch.cat([torch.zeros(1, 3, device=dev, dtype=dtype), o2w[:, :3, 3]])
-    return FramePlan(node_counts[0] + moving, node_rot, node_t, rotation_to_quat(node_rot))
+    return FramePlan(node_counts[0] + moving, node_rot, node_t, quat_left_matrix(rotation_to_quat(node_rot)))
 
 
 class GaussianModel(nn.Module):
