@@ -21,10 +21,11 @@ from vadgs.train.vad import VisibilityDensifyConfig
 
 from ..launch_count import LaunchCounter
 
-#: issue 48's target for a step outside the rasterizer (host reads), and the launches measured
-#: here (before: 41 reads and ~830 launches a step at the benchmark's size; docs/benchmarks.md).
+#: issue 48's target for a step outside the rasterizer (host reads, met: 3 a step measured), and
+#: the launches measured here with a margin (350; the target, 300, is not met yet). At the
+#: benchmark's size, before: 41 reads and 835 launches a step; after: 3 and 420 (docs/benchmarks.md).
 READS = 5
-LAUNCHES = 420
+LAUNCHES = 380
 
 
 def _replayed(calls: list) -> tuple[int, int]:
@@ -73,5 +74,6 @@ def test_a_steady_step_outside_the_rasterizer_launches_and_reads_little(monkeypa
     inside, inside_reads = _replayed(calls)
     launches, reads = (c.launches - inside) / n, (c.host_reads - inside_reads) / n
     assert reads <= READS, (reads, c.ops.most_common(20))
+    print(f"outside the rasterizer: {launches:.0f} launches, {reads:.1f} host reads a step")
     assert launches <= LAUNCHES, (launches, c.ops.most_common(20))
     assert len(tr.state["vad_tests"]) >= n  # the steps did test their views for incompleteness
