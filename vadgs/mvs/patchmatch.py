@@ -382,7 +382,8 @@ def _neighbour_table(
     """``(P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
 
     Regions are padded to the longest; padding, neighbours outside the image and unscored
-    neighbours point to the sentinel ``lut[h * w]`` (whose cost is infinite). One broadcast.
+    neighbours point to the sentinel ``lut[h * w]`` (whose cost is infinite), a region with no
+    other neighbour to the pixel itself. A few broadcasts, once per level.
     """
     regions = [[(0, 0)], *propagation_regions(kind)]  # the pixel itself, then its R regions
     longest = max(len(r) for r in regions)
@@ -393,7 +394,12 @@ def _neighbour_table(
     qx = xs[:, None, None] + off[..., 0]
     qy = ys[:, None, None] + off[..., 1]
     outside = (qx < 0) | (qx >= w) | (qy < 0) | (qy >= h)
-    return lut[(qy * w + qx).masked_fill_(outside, h * w)]
+    table = lut[(qy * w + qx).masked_fill_(outside, h * w)]
+    # A region wholly outside the image (or unscored) would offer only the sentinel, a plane of
+    # fixed absolute depth: it offers the pixel's own plane instead (a tie with the current plane,
+    # which argmin keeps), so that the search is equivariant to the scale of the world.
+    empty = (table == lut[h * w]).all(-1, keepdim=True)
+    return torch.where(empty, table[:, :1, :1], table)
 
 
 def _propagate(
@@ -410,10 +416,6 @@ def _propagate(
     p, r, _ = nbr.shape
     nb_cost, best = agg[:, nbr].min(-1, keepdim=True)  # (B, P, R, 1)
     q = torch.gather(nbr.expand(bsz, -1, -1, -1), 3, best)
-    # A region wholly outside the image (or unscored) offers only the sentinel: the pixel's own
-    # plane stands in for it (a tie with the current plane, which argmin keeps), so that no plane
-    # of fixed absolute depth is ever a candidate (the result stays equivariant to the world's scale).
-    q = torch.where(torch.isinf(nb_cost), nbr[:, :1, :1], q)
     hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
     den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
     hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
