@@ -126,6 +126,27 @@ class TestExceptions:
         ckpt = load_checkpoint(tmp_path)
         assert int(ckpt.step) == 2 and bool(torch.isfinite(ckpt.model["params.means"]).all())
 
+    def test_non_finite_loss_is_named_and_changes_no_parameter(self, tiny_scene, tiny_config):
+        """The loss is read once, after the update: the fused optimizer skipped it on the device."""
+
+        def nan_at_2(step, render, view):
+            return {"bad": render.color.sum() * (float("nan") if step == 2 else 0.0)}
+
+        tr = Trainer(tiny_scene, tiny_config, extra_losses=nan_at_2, progress=False)
+        assert all(g["fused"] for g in tr.optimizer.param_groups)
+        tr.train_step()
+        tr.train_step()
+        before = _params(tr)
+        moments = [(s["step"].clone(), s["exp_avg"].clone()) for s in tr.optimizer.state.values()]
+        with pytest.raises(
+            NonFiniteLossError, match=r"step 2: loss terms \{'color': .*'bad': nan, 'total': nan"
+        ):
+            tr.train_step()
+        assert tr.step == 2
+        _assert_same(before, _params(tr))  # step 2 refines nothing (refine_start_iter 3)
+        for (step, avg), s in zip(moments, tr.optimizer.state.values()):
+            assert torch.equal(step, s["step"]) and torch.equal(avg, s["exp_avg"])
+
     @pytest.mark.parametrize("key", ["log_scales", "sh_dc"])
     def test_non_finite_parameter_after_the_update_is_named(self, tiny_scene, tiny_config, key):
         """A parameter that the optimizer step made NaN: named (all are checked in one device read)."""

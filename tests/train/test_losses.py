@@ -32,6 +32,27 @@ class TestColorLoss:
         y = torch.rand(1, 3, 6, 6, dtype=torch.float64)
         assert torch.autograd.gradcheck(lambda a: L.color_loss(a, y), (x,), fast_mode=True)
 
+    @pytest.mark.parametrize("shape", [(1, 3, 144, 240), (2, 3, 17, 23)])
+    def test_ssim_map_is_kornias_with_fewer_launches(self, shape):
+        """The moments filtered together: kornia's map (bit for bit here) and gradient (to rounding)."""
+        from kornia.metrics import ssim
+
+        from ..launch_count import LaunchCounter
+
+        g = torch.Generator().manual_seed(0)
+        a = torch.rand(*shape, generator=g, requires_grad=True)
+        b = torch.rand(*shape, generator=g)
+        ref = ssim(a, b, 11)
+        with LaunchCounter() as ours_count:
+            ours = L.ssim_map(a, b, 11)
+        with LaunchCounter() as ref_count:
+            ssim(a, b, 11)
+        assert (ours - ref).abs().max() <= 1e-6
+        (g_ref,) = torch.autograd.grad(ref.mean(), a)
+        (g_ours,) = torch.autograd.grad(ours.mean(), a)
+        assert (g_ours - g_ref).abs().max() <= 1e-5 * g_ref.abs().max()
+        assert ours_count.launches * 2 <= ref_count.launches, (ours_count.launches, ref_count.launches)
+
 
 class TestDepthAndNormal:
     def test_depth_reference(self):

@@ -19,7 +19,13 @@ from kornia.geometry.conversions import rotation_matrix_to_quaternion
 
 from vadgs.checks import check_finite, check_quaternions, check_shape
 
-__all__ = ["normals_to_quats", "quat_multiply", "quaternion_to_rotation", "rotation_to_quat"]
+__all__ = [
+    "normals_to_quats",
+    "quat_left_matrix",
+    "quat_multiply",
+    "quaternion_to_rotation",
+    "rotation_to_quat",
+]
 
 
 def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
@@ -79,6 +85,27 @@ def rotation_to_quat(R: torch.Tensor) -> torch.Tensor:
     """
     q = rotation_matrix_to_quaternion(R)
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
+
+
+def quat_left_matrix(q: torch.Tensor) -> torch.Tensor:
+    """The ``4 x 4`` matrix ``L(q)`` of left multiplication by ``q``: ``L(q1) @ q2 = q1 ⊗ q2`` (``wxyz``).
+
+    For many products by a few quaternions (a node's pose applied to its Gaussians): the matrices
+    of the few, gathered and applied in one batched product, instead of :func:`quat_multiply`'s
+    sixteen products and twelve sums, each a kernel on a GPU (equal to rounding).
+
+    Shape:
+        ``(*, 4)`` → ``(*, 4, 4)``.
+
+    Example:
+        >>> q = torch.tensor([0.0, 1.0, 0.0, 0.0])  # 180° about x
+        >>> quat_left_matrix(q) @ q
+        tensor([-1.,  0.,  0.,  0.])
+    """
+    check_shape(q, "q", ("*", 4))
+    w, x, y, z = q.unbind(-1)
+    rows = [[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
 def quat_multiply(q1: torch.Tensor, q2: torch.Tensor) -> torch.Tensor:

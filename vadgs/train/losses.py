@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.metrics import ssim
+from kornia.filters import get_gaussian_kernel1d
 
 from vadgs.checks import FieldCheck, bool_field, check_fields, check_shape, float_field, int_field
 
@@ -51,6 +51,7 @@ __all__ = [
     "geometric_losses",
     "geometric_weights",
     "normal_loss",
+    "ssim_map",
 ]
 
 
@@ -79,13 +80,57 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     return (x * m).sum() / m.sum().clamp(min=1.0)
 
 
+_SSIM_WINDOWS: dict[tuple[int, torch.device, torch.dtype], torch.Tensor] = {}  # ssim_map's
+
+
+def ssim_map(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11) -> torch.Tensor:
+    """Kornia's SSIM map with its five local moments filtered together.
+
+    ``kornia.metrics.ssim``'s: a Gaussian window of sigma 1.5, reflected borders, ``max_val=1``,
+    ``eps=1e-12``.
+    The two images, their squares and their product are stacked and filtered by one separable
+    depthwise convolution, instead of one filtering each: a third of the kernel launches of
+    kornia's on a GPU (forward and backward), equal to it to rounding (within 1e-6 on ``[0, 1]``
+    images, tested).
+
+    Shape:
+        ``(B, C, H, W)`` twice → ``(B, C, H, W)``.
+
+    Example:
+        >>> x = torch.rand(1, 3, 16, 16)
+        >>> bool((ssim_map(x, x) - 1).abs().max() < 1e-5)
+        True
+    """
+    dims = check_shape(img1, "img1", ("B", "C", "H", "W"))
+    check_shape(img2, "img2", ("B", "C", "H", "W"), dims)
+    c = dims["C"]
+    key = (window_size, img1.device, img1.dtype)
+    kernel = _SSIM_WINDOWS.get(key)
+    if kernel is None:  # 20 launches to make: kept (a few dozen bytes a device and dtype)
+        kernel = get_gaussian_kernel1d(window_size, 1.5, device=img1.device, dtype=img1.dtype).reshape(-1)
+        _SSIM_WINDOWS[key] = kernel
+    half = window_size // 2
+    stacked = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2], 1)
+    padded = F.pad(stacked, (half, half, half, half), mode="reflect")
+    kx = kernel.reshape(1, 1, 1, -1).expand(5 * c, 1, 1, window_size)
+    ky = kernel.reshape(1, 1, -1, 1).expand(5 * c, 1, window_size, 1)
+    moments = F.conv2d(F.conv2d(padded, kx, groups=5 * c), ky, groups=5 * c)
+    mu1, mu2, e11, e22, e12 = moments.split(c, 1)
+    mu1_sq, mu2_sq, mu1_mu2 = mu1**2, mu2**2, mu1 * mu2
+    c1, c2 = 0.01**2, 0.03**2
+    num = (2.0 * mu1_mu2 + c1) * (2.0 * (e12 - mu1_mu2) + c2)
+    den = (mu1_sq + mu2_sq + c1) * ((e11 - mu1_sq) + (e22 - mu2_sq) + c2)
+    return num / (den + 1e-12)
+
+
 def color_loss(
     pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
     r"""3DGS colour loss :math:`(1 - \lambda)\,L_1 + \lambda\,(1 - \mathrm{SSIM})`, :math:`\lambda = 0.2`.
 
-    SSIM is kornia's (11×11 Gaussian window). With a mask, both terms are averaged over the
-    masked pixels only (the SSIM map is computed on the full image). Differentiable w.r.t. ``pred``.
+    SSIM is kornia's (11×11 Gaussian window), as :func:`ssim_map` computes it. With a mask, both
+    terms are averaged over the masked pixels only (the SSIM map is computed on the full image).
+    Differentiable w.r.t. ``pred``.
 
     Args:
         pred: ``(B, 3, H, W)`` rendered colours.
@@ -104,7 +149,7 @@ def color_loss(
     dims = check_shape(pred, "pred", ("B", 3, "H", "W"))
     check_shape(target, "target", ("B", 3, "H", "W"), dims)
     l1 = _masked_mean((pred - target).abs(), mask)
-    dssim = _masked_mean(1.0 - ssim(pred, target, 11), mask)
+    dssim = _masked_mean(1.0 - ssim_map(pred, target, 11), mask)
     return (1.0 - ssim_weight) * l1 + ssim_weight * dssim
 
 

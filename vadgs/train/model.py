@@ -20,7 +20,7 @@ sky: a low-degree spherical-harmonics function of the world ray direction.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -28,14 +28,17 @@ from torch import nn
 
 from vadgs.checks import check_shape
 from vadgs.geometry.camera import invert_rigid, pixel_grid
-from vadgs.geometry.rotation import quat_multiply, rotation_to_quat
+from vadgs.geometry.rotation import quat_left_matrix, rotation_to_quat
 from vadgs.render import RasterConfig, RenderOutput, eval_sh, num_sh_bases, rasterize_gaussians, rgb_to_sh
 
 __all__ = [
     "PER_GAUSSIAN",
+    "FramePlan",
     "GaussianModel",
     "Gaussians",
     "ModelRender",
+    "adam",
+    "frame_plan",
     "gaussians_at",
     "make_optimizer",
 ]
@@ -89,6 +92,7 @@ def gaussians_at(
     object_to_world: torch.Tensor,
     track_valid: torch.Tensor,
     frame: int,
+    plan: FramePlan | None = None,
 ) -> Gaussians:
     r"""Compose static and moving Gaussians of one frame in the world.
 
@@ -104,6 +108,8 @@ def gaussians_at(
         object_to_world: ``(T, F, 4, 4)`` poses of the track nodes.
         track_valid: ``(T, F)`` bool.
         frame: frame position (index into ``Scene.frames`` and ``Track.object_to_world``).
+        plan: :func:`frame_plan` of these arguments, made before (what does not depend on the
+            parameters' values): without it, made here (a read or two by the host).
 
     Returns:
         :class:`Gaussians`.
@@ -118,30 +124,86 @@ def gaussians_at(
         ([0.0, 5.0], [0, 1])
     """
     means, quats = params["means"], params["quats"]
+    if plan is None:
+        plan = frame_plan(node_ids, object_to_world, track_valid, frame, means.dtype)
     n = means.shape[0]
-    num_tracks = object_to_world.shape[0]
-    present = node_ids < 0
-    if num_tracks:
-        node_valid = track_valid[:, frame]
-        present = present | ((node_ids >= 0) & node_valid[node_ids.clamp(min=0)])
-    ids = torch.nonzero(present).squeeze(1) if n else torch.zeros(0, dtype=torch.long, device=means.device)
-    nid = node_ids[ids]
-    m, q = means[ids], quats[ids]
+    if plan.present == n:  # every Gaussian: no gather
+        ids = torch.arange(n, device=means.device)
+    else:
+        present = node_ids < 0
+        if object_to_world.shape[0]:
+            node_valid = track_valid[:, frame]
+            present = present | ((node_ids >= 0) & node_valid[node_ids.clamp(min=0)])
+        ids = torch.nonzero_static(present, size=plan.present).squeeze(1)
+
+    def take(t: torch.Tensor) -> torch.Tensor:
+        return t if plan.present == n else t[ids]
+
+    m, q = take(means), take(quats)
     eye = torch.eye(3, device=means.device, dtype=means.dtype)
-    rot = eye.expand(ids.shape[0], 3, 3)
-    if num_tracks and bool((nid >= 0).any()):
-        o2w = object_to_world[:, frame].to(means.dtype)  # (T, 4, 4)
-        node_rot = torch.cat([eye[None], o2w[:, :3, :3]])  # slot 0 = static
-        node_t = torch.cat([torch.zeros(1, 3, device=means.device, dtype=means.dtype), o2w[:, :3, 3]])
-        node_q = rotation_to_quat(node_rot)
-        slot = nid + 1
-        rot = node_rot[slot]
-        m = (rot @ m[:, :, None]).squeeze(-1) + node_t[slot]
-        q = quat_multiply(node_q[slot], q)
-    sh = torch.cat([params["sh_dc"][ids], params["sh_rest"][ids]], 1)
+    rot = eye.expand(plan.present, 3, 3)
+    if plan.node_rot is not None:
+        assert plan.node_t is not None and plan.node_q is not None  # made together
+        slot = take(node_ids) + 1
+        rot = plan.node_rot[slot]
+        m = (rot @ m[:, :, None]).squeeze(-1) + plan.node_t[slot]
+        q = (plan.node_q[slot] @ q[:, :, None]).squeeze(-1)  # q(R_k) ⊗ q (quat_left_matrix)
+    sh = torch.cat([take(params["sh_dc"]), take(params["sh_rest"])], 1)
     return Gaussians(
-        m, q, params["log_scales"][ids].exp(), torch.sigmoid(params["opacity_logits"][ids]), sh, ids, rot
+        m, q, take(params["log_scales"]).exp(), torch.sigmoid(take(params["opacity_logits"])), sh, ids, rot
     )
+
+
+class FramePlan(NamedTuple):
+    """What :func:`gaussians_at` needs of a frame besides the parameters' values (:func:`frame_plan`).
+
+    Attributes:
+        present: Gaussians present at the frame (static ones and those of nodes valid there).
+        node_rot: ``(T + 1, 3, 3)`` rotation of each node at the frame (slot 0: static, identity);
+            None when no Gaussian of a valid node is present (every Gaussian is placed as it is).
+        node_t: ``(T + 1, 3)`` translations, likewise.
+        node_q: ``(T + 1, 4, 4)`` the rotations as ``wxyz`` quaternions, as the matrices of
+            their left multiplication (:func:`~vadgs.geometry.rotation.quat_left_matrix`), likewise.
+    """
+
+    present: int
+    node_rot: torch.Tensor | None
+    node_t: torch.Tensor | None
+    node_q: torch.Tensor | None
+
+
+def frame_plan(
+    node_ids: torch.Tensor,
+    object_to_world: torch.Tensor,
+    track_valid: torch.Tensor,
+    frame: int,
+    dtype: torch.dtype,
+    node_counts: list[int] | None = None,
+) -> FramePlan:
+    """The :class:`FramePlan` of :func:`gaussians_at`'s arguments at ``frame``.
+
+    Reads the frame's node validity and, without ``node_counts`` (Gaussians of each node slot,
+    ``[static, node 0, node 1, ...]``), the node of every Gaussian: a model keeps both
+    (:meth:`GaussianModel.gaussians_at`) and makes a frame's plan again only when they change.
+
+    Example:
+        >>> o2w = torch.eye(4).repeat(1, 2, 1, 1); valid = torch.tensor([[True, False]])
+        >>> [frame_plan(torch.tensor([-1, 0, 0]), o2w, valid, f, torch.float32).present for f in (0, 1)]
+        [3, 1]
+    """
+    num_tracks = object_to_world.shape[0]
+    if node_counts is None:
+        node_counts = torch.bincount(node_ids + 1, minlength=num_tracks + 1).tolist()
+    valid = track_valid[:, frame].tolist() if num_tracks else []
+    moving = sum(c for c, v in zip(node_counts[1:], valid) if v)
+    if not moving:
+        return FramePlan(node_counts[0] + moving, None, None, None)
+    dev = object_to_world.device
+    o2w = object_to_world[:, frame].to(dtype)  # (T, 4, 4)
+    eye = torch.eye(3, device=dev, dtype=dtype)
+    node_rot = torch.cat([eye[None], o2w[:, :3, :3]])  # slot 0 = static
+    node_t = torch.cat([torch.zeros(1, 3, device=dev, dtype=dtype), o2w[:, :3, 3]])
+    return FramePlan(node_counts[0] + moving, node_rot, node_t, quat_left_matrix(rotation_to_quat(node_rot)))
 
 
 class GaussianModel(nn.Module):
@@ -234,6 +296,7 @@ class GaussianModel(nn.Module):
         self.sh_degree = sh_degree
         self.sky_degree = sky_degree
         self.active_sh_degree = 0
+        self._plans: dict = {}  # _plan's
 
     # -- sizes ----------------------------------------------------------------------------------------
 
@@ -285,8 +348,30 @@ class GaussianModel(nn.Module):
     # -- composition and rendering --------------------------------------------------------------------
 
     def gaussians_at(self, frame: int) -> Gaussians:
-        """Activated Gaussians of a frame in the world; see :func:`gaussians_at`."""
-        return gaussians_at(dict(self.params), self.node_ids, self.object_to_world, self.track_valid, frame)
+        """Activated Gaussians of a frame in the world; see :func:`gaussians_at`.
+
+        The frame's :class:`FramePlan` is kept until the nodes of the Gaussians or the poses
+        change (a strategy's refinement, an event): a step composes its frame without a read.
+        """
+        return gaussians_at(
+            dict(self.params), self.node_ids, self.object_to_world, self.track_valid, frame, self._plan(frame)
+        )
+
+    def _plan(self, frame: int) -> FramePlan:
+        """The frame's :class:`FramePlan`, kept while ``node_ids``, the poses and the dtype are the same."""
+        tensors = (self.node_ids, self.object_to_world, self.track_valid)
+        # the tensors themselves are held: a new one cannot reuse their storage while the key is kept
+        key = (*tensors, *(t._version for t in tensors), self.params["means"].dtype)
+        cached = self._plans
+        old = cached.get("key")
+        if old is None or any(a is not b for a, b in zip(old[:3], key[:3])) or old[3:] != key[3:]:
+            counts = torch.bincount(tensors[0] + 1, minlength=tensors[1].shape[0] + 1).tolist()
+            cached.clear()
+            cached.update(key=key, counts=counts, frames={})
+        frames = cached["frames"]
+        if frame not in frames:
+            frames[frame] = frame_plan(*tensors, frame, key[-1], cached["counts"])
+        return frames[frame]
 
     def sky_color(
         self, world_to_cam: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
@@ -295,13 +380,18 @@ class GaussianModel(nn.Module):
 
         Differentiable w.r.t. :attr:`sky`.
         """
+        return self._sky_color(invert_rigid(world_to_cam), K, image_size)
+
+    def _sky_color(
+        self, cam_to_world: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
+    ) -> torch.Tensor:
+        """:meth:`sky_color` of cameras given as camera-to-world transforms (already inverted)."""
         h, w = image_size
         pix = pixel_grid(image_size, device=K.device, dtype=K.dtype).reshape(-1, 2)
         ones = torch.ones_like(pix[:, :1])
         rays = torch.cat([pix, ones], -1) @ torch.linalg.inv(K).transpose(-1, -2)  # (B, HW, 3) camera
-        cam_to_world = invert_rigid(world_to_cam)
         dirs = F.normalize(rays @ cam_to_world[:, :3, :3].transpose(-1, -2), dim=-1)
-        b = world_to_cam.shape[0]
+        b = cam_to_world.shape[0]
         coeffs = self.sky[None].expand(h * w, -1, -1)
         col = eval_sh(coeffs, dirs.reshape(b, h * w, 3), self.sky_degree).clamp(max=1.0)
         return col.reshape(b, h, w, 3).permute(0, 3, 1, 2)
@@ -348,7 +438,8 @@ class GaussianModel(nn.Module):
             :class:`ModelRender`.
         """
         g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
-        center = invert_rigid(world_to_cam)[0, :3, 3]
+        cam_to_world = invert_rigid(world_to_cam)  # its value check: one read a render
+        center = cam_to_world[0, :3, 3]
         dirs = F.normalize(g.means.detach() - center, dim=-1)
         dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)
         colors = eval_sh(g.sh, dirs_local, self.active_sh_degree)
@@ -356,7 +447,7 @@ class GaussianModel(nn.Module):
             g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config,
             hard_depth=hard_depth,
         )  # fmt: skip
-        sky = self.sky_color(world_to_cam, K, image_size)
+        sky = self._sky_color(cam_to_world, K, image_size)
         color = raster.color + (1.0 - raster.alpha) * sky
         return ModelRender(color, raster, sky, g.ids)
 
@@ -413,7 +504,9 @@ class GaussianModel(nn.Module):
         return model
 
 
-def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
+def make_optimizer(
+    model: GaussianModel, lrs: dict[str, float], eps: float = 1e-15, fused: bool | None = None
+) -> torch.optim.Adam:
     """One Adam with a named param group per parameter (per-Gaussian ones and ``"sky"``).
 
     The layout :mod:`vadgs.train.strategy.ops` expects of one optimizer: each group is named for
@@ -423,6 +516,11 @@ def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-
         model: the model.
         lrs: learning rate per name (:data:`PER_GAUSSIAN` and ``"sky"``).
         eps: Adam epsilon (3DGS uses 1e-15).
+        fused: torch's fused Adam (one kernel a group instead of about nine, no read of the step
+            count by the host, and an update skipped on the device when ``optimizer.found_inf`` is
+            1: see :meth:`~vadgs.train.trainer.Trainer.train_step`); it rounds differently from the
+            ``foreach`` one in the last bit. None: fused where this torch has it for the model's
+            device (:func:`adam`).
 
     Raises:
         ValueError: if ``lrs`` lacks a name.
@@ -439,4 +537,24 @@ def make_optimizer(model: GaussianModel, lrs: dict[str, float], eps: float = 1e-
         raise ValueError(f"lrs: missing learning rates for {missing}")
     groups = [{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PER_GAUSSIAN]
     groups.append({"params": [model.sky], "lr": lrs["sky"], "name": "sky"})
-    return torch.optim.Adam(groups, eps=eps)
+    return adam(groups, eps=eps, fused=fused)
+
+
+def adam(params: Any, fused: bool | None = None, **kwargs: Any) -> torch.optim.Adam:
+    """``torch.optim.Adam(params, fused=fused, **kwargs)``; ``fused=None``: fused where torch has it.
+
+    Torch's fused Adam runs on CPU and CUDA from torch 2.4; an older torch, or a device it does not
+    support, gets the default (``foreach``) one when ``fused`` is None, and the error when it is True.
+
+    Example:
+        >>> opt = adam([torch.nn.Parameter(torch.zeros(3))], lr=0.1)
+        >>> opt.param_groups[0]["fused"]
+        True
+    """
+    if fused is not None:
+        return torch.optim.Adam(params, fused=fused, **kwargs)
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, fused=True, **kwargs)
+    except (RuntimeError, ValueError, TypeError):  # this torch or device has no fused Adam
+        return torch.optim.Adam(params, **kwargs)

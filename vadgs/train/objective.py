@@ -61,11 +61,17 @@ class Objective:
         self.extra_losses = extra_losses
         gb = config.cache_gb if cache_gb is None else cache_gb
         self.cache = ByteCache(max(1, int(gb * 2**30)))
+        self._last_image: tuple[int, torch.Tensor] | None = None
 
     def image(self, view: int) -> torch.Tensor:
-        """Training image ``(1, 3, H, W)`` float32 on the device (kept as uint8 on the host)."""
-        return from_uint8(self.cache.get(("image", view), lambda: to_uint8(self.scene.load_images([view]))),
-                          self.device)  # fmt: skip
+        """Training image ``(1, 3, H, W)`` float32 on the device (kept as uint8 on the host).
+
+        The last view's is kept on the device too: a step asks for it twice (its loss, its PSNR).
+        """
+        if self._last_image is None or self._last_image[0] != view:
+            kept = self.cache.get(("image", view), lambda: to_uint8(self.scene.load_images([view])))
+            self._last_image = (view, from_uint8(kept, self.device))
+        return self._last_image[1]
 
     def lidar_depth(self, view: int) -> torch.Tensor | None:
         """Sparse LiDAR depth ``(1, 1, H, W)`` of a view on the device, None without a LiDAR point there."""

@@ -57,7 +57,7 @@ from vadgs.train.config import TrainConfig, refine_steps
 from vadgs.train.divergence import DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
 from vadgs.train.loop import run_loop
-from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender, make_optimizer
+from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender, adam, make_optimizer
 from vadgs.train.objective import Objective
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
@@ -174,6 +174,7 @@ class Trainer:
         self.log = log
         self.callback = callback
         self.train_views = list(scene.train_views)
+        self._cameras: dict[int, tuple[torch.Tensor, torch.Tensor, tuple[int, int]]] = {}  # camera()
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
         torch.manual_seed(self.config.seed)
@@ -190,7 +191,7 @@ class Trainer:
         if app is not None:  # zeros only: the random generators are not touched
             frames = len(scene.frames) if app.per_frame else None
             self.appearance = AppearanceModel(len(scene.camera_names), frames, app.centered).to(self.device)
-            self.appearance_optimizer = torch.optim.Adam(self.appearance.parameters(), lr=app.lr)
+            self.appearance_optimizer = adam(self.appearance.parameters(), lr=app.lr)
         self.strategy = strategy if strategy is not None else self._configured_strategy()
         if strategy is None and not _resuming:
             self._check_schedule()
@@ -412,16 +413,22 @@ class Trainer:
 
     def render_view(self, view: int, **kwargs: Any) -> ModelRender:
         """Render a scene view with the current model (on the trainer's device)."""
-        cams = self.scene.cameras([view])
+        world_to_cam, K, size = self.camera(view)
         frame = self.scene.view_frame_position(view)
-        return self.model.render(
-            cams.world_to_cam.to(self.device),
-            cams.K.to(self.device),
-            cams.image_size,
-            frame,
-            self.config.raster,
-            **kwargs,
-        )
+        return self.model.render(world_to_cam, K, size, frame, self.config.raster, **kwargs)
+
+    def camera(self, view: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
+        """A view's ``world_to_cam (1, 4, 4)`` and ``K (1, 3, 3)`` on the device, and its ``(H, W)``.
+
+        Made from ``scene.cameras([view])`` (its value checks) at a view's first use and kept: 100
+        bytes a view, so that a step neither checks nor copies its camera again.
+        """
+        cam = self._cameras.get(view)
+        if cam is None:
+            cams = self.scene.cameras([view])
+            cam = (cams.world_to_cam.to(self.device), cams.K.to(self.device), cams.image_size)
+            self._cameras[view] = cam
+        return cam
 
     def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
         """The depth ``(1, 1, ceil(H / s), ceil(W / s))`` of a view with every opacity fixed to 1.
@@ -431,13 +438,12 @@ class Trainer:
         compares it with the target depth at those pixels.
         """
         s = self.config.geometry.hard_stride if stride is None else stride
-        cams = self.scene.cameras([view])
-        K = cams.K.clone()
+        world_to_cam, K, (h, w) = self.camera(view)
+        K = K.clone()
         K[:, :2] /= s
-        h, w = cams.image_size
         return self.model.render_depth(
-            cams.world_to_cam.to(self.device),
-            K.to(self.device),
+            world_to_cam,
+            K,
             (-(-h // s), -(-w // s)),
             self.scene.view_frame_position(view),
             self.config.raster,
@@ -483,46 +489,61 @@ class Trainer:
 
         terms = self.objective(step, view, out, render_hard)
         total = torch.stack([t.reshape(()) for t in terms.values()]).sum()
-        if checks_enabled() and not bool(torch.isfinite(total)):
-            bad = {k: float(v.detach()) for k, v in terms.items()}
-            raise NonFiniteLossError(step, f"loss terms {bad} (view {view})")
         total.backward()
         self._updating = True
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        if self.appearance_optimizer is not None:
-            self.appearance_optimizer.step()
-            self.appearance_optimizer.zero_grad(set_to_none=True)
+        # a non-finite loss: the fused optimizers skip the update on the device (no read here); the
+        # step raises below, from the one read of the step
+        finite = torch.isfinite(total.detach())
+        optimizers = [self.optimizer, *([self.appearance_optimizer] if self.appearance_optimizer else [])]
+        for opt in optimizers:
+            if all(g.get("fused") for g in opt.param_groups):
+                opt.found_inf = (~finite).float()  # type: ignore[attr-defined]  # the GradScaler hook
+        for opt in optimizers:
+            opt.step()
+            opt.zero_grad(set_to_none=True)
         self.strategy.step_post_backward(params, self.optimizer, self.state, step, info)
-        if checks_enabled():
-            self._check_parameters(step)
-        self.step = step + 1
         with torch.no_grad():
             color = self.objective.corrected_color(view, out.color.detach())
             mse = torch.mean((color.clamp(0, 1) - self.objective.image(view)) ** 2)
             psnr = -10 * torch.log10(mse.clamp(min=1e-10))
-            # every logged number in one read from the device (float64: each float32 exactly)
-            read = torch.stack([t.reshape(()).double() for t in (*terms.values(), total, psnr)]).tolist()
+            # every logged number and the value checks in one read from the device (float64:
+            # each float32 exactly; a parameter's float64 sum is finite iff all its values are,
+            # short of an overflow past 1e308, which _check_parameters tells apart)
+            logged = torch.stack([*(t.reshape(()) for t in terms.values()), total, psnr]).double()
+            named = self._checked_parameters() if checks_enabled() else []
+            if named:
+                sums = torch.stack([t.detach().sum(dtype=torch.float64) for _, t in named])
+                logged = torch.cat([logged, sums])
+            read = logged.tolist()
         res = dict(zip(terms, read[: len(terms)]))
-        res["total"], res["psnr"] = read[-2], read[-1]
-        if not math.isfinite(res["total"]):  # the floats above are read anyway: no extra sync
+        res["total"], res["psnr"] = read[len(terms)], read[len(terms) + 1]
+        if not math.isfinite(res["total"]):  # the update was skipped (fused optimizers)
             raise NonFiniteLossError(
                 step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"
             )
+        if named and not all(map(math.isfinite, read[len(terms) + 2 :])):
+            self._check_parameters(step, named)
+        self.step = step + 1
         self._updating = False
         return res
 
-    def _check_parameters(self, step: int) -> None:
-        """Raise :class:`NonFiniteLossError` naming a parameter with a NaN / inf after the update.
-
-        One read from the device for all of them (a synchronisation on a GPU); the names only on a failure.
-        """
+    def _checked_parameters(self) -> list[tuple[str, torch.Tensor]]:
+        """The parameters a step checks for NaN / inf after its update, named."""
         named = [
             (f"parameter {k!r}", self.model.params[k])
             for k in ("means", "log_scales", "opacity_logits", "sh_dc")
         ]
         if self.appearance is not None:
             named += [(f"appearance parameter {k!r}", p) for k, p in self.appearance.named_parameters()]
+        return named
+
+    def _check_parameters(self, step: int, named: list[tuple[str, torch.Tensor]] | None = None) -> None:
+        """Raise :class:`NonFiniteLossError` naming a parameter with a NaN / inf after the update.
+
+        One read from the device for all of them (a synchronisation on a GPU); the names only on a
+        failure. :meth:`train_step` calls it only when the sums it read were not all finite.
+        """
+        named = self._checked_parameters() if named is None else named
         with torch.no_grad():
             failed = first_false([torch.isfinite(t).all() for _, t in named])
         if failed is not None:

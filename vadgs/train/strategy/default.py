@@ -222,17 +222,18 @@ class DefaultStrategy(ConfiguredStrategy):
         g[..., 0] *= w / 2.0 * cams
         g[..., 1] *= h / 2.0 * cams
         if packed:  # (nnz, 2): every packed row was rendered (gsplat counts them all)
-            rows_of = [(info["gaussian_ids"], g)]
-        else:
-            ids = info.get("ids")
-            rows_of = []
-            for c in range(g.shape[0]):
-                rows = torch.nonzero(vis[c]).squeeze(1)
-                rows_of.append((rows if ids is None else ids[rows], g[c, rows]))
-        for gid, gc in rows_of:
-            norms = gc.norm(dim=-1).to(state["grad2d"].dtype)
+            norms = g.norm(dim=-1).to(state["grad2d"].dtype)
+            state["grad2d"].index_add_(0, info["gaussian_ids"], norms)
+            state["count"].index_add_(0, info["gaussian_ids"], torch.ones_like(norms))
+            return
+        ids = info.get("ids")
+        for c in range(g.shape[0]):
+            # every row, the invisible ones adding 0 (no read of which rows are visible by the host)
+            gid = torch.arange(g.shape[1], device=g.device) if ids is None else ids
+            seen = vis[c]
+            norms = torch.where(seen, g[c].norm(dim=-1), 0.0).to(state["grad2d"].dtype)
             state["grad2d"].index_add_(0, gid, norms)
-            state["count"].index_add_(0, gid, torch.ones_like(norms))
+            state["count"].index_add_(0, gid, seen.to(state["count"].dtype))
 
     @torch.no_grad()
     def refine(

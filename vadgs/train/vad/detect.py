@@ -14,7 +14,12 @@ from typing import Any
 
 import torch
 
-from vadgs.train.vad.incomplete import IncompleteConfig, IncompleteInstances, find_incomplete
+from vadgs.train.vad.incomplete import (
+    IncompleteConfig,
+    IncompleteInstances,
+    find_incomplete,
+    find_incomplete_ids,
+)
 from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.reconstruct import ViewRender
 from vadgs.train.vad.state import compact_render, expand_render
@@ -98,14 +103,18 @@ def detect(
 ) -> tuple[IncompleteInstances, list[int]]:
     """The incompleteness test of ``views`` (``VisibilityAwareDensification.detect``'s body).
 
-    A view in ``tests`` (the fields of its one-view test, from the loop's render) is not rendered
-    again; the others are rendered with ``render``. Returns ``(rows, views)``, ``rows.view``
-    indexing ``views``, on the device of the first view's test.
+    A view in ``tests`` (the fields of its one-view test, from the loop's render; with a ninth,
+    the ``tested`` mask of :func:`~vadgs.train.vad.incomplete.find_incomplete_ids`, whose rows it
+    selects here) is not rendered again; the others are rendered with ``render``. Returns
+    ``(rows, views)``, ``rows.view`` indexing ``views``, on the device of the first view's test.
     """
     parts = []
     for k, v in enumerate(views):
         if v in tests:
             fields = tests[v]
+            if len(fields) == len(IncompleteInstances._fields) + 1:  # observe_view's: one row per id
+                keep = torch.nonzero(fields[-1]).squeeze(1)
+                fields = tuple(f[keep] for f in fields[:-1])
         else:
             out = render(v)
             fields = detect_view(index, v, out.depth, out.alpha, incomplete)
@@ -125,6 +134,7 @@ def observe_view(
     inputs: VisibilityInputs,
     incomplete: IncompleteConfig,
     max_bytes: int,
+    num_ids: dict[int, int] | None = None,
 ) -> None:
     """Test the view a loop just trained from its own render in ``info``, and keep that render.
 
@@ -133,7 +143,10 @@ def observe_view(
     (:func:`detect_view`) goes to ``state["vad_tests"]`` and its render to
     ``state["vad_renders"]`` (:func:`keep_render`, up to ``max_bytes``), so that the next event
     does not render it again. Nothing is done without a render, or for a render of another size
-    than the view's (a crop or another scale, e.g. gsplat's ``patch_size``).
+    than the view's (a crop or another scale, e.g. gsplat's ``patch_size``). The test is
+    :func:`~vadgs.train.vad.incomplete.find_incomplete_ids`, without a read by the host when
+    ``num_ids`` (view -> one more than its largest instance id, filled here at a view's first
+    test) is kept between calls; :func:`detect` selects its rows at the event.
     """
     view = info.get("view")
     if view is None:
@@ -148,6 +161,17 @@ def observe_view(
     depth, alpha = view_map(depth), view_map(alpha)
     if tuple(depth.shape[-2:]) != tuple(inputs.size(view)):
         return
-    state.setdefault("vad_tests", {})[view] = detect_view(index, view, depth, alpha, incomplete)
+    num_ids = {} if num_ids is None else num_ids
+    h, w = depth.shape[-2:]
+    ins = index.instances(view)[None, :h, :w]
+    if view not in num_ids:
+        num_ids[view] = int(ins.max()) + 1 if ins.numel() else 1
+    dev = depth.device
+    vox, _ = index.voxel_depth(view)
+    rows, tested = find_incomplete_ids(
+        ins.to(dev), vox[None, :, :h, :w].to(dev), depth.reshape(1, 1, h, w), alpha.reshape(1, 1, h, w),
+        num_ids[view], incomplete,
+    )  # fmt: skip
+    state.setdefault("vad_tests", {})[view] = (*rows, tested)
     normals = torch.zeros(3, *depth.shape[-2:]).to(depth) if normals is None else view_map(normals)
     keep_render(state.setdefault("vad_renders", {}), view, ViewRender(depth, alpha, normals), max_bytes)

@@ -31,7 +31,7 @@ from vadgs.checks import check_fields, check_shape, float_field, int_field, ints
 from vadgs.config import RemovedField
 from vadgs.deprecation import moved_names
 
-__all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete"]
+__all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "find_incomplete_ids"]
 
 if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
     __getattr__ = moved_names(__name__, {"voxel_labels": "vadgs.geometry.voxel"})
@@ -214,3 +214,86 @@ def find_incomplete(
             pixels=pixels[sel],
             voxel_pixels=voxel_pixels[sel],
         )
+
+
+def find_incomplete_ids(
+    instances: torch.Tensor,
+    voxel_depth: torch.Tensor,
+    rendered_depth: torch.Tensor,
+    rendered_alpha: torch.Tensor,
+    num_ids: int,
+    config: IncompleteConfig | None = None,
+) -> tuple[IncompleteInstances, torch.Tensor]:
+    """:func:`find_incomplete` of one view in sizes known beforehand: one row per instance id.
+
+    Every tensor it makes has a size fixed by the view's size and ``num_ids``, so that nothing is
+    read by the host (a synchronisation each on a GPU): for a training step's own render, tested
+    every step (:func:`~vadgs.train.vad.detect.observe_view`). Returns ``(rows, tested)``: row
+    ``i`` is instance id ``i`` of ``[0, num_ids)``, and ``rows`` masked with ``tested`` (bool
+    ``(num_ids,)``) are :func:`find_incomplete`'s rows without voxel labels, value for value (the
+    same sums and the same median element).
+
+    Args:
+        instances: ``(1, H, W)`` int64 instance ids in ``[0, num_ids)``.
+        voxel_depth: ``(1, 1, H, W)``.
+        rendered_depth: ``(1, 1, H, W)``.
+        rendered_alpha: ``(1, 1, H, W)``.
+        num_ids: more than the largest id of ``instances`` (the view's, read once and kept).
+        config: :class:`IncompleteConfig`.
+
+    Example:
+        >>> ins = torch.zeros(1, 8, 8, dtype=torch.long); ins[0, :4] = 5; ins[0, 4:] = 6
+        >>> vox = torch.full((1, 1, 8, 8), 10.0)
+        >>> ren = vox.clone(); ren[0, 0, 4:] = 14.0
+        >>> rows, tested = find_incomplete_ids(ins, vox, ren, torch.ones(1, 1, 8, 8), 7)
+        >>> rows.instance[tested].tolist(), rows.flagged[tested].tolist()
+        ([5, 6], [False, True])
+    """
+    cfg = config or IncompleteConfig()
+    dims = check_shape(instances, "instances", (1, "H", "W"))
+    for name, t in (
+        ("voxel_depth", voxel_depth),
+        ("rendered_depth", rendered_depth),
+        ("rendered_alpha", rendered_alpha),
+    ):
+        check_shape(t, name, (1, 1, "H", "W"), dims)
+    with torch.no_grad():
+        ins = instances.reshape(-1)
+        dev = ins.device
+        m = num_ids
+        keep = ~torch.isin(ins, torch.tensor(cfg.ignore_ids, device=dev, dtype=ins.dtype))
+        seg = torch.where(keep, ins, m)  # the pixels left out: segment m, after every id
+        alpha = rendered_alpha.reshape(-1)
+        vd = voxel_depth.reshape(-1)
+        rd = rendered_depth.reshape(-1)
+        pixels = torch.bincount(seg, minlength=m + 1)[:m]
+        low_n = torch.bincount(seg, weights=(alpha < cfg.alpha_threshold).double(), minlength=m + 1)[:m]
+        low = low_n / pixels.clamp(min=1)
+        has_vox = vd > 0
+        seg_vox = torch.where(has_vox, seg, m)
+        counts = torch.bincount(seg_vox, minlength=m + 1)
+        voxel_pixels = counts[:m]
+        absent = (alpha < cfg.min_alpha_for_depth) | (rd <= 0)
+        ratio = torch.where(absent, torch.full_like(rd, float("inf")), rd / vd.clamp(min=1e-12)).double()
+        # _segment_median's sort (by value, then stably by segment) of every pixel, the pixels
+        # without a voxel depth or left out in segment m, last
+        order = torch.argsort(ratio, stable=True)
+        order = order[torch.argsort(seg_vox[order], stable=True)]
+        starts = counts.cumsum(0) - counts
+        mid = (starts[:m] + (voxel_pixels - 1).clamp(min=0) // 2).clamp(max=max(ratio.numel() - 1, 0))
+        med = ratio[order][mid] if ratio.numel() else torch.zeros(m, dtype=ratio.dtype, device=dev)
+        med = torch.where(voxel_pixels > 0, med, float("nan"))
+        flagged = ((med > cfg.depth_ratio) | (low > cfg.low_alpha_fraction)) & (pixels >= cfg.min_pixels)
+        tested = (pixels > 0) & (pixels >= cfg.min_pixels)
+        dtype = rendered_depth.dtype
+        rows = IncompleteInstances(
+            view=torch.zeros(m, dtype=torch.long, device=dev),
+            instance=torch.arange(m, device=dev),
+            flagged=flagged,
+            depth_ratio=med.to(dtype),
+            low_alpha=low.to(dtype),
+            foreign=torch.full((m,), float("nan"), dtype=dtype, device=dev),
+            pixels=pixels,
+            voxel_pixels=voxel_pixels,
+        )
+        return rows, tested

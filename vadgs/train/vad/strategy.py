@@ -111,6 +111,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         self._last_call: float | None = None
         self._info_checked = self._post_info_checked = False
         self._train_views: set[int] | None = None
+        self._num_ids: dict[int, int] = {}  # observe_view's: one more than a view's largest instance id
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "log_size":
@@ -228,7 +229,8 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         if view is None or int(view) not in self._train_set():
             return
         mb = self.config.render_cache_mb
-        observe_view(state, info, self.prepare(), self._inputs(), self.config.incomplete, int(mb * 2**20))
+        index, inputs = self.prepare(), self._inputs()
+        observe_view(state, info, index, inputs, self.config.incomplete, int(mb * 2**20), self._num_ids)
 
     def trained_pixels(self, step: int) -> float:
         """Training pixels up to and including ``step``: ``(step + 1)`` × the training views' mean size.
@@ -287,8 +289,10 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             self.index = index
             self.inputs = inputs if inputs is not None else index.inputs
             self._train_views = None
+            self._num_ids = {}
         elif inputs is not None and inputs is not self.inputs:
             self.inputs, self.index, self._train_views = inputs, None, None
+            self._num_ids = {}
         if context is not None:
             self.context = context
         if self.index is None:
