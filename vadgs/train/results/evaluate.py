@@ -138,11 +138,12 @@ def lpips_available() -> tuple[bool, str]:
 def render_test_view(
     model: GaussianModel, scene: Scene, view: int, config: RasterConfig | None = None
 ) -> ModelRender:
-    """Render one view of the scene at its frame (no gradient)."""
+    """Render one view of the scene at its frame (no gradient), on the model's device."""
     cams = scene.cameras([view])
     frame = scene.view_frame_position(view)
+    dev = model.params["means"].device
     with torch.no_grad():
-        return model.render(cams.world_to_cam, cams.K, cams.image_size, frame, config)
+        return model.render(cams.world_to_cam.to(dev), cams.K.to(dev), cams.image_size, frame, config)
 
 
 def _psnr(mse: float) -> float:
