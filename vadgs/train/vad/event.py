@@ -187,11 +187,13 @@ def run_event(
     # the flagged views of each candidate instance, with its pixel count there
     flagged: dict[int, list[tuple[int, int]]] = {}
     skipped: dict[str, int] = {}
-    for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
-        inst = int(rows.instance[k])
+    # every row in one read, (instance, view, pixels) of the flagged ones kept in row order
+    every = torch.stack([rows.instance, rows.view, rows.pixels, rows.flagged.long()], 1).tolist()
+    table = [row[:3] for row in every if row[3]]
+    for inst, view_k, px in table:
         if skip_reason(inst) is None:
-            flagged.setdefault(inst, []).append((views[int(rows.view[k])], int(rows.pixels[k])))
-    flagged_ids = set(rows.instance[rows.flagged].tolist())
+            flagged.setdefault(inst, []).append((views[view_k], px))
+    flagged_ids = {row[0] for row in table}
     for inst in flagged_ids - set(flagged):
         why = skip_reason(inst)  # not None: why it is not in flagged
         if why is not None:
@@ -290,7 +292,7 @@ def run_event(
     entry = {
         "step": step,
         "cycle": state["vad_cycle"],
-        "flagged": int(rows.flagged.sum()),
+        "flagged": len(table),
         "tested": int(rows.flagged.numel()),
         "flagged_instances": len(flagged_ids),
         "candidates": len(best),
