@@ -233,11 +233,10 @@ def run_event(
             f"{k + 1}/{len(ranked)} ({_label(classes.get(inst, '?'), inst)}), "
             f"{time.perf_counter() - t0:.0f} s"
         )
-        whole = (
-            [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
-            if cfg.whole_reference
-            else None
-        )
+        whole = None
+        if cfg.whole_reference:
+            seen = [v for v, _px in flagged[inst]]
+            whole = [v for v, cut in zip(seen, index.cut_by_border_views(seen, inst)) if not cut]
         refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
         entry_views, points, n_new_total, reasons, work0 = [], 0, 0, [], work
         frame_key = inst if inst in inputs.tracks else None

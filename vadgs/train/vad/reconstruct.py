@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
+from vadgs.checks import checking
 from vadgs.deprecation import moved_names
 from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
 from vadgs.select.covisibility import Covisibility
@@ -216,9 +217,10 @@ def _select_among(
     generator: torch.Generator | None,
 ) -> ViewSelection:
     """:func:`select_views` on ``covis``, among the views showing the whole instance when it can."""
-    if cfg.whole_supports and not index.cut_by_border(ref, instance):
-        views = torch.nonzero(frame.allowed).flatten().tolist()
-        cut = torch.tensor([index.cut_by_border(v, instance) for v in views], dtype=torch.bool)
+    views = torch.nonzero(frame.allowed).flatten().tolist() if cfg.whole_supports else []
+    cuts = index.cut_by_border_views([ref, *views], instance) if cfg.whole_supports else [True]
+    if not cuts[0]:  # the reference shows the whole instance
+        cut = torch.tensor(cuts[1:], dtype=torch.bool)
         whole = frame.allowed.clone()
         whole[torch.tensor(views, dtype=torch.long, device=whole.device)[cut.to(whole.device)]] = False
         if int(whole.sum()) > cfg.selection.k:  # the reference is one of them
@@ -344,6 +346,9 @@ def reconstruct_instance(
 
     Returns:
         :class:`InstanceReconstruction` (possibly empty, with the reason).
+
+    The arguments are checked here; the steps run with value checks off
+    (:func:`vadgs.checks.checking`), on tensors built from the index's.
     """
     cfg = config or reconstruct_config.ReconstructConfig()
     unit = index.scene_depth / REFERENCE_DEPTH  # the lengths follow the scene (scene_lengths)
@@ -365,34 +370,39 @@ def reconstruct_instance(
             empty3, empty3, empty3, torch.zeros(0, device=dev), track, views or [ref], [], [], reason
         )
 
-    if int((index.instances(ref) == instance).sum()) < cfg.min_pixels:
-        return nothing("instance_too_small_in_reference")
-    frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
-    if isinstance(frame, str):
-        return nothing(frame)
-    sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
-    group = [ref, *sel.views.tolist()]
-    if len(group) < 2:
-        return nothing(f"selection:{sel.reason}")
-    crops = crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
-    if isinstance(crops, str):
-        return nothing(crops, group)
-    w2c = frame.world_to_cam[group]
-    depth_range = _depth_range(frame, w2c[0], cfg, lengths)
-    w2c = w2c.to(dev)
-    matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
-    work = match_work(matched.masks, len(group) - 1, cfg.patchmatch)
-    planar = cfg.planar is not None and track is None  # a car is not planar
-    cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
-    new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
-    points, normals, colors, spacing = fuse_points(
-        index, cons, matched, crops, new, track, cfg, occupied, generator, dev
-    )  # one point per such pixel, in the instance's frame, thinned
-    full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
-    views = [group[i] for i in crops.members]
-    reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
-    reason += " (seen)" if sel.reason.endswith("(seen)") else ""  # selected on the z-buffers
-    return InstanceReconstruction(
-        points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work,
-        int(cons.keep.sum()),
-    )  # fmt: skip
+    # The steps re-validate nothing: their tensors are built here from the index's (checked when
+    # it was built) and the arguments above; a value check reads the device (a host sync on a GPU).
+    with checking(False):
+        if int((index.instances(ref) == instance).sum()) < cfg.min_pixels:
+            return nothing("instance_too_small_in_reference")
+        frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
+        if isinstance(frame, str):
+            return nothing(frame)
+        sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
+        group = [ref, *sel.views.tolist()]
+        if len(group) < 2:
+            return nothing(f"selection:{sel.reason}")
+        crops = crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
+        if isinstance(crops, str):
+            return nothing(crops, group)
+        w2c = frame.world_to_cam[group]
+        depth_range = _depth_range(frame, w2c[0], cfg, lengths)
+        w2c = w2c.to(dev)
+        matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
+        work = match_work(matched.masks, len(group) - 1, cfg.patchmatch)
+        planar = cfg.planar is not None and track is None  # a car is not planar
+        cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
+        # 5. the unexplained pixels
+        new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)
+        points, normals, colors, spacing = fuse_points(
+            index, cons, matched, crops, new, track, cfg, occupied, generator, dev
+        )  # one point per such pixel, in the instance's frame, thinned
+        full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
+        views = [group[i] for i in crops.members]
+        consistent = int(cons.keep.sum())
+        reason = "ok" if points.shape[0] else ("explained" if consistent else "no_consistent_pixels")
+        reason += " (seen)" if sel.reason.endswith("(seen)") else ""  # selected on the z-buffers
+        return InstanceReconstruction(
+            points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work,
+            consistent,
+        )  # fmt: skip
