@@ -36,6 +36,7 @@ those modules, or from :mod:`vadgs.train.vad`; the old imports still work, with 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING, NamedTuple
@@ -217,16 +218,18 @@ def _select_among(
     generator: torch.Generator | None,
 ) -> ViewSelection:
     """:func:`select_views` on ``covis``, among the views showing the whole instance when it can."""
-    views = torch.nonzero(frame.allowed).flatten().tolist() if cfg.whole_supports else []
-    cuts = index.cut_by_border_views([ref, *views], instance) if cfg.whole_supports else [True]
-    if not cuts[0]:  # the reference shows the whole instance
-        cut = torch.tensor(cuts[1:], dtype=torch.bool)
-        whole = frame.allowed.clone()
-        whole[torch.tensor(views, dtype=torch.long, device=whole.device)[cut.to(whole.device)]] = False
-        if int(whole.sum()) > cfg.selection.k:  # the reference is one of them
-            sel = select_views(ref, covis, cfg.selection, generator, whole)
-            if len(sel.views) == cfg.selection.k:
-                return sel
+    if cfg.whole_supports:
+        allowed = frame.allowed.tolist()  # one read, and one for the border tests
+        views = [v for v, a in enumerate(allowed) if a]
+        cuts = index.cut_by_border_views([ref, *views], instance)
+        if not cuts[0]:  # the reference shows the whole instance
+            for v, cut in zip(views, cuts[1:]):
+                allowed[v] = allowed[v] and not cut
+            if sum(allowed) > cfg.selection.k:  # the reference is one of them
+                whole = torch.tensor(allowed, dtype=torch.bool, device=frame.allowed.device)
+                sel = select_views(ref, covis, cfg.selection, generator, whole)
+                if len(sel.views) == cfg.selection.k:
+                    return sel
     return select_views(ref, covis, cfg.selection, generator, frame.allowed)
 
 
@@ -236,9 +239,19 @@ def _depth_range(
     """PatchMatch's depth range from the instance's voxels as the reference sees them."""
     cen = frame.covis.voxel_centers[frame.voxels]
     z = cen @ w2c_ref[2, :3] + w2c_ref[2, 3]
-    z = z[z > lengths["min_voxel_depth"]]
+    front = z > lengths["min_voxel_depth"]
+    inf = torch.full_like(z, math.inf)
+    n, z_min, z_max = 0, 0.0, 0.0
+    if z.numel():
+        n, z_min, z_max = torch.stack(
+            [
+                front.sum().double(),
+                torch.where(front, z, inf).min().double(),
+                torch.where(front, z, -inf).max().double(),
+            ]
+        ).tolist()  # one read
     near, far = cfg.depth_margin
-    lo, hi = (float(z.min()) * near, float(z.max()) * far) if z.numel() else lengths["fallback_depth_range"]
+    lo, hi = (z_min * near, z_max * far) if n else lengths["fallback_depth_range"]
     lo = max(lo, lengths["min_depth"])
     return lo, max(hi, lo * 4, lengths["min_depth_span"])
 
