@@ -165,12 +165,14 @@ def _instance_frame(
             index.allowed & valid[pos],
         )
     voxels = index.labels == instance
-    if int(voxels.sum()) < cfg.min_instance_voxels:
+    count = int(voxels.sum())
+    if count < cfg.min_instance_voxels:
         _, vidx = index.voxel_raster(ref)
         through = torch.unique(vidx[(index.instances(ref) == instance) & (vidx >= 0)])
         voxels = voxels.clone()
         voxels[through] = True
-    if int(voxels.sum()) == 0:
+        count = int(voxels.sum())
+    if count == 0:
         return "no_voxels"
     return _InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
 
