@@ -95,3 +95,18 @@ def test_normals_veto_inliers_that_disagree():
     side = torch.tensor([[1.0, 0.0, 0.0]]).expand(100, 3)
     assert fit_plane_ransac(pts, 0.01, generator=g, normals=up).inliers.all()
     assert not fit_plane_ransac(pts, 0.01, generator=g, normals=side, max_angle=30.0).inliers.any()
+
+
+@pytest.mark.parametrize("max_gap", [0.0, 1.0, 2.5, 8.0])
+def test_near_is_scipys_distance_transform_within_the_gap(max_gap):
+    """The device dilation that replaced scipy's ``distance_transform_edt`` through ``.cpu()``."""
+    from scipy import ndimage
+
+    from vadgs.mvs.planar import _near
+
+    g = torch.Generator().manual_seed(int(max_gap * 10))
+    for density in (0.002, 0.02, 0.2):
+        mask = torch.rand(37, 53, generator=g) < density
+        mask[0, 0] = True  # at least one set pixel (the transform's zeros)
+        edt = torch.from_numpy(ndimage.distance_transform_edt(~mask.numpy()))
+        assert torch.equal(_near(mask, max_gap), edt <= max_gap)

@@ -145,12 +145,11 @@ def fuse_depth_maps(
     cols = images.reshape(b, c, p)
     cos_max = torch.cos(torch.deg2rad(torch.tensor(cfg.max_normal_angle, dtype=dt, device=dev)))
     used = ~valid
-    out_p, out_n, out_c, out_v, out_k = [], [], [], [], []
+    out_p, out_n, out_c, out_v, out_k, out_keep = [], [], [], [], [], []
     for i in range(b):
-        cand = ~used[i]
-        if not bool(cand.any()):
+        sel = torch.nonzero(~used[i]).flatten()  # the view's one read: its pixels not yet used
+        if sel.numel() == 0:
             continue
-        sel = torch.nonzero(cand).flatten()
         x = pts_world[i][:, sel]  # (3, M)
         sum_p, sum_n, sum_c = x.clone(), nrm_world[i][:, sel].clone(), cols[i][:, sel].clone()
         count = torch.ones(sel.shape[0], dtype=torch.long, device=dev)
@@ -184,20 +183,28 @@ def fuse_depth_maps(
             count += ok.long()
             hits.append((j, lin, ok))
         keep = count >= cfg.min_views + 1
-        for j, lin, ok in hits:
-            used[j, lin[ok & keep]] = True
+        for j, lin, ok in hits:  # used[j, lin[ok & keep]] = True without reading the mask
+            taken = torch.zeros(p, dtype=torch.int32, device=dev).index_add_(0, lin, (ok & keep).int())
+            used[j] |= taken > 0
         used[i, sel] = True
-        k = keep.nonzero().flatten()
-        n_k = count[k].to(dt)
-        out_p.append((sum_p[:, k] / n_k).T)
-        out_n.append(F.normalize(sum_n[:, k], dim=0).T)
-        out_c.append((sum_c[:, k] / n_k).T.clamp(0, 1))
-        out_v.append(torch.full((k.shape[0],), i, dtype=torch.long, device=dev))
-        out_k.append(count[k])
+        out_p.append(sum_p)
+        out_n.append(sum_n)
+        out_c.append(sum_c)
+        out_v.append(torch.full((sel.shape[0],), i, dtype=torch.long, device=dev))
+        out_k.append(count)
+        out_keep.append(keep)
     if not out_p:
         empty = torch.zeros(0, 3, device=dev, dtype=dt)
         idx = torch.zeros(0, dtype=torch.long, device=dev)
         return FusedPoints(empty, empty.clone(), torch.zeros(0, c, device=dev, dtype=dt), idx, idx.clone())
+    # the kept candidates of every view in one read, in view order
+    k = torch.cat(out_keep).nonzero().flatten()
+    counts = torch.cat(out_k)[k]
+    n_k = counts.to(dt)
     return FusedPoints(
-        torch.cat(out_p), torch.cat(out_n), torch.cat(out_c), torch.cat(out_v), torch.cat(out_k)
+        (torch.cat(out_p, 1)[:, k] / n_k).T,
+        F.normalize(torch.cat(out_n, 1)[:, k], dim=0).T,
+        (torch.cat(out_c, 1)[:, k] / n_k).T.clamp(0, 1),
+        torch.cat(out_v)[k],
+        counts,
     )

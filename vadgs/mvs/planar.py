@@ -87,6 +87,18 @@ def fit_plane_ransac(
     check_finite(thr_in, "threshold")
     if checks_enabled() and bool((thr_in <= 0).any()):
         raise ValueError(f"threshold: expected positive inlier distances, got min {float(thr_in.min()):g}")
+    return _fit_plane(points, threshold, iterations, generator, normals_in, max_angle)
+
+
+def _fit_plane(
+    points: torch.Tensor,
+    threshold: float | torch.Tensor,
+    iterations: int,
+    generator: torch.Generator | None,
+    normals_in: torch.Tensor | None,
+    max_angle: float,
+) -> PlaneFit | None:
+    """:func:`fit_plane_ransac` without its input checks (inputs its caller built): two host reads."""
     n = points.shape[0]
     if n < 3:
         return None
@@ -95,8 +107,8 @@ def fit_plane_ransac(
     a, b, c = points[idx[:, 0]], points[idx[:, 1]], points[idx[:, 2]]
     normals = torch.cross(b - a, c - a, dim=-1)
     norm = normals.norm(dim=-1)
-    ok = norm > 1e-9
-    if not bool(ok.any()):
+    ok = torch.nonzero(norm > 1e-9).squeeze(1)  # one read: the non-degenerate triples
+    if ok.numel() == 0:
         return None
     normals = normals[ok] / norm[ok, None]
     offsets = -(normals * a[ok]).sum(-1)
@@ -112,16 +124,29 @@ def fit_plane_ransac(
         return inl
 
     agree = inliers_of(normals, offsets)
-    best = int(agree.sum(0).argmax())
-    normal, offset, inliers = normals[best], offsets[best], agree[:, best]
+    best = agree.sum(0).argmax()[None]  # stays on the device: a (1,) index reads nothing
+    normal, offset, inliers = normals[best][0], offsets[best][0], agree[:, best][:, 0]
     # least-squares refinement on the inliers (smallest singular vector of the centred points)
-    p = points[inliers]
+    p = points[inliers]  # one read
     if p.shape[0] >= 3:
         centre = p.mean(0)
         normal = torch.linalg.svd(p - centre, full_matrices=False).Vh[-1]
         offset = -(normal * centre).sum()
         inliers = inliers_of(normal[None], offset[None])[:, 0]
     return PlaneFit(normal, offset, inliers)
+
+
+def _near(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
+    """``(H, W)`` bool: pixels within Euclidean distance ``max_gap`` of a set pixel of ``mask``.
+
+    ``distance_transform_edt(~mask) <= max_gap`` on the mask's device: a dilation by the disk of
+    integer offsets ``dy^2 + dx^2 <= max_gap^2`` (one convolution, no host read).
+    """
+    r = max(0, math.floor(max_gap))
+    off = torch.arange(-r, r + 1, device=mask.device, dtype=torch.float64)
+    disk = (off[:, None] ** 2 + off[None, :] ** 2 <= max_gap * max_gap).to(torch.float32)
+    hits = torch.nn.functional.conv2d(mask[None, None].to(torch.float32), disk[None, None], padding=r)
+    return hits[0, 0] > 0.5
 
 
 @dataclass(frozen=True)
@@ -199,53 +224,62 @@ def complete_planar(
     check_shape(src_regions, "src_regions", ("V", 1, "Hs", "Ws"), sd)
     none = torch.zeros_like(valid)
     zero_n = torch.zeros(3, dtype=depth.dtype, device=depth.device)
+    if sd["V"] == 0:
+        return depth, zero_n, none
     good = valid & region & (depth > 0)
-    if int(good.sum()) < cfg.min_pixels or sd["V"] == 0:
+    gy, gx = torch.nonzero(good[0], as_tuple=True)  # one read: the consistent pixels, row-major
+    if gy.numel() < cfg.min_pixels:
         return depth, zero_n, none
     pts = backproject_depth(depth[None], K[None])[0]  # (3, H, W) camera frame
-    p = pts[:, good[0]].T
+    p = pts[:, gy, gx].T
     nrm, angle = None, 90.0  # the angle is unused without normals
     if normal is not None and cfg.max_normal_angle is not None:
-        nrm = torch.nn.functional.normalize(normal[:, good[0]].T, dim=-1)
+        nrm = torch.nn.functional.normalize(normal[:, gy, gx].T, dim=-1)
         angle = cfg.max_normal_angle
-    fit = fit_plane_ransac(p, cfg.rel_threshold * p[:, 2], cfg.iterations, generator, nrm, angle)
-    if fit is None or float(fit.inliers.float().mean()) < cfg.min_inlier_ratio:
+    fit = _fit_plane(p, cfg.rel_threshold * p[:, 2], cfg.iterations, generator, nrm, angle)
+    if fit is None:
+        return depth, zero_n, none
+    inf = torch.full_like(p[:, 2], math.inf)
+    ratio, off, z_min, z_max = torch.stack(
+        [
+            fit.inliers.float().mean().double(),
+            fit.offset.double(),
+            torch.where(fit.inliers, p[:, 2], inf).min().double(),
+            torch.where(fit.inliers, p[:, 2], -inf).max().double(),
+        ]
+    ).tolist()  # one read (float64 holds each value exactly)
+    if ratio < cfg.min_inlier_ratio:
         return depth, zero_n, none
     normal, offset = fit.normal, fit.offset
-    if float(offset) < 0:  # the camera (origin) on the positive side: the normal faces it
+    if off < 0:  # the camera (origin) on the positive side: the normal faces it
         normal, offset = -normal, -offset
     # candidates: empty region pixels near an inlier
-    from scipy import ndimage
-
-    inl = torch.zeros_like(good)
-    inl[good] = fit.inliers
-    gap = torch.from_numpy(ndimage.distance_transform_edt(~inl[0].cpu().numpy())).to(depth)
-    cand = region & ~good & (gap[None] <= cfg.max_gap)
-    if not bool(cand.any()):
+    inl = torch.zeros_like(good[0])
+    inl[gy, gx] = fit.inliers
+    cand = region & ~good & _near(inl, cfg.max_gap)[None]
+    ys, xs = torch.nonzero(cand[0], as_tuple=True)  # one read
+    if ys.numel() == 0:
         return depth, normal, none
-    ys, xs = torch.nonzero(cand[0], as_tuple=True)
     pix = torch.stack([xs, ys, torch.ones_like(xs)], -1).to(depth)
     rays = pix @ torch.linalg.inv(K).T
     den = rays @ normal
     z = -offset / torch.where(den.abs() > 1e-9, den, torch.full_like(den, 1e-9))
-    zref = p[fit.inliers, 2]
-    ok = (z > 0.5 * float(zref.min())) & (z < 2.0 * float(zref.max()))
+    ok = (z > 0.5 * z_min) & (z < 2.0 * z_max)
     cam = rays * z[:, None]
     world = cam @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
     colour = image[:, ys, xs].T  # (P, 3)
-    agree = torch.zeros_like(z, dtype=torch.long)
     v = sd["V"]
     uv, zs = project_points(world[None].expand(v, -1, -1), src_K, src_world_to_cam)
     qx, qy = uv[..., 0].round().long(), uv[..., 1].round().long()
     inside = (zs > 0) & (qx >= 0) & (qx < sd["Ws"]) & (qy >= 0) & (qy < sd["Hs"])
     qx, qy = qx.clamp(0, sd["Ws"] - 1), qy.clamp(0, sd["Hs"] - 1)
-    for j in range(v):
-        sc = src_images[j][:, qy[j], qx[j]].T
-        match = (sc - colour).abs().mean(-1) <= cfg.color_tolerance
-        agree += (inside[j] & src_regions[j, 0, qy[j], qx[j]] & match).long()
+    views = torch.arange(v, device=qx.device)[:, None]
+    sc = src_images.permute(0, 2, 3, 1)[views, qy, qx]  # (V, P, 3): each view's colour there
+    match = (sc - colour).abs().mean(-1) <= cfg.color_tolerance
+    agree = (inside & src_regions[views, 0, qy, qx] & match).long().sum(0)
     keep = ok & (agree >= cfg.min_views)
     out = depth.clone()
     added = torch.zeros_like(valid)
-    out[0, ys[keep], xs[keep]] = z[keep]
-    added[0, ys[keep], xs[keep]] = True
+    out[0, ys, xs] = torch.where(keep, z, out[0, ys, xs])
+    added[0, ys, xs] = keep
     return out, normal, added

@@ -23,7 +23,7 @@ from functools import cached_property
 import scipy.sparse
 import torch
 
-from vadgs.checks import check_finite, check_shape
+from vadgs.checks import check_finite, check_shape, checks_enabled
 
 __all__ = ["Covisibility", "sparse_gram", "view_voxel_incidence"]
 
@@ -234,9 +234,14 @@ class Covisibility:
         voxel_ptr = torch.searchsorted(cols[order], torch.arange(self.num_voxels + 1, device=device))
         return view_ptr, order, voxel_ptr
 
+    @cached_property
+    def _view_ptr(self) -> list[int]:
+        """The view row pointers on the host (one read, kept)."""
+        return self._csr[0].tolist()
+
     def voxels_of(self, view: int) -> torch.Tensor:
         """Sorted ids of the voxels view ``view`` sees."""
-        view_ptr = self._csr[0]
+        view_ptr = self._view_ptr
         return self.incidence.indices()[1, view_ptr[view] : view_ptr[view + 1]]
 
     def seen_by(self, view: int) -> torch.Tensor:
@@ -259,12 +264,12 @@ class Covisibility:
         """
         _, order, voxel_ptr = self._csr
         starts, lens = voxel_ptr[voxels], voxel_ptr[voxels + 1] - voxel_ptr[voxels]
-        total = int(lens.sum())
-        offsets = torch.arange(total, device=lens.device) - torch.repeat_interleave(
-            lens.cumsum(0) - lens, lens
-        )
-        entries = order[torch.repeat_interleave(starts, lens) + offsets]
-        positions = torch.repeat_interleave(torch.arange(len(voxels), device=lens.device), lens)
+        ends = lens.cumsum(0)
+        total = int(ends[-1]) if len(voxels) else 0  # the one read
+        # the voxel of each entry: the first whose running end lies beyond it (empty ones skipped)
+        positions = torch.searchsorted(ends, torch.arange(total, device=lens.device), right=True)
+        offsets = torch.arange(total, device=lens.device) - (ends - lens)[positions]
+        entries = order[starts[positions] + offsets]
         return self.incidence.indices()[0, entries], positions
 
     def restrict(
@@ -295,19 +300,21 @@ class Covisibility:
             ids = torch.nonzero(voxel_mask.to(device)).squeeze(1)
         else:
             ids = voxel_mask.long().to(device)
-            if ids.dim() != 1 or (len(ids) > 1 and not bool((ids[1:] > ids[:-1]).all())):
+            increasing = len(ids) < 2 or not checks_enabled() or bool((ids[1:] > ids[:-1]).all())
+            if ids.dim() != 1 or not increasing:
                 raise ValueError("voxel_mask: expected a bool mask or increasing 1-D voxel ids")
         rows, cols = self.entries_of(ids)
         num_views = self.num_views
         w2c, cams, frames = self.world_to_cam, self.camera_ids, self.frame_ids
         if views is not None:
             views = views.long().to(device)
-            if views.dim() != 1 or (len(views) > 1 and not bool((views[1:] > views[:-1]).all())):
+            increasing = len(views) < 2 or not checks_enabled() or bool((views[1:] > views[:-1]).all())
+            if views.dim() != 1 or not increasing:
                 raise ValueError("views: expected increasing 1-D view ids")
             new_view = torch.full((self.num_views,), -1, dtype=torch.long, device=device)
             new_view[views] = torch.arange(len(views), device=device)
             rows = new_view[rows]
-            keep = rows >= 0
+            keep = torch.nonzero(rows >= 0).squeeze(1)  # one read for both
             rows, cols = rows[keep], cols[keep]
             num_views = len(views)
             w2c = w2c[views]

@@ -230,8 +230,10 @@ def select_views(
         shared_ref = torch.bincount(entry_views, minlength=num)
         mask = (shared_ref >= config.min_shared) & ok
         mask[ref] = False
-        views = torch.nonzero(mask | (torch.arange(num, device=device) == ref)).squeeze(1)
-        local_ref = int(torch.nonzero(views == ref))
+        flags = (mask | (torch.arange(num, device=device) == ref)).tolist()  # one read
+        kept = [v for v, f in enumerate(flags) if f]
+        views = torch.tensor(kept, dtype=torch.long, device=device)
+        local_ref = kept.index(ref)
         scores = diversity_scores(covis.restrict(seen, views), config.eps, config.count_exponent)
         s_ref = scores.score[local_ref]
         local = torch.nonzero(s_ref > 0).squeeze(1)  # excludes ref (0 on the diagonal)

@@ -83,21 +83,43 @@ def match_scale(
     return MatchScale(1, down)
 
 
+def _mask_boxes(masks: Sequence[torch.Tensor]) -> tuple[list[int], list[tuple[int, int, int, int]]]:
+    """Each mask's pixel count and bounding box ``(y_min, y_max, x_min, x_max)``, in one host read.
+
+    A mask without pixels gets the box ``(0, -1, 0, -1)``.
+    """
+    m = torch.stack(list(masks))  # (M, H, W): the masks of one index share its size
+    rows, cols = m.any(-1), m.any(-2)  # (M, H), (M, W)
+    hh, ww = rows.shape[-1], cols.shape[-1]
+    stats = torch.stack(
+        [
+            m.sum((-2, -1)),
+            rows.int().argmax(-1),
+            hh - 1 - rows.flip(-1).int().argmax(-1),
+            cols.int().argmax(-1),
+            ww - 1 - cols.flip(-1).int().argmax(-1),
+        ],
+        1,
+    ).tolist()
+    sizes = [s[0] for s in stats]
+    boxes = [(s[1], s[2], s[3], s[4]) if s[0] else (0, -1, 0, -1) for s in stats]
+    return sizes, boxes
+
+
 def _crops(
-    masks: Sequence[torch.Tensor], margin: int, size: tuple[int, int], max_crop: int
+    boxes: Sequence[tuple[int, int, int, int]], margin: int, size: tuple[int, int], max_crop: int
 ) -> tuple[list[tuple[int, int]], int, int]:
-    """One crop size for all masks and each crop's top-left corner.
+    """One crop size for all masks (their :func:`_mask_boxes`) and each crop's top-left corner.
 
     The size is the largest bounding box plus margin (capped); each crop is centred on its mask's
     box and clipped to the image.
     """
     hh, ww = size
     centres, hs, ws = [], [], []
-    for m in masks:
-        ys, xs = m.nonzero(as_tuple=True)
-        centres.append(((int(ys.min()) + int(ys.max())) // 2, (int(xs.min()) + int(xs.max())) // 2))
-        hs.append(int(ys.max()) - int(ys.min()) + 1 + 2 * margin)
-        ws.append(int(xs.max()) - int(xs.min()) + 1 + 2 * margin)
+    for y_min, y_max, x_min, x_max in boxes:
+        centres.append(((y_min + y_max) // 2, (x_min + x_max) // 2))
+        hs.append(y_max - y_min + 1 + 2 * margin)
+        ws.append(x_max - x_min + 1 + 2 * margin)
     ch, cw = min(max(hs), max_crop, hh), min(max(ws), max_crop, ww)
     corners = [(min(max(cy - ch // 2, 0), hh - ch), min(max(cx - cw // 2, 0), ww - cw)) for cy, cx in centres]
     return corners, ch, cw
@@ -210,11 +232,11 @@ def crop_group(
     inputs = index.inputs
     h, w = index.cameras.image_size
     masks = [index.instances(v) == instance for v in group]
-    sizes = [int(m.sum()) for m in masks]
+    sizes, boxes = _mask_boxes(masks)
     members = [i for i, n in enumerate(sizes) if n >= cfg.min_pixels]
     if len(members) < 2:
         return "instance_seen_in_fewer_than_two_group_views"
-    corners, ch, cw = _crops([masks[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
+    corners, ch, cw = _crops([boxes[i] for i in members], cfg.margin, (h, w), cfg.max_crop)
     native = inputs.native_factor  # the files' resolution
     scale = match_scale(max(sizes[i] for i in members), (ch, cw), native, cfg)
     if scale.down > 1:

@@ -187,11 +187,13 @@ def run_event(
     # the flagged views of each candidate instance, with its pixel count there
     flagged: dict[int, list[tuple[int, int]]] = {}
     skipped: dict[str, int] = {}
-    for k in torch.nonzero(rows.flagged).squeeze(1).tolist():
-        inst = int(rows.instance[k])
+    # every row in one read, (instance, view, pixels) of the flagged ones kept in row order
+    every = torch.stack([rows.instance, rows.view, rows.pixels, rows.flagged.long()], 1).tolist()
+    table = [row[:3] for row in every if row[3]]
+    for inst, view_k, px in table:
         if skip_reason(inst) is None:
-            flagged.setdefault(inst, []).append((views[int(rows.view[k])], int(rows.pixels[k])))
-    flagged_ids = set(rows.instance[rows.flagged].tolist())
+            flagged.setdefault(inst, []).append((views[view_k], px))
+    flagged_ids = {row[0] for row in table}
     for inst in flagged_ids - set(flagged):
         why = skip_reason(inst)  # not None: why it is not in flagged
         if why is not None:
@@ -231,11 +233,10 @@ def run_event(
             f"{k + 1}/{len(ranked)} ({_label(classes.get(inst, '?'), inst)}), "
             f"{time.perf_counter() - t0:.0f} s"
         )
-        whole = (
-            [v for v, _px in flagged[inst] if not index.cut_by_border(v, inst)]
-            if cfg.whole_reference
-            else None
-        )
+        whole = None
+        if cfg.whole_reference:
+            seen = [v for v, _px in flagged[inst]]
+            whole = [v for v, cut in zip(seen, index.cut_by_border_views(seen, inst)) if not cut]
         refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
         entry_views, points, n_new_total, reasons, work0 = [], 0, 0, [], work
         frame_key = inst if inst in inputs.tracks else None
@@ -290,7 +291,7 @@ def run_event(
     entry = {
         "step": step,
         "cycle": state["vad_cycle"],
-        "flagged": int(rows.flagged.sum()),
+        "flagged": len(table),
         "tested": int(rows.flagged.numel()),
         "flagged_instances": len(flagged_ids),
         "candidates": len(best),

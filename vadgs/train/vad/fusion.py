@@ -191,7 +191,7 @@ def fuse_points(
         local, taken = points, None if occupied is None else occupied.to(device)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
             local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
-        keep = thin_points(local, float(spacing.median()), taken)
+        keep = thin_points(local, float(spacing.median()), taken).nonzero().squeeze(1)  # one read
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)

@@ -65,10 +65,11 @@ def flat_gaussians(
     p = getattr(params, "params", params)
     ref = p[names.means]
     dev, dt = ref.device, ref.dtype
-    if keep is None:
-        keep = torch.ones(rec.points.shape[0], dtype=torch.bool, device=rec.points.device)
-    keep = keep.to(rec.points.device)
-    pts, nrm, col, spc = (x[keep].to(dev, dt) for x in (rec.points, rec.normals, rec.colors, rec.spacing))
+    fields: tuple[torch.Tensor, ...] = (rec.points, rec.normals, rec.colors, rec.spacing)
+    if keep is not None:  # one read for the four fields
+        rows = keep.to(rec.points.device).nonzero().squeeze(1)
+        fields = tuple(x[rows] for x in fields)
+    pts, nrm, col, spc = (x.to(dev, dt) for x in fields)
     m = pts.shape[0]
     width = spc.clamp(min=1e-4)
     opacity = torch.full((m,), new_opacity, device=dev, dtype=dt)

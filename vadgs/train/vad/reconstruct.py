@@ -36,12 +36,14 @@ those modules, or from :mod:`vadgs.train.vad`; the old imports still work, with 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
+from vadgs.checks import checking
 from vadgs.deprecation import moved_names
 from vadgs.mvs.patchmatch import PatchMatchConfig, patchmatch
 from vadgs.select.covisibility import Covisibility
@@ -163,12 +165,14 @@ def _instance_frame(
             index.allowed & valid[pos],
         )
     voxels = index.labels == instance
-    if int(voxels.sum()) < cfg.min_instance_voxels:
+    count = int(voxels.sum())
+    if count < cfg.min_instance_voxels:
         _, vidx = index.voxel_raster(ref)
         through = torch.unique(vidx[(index.instances(ref) == instance) & (vidx >= 0)])
         voxels = voxels.clone()
         voxels[through] = True
-    if int(voxels.sum()) == 0:
+        count = int(voxels.sum())
+    if count == 0:
         return "no_voxels"
     return _InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
 
@@ -216,15 +220,18 @@ def _select_among(
     generator: torch.Generator | None,
 ) -> ViewSelection:
     """:func:`select_views` on ``covis``, among the views showing the whole instance when it can."""
-    if cfg.whole_supports and not index.cut_by_border(ref, instance):
-        views = torch.nonzero(frame.allowed).flatten().tolist()
-        cut = torch.tensor([index.cut_by_border(v, instance) for v in views], dtype=torch.bool)
-        whole = frame.allowed.clone()
-        whole[torch.tensor(views, dtype=torch.long, device=whole.device)[cut.to(whole.device)]] = False
-        if int(whole.sum()) > cfg.selection.k:  # the reference is one of them
-            sel = select_views(ref, covis, cfg.selection, generator, whole)
-            if len(sel.views) == cfg.selection.k:
-                return sel
+    if cfg.whole_supports:
+        allowed = frame.allowed.tolist()  # one read, and one for the border tests
+        views = [v for v, a in enumerate(allowed) if a]
+        cuts = index.cut_by_border_views([ref, *views], instance)
+        if not cuts[0]:  # the reference shows the whole instance
+            for v, cut in zip(views, cuts[1:]):
+                allowed[v] = allowed[v] and not cut
+            if sum(allowed) > cfg.selection.k:  # the reference is one of them
+                whole = torch.tensor(allowed, dtype=torch.bool, device=frame.allowed.device)
+                sel = select_views(ref, covis, cfg.selection, generator, whole)
+                if len(sel.views) == cfg.selection.k:
+                    return sel
     return select_views(ref, covis, cfg.selection, generator, frame.allowed)
 
 
@@ -234,9 +241,19 @@ def _depth_range(
     """PatchMatch's depth range from the instance's voxels as the reference sees them."""
     cen = frame.covis.voxel_centers[frame.voxels]
     z = cen @ w2c_ref[2, :3] + w2c_ref[2, 3]
-    z = z[z > lengths["min_voxel_depth"]]
+    front = z > lengths["min_voxel_depth"]
+    inf = torch.full_like(z, math.inf)
+    n, z_min, z_max = 0, 0.0, 0.0
+    if z.numel():
+        n, z_min, z_max = torch.stack(
+            [
+                front.sum().double(),
+                torch.where(front, z, inf).min().double(),
+                torch.where(front, z, -inf).max().double(),
+            ]
+        ).tolist()  # one read
     near, far = cfg.depth_margin
-    lo, hi = (float(z.min()) * near, float(z.max()) * far) if z.numel() else lengths["fallback_depth_range"]
+    lo, hi = (z_min * near, z_max * far) if n else lengths["fallback_depth_range"]
     lo = max(lo, lengths["min_depth"])
     return lo, max(hi, lo * 4, lengths["min_depth_span"])
 
@@ -344,6 +361,9 @@ def reconstruct_instance(
 
     Returns:
         :class:`InstanceReconstruction` (possibly empty, with the reason).
+
+    The arguments are checked here; the steps run with value checks off
+    (:func:`vadgs.checks.checking`), on tensors built from the index's.
     """
     cfg = config or reconstruct_config.ReconstructConfig()
     unit = index.scene_depth / REFERENCE_DEPTH  # the lengths follow the scene (scene_lengths)
@@ -365,34 +385,39 @@ def reconstruct_instance(
             empty3, empty3, empty3, torch.zeros(0, device=dev), track, views or [ref], [], [], reason
         )
 
-    if int((index.instances(ref) == instance).sum()) < cfg.min_pixels:
-        return nothing("instance_too_small_in_reference")
-    frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
-    if isinstance(frame, str):
-        return nothing(frame)
-    sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
-    group = [ref, *sel.views.tolist()]
-    if len(group) < 2:
-        return nothing(f"selection:{sel.reason}")
-    crops = crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
-    if isinstance(crops, str):
-        return nothing(crops, group)
-    w2c = frame.world_to_cam[group]
-    depth_range = _depth_range(frame, w2c[0], cfg, lengths)
-    w2c = w2c.to(dev)
-    matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
-    work = match_work(matched.masks, len(group) - 1, cfg.patchmatch)
-    planar = cfg.planar is not None and track is None  # a car is not planar
-    cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
-    new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)  # 5. unexplained pixels
-    points, normals, colors, spacing = fuse_points(
-        index, cons, matched, crops, new, track, cfg, occupied, generator, dev
-    )  # one point per such pixel, in the instance's frame, thinned
-    full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
-    views = [group[i] for i in crops.members]
-    reason = "ok" if points.shape[0] else ("explained" if bool(cons.keep.any()) else "no_consistent_pixels")
-    reason += " (seen)" if sel.reason.endswith("(seen)") else ""  # selected on the z-buffers
-    return InstanceReconstruction(
-        points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work,
-        int(cons.keep.sum()),
-    )  # fmt: skip
+    # The steps re-validate nothing: their tensors are built here from the index's (checked when
+    # it was built) and the arguments above; a value check reads the device (a host sync on a GPU).
+    with checking(False):
+        if int((index.instances(ref) == instance).sum()) < cfg.min_pixels:
+            return nothing("instance_too_small_in_reference")
+        frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
+        if isinstance(frame, str):
+            return nothing(frame)
+        sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
+        group = [ref, *sel.views.tolist()]
+        if len(group) < 2:
+            return nothing(f"selection:{sel.reason}")
+        crops = crop_group(index, group, instance, track, cfg, dev)  # 3. crops and PatchMatch
+        if isinstance(crops, str):
+            return nothing(crops, group)
+        w2c = frame.world_to_cam[group]
+        depth_range = _depth_range(frame, w2c[0], cfg, lengths)
+        w2c = w2c.to(dev)
+        matched = _match(index, crops, group, w2c, depth_range, cfg, render_prior)
+        work = match_work(matched.masks, len(group) - 1, cfg.patchmatch)
+        planar = cfg.planar is not None and track is None  # a car is not planar
+        cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
+        # 5. the unexplained pixels
+        new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)
+        points, normals, colors, spacing = fuse_points(
+            index, cons, matched, crops, new, track, cfg, occupied, generator, dev
+        )  # one point per such pixel, in the instance's frame, thinned
+        full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
+        views = [group[i] for i in crops.members]
+        consistent = int(cons.keep.sum())
+        reason = "ok" if points.shape[0] else ("explained" if consistent else "no_consistent_pixels")
+        reason += " (seen)" if sel.reason.endswith("(seen)") else ""  # selected on the z-buffers
+        return InstanceReconstruction(
+            points, normals, colors, spacing, track, views, full_depth, full_normal, reason, work,
+            consistent,
+        )  # fmt: skip

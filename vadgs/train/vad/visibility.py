@@ -112,9 +112,27 @@ class VisibilityIndex:
         Such a view shows only part of the instance (e.g. the top of a sign above the frame of a
         close view). An instance that is not in the view is not cut.
         """
-        h, w = self.size(view)
-        m = self.instances(view)[:h, :w] == instance
-        return bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+        return self.cut_by_border_views([view], instance)[0]
+
+    def cut_by_border_views(self, views: Sequence[int], instance: int) -> list[bool]:
+        """:meth:`cut_by_border` of each of ``views``, in one host read (views of a size batched)."""
+        by_size: dict[tuple[int, int], list[int]] = {}
+        for k, v in enumerate(views):
+            by_size.setdefault(self.size(v), []).append(k)
+        order: list[int] = []
+        parts = []
+        for (h, w), ks in by_size.items():
+            m = torch.stack([self.instances(views[k])[:h, :w] for k in ks]) == instance  # (n, h, w)
+            edges = torch.cat([m[:, 0], m[:, -1], m[:, :, 0], m[:, :, -1]], 1)  # (n, 2w + 2h)
+            parts.append(edges.any(1))
+            order += ks
+        if not parts:
+            return []
+        flags = torch.cat(parts).tolist()
+        out = [False] * len(views)
+        for k, f in zip(order, flags):
+            out[k] = bool(f)
+        return out
 
     def valid(self, view: int) -> torch.Tensor:
         """``(H, W)`` bool at the padded size: the view's own pixels."""

@@ -1,0 +1,56 @@
+"""A VAD-GS event's host reads (issue 48 item 2), counted on the CPU so that they cannot drift back.
+
+:class:`tests.launch_count.LaunchCounter` counts every read of a tensor value by the host (one
+synchronisation on a GPU: ``.item()``, ``int(t)``, ``.tolist()``, ``nonzero``, boolean-mask
+indexing) while one event runs for real (detection, selection, crops, PatchMatch, consistency,
+planar completion, fusion, new Gaussians) on the bundled sample at half resolution (120x72),
+after one sampling cycle (every view's caches and tests filled, as in a training).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from ...launch_count import LaunchCounter
+
+#: Host reads per attempted instance: measured 972 before the event's reads were gathered
+#: (int() per flagged row, per-mask crop boxes, planar completion and fusion per pixel set, value
+#: checks of tensors the event built), 172 after; PatchMatch's own are about 27 of them.
+MAX_READS_PER_INSTANCE = 200
+
+
+@pytest.fixture(scope="module")
+def counted_event():
+    from vadgs.data import load_scene, sample_scene_path
+    from vadgs.train.config import TrainConfig
+    from vadgs.train.trainer import Trainer
+    from vadgs.train.vad import VisibilityDensifyConfig
+
+    scene = load_scene(sample_scene_path(), scale=0.5)  # 18 training views
+    vad = VisibilityDensifyConfig(every_cycles=10**6, work_budget=None, max_instances=2)
+    with pytest.warns(UserWarning, match="no VAD-GS event"):  # the event is called by hand below
+        trainer = Trainer(scene, TrainConfig(iterations=10**6, checkpoint_every=0, vad=vad), progress=False)
+    for _ in range(20):  # one full cycle: the event reuses every view's render and test
+        trainer.train_step()
+    with LaunchCounter() as counter:
+        entry = trainer.strategy.densify(trainer.model.params, trainer.optimizer, trainer.state, trainer.step)
+    return entry, counter
+
+
+def test_an_event_reads_the_device_a_bounded_number_of_times_per_instance(counted_event):
+    entry, counter = counted_event
+    assert entry["attempted"] >= 1 and entry["added"] > 0  # a real event: PatchMatch ran, points added
+    assert entry["views_rendered"] == 0  # the loop's renders reused: no rasterizer read counted
+    per_instance = counter.host_reads / entry["attempted"]
+    assert per_instance <= MAX_READS_PER_INSTANCE, (counter.host_reads, entry["attempted"])
+
+
+def test_the_counter_sees_the_reads_it_bounds():
+    """The counter counts what the bound is about: one ``tolist`` for many values, one per ``int``."""
+    x = torch.arange(6)
+    with LaunchCounter() as gathered:
+        _ = torch.stack([x.sum(), x.max(), (x > 2).sum()]).tolist()
+    with LaunchCounter() as apart:
+        _ = [int(x.sum()), int(x.max()), int((x > 2).sum())]
+    assert (gathered.host_reads, apart.host_reads) == (1, 3)
