@@ -34,6 +34,7 @@ import math
 import numbers
 import operator
 import os
+import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
@@ -74,11 +75,13 @@ MAX_THREADS = 1024
 
 _OFF = {"0", "false", "off", "no"}
 _enabled: bool = os.environ.get("VADGS_CHECKS", "1").strip().lower() not in _OFF
+_local = threading.local()  # checking()'s override, per thread (None: the process's setting)
 
 
 def checks_enabled() -> bool:
     """Whether value checks run (``VADGS_CHECKS``, :func:`set_checks_enabled`, :func:`checking`)."""
-    return _enabled
+    override = getattr(_local, "override", None)
+    return _enabled if override is None else override
 
 
 def set_checks_enabled(enabled: bool) -> bool:
@@ -90,7 +93,11 @@ def set_checks_enabled(enabled: bool) -> bool:
 
 @contextlib.contextmanager
 def checking(enabled: bool) -> Iterator[None]:
-    """Run a block with value checks on or off, restoring the previous setting afterwards.
+    """Run a block with value checks on or off in this thread, restoring its setting afterwards.
+
+    The setting holds for the calling thread only (another thread, e.g. a viewer rendering
+    beside a training, keeps its own), so blocks in several threads cannot leave each other's
+    setting behind.
 
     Example:
         >>> with checking(False):
@@ -98,11 +105,12 @@ def checking(enabled: bool) -> Iterator[None]:
         >>> checks_enabled()
         True
     """
-    previous = set_checks_enabled(enabled)
+    previous = getattr(_local, "override", None)
+    _local.override = bool(enabled)
     try:
         yield
     finally:
-        set_checks_enabled(previous)
+        _local.override = previous
 
 
 def _fmt(spec: Sequence[int | str]) -> str:
@@ -172,7 +180,7 @@ def check_finite(x: torch.Tensor, name: str) -> None:
         ...
         ValueError: points: expected finite values, got 1 non-finite of 2
     """
-    if _enabled and x.is_floating_point():
+    if checks_enabled() and x.is_floating_point():
         bad = ~torch.isfinite(x)
         if bool(bad.any()):
             raise ValueError(
@@ -209,7 +217,7 @@ def check_intrinsics(K: torch.Tensor, name: str = "K") -> None:
         ValueError: K: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], got fx=0, fy=0 at (0,)
     """
     check_finite(K, name)
-    if _enabled:
+    if checks_enabled():
         f = K.detach()[..., [0, 1], [0, 1]]
         bad = ~(f > 0).all(-1)
         if bool(bad.any()):
@@ -231,7 +239,7 @@ def check_quaternions(q: torch.Tensor, name: str = "quats") -> None:
         ValueError: quats: expected non-zero quaternions, got 1 of norm 0 (first: row 1)
     """
     check_finite(q, name)
-    if _enabled and q.numel():
+    if checks_enabled() and q.numel():
         zero = q.detach().norm(dim=-1) < 1e-12
         if bool(zero.any()):
             first = int(zero.flatten().nonzero()[0, 0])
@@ -250,7 +258,7 @@ def check_rigid_last_row(T: torch.Tensor, name: str) -> None:
         ValueError: transform: expected a transform with last row (0, 0, 0, 1), got [0.0, 0.0, 0.0, 0.0]
     """
     check_finite(T, name)
-    if _enabled and T.numel():
+    if checks_enabled() and T.numel():
         row = T.detach()[..., 3, :].reshape(-1, 4)
         want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=row.dtype, device=row.device)
         bad = ((row - want).abs() > 1e-5).any(-1)

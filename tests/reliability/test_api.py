@@ -141,6 +141,42 @@ def test_value_checks_obey_the_switch():
             normals_to_quats(torch.rand(5, 2))
 
 
+def test_checking_holds_for_its_thread_only():
+    """Blocks in two threads that overlap (A in, B in, A out, B out) leave checks on in both, and
+    a thread that does not ask keeps them on meanwhile (a viewer rendering beside an event)."""
+    import threading
+
+    from vadgs import checks_enabled
+
+    a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+    seen: dict[str, bool] = {}
+
+    def a():
+        with checking(False):
+            seen["a_inside"] = checks_enabled()
+            a_in.set()
+            b_in.wait(10)
+        seen["a_after"] = checks_enabled()
+        a_out.set()
+
+    def b():
+        a_in.wait(10)
+        with checking(False):
+            b_in.set()
+            a_out.wait(10)
+        seen["b_after"] = checks_enabled()
+
+    threads = [threading.Thread(target=f) for f in (a, b)]
+    for t in threads:
+        t.start()
+    a_in.wait(10)
+    seen["main_meanwhile"] = checks_enabled()
+    for t in threads:
+        t.join(10)
+    assert seen == {"a_inside": False, "main_meanwhile": True, "a_after": True, "b_after": True}
+    assert checks_enabled()
+
+
 def test_valid_inputs_still_give_the_reference_values():
     T = torch.eye(4)
     T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
