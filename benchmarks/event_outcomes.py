@@ -143,6 +143,49 @@ def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]
         )
 
 
+def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+    """Print where the added static points lie against the test frames' own LiDAR (held out).
+
+    Each point projected into each test view where a LiDAR return lands on its pixel: *in front*
+    when its depth is more than 10 % nearer than the return (it would hide the surface the LiDAR
+    sees: a wrong addition), *on* within 10 %, *behind* more than 10 % farther (hidden there).
+    Grouped as :func:`_where_points_lie`.
+    """
+    from vadgs.data.lidar import lidar_depth_map
+
+    views = []
+    for v in scene.test_views:
+        cams = scene.cameras([v])
+        views.append((lidar_depth_map(scene, v)[0, 0], cams.K, cams.world_to_cam))
+    groups: dict[tuple[str, str], torch.Tensor] = {}
+    for inst, ref, reason, points in pairs:
+        if inst in index.inputs.tracks or not len(points):
+            continue
+        shown = why_none(index, inst, ref).get("zbuffer", 0)
+        key = (_outcome(reason), "1-2 voxels shown" if shown <= 2 else "3+ voxels shown")
+        counts = groups.setdefault(key, torch.zeros(4, dtype=torch.long))
+        counts[3] += 1
+        for lidar, K, w2c in views:
+            h, w = lidar.shape
+            uv, z = project_points(points[None].float(), K, w2c)
+            u, v_ = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+            ok = (z[0] > 0) & (u >= 0) & (u < w) & (v_ >= 0) & (v_ < h)
+            ref_d = lidar[v_[ok], u[ok]]
+            hit = ref_d > 0
+            rel = (z[0][ok][hit] - ref_d[hit]) / ref_d[hit]
+            counts[0] += int((rel < -0.1).sum())
+            counts[1] += int((rel.abs() <= 0.1).sum())
+            counts[2] += int((rel > 0.1).sum())
+    print("  added static points against the test frames' LiDAR (point-views on a return):")
+    for (outcome, shown), c in sorted(groups.items()):
+        total = max(int(c[:3].sum()), 1)
+        front, on, behind = (100 * int(c[i]) / total for i in range(3))
+        print(
+            f"    {outcome:14s} {shown:18s} {int(c[3]):3d} pairs: {total:7d} point-views, in front "
+            f"{front:.1f} %, on {on:.1f} %, behind {behind:.1f} %"
+        )
+
+
 def _breakdown(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
     """Print an event's (instance, reference) pairs by kind and outcome; why the ``no_voxels`` saw none."""
     kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason, _ in pairs)
@@ -179,6 +222,7 @@ def main() -> None:
     ap.add_argument("--off", default="seen_supports", help="a boolean ReconstructConfig field")
     ap.add_argument("--breakdown", action="store_true", help="why the no_voxels pairs saw none")
     ap.add_argument("--cycle", type=Path, help="checkpoint of the trained cycle: resumed, or written")
+    ap.add_argument("--held-out", action="store_true", help="the added points against the test LiDAR")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore", UserWarning)
@@ -206,7 +250,7 @@ def main() -> None:
         pairs.append((inst, ref, rec.reason, rec.points.cpu()))
         return rec
 
-    if args.breakdown:
+    if args.breakdown or args.held_out:
         event_module.reconstruct_instance = recorded  # type: ignore[assignment]
     off = copy.deepcopy(on)
     off.strategy.reconstruct = dataclasses.replace(off.strategy.reconstruct, **{args.off: False})
@@ -222,6 +266,8 @@ def main() -> None:
         )
         if args.breakdown:
             _breakdown(trainer.strategy.index, list(pairs))
+        if args.held_out:
+            _against_held_out_lidar(scene, trainer.strategy.index, list(pairs))
 
 
 if __name__ == "__main__":
