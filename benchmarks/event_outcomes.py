@@ -124,7 +124,7 @@ def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]
 
     tree = cKDTree(index.covis.voxel_centers.double().numpy())
     groups: dict[tuple[str, str], list[torch.Tensor]] = {}
-    for inst, ref, reason, points in pairs:
+    for inst, ref, reason, points, *_ in pairs:
         if inst in index.inputs.tracks or not len(points):
             continue
         shown = why_none(index, inst, ref).get("zbuffer", 0)
@@ -143,13 +143,14 @@ def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]
         )
 
 
-def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple], top: int = 0) -> None:
     """Print where the added static points lie against the test frames' own LiDAR (held out).
 
     Each point projected into each test view where a LiDAR return lands on its pixel: *in front*
     when its depth is more than 10 % nearer than the return (it would hide the surface the LiDAR
     sees: a wrong addition), *on* within 10 %, *behind* more than 10 % farther (hidden there).
-    Grouped as :func:`_where_points_lie`.
+    Grouped as :func:`_where_points_lie`; with ``top``, then the ``top`` pairs with the most
+    point-views, each with its reference and supports (camera and frame).
     """
     from vadgs.data.lidar import lidar_depth_map
 
@@ -158,13 +159,15 @@ def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple[int, int, 
         cams = scene.cameras([v])
         views.append((lidar_depth_map(scene, v)[0, 0], cams.K, cams.world_to_cam))
     groups: dict[tuple[str, str], torch.Tensor] = {}
-    for inst, ref, reason, points in pairs:
+    rows = []
+    for inst, ref, reason, points, *rest in pairs:
         if inst in index.inputs.tracks or not len(points):
             continue
         shown = why_none(index, inst, ref).get("zbuffer", 0)
         key = (_outcome(reason), "1-2 voxels shown" if shown <= 2 else "3+ voxels shown")
         counts = groups.setdefault(key, torch.zeros(4, dtype=torch.long))
         counts[3] += 1
+        pair = torch.zeros(3, dtype=torch.long)
         for lidar, K, w2c in views:
             h, w = lidar.shape
             uv, z = project_points(points[None].float(), K, w2c)
@@ -173,9 +176,13 @@ def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple[int, int, 
             ref_d = lidar[v_[ok], u[ok]]
             hit = ref_d > 0
             rel = (z[0][ok][hit] - ref_d[hit]) / ref_d[hit]
-            counts[0] += int((rel < -0.1).sum())
-            counts[1] += int((rel.abs() <= 0.1).sum())
-            counts[2] += int((rel > 0.1).sum())
+            pair += torch.tensor(
+                [int((rel < -0.1).sum()), int((rel.abs() <= 0.1).sum()), int((rel > 0.1).sum())]
+            )
+        counts[:3] += pair
+        group = rest[0] if rest else [ref]
+        names = [f"{scene.views[v].camera.removesuffix('_camera')} f{scene.views[v].frame}" for v in group]
+        rows.append((int(pair.sum()), inst, _outcome(reason), len(points), pair.tolist(), names))
     print("  added static points against the test frames' LiDAR (point-views on a return):")
     for (outcome, shown), c in sorted(groups.items()):
         total = max(int(c[:3].sum()), 1)
@@ -183,6 +190,13 @@ def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple[int, int, 
         print(
             f"    {outcome:14s} {shown:18s} {int(c[3]):3d} pairs: {total:7d} point-views, in front "
             f"{front:.1f} %, on {on:.1f} %, behind {behind:.1f} %"
+        )
+    for total, inst, outcome, n, (front, on, _), names in sorted(rows, reverse=True)[:top]:
+        t = max(total, 1)
+        print(
+            f"    instance {inst} ({outcome}, {n} points): {total} point-views, in front "
+            f"{100 * front / t:.0f} %, on {100 * on / t:.0f} %; reference {names[0]}, "
+            f"supports {', '.join(names[1:])}"
         )
 
 
@@ -223,6 +237,7 @@ def main() -> None:
     ap.add_argument("--breakdown", action="store_true", help="why the no_voxels pairs saw none")
     ap.add_argument("--cycle", type=Path, help="checkpoint of the trained cycle: resumed, or written")
     ap.add_argument("--held-out", action="store_true", help="the added points against the test LiDAR")
+    ap.add_argument("--pairs", type=int, default=0, help="with --held-out: the N pairs with most points")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore", UserWarning)
@@ -242,12 +257,12 @@ def main() -> None:
         print(f"{n - 1} steps in {time.perf_counter() - t0:.0f} s", flush=True)
         if args.cycle is not None:
             on.save_checkpoint(args.cycle)
-    pairs: list[tuple[int, int, str, torch.Tensor]] = []  # (instance, reference, reason, points)
+    pairs: list[tuple] = []  # (instance, reference, reason, points, the group's views)
     reconstruct = event_module.reconstruct_instance
 
     def recorded(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
         rec = reconstruct(index, ref, inst, *a, **k)
-        pairs.append((inst, ref, rec.reason, rec.points.cpu()))
+        pairs.append((inst, ref, rec.reason, rec.points.cpu(), list(rec.views)))
         return rec
 
     if args.breakdown or args.held_out:
@@ -267,7 +282,7 @@ def main() -> None:
         if args.breakdown:
             _breakdown(trainer.strategy.index, list(pairs))
         if args.held_out:
-            _against_held_out_lidar(scene, trainer.strategy.index, list(pairs))
+            _against_held_out_lidar(scene, trainer.strategy.index, list(pairs), args.pairs)
 
 
 if __name__ == "__main__":
