@@ -28,7 +28,7 @@ import time
 import warnings
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -38,6 +38,16 @@ from vadgs.geometry.camera import project_points
 from vadgs.train.config import TrainConfig, scale_schedule
 from vadgs.train.trainer import Trainer
 from vadgs.train.vad import VisibilityDensifyConfig
+
+
+class Pair(NamedTuple):
+    """One (instance, reference) reconstruction of an event, as recorded."""
+
+    instance: int
+    reference: int
+    reason: str
+    points: torch.Tensor  # (N, 3) added points (world or object frame)
+    views: list[int]  # the group: the reference, then its supports
 
 
 def _kind(index: Any, inst: int) -> str:
@@ -112,7 +122,7 @@ def why_none(index: Any, inst: int, ref: int) -> dict[str, Any]:
     return out
 
 
-def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+def _where_points_lie(index: Any, pairs: list[Pair]) -> None:
     """Print how far the static points each outcome added lie from the LiDAR's voxels, by shown voxels.
 
     For each static (instance, reference) pair that added points: the distance of each point to
@@ -124,7 +134,7 @@ def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]
 
     tree = cKDTree(index.covis.voxel_centers.double().numpy())
     groups: dict[tuple[str, str], list[torch.Tensor]] = {}
-    for inst, ref, reason, points, *_ in pairs:
+    for inst, ref, reason, points, _ in pairs:
         if inst in index.inputs.tracks or not len(points):
             continue
         shown = why_none(index, inst, ref).get("zbuffer", 0)
@@ -143,7 +153,7 @@ def _where_points_lie(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]
         )
 
 
-def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple], top: int = 0) -> None:
+def _against_held_out_lidar(scene: Any, index: Any, pairs: list[Pair], top: int = 0) -> None:
     """Print where the added static points lie against the test frames' own LiDAR (held out).
 
     Each point projected into each test view where a LiDAR return lands on its pixel: *in front*
@@ -160,7 +170,7 @@ def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple], top: int
         views.append((lidar_depth_map(scene, v)[0, 0], cams.K, cams.world_to_cam))
     groups: dict[tuple[str, str], torch.Tensor] = {}
     rows = []
-    for inst, ref, reason, points, *rest in pairs:
+    for inst, ref, reason, points, group in pairs:
         if inst in index.inputs.tracks or not len(points):
             continue
         shown = why_none(index, inst, ref).get("zbuffer", 0)
@@ -180,7 +190,6 @@ def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple], top: int
                 [int((rel < -0.1).sum()), int((rel.abs() <= 0.1).sum()), int((rel > 0.1).sum())]
             )
         counts[:3] += pair
-        group = rest[0] if rest else [ref]
         names = [f"{scene.views[v].camera.removesuffix('_camera')} f{scene.views[v].frame}" for v in group]
         rows.append((int(pair.sum()), inst, _outcome(reason), len(points), pair.tolist(), names))
     print("  added static points against the test frames' LiDAR (point-views on a return):")
@@ -200,14 +209,14 @@ def _against_held_out_lidar(scene: Any, index: Any, pairs: list[tuple], top: int
         )
 
 
-def _breakdown(index: Any, pairs: list[tuple[int, int, str, torch.Tensor]]) -> None:
+def _breakdown(index: Any, pairs: list[Pair]) -> None:
     """Print an event's (instance, reference) pairs by kind and outcome; why the ``no_voxels`` saw none."""
-    kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason, _ in pairs)
+    kinds = Counter((_kind(index, i), _outcome(reason)) for i, _, reason, _, _ in pairs)
     print("  (instance, reference) pairs by kind and outcome:")
     for (kind, outcome), n in sorted(kinds.items()):
         print(f"    {kind:22s} {outcome:52s} {n:3d}")
     _where_points_lie(index, pairs)
-    rows = [(i, r, why_none(index, i, r)) for i, r, reason, _ in pairs if "no_voxels" in reason]
+    rows = [(i, r, why_none(index, i, r)) for i, r, reason, _, _ in pairs if "no_voxels" in reason]
     if not rows:
         print("  no (instance, reference) pair ended no_voxels")
         return
@@ -257,12 +266,12 @@ def main() -> None:
         print(f"{n - 1} steps in {time.perf_counter() - t0:.0f} s", flush=True)
         if args.cycle is not None:
             on.save_checkpoint(args.cycle)
-    pairs: list[tuple] = []  # (instance, reference, reason, points, the group's views)
+    pairs: list[Pair] = []
     reconstruct = event_module.reconstruct_instance
 
     def recorded(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
         rec = reconstruct(index, ref, inst, *a, **k)
-        pairs.append((inst, ref, rec.reason, rec.points.cpu(), list(rec.views)))
+        pairs.append(Pair(inst, ref, rec.reason, rec.points.cpu(), list(rec.views)))
         return rec
 
     if args.breakdown or args.held_out:

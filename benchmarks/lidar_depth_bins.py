@@ -25,7 +25,10 @@ def depth_bins(path: str) -> dict[str, tuple[float, int]]:
     scene = run.scene
     acc: dict[tuple[str, float], list[float]] = {}
     for v in scene.test_views:
-        lidar = lidar_depth_map(scene, v)
+        try:
+            lidar = lidar_depth_map(scene, v)
+        except FileNotFoundError:  # a frame without a sweep adds nothing (as evaluate's lidar group)
+            continue
         depth = render_test_view(run.model, scene, v, run.config.raster).raster.depth.cpu()
         cam = scene.views[v].camera.removesuffix("_camera")
         for lo, hi in BINS_M:
