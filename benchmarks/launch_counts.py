@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -86,16 +85,6 @@ def _rasterizer_counts(calls: list) -> tuple[int, int]:
     return launches, reads
 
 
-def _median_ms(fn, reps: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return 1000 * statistics.median(times)
-
-
 def patchmatch_call(reps: int) -> dict[str, Any]:
     """One default PatchMatch call, B=1, V=4, 80x112, one cost chunk."""
     from vadgs.mvs import PatchMatchConfig, patchmatch
@@ -105,7 +94,7 @@ def patchmatch_call(reps: int) -> dict[str, Any]:
     cfg = PatchMatchConfig(chunk_size=pm.ONE_CHUNK)
     with _counting.LaunchCounter() as c:
         patchmatch(*args, cfg, **kw)
-    ms = _median_ms(lambda: patchmatch(*args, PatchMatchConfig(), **kw), reps)
+    ms = _gpu_check._median_ms(lambda: patchmatch(*args, PatchMatchConfig(), **kw), reps, "cpu")
     return {"launches": c.launches, "host_reads": c.host_reads, "cpu_ms": ms, "per": "call"}
 
 
@@ -150,7 +139,7 @@ def event_and_step(steps_before_event: int, step_reps: int) -> dict[str, dict[st
     finally:
         model_module.rasterize_gaussians = real
     inside, inside_reads = _rasterizer_counts(calls)
-    ms = _median_ms(trainer.train_step, step_reps)
+    ms = _gpu_check._median_ms(trainer.train_step, step_reps, "cpu")
     out["step_outside"] = {
         "launches": (c.launches - inside) // n_count,
         "host_reads": (c.host_reads - inside_reads) // n_count,
