@@ -146,7 +146,18 @@ class TestSummary:
     def test_markdown_and_files(self, tmp_path):
         rows = (
             SceneResult(
-                "/s/a", "a", "/o/a", "done", 25.123, 24.0, 0.8, 0.05, 1000, 12.0, 1, lidar_absrel=0.1
+                "/s/a",
+                "a",
+                "/o/a",
+                "done",
+                psnr=25.123,
+                psnr_star=24.0,
+                ssim=0.8,
+                depth_absrel=0.05,
+                lidar_absrel=0.1,
+                num_gaussians=1000,
+                train_s=12.0,
+                retries=1,
             ),
             SceneResult("/s/b", "b", "/o/b", "failed", error="ValueError: bad | worse"),
         )

@@ -144,11 +144,11 @@ class SceneResult:
     psnr_star: float | None = None
     ssim: float | None = None
     depth_absrel: float | None = None
+    lidar_absrel: float | None = None
     num_gaussians: int | None = None
     train_s: float | None = None
     retries: int = 0
     error: str | None = None
-    lidar_absrel: float | None = None  # last: positional construction keeps its meaning
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready fields."""
