@@ -247,6 +247,12 @@ def main() -> None:
     ap.add_argument("--cycle", type=Path, help="checkpoint of the trained cycle: resumed, or written")
     ap.add_argument("--held-out", action="store_true", help="the added points against the test LiDAR")
     ap.add_argument("--pairs", type=int, default=0, help="with --held-out: the N pairs with most points")
+    ap.add_argument(
+        "--min-angle",
+        type=float,
+        help="the view selection's least triangulation angle, degrees (default: its own)",
+    )
+    ap.add_argument("--min-parallax", type=float, help="the view selection's min_parallax, pixels")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore", UserWarning)
@@ -276,6 +282,14 @@ def main() -> None:
 
     if args.breakdown or args.held_out:
         event_module.reconstruct_instance = recorded  # type: ignore[assignment]
+    chosen = {"min_angle": args.min_angle, "min_parallax": args.min_parallax}
+    chosen = {k: v for k, v in chosen.items() if v is not None}
+    if chosen:
+        rec = on.strategy.reconstruct
+        on.strategy.reconstruct = dataclasses.replace(
+            rec, selection=dataclasses.replace(rec.selection, **chosen)
+        )
+    print(f"view selection: {on.strategy.reconstruct.selection}", flush=True)
     off = copy.deepcopy(on)
     off.strategy.reconstruct = dataclasses.replace(off.strategy.reconstruct, **{args.off: False})
     for name, trainer in ((f"{args.off}=False", off), (f"{args.off}=True", on)):

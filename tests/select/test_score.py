@@ -13,6 +13,7 @@ from vadgs.select import (
     diversity_scores,
     pose_terms,
     shared_voxel_stats,
+    triangulation_angles,
     view_voxel_incidence,
 )
 
@@ -198,3 +199,35 @@ class TestCovisibility:
         assert torch.equal(sub.incidence.to_dense(), covis.incidence.to_dense()[:, mask])
         by_ids = covis.restrict(torch.nonzero(mask).squeeze(1))
         assert torch.equal(by_ids.incidence.to_dense(), sub.incidence.to_dense())
+
+
+class TestTriangulationAngles:
+    def test_against_naive_loop(self):
+        centers, visible, w2c = random_scene(num_views=7, num_voxels=60, seed=3)
+        covis = _covis(centers, visible, w2c)
+        pts = centers.double().numpy()
+        cam = [np.linalg.inv(p)[:3, 3] for p in w2c.double().numpy()]
+        sets = [set(v.tolist()) for v in visible]
+        for r in range(7):
+            out = triangulation_angles(covis, r, percentile=75.0)
+            for s in range(7):
+                common = sorted(sets[r] & sets[s])
+                if r == s or not common:
+                    assert out[s] == 0
+                    continue
+                a, b = pts[common] - cam[r], pts[common] - cam[s]
+                cos = (a * b).sum(1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+                theta = np.sort(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+                expected = theta[math.floor((len(theta) - 1) * 0.75)]
+                assert out[s].item() == pytest.approx(expected, abs=1e-3)
+
+    def test_short_baseline_far_voxels(self):
+        # 1 cm apart at 50 m: 0.0115°; 2 m apart: 2.29° (atan(2 / 50))
+        w2c = torch.stack(
+            [yaw_pose(0.0, (0.0, 0.0, 0.0)), yaw_pose(0.0, (0.01, 0.0, 0.0)), yaw_pose(0.0, (2.0, 0, 0))]
+        )
+        covis = _covis(torch.tensor([[0.0, 0.0, 50.0]]), [torch.tensor([0])] * 3, w2c)
+        angle = triangulation_angles(covis, 0)
+        assert angle[0].item() == 0
+        assert angle[1].item() == pytest.approx(math.degrees(math.atan(0.01 / 50)), rel=1e-3)
+        assert angle[2].item() == pytest.approx(math.degrees(math.atan(2.0 / 50)), rel=1e-4)

@@ -56,7 +56,16 @@ def _objective(covis, ref, views, lam, scores=None):
 class TestViewSelectionConfig:
     @pytest.mark.parametrize(
         "kwargs",
-        [dict(k=0), dict(method="random"), dict(noise_std=-1.0), dict(k=5, max_candidates=4), dict(eps=0.0)],
+        [
+            dict(k=0),
+            dict(method="random"),
+            dict(noise_std=-1.0),
+            dict(k=5, max_candidates=4),
+            dict(eps=0.0),
+            dict(min_angle=-1.0),
+            dict(min_angle=90.0),
+            dict(min_parallax=-1.0),
+        ],
     )
     def test_exception(self, kwargs):
         with pytest.raises(ValueError):
@@ -126,6 +135,53 @@ class TestSelectViews:
         covis = Covisibility.from_visible([torch.arange(20)] * 5, centers, w2c)
         sel = select_views(0, covis, ViewSelectionConfig(k=2, min_shared=5))
         assert sel.views.tolist() == [3, 4] and sel.candidates.tolist() == [3, 4]
+
+    def test_short_baselines_left_out(self):
+        # a car waiting at a light: views 1, 2 are the reference camera 2 cm and 4 cm aside, turned
+        # 1°, so they score > 0 but their rays meet the reference's at 0.02° and 0.05° at 50 m;
+        # view 3 is a side camera 2 m aside (2.3°)
+        w2c = torch.stack(
+            [
+                yaw_pose(0.0, (0.0, 0.0, 0.0)),
+                yaw_pose(1.0, (0.02, 0.0, 0.0)),
+                yaw_pose(-1.0, (0.04, 0.0, 0.0)),
+                yaw_pose(5.0, (2.0, 0.0, 0.0)),
+            ]
+        )
+        centers = torch.randn(20, 3, generator=torch.Generator().manual_seed(0)) + torch.tensor(
+            [0.0, 0.0, 50.0]
+        )
+        covis = Covisibility.from_visible([torch.arange(20)] * 4, centers, w2c)
+        config = ViewSelectionConfig(k=1, min_shared=5, noise_std=0.0)
+        assert (diversity_scores(covis).score[0, 1:] > 0).all()
+        sel = select_views(0, covis, config)
+        assert sel.views.tolist() == [3] and sel.candidates.tolist() == [3]
+        assert select_views(
+            0, covis, ViewSelectionConfig(k=3, min_shared=5, min_angle=0.0)
+        ).views.tolist() == [1, 2, 3]
+        none = select_views(0, covis, config, allowed=torch.tensor([True, True, True, False]))
+        assert none.views.tolist() == [] and not none.complete
+        assert (
+            none.reason
+            == "narrow_baselines: 2 views share >= 5 voxels with it, all at a triangulation angle < 1°"
+        )
+
+    def test_min_parallax_in_pixels_of_the_reference(self):
+        # view 1 is 1 m aside of the reference at 20 m: 2.9°; 10 px of parallax need 5.7° at a
+        # focal length of 100 px, 0.57° at 1000 px (then min_angle's 1° rules)
+        w2c = torch.stack([yaw_pose(0.0, (0.0, 0.0, 0.0)), yaw_pose(3.0, (1.0, 0.0, 0.0))])
+        centers = torch.randn(20, 3, generator=torch.Generator().manual_seed(1)) * 0.1 + torch.tensor(
+            [0, 0, 20.0]
+        )
+        covis = Covisibility.from_visible([torch.arange(20)] * 2, centers, w2c)
+        config = ViewSelectionConfig(k=1, min_shared=5, noise_std=0.0, min_parallax=10.0)
+        assert config.least_angle(100.0) == pytest.approx(math.degrees(0.1))
+        assert config.least_angle(1000.0) == 1.0
+        assert select_views(0, covis, config, focal=1000.0).views.tolist() == [1]
+        narrow = select_views(0, covis, config, focal=100.0)
+        assert narrow.views.tolist() == [] and narrow.reason.endswith("triangulation angle < 5.73°")
+        with pytest.raises(ValueError, match="focal: expected the reference's focal length"):
+            select_views(0, covis, config)
 
     # graceful results
     def test_no_voxels(self):

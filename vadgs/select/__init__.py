@@ -15,7 +15,9 @@ from vadgs.select.score import (
     diversity_score,
     diversity_scores,
     pose_terms,
+    ray_angles,
     shared_voxel_stats,
+    triangulation_angles,
 )
 from vadgs.select.selector import METHODS, ViewSelection, ViewSelectionConfig, ViewSelector, select_views
 
@@ -34,8 +36,10 @@ __all__ = [
     "max_weight_clique",
     "mvsnet_scores",
     "pose_terms",
+    "ray_angles",
     "select_views",
     "shared_voxel_stats",
     "top_k_views",
+    "triangulation_angles",
     "view_voxel_incidence",
 ]

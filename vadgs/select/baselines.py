@@ -23,8 +23,8 @@ import math
 import torch
 
 from vadgs.checks import check_finite, check_shape
-from vadgs.geometry.camera import camera_centers
 from vadgs.select.covisibility import Covisibility
+from vadgs.select.score import ray_angles, triangulation_angles
 
 __all__ = ["colmap_scores", "consecutive_views", "mvsnet_scores", "top_k_views"]
 
@@ -33,20 +33,6 @@ def _check_ref(ref: int, num_views: int) -> int:
     if not 0 <= int(ref) < num_views:
         raise ValueError(f"ref: expected a view index in [0, {num_views}), got {ref}")
     return int(ref)
-
-
-def _ref_rays(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """For every non-zero (view v, voxel m) with m seen by ``ref``: ``v``, ``m`` and the angle (deg)."""
-    seen = covis.voxels_of(ref)
-    view, pos = covis.entries_of(seen)
-    keep = view != ref
-    view, voxel = view[keep], seen[pos[keep]]
-    centers = camera_centers(covis.world_to_cam)
-    p = covis.voxel_centers[voxel]
-    to_ref = torch.nn.functional.normalize(centers[ref] - p, dim=-1)
-    to_src = torch.nn.functional.normalize(centers[view] - p, dim=-1)
-    cos = (to_ref * to_src).sum(-1).clamp(-1.0, 1.0)
-    return view, voxel, torch.rad2deg(torch.acos(cos))
 
 
 def mvsnet_scores(
@@ -75,7 +61,7 @@ def mvsnet_scores(
     """
     ref = _check_ref(ref, covis.num_views)
     with torch.no_grad():
-        view, _, theta = _ref_rays(covis, ref)
+        view, _, theta = ray_angles(covis, ref)
         sigma = torch.where(theta <= theta0, sigma1, sigma2)
         g = torch.exp(-((theta - theta0) ** 2) / (2 * sigma**2))
         out = torch.zeros(covis.num_views, dtype=covis.voxel_centers.dtype, device=g.device)
@@ -110,23 +96,13 @@ def colmap_scores(
     """
     ref = _check_ref(ref, covis.num_views)
     with torch.no_grad():
-        view, _, theta = _ref_rays(covis, ref)
-        num = covis.num_views
+        view, _, _ = ray_angles(covis, ref)
         dtype = covis.voxel_centers.dtype
-        counts = torch.zeros(num, dtype=torch.long, device=theta.device).index_add_(
-            0, view, torch.ones_like(view)
+        counts = torch.zeros(covis.num_views, dtype=dtype, device=view.device).index_add_(
+            0, view, torch.ones_like(view, dtype=dtype)
         )
-        # grouped percentile: sort by angle, then stably by view
-        order = torch.argsort(theta, stable=True)
-        order = order[torch.argsort(view[order], stable=True)]
-        sorted_theta = theta[order]
-        start = torch.cumsum(counts, 0) - counts
-        rank = torch.floor((counts - 1).clamp_min(0).to(dtype) * percentile / 100).long()
-        has = counts > 0
-        q = torch.zeros(num, dtype=theta.dtype, device=theta.device)
-        q[has] = sorted_theta[(start + rank)[has]]
-        keep = has & (q >= min_triangulation_angle)
-        return torch.where(keep, counts.to(dtype), torch.zeros((), dtype=dtype, device=theta.device))
+        keep = triangulation_angles(covis, ref, percentile) >= min_triangulation_angle
+        return torch.where(keep & (counts > 0), counts, torch.zeros((), dtype=dtype, device=view.device))
 
 
 def consecutive_views(

@@ -33,7 +33,15 @@ from vadgs.checks import check_shape
 from vadgs.geometry.camera import camera_centers
 from vadgs.select.covisibility import Covisibility, sparse_gram
 
-__all__ = ["DiversityScores", "diversity_score", "diversity_scores", "pose_terms", "shared_voxel_stats"]
+__all__ = [
+    "DiversityScores",
+    "diversity_score",
+    "diversity_scores",
+    "pose_terms",
+    "ray_angles",
+    "shared_voxel_stats",
+    "triangulation_angles",
+]
 
 
 class DiversityScores(NamedTuple):
@@ -81,6 +89,80 @@ def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]
         shared = sparse_gram(idx, inc.values(), inc.values(), shape)
         dist_dot = sparse_gram(idx, dist, dist, shape)
     return shared, dist_dot
+
+
+def ray_angles(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The triangulation angle of ``ref`` with every other view at each voxel both see.
+
+    ``θ(p)`` is the angle at voxel centre ``p`` between the rays to the two camera centres.
+    Vectorised over the non-zeros of the view × voxel incidence; not differentiable.
+
+    Args:
+        covis: the views, voxels and visibility.
+        ref: the reference view.
+
+    Returns:
+        ``(view, voxel, angle)``, each ``(n,)``: for every non-zero ``(view, voxel)`` of a view
+        other than ``ref`` at a voxel ``ref`` sees, the angle in degrees.
+
+    Example:
+        >>> cams = torch.eye(4).repeat(2, 1, 1); cams[1, 0, 3] = -2.0  # second centre at x = 2
+        >>> covis = Covisibility.from_visible([torch.tensor([0])] * 2, torch.tensor([[0.0, 0, 2]]), cams)
+        >>> view, voxel, angle = ray_angles(covis, 0)  # rays from (0,0,0) and (2,0,0) to (0,0,2)
+        >>> view.tolist(), voxel.tolist(), round(angle.item(), 3)
+        ([1], [0], 45.0)
+    """
+    with torch.no_grad():
+        seen = covis.voxels_of(ref)
+        view, pos = covis.entries_of(seen)
+        keep = view != ref
+        view, voxel = view[keep], seen[pos[keep]]
+        centers = camera_centers(covis.world_to_cam)
+        p = covis.voxel_centers[voxel]
+        to_ref = torch.nn.functional.normalize(centers[ref] - p, dim=-1)
+        to_src = torch.nn.functional.normalize(centers[view] - p, dim=-1)
+        # atan2(|a x b|, a . b): exact to rounding at hundredths of a degree, where acos is not
+        sin = torch.linalg.cross(to_ref, to_src).norm(dim=-1)
+        return view, voxel, torch.rad2deg(torch.atan2(sin, (to_ref * to_src).sum(-1)))
+
+
+def triangulation_angles(covis: Covisibility, ref: int, percentile: float = 75.0) -> torch.Tensor:
+    """Each view's triangulation angle with ``ref`` over the voxels both see: a percentile, degrees.
+
+    The ``percentile``-th percentile (nearest rank, rounded down) of :func:`ray_angles` over the
+    shared voxels, as COLMAP's ``Model::GetMaxOverlappingImages`` ranks the sources of its
+    PatchMatch (75th, and at least 1°). A pair whose rays meet at a small angle fixes depth poorly:
+    the diversity score does not see it when every baseline is short (a car waiting at a light).
+
+    Args:
+        covis: the views, voxels and visibility.
+        ref: the reference view.
+        percentile: in ``[0, 100]``.
+
+    Returns:
+        ``(V,)`` degrees, ``0`` for ``ref`` and for views sharing no voxel with it.
+
+    Example:
+        >>> w2c = torch.eye(4).repeat(3, 1, 1); w2c[1, 0, 3] = -0.5; w2c[2, 0, 3] = -0.001
+        >>> covis = Covisibility.from_visible(
+        ...     [torch.tensor([0, 1])] * 3, torch.tensor([[0.0, 0, 4], [1.0, 0, 4]]), w2c)
+        >>> [round(a, 3) for a in triangulation_angles(covis, 0).tolist()]  # 1 mm aside: 0.013°
+        [0.0, 6.911, 0.013]
+    """
+    with torch.no_grad():
+        view, _, theta = ray_angles(covis, ref)
+        num = covis.num_views
+        counts = torch.zeros(num, dtype=torch.long, device=theta.device).index_add_(
+            0, view, torch.ones_like(view)
+        )
+        # grouped percentile: sort by angle, then stably by view
+        order = torch.argsort(theta, stable=True)
+        order = order[torch.argsort(view[order], stable=True)]
+        start = torch.cumsum(counts, 0) - counts
+        rank = torch.floor((counts - 1).clamp_min(0).to(theta.dtype) * percentile / 100).long()
+        padded = torch.cat([theta[order], theta.new_zeros(1)])  # a view sharing nothing reads the 0
+        at = torch.where(counts > 0, start + rank, len(theta))
+        return padded[at]
 
 
 def pose_terms(

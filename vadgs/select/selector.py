@@ -7,7 +7,9 @@ diversity-aware selection (paper, "Diversity-Aware View Selection"; supplement, 
    them (the union of their visibility sets, across all cameras and timestamps);
 2. scores every pair among ``R`` and the candidates on those voxels
    (:func:`vadgs.select.diversity_scores`) and drops candidates with ``s_iR = 0`` (no baseline or
-   no rotation);
+   no rotation) or whose rays meet ``R``'s at less than ``min_angle`` degrees at the 75th
+   percentile of those voxels (:func:`vadgs.select.triangulation_angles`, COLMAP's rule: a
+   baseline too short for the depth fixes no depth);
 3. joins two candidates by an edge when they co-observe at least ``min_shared`` of those voxels;
 4. draws ``ξ ~ N(1, noise_std²)`` (seeded), keeps at most ``max_candidates`` candidates (those
    with the largest optimistic share ``s_iR ξ_iR + ½ top_{k-1}(λ s_ij ξ_ij)`` of the objective)
@@ -25,9 +27,9 @@ The solver is exact over the candidates after the cap. The cap bounds the search
 (``C(24, 4) = 10626`` subsets at most); ``docs/select.md`` measures how often it returns the
 uncapped optimum.
 
-Nothing here raises on a hard case: no voxel, no candidate, fewer candidates than ``k`` or a
-graph without a k-clique all return a :class:`ViewSelection` with fewer views (or none) and the
-reason.
+Nothing here raises on a hard case: no voxel, no candidate (or only narrow ones), fewer
+candidates than ``k`` or a graph without a k-clique all return a :class:`ViewSelection` with
+fewer views (or none) and the reason.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from vadgs.checks import check_shape
 from vadgs.select.baselines import colmap_scores, consecutive_views, mvsnet_scores, top_k_views
 from vadgs.select.clique import MAX_SUBSETS, max_weight_clique
 from vadgs.select.covisibility import Covisibility
-from vadgs.select.score import diversity_scores
+from vadgs.select.score import diversity_scores, triangulation_angles
 
 __all__ = ["METHODS", "ViewSelection", "ViewSelectionConfig", "ViewSelector", "select_views"]
 
@@ -62,6 +64,16 @@ class ViewSelectionConfig:
             against ``d_R^T d_S`` (see :mod:`vadgs.select.score`).
         min_shared: voxels a candidate must share with the reference, and two candidates with
             each other to be joined in the graph.
+        min_angle: least triangulation angle, degrees, of a candidate with the reference (the
+            75th percentile over the voxels they share; COLMAP's PatchMatch sources: 1°). Not in
+            the paper; its rendered and Waymo sequences move, but a car waiting at a light sees
+            its far cells from centimetres apart, and matching them places points anywhere along
+            the ray. ``0`` turns it off.
+        min_parallax: the same bound in pixels of the reference, for a caller that passes its
+            focal length (``select_views(focal=...)``): candidates need at least
+            ``degrees(min_parallax / focal)``. With ``10``, a depth 10 % off moves a point by
+            about a pixel in the support, so matching can tell it: ~3° at 240 pixels across a
+            64° view, ~0.3° at 1920. ``0`` (default) leaves only ``min_angle``.
         max_candidates: cap on the candidates entering the clique search (best ``s_iR`` kept).
         method: ``"diversity"`` (the paper), or a baseline: ``"consecutive"`` (same camera,
             nearest frames), ``"mvsnet"``, ``"colmap"`` (see :mod:`vadgs.select.baselines`).
@@ -73,6 +85,8 @@ class ViewSelectionConfig:
     eps: float = 0.1
     count_exponent: float = 2.0
     min_shared: int = 8
+    min_angle: float = 1.0
+    min_parallax: float = 0.0
     max_candidates: int = 24
     method: str = "diversity"
 
@@ -92,8 +106,23 @@ class ViewSelectionConfig:
                 "expected noise_std >= 0, eps > 0, lam >= 0, min_shared >= 1, got "
                 f"noise_std={self.noise_std}, eps={self.eps}, lam={self.lam}, min_shared={self.min_shared}"
             )
+        if not 0 <= self.min_angle < 90:
+            raise ValueError(f"min_angle: expected degrees in [0, 90), got {self.min_angle}")
+        if self.min_parallax < 0:
+            raise ValueError(f"min_parallax: expected pixels >= 0, got {self.min_parallax}")
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
+
+    def least_angle(self, focal: float | None) -> float:
+        """The least triangulation angle, degrees: ``min_angle``, or ``min_parallax`` pixels at ``focal``."""
+        if self.min_parallax == 0:
+            return self.min_angle
+        if focal is None or not focal > 0:
+            raise ValueError(
+                f"focal: expected the reference's focal length in pixels (> 0) with min_parallax = "
+                f"{self.min_parallax}, got {focal}"
+            )
+        return max(self.min_angle, math.degrees(self.min_parallax / focal))
 
 
 @dataclass(frozen=True)
@@ -105,7 +134,8 @@ class ViewSelection:
         score: the objective of ``views`` (diversity: with the drawn noise; baselines: the sum of
             their scores; ``0.0`` when empty).
         reason: ``"ok"`` when ``k`` views were found, otherwise why not: starts with one of
-            ``"no_voxels"``, ``"no_candidates"``, ``"few_candidates"``, ``"no_k_clique"``.
+            ``"no_voxels"``, ``"no_candidates"``, ``"narrow_baselines"`` (candidates, but all
+            under ``min_angle``), ``"few_candidates"``, ``"no_k_clique"``.
             A ``"; capped ..."`` suffix says the candidate cap was applied.
         candidates: ``(c,)`` int64 the candidate views the choice was made from.
     """
@@ -175,6 +205,7 @@ def select_views(
     config: ViewSelectionConfig | None = None,
     generator: torch.Generator | None = None,
     allowed: torch.Tensor | None = None,
+    focal: float | None = None,
 ) -> ViewSelection:
     """Choose the supporting views of reference view ``ref`` (see the module docstring).
 
@@ -191,6 +222,7 @@ def select_views(
         config: settings (defaults: :class:`ViewSelectionConfig`).
         generator: draws ``ξ`` (``None``: torch's global generator). Seed it for reproducible picks.
         allowed: optional ``(V,)`` bool, the views that may be chosen (e.g. training views).
+        focal: the reference's focal length in pixels; needed when ``config.min_parallax > 0``.
 
     Returns:
         A :class:`ViewSelection`; fewer than ``k`` views (or none) only with a reason.
@@ -220,6 +252,7 @@ def select_views(
         raise ValueError(f"ref: expected a view index in [0, {num}), got {ref}")
     ref = int(ref)
     ok = _allowed(allowed, num, device)
+    least = config.least_angle(focal)
     with torch.no_grad():
         if config.method != "diversity":
             return _select_baseline(ref, covis, config, ok)
@@ -234,13 +267,21 @@ def select_views(
         kept = [v for v, f in enumerate(flags) if f]
         views = torch.tensor(kept, dtype=torch.long, device=device)
         local_ref = kept.index(ref)
-        scores = diversity_scores(covis.restrict(seen, views), config.eps, config.count_exponent)
+        sub = covis.restrict(seen, views)
+        scores = diversity_scores(sub, config.eps, config.count_exponent)
         s_ref = scores.score[local_ref]
-        local = torch.nonzero(s_ref > 0).squeeze(1)  # excludes ref (0 on the diagonal)
+        wide = triangulation_angles(sub, local_ref) >= least
+        local = torch.nonzero((s_ref > 0) & wide).squeeze(1)  # excludes ref (0 on the diagonal)
         cand = views[local]
         total = len(local)
         if total == 0:
             reason = f"no_candidates: no view shares >= {config.min_shared} voxels and a baseline with it"
+            narrow = int(((s_ref > 0) & ~wide).sum())
+            if narrow:
+                reason = (
+                    f"narrow_baselines: {narrow} views share >= {config.min_shared} voxels with it, all at a "
+                    f"triangulation angle < {least:.3g}°"
+                )
             return ViewSelection(_empty(device), 0.0, reason, cand)
         node = s_ref[local]
         pair = scores.score[local][:, local]
@@ -307,19 +348,21 @@ class ViewSelector:
         ref: int,
         covis: Covisibility,
         allowed: torch.Tensor | None = None,
+        focal: float | None = None,
     ) -> ViewSelection:
         """Select for one reference view (see :func:`select_views`)."""
-        return select_views(ref, covis, self.config, self.generator, allowed)
+        return select_views(ref, covis, self.config, self.generator, allowed, focal)
 
     def select_all(
         self,
         covis: Covisibility,
         refs: list[int] | torch.Tensor | None = None,
         allowed: torch.Tensor | None = None,
+        focal: list[float] | None = None,
     ) -> list[ViewSelection]:
-        """Select for every view in ``refs`` (default: all views), in order."""
+        """Select for every view in ``refs`` (default: all views), in order; ``focal``: ``(V,)`` pixels."""
         ids = range(covis.num_views) if refs is None else [int(r) for r in refs]
-        return [self(r, covis, allowed) for r in ids]
+        return [self(r, covis, allowed, None if focal is None else focal[r]) for r in ids]
 
     def __repr__(self) -> str:
         return f"ViewSelector({self.config!r}, seed={self.seed})"

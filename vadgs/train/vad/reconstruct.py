@@ -197,7 +197,7 @@ def _select_supports(
     the visibility sets'.
     """
     sel = _select_among(index, ref, instance, frame.covis.restrict(frame.voxels), frame, cfg, generator)
-    if not (cfg.seen_supports and sel.reason.startswith(("no_voxels", "no_candidates"))):
+    if not (cfg.seen_supports and sel.reason.startswith(("no_voxels", "no_candidates", "narrow_baselines"))):
         return sel
     views = [ref, *torch.nonzero(frame.allowed).flatten().tolist()]
     covis = index.seen_covis(frame.voxels, views, track)
@@ -220,6 +220,7 @@ def _select_among(
     generator: torch.Generator | None,
 ) -> ViewSelection:
     """:func:`select_views` on ``covis``, among the views showing the whole instance when it can."""
+    focal = float(index.cameras.K[ref, 0, 0]) if cfg.selection.min_parallax else None  # one read
     if cfg.whole_supports:
         allowed = frame.allowed.tolist()  # one read, and one for the border tests
         views = [v for v, a in enumerate(allowed) if a]
@@ -229,10 +230,10 @@ def _select_among(
                 allowed[v] = allowed[v] and not cut
             if sum(allowed) > cfg.selection.k:  # the reference is one of them
                 whole = torch.tensor(allowed, dtype=torch.bool, device=frame.allowed.device)
-                sel = select_views(ref, covis, cfg.selection, generator, whole)
+                sel = select_views(ref, covis, cfg.selection, generator, whole, focal)
                 if len(sel.views) == cfg.selection.k:
                     return sel
-    return select_views(ref, covis, cfg.selection, generator, frame.allowed)
+    return select_views(ref, covis, cfg.selection, generator, frame.allowed, focal)
 
 
 def _depth_range(
