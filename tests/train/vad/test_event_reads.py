@@ -18,13 +18,14 @@ from ...launch_count import LaunchCounter
 
 #: Host reads per attempted instance: measured 972 before the event's reads were gathered
 #: (int() per flagged row, per-mask crop boxes, planar completion and fusion per pixel set, value
-#: checks of tensors the event built), 172 after (178.5 at one PatchMatch chunk); 153.5 since the
-#: event's pairs are matched together (one PatchMatch call instead of one per pair).
-MAX_READS_PER_INSTANCE = 165
-#: Launches per attempted instance: measured 8,362 with one PatchMatch call per (instance,
-#: reference) pair, 6,016 with the event's pairs in one call (at this half resolution; at the full
-#: 240x144 of issue 48's target of 5,000, benchmarks/launch_counts.py: 3,850).
-MAX_LAUNCHES_PER_INSTANCE = 6500
+#: checks of tensors the event built), 172 after (178.5 at one PatchMatch chunk); 153.5 with the
+#: event's pairs matched together (one PatchMatch call instead of one per pair), 86 with planar
+#: completion batched over a pair's members and fusion in one read.
+MAX_READS_PER_INSTANCE = 100
+#: Launches per attempted instance (issue 48's target: 5,000, at the full 240x144): measured 8,362
+#: with one PatchMatch call per (instance, reference) pair, 6,016 with the event's pairs in one
+#: call, 4,690 with planar completion and consistency batched over members.
+MAX_LAUNCHES_PER_INSTANCE = 5000
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from vadgs.geometry.camera import invert_rigid
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.planar import complete_planar
+from vadgs.mvs.planar import complete_planar_batch
 from vadgs.train.vad.crops import Crops, MatchedCrops, pool_valid, render_maps, repeat
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
@@ -60,33 +60,30 @@ def consistent_depth(
     res, w2c = matched.result, matched.world_to_cam
     depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
     b = len(crops.members)
-    src = [[j for j in range(b) if j != i] for i in range(b)]
+    src = torch.tensor([[j for j in range(b) if j != i] for i in range(b)], device=depth.device)
     cons = geometric_consistency(
         depth,
         matched.K,
         w2c,
-        torch.stack([depth[o] for o in src]),
-        torch.stack([matched.K[o] for o in src]),
-        torch.stack([w2c[o] for o in src]),
+        depth[src],
+        matched.K[src],
+        w2c[src],
         cfg.max_reproj_error,
         cfg.max_rel_depth,
         min(cfg.min_consistent_views, b - 1),
     )
     keep = cons.mask & res.mask
     normal = res.normal
-    if planar:
-        normal = res.normal.clone()
-        c2w = invert_rigid(w2c)
-        for k in range(b):
-            o = [j for j in range(len(group)) if j != crops.members[k]]
-            d_k, n_k, add = complete_planar(
-                depth[k], keep[k], matched.masks[k], matched.images[k], matched.K[k], c2w[k],
-                crops.images[o], torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o],
-                world_to_cam[o], cfg.planar, generator, res.normal[k],
-            )  # fmt: skip
-            depth[k] = d_k
-            keep[k] |= add
-            normal[k] = torch.where(add, n_k[:, None, None].expand_as(normal[k]), normal[k])
+    if planar:  # every member at once: one host read
+        dev = depth.device
+        others = torch.tensor([[j for j in range(len(group)) if j != m] for m in crops.members], device=dev)
+        depth, plane_n, add = complete_planar_batch(
+            depth, keep, matched.masks, matched.images, matched.K, invert_rigid(w2c),
+            crops.images[others], torch.stack(crops.masks)[others][:, :, None], crops.K[others],
+            world_to_cam[others], cfg.planar, generator, res.normal,
+        )  # fmt: skip
+        keep = keep | add
+        normal = torch.where(add, plane_n[:, :, None, None].expand_as(normal), normal)
     return ConsistentDepth(depth, normal, keep)
 
 
