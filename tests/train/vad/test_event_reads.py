@@ -20,11 +20,13 @@ from ...launch_count import LaunchCounter
 #: (int() per flagged row, per-mask crop boxes, planar completion and fusion per pixel set, value
 #: checks of tensors the event built), 172 after (178.5 at one PatchMatch chunk); 153.5 with the
 #: event's pairs matched together (one PatchMatch call instead of one per pair), 86 with planar
-#: completion batched over a pair's members and fusion in one read.
-MAX_READS_PER_INSTANCE = 100
+#: completion batched over a pair's members and fusion in one read, 76 with the thinning's and the
+#: depth range's reads gathered.
+MAX_READS_PER_INSTANCE = 90
 #: Launches per attempted instance (issue 48's target: 5,000, at the full 240x144): measured 8,362
 #: with one PatchMatch call per (instance, reference) pair, 6,016 with the event's pairs in one
-#: call, 4,690 with planar completion and consistency batched over members.
+#: call, 4,690 with planar completion and consistency batched over members (4,715 with the
+#: thinning by a sort instead of unique).
 MAX_LAUNCHES_PER_INSTANCE = 5000
 
 

@@ -123,7 +123,9 @@ def explained_pixels(
     return out & cons.keep
 
 
-def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None = None) -> torch.Tensor:
+def thin_points(
+    points: torch.Tensor, cell: float | torch.Tensor, existing: torch.Tensor | None = None
+) -> torch.Tensor:
     """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
 
     Args:
@@ -143,17 +145,18 @@ def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None
     """
     if points.shape[0] == 0:
         return torch.zeros(0, dtype=torch.bool, device=points.device)
-    cell = max(float(cell), 1e-6)
+    cell = torch.as_tensor(cell, dtype=points.dtype, device=points.device).clamp_min(1e-6)
     every = points if existing is None else torch.cat([existing.to(points), points])
     q = torch.floor(every / cell).long()
     q = q - q.min(0).values
     span = q.max(0).values + 1
     keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-    uniq, inv = torch.unique(keys, return_inverse=True)
-    order = torch.arange(keys.shape[0], device=keys.device)
-    first = torch.full((uniq.shape[0],), keys.shape[0], dtype=torch.long, device=keys.device)
-    first = first.scatter_reduce(0, inv, order, reduce="amin")
-    keep = first[inv] == order
+    # the first point of each voxel: a stable sort keeps each voxel's points in their order
+    order = torch.argsort(keys, stable=True)
+    ordered = keys[order]
+    first = torch.ones_like(ordered, dtype=torch.bool)
+    first[1:] = ordered[1:] != ordered[:-1]
+    keep = torch.zeros_like(first).scatter_(0, order, first)
     return keep[every.shape[0] - points.shape[0] :]
 
 
@@ -188,7 +191,7 @@ def fuse_points(
         local, taken = points, None if occupied is None else occupied.to(device)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
             local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
-        keep = thin_points(local, float(spacing.median()), taken).nonzero().squeeze(1)  # one read
+        keep = thin_points(local, spacing.median(), taken).nonzero().squeeze(1)  # one read
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)

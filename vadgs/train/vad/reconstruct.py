@@ -243,26 +243,32 @@ def _select_among(
 
 
 def _depth_range(
-    frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig, lengths: dict
-) -> tuple[float, float]:
-    """PatchMatch's depth range from the instance's voxels as the reference sees them."""
-    cen = frame.covis.voxel_centers[frame.voxels]
-    z = cen @ w2c_ref[2, :3] + w2c_ref[2, 3]
-    front = z > lengths["min_voxel_depth"]
+    frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig, lengths: dict, pixels: torch.Tensor
+) -> tuple[tuple[float, float], float]:
+    """PatchMatch's depth range from the instance's voxels as the reference sees them, and ``pixels``.
+
+    ``pixels`` (a count on the device, read in the same read) is the matching's reference pixels.
+    """
+    cen = frame.covis.voxel_centers
+    z = cen @ w2c_ref[2, :3] + w2c_ref[2, 3]  # every voxel's (no data-dependent selection: no read)
+    front = frame.voxels & (z > lengths["min_voxel_depth"])
     inf = torch.full_like(z, math.inf)
     n, z_min, z_max = 0, 0.0, 0.0
     if z.numel():
-        n, z_min, z_max = torch.stack(
+        n, z_min, z_max, count = torch.stack(
             [
                 front.sum().double(),
                 torch.where(front, z, inf).min().double(),
                 torch.where(front, z, -inf).max().double(),
+                pixels.double(),
             ]
         ).tolist()  # one read
+    else:
+        count = float(pixels)
     near, far = cfg.depth_margin
     lo, hi = (z_min * near, z_max * far) if n else lengths["fallback_depth_range"]
     lo = max(lo, lengths["min_depth"])
-    return lo, max(hi, lo * 4, lengths["min_depth_span"])
+    return (lo, max(hi, lo * 4, lengths["min_depth_span"])), count
 
 
 class MatchPlan(NamedTuple):
@@ -498,10 +504,15 @@ def match_work(masks: torch.Tensor, sources: int, config: PatchMatchConfig) -> f
         >>> match_work(m, 4, PatchMatchConfig(iterations=3, pyramid_levels=2, fine_iterations=1))
         1400.0
     """
+    return _work(float(masks.sum()), sources, config)
+
+
+def _work(pixels: float, sources: int, config: PatchMatchConfig) -> float:
+    """:func:`match_work` of ``pixels`` reference pixels (a number)."""
     levels = max(int(config.pyramid_levels), 1)
     sweeps = config.iterations * 4.0 ** -(levels - 1)
     sweeps += config.fine_iterations * sum(4.0**-k for k in range(levels - 1))
-    return float(masks.sum()) * sources * sweeps
+    return pixels * sources * sweeps
 
 
 @torch.no_grad()
@@ -549,11 +560,12 @@ def plan_match(
         if isinstance(crops, str):
             return nothing(crops, group)
         w2c = frame.world_to_cam[group]
-        depth_range = _depth_range(frame, w2c[0], cfg, lengths)
         ch, cw = crops.size
-        masks = torch.stack([crops.masks[i][y0 : y0 + ch, x0 : x0 + cw] for i, (y0, x0) in
-                             zip(crops.members, crops.corners)])  # fmt: skip
-        work = match_work(masks, len(group) - 1, cfg.patchmatch)
+        pixels = sum(crops.masks[i][y0 : y0 + ch, x0 : x0 + cw].sum() for i, (y0, x0) in
+                     zip(crops.members, crops.corners))  # fmt: skip
+        depth_range, count = _depth_range(frame, w2c[0].to(frame.covis.voxel_centers.device), cfg, lengths,
+                                          pixels.to(frame.covis.voxel_centers.device))  # fmt: skip
+        work = _work(count, len(group) - 1, cfg.patchmatch)
         return MatchPlan(ref, instance, track, group, crops, w2c.to(dev), depth_range, sel.reason, work)
 
 
