@@ -126,3 +126,38 @@ def test_match_padding_is_checked():
     with pytest.raises(ValueError, match="match_padding: expected None or a finite number >= 1"):
         ReconstructConfig(match_padding=0.5)
     assert dataclasses.replace(ReconstructConfig(), match_padding=None).match_padding is None
+
+
+def _inputs(b: int, h: int, w: int, v: int = 4):
+    """A stand-in of one plan's PatchMatch inputs: only its shapes are read."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(images=torch.zeros(b, 3, h, w), src_images=torch.zeros(b, v, 3, 1, 1))
+
+
+class TestBatches:
+    def test_similar_crops_share_a_call(self):
+        from vadgs.train.vad.reconstruct import _batches
+
+        plans = [_inputs(5, 29, 40), _inputs(5, 53, 42), _inputs(5, 24, 80), _inputs(4, 40, 61, v=3)]
+        assert _batches(plans, 4.0, 2, False) == [[0, 1, 2, 3]]  # padded 53x80 <= 4 x 29x40
+        assert _batches(plans, None, 2, False) == [[0, 1, 2, 3]]
+        assert sorted(_batches(plans, 1.0, 2, False)) == [[0], [1], [2], [3]]
+
+    def test_the_padded_size_counts_both_sides(self):
+        from vadgs.train.vad.reconstruct import _batches
+
+        plans = [_inputs(3, 20, 140), _inputs(3, 140, 20)]  # padded 140x140: 7 times either
+        assert sorted(_batches(plans, 4.0, 2, False)) == [[0], [1]]
+        assert _batches(plans, 8.0, 2, False) == [[0, 1]]
+
+    def test_fewer_views_than_top_k_apart_and_the_call_size_capped(self):
+        from vadgs.train.vad.reconstruct import MAX_CALL_PIXEL_VIEWS, _batches
+
+        assert sorted(_batches([_inputs(2, 30, 30, v=1), _inputs(3, 30, 30)], None, 2, False)) == [[0], [1]]
+        assert _batches([_inputs(2, 30, 30, v=1), _inputs(3, 30, 30, v=1)], None, 2, False) == [[0, 1]]
+        per = 5 * 100 * 100 * 4  # pixel-views of one plan
+        n = MAX_CALL_PIXEL_VIEWS // per + 1  # one plan too many for a call
+        batches = _batches([_inputs(5, 100, 100) for _ in range(n)], None, 2, False)
+        assert len(batches) == 2 and sum(map(len, batches)) == n
+        assert all(len(b) * per <= MAX_CALL_PIXEL_VIEWS for b in batches)

@@ -349,27 +349,42 @@ def _match_inputs(
     )
 
 
-def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean: bool) -> list[list[int]]:
-    """The plans matched together: their crops padded to the largest (area) at most ``padding`` times.
+#: At most this many padded reference pixel-views (members x crop pixels x source views) in one
+#: PatchMatch call of :func:`match_plans`: on a GPU a call scores everything at once, and its
+#: temporaries grow with it (about one large pair's today: up to ~2 GB).
+MAX_CALL_PIXEL_VIEWS = 1 << 20
 
-    Plans of fewer source views than the others are padded with views that match nothing, which
+
+def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean: bool) -> list[list[int]]:
+    """The plans matched together, in groups of one PatchMatch call each.
+
+    A call's padded crop (the largest height by the largest width) is at most ``padding`` times
+    any of its crops, and it holds at most :data:`MAX_CALL_PIXEL_VIEWS` pixel-views. Plans of
+    fewer source views than the others are padded with views that match nothing, which
     changes nothing but the ``top_k`` fallback of fewer than ``top_k`` views and ``"mean"``
     aggregation (``mean``): such plans are matched only with plans of as many views.
     """
     order = sorted(range(len(inputs)), key=lambda i: -inputs[i].images.shape[-2] * inputs[i].images.shape[-1])
-    out: list[tuple[int, list[int]]] = []  # (exact view count or -1, plans)
+    out: list[dict] = []  # key (exact view count or -1), size, smallest area, references, views, plans
     for i in order:
-        h, w = inputs[i].images.shape[-2:]
+        b, _, h, w = inputs[i].images.shape
         v = inputs[i].src_images.shape[1]
         key = v if (mean or v < top_k) else -1
-        for k, batch in out:
-            first = inputs[batch[0]].images.shape[-2:]
-            if k == key and (padding is None or first[0] * first[1] <= padding * h * w):
-                batch.append(i)
+        for batch in out:
+            hh, ww = max(batch["h"], h), max(batch["w"], w)
+            small = min(batch["small"], h * w)
+            views = max(batch["views"], v)
+            if (
+                batch["key"] == key
+                and (padding is None or hh * ww <= padding * small)
+                and (batch["refs"] + b) * hh * ww * views <= MAX_CALL_PIXEL_VIEWS
+            ):
+                batch.update(h=hh, w=ww, small=small, views=views, refs=batch["refs"] + b)
+                batch["plans"].append(i)
                 break
         else:
-            out.append((key, [i]))
-    return [sorted(batch) for _, batch in out]
+            out.append({"key": key, "h": h, "w": w, "small": h * w, "refs": b, "views": v, "plans": [i]})
+    return [sorted(batch["plans"]) for batch in out]
 
 
 def _match_batch(
@@ -444,7 +459,8 @@ def match_plans(
     Every member of every plan is one reference of a batched :func:`~vadgs.mvs.patchmatch` call
     against the other views of its group. Plans whose crops differ in size are padded (bottom and
     right: the crops' intrinsics stay valid; padded pixels outside the masks) to the largest of
-    their call, at most ``config.match_padding`` times a crop's pixels; sources to the largest
+    their call, at most ``config.match_padding`` times a crop's pixels, and at most
+    :data:`MAX_CALL_PIXEL_VIEWS` padded pixel-views a call; sources to the largest
     source image, and to the most source views with views that match nothing (an empty region);
     each reference keeps its own depth range. One call per such batch (one for an event's pairs
     whose crops are of similar sizes); each plan's results are cut back to its own size.
@@ -561,8 +577,8 @@ def plan_match(
             return nothing(crops, group)
         w2c = frame.world_to_cam[group]
         ch, cw = crops.size
-        pixels = sum(crops.masks[i][y0 : y0 + ch, x0 : x0 + cw].sum() for i, (y0, x0) in
-                     zip(crops.members, crops.corners))  # fmt: skip
+        pixels = torch.stack([crops.masks[i][y0 : y0 + ch, x0 : x0 + cw].sum() for i, (y0, x0) in
+                              zip(crops.members, crops.corners)]).sum()  # fmt: skip
         depth_range, count = _depth_range(frame, w2c[0].to(frame.covis.voxel_centers.device), cfg, lengths,
                                           pixels.to(frame.covis.voxel_centers.device))  # fmt: skip
         work = _work(count, len(group) - 1, cfg.patchmatch)
