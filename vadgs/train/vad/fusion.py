@@ -5,7 +5,7 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
 4. :func:`consistent_depth` keeps the pixels whose depth at least ``min_consistent_views`` other
    members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
    relative depth) and completes the textureless parts of static planar instances
-   (:func:`~vadgs.mvs.complete_planar`);
+   (:func:`~vadgs.mvs.complete_planar_batch`: all members at once);
 5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
    explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
    in the instance's frame), thinned to one per cell of the point spacing (:func:`thin_points`);
