@@ -37,7 +37,7 @@ from vadgs.data import load_scene
 from vadgs.geometry.camera import project_points
 from vadgs.train.config import TrainConfig, scale_schedule
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityDensifyConfig
+from vadgs.train.vad import InstanceReconstruction, VisibilityDensifyConfig
 
 
 class Pair(NamedTuple):
@@ -273,15 +273,24 @@ def main() -> None:
         if args.cycle is not None:
             on.save_checkpoint(args.cycle)
     pairs: list[Pair] = []
-    reconstruct = event_module.reconstruct_instance
+    # the event plans every (instance, reference) pair, matches them together and finishes each:
+    # a pair's reconstruction is its plan when there is nothing to match, else its finish
+    plan, finish = event_module.plan_match, event_module.finish_match
 
-    def recorded(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
-        rec = reconstruct(index, ref, inst, *a, **k)
-        pairs.append(Pair(inst, ref, rec.reason, rec.points.cpu(), list(rec.views)))
+    def planned(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
+        out = plan(index, ref, inst, *a, **k)
+        if isinstance(out, InstanceReconstruction):
+            pairs.append(Pair(inst, ref, out.reason, out.points.cpu(), list(out.views)))
+        return out
+
+    def finished(index: Any, match_plan: Any, *a: Any, **k: Any) -> Any:
+        rec = finish(index, match_plan, *a, **k)
+        pairs.append(Pair(match_plan.instance, match_plan.ref, rec.reason, rec.points.cpu(), list(rec.views)))
         return rec
 
     if args.breakdown or args.held_out:
-        event_module.reconstruct_instance = recorded  # type: ignore[assignment]
+        event_module.plan_match = planned  # type: ignore[assignment]
+        event_module.finish_match = finished  # type: ignore[assignment]
     chosen = {"min_angle": args.min_angle, "min_parallax": args.min_parallax}
     chosen = {k: v for k, v in chosen.items() if v is not None}
     if chosen:

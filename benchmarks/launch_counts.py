@@ -7,7 +7,7 @@ VAD-GS attached, no work budget, up to 4 instances an event):
 
 - one PatchMatch call (default :class:`~vadgs.mvs.PatchMatchConfig`, one cost chunk as on a GPU;
   a slanted textured plane, 4 sources, 80x112);
-- one event after 30 steps, per attempted instance;
+- one event after 30 steps, per attempted instance (PatchMatch in one cost chunk, as on a GPU);
 - one steady-state training step (after one full sampling cycle, so that every view's caches are
   filled), split into the rasterizer's forward and backward (its calls recorded during the counted
   steps and replayed alone on detached inputs) and everything else (the step's count minus that).
@@ -34,6 +34,7 @@ from typing import Any
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
+PM_ONE_CHUNK = 1 << 30  # PatchMatchConfig.chunk_size: one chunk per scoring, as on a GPU
 TARGETS = {  # issue 48: (launches, host reads); None: no target
     "patchmatch": (1000, None),
     "event_instance": (5000, 25),
@@ -100,8 +101,15 @@ def patchmatch_call(reps: int) -> dict[str, Any]:
 
 def event_and_step(steps_before_event: int, step_reps: int) -> dict[str, dict[str, Any]]:
     """One event after ``steps_before_event`` steps, then steady-state steps (counted and timed)."""
+    from dataclasses import replace
+
     sizes = dict(_gpu_check.SIZES["cuda"])
     trainer = _gpu_check._vad_trainer("cpu", sizes["ops_scale"], "torch", sizes)
+    # PatchMatch scores in one chunk, as on a GPU (the CPU's default cuts a scoring into
+    # cache-sized chunks, over all the references of a call: the same values, more launches)
+    vad = trainer.strategy.config
+    pm = replace(vad.reconstruct.patchmatch, chunk_size=PM_ONE_CHUNK)
+    trainer.strategy.config = replace(vad, reconstruct=replace(vad.reconstruct, patchmatch=pm))
     for _ in range(steps_before_event):
         trainer.train_step()
     t = time.perf_counter()

@@ -71,3 +71,36 @@ class TestFuseDepthMaps:
             fuse_depth_maps(d, img, K, w2c, normal=n[:, :2])
         with pytest.raises(ValueError, match="min_views"):
             FusionConfig(min_views=-1)
+
+
+def test_without_deduplication_every_valid_pixel_is_a_point():
+    """``deduplicate=False``: each valid pixel's point, view by view in pixel order (a naive loop)."""
+    g = torch.Generator().manual_seed(0)
+    b, h, w = 3, 6, 8
+    K = torch.tensor([[10.0, 0, 3.5], [0, 10.0, 2.5], [0, 0, 1]]).repeat(b, 1, 1)
+    w2c = torch.eye(4).repeat(b, 1, 1)
+    w2c[:, 0, 3] = torch.tensor([0.0, -0.1, 0.1])
+    w2c[2, :3, :3] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    depth = 1 + torch.rand(b, 1, h, w, generator=g)
+    depth[0, 0, 0, :3] = 0
+    mask = torch.rand(b, 1, h, w, generator=g) > 0.3
+    normal = torch.randn(b, 3, h, w, generator=g)
+    images = torch.rand(b, 3, h, w, generator=g) * 1.2
+    fused = fuse_depth_maps(depth, images, K, w2c, normal, mask, FusionConfig(min_views=0, deduplicate=False))
+    pts, nrm, col, view = [], [], [], []
+    for i in range(b):
+        c2w = torch.linalg.inv(w2c[i])
+        for y in range(h):
+            for x in range(w):
+                z = depth[i, 0, y, x]
+                if z > 0 and mask[i, 0, y, x]:
+                    cam = z * torch.linalg.inv(K[i]) @ torch.tensor([float(x), float(y), 1.0])
+                    pts.append(c2w[:3, :3] @ cam + c2w[:3, 3])
+                    n = c2w[:3, :3] @ normal[i, :, y, x]
+                    nrm.append(n / n.norm())
+                    col.append(images[i, :, y, x].clamp(0, 1))
+                    view.append(i)
+    assert torch.allclose(fused.points, torch.stack(pts), atol=1e-5)
+    assert torch.allclose(fused.normals, torch.stack(nrm), atol=1e-5)
+    assert torch.equal(fused.colors, torch.stack(col))
+    assert fused.view_index.tolist() == view and (fused.num_views == 1).all()

@@ -77,8 +77,10 @@ def test_launches_per_call_do_not_depend_on_the_problem(masks_and_init, joint):
     assert len(reads) == 1, {p: c.host_reads for p, c in counts.items()}
     (n,), (r,) = launches, reads
     # a region, source regions and an init add their own per-scoring checks and setup (measured
-    # 1,138 with joint scoring)
-    assert n <= BUDGET[joint] + (150 if masks_and_init else 0), n
+    # 1,138 with joint scoring; 1,160 since each reference scores its own region's pixels, padded
+    # to the most of the batch: a sort, gathers and scatters instead of indexing, one host read
+    # per level instead of two)
+    assert n <= BUDGET[joint] + (170 if masks_and_init else 0), n
     assert r <= 20, r  # setup only: input checks, the region's pixels at each level
 
 

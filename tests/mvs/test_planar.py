@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from vadgs.mvs import PlanarCompletionConfig, complete_planar, fit_plane_ransac
+from vadgs.mvs import PlanarCompletionConfig, complete_planar, complete_planar_batch, fit_plane_ransac
 
 F, Z, B = 50.0, 2.0, 0.2  # focal, plane depth, baseline: disparity F * B / Z = 5 px
 
@@ -110,3 +110,74 @@ def test_near_is_scipys_distance_transform_within_the_gap(max_gap):
         mask[0, 0] = True  # at least one set pixel (the transform's zeros)
         edt = torch.from_numpy(ndimage.distance_transform_edt(~mask.numpy()))
         assert torch.equal(_near(mask, max_gap), edt <= max_gap)
+
+
+def _batch(*cases):
+    """``complete_planar``'s arguments of several cases stacked for ``complete_planar_batch``."""
+    return [torch.stack([c[i] for c in cases]) for i in range(len(cases[0]))]
+
+
+def test_batch_fills_as_each_case_alone():
+    """Three views at once (a hole to fill, a colour mismatch, a bumpy region), as each alone."""
+    image, K, hole, src, src_w2c, depth = _scene()
+    region = torch.ones_like(hole)
+    region[:, :, :6] = False
+    valid = region & ~hole
+    ones = torch.ones_like(src[:, :1], dtype=torch.bool)
+    fill = (torch.where(valid, depth, 0), valid, region, image, K, torch.eye(4), src, ones, K[None], src_w2c)
+    bad_src = src.clone()
+    bad_src[:, :, 12:28] = 1 - bad_src[:, :, 12:28]
+    full = torch.ones_like(hole)
+    blocked = (
+        torch.where(~hole, depth, 0),
+        ~hole,
+        full,
+        image,
+        K,
+        torch.eye(4),
+        bad_src,
+        ones,
+        K[None],
+        src_w2c,
+    )
+    bumpy = depth * (1 + 0.3 * torch.rand(depth.shape, generator=torch.Generator().manual_seed(2)))
+    rough = (torch.where(~hole, bumpy, 0), ~hole, full, image, K, torch.eye(4), src, ones, K[None], src_w2c)
+    g = torch.Generator().manual_seed(0)
+    out, normal, added = complete_planar_batch(*_batch(fill, blocked, rough), generator=g)
+    for k, case in enumerate((fill, blocked, rough)):
+        _, n1, a1 = complete_planar(*case, generator=torch.Generator().manual_seed(0))
+        union = (added[k] | a1).sum()
+        if union:
+            assert (added[k] & a1).sum() / union > 0.95, k  # the same pixels filled
+            assert torch.allclose(out[k][added[k]], torch.full_like(out[k][added[k]], Z), rtol=1e-3)
+        else:
+            assert not added[k].any()
+        assert torch.allclose(normal[k], n1, atol=1e-3), k
+    assert added[0].sum() > 200 and not added[1].any() and not added[2].any()
+    assert torch.equal(out[1], fill[0] * 0 + blocked[0]) and torch.equal(out[2], rough[0])
+
+
+def test_batch_reads_the_device_once():
+    """One host read (the most consistent pixels of a view), value checks off as in an event."""
+    from vadgs.checks import checking
+
+    from ..launch_count import LaunchCounter
+
+    image, K, hole, src, src_w2c, depth = _scene()
+    valid = ~hole
+    ones = torch.ones_like(src[:, :1], dtype=torch.bool)
+    case = (
+        torch.where(valid, depth, 0),
+        valid,
+        torch.ones_like(hole),
+        image,
+        K,
+        torch.eye(4),
+        src,
+        ones,
+        K[None],
+        src_w2c,
+    )
+    with checking(False), LaunchCounter() as c:
+        complete_planar_batch(*_batch(case, case, case), generator=torch.Generator().manual_seed(0))
+    assert c.host_reads == 1

@@ -24,7 +24,13 @@ from vadgs.mvs.patchmatch import (
     patchmatch,
     propagation_regions,
 )
-from vadgs.mvs.planar import PlanarCompletionConfig, PlaneFit, complete_planar, fit_plane_ransac
+from vadgs.mvs.planar import (
+    PlanarCompletionConfig,
+    PlaneFit,
+    complete_planar,
+    complete_planar_batch,
+    fit_plane_ransac,
+)
 
 __all__ = [
     "MAX_COST",
@@ -41,6 +47,7 @@ __all__ = [
     "bilateral_weights",
     "cameras_in_object_frame",
     "complete_planar",
+    "complete_planar_batch",
     "fill_holes_scanline",
     "fit_plane_ransac",
     "fuse_depth_maps",

@@ -143,6 +143,16 @@ def fuse_depth_maps(
     else:
         nrm_world = torch.zeros(b, 3, p, device=dev, dtype=dt)
     cols = images.reshape(b, c, p)
+    if not cfg.deduplicate:  # every valid pixel a point of its own (min_views is 0): one read
+        flat = valid.reshape(-1).nonzero().flatten()  # in view order, then pixel order
+        view = flat // p
+        return FusedPoints(
+            pts_world.transpose(1, 2).reshape(b * p, 3)[flat],
+            F.normalize(nrm_world.transpose(1, 2).reshape(b * p, 3)[flat], dim=1),
+            cols.transpose(1, 2).reshape(b * p, c)[flat].clamp(0, 1),
+            view,
+            torch.ones_like(view),
+        )
     cos_max = torch.cos(torch.deg2rad(torch.tensor(cfg.max_normal_angle, dtype=dt, device=dev)))
     used = ~valid
     out_p, out_n, out_c, out_v, out_k, out_keep = [], [], [], [], [], []

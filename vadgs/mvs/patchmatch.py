@@ -40,6 +40,7 @@ Everything runs under :func:`torch.no_grad` and on the device of its inputs.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -87,8 +88,9 @@ class PatchMatchConfig:
         beta: confidence width of the view weights (ACMH: 0.3).
         max_cost: pixels with a final aggregated cost above it are invalid in the result mask.
         seed: seed of the random hypotheses (``None``: torch's global generator).
-        chunk_size: pixel-views (times hypotheses) scored at once; ``None``: 4096 on CPU (temporaries stay in
-            cache, about 3x faster than one pass), everything at once on other devices.
+        chunk_size: pixel-views (times hypotheses) scored at once, over all the references of a
+            call; ``None``: 4096 on CPU (temporaries stay in cache, about 3x faster than one pass),
+            everything at once on other devices.
         pyramid_levels: coarse-to-fine levels (ACMM-style; default 2). ``1``: a single scale. ``L > 1``: the
             ``iterations`` run on images downsampled ``2^(L-1)`` times, then at each finer level
             the upsampled hypotheses are refined by ``fine_iterations`` more sweeps (with the
@@ -219,8 +221,18 @@ def _face_camera(n: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
 
 
 def _random_depth(shape, lo, hi, gen, like) -> torch.Tensor:
+    """Depths of ``shape`` ``(B, ...)`` uniform in inverse depth between ``lo`` and ``hi``.
+
+    ``lo``, ``hi``: numbers, or ``(B,)`` tensors (one range per reference).
+    """
     u = torch.rand(shape, generator=gen, device=like.device, dtype=like.dtype)
+    lo, hi = _per_reference(lo, len(shape) - 1), _per_reference(hi, len(shape) - 1)
     return u.mul_(1 / lo - 1 / hi).add_(1 / hi).reciprocal_()
+
+
+def _per_reference(x: float | torch.Tensor, dims: int) -> float | torch.Tensor:
+    """A depth bound broadcastable over ``(B, *dims)``: a number as it is, a ``(B,)`` tensor reshaped."""
+    return x if not isinstance(x, torch.Tensor) else x.view(-1, *([1] * dims))
 
 
 class _Pixels(NamedTuple):
@@ -229,7 +241,7 @@ class _Pixels(NamedTuple):
     A colour is a slice (:meth:`part`), so that a half-sweep reads and writes contiguous runs.
     """
 
-    idx: torch.Tensor  # (P,) flat pixel indices
+    idx: torch.Tensor  # (B, P) flat pixel indices
     rays: torch.Tensor  # (B, P, 3) K^-1 p~
     cols: torch.Tensor  # (B, 3, 3, P) [m, j]: m-th entry of K^-1 e_x, K^-1 e_y, K^-1 p~ (see _window_maps)
     rows: torch.Tensor  # (B, V, 3, P, 3) A e_x, A e_y, A p~: the hypothesis-free part of the maps
@@ -239,7 +251,7 @@ class _Pixels(NamedTuple):
     def part(self, sl: slice) -> _Pixels:
         """The pixels of ``sl`` (a view of every field)."""
         return _Pixels(
-            self.idx[sl], self.rays[:, sl], self.cols[..., sl], self.rows[:, :, :, sl], self.ref[..., sl]
+            self.idx[:, sl], self.rays[:, sl], self.cols[..., sl], self.rows[:, :, :, sl], self.ref[..., sl]
         )
 
 
@@ -281,17 +293,17 @@ def _map_tables(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The hypothesis-free tables of :func:`_window_maps`, ``cols`` and ``rows``.
 
-    ``A`` ``(B, V, 3, 3)`` is ``N K_s R K_r^-1``, ``pix`` ``(P, 3)`` the homogeneous pixels, ``rays``
+    ``A`` ``(B, V, 3, 3)`` is ``N K_s R K_r^-1``, ``pix`` ``(B, P, 3)`` (or ``(P, 3)``) the pixels, ``rays``
     ``(B, P, 3)`` their ``K_r^-1 p~``. Returns ``cols`` ``(B, 3, 3, P)`` and ``rows``
     ``(B, V, 3, P, 3)`` (see :class:`_Pixels`).
     """
-    p = pix.shape[0]
+    p = pix.shape[-2]
     cols = torch.cat([Kinv[..., :2, None].expand(-1, -1, -1, p), rays.transpose(1, 2)[:, :, None]], 2)
     rows = torch.stack(
         [
             A[:, :, None, :, 0].expand(-1, -1, p, -1),
             A[:, :, None, :, 1].expand(-1, -1, p, -1),
-            torch.einsum("bvij,pj->bvpi", A, pix),
+            torch.einsum("bvij,pj->bvpi" if pix.ndim == 2 else "bvij,bpj->bvpi", A, pix),
         ],
         dim=2,
     )
@@ -376,14 +388,49 @@ def _aggregate(costs: torch.Tensor, weights: torch.Tensor | None, cfg: PatchMatc
     return torch.where(wsum > 0, weighted, topk)
 
 
+def _scored_pixels(active: torch.Tensor, even: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Each reference's scored pixels ``(N, P)``, which are real ``(N, P)``, where the second colour starts.
+
+    The pixels of ``active`` ``(N, HW)`` of the first colour (``even``), then of the second, in
+    pixel order, each colour padded to the most pixels of any reference (``real`` False). One
+    host read.
+    """
+    keys = torch.stack([active & even, active > even], 1)  # (N, 2, HW): each colour's pixels
+    most = keys.sum(-1).amax(0).tolist()  # host read
+    real, order = keys.sort(dim=-1, descending=True, stable=True)  # each colour's pixels first, in order
+    idx = torch.cat([order[:, 0, : most[0]], order[:, 1, : most[1]]], 1)
+    real = torch.cat([real[:, 0, : most[0]], real[:, 1, : most[1]]], 1)
+    return idx, real, most[0]
+
+
+def _take(x: torch.Tensor, idx: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """``x`` ``(B, ..., HW, ...)`` at each reference's pixels ``idx`` ``(B, P)`` along ``dim``."""
+    shape = [1] * x.ndim
+    shape[0], shape[dim] = idx.shape
+    return torch.gather(x, dim, idx.view(shape).expand(*x.shape[:dim], idx.shape[1], *x.shape[dim + 1 :]))
+
+
+def _put(x: torch.Tensor, slot: torch.Tensor, values: torch.Tensor, padded: bool) -> torch.Tensor:
+    """``x`` ``(B, HW, ...)`` with ``values`` ``(B, P, ...)`` at ``slot`` ``(B, P)``, in place.
+
+    ``padded``: some slots are ``HW`` (padding, dropped), written to a spare slot (a copy).
+    """
+    index = slot.view(*slot.shape, *[1] * (x.ndim - 2)).expand_as(values)
+    if not padded:
+        return x.scatter_(1, index, values)
+    return torch.cat([x, x[:, :1]], 1).scatter_(1, index, values)[:, : x.shape[1]]
+
+
 def _neighbour_table(
     xs: torch.Tensor, ys: torch.Tensor, h: int, w: int, lut: torch.Tensor, kind: str
 ) -> torch.Tensor:
-    """``(P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
+    """``(N, P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
 
-    Regions are padded to the longest; padding, neighbours outside the image and unscored
-    neighbours point to the sentinel ``lut[h * w]`` (whose cost is infinite), a region with no
-    other neighbour to the pixel itself. A few broadcasts, once per level.
+    ``xs``, ``ys`` ``(N, P)`` and ``lut`` ``(N, HW + 1)`` (the scored pixel of each pixel) are of one
+    reference each, or ``N = 1`` for all. Regions are padded to the longest; padding, neighbours
+    outside the image and unscored neighbours point to the sentinel ``lut[:, h * w]`` (whose cost
+    is infinite), a region with no other neighbour to the pixel itself. A few broadcasts, once per
+    level.
     """
     regions = [[(0, 0)], *propagation_regions(kind)]  # the pixel itself, then its R regions
     longest = max(len(r) for r in regions)
@@ -391,51 +438,67 @@ def _neighbour_table(
     off = torch.tensor(
         [[list(o) for o in r] + [[far, far]] * (longest - len(r)) for r in regions], device=xs.device
     )  # (R, L, 2)
-    qx = xs[:, None, None] + off[..., 0]
-    qy = ys[:, None, None] + off[..., 1]
+    qx = xs[..., None, None] + off[..., 0]
+    qy = ys[..., None, None] + off[..., 1]
     outside = (qx < 0) | (qx >= w) | (qy < 0) | (qy >= h)
-    table = lut[(qy * w + qx).masked_fill_(outside, h * w)]
+    q = (qy * w + qx).masked_fill_(outside, h * w)
+    table = torch.gather(lut, 1, q.view(q.shape[0], -1)).view(q.shape)
     # A region wholly outside the image (or unscored) would offer only the sentinel, a plane of
     # fixed absolute depth: it offers the pixel's own plane instead (a tie with the current plane,
     # which argmin keeps), so that the search is equivariant to the scale of the world.
-    empty = (table == lut[h * w]).all(-1, keepdim=True)
-    return torch.where(empty, table[:, :1, :1], table)
+    empty = (table == lut[:, h * w, None, None, None]).all(-1, keepdim=True)
+    return torch.where(empty, table[..., :1, :1], table)
 
 
 def _propagate(
-    hyp: torch.Tensor, agg: torch.Tensor, nbr: torch.Tensor, rays: torch.Tensor, lo: float, hi: float
+    hyp: torch.Tensor,
+    agg: torch.Tensor,
+    nbr: torch.Tensor,
+    rays: torch.Tensor,
+    lo,
+    hi,
+    batch: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(B, 1 + R, P, 4)`` each pixel's plane, then the best-cost neighbour's plane of each region.
 
     The planes are re-intersected with the pixels' rays (a pixel's own: up to rounding, its depth).
-    ``hyp`` ``(B, N + 1, 5+)`` holds depth, normal and ``n^T K^-1 p~`` of every scored pixel and
+    ``nbr`` ``(1 or B, P, 1 + R, L)`` is :func:`_neighbour_table`'s. ``hyp`` ``(B, N + 1, 5+)`` holds
+    depth, normal and ``n^T K^-1 p~`` of every scored pixel and
     the sentinel, ``agg`` ``(B, N + 1)`` their costs. Also returns the costs ``(B, 1 + R, P)``
-    where they were last scored.
+    where they were last scored. ``lo``, ``hi``: numbers or ``(B,)`` tensors. ``batch``: ``arange(B)``
+    as ``(B, 1, 1, 1)`` when ``nbr`` is of each reference, None when it is one for all.
     """
     bsz = hyp.shape[0]
-    p, r, _ = nbr.shape
-    nb_cost, best = agg[:, nbr].min(-1, keepdim=True)  # (B, P, R, 1)
+    p, r = nbr.shape[1:3]
+    if batch is None:  # the same pixels for every reference
+        nb_cost, best = agg[:, nbr[0]].min(-1, keepdim=True)  # (B, P, R, 1)
+    else:
+        nb_cost, best = agg[batch, nbr].min(-1, keepdim=True)
     q = torch.gather(nbr.expand(bsz, -1, -1, -1), 3, best)
     hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
     den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
     hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
     # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den
-    z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0]).clamp_(lo, hi)
+    z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0])
+    lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
+    z = z.clamp_(lo, hi)
     return torch.cat([z[..., None], hq[..., 1:4]], -1), nb_cost[..., 0].transpose(1, 2)
 
 
 def _refinements(
-    cur: torch.Tensor, rays: torch.Tensor, noise: torch.Tensor, kinds: list[tuple[str, str]], lo: float,
-    hi: float, gen: torch.Generator | None,
+    cur: torch.Tensor, rays: torch.Tensor, noise: torch.Tensor, kinds: list[tuple[str, str]], lo, hi,
+    gen: torch.Generator | None,
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
     Two perturbed depths (relative: ``z exp(noise[..., i])``) and two perturbed normals (``n``
     plus ``noise[..., 2 + 3 i : 5 + 3 i]``, normalised, kept only when they face the camera), the
     ``noise`` ``(B, P, 8)`` uniform, combined as ``kinds`` says: ``"p"`` perturbed (the
-    ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random.
+    ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random. ``lo``, ``hi``: numbers or
+    ``(B,)`` tensors.
     """
     z, n = cur[..., 0], cur[..., 1:]
+    lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
     pd = (z[..., None] * noise[..., :2].exp()).clamp_(lo, hi)  # (B, P, 2)
     m = n[:, :, None] + noise[..., 2:].unflatten(-1, (2, 3))  # (B, P, 2, 3), |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
@@ -455,7 +518,7 @@ def _apply_init(depth, normal, init_depth, init_normal, rays, lo, hi):
     if init_depth is not None:
         d0 = init_depth.reshape(bsz, p)
         known = torch.isfinite(d0) & (d0 > 0)
-        depth = torch.where(known, d0.clamp(lo, hi), depth)
+        depth = torch.where(known, d0.clamp(_per_reference(lo, 1), _per_reference(hi, 1)), depth)
     if init_normal is not None:
         n0 = init_normal.reshape(bsz, 3, p).transpose(1, 2)
         nn_ = n0.norm(dim=-1, keepdim=True)
@@ -507,10 +570,40 @@ def _check_inputs(
             f"expected one floating dtype for the images, cameras and initial values, got {floats}; "
             "convert with .float() (or .double() for all)"
         )
-    lo, hi = (float(x) for x in depth_range)
-    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
-        raise ValueError(f"depth_range: expected finite 0 < near < far, got {tuple(depth_range)}")
+    lo, hi = _depth_bounds(depth_range, dims["B"], image.device, image.dtype)
     return dims, lo, hi
+
+
+def _depth_bounds(
+    depth_range, bsz: int, device: torch.device, dtype: torch.dtype
+) -> tuple[float | torch.Tensor, float | torch.Tensor]:
+    """``(near, far)``: two numbers, or two ``(B,)`` tensors when the references' ranges differ.
+
+    ``depth_range`` is one ``(near, far)`` pair, or one pair per reference (a sequence of ``B``
+    pairs or a ``(B, 2)`` tensor: one host read).
+    """
+    if isinstance(depth_range, torch.Tensor):
+        depth_range = depth_range.tolist()
+    pairs = list(depth_range)
+    per_reference = bool(pairs) and all(isinstance(p, (tuple, list)) for p in pairs)
+    if not per_reference:
+        pairs = [tuple(pairs)]
+    elif len(pairs) != bsz:
+        raise ValueError(
+            f"depth_range: expected one (near, far) pair or one per reference ({bsz}), got {len(pairs)} pairs"
+        )
+    bounds = []
+    for pair in pairs:
+        if len(pair) != 2:
+            raise ValueError(f"depth_range: expected (near, far) pairs, got {tuple(pair)}")
+        lo, hi = (float(x) for x in pair)
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+            raise ValueError(f"depth_range: expected finite 0 < near < far, got {tuple(pair)}")
+        bounds.append((lo, hi))
+    if len(set(bounds)) == 1:  # one range for all: numbers (the path of a single range)
+        return bounds[0]
+    both = torch.tensor(bounds, device=device, dtype=dtype)
+    return both[:, 0], both[:, 1]
 
 
 def _check_images(
@@ -568,7 +661,7 @@ def patchmatch(
     src_K: torch.Tensor,
     world_to_cam: torch.Tensor,
     src_world_to_cam: torch.Tensor,
-    depth_range: tuple[float, float],
+    depth_range: tuple[float, float] | Sequence[tuple[float, float]] | torch.Tensor,
     config: PatchMatchConfig | None = None,
     init_depth: torch.Tensor | None = None,
     init_normal: torch.Tensor | None = None,
@@ -587,7 +680,9 @@ def patchmatch(
         world_to_cam: ``(B, 4, 4)`` reference poses. For a rigid moving object pass the poses in
             its frame (:func:`vadgs.geometry.cameras_in_object_frame`) and restrict ``mask``.
         src_world_to_cam: ``(B, V, 4, 4)`` source poses, in the same frame.
-        depth_range: ``(near, far)`` bounds of random depths (sampled uniformly in inverse depth).
+        depth_range: ``(near, far)`` bounds of random depths (sampled uniformly in inverse depth)
+            and of every hypothesis, or one such pair per reference (a sequence of ``B`` pairs or a
+            ``(B, 2)`` tensor), so that references of different depth ranges share one call.
         config: a :class:`PatchMatchConfig` (defaults if ``None``).
         init_depth: optional ``(B, 1, H, W)`` initial depth (e.g. rendered by the Gaussians);
             ``0`` where unknown (those pixels start random).
@@ -632,7 +727,7 @@ def patchmatch(
     bsz, nv = src_images.shape[:2]
     ref_to_world = invert_rigid(world_to_cam)
     src_from_ref = torch.bmm(src_world_to_cam.reshape(bsz, nv * 4, 4), ref_to_world).view(bsz, nv, 4, 4)
-    usable = src_from_ref[..., :3, 3].norm(dim=-1) > 1e-6 * lo  # (B, V): non-degenerate baseline
+    usable = src_from_ref[..., :3, 3].norm(dim=-1) > 1e-6 * _per_reference(lo, 1)  # (B, V): baseline
     if not bool(usable.any(-1).all()):
         bad = [int(i) for i in torch.nonzero(~usable.any(-1)).flatten()]
         raise ValueError(
@@ -757,7 +852,7 @@ def _patchmatch_level(
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
     off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
     src = _Sources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
-    chunk = _chunk_size(cfg.chunk_size, dev, nv)
+    chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
 
     # Reference: windows, bilateral weights (zero outside the region).
     patches = reference_patches(_to_gray(image), offsets)  # (B, S, HW)
@@ -768,34 +863,47 @@ def _patchmatch_level(
         inside = reference_patches(mask.bool().to(dt), offsets) > 0.5
         weights = weights * inside
         weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
-        active = region.any(0)
     else:
         region = None
-        active = torch.ones(h * w, dtype=torch.bool, device=dev)
 
-    # The scored pixels: those of the region (of any batch element), the first checkerboard colour
-    # then the second. With a small object in a large crop the cost follows the object, not the
-    # crop; pixels outside are never propagated from (as when they were scored with the worst cost).
+    # The scored pixels of each reference: those of its region (all without one), the first
+    # checkerboard colour then the second. With a small object in a large crop the cost follows
+    # the object, not the crop; pixels outside are never propagated from (as when they were scored
+    # with the worst cost). References of different regions are padded to the most pixels of each
+    # colour with pixels that score nothing, are never propagated from and whose results are
+    # dropped (``slot`` ``h * w``).
     flat = torch.arange(h * w, device=dev)
     xs, ys = flat % w, flat // w
     even = (xs + ys) % 2 == 0
-    by_colour = [
-        torch.nonzero(active & even).flatten(),
-        torch.nonzero(active & ~even).flatten(),
-    ]  # host reads
-    idx = torch.cat(by_colour)
-    n_act, first = idx.shape[0], by_colour[0].shape[0]
-    lut = torch.full((h * w + 1,), n_act, dtype=torch.long, device=dev)
-    lut[idx] = torch.arange(n_act, device=dev)
     pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
     rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
-    pix, rays = pix_all[idx], rays_all[:, idx]
-    st = reference_patch_stats(patches[:, :, idx], weights[:, :, idx], cfg.min_variance)
-    textured = st.valid if region is None else st.valid & region[:, idx]
+    if region is None:  # the same pixels for all references
+        by_colour = [torch.nonzero(even).flatten(), torch.nonzero(~even).flatten()]  # host reads
+        shared = torch.cat(by_colour)
+        n_act, first = shared.shape[0], by_colour[0].shape[0]
+        lut = torch.full((1, h * w + 1), n_act, dtype=torch.long, device=dev)
+        lut[0, shared] = torch.arange(n_act, device=dev)
+        idx = slot = shared.expand(bsz, -1)
+        pix = pix_all[shared]
+        textured = None
+    else:
+        idx, real, first = _scored_pixels(region, even)  # one host read
+        n_act = idx.shape[1]
+        slot = torch.where(real, idx, h * w)  # where a pixel's results go (padding: a spare slot)
+        lut = torch.full((bsz, h * w + 1), n_act, dtype=torch.long, device=dev)
+        lut = lut.scatter_(1, slot, torch.arange(n_act, device=dev).expand_as(slot))
+        lut[:, h * w] = n_act  # the sentinel
+        pix = pix_all[idx]
+        textured = real & _take(region, idx)
+    rays = _take(rays_all, idx)
+    st = reference_patch_stats(_take(patches, idx, 2), _take(weights, idx, 2), cfg.min_variance)
+    textured = st.valid if textured is None else st.valid & textured
     cols, rows = _map_tables(A, Kinv, pix, rays)
     ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
     pixels = _Pixels(idx, rays, cols, rows, ref)
-    nbr = _neighbour_table(xs[idx], ys[idx], h, w, lut, cfg.propagation)
+    na = lut.shape[0]  # 1: the same pixels for all
+    nbr = _neighbour_table(xs[idx[:na]], ys[idx[:na]], h, w, lut, cfg.propagation)  # (1 or B, P, 1 + R, L)
+    batch = None if region is None else torch.arange(bsz, device=dev).view(bsz, 1, 1, 1)
     del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
     parts = [pixels.part(sl)._replace(rays=rays[:, sl].clone()) for sl in colours]  # contiguous
@@ -812,11 +920,11 @@ def _patchmatch_level(
         # State of the scored pixels and the sentinel (infinite cost, never chosen when another
         # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs.
         nr0 = (normal * rays_all).sum(-1, keepdim=True)
-        hyp = torch.cat([depth[..., None], normal, nr0], -1)[:, idx]
+        hyp = _take(torch.cat([depth[..., None], normal, nr0], -1), idx)
         init = [hyp[..., :4]]
         if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
-            init.append(torch.cat([alt_d[..., None], alt_n], -1)[:, idx])
+            init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
         sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, float("inf")], device=dev, dtype=dt)
         state = torch.cat(
             [
@@ -851,7 +959,7 @@ def _patchmatch_level(
                 noise = torch.addcmul(neg_half[i], u, twice[i])
             for sl, px in zip(colours, parts):
                 cur = state[:, sl]
-                cands, nb_cost = _propagate(state, state[..., 5], nbr[sl], px.rays, lo, hi)
+                cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
                 if kinds and cfg.joint_scoring:
                     # Refine the likeliest winner: the plane of lowest cost where it was scored
                     # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
@@ -876,17 +984,24 @@ def _patchmatch_level(
                     cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
                     costs, nr = torch.cat([costs, c], 2), torch.cat([nr, r_nr], 1)
                 keep_best(sl, cands, costs, nr, vw)
-        depth[:, idx] = state[:, :n_act, 0]
-        normal[:, idx] = state[:, :n_act, 1:4]
+        padded = region is not None
+        depth = _put(depth, slot, state[:, :n_act, 0], padded)
+        normal = _put(normal, slot, state[:, :n_act, 1:4], padded)
     if not final:
         return _Level(depth, normal, None, None, None)
-    agg_full = torch.full((bsz, h * w), MAX_COST, device=dev, dtype=dt)
-    view_cost = torch.full((bsz, nv, h * w), MAX_COST, device=dev, dtype=dt)
-    valid = torch.zeros(bsz, h * w, dtype=torch.bool, device=dev)
+    # with a spare slot for the padding's results (see _put)
+    agg_full = torch.full((bsz, h * w + 1), MAX_COST, device=dev, dtype=dt)
+    view_cost = torch.full((bsz, h * w + 1, nv), MAX_COST, device=dev, dtype=dt)
+    valid = torch.zeros(bsz, h * w + 1, dtype=torch.bool, device=dev)
     if n_act:
-        agg_full[:, idx] = state[:, :n_act, 5]
-        view_cost[:, :, idx] = state[:, :n_act, 6:].transpose(1, 2)
-        valid[:, idx] = textured
+        agg_full = _put(agg_full, slot, state[:, :n_act, 5], False)  # the spare slot is theirs
+        view_cost = _put(view_cost, slot, state[:, :n_act, 6:], False)
+        valid = _put(valid, slot, textured, False)
+    agg_full, view_cost, valid = (
+        agg_full[:, : h * w],
+        view_cost[:, : h * w].transpose(1, 2),
+        valid[:, : h * w],
+    )
     return _Level(depth, normal, agg_full, view_cost, valid)
 
 
@@ -929,7 +1044,7 @@ class PatchMatch(nn.Module):
         src_K: torch.Tensor,
         world_to_cam: torch.Tensor,
         src_world_to_cam: torch.Tensor,
-        depth_range: tuple[float, float],
+        depth_range: tuple[float, float] | Sequence[tuple[float, float]] | torch.Tensor,
         init_depth: torch.Tensor | None = None,
         init_normal: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,

@@ -29,7 +29,13 @@ import torch
 from vadgs.checks import check_finite, check_shape, checks_enabled
 from vadgs.geometry import backproject_depth, project_points
 
-__all__ = ["PlanarCompletionConfig", "PlaneFit", "complete_planar", "fit_plane_ransac"]
+__all__ = [
+    "PlanarCompletionConfig",
+    "PlaneFit",
+    "complete_planar",
+    "complete_planar_batch",
+    "fit_plane_ransac",
+]
 
 
 class PlaneFit(NamedTuple):
@@ -283,3 +289,163 @@ def complete_planar(
     out[0, ys, xs] = torch.where(keep, z, out[0, ys, xs])
     added[0, ys, xs] = keep
     return out, normal, added
+
+
+def _inliers(
+    pts: torch.Tensor,
+    thr: torch.Tensor,
+    normals: torch.Tensor,
+    offsets: torch.Tensor,
+    normals_in: torch.Tensor | None,
+    cos_min: float,
+) -> torch.Tensor:
+    """``(b, N, T)`` inlier masks of the ``T`` planes ``(b, T, 3)``, ``(b, T)`` of each view's ``pts``."""
+    inl = (torch.bmm(pts, normals.transpose(1, 2)) + offsets[:, None]).abs() <= thr[..., None]
+    if normals_in is not None:
+        inl &= torch.bmm(normals_in, normals.transpose(1, 2)).abs() >= cos_min
+    return inl
+
+
+def complete_planar_batch(
+    depth: torch.Tensor,
+    valid: torch.Tensor,
+    region: torch.Tensor,
+    image: torch.Tensor,
+    K: torch.Tensor,
+    cam_to_world: torch.Tensor,
+    src_images: torch.Tensor,
+    src_regions: torch.Tensor,
+    src_K: torch.Tensor,
+    src_world_to_cam: torch.Tensor,
+    config: PlanarCompletionConfig | None = None,
+    generator: torch.Generator | None = None,
+    normal: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`complete_planar` of ``b`` views at once, with one host read.
+
+    The same steps on a batch (the group members of a reconstruction): each view's RANSAC triples
+    drawn among its own consistent pixels (uniformly, as :func:`complete_planar`; other draws, so
+    the two agree in distribution), the best plane refined by least squares on its inliers (the
+    smallest eigenvector of their covariance, in float64), candidates and colour tests as masks of
+    the whole view instead of pixel lists. Shapes as :func:`complete_planar`'s with a leading
+    ``b``: ``depth``, ``valid``, ``region`` ``(b, 1, H, W)``, ``image`` ``(b, 3, H, W)``, ``K``
+    ``(b, 3, 3)``, ``cam_to_world`` ``(b, 4, 4)``, ``src_images`` ``(b, V, 3, Hs, Ws)``,
+    ``src_regions`` ``(b, V, 1, Hs, Ws)``, ``src_K`` ``(b, V, 3, 3)``, ``src_world_to_cam``
+    ``(b, V, 4, 4)``, ``normal`` ``(b, 3, H, W)``.
+
+    Returns:
+        ``(depth, normal, added)``: ``(b, 1, H, W)``, ``(b, 3)`` (zeros where no plane was
+        accepted) and ``(b, 1, H, W)`` bool.
+
+    Example:
+        >>> d = torch.full((2, 1, 8, 8), 2.0); K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]])
+        >>> ok = torch.ones(2, 1, 8, 8, dtype=torch.bool); img = torch.rand(2, 3, 8, 8)
+        >>> src = img[:, None]; w2c = torch.eye(4).expand(2, 1, 4, 4)
+        >>> Ks, c2w = K.expand(2, 3, 3), torch.eye(4).expand(2, 4, 4)
+        >>> out, n, added = complete_planar_batch(d, ok, ok, img, Ks, c2w, src, ok[:, None], Ks[:, None], w2c)
+        >>> n[:, 2].tolist(), bool(added.any())  # planes found (facing the camera), nothing to fill
+        ([-1.0, -1.0], False)
+    """
+    cfg = config or PlanarCompletionConfig()
+    dims = check_shape(depth, "depth", ("b", 1, "H", "W"))
+    check_shape(valid, "valid", ("b", 1, "H", "W"), dims)
+    check_shape(region, "region", ("b", 1, "H", "W"), dims)
+    check_shape(image, "image", ("b", 3, "H", "W"), dims)
+    sd = check_shape(src_images, "src_images", ("b", "V", 3, "Hs", "Ws"), dims)
+    check_shape(src_regions, "src_regions", ("b", "V", 1, "Hs", "Ws"), sd)
+    b, h, w, v = dims["b"], dims["H"], dims["W"], sd["V"]
+    hw, dev, dt = h * w, depth.device, depth.dtype
+    none = torch.zeros_like(valid)
+    zero_n = torch.zeros(b, 3, dtype=dt, device=dev)
+    if v == 0 or b == 0:
+        return depth, zero_n, none
+    good = (valid & region & (depth > 0)).reshape(b, hw)
+    count = good.sum(1)  # (b,)
+    # each view's consistent pixels first, in row-major order (as nonzero), padded to the most
+    real, order = good.sort(dim=1, descending=True, stable=True)
+    most = int(count.max())  # the one host read
+    if most < max(cfg.min_pixels, 3):
+        return depth, zero_n, none
+    idx, real = order[:, :most], real[:, :most]
+    pts_all = backproject_depth(depth, K).reshape(b, 3, hw).transpose(1, 2)  # (b, HW, 3) camera frame
+    pts = torch.gather(pts_all, 1, idx[..., None].expand(-1, -1, 3))  # (b, N, 3)
+    nrm = None
+    cos_min = 0.0
+    if normal is not None and cfg.max_normal_angle is not None:
+        nrm = torch.nn.functional.normalize(normal.reshape(b, 3, hw).transpose(1, 2), dim=-1)
+        nrm = torch.gather(nrm, 1, idx[..., None].expand(-1, -1, 3))
+        cos_min = math.cos(math.radians(cfg.max_normal_angle))
+    thr = cfg.rel_threshold * pts[..., 2]
+    # RANSAC: the same number of triples per view, each of its own pixels
+    gdev = generator.device if generator is not None else dev
+    u = torch.rand((b, cfg.iterations * 3), generator=generator, device=gdev, dtype=torch.float64).to(dev)
+    pick = (u * count[:, None]).long().clamp_max((count - 1).clamp_min(0)[:, None])
+    tri = torch.gather(pts, 1, pick[..., None].expand(-1, -1, 3)).view(b, cfg.iterations, 3, 3)
+    a, bb, c = tri.unbind(2)
+    normals = torch.cross(bb - a, c - a, dim=-1)
+    norm = normals.norm(dim=-1)
+    solid = norm > 1e-9  # (b, T) non-degenerate triples
+    normals = normals / norm.clamp_min(1e-30)[..., None]
+    offsets = -(normals * a).sum(-1)
+    agree = _inliers(pts, thr, normals, offsets, nrm, cos_min) & real[..., None] & solid[:, None]
+    best = agree.sum(1).argmax(1)  # (b,): the first triple of the most inliers, as argmax
+    plane_n = torch.gather(normals, 1, best[:, None, None].expand(-1, 1, 3))[:, 0]  # (b, 3)
+    plane_d = torch.gather(offsets, 1, best[:, None])[:, 0]
+    inl = torch.gather(agree, 2, best[:, None, None].expand(-1, agree.shape[1], 1))[..., 0]  # (b, N)
+    # least squares on the inliers (>= 3): the smallest eigenvector of their covariance
+    wgt = inl.to(torch.float64)
+    n_inl = wgt.sum(1)
+    p64 = pts.to(torch.float64)
+    centre = (p64 * wgt[..., None]).sum(1) / n_inl.clamp_min(1)[:, None]
+    x = (p64 - centre[:, None]) * wgt[..., None]
+    vec = torch.linalg.eigh(torch.bmm(x.transpose(1, 2), x)).eigenvectors[..., 0].to(dt)  # (b, 3)
+    refine = n_inl >= 3
+    plane_n = torch.where(refine[:, None], vec, plane_n)
+    plane_d = torch.where(refine, -(plane_n * centre.to(dt)).sum(-1), plane_d)
+    inl = (
+        torch.where(
+            refine[:, None], _inliers(pts, thr, plane_n[:, None], plane_d[:, None], nrm, cos_min)[..., 0], inl
+        )
+        & real
+    )
+    ratio = inl.sum(1) / count.clamp_min(1)
+    z = pts[..., 2]
+    z_min = torch.where(inl, z, math.inf).amin(1)
+    z_max = torch.where(inl, z, -math.inf).amax(1)
+    accept = (count >= cfg.min_pixels) & solid.any(1) & (ratio >= cfg.min_inlier_ratio)
+    flip = torch.where(plane_d < 0, -1.0, 1.0).to(dt)  # the camera (origin) on the positive side
+    plane_n, plane_d = plane_n * flip[:, None], plane_d * flip
+    # candidates: empty region pixels near an inlier, of an accepted plane
+    inl_map = torch.zeros(b, hw, dtype=torch.bool, device=dev).scatter_(
+        1, idx, inl
+    )  # padding: non-good pixels
+    r = max(0, math.floor(cfg.max_gap))
+    off = torch.arange(-r, r + 1, device=dev, dtype=torch.float64)
+    disk = (off[:, None] ** 2 + off[None, :] ** 2 <= cfg.max_gap * cfg.max_gap).to(torch.float32)
+    near = torch.nn.functional.conv2d(inl_map.view(b, 1, h, w).to(torch.float32), disk[None, None], padding=r)
+    cand = (region.reshape(b, hw) & ~good & (near.view(b, hw) > 0.5)) & accept[:, None]
+    # every pixel's depth on its view's plane, its colour against the sources'
+    flat = torch.arange(hw, device=dev)
+    pix = torch.stack([flat % w, flat // w, torch.ones_like(flat)], -1).to(dt)  # (HW, 3)
+    rays = pix @ torch.linalg.inv(K).transpose(1, 2)  # (b, HW, 3)
+    den = (rays * plane_n[:, None]).sum(-1)
+    zp = -plane_d[:, None] / torch.where(den.abs() > 1e-9, den, torch.full_like(den, 1e-9))
+    ok = (zp > 0.5 * z_min[:, None]) & (zp < 2.0 * z_max[:, None])
+    world = (rays * zp[..., None]) @ cam_to_world[:, :3, :3].transpose(1, 2) + cam_to_world[:, None, :3, 3]
+    uv, zs = project_points(
+        world[:, None].expand(-1, v, -1, -1).reshape(b * v, hw, 3),
+        src_K.reshape(b * v, 3, 3),
+        src_world_to_cam.reshape(b * v, 4, 4),
+    )
+    hs, ws = sd["Hs"], sd["Ws"]
+    qx, qy = uv[..., 0].round().long(), uv[..., 1].round().long()
+    inside = (zs > 0) & (qx >= 0) & (qx < ws) & (qy >= 0) & (qy < hs)
+    q = (qy.clamp(0, hs - 1) * ws + qx.clamp(0, ws - 1))[:, None]  # (b V, 1, HW)
+    sc = torch.gather(src_images.reshape(b * v, 3, hs * ws), 2, q.expand(-1, 3, -1))  # (b V, 3, HW)
+    colour = image.reshape(b, 1, 3, hw).expand(-1, v, -1, -1).reshape(b * v, 3, hw)
+    match = (sc - colour).abs().mean(1) <= cfg.color_tolerance
+    seen = torch.gather(src_regions.reshape(b * v, 1, hs * ws), 2, q)[:, 0]
+    views = (inside & seen & match).view(b, v, hw).sum(1)
+    keep = cand & ok & (views >= cfg.min_views)
+    out = torch.where(keep, zp, depth.reshape(b, hw)).view_as(depth)
+    return out, torch.where(accept[:, None], plane_n, zero_n), keep.view_as(valid)

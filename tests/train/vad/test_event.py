@@ -119,7 +119,8 @@ class _Event:
             return _rec(instance, n, c, track=instance if instance in tracks else None)
 
         monkeypatch.setattr(event_module, "detect", lambda *a, **k: (_rows(flagged), [0]))
-        monkeypatch.setattr(event_module, "reconstruct_instance", reconstruct)
+        # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
+        monkeypatch.setattr(event_module, "plan_match", reconstruct)
 
     def run(self, params, step=0) -> dict:
         return self.strategy.densify(params, None, self.state, step)
@@ -253,7 +254,8 @@ class TestRendersOfAnEvent:
             n, c = {1: (5, 5), 2: (4, 4)}.get(instance, (0, 0))
             return _rec(instance, n, c)
 
-        monkeypatch.setattr(event_module, "reconstruct_instance", reconstruct)
+        # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
+        monkeypatch.setattr(event_module, "plan_match", reconstruct)
         entry = ev.run(params)
         assert seen == [(1, 4.0, 4.0), (2, 4.0, 4.0), (3, 4.0, 4.0)]  # views 0, 11, 12, 13: the model before
         assert rendered_with == [4] * 4  # each view rendered once (view 0 kept or rendered at the first ask)
@@ -277,7 +279,8 @@ class TestRendersOfAnEvent:
             renders(ref)
             return _rec(instance, 5 if instance == 1 else 0, 5)
 
-        monkeypatch.setattr(event_module, "reconstruct_instance", reconstruct)
+        # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
+        monkeypatch.setattr(event_module, "plan_match", reconstruct)
         monkeypatch.setattr(event_module, "pick_references", lambda candidates, *a, **k: [0])
         ev.run(params)
         got = [(g["instance"], g["view"], g["added"], float(g["depth"].max())) for g in got]

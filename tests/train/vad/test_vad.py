@@ -236,7 +236,10 @@ class TestFinerMatchingOfSmallInstances:
         Measured: 12 → 253 points, median depth error 2.0 % → 2.2 % (supports 11, 15, 17, 23). With
         the voxels on the world's axes (before issue 31's ground frame) the sign had 15 voxels,
         view 0 was a support too, and the finer matching also halved the error (1.7 % → 0.75 %):
-        on an instance of a dozen voxels the supports follow the voxels' discretisation.
+        on an instance of a dozen voxels the supports follow the voxels' discretisation. Since an
+        event's pairs are matched together (each reference scoring only its own region): 0 → 190
+        points, the scene's resolution giving no point of the sign at this seed (1 before); over
+        PatchMatch seeds 0-5 the 2x matching keeps 121.5 consistent pixels on average (127.2 before).
         """
         half_scene, index = half
         ref = max(half_scene.train_views, key=lambda v: int((index.instances(v) == SIGN).sum()))
@@ -257,7 +260,8 @@ class TestFinerMatchingOfSmallInstances:
         e1, e2 = self._rel_error(recs[1], scene), self._rel_error(recs[2], scene)
         assert n2 > 4 * max(n1, 1)
         assert float(e2.median()) < 0.03
-        assert float(e2.median()) < 1.2 * float(e1.median())
+        if e1.numel():  # the scene's resolution may give no point of the sign at all
+            assert float(e2.median()) < 1.2 * float(e1.median())
         # depth priors stay at the scene's resolution, with depth where points came from
         assert recs[2].depth[0].shape == (1, *half_scene.image_size(ref))
         assert int((recs[2].depth[0] > 0).sum()) > 0

@@ -21,7 +21,14 @@ from vadgs.train.vad.config import VisibilityDensifyConfig
 from vadgs.train.vad.detect import EventRenders, detect
 from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.priors import merge_priors
-from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
+from vadgs.train.vad.reconstruct import (
+    InstanceReconstruction,
+    MatchPlan,
+    ViewRender,
+    finish_match,
+    match_plans,
+    plan_match,
+)
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.references import pick_references, rank_instances
 from vadgs.train.vad.visibility import VisibilityIndex
@@ -142,8 +149,17 @@ def run_event(
     ``state``), the candidates (flagged, not skipped by class, model or cooldown) ranked by
     :func:`rank_instances`, then per instance, within ``max_instances`` and the budgets (PatchMatch
     work against ``work_budget`` x ``ev.trained_pixels``; the opt-in wall-clock ``time_budget``):
-    :func:`pick_references`, :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` per
-    reference, :func:`merge_priors`; ``ev.add`` of the new points when the last instance is done, so
+    :func:`pick_references`, and :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` of each
+    reference in three parts: every (instance, reference) pair of a *wave* of instances planned
+    (:func:`~vadgs.train.vad.reconstruct.plan_match`: selection, crops), all matched together
+    (:func:`~vadgs.train.vad.reconstruct.match_plans`: few batched PatchMatch calls, as few
+    kernel launches as the crops' sizes allow), then each finished in rank order
+    (:func:`~vadgs.train.vad.reconstruct.finish_match`: consistency, fusion), and
+    :func:`merge_priors`. A wave holds the instances that are attempted whatever the earlier ones
+    add (``max_instances`` counts those that add: ``max_instances`` minus those done; all without
+    a cap; one with ``time_budget``, checked between instances), so the instances attempted are
+    those of one instance at a time; the work budget is checked as each is planned (the work is
+    a function of the crops). ``ev.add`` of the new points when the last instance is done, so
     that every render the event uses (kept from the loop or made during the event) is of the
     Gaussians as they were when it began, whatever the order in which views are first asked for
     (later instances skip the cells earlier ones took instead). The log entry is appended
@@ -218,65 +234,83 @@ def run_event(
     additions: list[tuple[int, int, Any]] = []  # (instance, reference, reconstruction), added at the end
     outcomes: dict[str, int] = {}  # how each (instance, reference) reconstruction ended (_outcome)
     done = repaired = 0
-    for k, inst in enumerate(ranked):
-        if cfg.max_instances is not None and done >= cfg.max_instances:
-            skipped["max_instances"] = skipped.get("max_instances", 0) + 1
-            continue
-        if log and work > work_budget:
-            skipped["work_budget"] = skipped.get("work_budget", 0) + 1
-            continue
-        if log and time.perf_counter() - t0 > time_cap:
-            skipped["time_budget"] = skipped.get("time_budget", 0) + 1
-            continue
-        say(
-            f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
-            f"{k + 1}/{len(ranked)} ({_label(classes.get(inst, '?'), inst)}), "
-            f"{time.perf_counter() - t0:.0f} s"
-        )
-        whole = None
-        if cfg.whole_reference:
-            seen = [v for v, _px in flagged[inst]]
-            whole = [v for v, cut in zip(seen, index.cut_by_border_views(seen, inst)) if not cut]
-        refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
-        entry_views, points, n_new_total, reasons, work0 = [], 0, 0, [], work
-        frame_key = inst if inst in inputs.tracks else None
-        for ref in refs:
-            ta = time.perf_counter()
-            taken = occupied.get(frame_key)
-            rec = reconstruct_instance(
-                index, ref, inst, ev.reconstruct, ev.generator, renders,
-                occupied=torch.cat(taken) if taken else None,
-            )  # fmt: skip
-            t_mvs += time.perf_counter() - ta
-            work += rec.work
-            n_new = int(rec.points.shape[0])
-            if n_new:  # added when the event ends: every render of the event is of the model before it
-                additions.append((inst, ref, rec._replace(depth=[], normal=[])))  # priors merged below
-                occupied.setdefault(frame_key, []).append(rec.points)
-            if cfg.geometric_losses:
-                merge_priors(state["vad_priors"], rec)
-            entry_views.append(rec.views)
-            points += rec.consistent
-            n_new_total += n_new
-            reasons.append(rec.reason)
-            outcome = _outcome(rec.reason)
-            outcomes[outcome] = outcomes.get(outcome, 0) + 1
-        added += n_new_total
-        done += n_new_total > 0  # an instance that added nothing does not use up a max_instances slot
-        repaired += n_new_total > 0
-        state["vad_last_done"][inst] = event
-        log.append(
-            {
-                "instance": inst,
-                "class": classes.get(inst, "?"),
-                "references": refs,
-                "views": entry_views,
-                "points": points,
-                "added": n_new_total,
-                "work": work - work0,
-                "reason": "; ".join(dict.fromkeys(reasons)),
-            }
-        )
+    pending = list(enumerate(ranked))
+    while pending:
+        # A wave: the instances that can be attempted whatever the others add (max_instances counts
+        # those that add), each pair planned (selected and cropped), then all matched together.
+        room = math.inf if cfg.max_instances is None else cfg.max_instances - done
+        if cfg.time_budget is not None:
+            room = min(room, 1)  # the wall-clock cap is checked between instances
+        if room <= 0:
+            skipped["max_instances"] = skipped.get("max_instances", 0) + len(pending)
+            break
+        # (instance, its references, each reference's plan or, when nothing to match, result)
+        wave: list[tuple[int, list[int], list[MatchPlan | InstanceReconstruction]]] = []
+        ta = time.perf_counter()
+        while pending and len(wave) < room:
+            k, inst = pending.pop(0)
+            if (log or wave) and work > work_budget:
+                skipped["work_budget"] = skipped.get("work_budget", 0) + 1
+                continue
+            if (log or wave) and time.perf_counter() - t0 > time_cap:
+                skipped["time_budget"] = skipped.get("time_budget", 0) + 1
+                continue
+            say(
+                f"VAD-GS event {event + 1}: {len(ranked)} instances flagged, reconstructing "
+                f"{k + 1}/{len(ranked)} ({_label(classes.get(inst, '?'), inst)}), "
+                f"{time.perf_counter() - t0:.0f} s"
+            )
+            whole = None
+            if cfg.whole_reference:
+                seen = [v for v, _px in flagged[inst]]
+                whole = [v for v, cut in zip(seen, index.cut_by_border_views(seen, inst)) if not cut]
+            refs = pick_references(flagged[inst], inputs, cfg.references, cfg.min_frame_gap, whole)
+            plans = [plan_match(index, ref, inst, ev.reconstruct, ev.generator, renders) for ref in refs]
+            wave.append((inst, refs, plans))
+            work += sum(p.work for p in plans)
+        to_match = [p for _, _, plans in wave for p in plans if isinstance(p, MatchPlan)]
+        matched = iter(match_plans(index, to_match, ev.reconstruct, renders))
+        for inst, refs, plans in wave:
+            entry_views, points, n_new_total, reasons = [], 0, 0, []
+            frame_key = inst if inst in inputs.tracks else None
+            for ref, plan in zip(refs, plans):
+                if isinstance(plan, MatchPlan):
+                    taken = occupied.get(frame_key)
+                    rec = finish_match(
+                        index, plan, next(matched), ev.reconstruct, ev.generator, renders,
+                        occupied=torch.cat(taken) if taken else None,
+                    )  # fmt: skip
+                else:
+                    rec = plan  # nothing to match: its reason
+                n_new = int(rec.points.shape[0])
+                if n_new:  # added when the event ends: every render of the event is of the model before it
+                    additions.append((inst, ref, rec._replace(depth=[], normal=[])))  # priors merged below
+                    occupied.setdefault(frame_key, []).append(rec.points)
+                if cfg.geometric_losses:
+                    merge_priors(state["vad_priors"], rec)
+                entry_views.append(rec.views)
+                points += rec.consistent
+                n_new_total += n_new
+                reasons.append(rec.reason)
+                outcome = _outcome(rec.reason)
+                outcomes[outcome] = outcomes.get(outcome, 0) + 1
+            added += n_new_total
+            done += n_new_total > 0  # an instance that added nothing does not use up a max_instances slot
+            repaired += n_new_total > 0
+            state["vad_last_done"][inst] = event
+            log.append(
+                {
+                    "instance": inst,
+                    "class": classes.get(inst, "?"),
+                    "references": refs,
+                    "views": entry_views,
+                    "points": points,
+                    "added": n_new_total,
+                    "work": sum(p.work for p in plans),
+                    "reason": "; ".join(dict.fromkeys(reasons)),
+                }
+            )
+        t_mvs += time.perf_counter() - ta
     for inst, ref, rec in additions:
         before = renders(ref) if ev.on_addition is not None else None
         ev.add(params, optimizers, state, rec, event=event + 1)

@@ -5,7 +5,7 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
 4. :func:`consistent_depth` keeps the pixels whose depth at least ``min_consistent_views`` other
    members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
    relative depth) and completes the textureless parts of static planar instances
-   (:func:`~vadgs.mvs.complete_planar`);
+   (:func:`~vadgs.mvs.complete_planar_batch`: all members at once);
 5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
    explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
    in the instance's frame), thinned to one per cell of the point spacing (:func:`thin_points`);
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from vadgs.geometry.camera import invert_rigid
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.planar import complete_planar
+from vadgs.mvs.planar import complete_planar_batch
 from vadgs.train.vad.crops import Crops, MatchedCrops, pool_valid, render_maps, repeat
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
@@ -60,33 +60,30 @@ def consistent_depth(
     res, w2c = matched.result, matched.world_to_cam
     depth = torch.where(res.mask, res.depth, torch.zeros_like(res.depth))
     b = len(crops.members)
-    src = [[j for j in range(b) if j != i] for i in range(b)]
+    src = torch.tensor([[j for j in range(b) if j != i] for i in range(b)], device=depth.device)
     cons = geometric_consistency(
         depth,
         matched.K,
         w2c,
-        torch.stack([depth[o] for o in src]),
-        torch.stack([matched.K[o] for o in src]),
-        torch.stack([w2c[o] for o in src]),
+        depth[src],
+        matched.K[src],
+        w2c[src],
         cfg.max_reproj_error,
         cfg.max_rel_depth,
         min(cfg.min_consistent_views, b - 1),
     )
     keep = cons.mask & res.mask
     normal = res.normal
-    if planar:
-        normal = res.normal.clone()
-        c2w = invert_rigid(w2c)
-        for k in range(b):
-            o = [j for j in range(len(group)) if j != crops.members[k]]
-            d_k, n_k, add = complete_planar(
-                depth[k], keep[k], matched.masks[k], matched.images[k], matched.K[k], c2w[k],
-                crops.images[o], torch.stack([crops.masks[j] for j in o])[:, None], crops.K[o],
-                world_to_cam[o], cfg.planar, generator, res.normal[k],
-            )  # fmt: skip
-            depth[k] = d_k
-            keep[k] |= add
-            normal[k] = torch.where(add, n_k[:, None, None].expand_as(normal[k]), normal[k])
+    if planar:  # every member at once: one host read
+        dev = depth.device
+        others = torch.tensor([[j for j in range(len(group)) if j != m] for m in crops.members], device=dev)
+        depth, plane_n, add = complete_planar_batch(
+            depth, keep, matched.masks, matched.images, matched.K, invert_rigid(w2c),
+            crops.images[others], torch.stack(crops.masks)[others][:, :, None], crops.K[others],
+            world_to_cam[others], cfg.planar, generator, res.normal,
+        )  # fmt: skip
+        keep = keep | add
+        normal = torch.where(add, plane_n[:, :, None, None].expand_as(normal), normal)
     return ConsistentDepth(depth, normal, keep)
 
 
@@ -126,7 +123,9 @@ def explained_pixels(
     return out & cons.keep
 
 
-def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None = None) -> torch.Tensor:
+def thin_points(
+    points: torch.Tensor, cell: float | torch.Tensor, existing: torch.Tensor | None = None
+) -> torch.Tensor:
     """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
 
     Args:
@@ -146,17 +145,18 @@ def thin_points(points: torch.Tensor, cell: float, existing: torch.Tensor | None
     """
     if points.shape[0] == 0:
         return torch.zeros(0, dtype=torch.bool, device=points.device)
-    cell = max(float(cell), 1e-6)
+    cell = torch.as_tensor(cell, dtype=points.dtype, device=points.device).clamp_min(1e-6)
     every = points if existing is None else torch.cat([existing.to(points), points])
     q = torch.floor(every / cell).long()
     q = q - q.min(0).values
     span = q.max(0).values + 1
     keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-    uniq, inv = torch.unique(keys, return_inverse=True)
-    order = torch.arange(keys.shape[0], device=keys.device)
-    first = torch.full((uniq.shape[0],), keys.shape[0], dtype=torch.long, device=keys.device)
-    first = first.scatter_reduce(0, inv, order, reduce="amin")
-    keep = first[inv] == order
+    # the first point of each voxel: a stable sort keeps each voxel's points in their order
+    order = torch.argsort(keys, stable=True)
+    ordered = keys[order]
+    first = torch.ones_like(ordered, dtype=torch.bool)
+    first[1:] = ordered[1:] != ordered[:-1]
+    keep = torch.zeros_like(first).scatter_(0, order, first)
     return keep[every.shape[0] - points.shape[0] :]
 
 
@@ -191,7 +191,7 @@ def fuse_points(
         local, taken = points, None if occupied is None else occupied.to(device)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
             local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
-        keep = thin_points(local, float(spacing.median()), taken).nonzero().squeeze(1)  # one read
+        keep = thin_points(local, spacing.median(), taken).nonzero().squeeze(1)  # one read
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)

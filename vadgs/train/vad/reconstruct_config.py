@@ -100,6 +100,13 @@ class ReconstructConfig:
             <vadgs.train.vad.visibility.VisibilityIndex.seen_covis>`; a moving object's grid posed
             at each view's timestamp); the reason then ends in ``"(seen)"``. ``False``: the
             visibility sets only, as the paper's supplement.
+        match_padding: the pairs of an event are matched together
+            (:func:`~vadgs.train.vad.reconstruct.match_plans`): a batched PatchMatch call pads
+            every crop to the largest of the call, whose pixels are at most this many times a
+            crop's (the fewer calls, the fewer kernel launches on a GPU; the more padding, the
+            more pixels scored: each reference scores the union of the call's masks). 1: equal
+            sizes only; None: one call (pairs of fewer source views than
+            ``patchmatch.top_k`` apart).
     """
 
     selection: ViewSelectionConfig = field(
@@ -127,6 +134,7 @@ class ReconstructConfig:
     thin_factor: float = 1.5
     whole_supports: bool = True
     seen_supports: bool = True
+    match_padding: float | None = 4.0
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
@@ -158,4 +166,5 @@ _FIELDS = {
     "thin_factor": float_field(1),
     "whole_supports": bool_field(),
     "seen_supports": bool_field(),
+    "match_padding": float_field(1, optional=True),
 }
