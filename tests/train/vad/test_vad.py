@@ -7,7 +7,6 @@ import torch
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth, project_points
 from vadgs.mvs import PlanarCompletionConfig
-from vadgs.select import ViewSelectionConfig
 from vadgs.train.config import TrainConfig
 from vadgs.train.model import GaussianModel
 from vadgs.train.trainer import Trainer
@@ -243,16 +242,9 @@ class TestFinerMatchingOfSmallInstances:
         """
         half_scene, index = half
         ref = max(half_scene.train_views, key=lambda v: int((index.instances(v) == SIGN).sum()))
-        # the supports as before the parallax bound (at 120×72, focal 96 px, 10 px ask for 6°: other
-        # supports, with no consistent pixel on the sign); this test is of the matching scale
-        selection = ViewSelectionConfig(min_shared=2, min_parallax=0.0)
         recs = {
             up: reconstruct_instance(
-                index,
-                ref,
-                SIGN,
-                ReconstructConfig(max_upsample=up, selection=selection),
-                torch.Generator().manual_seed(1),
+                index, ref, SIGN, ReconstructConfig(max_upsample=up), torch.Generator().manual_seed(1)
             )
             for up in (1, 2)
         }
@@ -359,8 +351,7 @@ class TestWholeViews:
         assert not index.cut_by_border(scene.train_views[0], 10**6)  # absent: not cut
 
     def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
-        from vadgs.select import ViewSelectionConfig
-        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
+                from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
 
         # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
         selection = ViewSelectionConfig(min_shared=1, k=2)

@@ -33,10 +33,9 @@ class ReconstructConfig:
         selection: view selection (``k = 4`` supporting views by default; ``method="consecutive"``
             is the paper's "w/o view selection" ablation). Its ``eps`` (metres) is read at a scene
             depth of 10 and scaled with the scene (``VisibilityIndex.scene_depth / 10``).
-            ``min_parallax = 10``: a support's rays meet the reference's at least 10 of its
-            pixels apart (~3° at 240 pixels across; 1° at least), so a depth 10 % off moves a
-            point by a pixel; a real log whose car waits at a light (PandaSet 002) otherwise
-            adds points floating in front of the surface (docs/results.md, "A real log").
+            Supports need a triangulation angle of ``min_angle = 1°`` with the reference
+            (COLMAP's rule); ``min_parallax = 10`` (pixels of the reference) asks more of a real log
+            at a low resolution, at a cost on the rendered streets (docs/results.md, "A real log").
         patchmatch: PatchMatch settings.
         margin: pixels added around each instance's bounding box for the crops.
         max_crop: crops are limited to this many pixels per side (larger instances are
@@ -109,9 +108,7 @@ class ReconstructConfig:
             ``patchmatch.top_k`` apart).
     """
 
-    selection: ViewSelectionConfig = field(
-        default_factory=lambda: ViewSelectionConfig(min_shared=2, min_parallax=10.0)
-    )
+    selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
     patchmatch: PatchMatchConfig = field(default_factory=lambda: PatchMatchConfig(iterations=3))
     margin: int = 6
     max_crop: int = 160
