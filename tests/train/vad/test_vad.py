@@ -351,7 +351,8 @@ class TestWholeViews:
         assert not index.cut_by_border(scene.train_views[0], 10**6)  # absent: not cut
 
     def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
-                from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
+        from vadgs.select import ViewSelectionConfig
+        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
 
         # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
         selection = ViewSelectionConfig(min_shared=1, k=2)
