@@ -79,7 +79,7 @@ class VisibilityDensifyConfig:
             with a note in the event's summary. A run it cuts depends on the machine's speed and
             load. ``None`` (default): no cap.
         index_cache_mb: the bound of the visibility index's per-view maps (voxel z-buffer and
-            depth, instance map, image; :class:`~vadgs.train.vad.visibility.ViewCache`), in MiB;
+            depth, instance map, image; :class:`~vadgs.data.cache.ByteCache`), in MiB;
             views dropped are recomputed identically when an event needs them again. 1024 by
             default (every view of the benchmark streets; about a hundred at 1920×1280: lower it
             to bound an event's memory on a long segment, ``docs/scale.md``).

@@ -23,18 +23,14 @@ it flags nothing.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple
 
 import torch
 
 from vadgs.checks import check_fields, check_shape, float_field, int_field, ints_field
 from vadgs.config import RemovedField
-from vadgs.deprecation import moved_names
 
 __all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "find_incomplete_ids"]
-
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(__name__, {"voxel_labels": "vadgs.geometry.voxel"})
 
 
 @dataclass(frozen=True)
