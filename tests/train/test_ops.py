@@ -197,16 +197,6 @@ class TestProvenance:
         _consistent(m, opt)
         _step_ok(m, opt)
 
-    def test_old_state_dict_without_provenance_loads_zeros(self):
-        m, _, _ = _setup()
-        m.provenance = torch.arange(6)
-        sd = m.state_dict()
-        del sd["params.provenance"]
-        back = GaussianModel.from_state(sd, m.extra_state())
-        assert back.provenance.tolist() == [0] * 6
-        m.load_state_dict(sd)
-        assert m.provenance.tolist() == [0] * 6
-
 
 def _appearance(n=5):
     """gsplat's appearance-optimisation layout: ``features`` and ``colors`` instead of SH, one Adam each."""

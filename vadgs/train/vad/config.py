@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
 
 import torch
 
@@ -25,7 +24,6 @@ from vadgs.checks import (
     int_field,
     names_field,
 )
-from vadgs.config import RemovedField
 from vadgs.train.vad.incomplete import IncompleteConfig
 from vadgs.train.vad.reconstruct import ViewRender
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
@@ -135,18 +133,6 @@ class VisibilityDensifyConfig:
     flatness: float = 0.2
     voxel_depth_prior: bool = True
     last_event_fraction: float = 0.9
-
-    REMOVED_FIELDS: ClassVar[dict[str, RemovedField]] = {
-        "explained_tolerance": RemovedField(
-            "it never had an effect; the tolerance in use is reconstruct.explained_tolerance"
-        ),
-        "visibility": RemovedField(
-            "VAD-GS is on wherever its config is given; the paper's 'w/o voxel visibility reasoning' "
-            "ablation (visibility False) is TrainConfig.vad = None: vadgs train without --vad",
-            same=(True,),
-        ),
-    }
-    """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)
