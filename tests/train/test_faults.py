@@ -65,10 +65,11 @@ class TestKilledRun:
         assert proc.returncode == -signal.SIGKILL, proc.stderr
         # the end of the first sampling cycle always checkpoints (checkpoint_every and _minutes off)
         assert int(load_checkpoint(run).step) == cycle
-        (run / (CHECKPOINT_NAME + ".tmp")).write_bytes(b"half a checkpoint")  # killed mid-write
+        stale = run / ".checkpoint.0123abcd.tmp.pt"  # killed mid-write (vadgs.io.atomic_write's name)
+        stale.write_bytes(b"half a checkpoint")
         resumed = Trainer.from_checkpoint(run, scene=tiny_scene, progress=False)
         assert resumed.train().completed
-        assert not (run / (CHECKPOINT_NAME + ".tmp")).exists()  # stale tmp removed at the start
+        assert not stale.exists()  # stale tmp removed at the start
         full = Trainer(tiny_scene, config, progress=False)
         full.train()
         _assert_same(_params(full), _params(resumed))
