@@ -390,7 +390,7 @@ def test_eval_into_a_run_whose_manifest_is_unreadable_writes_nothing(run, tmp_pa
     before = _tree(tmp_path)
     assert main(["eval", str(run), "--no-progress"]) == 2
     line = _error(capsys)
-    assert f"{run / MANIFEST}: unreadable" in line and "delete the manifest" in line
+    assert f"{run / MANIFEST}: unreadable" in line and "delete it yourself" in line
     assert _tree(tmp_path) == before  # no eval.json written beside a manifest that cannot record it
 
 
