@@ -118,7 +118,7 @@ def _street_problems():
     if not STREET_A.is_dir():
         return {}
     st = _load("_mvs_street", REPO / "examples" / "mvs_street.py")
-    from vadgs.mvs import cameras_in_object_frame
+    from vadgs.geometry import cameras_in_object_frame
 
     sc = st.StreetScene(STREET_A)
     b = st.batch(sc, [20])

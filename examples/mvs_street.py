@@ -7,7 +7,7 @@ camera at ``--frame`` with the front camera of the frames ``f-2, f-1, f+1, f+2``
 filters by cost and by geometric consistency against the depth maps of the neighbouring
 references, and prints the share of pixels within 1 % and 5 % of the ground-truth depth.
 ``--car`` runs it on the largest moving car of that view instead, in the car's own frame
-(``vadgs.mvs.cameras_in_object_frame``), restricted to its instance mask.
+(``vadgs.geometry.cameras_in_object_frame``), restricted to its instance mask.
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-from vadgs.mvs import PatchMatchConfig, cameras_in_object_frame, geometric_consistency, patchmatch
+from vadgs.geometry import cameras_in_object_frame
+from vadgs.mvs import PatchMatchConfig, geometric_consistency, patchmatch
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SCENE = REPO.parent / "shared" / "data" / "street_a"

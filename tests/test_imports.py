@@ -222,93 +222,91 @@ def test_the_scans_see_private_imports_and_reexports(tmp_path):
     assert _reexports(modules) == {"vadgs.sub.b": ["f"]}  # W is bound by the module (its fallback)
 
 
-# Names a module re-exported before issue 41 (re-exports only in a package's ``__init__``), and the
-# module that defines them: the old import still works, with a DeprecationWarning naming the new place.
-MOVED = {
-    "vadgs.train.vad.reconstruct": {
-        "MatchScale": "vadgs.train.vad.crops",
-        "ReconstructConfig": "vadgs.train.vad.reconstruct_config",
-        "ViewCache": "vadgs.train.vad.visibility",
-        "VisibilityIndex": "vadgs.train.vad.visibility",
-        "build_visibility_index": "vadgs.train.vad.visibility",
-        "derive_instance_map": "vadgs.train.vad.instances",
-        "match_scale": "vadgs.train.vad.crops",
-        "sfm_observations": "vadgs.train.vad.inputs",
-        "thin_points": "vadgs.train.vad.fusion",
-    },
-    "vadgs.data.colmap": {"match_colmap_views": "vadgs.data.colmap_model"},
-    "vadgs.data.dgp": {"points_in_boxes": "vadgs.data._tracks"},
-    "vadgs.train.vad.incomplete": {"voxel_labels": "vadgs.geometry.voxel"},
-    "vadgs.train.run": {
-        "BenchmarkRef": "vadgs.train.scenes",
-        "DGPRef": "vadgs.train.scenes",
-        "RunInUseError": "vadgs.train.session",
-        "SceneRef": "vadgs.train.scenes",
-        "clear_run": "vadgs.train.checkpoint",
-        "locate_scene": "vadgs.train.scenes",
-        "open_scene": "vadgs.train.scenes",
-        "scene_fingerprint": "vadgs.train.scenes",
-        "scene_ref": "vadgs.train.scenes",
-    },
-    "vadgs.train.trainer": {
-        "DivergenceError": "vadgs.train.divergence",
-        "GeometryTargets": "vadgs.train.losses",
-        "LearningRates": "vadgs.train.config",
-        "RESUMABLE_CHANGES": "vadgs.train.checkpoint",
-        "TrainResult": "vadgs.train.loop",
-        "checkpoint_checksum": "vadgs.train.checkpoint",
-        "clear_run": "vadgs.train.checkpoint",
-        "lidar_depth_map": "vadgs.data.lidar",
-    },
-}
-# Names a module re-exported before and still imports because it uses them: no longer in its
-# ``__all__`` (nor imported from there in the repository), but the old import keeps working.
-KEPT = {
-    "vadgs.data.colmap": {
-        "COLMAP_PIXEL_OFFSET": "vadgs.data.colmap_model",
-        "ColmapPoints": "vadgs.data.scene",
-        "colmap_camera_to_K": "vadgs.data.colmap_model",
-        "distorted_cameras": "vadgs.data.colmap_model",
-        "find_colmap_model": "vadgs.data.colmap_model",
-    },
-    "vadgs.data.waymo": {
-        "waymo_beam_inclinations": "vadgs.data.waymo_lidar",
-        "waymo_range_image_to_points": "vadgs.data.waymo_lidar",
-    },
-    "vadgs.render.splat": {"RasterConfig": "vadgs.render.common", "RenderOutput": "vadgs.render.common"},
-    "vadgs.train.run": {
-        "ColmapRef": "vadgs.train.scenes",
-        "RunLock": "vadgs.train.session",
-        "describe_run": "vadgs.train.checkpoint",
-        "open_run_scene": "vadgs.train.scenes",
-        "prepare_scene": "vadgs.train.scenes",
-    },
-    "vadgs.train.trainer": {
-        "CHECKPOINT_NAME": "vadgs.train.checkpoint",
-        "NonFiniteLossError": "vadgs.train.divergence",
-        "TrainConfig": "vadgs.train.config",
-        "describe_run": "vadgs.train.checkpoint",
-        "load_checkpoint": "vadgs.train.checkpoint",
-        "open_scene": "vadgs.train.scenes",
-    },
-}
+# Issue 50: a name lives in one place and is imported from there: from the module that defines it, or
+# from its package's ``__init__`` (the public face), never through another module that happens to
+# import it, nor through a package it does not belong to. Nothing is kept for compatibility.
+
+REPO = ROOT.parent
 
 
-@pytest.mark.parametrize("old, name", [(m, n) for m, names in MOVED.items() for n in names])
-def test_moved_names_import_from_the_old_place_with_a_warning(old, name):
-    new = MOVED[old][name]
-    module = importlib.import_module(old)
-    assert name not in vars(module) and name not in module.__all__  # not bound there any more
-    with pytest.warns(DeprecationWarning, match=rf"^{old}\.{name} moved: import it from {new}$") as caught:
-        exec(f"from {old} import {name} as got", namespace := {})
-    assert namespace["got"] is getattr(importlib.import_module(new), name)
-    assert caught[0].filename == "<string>"  # the warning points at the importing line
-    with pytest.raises(AttributeError, match=f"has no attribute '{name}x'"):
-        getattr(module, f"{name}x")
+def _defines(modules: dict[str, Path]) -> dict[str, tuple[set[str], set[str]]]:
+    """Module → (the names its own code binds, the names it lists in ``__all__`` as a package)."""
+    out = {}
+    for name, path in modules.items():
+        defined, listed = _defined_and_all(ast.parse(path.read_text(), str(path)))
+        out[name] = (defined, set(listed or []) if path.name == "__init__.py" else set())
+    return out
 
 
-@pytest.mark.parametrize("old, name", [(m, n) for m, names in KEPT.items() for n in names])
-def test_kept_names_still_import_from_the_old_place(old, name):
-    module = importlib.import_module(old)
-    assert name not in module.__all__
-    assert getattr(module, name) is getattr(importlib.import_module(KEPT[old][name]), name)
+def _misplaced_imports(files: list[Path], modules: dict[str, Path], root: Path) -> list[str]:
+    """``file:line module.name`` of every ``from vadgs.module import name`` where ``name`` is neither
+    defined in ``module``, a submodule of it, nor listed by it as a package."""
+    defines = _defines(modules)
+    found = []
+    for path in files:
+        rel = path.relative_to(root)
+        name = ".".join(rel.with_suffix("").parts)
+        package = name.removesuffix(".__init__") if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            target = _from_module(node, package)
+            if target.split(".")[0] != "vadgs" or target not in defines:
+                continue
+            defined, listed = defines[target]
+            for a in node.names:
+                if f"{target}.{a.name}" not in modules and a.name not in defined | listed:
+                    found.append(f"{rel}:{node.lineno} {target}.{a.name}")
+    return found
+
+
+def _package_foreign_names(modules: dict[str, Path]) -> list[str]:
+    """``package.name`` of every name a package's ``__all__`` lists from outside the package."""
+    found = []
+    for name, path in modules.items():
+        if path.name != "__init__.py":
+            continue
+        tree = ast.parse(path.read_text(), str(path))
+        source = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                target = _from_module(node, name)
+                source.update({a.asname or a.name: target for a in node.names})
+        _, listed = _defined_and_all(tree)
+        for n in listed or []:
+            target = source.get(n, name)
+            if target != name and not target.startswith(name + "."):
+                found.append(f"{name}.{n} (from {target})")
+    return found
+
+
+def test_names_are_imported_from_where_they_live():
+    files = [
+        p for d in ("vadgs", "tests", "benchmarks", "examples", "tools") for p in (REPO / d).rglob("*.py")
+    ]
+    assert len(files) > 200  # the repository was read
+    assert _misplaced_imports(files, _modules(), REPO) == []
+    assert _package_foreign_names(_modules()) == []
+    assert not (ROOT / "deprecation.py").exists()
+
+
+def test_the_scan_sees_a_name_imported_through_another_module(tmp_path):
+    pkg = tmp_path / "vadgs"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def f(): pass\n")
+    (pkg / "sub" / "__init__.py").write_text(
+        "from vadgs.a import f\nfrom vadgs.sub.b import g\n__all__ = ['f', 'g']\n"
+    )
+    (pkg / "sub" / "b.py").write_text("from vadgs.a import f\ndef g(): pass\n")
+    (tmp_path / "t.py").write_text(
+        "from vadgs.sub.b import f, g\nfrom vadgs.sub import g\nfrom vadgs import a\n"
+    )
+    modules = {
+        "vadgs": pkg / "__init__.py",
+        "vadgs.a": pkg / "a.py",
+        "vadgs.sub": pkg / "sub" / "__init__.py",
+        "vadgs.sub.b": pkg / "sub" / "b.py",
+    }
+    assert _misplaced_imports([tmp_path / "t.py"], modules, tmp_path) == ["t.py:1 vadgs.sub.b.f"]
+    assert _package_foreign_names(modules) == ["vadgs.sub.f (from vadgs.a)"]

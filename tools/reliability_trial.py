@@ -332,11 +332,11 @@ def api_cases() -> None:
     from tests.mvs.mvs_scenes import plane_scene
     from vadgs.data import load_scene, sample_scene_path
     from vadgs.geometry import invert_rigid, project_points, quaternion_to_rotation
+    from vadgs.geometry.rotation import normals_to_quats
     from vadgs.geometry.voxel import voxelize
     from vadgs.mvs import PatchMatchConfig, patchmatch
     from vadgs.mvs.planar import fit_plane_ransac
     from vadgs.select import max_weight_clique, top_k_views
-    from vadgs.train.vad.gaussians import normals_to_quats
 
     nan = float("nan")
     api_case(

@@ -38,7 +38,7 @@ from typing import Any
 import torch
 
 from vadgs.io import atomic_write
-from vadgs.runfolder import check_output_folder, has_manifest, record_files
+from vadgs.runfolder import check_output_folder, record_files
 from vadgs.train.config import TrainConfig
 
 __all__ = [
@@ -413,25 +413,13 @@ def run_scene(
 
 
 def check_batch_folder(out_dir: str | Path, flag: str = "--out") -> Path:
-    """Refuse a batch folder that is neither new, empty, nor a batch's (a manifest, or a batch's summary).
-
-    A ``summary.json`` is a batch's (of an older vadgs, without a manifest) when it parses as one:
-    ``out_dir``, ``counts`` and ``scenes`` (a list), not by its name.
+    """Refuse a batch folder that is neither new, empty, nor a batch's (its manifest).
 
     Raises:
         ValueError: from :func:`vadgs.runfolder.check_output_folder`, naming ``flag``.
     """
     out = Path(out_dir)
-    if not has_manifest(out) and _is_batch_summary(out / "summary.json"):  # an older vadgs's batch
-        return out
     return check_output_folder(out, flag, "vadgs batch")
-
-
-def _is_batch_summary(path: Path) -> bool:
-    """Whether ``path`` is a ``summary.json`` that :func:`write_summary` wrote."""
-    data = _read_json(path) if path.is_file() else None
-    keys = {"out_dir", "counts", "scenes"}
-    return data is not None and keys <= set(data) and isinstance(data["scenes"], list)
 
 
 def write_summary(summary: BatchSummary, out_dir: str | Path | None = None) -> Path:

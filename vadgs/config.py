@@ -7,16 +7,7 @@ error deep inside training. :func:`config_from_dict` reads each field's annotati
 annotations are strings) and handles ``int``, ``float``, ``bool``, ``str``, ``X | None``,
 ``tuple[T, ...]``, ``tuple[A, B]``, ``list[T]``, ``dict[str, T]``, nested dataclasses and optional
 nested dataclasses. ``int`` is accepted where ``float`` is expected; ``bool`` is not an ``int``.
-
-A setting removed from a config may still be in the files of older runs: the dataclass lists it in
-its class attribute ``REMOVED_FIELDS`` (name → :class:`RemovedField`), and such a file still loads
-(the setting ignored, with a one-line warning) as long as the run it describes behaves the same
-without it; otherwise the error names the setting and says what to do.
-
-A setting moved into a nested config (``TrainConfig.lambda_hard`` → ``TrainConfig.geometry.lambda_hard``)
-is listed in the class attribute ``MOVED_FIELDS`` (old name → new dotted path, relative to the
-dataclass): an older file's value is read into its new place, silently (the file describes the same
-run); a file that gives both, with different values, is an error naming both.
+A key that is not a field is an error naming the keys the dataclass has.
 
 Example:
     >>> from vadgs.render import RasterConfig
@@ -33,87 +24,11 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-import warnings
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, TypeVar
 
-__all__ = ["RemovedField", "config_from_dict"]
+__all__ = ["config_from_dict"]
 
 T = TypeVar("T")
-
-
-class RemovedField(NamedTuple):
-    """A setting a config dataclass no longer has, as read from older files by :func:`config_from_dict`.
-
-    Listed in the dataclass's class attribute ``REMOVED_FIELDS: ClassVar[dict[str, RemovedField]]``.
-
-    Attributes:
-        note: why it went and what replaces it (the end of the warning or the error).
-        same: the values with which a run behaves as it does without the setting: those are
-            ignored with a :class:`UserWarning`; any other value is a :class:`ValueError`. None
-            (the default): every value (a setting that never had an effect).
-    """
-
-    note: str
-    same: tuple[Any, ...] | None = None
-
-
-def _drop_removed(cls: type, data: dict[str, Any], fields: Any, where: str) -> dict[str, Any]:
-    """``data`` without the keys of ``cls.REMOVED_FIELDS`` (a warning each, or the error)."""
-    removed: dict[str, RemovedField] = getattr(cls, "REMOVED_FIELDS", None) or {}
-    gone = [k for k in data if k in removed and k not in fields]
-    for key in gone:  # a refused value first: then no warning about the others
-        spec, value = removed[key], data[key]
-        same = spec.same is None or any(type(value) is type(v) and value == v for v in spec.same)
-        if not same:
-            raise ValueError(f"{where}.{key}: a removed setting, {value!r} no longer possible: {spec.note}")
-    for key in gone:
-        spec = removed[key]
-        warnings.warn(f"{where}.{key}: a removed setting, ignored: {spec.note}", UserWarning, stacklevel=3)
-    return {k: v for k, v in data.items() if k not in gone}
-
-
-def _same_value(a: Any, b: Any) -> bool:
-    return isinstance(a, bool) == isinstance(b, bool) and a == b
-
-
-def _move_fields(cls: type, data: dict[str, Any], fields: Any, where: str) -> dict[str, Any]:
-    """``data`` with the keys of ``cls.MOVED_FIELDS`` put at their new (dotted) paths.
-
-    The nested dicts on the way are copied, not changed in place. A key given at both places with
-    different values is a :class:`ValueError` naming both.
-    """
-    moved: dict[str, str] = getattr(cls, "MOVED_FIELDS", None) or {}
-    old = [k for k in data if k in moved and k not in fields]
-    if not old:
-        return data
-    out = dict(data)
-    for key in old:
-        value = out.pop(key)
-        *parents, leaf = moved[key].split(".")
-        target = out
-        for i, part in enumerate(parents):
-            sub = target.get(part)
-            if sub is None:
-                sub = {}
-            elif dataclasses.is_dataclass(sub) and not isinstance(sub, type):
-                sub = dataclasses.asdict(sub)
-            elif isinstance(sub, dict):
-                sub = dict(sub)
-            else:
-                path = ".".join(parents[: i + 1])
-                raise ValueError(
-                    f"{where}.{path}: expected an object (it holds {where}.{moved[key]}, given as "
-                    f"{where}.{key}), got {_got(sub)}"
-                )
-            target[part] = sub
-            target = sub
-        if leaf in target and not _same_value(target[leaf], value):
-            raise ValueError(
-                f"{where}.{key} and {where}.{moved[key]}: two values of one setting ({key} moved to "
-                f"{moved[key]}), {value!r} and {target[leaf]!r}; give one, as {where}.{moved[key]}"
-            )
-        target[leaf] = value
-    return out
 
 
 def _type_name(tp: Any) -> str:
@@ -206,29 +121,21 @@ def config_from_dict(cls: type[T], data: Any, where: str = "config") -> T:
     Args:
         cls: a dataclass type, possibly with nested dataclass fields.
         data: a dict of field values (nested dicts for nested dataclasses), e.g. the output of
-            :func:`dataclasses.asdict`; missing fields take their defaults. Keys of
-            ``cls.MOVED_FIELDS`` are read at their new paths (the dict itself is not changed).
+            :func:`dataclasses.asdict`; missing fields take their defaults.
         where: the name of ``data`` in error messages (field paths are appended to it).
 
     Returns:
         The instance of ``cls``.
 
-    Warns:
-        UserWarning: one line per removed setting (``cls.REMOVED_FIELDS``) that is ignored.
-
     Raises:
         ValueError: on a key that is not a field, or a value of the wrong type; the message names
             the field's path, the expected and the actual type (``config.lr.means: expected
-            float, got str 'x'``). A removed setting with a value the run cannot do without names
-            the setting and what to do; a moved setting given at its old and its new path with
-            different values names both. Errors raised by the dataclass's own ``__post_init__``
+            float, got str 'x'``). Errors raised by the dataclass's own ``__post_init__``
             (range checks) are re-raised prefixed with ``where``.
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where}: expected an object of {cls.__name__} fields, got {_got(data)}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
-    data = _move_fields(cls, data, fields, where)
-    data = _drop_removed(cls, data, fields, where)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {unknown}; {cls.__name__} has {sorted(fields)}")

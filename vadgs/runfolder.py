@@ -3,22 +3,21 @@
 Every file vadgs writes into a run folder (``checkpoint.pt``, ``log.jsonl``, ``config.json``,
 ``metrics.json``, ``ply/*``, ``eval*.json``, the panels in ``renders/``, ``export/...``) is
 recorded, as it is written, in the folder's manifest :data:`MANIFEST` (``.vadgs/manifest.json``:
-paths relative to the folder, rewritten with :func:`~vadgs.io.atomic_write`). Output folders that
-``vadgs export --out`` / ``vadgs render --out`` write outside a run, and a ``vadgs batch`` folder,
-get one too. The manifest is what lets ``--overwrite`` remove exactly what vadgs wrote:
+paths relative to the folder, rewritten with :func:`~vadgs.io.atomic_write`; format version
+:data:`FOLDER_VERSION`: a folder of another version is refused in one line, its run to be trained
+again). Output folders that ``vadgs export --out`` / ``vadgs render --out`` write outside a run,
+and a ``vadgs batch`` folder, get one too. The manifest is what lets ``--overwrite`` remove exactly
+what vadgs wrote:
 
-- :func:`record_files` adds written files; :func:`recorded_files` lists them (for a run written
-  by an older vadgs, without a manifest, the exact file names that vadgs wrote: :data:`LEGACY_PATTERNS`);
+- :func:`record_files` adds written files; :func:`recorded_files` lists them;
 - :func:`check_removable` checks, before anything is deleted, that every entry of the manifest is
   a relative path inside the folder once resolved (no absolute path, no ``..``, no symbolic link
   on the way, e.g. a linked ``ply/``) and that its folder is writable, naming the entry and the
   manifest that do not (:class:`ManifestError`); :func:`remove_recorded` then removes them and
   the folders, named by those entries, that became empty;
-- :func:`is_vadgs_folder` says whether vadgs wrote a folder, by what vadgs wrote: its manifest,
-  or (a run of an older vadgs) a ``config.json`` that parses as a vadgs run's or a
-  ``checkpoint.pt`` that loads as a vadgs checkpoint (:func:`is_legacy_run`), never by file
-  names; :func:`check_output_folder` refuses any other non-empty folder, as ``git clone``
-  refuses a non-empty destination, and a folder whose manifest cannot be read;
+- :func:`is_vadgs_folder` says whether vadgs wrote a folder: its manifest, never file names;
+  :func:`check_output_folder` refuses any other non-empty folder, as ``git clone`` refuses a
+  non-empty destination, and a folder whose manifest cannot be read;
 - a manifest's ``kind`` (``"segment"``: a scene :func:`vadgs.data.synthetic.make_segment`
   wrote) keeps such a folder from the other writers (:func:`manifest_kind`);
   :func:`is_sfm_project` says whether ``vadgs sfm`` wrote a COLMAP project (its ``sfm.json``).
@@ -51,8 +50,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from vadgs.io import atomic_write
 
 __all__ = [
-    "CHECKPOINT_FORMAT",
-    "LEGACY_PATTERNS",
+    "FOLDER_VERSION",
     "MANIFEST",
     "SFM_FORMAT",
     "ManifestError",
@@ -64,7 +62,6 @@ __all__ = [
     "entry_problem",
     "foreign_entries",
     "has_manifest",
-    "is_legacy_run",
     "is_sfm_project",
     "is_vadgs_folder",
     "manifest_kind",
@@ -80,61 +77,30 @@ MANIFEST = Path(".vadgs") / "manifest.json"
 
 _FORMAT = "vadgs-folder-manifest"
 
-CHECKPOINT_FORMAT = "vadgs-train-checkpoint"
-"""The format marker of a vadgs training checkpoint (:mod:`vadgs.train.checkpoint`): what makes a
-``checkpoint.pt`` vadgs's."""
+FOLDER_VERSION = 2
+"""The format version of the folders (manifests) this vadgs writes and reads (2: issue 50, nothing
+older read)."""
 
 
 SFM_FORMAT = "vadgs-sfm-project"
 """The ``format`` of the ``sfm.json`` that ``vadgs sfm`` (:func:`vadgs.data.sfm.run_sfm`) writes:
 what makes a COLMAP project vadgs's."""
 
-_OLD_SFM_KEYS = ("photos", "num_photos", "registered", "matcher", "camera_mode", "camera_model", "seed")
-
 
 def is_sfm_project(project: str | Path) -> bool:
     """Whether ``vadgs sfm`` wrote the COLMAP project ``project``: its ``sfm.json`` says so.
 
-    The ``format`` :data:`SFM_FORMAT`, or (a project of an older vadgs) the summary's own keys
-    (``photos``, ``num_photos``, ``registered``, ``matcher``, ...). A COLMAP project made
-    elsewhere (COLMAP's GUI, nerfstudio, another tool's ``sfm.json``) is not.
+    The ``format`` :data:`SFM_FORMAT`. A COLMAP project made elsewhere (COLMAP's GUI, nerfstudio,
+    another tool's ``sfm.json``) is not.
     """
     try:
         data = json.loads((Path(project) / "sfm.json").read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError):
         return False
-    if not isinstance(data, dict):
-        return False
-    return data.get("format") == SFM_FORMAT or (
-        "format" not in data and all(k in data for k in _OLD_SFM_KEYS)
-    )
+    return isinstance(data, dict) and data.get("format") == SFM_FORMAT
 
 
-LEGACY_PATTERNS = (
-    "checkpoint.pt",
-    "log.jsonl",
-    "config.json",
-    "metrics.json",
-    "eval.json",
-    "eval_novel.json",
-    "batch.json",
-    "batch_task.json",
-    "ply/static.ply",
-    "ply/object_*.ply",
-    "ply/poses.json",
-    "renders/view[0-9][0-9][0-9]_*.png",
-    "export/frame[0-9][0-9][0-9]/world_frame[0-9][0-9][0-9].ply",
-    "export/frame[0-9][0-9][0-9]/sky.png",
-    "export/frame[0-9][0-9][0-9]/sky.json",
-    "export/frame[0-9][0-9][0-9]/cameras.json",
-    "export/frame[0-9][0-9][0-9]/cfg_args",
-    "export/frame[0-9][0-9][0-9]/point_cloud/iteration_*/point_cloud.ply",
-    "export/frame[0-9][0-9][0-9]/sparse/0/*.bin",
-)
-"""The files an older vadgs (before the manifest) wrote into a run folder, as globs: what
-:func:`recorded_files` lists for a run without a manifest. Never whole folders."""
-
-_LEGACY_DIRS = ("ply", "renders", "export")  # where the legacy files live (checked for links)
+_RUN_DIRS = ("ply", "renders", "export")  # the folders a run writes (never removed through a link)
 # entries that do not make a folder "not empty": the manifest's folder, the run lock, vadgs's
 # write test and temporary files, a COLMAP run's undistorted copy (written before the manifest)
 _OWN = (".vadgs", ".vadgs.lock", ".vadgs-write-test-*", ".vadgs-sfm-*", ".*.tmp*", "undistorted")
@@ -168,15 +134,18 @@ def read_manifest(folder: str | Path) -> dict[str, dict] | None:
         data, why = None, f"{type(e).__name__}: {e}"
     if why is None and not (isinstance(data, dict) and data.get("format") == _FORMAT):
         why = f"not a vadgs manifest (expected format {_FORMAT!r})"
+    elif why is None and data.get("version") != FOLDER_VERSION:
+        raise ManifestError(
+            f"{path}: format version {data.get('version')}, this vadgs reads version {FOLDER_VERSION}: "
+            "train the run again (in a new folder)"
+        )
     elif why is None and not isinstance(data.get("files"), dict):
         why = "no 'files' object"
     if why is not None:
         raise ManifestError(
             f"{path}: unreadable ({' '.join(why.split())[:200]}): vadgs cannot tell which files in "
             f"{folder} it wrote, so it neither removes nor replaces any; nothing was changed: give "
-            f"another folder, or move what you keep out of {folder} and delete it yourself (for a "
-            "vadgs run: delete the manifest, and vadgs takes the folder for a run of an older vadgs, "
-            "whose files are the names it writes)"
+            f"another folder, or move what you keep out of {folder} and delete it yourself"
         )
     return dict(data["files"])
 
@@ -252,75 +221,20 @@ def record_files(folder: str | Path, paths: Iterable[str | Path], kind: str | No
         return None
     path = folder / MANIFEST
     if changed or not path.is_file():
-        data: dict = {"format": _FORMAT, "version": 1, **({"kind": kind} if kind else {}), "files": files}
+        data: dict = {
+            "format": _FORMAT,
+            "version": FOLDER_VERSION,
+            **({"kind": kind} if kind else {}),
+            "files": files,
+        }
         atomic_write(path, json.dumps(data, indent=1) + "\n")
     return path
-
-
-def _legacy(folder: Path) -> list[Path]:
-    found: list[Path] = []
-    for pattern in LEGACY_PATTERNS:
-        found += sorted(p for p in folder.glob(pattern) if p.is_file() or p.is_symlink())
-    return found
-
-
-def _is_vadgs_config(path: Path) -> bool:
-    """Whether ``path`` is a vadgs run's ``config.json``: ``{"config": <a TrainConfig>, "scene": {...}}``."""
-    import warnings
-
-    from vadgs.train.config import TrainConfig
-
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
-        return False
-    if not (isinstance(data, dict) and set(data) == {"config", "scene"} and isinstance(data["scene"], dict)):
-        return False
-    config = data["config"]
-    if not (isinstance(config, dict) and "iterations" in config):
-        return False
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            TrainConfig.from_dict(config)
-    except (ValueError, TypeError, KeyError):
-        return False
-    return True
-
-
-def _is_vadgs_checkpoint(path: Path) -> bool:
-    """Whether ``path`` loads (``weights_only``) as a vadgs training checkpoint (its format marker)."""
-    import zipfile
-
-    import torch
-
-    try:
-        if not zipfile.is_zipfile(path):  # vadgs's checkpoints are torch.save's zip files
-            return False
-        data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception:  # a pickle weights_only refuses, another project's objects: not vadgs's
-        return False
-    return isinstance(data, dict) and data.get("format") == CHECKPOINT_FORMAT
-
-
-def is_legacy_run(folder: str | Path) -> bool:
-    """Whether ``folder`` holds a run of an older vadgs (before the manifest), by what vadgs wrote.
-
-    Its ``config.json`` parses as a vadgs run's (``{"config": <a TrainConfig>, "scene": {...}}``),
-    or its ``checkpoint.pt`` loads (``torch.load(weights_only=True)``) as a vadgs training
-    checkpoint (its format marker). A user's ``metrics.json`` or another project's
-    ``checkpoint.pt`` is not.
-    """
-    folder = Path(folder)
-    config, ckpt = folder / "config.json", folder / "checkpoint.pt"
-    return (config.is_file() and _is_vadgs_config(config)) or (ckpt.is_file() and _is_vadgs_checkpoint(ckpt))
 
 
 def recorded_files(folder: str | Path) -> list[Path]:
     """The files vadgs wrote into ``folder`` that are still there, checked (:func:`check_entries`).
 
-    With a manifest: its entries; without one: for a run of an older vadgs (:func:`is_legacy_run`)
-    the existing files whose names match :data:`LEGACY_PATTERNS`, else none.
+    The manifest's entries; none without a manifest.
 
     Raises:
         ManifestError: an unreadable manifest, or an entry that is not a file inside ``folder``.
@@ -328,19 +242,18 @@ def recorded_files(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     files = read_manifest(folder)
     if files is None:
-        return _legacy(folder) if is_legacy_run(folder) else []
+        return []
     checked = check_entries(folder, files)
     return [p for p in checked if p.is_file() or p.is_symlink()]
 
 
 def is_vadgs_folder(folder: str | Path) -> bool:
-    """Whether vadgs wrote ``folder``: it has a manifest, or holds a run of an older vadgs.
+    """Whether vadgs wrote ``folder``: it has a manifest (not file names).
 
-    By what vadgs wrote (:func:`is_legacy_run`), not by file names. A folder whose manifest is
-    unreadable counts as vadgs's here; :func:`check_output_folder` refuses it.
+    A folder whose manifest is unreadable counts as vadgs's here; :func:`check_output_folder`
+    refuses it.
     """
-    folder = Path(folder)
-    return has_manifest(folder) or is_legacy_run(folder)
+    return has_manifest(folder)
 
 
 def foreign_entries(folder: str | Path) -> list[str]:
@@ -355,8 +268,8 @@ def check_output_folder(folder: str | Path, flag: str = "--out", what: str = "va
     """Refuse ``folder`` when it is a non-empty folder that vadgs did not write.
 
     A new path, an empty folder, or a folder vadgs wrote (:func:`is_vadgs_folder`: a readable
-    manifest, or a run of an older vadgs recognised by its config or checkpoint) passes. The
-    message never offers ``--overwrite`` or ``--resume``: they are for vadgs's own folders.
+    manifest of this format version) passes. The message never offers ``--overwrite`` or
+    ``--resume``: they are for vadgs's own folders.
 
     Args:
         folder: the output folder.
@@ -366,7 +279,8 @@ def check_output_folder(folder: str | Path, flag: str = "--out", what: str = "va
     Raises:
         ValueError: ``"--out x: destination path 'x' already exists and is not an empty directory
             (holds a, b, c, ...) nor a vadgs run; ..."``, in one line.
-        ManifestError: the folder's manifest is unreadable (:func:`read_manifest`).
+        ManifestError: the folder's manifest is unreadable or of another format version
+            (:func:`read_manifest`).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -377,7 +291,7 @@ def check_output_folder(folder: str | Path, flag: str = "--out", what: str = "va
             f"{flag} {folder}: holds a {kind} that vadgs wrote (its manifest says so), not a {what} "
             "folder; nothing was changed: give a new or empty folder"
         )
-    if has_manifest(folder) or is_legacy_run(folder):
+    if has_manifest(folder):
         return folder
     entries = foreign_entries(folder)
     if not entries:
@@ -468,21 +382,15 @@ def check_removable(folder: str | Path) -> list[Path]:
         PermissionError: a folder holding a recorded file is not writable, named.
     """
     folder = Path(folder)
-    for name in (*_LEGACY_DIRS, ".vadgs"):
+    for name in (*_RUN_DIRS, ".vadgs"):
         if (folder / name).is_symlink():
             target = os.readlink(folder / name)
             raise ValueError(
                 f"{folder / name} is a symbolic link (to {target}); vadgs writes a real folder there "
                 f"and does not remove through links: remove or replace the link first; nothing was removed"
             )
-    files = recorded_files(folder)
+    files = recorded_files(folder)  # checked: no symbolic link on the way (check_entries)
     for p in files:
-        link = _links_on_the_way(folder, p)
-        if link is not None:  # a legacy file (a manifest's entries are checked by recorded_files)
-            raise ValueError(
-                f"{link} is a symbolic link (to {os.readlink(link)}); vadgs does not remove through "
-                f"links: remove or replace the link first; nothing was removed"
-            )
         if not os.access(p.parent, os.W_OK | os.X_OK):
             raise PermissionError(f"{p.parent}: not writable, cannot remove {p.name}; nothing was removed")
     return files

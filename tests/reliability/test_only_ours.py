@@ -142,14 +142,14 @@ def test_resume_refuses_another_projects_checkpoint(tmp_path, capsys):
     assert _tree(tmp_path) == before
 
 
-@pytest.mark.parametrize("keep", ["config", "checkpoint"])
-def test_run_of_an_older_vadgs_recognised_by_what_vadgs_wrote(run, capsys, keep):
-    shutil.rmtree(run / ".vadgs")  # written before the manifest
-    (run / ("config.json" if keep == "checkpoint" else CHECKPOINT_NAME)).unlink()
-    assert main(["train", "--sample", "--out", str(run), *TINY]) == 2
-    assert "holds a" in _error(capsys)  # a run: --resume / --overwrite offered
-    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 0
-    assert load_checkpoint(run).step == 2
+def test_a_run_without_its_manifest_is_not_vadgs(run, tmp_path, capsys):
+    """Nothing kept for compatibility (issue 50): vadgs knows its folders by their manifest only."""
+    shutil.rmtree(run / ".vadgs")
+    before = _tree(tmp_path)
+    for flags in ([], ["--overwrite"]):
+        assert main(["train", "--sample", "--out", str(run), *TINY, *flags]) == 2
+        assert "nor a vadgs run folder" in _error(capsys)
+    assert _tree(tmp_path) == before
 
 
 def test_another_projects_checkpoint_in_a_run_folder_is_not_written_over(run, tmp_path, capsys):
@@ -187,10 +187,12 @@ def test_batch_recognises_its_summary_by_content(tmp_path, capsys):
     assert "holds summary.json) nor a vadgs batch folder" in line and "--overwrite" not in line
     assert _tree(tmp_path) == before
 
-    ours = tmp_path / "ours"  # a batch of an older vadgs: its summary, no manifest
+    ours = tmp_path / "ours"
     write_summary(BatchSummary(str(ours), (), 0.0))
-    shutil.rmtree(ours / ".vadgs")
-    assert check_batch_folder(ours) == ours
+    assert check_batch_folder(ours) == ours  # its manifest
+    shutil.rmtree(ours / ".vadgs")  # a summary alone is not a batch's (issue 50: no older batches)
+    with pytest.raises(ValueError, match=r"holds summary\.json, summary\.md\) nor a vadgs batch folder"):
+        check_batch_folder(ours)
 
 
 # -- vadgs sfm: a project is vadgs's when its sfm.json says so
@@ -279,17 +281,20 @@ def test_sfm_overwrite_replaces_only_what_it_wrote_and_cleans_a_killed_runs_work
         assert (project / "images" / name).read_bytes() == (photos / name).read_bytes()
 
 
-def test_sfm_project_of_an_older_vadgs_is_still_ours(photos, tmp_path, capsys):
+def test_sfm_project_without_its_format_is_not_vadgs(photos, tmp_path, capsys):
+    """Nothing kept for compatibility (issue 50): an ``sfm.json`` without vadgs's format (what
+    vadgs sfm wrote before it had one) is another tool's; nothing is removed."""
     pytest.importorskip("pycolmap")
     project = tmp_path / "proj"
     assert _sfm(photos, project) == 0
     summary = json.loads((project / "sfm.json").read_text())
-    for key in ("format", "images_written"):  # what an older vadgs wrote
+    for key in ("format", "images_written"):
         del summary[key]
     (project / "sfm.json").write_text(json.dumps(summary))
-    (project / "images" / "extra.jpg").write_bytes(b"mine")
-    assert _sfm(photos, project, "--overwrite") == 0
-    assert (project / "images" / "extra.jpg").read_bytes() == b"mine"
+    before = _tree(tmp_path)
+    assert _sfm(photos, project, "--overwrite") == 2
+    assert "vadgs sfm never writes into it, its images/ least of all: nothing was changed" in _error(capsys)
+    assert _tree(tmp_path) == before
 
 
 # -- make_segment: only what it wrote
@@ -330,14 +335,11 @@ def test_make_segment_refuses_a_folder_it_did_not_write(tmp_path, capsys, overwr
     assert _tree(tmp_path) == before
 
 
-@pytest.mark.parametrize("older", [False, True])
-def test_make_segment_overwrite_removes_only_what_it_wrote(tmp_path, older):
+def test_make_segment_overwrite_removes_only_what_it_wrote(tmp_path):
     from vadgs.data import load_scene
     from vadgs.data.synthetic import make_segment
 
     seg = make_segment(tmp_path / "seg", **SEG)
-    if older:  # written before the manifest: its scene.json says what it wrote
-        shutil.rmtree(seg / ".vadgs")
     (seg / "notes.txt").write_text("notes")
     (seg / "images" / "front" / "mine.png").write_text("mine")
     with pytest.raises(
@@ -388,7 +390,7 @@ def test_eval_into_a_run_whose_manifest_is_unreadable_writes_nothing(run, tmp_pa
     before = _tree(tmp_path)
     assert main(["eval", str(run), "--no-progress"]) == 2
     line = _error(capsys)
-    assert f"{run / MANIFEST}: unreadable" in line and "delete the manifest" in line
+    assert f"{run / MANIFEST}: unreadable" in line and "delete it yourself" in line
     assert _tree(tmp_path) == before  # no eval.json written beside a manifest that cannot record it
 
 

@@ -144,17 +144,6 @@ def test_symlinked_ply_refused_before_anything_is_removed(run, tmp_path, capsys,
     assert load_checkpoint(run).step == 2  # the old run is whole
 
 
-def test_run_of_an_older_vadgs_is_still_overwritable(run, capsys):
-    shutil.rmtree(run / ".vadgs")  # no manifest: what vadgs wrote before it
-    mine = _user_files_in_run(run)
-    (run / "export").mkdir()
-    (run / "export" / "thesis.pdf").write_text("pdf")
-    assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 0
-    assert "overwrite: removed 9 files of the previous run" in capsys.readouterr().out
-    for rel, text in {**mine, "export/thesis.pdf": "pdf"}.items():
-        assert (run / rel).read_text() == text
-
-
 def test_finished_run_without_checkpoint_is_not_told_to_resume(run, capsys):
     (run / CHECKPOINT_NAME).unlink()
     assert main(["train", "--sample", "--out", str(run), *TINY]) == 2

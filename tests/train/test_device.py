@@ -5,9 +5,10 @@ import dataclasses
 
 import torch
 
+from vadgs.geometry.rotation import normals_to_quats
 from vadgs.train import losses as L
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig, normals_to_quats
+from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 
 
 def test_vad_training_runs_on_the_device(tiny_scene, tiny_config, device):

@@ -150,18 +150,13 @@ class TestModelFree:
         below = nx.descendants(import_graph(), "vadgs.train.strategy.ops")
         assert not any(m.startswith("vadgs.train") for m in below), sorted(below)
 
-    def test_a_model_is_deprecated(self):
-        m, opt, st = _setup()
-        with pytest.warns(
-            DeprecationWarning, match=r"passing a GaussianModel is deprecated, pass its \.params"
-        ):
-            ops.remove_gaussians(m, opt, st, torch.tensor([True, False, False, False, False, False]))
-        assert m.num_gaussians == 5 and st["grad2d"].shape == (5,)
-        _consistent(m, opt)
-
     def test_not_a_mapping(self):
         with pytest.raises(TypeError, match=r"params: expected a params mapping .* got list"):
             ops.reset_opacity([torch.zeros(3)], None, 0.01)
+        m, opt, st = _setup()
+        with pytest.raises(TypeError, match=r"model\.params\), got GaussianModel"):
+            ops.remove_gaussians(m, opt, st, torch.tensor([True, False, False, False, False, False]))
+        assert m.num_gaussians == 6  # nothing removed
 
     def test_node_ids_checked_without_num_nodes(self):
         m, opt, st = _setup()
@@ -201,16 +196,6 @@ class TestProvenance:
         assert not m.provenance.requires_grad and m.provenance.dtype == torch.int64
         _consistent(m, opt)
         _step_ok(m, opt)
-
-    def test_old_state_dict_without_provenance_loads_zeros(self):
-        m, _, _ = _setup()
-        m.provenance = torch.arange(6)
-        sd = m.state_dict()
-        del sd["params.provenance"]
-        back = GaussianModel.from_state(sd, m.extra_state())
-        assert back.provenance.tolist() == [0] * 6
-        m.load_state_dict(sd)
-        assert m.provenance.tolist() == [0] * 6
 
 
 def _appearance(n=5):

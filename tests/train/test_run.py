@@ -109,7 +109,6 @@ def test_train_scene_is_the_run_a_trainer_does(tiny_scene, tiny_config, tmp_path
         **ref.to_dict(),
         "run_dir": run_dir,
         "fingerprint": fingerprint,
-        "fingerprint_method": 2,
     }
     assert run.scene_ref["fingerprint"] == fingerprint and run.scene.num_views == tiny_scene.num_views
     for k, v in trainer.model.params.items():

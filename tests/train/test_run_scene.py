@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from vadgs.cli import main as _main
-from vadgs.train.checkpoint import load_checkpoint, save_checkpoint
+from vadgs.train.checkpoint import load_checkpoint
 from vadgs.train.run import load_run, train_scene
 from vadgs.train.scenes import open_scene, scene_fingerprint, scene_ref
 from vadgs.train.session import LOCK_NAME, RunInUseError, RunLock
@@ -132,22 +132,6 @@ class TestRunKnowsItsScene:
         colmap.mkdir()
         assert main(["eval", str(run), "--scene", str(colmap)]) == 2
         assert "neither a benchmark scene" in _error_line(capsys)
-
-    def test_old_run_with_a_relative_path_still_loads(self, trained, monkeypatch):
-        home, run = trained
-        ckpt = load_checkpoint(run)
-        old = {k: v for k, v in ckpt.scene_ref.items() if k not in ("fingerprint", "run_dir")}
-        save_checkpoint(ckpt._replace(scene_ref={**old, "path": "scene"}), run / "checkpoint.pt")
-        monkeypatch.chdir(home)
-        with pytest.warns(UserWarning, match=r"relative \(a run of an older vadgs\).*pass --scene FOLDER"):
-            loaded = load_run(run)
-        assert loaded.scene.num_views == 24 and loaded.scene_ref["path"] == str((home / "scene").resolve())
-        # with its working folder recorded, from anywhere and without a warning
-        save_checkpoint(
-            ckpt._replace(scene_ref={**old, "path": "scene", "cwd": str(home)}), run / "checkpoint.pt"
-        )
-        monkeypatch.chdir(run)
-        assert load_run(run).scene_ref["path"] == str((home / "scene").resolve())
 
 
 def test_moved_colmap_run_and_project(tmp_path, monkeypatch, capsys):

@@ -26,7 +26,7 @@ from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, read_manifest, record_files, recorded_files
 from vadgs.train.results.trajectory import MAX_FRAMES
 from vadgs.train.run import Run, frame_position, load_run
-from vadgs.train.scenes import FINGERPRINT_METHODS
+from vadgs.train.scenes import FINGERPRINT_CHECKS
 from vadgs.train.session import RunLock
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
@@ -76,11 +76,10 @@ def _check_into(run: str | Path, into: str | Path, flag: str = "--out") -> Path:
 def _scene_record(run) -> dict:
     """What ``eval.json`` says of the scene it used: name, kind, path, fingerprint and what it checked."""
     ref = run.scene_ref or {}
-    method = ref.get("fingerprint_method", 1)
     return {
         "name": run.scene.name,
         **{k: ref.get(k) for k in ("kind", "path", "fingerprint")},
-        "fingerprint_checks": FINGERPRINT_METHODS.get(method, f"method {method}"),
+        "fingerprint_checks": FINGERPRINT_CHECKS,
     }
 
 

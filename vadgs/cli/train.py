@@ -7,9 +7,7 @@ ones dotted (``--iterations 3000``, ``--init.max-points 50000``, ``--vad.max-ins
 and nerfstudio do. The flags apply over a starting configuration: the defaults, a ``--config``
 JSON file, or (``--resume``) the checkpoint's; ``--vad`` and ``--appearance`` switch those parts on,
 and their fields then appear as ``--vad.*`` / ``--appearance.*``. ``vadgs train --help`` lists them
-all. Errors are one line, naming the flag; the flag of a setting that moved into a section
-(``TrainConfig.MOVED_FIELDS``: ``--lambda-hard``) fails naming its new flag
-(``--lambda-hard is now --geometry.lambda-hard``).
+all. Errors are one line, naming the flag.
 """
 
 from __future__ import annotations
@@ -151,10 +149,7 @@ _SESSION = ("scene", "out", "resume", "no_progress", "debug", "train")  # SCENE:
 
 
 def _read_config_file(path: str) -> tuple[dict, TrainConfig]:
-    """A ``--config`` JSON file and its :class:`TrainConfig`, type-checked against it on its own.
-
-    Read once: a removed setting in it is named once, as ``--config FILE.vad.KEY``.
-    """
+    """A ``--config`` JSON file and its :class:`TrainConfig`, type-checked against it on its own."""
     from vadgs.config import config_from_dict
 
     p = Path(path)
@@ -212,7 +207,6 @@ def parse_train(argv: list[str]) -> TrainCommand | None:
     if "-h" in argv or "--help" in argv:  # the help shows the defaults of the starting config
         base, _ = _starting_config([a for a in argv if a not in ("-h", "--help", "--resume")])
         return parse_command(TrainCommand, ["--help"], "vadgs train", default=TrainCommand(train=base))
-    _check_moved_flags(argv)
     base, data = _starting_config(argv)
     cmd = parse_command(TrainCommand, argv, "vadgs train", default=TrainCommand(train=base))
     assert cmd is not None  # not --help
@@ -227,36 +221,6 @@ def parse_train(argv: list[str]) -> TrainCommand | None:
         raster = dataclasses.replace(cmd.train.raster, backend="gsplat")  # gsplat's CUDA rasterizer on GPUs
         cmd = dataclasses.replace(cmd, train=dataclasses.replace(cmd.train, raster=raster))
     return cmd
-
-
-def _moved_flags() -> dict[str, str]:
-    """The flags of the settings that moved into a section (``TrainConfig.MOVED_FIELDS``) → their new flags.
-
-    A bool setting's negation too (``--no-hard-fused`` → ``--geometry.no-hard-fused``).
-    """
-    flags: dict[str, str] = {}
-    defaults = TrainConfig()
-    for old, new in TrainConfig.MOVED_FIELDS.items():
-        flags[as_flag(old)] = as_flag(new)
-        section, _, leaf = new.rpartition(".")
-        value: Any = defaults
-        for part in new.split("."):
-            value = getattr(value, part)
-        if isinstance(value, bool):
-            flags[as_flag(f"no_{old}")] = as_flag(f"{section}.no_{leaf}" if section else f"no_{leaf}")
-    return flags
-
-
-def _check_moved_flags(argv: list[str]) -> None:
-    """Refuse the old flag of a moved setting in one line naming its new flag (before tyro's error)."""
-    moved = _moved_flags()
-    for arg in argv:
-        if arg == "--":
-            break
-        given = arg.split("=", 1)[0]
-        new = moved.get(given.replace("_", "-")) if given.startswith("--") else None
-        if new is not None:
-            raise ValueError(f"{given} is now {new}")
 
 
 def _short_run_schedule(config: TrainConfig, argv: list[str], data: dict) -> TrainConfig:

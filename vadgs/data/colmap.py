@@ -68,7 +68,6 @@ from vadgs.data.colmap_model import (
 from vadgs.data.images import exif_orientation
 from vadgs.data.normalize import normalization_transform, transform_cam_to_world, transform_points
 from vadgs.data.scene import CameraInfo, ColmapPoints, FrameInfo, Scene, ViewInfo
-from vadgs.deprecation import moved_names
 from vadgs.geometry.camera import invert_rigid, scale_intrinsics
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
@@ -86,13 +85,6 @@ __all__ = [
     "warn_exif_rotated",
 ]
 
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(
-        __name__,
-        {
-            "match_colmap_views": "vadgs.data.colmap_model",
-        },
-    )
 
 COLMAP_LOG_LEVEL = 1
 """pycolmap's glog ``minloglevel`` while vadgs calls pycolmap: 0 info, 1 warnings (the default:

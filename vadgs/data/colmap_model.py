@@ -3,8 +3,7 @@
 :func:`find_colmap_model` recognises a model or project folder, :func:`distorted_cameras` lists the
 cameras that need undistortion, :func:`colmap_camera_to_K` converts a camera (pixel centres at
 integers: :data:`COLMAP_PIXEL_OFFSET`) and :func:`match_colmap_views` checks that a model belongs to
-another scene's views. The loader itself is :func:`vadgs.data.colmap.load_colmap`; every name here
-is importable from :mod:`vadgs.data.colmap`.
+another scene's views. The loader itself is :func:`vadgs.data.colmap.load_colmap`.
 """
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -63,17 +63,9 @@ from vadgs.data.assemble import (
 from vadgs.data.checks import check_lidar_points
 from vadgs.data.scene import CameraInfo, FrameInfo, LidarFrame, Scene, ViewInfo, npz_headers
 from vadgs.data.undistort import OPENCV_DISTORTION, ImageUndistorter
-from vadgs.deprecation import moved_names
 
 __all__ = ["dgp_pose_to_matrix", "load_dgp"]
 
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(
-        __name__,
-        {
-            "points_in_boxes": "vadgs.data._tracks",
-        },
-    )
 
 #: the DGP annotation type id of 3D bounding boxes (keys of ``annotations`` and ``ontologies``).
 _BOX3D = "1"

@@ -292,30 +292,20 @@ def _read_summary(project: Path) -> dict | None:
 def _written_images(project: Path) -> list[str]:
     """The files of ``project/images`` that ``vadgs sfm`` wrote there (names relative to it).
 
-    The list in its ``sfm.json`` (``images_written``); for a project of an older vadgs, which has
-    none: the photos of its model and those it left out (``unregistered``).
+    The list in its ``sfm.json`` (``images_written``).
 
     Raises:
-        ValueError: an older project whose model cannot be read (nothing can tell which files are its).
+        ValueError: an ``sfm.json`` without that list (nothing can tell which files are its).
     """
     data = _read_summary(project) or {}
     written = data.get("images_written")
-    if isinstance(written, list) and all(isinstance(n, str) for n in written):
-        names = list(written)
-    else:
-        from vadgs.data.colmap_model import read_colmap_model
-
-        try:
-            rec = read_colmap_model(project / "sparse" / "0", "--out")
-        except (OSError, ValueError) as e:
-            raise ValueError(
-                f"--out {project}: cannot tell which files of {project / 'images'} vadgs sfm wrote (a "
-                f"project of an older vadgs, its model unreadable: {' '.join(str(e).split())[:160]}); "
-                "nothing was changed: give a new or empty folder"
-            ) from None
-        names = [im.name for im in rec.images.values()] + [str(n) for n in data.get("unregistered", [])]
+    if not (isinstance(written, list) and all(isinstance(n, str) for n in written)):
+        raise ValueError(
+            f"--out {project}: cannot tell which files of {project / 'images'} vadgs sfm wrote (its "
+            "sfm.json lists no images_written); nothing was changed: give a new or empty folder"
+        )
     images = project / "images"
-    return sorted({n for n in names if _inside(images, n)})
+    return sorted({n for n in written if _inside(images, n)})
 
 
 def _inside(folder: Path, name: str) -> bool:

@@ -690,30 +690,19 @@ def _segment_files(cfg: SegmentConfig, world: _World) -> list[str]:
     return [*files, "scene.json"]
 
 
-def _scene_json_files(meta: dict) -> list[str]:
-    """The files a ``scene.json`` that :func:`make_segment` wrote names (and ``scene.json``)."""
-    files = [meta.get("gt_static_mesh"), "gt/static_face_instance.npy"]
-    for frame in meta.get("frames") or []:
-        views = frame.get("views") or [] if isinstance(frame, dict) else []
-        files += [v.get(k) for v in views if isinstance(v, dict) for k in ("image", "depth", "instances")]
-        files.append(frame.get("lidar") if isinstance(frame, dict) else None)
-    files += [t.get("mesh") for t in meta.get("tracks") or [] if isinstance(t, dict)]
-    return [f for f in files if isinstance(f, str)] + ["scene.json"]
-
-
 def check_segment_folder(out: str | Path, overwrite: bool, flag: str = "overwrite=True") -> list[Path]:
     """Check ``out`` for :func:`make_segment`: the files of an earlier segment to replace (``[]``: none).
 
     A new path or an empty folder is fine. A folder that :func:`make_segment` wrote (its manifest,
-    :mod:`vadgs.runfolder`, or the ``scene.json`` of an older one, whose ``generator`` is this
-    module) is replaced with ``overwrite``: the files it wrote, never the folder's other files.
+    :mod:`vadgs.runfolder`) is replaced with ``overwrite``: the files it wrote, never the folder's
+    other files.
     Any other non-empty folder is refused with or without ``overwrite``.
 
     Raises:
         ValueError: one line naming ``out`` (and ``flag`` only for a segment make_segment wrote).
         vadgs.runfolder.ManifestError: an unreadable manifest, or an entry outside ``out``.
     """
-    from vadgs.runfolder import check_removable, entry_problem, foreign_entries, manifest_kind, read_manifest
+    from vadgs.runfolder import check_removable, foreign_entries, manifest_kind, read_manifest
 
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -721,20 +710,11 @@ def check_segment_folder(out: str | Path, overwrite: bool, flag: str = "overwrit
     entries = foreign_entries(out)
     if not entries:
         return []
-    meta: Any = None
     if read_manifest(out) is not None and manifest_kind(out) != "segment":  # a run or an output folder
         raise ValueError(
             f"out: {out} holds a vadgs run or output folder, not a segment; give a new or empty folder"
         )
     if read_manifest(out) is None:
-        try:
-            meta = json.loads((out / "scene.json").read_text())
-        except (OSError, ValueError, RecursionError):
-            meta = None
-        ours = isinstance(meta, dict) and (meta.get("generator") or {}).get("module") == __name__
-    else:
-        ours = True
-    if not ours:
         shown = ", ".join(entries[:5]) + (f", ... ({len(entries)} entries)" if len(entries) > 5 else "")
         raise ValueError(
             f"out: {out} exists and is not empty (holds {shown}) nor a segment that make_segment wrote; "
@@ -744,17 +724,7 @@ def check_segment_folder(out: str | Path, overwrite: bool, flag: str = "overwrit
         raise ValueError(
             f"out: {out} exists and is not empty: a segment make_segment wrote ({flag} replaces it)"
         )
-    if meta is None:
-        return [*check_removable(out), out / ".vadgs" / "manifest.json"]
-    files = _scene_json_files(meta)
-    for rel in files:
-        problem = entry_problem(out, rel)
-        if problem is not None:
-            raise ValueError(
-                f"out: {out / 'scene.json'}: file {rel!r} {problem}; make_segment replaces only the files "
-                "it wrote inside the folder: nothing was removed"
-            )
-    return [out / rel for rel in files]
+    return [*check_removable(out), out / ".vadgs" / "manifest.json"]
 
 
 def make_segment(

@@ -3,7 +3,7 @@
 :func:`waymo_beam_inclinations` gives each range-image row its beam inclination and
 :func:`waymo_range_image_to_points` turns the first return into points in the vehicle frame, or in
 the world with the per-pixel vehicle poses of the ``lidar_pose`` component. Used by
-:func:`vadgs.data.waymo.load_waymo`, and importable from :mod:`vadgs.data.waymo`.
+:func:`vadgs.data.waymo.load_waymo`.
 :func:`waymo_points_to_range_image` is the inverse (to a cell's resolution), used by
 :func:`vadgs.data.waymo_writer.write_waymo_segment`.
 :func:`waymo_check_range_image` and :func:`waymo_check_pixel_pose` refuse a decoded range image

@@ -3,7 +3,6 @@
 See ``docs/mvs.md`` for a worked example and ``vadgs/mvs/design.md`` for the design.
 """
 
-from vadgs.geometry import cameras_in_object_frame
 from vadgs.mvs.consistency import ConsistencyResult, geometric_consistency, reproject_depth
 from vadgs.mvs.cost import (
     MAX_COST,
@@ -45,7 +44,6 @@ __all__ = [
     "ReferencePatchStats",
     "bilateral_ncc",
     "bilateral_weights",
-    "cameras_in_object_frame",
     "complete_planar",
     "complete_planar_batch",
     "fill_holes_scanline",

@@ -1,8 +1,10 @@
 """Checkpoints of a run: the file, its checksum, atomic saving, loading, and what a resume may change.
 
 A checkpoint is one ``torch.save`` file (``checkpoint.pt`` in the run folder) of plain tensors and
-containers (read with ``weights_only``), with a format name, a version and a SHA-256 checksum of
-its content. In memory it is a :class:`Checkpoint`: :func:`save_checkpoint` writes one atomically,
+containers (read with ``weights_only``), with a format name, a format version
+(:data:`CHECKPOINT_VERSION`) and a SHA-256 checksum of its content. A checkpoint of another format
+version is refused in one line: the run must be trained again (vadgs keeps no reader of older
+files). In memory it is a :class:`Checkpoint`: :func:`save_checkpoint` writes one atomically,
 :func:`load_checkpoint` reads and verifies one, :func:`resumed_config` applies the changes a
 resume may make (:data:`RESUMABLE_CHANGES`). :class:`~vadgs.train.trainer.Trainer` builds them
 (:meth:`~vadgs.train.trainer.Trainer.checkpoint`) and continues from them
@@ -17,18 +19,17 @@ import hashlib
 import os
 import random
 import shutil
-import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
 
 from vadgs.io import atomic_write, remove_stale_tmp
-from vadgs.runfolder import CHECKPOINT_FORMAT
 from vadgs.train.config import TrainConfig
 
 __all__ = [
     "CHECKPOINT_NAME",
+    "CHECKPOINT_VERSION",
     "RESUMABLE_CHANGES",
     "RUN_FILES",
     "Checkpoint",
@@ -48,9 +49,13 @@ __all__ = [
 ]
 
 CHECKPOINT_NAME = "checkpoint.pt"
-_FORMAT = CHECKPOINT_FORMAT
-_VERSION = 1
-_REQUIRED = ("step", "config", "model", "model_extra", "optimizer", "strategy_state", "sampler", "rng")
+_FORMAT = "vadgs-train-checkpoint"  # what makes a checkpoint.pt vadgs's
+CHECKPOINT_VERSION = 2
+"""The format version of the checkpoints this vadgs writes and reads (2: issue 50, nothing older read)."""
+_REQUIRED = (
+    "step", "config", "scene_ref", "model", "model_extra", "optimizer", "strategy_state", "sampler",
+    "rng", "train_s", "checksum",
+)  # fmt: skip
 
 
 class StepSnapshot(NamedTuple):
@@ -100,7 +105,7 @@ class Checkpoint(NamedTuple):
 
     def to_dict(self, checksum: bool = True) -> dict[str, Any]:
         """The file's content: format, version, the fields (no ``appearance`` when None), checksum."""
-        out: dict[str, Any] = {"format": _FORMAT, "version": _VERSION, **self._asdict()}
+        out: dict[str, Any] = {"format": _FORMAT, "version": CHECKPOINT_VERSION, **self._asdict()}
         if self.appearance is None:
             del out["appearance"]
         if checksum:
@@ -194,14 +199,7 @@ def _tensor_bytes(obj: Any) -> int:
 
 def remove_run_tmp(folder: Path) -> list[Path]:
     """Remove temporary files a killed run left behind (of checkpoints, JSON files and exports)."""
-    removed = remove_stale_tmp(folder, "ply")
-    # the names written before vadgs.io
-    for pattern in (CHECKPOINT_NAME + ".tmp", "ply/.*.partial.*"):
-        for p in folder.glob(pattern):
-            if p.is_file():
-                p.unlink(missing_ok=True)
-                removed.append(p)
-    return removed
+    return remove_stale_tmp(folder, "ply")
 
 
 def save_checkpoint(ckpt: Checkpoint, path: str | Path) -> Path:
@@ -221,7 +219,7 @@ def is_checkpoint_content(data: Any) -> bool:
     """Whether ``data`` (what ``torch.load`` returned) is a vadgs training checkpoint: its format marker.
 
     Example:
-        >>> is_checkpoint_content({"format": "vadgs-train-checkpoint", "version": 1})
+        >>> is_checkpoint_content({"format": "vadgs-train-checkpoint", "version": 2})
         True
         >>> is_checkpoint_content({"epoch": 3, "state_dict": {}})
         False
@@ -234,9 +232,10 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 
     Raises:
         FileNotFoundError: if it does not exist.
-        ValueError: if it is corrupt, truncated, modified (its SHA-256 checksum does not match) or
-            not a vadgs training checkpoint. A checkpoint without a checksum (older vadgs) loads
-            with a warning.
+        ValueError: if it is corrupt, truncated, modified (its SHA-256 checksum does not match),
+            not a vadgs training checkpoint, or of another format version than
+            :data:`CHECKPOINT_VERSION` (one line: the file, the version found, the one read, and
+            that the run must be trained again).
     """
     path = Path(path)
     if path.is_dir():
@@ -249,24 +248,21 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         raise ValueError(f"checkpoint {path} is corrupt or unreadable ({type(e).__name__}: {e})") from None
     if not is_checkpoint_content(ckpt):
         raise ValueError(f"checkpoint {path}: not a vadgs training checkpoint")
-    if int(ckpt.get("version", -1)) != _VERSION:
-        raise ValueError(f"checkpoint {path}: unsupported version {ckpt.get('version')}")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(
+            f"{path}: format version {ckpt.get('version')}, this vadgs reads version "
+            f"{CHECKPOINT_VERSION}: train the run again"
+        )
     missing = [k for k in _REQUIRED if k not in ckpt]
     if missing:
         raise ValueError(f"checkpoint {path}: missing entries {missing}")
-    if "checksum" not in ckpt:
-        warnings.warn(
-            f"checkpoint {path}: no checksum (written by an older vadgs); its content is not verified",
-            stacklevel=2,
-        )
-    elif checkpoint_checksum(ckpt) != ckpt["checksum"]:
+    if checkpoint_checksum(ckpt) != ckpt["checksum"]:
         raise ValueError(f"checkpoint {path}: checksum mismatch: the file was modified or is corrupt")
     return Checkpoint(
         step=int(ckpt["step"]),
-        scene_ref=ckpt.get("scene_ref") or {},
-        train_s=float(ckpt.get("train_s", 0.0)),
+        train_s=float(ckpt["train_s"]),
         appearance=ckpt.get("appearance"),
-        **{k: ckpt[k] for k in _REQUIRED if k != "step"},
+        **{k: ckpt[k] for k in _REQUIRED if k not in ("step", "train_s", "checksum")},
     )
 
 
@@ -319,9 +315,7 @@ def describe_run(folder: str | Path) -> str | None:
     ck = folder / CHECKPOINT_NAME
     if ck.is_file():
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                c = load_checkpoint(ck)
+            c = load_checkpoint(ck)
             return f"step {c.step}/{int(c.config.get('iterations', 0))}"
         except (ValueError, OSError) as e:
             return f"an unreadable checkpoint: {e}"
@@ -392,8 +386,7 @@ def check_new_run(
 def clear_run(folder: str | Path) -> list[Path]:
     """Remove what vadgs wrote into a run folder, and nothing else (:func:`vadgs.runfolder.remove_recorded`).
 
-    The files recorded in the run's manifest (for a run of an older vadgs: the exact names it
-    wrote, :data:`vadgs.runfolder.LEGACY_PATTERNS`), then the folders that became empty. Everything
+    The files recorded in the run's manifest, then the folders that became empty. Everything
     is checked first (a symbolic link on the way, e.g. a linked ``ply/``, or a folder that is not
     writable raises, naming it, before anything is removed). The lock file, files the user put
     there (a video in ``renders/``) and a COLMAP run's ``undistorted/`` (which a new run replaces)

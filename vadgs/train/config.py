@@ -11,7 +11,7 @@ import dataclasses
 import math
 import numbers
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
 
@@ -138,20 +138,6 @@ class TrainConfig:
     diverge_share: float = 0.2
     diverge_loss_factor: float = 10.0
 
-    MOVED_FIELDS: ClassVar[dict[str, str]] = {
-        name: f"geometry.{name}"
-        for name in (
-            "lambda_normal",
-            "lambda_hard",
-            "lambda_soft",
-            "hard_until",
-            "hard_every",
-            "hard_stride",
-            "hard_fused",
-        )
-    }
-    """Settings older runs' files hold flat, now in ``geometry`` (:func:`vadgs.config.config_from_dict`)."""
-
     def __post_init__(self) -> None:
         # types first (as from_dict checks them): a bool, 2.5 or "2" fails here, not deep in a run
         for name in _INT_FIELDS:
@@ -230,8 +216,6 @@ class TrainConfig:
         """A copy with changes; nested fields as ``"init.max_points"``."""
         flat = self.to_dict()
         for k, v in changes.items():
-            if k in self.MOVED_FIELDS:
-                raise ValueError(f"config: {k!r} is now {self.MOVED_FIELDS[k]!r}")
             parts = k.split(".")
             target = flat
             for p in parts[:-1]:

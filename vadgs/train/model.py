@@ -321,18 +321,6 @@ class GaussianModel(nn.Module):
     def provenance(self, value: torch.Tensor) -> None:
         self.params["provenance"] = nn.Parameter(value.long(), requires_grad=False)
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # checkpoints before 0.1.0.dev0's portable strategies kept node_ids as a buffer
-        if prefix + "node_ids" in state_dict and prefix + "params.node_ids" not in state_dict:
-            state_dict[prefix + "params.node_ids"] = state_dict.pop(prefix + "node_ids")
-        # checkpoints before provenance: every Gaussian counts as initial
-        means = state_dict.get(prefix + "params.means")
-        if means is not None and prefix + "params.provenance" not in state_dict:
-            state_dict[prefix + "params.provenance"] = torch.zeros(
-                means.shape[0], dtype=torch.int64, device=means.device
-            )
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
     @property
     def num_gaussians(self) -> int:
         """Number of Gaussians (all nodes)."""

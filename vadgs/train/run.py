@@ -17,10 +17,6 @@ paths and a content fingerprint — that :func:`open_run_scene` reopens from any
   to); :func:`~vadgs.train.checkpoint.describe_run` / :func:`~vadgs.train.checkpoint.clear_run`
   look after its folder.
 
-The scene references, ``describe_run``, ``clear_run``, ``RunLock`` and ``RunInUseError`` were
-importable from here before; they are imported from their modules now (the old imports still
-work, with a ``DeprecationWarning`` for the names this module does not use itself).
-
 Example::
 
     from vadgs.train.scenes import scene_ref
@@ -39,14 +35,12 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import torch
 
 from vadgs.data.scene import Scene
-from vadgs.deprecation import moved_names
 from vadgs.io import write_json
 from vadgs.runfolder import describe_files, is_vadgs_folder, record_files
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,
     check_new_run,
-    describe_run,  # noqa: F401  (importable from here before: tests/test_imports.py KEPT)
     load_checkpoint,
 )
 from vadgs.train.scenes import (
@@ -61,22 +55,6 @@ if TYPE_CHECKING:
     from vadgs.train.scenes import SceneRef
 
 __all__ = ["Run", "RunOutcome", "finish_run", "frame_position", "load_run", "train_scene"]
-
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(
-        __name__,
-        {
-            "BenchmarkRef": "vadgs.train.scenes",
-            "clear_run": "vadgs.train.checkpoint",
-            "DGPRef": "vadgs.train.scenes",
-            "locate_scene": "vadgs.train.scenes",
-            "open_scene": "vadgs.train.scenes",
-            "RunInUseError": "vadgs.train.session",
-            "scene_fingerprint": "vadgs.train.scenes",
-            "scene_ref": "vadgs.train.scenes",
-            "SceneRef": "vadgs.train.scenes",
-        },
-    )
 
 
 def finish_run(

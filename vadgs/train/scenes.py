@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, ClassVar
@@ -20,8 +19,7 @@ import torch
 from vadgs.data.scene import Scene
 
 __all__ = [
-    "FINGERPRINT_METHOD",
-    "FINGERPRINT_METHODS",
+    "FINGERPRINT_CHECKS",
     "BenchmarkRef",
     "ColmapRef",
     "DGPRef",
@@ -335,7 +333,6 @@ def prepare_scene(ref: SceneRef, out_dir: str | Path, log: Any = None) -> tuple[
         raise TypeError(f"ref: expected a BenchmarkRef, DGPRef or ColmapRef, got {type(ref).__name__}")
     stored["run_dir"] = str(out.resolve())
     stored["fingerprint"] = scene_fingerprint(stored, scene)
-    stored["fingerprint_method"] = FINGERPRINT_METHOD
     return scene, stored
 
 
@@ -355,17 +352,13 @@ def _metadata_files(ref: dict[str, Any]) -> list[Path]:
     return [path / f"{n}.{e}" for n in _COLMAP_FILES for e in ("bin", "txt") if (path / f"{n}.{e}").is_file()]
 
 
-#: What :func:`scene_fingerprint` reads of a scene, by method (``ref["fingerprint_method"]``;
-#: runs of vadgs before method 2 recorded none: method 1).
-FINGERPRINT_METHODS = {
-    1: "the metadata files whole; every image, depth map, instance map and LiDAR sweep by name and size",
-    2: "the metadata files and the test views' image, depth and instance files whole; the other "
-    "files by name, size and 12 KiB of their bytes (start, middle, end)",
-}
-FINGERPRINT_METHOD = 2
-"""The method new runs record (:data:`FINGERPRINT_METHODS`)."""
+FINGERPRINT_CHECKS = (
+    "the metadata files and the test views' image, depth and instance files whole; the other "
+    "files by name, size and 12 KiB of their bytes (start, middle, end)"
+)
+"""What :func:`scene_fingerprint` reads of a scene (what ``eval.json`` says it checked)."""
 
-_SAMPLE = 4096  # bytes read at each of a file's start, middle and end (method 2)
+_SAMPLE = 4096  # bytes read at each of a file's start, middle and end
 
 
 def _sha256(fh: BinaryIO) -> bytes:
@@ -376,21 +369,19 @@ def _sha256(fh: BinaryIO) -> bytes:
     return h.digest()
 
 
-def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRINT_METHOD) -> str:
+def scene_fingerprint(ref: dict[str, Any], scene: Scene) -> str:
     """A content fingerprint of a scene, wherever it lies: 16 hex digits of a SHA-256.
 
     Cheap: the metadata files (``scene.json``, the DGP scene JSON, the COLMAP model files of
     ``ref["path"]``) are hashed whole, and so are the test views' images, depth and instance
     maps (what an evaluation scores); the training views' files and the frames' LiDAR sweeps by
-    name, size and 12 KiB of their bytes (method 2, :data:`FINGERPRINT_METHODS`; method 1,
-    of runs by older vadgs, by name and size only). Two copies of one scene have the same
+    name, size and 12 KiB of their bytes (:data:`FINGERPRINT_CHECKS`). Two copies of one scene have the same
     fingerprint (modification times are not read); another scene, or one whose metadata or
     files changed, another one.
 
     Args:
         ref: the scene's reference (``kind``, ``path``), as :func:`open_scene` takes it.
         scene: the scene it opened.
-        method: what is read (:data:`FINGERPRINT_METHODS`): the one the run recorded.
 
     Example:
         >>> from vadgs.data import sample_scene_path
@@ -398,8 +389,6 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRI
         >>> len(scene_fingerprint(ref, open_scene(ref)))
         16
     """
-    if method not in FINGERPRINT_METHODS:
-        raise ValueError(f"method: expected one of {sorted(FINGERPRINT_METHODS)}, got {method!r}")
     h = hashlib.sha256(str(ref.get("kind", "benchmark")).encode())
     for f in _metadata_files(ref):
         h.update(f"\n{f.name}\n".encode())
@@ -412,7 +401,7 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene, method: int = FINGERPRI
             return
         size = p.stat().st_size if p.is_file() else -1
         h.update(f"{p.name}:{size};".encode())
-        if method >= 2 and size > 0:
+        if size > 0:
             with p.open("rb") as fh:
                 if whole or size <= 3 * _SAMPLE:
                     h.update(_sha256(fh))
@@ -455,8 +444,6 @@ def locate_scene(
     - ``scene`` (``--scene``): the scene's folder, for a run whose scene moved; it must be of the
       run's kind (:func:`scene_ref` decides). A COLMAP run reads the model found there and the
       ``images/`` next to it (an undistorted copy inside the run stays the run's).
-    - A relative path (runs of older vadgs) is taken against the folder recorded as ``cwd`` when
-      there is one, else against the current folder, with a warning.
 
     Args:
         ref: the stored reference (``Checkpoint.scene_ref``).
@@ -486,11 +473,6 @@ def locate_scene(
             continue
         if was is not None and was != run_dir and value.is_relative_to(was):
             located[key] = str(run_dir / value.relative_to(was))
-        elif was is None and not value.exists() and "undistorted" in value.parts:
-            # an older run (no run_dir recorded) moved with its undistorted copy
-            tail = value.parts[len(value.parts) - value.parts[::-1].index("undistorted") - 1 :]
-            if (run_dir.joinpath(*tail)).exists():
-                located[key] = str(run_dir.joinpath(*tail))
     if scene is not None:
         given = Path(scene)
         found = "dgp" if kind == "dgp" and given.exists() else _detect_kind(given, flag)  # as scene_ref
@@ -513,19 +495,6 @@ def locate_scene(
                 located["path"] = str(model)
                 images = find_images_dir(model)
                 located["images"] = str(images) if images is not None else located.get("images")
-    else:
-        for key in keys:
-            value = located.get(key)
-            if value and not Path(value).is_absolute():
-                base = Path(ref["cwd"]) if ref.get("cwd") else Path.cwd()
-                located[key] = str((base / value).resolve())
-                if not ref.get("cwd"):
-                    warnings.warn(
-                        f"run {run_dir}: its scene {key} {value!r} is relative (a run of an older vadgs) "
-                        f"and its working folder is not recorded: taken as {located[key]} against the "
-                        f"current folder; {_hint(flag)} to name the scene",
-                        stacklevel=2,
-                    )
     located["run_dir"] = str(run_dir)  # where the paths above were found: a resumed run records it
     path = Path(located["path"])
     if not _scene_exists(kind, path):
@@ -548,7 +517,7 @@ def open_run_scene(
     """Reopen a run's scene, from any current folder: ``(scene, located)``.
 
     :func:`locate_scene` finds it (``scene``: the folder it moved to); its fingerprint is then
-    compared with the one the run recorded (runs of older vadgs have none: not compared).
+    compared with the one the run recorded (a ``Trainer`` given a loaded scene records none).
     ``located`` is the reference as used, with the fingerprint of what was opened: what a
     resumed run records and what ``eval.json`` names.
 
@@ -559,8 +528,7 @@ def open_run_scene(
     """
     located = locate_scene(ref, run_dir, scene, flag)
     opened = open_scene(located)
-    method = int(ref.get("fingerprint_method", 1))
-    now = scene_fingerprint(located, opened, method)
+    now = scene_fingerprint(located, opened)
     recorded = ref.get("fingerprint")
     if recorded and now != recorded:
         raise ValueError(
@@ -569,5 +537,4 @@ def open_run_scene(
             f"{_hint(flag)} with the run's own data"
         )
     located["fingerprint"] = now
-    located["fingerprint_method"] = method
     return opened, located

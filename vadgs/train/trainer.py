@@ -38,7 +38,6 @@ import torch
 
 from vadgs.checks import checks_enabled, first_false
 from vadgs.data.scene import Scene
-from vadgs.deprecation import moved_names
 from vadgs.runfolder import record_files
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
@@ -47,7 +46,6 @@ from vadgs.train.checkpoint import (
     StepSnapshot,
     capture_rng,
     check_new_run,
-    describe_run,  # noqa: F401  (importable from here before: tests/test_imports.py KEPT)
     load_checkpoint,
     restore_rng,
     resumed_config,
@@ -76,21 +74,6 @@ if TYPE_CHECKING:
     from vadgs.train.losses import GeometryTargets
 
 __all__ = ["Trainer"]
-
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(
-        __name__,
-        {
-            "checkpoint_checksum": "vadgs.train.checkpoint",
-            "clear_run": "vadgs.train.checkpoint",
-            "DivergenceError": "vadgs.train.divergence",
-            "GeometryTargets": "vadgs.train.losses",
-            "LearningRates": "vadgs.train.config",
-            "lidar_depth_map": "vadgs.data.lidar",
-            "RESUMABLE_CHANGES": "vadgs.train.checkpoint",
-            "TrainResult": "vadgs.train.loop",
-        },
-    )
 
 
 def _scene_scale(scene: Scene, views: list[int]) -> float:

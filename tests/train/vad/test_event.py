@@ -18,13 +18,13 @@ import torch
 
 import vadgs.train.vad.event as event_module
 from vadgs.geometry import quaternion_to_rotation
+from vadgs.geometry.rotation import normals_to_quats
 from vadgs.train.strategy import ops
 from vadgs.train.vad import (
     InstanceReconstruction,
     StrategyContext,
     VisibilityAwareDensification,
     flat_gaussians,
-    normals_to_quats,
 )
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.priors import merge_priors

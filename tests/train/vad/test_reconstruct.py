@@ -339,11 +339,11 @@ class TestEventLog:
 class TestViewCache:
     def test_bounded_index_gives_the_same_maps(self, scene, index):
         """A tiny byte budget drops views and recomputes them identically."""
+        from vadgs.data.cache import ByteCache
         from vadgs.train.vad import build_visibility_index
-        from vadgs.train.vad.visibility import ViewCache
 
         small = build_visibility_index(scene)
-        small.view_cache = ViewCache(max_bytes=3 * 120 * 72 * 12)
+        small.view_cache = ByteCache(max_bytes=3 * 120 * 72 * 12)
         views = list(scene.train_views)[:8]
         for v in views + views:
             d, lab = small.voxel_depth(v)

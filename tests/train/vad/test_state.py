@@ -24,13 +24,6 @@ def _render(h=24, w=40, seed=0, device="cpu"):
     return (*maps, empty.to(device))
 
 
-def _old_pack(x):
-    """A map as vadgs packed it before the compact renders: zlib of its raw bytes, no filter."""
-    raw = x.contiguous().view(torch.uint8).reshape(-1).numpy().tobytes()
-    return {"zlib": torch.frombuffer(bytearray(zlib.compress(raw, 1)), dtype=torch.uint8),
-            "shape": list(x.shape), "dtype": str(x.dtype).removeprefix("torch.")}  # fmt: skip
-
-
 class TestCompactRender:
     def test_forms_and_device(self, device):
         d, a, n, _ = _render(device=device)
@@ -55,11 +48,6 @@ class TestCompactRender:
         # pixels without Gaussians: exactly zero depth, opacity and normals
         assert (d2[0][empty] == 0).all() and (a2[0][empty] == 0).all() and (n2[:, empty] == 0).all()
         assert torch.equal(a2[0][~empty] > 0, a[0][~empty] > 1 / 510)
-
-    def test_old_float16_renders_read_as_before(self):
-        d, a, n, _ = _render()
-        old = (d.half(), a.half(), n.half())
-        assert all(torch.equal(x, y.float()) for x, y in zip(expand_render(old), old))
 
 
 class TestPackState:
@@ -87,23 +75,6 @@ class TestPackState:
         plain = sum(len(zlib.compress(m[0].numpy().tobytes(), 1)) for m in renders.values())
         filtered = sum(m["packed"][0]["zlib"].numel() for m in packed["vad_renders"].values())
         assert filtered < plain / 2.5
-
-    def test_states_packed_before_load(self):
-        """A checkpoint of an older vadgs: float16 renders zlib-packed without a filter."""
-        d, a, n, _ = _render()
-        old_renders = (d.half(), a.half(), n.half())
-        prior = (d, n)
-        stored = {
-            "vad_renders": {5: {"packed": [_old_pack(x) for x in old_renders]}},
-            "vad_priors": {5: {"packed": [_old_pack(x) for x in prior]}},
-        }
-        back = unpack_state(stored)
-        assert all(torch.equal(x, y) for x, y in zip(back["vad_renders"][5], old_renders))
-        assert all(torch.equal(x, y) for x, y in zip(back["vad_priors"][5], prior))
-        expanded = expand_render(back["vad_renders"][5])
-        assert all(torch.equal(x, y.float()) for x, y in zip(expanded, old_renders))
-        unpacked = {"vad_renders": {5: old_renders}}  # older still: stored as it was
-        assert unpack_state(unpacked) is unpacked
 
     def test_unknown_filter(self):
         packed = pack_state({"vad_renders": {0: compact_render(*_render()[:3])}})

@@ -6,6 +6,7 @@ import torch
 
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import backproject_depth, project_points
+from vadgs.geometry.rotation import normals_to_quats
 from vadgs.mvs import PlanarCompletionConfig
 from vadgs.train.config import TrainConfig
 from vadgs.train.model import GaussianModel
@@ -16,7 +17,6 @@ from vadgs.train.vad import (
     VisibilityAwareDensification,
     VisibilityDensifyConfig,
     build_visibility_index,
-    normals_to_quats,
     pick_references,
     rank_instances,
 )

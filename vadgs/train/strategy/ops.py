@@ -24,13 +24,11 @@ its parent's row, removal drops it.
 :func:`~vadgs.train.model.make_optimizer`) or gsplat's dict ``{name: optimizer}``.
 
 Nothing here knows vadgs's model, as nothing in gsplat's ``strategy/ops.py`` does: pass
-``model.params``. Passing the :class:`~vadgs.train.model.GaussianModel` itself is deprecated (a
-``DeprecationWarning``; its ``params`` are used).
+``model.params``.
 """
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable, Mapping, MutableMapping
 from typing import Any, NamedTuple, Union, cast
 
@@ -80,17 +78,9 @@ GSPLAT_NAMES = ParamNames("means", "quats", "scales", "opacities", "sh0", "shN")
 
 
 def _params(params: Any) -> Params:
-    """``params`` itself, or a model's ``params`` with a deprecation warning (see the module docstring)."""
+    """``params``, checked to be a mapping (a read-only one fails at the first write)."""
     if isinstance(params, (Mapping, nn.ParameterDict)):
-        return cast(Params, params)  # a read-only mapping fails at the first write, as before
-    inner = getattr(params, "params", None)
-    if isinstance(inner, (Mapping, nn.ParameterDict)):
-        warnings.warn(
-            f"vadgs.train.strategy.ops: passing a {type(params).__name__} is deprecated, pass its .params",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        return cast(Params, inner)
+        return cast(Params, params)
     raise TypeError(
         "params: expected a params mapping (a dict or ParameterDict of per-Gaussian tensors, e.g. "
         f"model.params), got {type(params).__name__}"

@@ -28,9 +28,6 @@
 The names below are the public face: ``from vadgs.train.vad import ...`` (see ``docs/vad.md``).
 """
 
-from vadgs.geometry.rotation import normals_to_quats
-from vadgs.train.losses import GeometryTargets
-from vadgs.train.strategy.default import DefaultStrategy
 from vadgs.train.vad.config import RANKINGS, StrategyContext, VisibilityDensifyConfig
 from vadgs.train.vad.event import EventInputs, run_event
 from vadgs.train.vad.gaussians import flat_gaussians
@@ -46,9 +43,7 @@ from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = [
     "RANKINGS",
-    "DefaultStrategy",
     "EventInputs",
-    "GeometryTargets",
     "IncompleteConfig",
     "IncompleteInstances",
     "InstanceReconstruction",
@@ -65,7 +60,6 @@ __all__ = [
     "find_incomplete",
     "flat_gaussians",
     "info_requirements",
-    "normals_to_quats",
     "pack_state",
     "pick_references",
     "rank_instances",

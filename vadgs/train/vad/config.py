@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
 
 import torch
 
@@ -25,7 +24,6 @@ from vadgs.checks import (
     int_field,
     names_field,
 )
-from vadgs.config import RemovedField
 from vadgs.train.vad.incomplete import IncompleteConfig
 from vadgs.train.vad.reconstruct import ViewRender
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
@@ -79,7 +77,7 @@ class VisibilityDensifyConfig:
             with a note in the event's summary. A run it cuts depends on the machine's speed and
             load. ``None`` (default): no cap.
         index_cache_mb: the bound of the visibility index's per-view maps (voxel z-buffer and
-            depth, instance map, image; :class:`~vadgs.train.vad.visibility.ViewCache`), in MiB;
+            depth, instance map, image; :class:`~vadgs.data.cache.ByteCache`), in MiB;
             views dropped are recomputed identically when an event needs them again. 1024 by
             default (every view of the benchmark streets; about a hundred at 1920×1280: lower it
             to bound an event's memory on a long segment, ``docs/scale.md``).
@@ -135,18 +133,6 @@ class VisibilityDensifyConfig:
     flatness: float = 0.2
     voxel_depth_prior: bool = True
     last_event_fraction: float = 0.9
-
-    REMOVED_FIELDS: ClassVar[dict[str, RemovedField]] = {
-        "explained_tolerance": RemovedField(
-            "it never had an effect; the tolerance in use is reconstruct.explained_tolerance"
-        ),
-        "visibility": RemovedField(
-            "VAD-GS is on wherever its config is given; the paper's 'w/o voxel visibility reasoning' "
-            "ablation (visibility False) is TrainConfig.vad = None: vadgs train without --vad",
-            same=(True,),
-        ),
-    }
-    """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)

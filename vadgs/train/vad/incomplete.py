@@ -23,18 +23,13 @@ it flags nothing.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, NamedTuple
+from typing import NamedTuple
 
 import torch
 
 from vadgs.checks import check_fields, check_shape, float_field, int_field, ints_field
-from vadgs.config import RemovedField
-from vadgs.deprecation import moved_names
 
 __all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "find_incomplete_ids"]
-
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(__name__, {"voxel_labels": "vadgs.geometry.voxel"})
 
 
 @dataclass(frozen=True)
@@ -56,13 +51,6 @@ class IncompleteConfig:
     min_pixels: int = 20
     min_alpha_for_depth: float = 0.05
     ignore_ids: tuple[int, ...] = (0,)
-
-    REMOVED_FIELDS: ClassVar[dict[str, RemovedField]] = {
-        "foreign_fraction": RemovedField(
-            "it was never used by the strategy (find_incomplete still reports the share, as 'foreign')"
-        ),
-    }
-    """Settings older runs' files may hold (:func:`vadgs.config.config_from_dict`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, _FIELDS)

@@ -31,10 +31,7 @@ by pair); step 3's crops and matching scale live in :mod:`vadgs.train.vad.crops`
 in :mod:`vadgs.train.vad.fusion` (:func:`~vadgs.train.vad.fusion.consistent_depth`,
 :func:`~vadgs.train.vad.fusion.explained_pixels`, :func:`~vadgs.train.vad.fusion.fuse_points`,
 :func:`~vadgs.train.vad.fusion.depth_priors`), the settings, :class:`ReconstructConfig`, in
-:mod:`vadgs.train.vad.reconstruct_config`. The names this module re-exported before
-(:class:`ReconstructConfig`, :class:`VisibilityIndex`, :func:`thin_points`, ...) are imported from
-those modules, or from :mod:`vadgs.train.vad`; the old imports still work, with a
-``DeprecationWarning``.
+:mod:`vadgs.train.vad.reconstruct_config`.
 """
 
 from __future__ import annotations
@@ -47,7 +44,6 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 
 from vadgs.checks import checking
-from vadgs.deprecation import moved_names
 from vadgs.mvs.patchmatch import PatchMatchConfig, PatchMatchResult, patchmatch
 from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
@@ -70,22 +66,6 @@ __all__ = [
     "plan_match",
     "reconstruct_instance",
 ]
-
-if not TYPE_CHECKING:  # mypy: the old places are gone (vadgs imports the new ones)
-    __getattr__ = moved_names(
-        __name__,
-        {
-            "MatchScale": "vadgs.train.vad.crops",
-            "ReconstructConfig": "vadgs.train.vad.reconstruct_config",
-            "ViewCache": "vadgs.train.vad.visibility",
-            "VisibilityIndex": "vadgs.train.vad.visibility",
-            "build_visibility_index": "vadgs.train.vad.visibility",
-            "derive_instance_map": "vadgs.train.vad.instances",
-            "match_scale": "vadgs.train.vad.crops",
-            "sfm_observations": "vadgs.train.vad.inputs",
-            "thin_points": "vadgs.train.vad.fusion",
-        },
-    )
 
 
 class InstanceReconstruction(NamedTuple):

@@ -1,8 +1,7 @@
 """Settings of the reconstruction of one flagged instance by multi-view stereo.
 
 :class:`ReconstructConfig` is the settings of :func:`~vadgs.train.vad.reconstruct.reconstruct_instance`
-(view selection, crops and matching scale, PatchMatch, consistency, planar completion, fusion);
-importable from :mod:`vadgs.train.vad.reconstruct`.
+(view selection, crops and matching scale, PatchMatch, consistency, planar completion, fusion).
 """
 
 from __future__ import annotations

@@ -53,23 +53,14 @@ def compact_render(
 
 
 def expand_render(kept: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The ``float32`` ``(depth, alpha, normals)`` of a :func:`compact_render` (or of a ``float16`` one).
-
-    Renders kept by vadgs before the compact form (``float16`` alpha and ``(3, H, W)`` normals,
-    in checkpoints of interrupted runs) are read as they were: converted to ``float32``.
-    """
-    depth, alpha, normals = kept
-    if alpha.dtype == torch.uint8:
-        alpha = alpha.float() / 255
-    if normals.dtype == torch.int8:
-        normals = octahedral_decode(normals, dim=-3)
-    return depth.float(), alpha.float(), normals.float()
+    """The ``float32`` ``(depth, alpha, normals)`` of a :func:`compact_render`."""
+    depth, code, normals = kept
+    return depth.float(), code.float() / 255, octahedral_decode(normals, dim=-3).float()
 
 
 # The packed form of a tensor: zlib (level 1) of its bytes, after a "Sub" filter (as in PNG) along
 # its last axis on the integer bit patterns of its elements when "filter" is "sub" (each element
-# minus its left neighbour, wrapping: exact both ways). Packed states before the filter have no
-# "filter" and are read as they were.
+# minus its left neighbour, wrapping: exact both ways); without it (the priors), no "filter".
 _UINT = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}
 
 
@@ -127,18 +118,12 @@ def pack_state(state: dict[str, Any]) -> dict[str, Any]:
 
 
 def unpack_state(state: dict[str, Any]) -> dict[str, Any]:
-    """The inverse of :func:`pack_state`.
-
-    States packed by an older vadgs (no filter, ``float16`` renders) and states stored without
-    packing (returned as they are) load too; :func:`expand_render` reads both forms of renders.
-    """
-    out = state
+    """The inverse of :func:`pack_state`."""
+    out = dict(state)
     for key in _PACKED:
         maps = state.get(key)
-        if maps and any(isinstance(m, dict) for m in maps.values()):
-            out = out if out is not state else dict(state)
-            out[key] = {v: tuple(_unpack_tensor(x) for x in m["packed"]) if isinstance(m, dict) else m
-                        for v, m in maps.items()}  # fmt: skip
+        if maps:
+            out[key] = {v: tuple(_unpack_tensor(x) for x in m["packed"]) for v, m in maps.items()}
     return out
 
 

@@ -5,7 +5,8 @@
 LiDAR frames, or COLMAP's TRACK table), and the cameras of every view, as
 :class:`~vadgs.select.Covisibility` objects for view selection; per-view maps (voxel depth,
 pixel → voxel index, instance masks) are computed on demand and kept in a bounded
-:class:`ViewCache`. :func:`build_visibility_index` builds it from
+:class:`~vadgs.data.cache.ByteCache` (1 GiB by default: every view of the street scenes at
+240×144; some hundred views at 1920×1280). :func:`build_visibility_index` builds it from
 :class:`~vadgs.train.vad.inputs.VisibilityInputs` (or a vadgs scene), its lengths scaled to the
 scene (:mod:`vadgs.train.vad.lengths`), derived instance maps where a dataset has no masks.
 """
@@ -32,15 +33,9 @@ from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
 
 __all__ = [
     "GROUND_FRAME_POINTS",
-    "ViewCache",
     "VisibilityIndex",
     "build_visibility_index",
 ]
-
-
-ViewCache = ByteCache
-"""The visibility index's per-view cache, a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default:
-every view of the street scenes at 240×144; some hundred views at 1920×1280)."""
 
 
 @dataclass
@@ -48,7 +43,7 @@ class VisibilityIndex:
     """Voxel grids, labels and covisibility of a scene, built once by :func:`build_visibility_index`.
 
     What is computed per view (voxel z-buffer and depth, instance map, image) is kept in
-    ``view_cache``, a byte-bounded :class:`ViewCache`.
+    ``view_cache``, a byte-bounded :class:`~vadgs.data.cache.ByteCache`.
 
     Attributes:
         inputs: the :class:`~vadgs.train.vad.inputs.VisibilityInputs` it was built from (loaders,
@@ -90,7 +85,7 @@ class VisibilityIndex:
     sizes: tuple[tuple[int, int], ...] | None = None
     cell_size: float = 10.0
     grow: int = 6
-    view_cache: ViewCache = field(default_factory=ViewCache, repr=False)
+    view_cache: ByteCache = field(default_factory=ByteCache, repr=False)
     scene_depth: float = REFERENCE_DEPTH
     static_to_world: torch.Tensor = field(default_factory=lambda: torch.eye(4))
     _cells: torch.Tensor | None = field(default=None, repr=False)
@@ -388,8 +383,8 @@ def build_visibility_index(
         cell_size: ground-cell edge of derived instances; None: 10 at a scene depth of 10.
         scene_depth: the scene's length unit; None: the inputs'
             (:meth:`~vadgs.train.vad.inputs.VisibilityInputs.median_view_depth`).
-        cache_mb: the bound of the index's per-view cache (:class:`ViewCache`), in MiB: views
-            dropped from it are recomputed identically when needed again.
+        cache_mb: the bound of the index's per-view cache (a :class:`~vadgs.data.cache.ByteCache`),
+            in MiB: views dropped from it are recomputed identically when needed again.
 
     Returns:
         The :class:`VisibilityIndex`.
@@ -404,7 +399,7 @@ def build_visibility_index(
         >>> len(index.grid) > 1000, sorted(index.track_grids) == sorted(index.inputs.tracks)
         (True, True)
     """
-    view_cache = ViewCache(_CACHE_MB("cache_mb", cache_mb) * 2**20)
+    view_cache = ByteCache(_CACHE_MB("cache_mb", cache_mb) * 2**20)
     if isinstance(source, VisibilityInputs):
         if frames is not None:
             raise ValueError(f"frames: expected None with VisibilityInputs, got {list(frames)}")
