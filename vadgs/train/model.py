@@ -416,6 +416,7 @@ class GaussianModel(nn.Module):
         config: RasterConfig | None = None,
         opacity_override: float | None = None,
         hard_depth: bool = False,
+        cam_to_world: torch.Tensor | None = None,
     ) -> ModelRender:
         """Render one view of a frame: the frame's Gaussians over the sky.
 
@@ -433,12 +434,17 @@ class GaussianModel(nn.Module):
                 :func:`vadgs.train.losses.depth_loss_hard`.
             hard_depth: also the hard depth (every opacity 1) in the same pass, as
                 ``raster.hard_depth`` (:func:`~vadgs.render.rasterize_gaussians`).
+            cam_to_world: ``invert_rigid(world_to_cam)`` when the caller keeps it (vadgs's
+                trainer, per view), else computed here with its value check (one read a render).
 
         Returns:
             :class:`ModelRender`.
         """
         g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
-        cam_to_world = invert_rigid(world_to_cam)  # its value check: one read a render
+        if cam_to_world is None:
+            cam_to_world = invert_rigid(world_to_cam)
+        else:
+            check_shape(cam_to_world, "cam_to_world", (1, 4, 4))
         center = cam_to_world[0, :3, 3]
         dirs = F.normalize(g.means.detach() - center, dim=-1)
         dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)

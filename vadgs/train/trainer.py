@@ -39,6 +39,7 @@ import torch
 from vadgs.checks import checks_enabled, first_false
 from vadgs.data.scene import Scene
 from vadgs.deprecation import moved_names
+from vadgs.geometry.camera import invert_rigid
 from vadgs.runfolder import record_files
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
@@ -175,6 +176,7 @@ class Trainer:
         self.callback = callback
         self.train_views = list(scene.train_views)
         self._cameras: dict[int, tuple[torch.Tensor, torch.Tensor, tuple[int, int]]] = {}  # camera()
+        self._cam_to_world: dict[int, torch.Tensor] = {}  # render_view(): each camera's inverse, kept
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
         torch.manual_seed(self.config.seed)
@@ -415,7 +417,10 @@ class Trainer:
         """Render a scene view with the current model (on the trainer's device)."""
         world_to_cam, K, size = self.camera(view)
         frame = self.scene.view_frame_position(view)
-        return self.model.render(world_to_cam, K, size, frame, self.config.raster, **kwargs)
+        c2w = self._cam_to_world.get(view)
+        if c2w is None:
+            c2w = self._cam_to_world[view] = invert_rigid(world_to_cam)  # its value check, once a view
+        return self.model.render(world_to_cam, K, size, frame, self.config.raster, cam_to_world=c2w, **kwargs)
 
     def camera(self, view: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
         """A view's ``world_to_cam (1, 4, 4)`` and ``K (1, 3, 3)`` on the device, and its ``(H, W)``.
