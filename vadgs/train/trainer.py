@@ -176,7 +176,9 @@ class Trainer:
         self.callback = callback
         self.train_views = list(scene.train_views)
         self._cameras: dict[int, tuple[torch.Tensor, torch.Tensor, tuple[int, int]]] = {}  # camera()
-        self._cam_to_world: dict[int, torch.Tensor] = {}  # render_view(): each camera's inverse, kept
+        # render_view(): each view's inverted camera and sky rays (_rays), the rays per distinct camera
+        self._view_rays: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._sky_rays: dict[tuple, torch.Tensor] = {}
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
         torch.manual_seed(self.config.seed)
@@ -417,10 +419,27 @@ class Trainer:
         """Render a scene view with the current model (on the trainer's device)."""
         world_to_cam, K, size = self.camera(view)
         frame = self.scene.view_frame_position(view)
-        c2w = self._cam_to_world.get(view)
-        if c2w is None:
-            c2w = self._cam_to_world[view] = invert_rigid(world_to_cam)  # its value check, once a view
-        return self.model.render(world_to_cam, K, size, frame, self.config.raster, cam_to_world=c2w, **kwargs)
+        kept = self._view_rays.get(view)
+        if kept is None:
+            kept = self._view_rays[view] = self._rays(view, world_to_cam, K, size)
+        c2w, rays = kept
+        return self.model.render(
+            world_to_cam, K, size, frame, self.config.raster, cam_to_world=c2w, sky_rays=rays, **kwargs
+        )
+
+    def _rays(
+        self, view: int, world_to_cam: torch.Tensor, K: torch.Tensor, size: tuple[int, int]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """A view's inverted camera (its value check once) and its sky rays, those shared by equal cameras.
+
+        The rays (12 bytes a pixel) are kept once per distinct intrinsics and size: a rig's few
+        cameras, whose ``K`` is read once a view.
+        """
+        key = (tuple(self.scene.cameras([view]).K.reshape(-1).tolist()), tuple(size))
+        rays = self._sky_rays.get(key)
+        if rays is None:
+            rays = self._sky_rays[key] = self.model.sky_rays(K, size)
+        return invert_rigid(world_to_cam), rays
 
     def camera(self, view: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
         """A view's ``world_to_cam (1, 4, 4)`` and ``K (1, 3, 3)`` on the device, and its ``(H, W)``.
@@ -498,11 +517,12 @@ class Trainer:
         self._updating = True
         # a non-finite loss: the fused optimizers skip the update on the device (no read here); the
         # step raises below, from the one read of the step
-        finite = torch.isfinite(total.detach())
+        # (total · 0 is NaN exactly when total is not finite: 3 kernels instead of isfinite's 6)
+        found_inf = (total.detach() * 0).isnan().float()
         optimizers = [self.optimizer, *([self.appearance_optimizer] if self.appearance_optimizer else [])]
         for opt in optimizers:
             if all(g.get("fused") for g in opt.param_groups):
-                opt.found_inf = (~finite).float()  # type: ignore[attr-defined]  # the GradScaler hook
+                opt.found_inf = found_inf  # type: ignore[attr-defined]  # the GradScaler hook
         for opt in optimizers:
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -510,18 +530,16 @@ class Trainer:
         with torch.no_grad():
             color = self.objective.corrected_color(view, out.color.detach())
             mse = torch.mean((color.clamp(0, 1) - self.objective.image(view)) ** 2)
-            psnr = -10 * torch.log10(mse.clamp(min=1e-10))
             # every logged number and the value checks in one read from the device (float64:
             # each float32 exactly; a parameter's float64 sum is finite iff all its values are,
             # short of an overflow past 1e308, which _check_parameters tells apart)
-            logged = torch.stack([*(t.reshape(()) for t in terms.values()), total, psnr]).double()
+            logged = [torch.stack([*(t.reshape(()) for t in terms.values()), total, mse]).double()]
             named = self._checked_parameters() if checks_enabled() else []
-            if named:
-                sums = torch.stack([t.detach().sum(dtype=torch.float64) for _, t in named])
-                logged = torch.cat([logged, sums])
-            read = logged.tolist()
+            logged += [t.detach().sum(dtype=torch.float64).reshape(1) for _, t in named]
+            read = torch.cat(logged).tolist() if len(logged) > 1 else logged[0].tolist()
         res = dict(zip(terms, read[: len(terms)]))
-        res["total"], res["psnr"] = read[len(terms)], read[len(terms) + 1]
+        # the PSNR from the mean squared error read (in float64 on the host)
+        res["total"], res["psnr"] = read[len(terms)], -10 * math.log10(max(read[len(terms) + 1], 1e-10))
         if not math.isfinite(res["total"]):  # the update was skipped (fused optimizers)
             raise NonFiniteLossError(
                 step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"
