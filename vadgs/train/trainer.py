@@ -530,13 +530,13 @@ class Trainer:
         with torch.no_grad():
             color = self.objective.corrected_color(view, out.color.detach())
             mse = torch.mean((color.clamp(0, 1) - self.objective.image(view)) ** 2)
-            # every logged number and the value checks in one read from the device (float64:
-            # each float32 exactly; a parameter's float64 sum is finite iff all its values are,
-            # short of an overflow past 1e308, which _check_parameters tells apart)
-            logged = [torch.stack([*(t.reshape(()) for t in terms.values()), total, mse]).double()]
+            # every logged number and the value checks in one read from the device: a parameter's
+            # L1 norm (one multi-tensor kernel for all) is finite iff all its values are, short of
+            # an overflow past 3e38, which _check_parameters tells apart
             named = self._checked_parameters() if checks_enabled() else []
-            logged += [t.detach().sum(dtype=torch.float64).reshape(1) for _, t in named]
-            read = torch.cat(logged).tolist() if len(logged) > 1 else logged[0].tolist()
+            norms = torch._foreach_norm([t.detach() for _, t in named], 1) if named else []
+            logged = [*(t.reshape(()) for t in terms.values()), total, mse, *(n.to(mse.dtype) for n in norms)]
+            read = torch.stack(logged).tolist()
         res = dict(zip(terms, read[: len(terms)]))
         # the PSNR from the mean squared error read (in float64 on the host)
         res["total"], res["psnr"] = read[len(terms)], -10 * math.log10(max(read[len(terms) + 1], 1e-10))

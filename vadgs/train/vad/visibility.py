@@ -237,6 +237,19 @@ class VisibilityIndex:
         """
         return self.view_cache.get(("voxel_depth", view), lambda: self._voxel_depth(view))
 
+    def own_voxel_depth(self, view: int) -> torch.Tensor:
+        """:meth:`voxel_depth` only where the voxel is of the pixel's own instance, else 0: ``(1, H, W)``.
+
+        The geometric losses' voxel depth prior (:func:`~vadgs.train.vad.priors.view_targets`):
+        elsewhere the z-buffer sees through missing geometry. Cached per view.
+        """
+
+        def make() -> torch.Tensor:
+            vd, vlabel = self.voxel_depth(view)
+            return torch.where((vlabel == self.instances(view))[None], vd, torch.zeros_like(vd))
+
+        return self.view_cache.get(("own_voxel_depth", view), make)
+
     def _voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         depth, vidx = self.voxel_raster(view)
         label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
