@@ -179,6 +179,7 @@ class Trainer:
         # render_view(): each view's inverted camera and sky rays (_rays), the rays per distinct camera
         self._view_rays: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self._sky_rays: dict[tuple, torch.Tensor] = {}
+        self._camera_keys: dict[int, tuple] = {}  # camera(): a view's K (bytes) and size, for _sky_rays
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
         torch.manual_seed(self.config.seed)
@@ -433,9 +434,9 @@ class Trainer:
         """A view's inverted camera (its value check once) and its sky rays, those shared by equal cameras.
 
         The rays (12 bytes a pixel) are kept once per distinct intrinsics and size: a rig's few
-        cameras, whose ``K`` is read once a view.
+        cameras (``K`` compared by its bytes on the host, from :meth:`camera`).
         """
-        key = (tuple(self.scene.cameras([view]).K.reshape(-1).tolist()), tuple(size))
+        key = self._camera_keys[view]
         rays = self._sky_rays.get(key)
         if rays is None:
             rays = self._sky_rays[key] = self.model.sky_rays(K, size)
@@ -452,6 +453,8 @@ class Trainer:
             cams = self.scene.cameras([view])
             cam = (cams.world_to_cam.to(self.device), cams.K.to(self.device), cams.image_size)
             self._cameras[view] = cam
+            # the scene's cameras are on the host: the bytes of K, no read of a device
+            self._camera_keys[view] = (cams.K.detach().cpu().numpy().tobytes(), tuple(cams.image_size))
         return cam
 
     def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
