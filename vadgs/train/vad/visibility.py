@@ -35,10 +35,21 @@ __all__ = [
     "ViewCache",
     "VisibilityIndex",
     "build_visibility_index",
+    "own_instance_depth",
 ]
 
 
 ViewCache = ByteCache
+
+
+def own_instance_depth(depth: torch.Tensor, label: torch.Tensor, instances: torch.Tensor) -> torch.Tensor:
+    """``depth`` ``(1, H, W)`` where the voxel's ``label`` is the pixel's own instance, else 0.
+
+    ``label`` and ``instances`` ``(H, W)``: :meth:`VisibilityIndex.own_voxel_depth`'s map.
+    """
+    return torch.where((label == instances)[None], depth, torch.zeros_like(depth))
+
+
 """The visibility index's per-view cache, a :class:`~vadgs.data.cache.ByteCache` (1 GiB by default:
 every view of the street scenes at 240×144; some hundred views at 1920×1280)."""
 
@@ -243,12 +254,10 @@ class VisibilityIndex:
         The geometric losses' voxel depth prior (:func:`~vadgs.train.vad.priors.view_targets`):
         elsewhere the z-buffer sees through missing geometry. Cached per view.
         """
-
-        def make() -> torch.Tensor:
-            vd, vlabel = self.voxel_depth(view)
-            return torch.where((vlabel == self.instances(view))[None], vd, torch.zeros_like(vd))
-
-        return self.view_cache.get(("own_voxel_depth", view), make)
+        return self.view_cache.get(
+            ("own_voxel_depth", view),
+            lambda: own_instance_depth(*self.voxel_depth(view), self.instances(view)),
+        )
 
     def _voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         depth, vidx = self.voxel_raster(view)
