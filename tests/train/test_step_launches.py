@@ -21,11 +21,13 @@ from vadgs.train.vad import VisibilityDensifyConfig
 
 from ..launch_count import LaunchCounter
 
-#: issue 48's target for a step outside the rasterizer (host reads, met: 3 a step measured), and
-#: the launches measured here with a margin (350; the target, 300, is not met yet). At the
-#: benchmark's size, before: 41 reads and 835 launches a step; after: 3 and 420 (docs/benchmarks.md).
+#: issue 48's target for a step outside the rasterizer (host reads and launches, both met at the
+#: benchmark's size: 1 read and 298 launches a step), and the launches measured here (230 at
+#: this smaller run: SH degree 1, a quarter of the sample's size) with a margin. At the benchmark's
+#: size, before issue 48: 41 reads and 835 launches a step; 3 and 420 before the incompleteness
+#: test left the step (docs/benchmarks.md).
 READS = 5
-LAUNCHES = 380
+LAUNCHES = 250
 
 
 def _replayed(calls: list) -> tuple[int, int]:
@@ -76,4 +78,4 @@ def test_a_steady_step_outside_the_rasterizer_launches_and_reads_little(monkeypa
     assert reads <= READS, (reads, c.ops.most_common(20))
     print(f"outside the rasterizer: {launches:.0f} launches, {reads:.1f} host reads a step")
     assert launches <= LAUNCHES, (launches, c.ops.most_common(20))
-    assert len(tr.state["vad_tests"]) >= n  # the steps did test their views for incompleteness
+    assert len(tr.state["vad_renders"]) >= n  # the steps did keep their renders for the event's test

@@ -55,15 +55,16 @@ def octahedral_encode(normals: torch.Tensor, dim: int = -3) -> torch.Tensor:
         (tensor([ 0.5947,  0.0000, -0.8039]), tensor([0., 0., 0.]))
     """
     _check_components(normals, "normals", 3, dim)
-    x, y, z = normals.detach().float().unbind(dim)
-    s = x.abs() + y.abs() + z.abs()
+    n = normals.detach().float()
+    a = n.abs()
+    s = a.narrow(dim, 0, 1) + a.narrow(dim, 1, 1) + a.narrow(dim, 2, 1)  # |x| + |y| + |z|, in that order
     zero = s == 0
-    s = torch.where(zero, 1.0, s)
-    u, v = x / s, y / s
-    back = z < 0  # folded over the square's corners
-    u, v = torch.where(back, (1 - v.abs()) * _sign(u), u), torch.where(back, (1 - u.abs()) * _sign(v), v)
-    codes = torch.stack([u, v], dim).mul(127).round().clamp(-127, 127).to(torch.int8)
-    return codes.masked_fill(zero.unsqueeze(dim), _ZERO)
+    uv = n.narrow(dim, 0, 2) / s.masked_fill(zero, 1.0)
+    back = n.narrow(dim, 2, 1) < 0  # folded over the square's corners
+    # (1 - |v|, 1 - |u|) with the signs of (u, v), a zero's sign +1 (+ 0.0 turns -0.0 into +0.0)
+    folded = torch.copysign(1 - uv.abs().flip(dim), uv + 0.0)
+    codes = torch.where(back, folded, uv).mul_(127).round_().to(torch.int8)  # |u|, |v| <= 1: within ±127
+    return codes.masked_fill_(zero, _ZERO)
 
 
 def octahedral_decode(codes: torch.Tensor, dim: int = -3, dtype: torch.dtype = torch.float32) -> torch.Tensor:

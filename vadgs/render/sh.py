@@ -73,34 +73,49 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
     """
     num_sh_bases(degree)
     check_shape(dirs, "dirs", ("*", 3))
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
+    # Each basis function is the same float32 expression as written out term by term (3DGS's
+    # order of operations: e.g. C * y * (3 xx - yy) is (C y)(3 xx - yy)), evaluated for many terms
+    # at once: gathers of columns and column-wise products with constant rows.
+    out = [torch.full_like(dirs[..., :1], SH_C0)]
     if degree > 0:
-        out += [-_C1 * y, _C1 * z, -_C1 * x]
+        out.append(_cols(dirs, (1, 2, 0)) * _row(dirs, (-_C1, _C1, -_C1)))
     if degree > 1:
-        xx, yy, zz = x * x, y * y, z * z
-        xy, yz, xz = x * y, y * z, x * z
-        out += [
-            _C2[0] * xy,
-            _C2[1] * yz,
-            _C2[2] * (2.0 * zz - xx - yy),
-            _C2[3] * xz,
-            _C2[4] * (xx - yy),
-        ]
+        # D: x y z xx yy zz xy yz xz (columns 0 to 8)
+        d = torch.cat([dirs, _cols(dirs, (0, 1, 2, 0, 1, 0)) * _cols(dirs, (0, 1, 2, 1, 2, 2))], -1)
+        r = _cols(d, (5, 3)) * _row(d, (2.0, 1.0)) - _cols(d, (3, 4))  # 2 zz - xx, xx - yy
+        a = r[..., :1] - d[..., 4:5]  # (2 zz - xx) - yy
+        out.append(torch.cat([d[..., 6:8], a, d[..., 8:9], r[..., 1:]], -1) * _row(d, _C2))
     if degree > 2:
-        out += [
-            _C3[0] * y * (3.0 * xx - yy),
-            _C3[1] * xy * z,
-            _C3[2] * y * (4.0 * zz - xx - yy),
-            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            _C3[4] * x * (4.0 * zz - xx - yy),
-            _C3[5] * z * (xx - yy),
-            _C3[6] * x * (xx - 3.0 * yy),
-        ]
-    return torch.stack(out, dim=-1)
+        # S: 3 xx, 4 zz, 2 zz, 3 yy (columns 9 to 12 of E)
+        e = torch.cat([d, _cols(d, (3, 5, 5, 4)) * _row(d, (3.0, 4.0, 2.0, 3.0))], -1)
+        m = _cols(e, (9, 10, 11, 3)) - _cols(e, (4, 3, 9, 12))  # 3xx - yy, 4zz - xx, 2zz - 3xx, xx - 3yy
+        n = m[..., 1:3] - _cols(e, (4, 12))  # (4zz - xx) - yy, (2zz - 3xx) - 3yy
+        right = torch.cat([m[..., :1], d[..., 2:3], n, n[..., :1], r[..., 1:], m[..., 3:]], -1)
+        left = _cols(d, (1, 6, 1, 2, 0, 2, 0)) * _row(d, _C3)  # C y, C xy, C y, C z, C x, C z, C x
+        out.append(left * right)
+    return torch.cat(out, -1)
 
 
-def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> torch.Tensor:
+def _cols(x: torch.Tensor, idx: tuple[int, ...]) -> torch.Tensor:
+    """Columns ``idx`` of ``x``'s last axis (a gather)."""
+    return x[..., list(idx)]
+
+
+_ROWS: dict[tuple[tuple[float, ...], torch.device, torch.dtype], torch.Tensor] = {}
+
+
+def _row(x: torch.Tensor, values: tuple[float, ...]) -> torch.Tensor:
+    """The constants ``values`` as a row on ``x``'s device and dtype, made once (no copy a call)."""
+    key = (tuple(values), x.device, x.dtype)
+    row = _ROWS.get(key)
+    if row is None:
+        row = _ROWS[key] = torch.tensor(values, device=x.device, dtype=x.dtype)
+    return row
+
+
+def eval_sh(
+    coeffs: torch.Tensor, dirs: torch.Tensor, degree: int | None = None, max_value: float | None = None
+) -> torch.Tensor:
     r"""View-dependent colours from SH coefficients: ``max(0, sum_k Y_k(d) f_k + 0.5)``.
 
     Only the first ``(degree + 1)^2`` coefficients are used, so a model can raise its degree
@@ -115,6 +130,7 @@ def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int | None = None)
         coeffs: ``(N, K, C)`` coefficients, ``K`` a square number ≤ 16.
         dirs: ``(*, N, 3)`` unit viewing directions (camera centre to Gaussian, world frame).
         degree: SH degree to evaluate; ``None`` uses all of ``K``.
+        max_value: also clamped from above at this value (in the same kernel), e.g. ``1.0``.
 
     Returns:
         ``(*, N, C)`` colours.
@@ -135,6 +151,8 @@ def eval_sh(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int | None = None)
         raise ValueError(f"degree: expected 0 to {max_degree} for K={k} coefficients, got {degree}")
     basis = sh_basis(dirs, degree)  # (*, N, K')
     colors = (basis.unsqueeze(-1) * coeffs[:, : basis.shape[-1]]).sum(-2)
+    if max_value is not None:
+        return torch.clamp(colors + 0.5, 0.0, max_value)
     return torch.clamp_min(colors + 0.5, 0.0)
 
 

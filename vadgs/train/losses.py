@@ -174,7 +174,8 @@ def normal_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | N
     """
     dims = check_shape(pred, "pred", ("B", 3, "H", "W"))
     check_shape(target, "target", ("B", 3, "H", "W"), dims)
-    valid = (target.abs().sum(1, keepdim=True) > 0) & (pred.detach().abs().sum(1, keepdim=True) > 0)
+    # a pixel whose normals both have a non-zero component (NaN counts: its loss is NaN either way)
+    valid = (target != 0).any(1, keepdim=True) & (pred.detach() != 0).any(1, keepdim=True)
     if mask is not None:
         valid = valid & mask
     cos = (F.normalize(pred, dim=1) * F.normalize(target, dim=1)).sum(1, keepdim=True)

@@ -371,18 +371,30 @@ class GaussianModel(nn.Module):
         return self._sky_color(invert_rigid(world_to_cam), K, image_size)
 
     def _sky_color(
-        self, cam_to_world: torch.Tensor, K: torch.Tensor, image_size: tuple[int, int]
+        self,
+        cam_to_world: torch.Tensor,
+        K: torch.Tensor,
+        image_size: tuple[int, int],
+        rays: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """:meth:`sky_color` of cameras given as camera-to-world transforms (already inverted)."""
+        """:meth:`sky_color` of cameras given as camera-to-world transforms (already inverted).
+
+        ``rays``: :meth:`sky_rays` of ``K`` and ``image_size`` when the caller keeps them.
+        """
         h, w = image_size
-        pix = pixel_grid(image_size, device=K.device, dtype=K.dtype).reshape(-1, 2)
-        ones = torch.ones_like(pix[:, :1])
-        rays = torch.cat([pix, ones], -1) @ torch.linalg.inv(K).transpose(-1, -2)  # (B, HW, 3) camera
+        rays = self.sky_rays(K, image_size) if rays is None else rays
         dirs = F.normalize(rays @ cam_to_world[:, :3, :3].transpose(-1, -2), dim=-1)
         b = cam_to_world.shape[0]
         coeffs = self.sky[None].expand(h * w, -1, -1)
-        col = eval_sh(coeffs, dirs.reshape(b, h * w, 3), self.sky_degree).clamp(max=1.0)
+        col = eval_sh(coeffs, dirs.reshape(b, h * w, 3), self.sky_degree, max_value=1.0)
         return col.reshape(b, h, w, 3).permute(0, 3, 1, 2)
+
+    @staticmethod
+    def sky_rays(K: torch.Tensor, image_size: tuple[int, int]) -> torch.Tensor:
+        """Each pixel's ray in the camera frame, ``(B, H W, 3)`` (``(u, v, 1) K⁻ᵀ``), for the sky."""
+        pix = pixel_grid(image_size, device=K.device, dtype=K.dtype).reshape(-1, 2)
+        ones = torch.ones_like(pix[:, :1])
+        return torch.cat([pix, ones], -1) @ torch.linalg.inv(K).transpose(-1, -2)  # (B, HW, 3) camera
 
     def _to_render(
         self, world_to_cam: torch.Tensor, K: torch.Tensor, frame: int, opacity_override: float | None
@@ -404,6 +416,8 @@ class GaussianModel(nn.Module):
         config: RasterConfig | None = None,
         opacity_override: float | None = None,
         hard_depth: bool = False,
+        cam_to_world: torch.Tensor | None = None,
+        sky_rays: torch.Tensor | None = None,
     ) -> ModelRender:
         """Render one view of a frame: the frame's Gaussians over the sky.
 
@@ -421,12 +435,19 @@ class GaussianModel(nn.Module):
                 :func:`vadgs.train.losses.depth_loss_hard`.
             hard_depth: also the hard depth (every opacity 1) in the same pass, as
                 ``raster.hard_depth`` (:func:`~vadgs.render.rasterize_gaussians`).
+            cam_to_world: ``invert_rigid(world_to_cam)`` when the caller keeps it (vadgs's
+                trainer, per view), else computed here with its value check (one read a render).
+            sky_rays: :meth:`sky_rays` of ``K`` and ``image_size`` when the caller keeps them
+                (vadgs's trainer, per camera), else computed here.
 
         Returns:
             :class:`ModelRender`.
         """
         g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
-        cam_to_world = invert_rigid(world_to_cam)  # its value check: one read a render
+        if cam_to_world is None:
+            cam_to_world = invert_rigid(world_to_cam)
+        else:
+            check_shape(cam_to_world, "cam_to_world", (1, 4, 4))
         center = cam_to_world[0, :3, 3]
         dirs = F.normalize(g.means.detach() - center, dim=-1)
         dirs_local = (g.object_to_world_rot.transpose(-1, -2) @ dirs[:, :, None]).squeeze(-1)
@@ -435,7 +456,7 @@ class GaussianModel(nn.Module):
             g.means, g.quats, g.scales, opac, colors, world_to_cam, K, image_size, config=config,
             hard_depth=hard_depth,
         )  # fmt: skip
-        sky = self._sky_color(cam_to_world, K, image_size)
+        sky = self._sky_color(cam_to_world, K, image_size, sky_rays)
         color = raster.color + (1.0 - raster.alpha) * sky
         return ModelRender(color, raster, sky, g.ids)
 

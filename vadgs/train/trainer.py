@@ -38,6 +38,7 @@ import torch
 
 from vadgs.checks import checks_enabled, first_false
 from vadgs.data.scene import Scene
+from vadgs.geometry.camera import invert_rigid
 from vadgs.runfolder import record_files
 from vadgs.train.appearance import AppearanceModel
 from vadgs.train.checkpoint import (
@@ -158,6 +159,10 @@ class Trainer:
         self.callback = callback
         self.train_views = list(scene.train_views)
         self._cameras: dict[int, tuple[torch.Tensor, torch.Tensor, tuple[int, int]]] = {}  # camera()
+        # render_view(): each view's inverted camera and sky rays (_rays), the rays per distinct camera
+        self._view_rays: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._sky_rays: dict[tuple, torch.Tensor] = {}
+        self._camera_keys: dict[int, tuple] = {}  # camera(): a view's K (bytes) and size, for _sky_rays
         if not self.train_views:
             raise ValueError(f"scene {scene.name!r}: no training views")
         torch.manual_seed(self.config.seed)
@@ -398,7 +403,27 @@ class Trainer:
         """Render a scene view with the current model (on the trainer's device)."""
         world_to_cam, K, size = self.camera(view)
         frame = self.scene.view_frame_position(view)
-        return self.model.render(world_to_cam, K, size, frame, self.config.raster, **kwargs)
+        kept = self._view_rays.get(view)
+        if kept is None:
+            kept = self._view_rays[view] = self._rays(view, world_to_cam, K, size)
+        c2w, rays = kept
+        return self.model.render(
+            world_to_cam, K, size, frame, self.config.raster, cam_to_world=c2w, sky_rays=rays, **kwargs
+        )
+
+    def _rays(
+        self, view: int, world_to_cam: torch.Tensor, K: torch.Tensor, size: tuple[int, int]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """A view's inverted camera (its value check once) and its sky rays, those shared by equal cameras.
+
+        The rays (12 bytes a pixel) are kept once per distinct intrinsics and size: a rig's few
+        cameras (``K`` compared by its bytes on the host, from :meth:`camera`).
+        """
+        key = self._camera_keys[view]
+        rays = self._sky_rays.get(key)
+        if rays is None:
+            rays = self._sky_rays[key] = self.model.sky_rays(K, size)
+        return invert_rigid(world_to_cam), rays
 
     def camera(self, view: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
         """A view's ``world_to_cam (1, 4, 4)`` and ``K (1, 3, 3)`` on the device, and its ``(H, W)``.
@@ -411,6 +436,8 @@ class Trainer:
             cams = self.scene.cameras([view])
             cam = (cams.world_to_cam.to(self.device), cams.K.to(self.device), cams.image_size)
             self._cameras[view] = cam
+            # the scene's cameras are on the host: the bytes of K, no read of a device
+            self._camera_keys[view] = (cams.K.detach().cpu().numpy().tobytes(), tuple(cams.image_size))
         return cam
 
     def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
@@ -476,11 +503,12 @@ class Trainer:
         self._updating = True
         # a non-finite loss: the fused optimizers skip the update on the device (no read here); the
         # step raises below, from the one read of the step
-        finite = torch.isfinite(total.detach())
+        # (total · 0 is NaN exactly when total is not finite: 3 kernels instead of isfinite's 6)
+        found_inf = (total.detach() * 0).isnan().float()
         optimizers = [self.optimizer, *([self.appearance_optimizer] if self.appearance_optimizer else [])]
         for opt in optimizers:
             if all(g.get("fused") for g in opt.param_groups):
-                opt.found_inf = (~finite).float()  # type: ignore[attr-defined]  # the GradScaler hook
+                opt.found_inf = found_inf  # type: ignore[attr-defined]  # the GradScaler hook
         for opt in optimizers:
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -488,18 +516,16 @@ class Trainer:
         with torch.no_grad():
             color = self.objective.corrected_color(view, out.color.detach())
             mse = torch.mean((color.clamp(0, 1) - self.objective.image(view)) ** 2)
-            psnr = -10 * torch.log10(mse.clamp(min=1e-10))
-            # every logged number and the value checks in one read from the device (float64:
-            # each float32 exactly; a parameter's float64 sum is finite iff all its values are,
-            # short of an overflow past 1e308, which _check_parameters tells apart)
-            logged = torch.stack([*(t.reshape(()) for t in terms.values()), total, psnr]).double()
+            # every logged number and the value checks in one read from the device: a parameter's
+            # L1 norm (one multi-tensor kernel for all) is finite iff all its values are, short of
+            # an overflow past 3e38, which _check_parameters tells apart
             named = self._checked_parameters() if checks_enabled() else []
-            if named:
-                sums = torch.stack([t.detach().sum(dtype=torch.float64) for _, t in named])
-                logged = torch.cat([logged, sums])
-            read = logged.tolist()
+            norms = torch._foreach_norm([t.detach() for _, t in named], 1) if named else []
+            logged = [*(t.reshape(()) for t in terms.values()), total, mse, *(n.to(mse.dtype) for n in norms)]
+            read = torch.stack(logged).tolist()
         res = dict(zip(terms, read[: len(terms)]))
-        res["total"], res["psnr"] = read[len(terms)], read[len(terms) + 1]
+        # the PSNR from the mean squared error read (in float64 on the host)
+        res["total"], res["psnr"] = read[len(terms)], -10 * math.log10(max(read[len(terms) + 1], 1e-10))
         if not math.isfinite(res["total"]):  # the update was skipped (fused optimizers)
             raise NonFiniteLossError(
                 step, f"loss terms { {k: v for k, v in res.items() if k != 'psnr'} } (view {view})"

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from vadgs.train.vad import VisibilityAwareDensification
+from vadgs.train.vad.visibility import own_instance_depth
 
 PH, PW = 5, 7  # the index's (padded) maps
 H, W = 4, 6  # the view's own size
@@ -39,6 +40,7 @@ def _strategy(vd, vlabel, ins, **settings):
         inputs=SimpleNamespace(num_views=2),
         voxel_depth=lambda view: (vd, vlabel),
         instances=lambda view: ins,
+        own_voxel_depth=lambda view: own_instance_depth(vd, vlabel, ins),  # the index's, uncached
         size=lambda view: (H, W),
     )
     return s, s.initialize_state()

@@ -218,9 +218,7 @@ class DefaultStrategy(ConfiguredStrategy):
         if state["grad2d"] is None:
             state["grad2d"] = torch.zeros(n, device=dev)
             state["count"] = torch.zeros(n, device=dev)
-        g = grad.clone()
-        g[..., 0] *= w / 2.0 * cams
-        g[..., 1] *= h / 2.0 * cams
+        g = grad * _pixels_row((w / 2.0 * cams, h / 2.0 * cams), grad)  # to pixels: (x, y) times these
         if packed:  # (nnz, 2): every packed row was rendered (gsplat counts them all)
             norms = g.norm(dim=-1).to(state["grad2d"].dtype)
             state["grad2d"].index_add_(0, info["gaussian_ids"], norms)
@@ -283,3 +281,17 @@ class DefaultStrategy(ConfiguredStrategy):
         state["grad2d"].zero_()
         state["count"].zero_()
         return {"cloned": n_dupli, "split": n_split, "pruned": n_prune, "total": p[names.means].shape[0]}
+
+
+_ROWS: dict[tuple[Any, ...], torch.Tensor] = {}
+
+
+def _pixels_row(values: tuple[float, float], like: torch.Tensor) -> torch.Tensor:
+    """``values`` as a row on ``like``'s device and dtype, kept (one copy to the device a size)."""
+    key = (values, like.device, like.dtype)
+    row = _ROWS.get(key)
+    if row is None:
+        if len(_ROWS) > 64:
+            _ROWS.clear()
+        row = _ROWS[key] = torch.tensor(values, device=like.device, dtype=like.dtype)
+    return row

@@ -86,8 +86,10 @@ class VisibilityDensifyConfig:
             :func:`~vadgs.train.vad.state.compact_render`; in the strategy's state, so checkpoints
             hold them and a resumed run stays exact) are kept up to this size and reused by the
             event for detection, PatchMatch initialisation and the test of what is already
-            explained; the views beyond it are rendered at the event. ``0``: render every view at
-            the event.
+            explained (the event tests them for incompleteness together, a render dropped for
+            room is tested when dropped); the views beyond it are rendered at the event when it
+            needs their render. ``0``: each step tests its own render, the event renders the
+            views it reconstructs from.
         references: reference views per instance: its flagged view with the most pixels, then
             the next largest ones from another camera or at least ``min_frame_gap`` frames away
             from those already chosen (another side of the object, e.g. the back of a sign).

@@ -68,8 +68,7 @@ def view_targets(
     if view in priors:
         depth, normal = priors[view]
     if voxel_depth_prior:
-        vd, vlabel = index.voxel_depth(view)
-        vd = torch.where((vlabel == index.instances(view))[None], vd, torch.zeros_like(vd))
+        vd = index.own_voxel_depth(view)  # kept per view
         depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))
     if depth is None:
         return None

@@ -22,7 +22,7 @@ from vadgs.checks import float_field, int_field
 from vadgs.train.losses import GeometryTargets
 from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, initialize_base_state, ops
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig
-from vadgs.train.vad.detect import detect, observe_view
+from vadgs.train.vad.detect import EventRenders, detect, observe_view
 from vadgs.train.vad.event import EventInputs, run_event
 from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
@@ -323,18 +323,20 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         self,
         views: list[int] | None = None,
         renders: Callable[[int], ViewRender] | None = None,
-        tests: Mapping[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None,
+        tests: Mapping[int, tuple[torch.Tensor, ...]] | None = None,
+        kept: Mapping[int, tuple[torch.Tensor, ...]] | None = None,
     ) -> tuple[IncompleteInstances, list[int]]:
         """:func:`~vadgs.train.vad.detect.detect` on ``views`` (default: every training view).
 
         ``renders`` defaults to the context's; a view in ``tests`` (``state["vad_tests"]``: tests
-        made from the loop's renders) is not rendered again. Returns ``(rows, views tested)``,
-        ``rows.view`` indexing the views tested.
+        made from the loop's renders, or left to here) is not rendered again: an empty entry is
+        tested from its render in ``kept`` (``state["vad_renders"]``). Returns ``(rows, views
+        tested)``, ``rows.view`` indexing the views tested.
         """
         return detect(
             self.prepare(),
             views if views is not None else list(self._inputs().train_views),
-            renders or self._context().render,
+            EventRenders(renders or self._context().render, kept),
             tests or {},
             self.config.incomplete,
         )

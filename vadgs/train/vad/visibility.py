@@ -35,7 +35,16 @@ __all__ = [
     "GROUND_FRAME_POINTS",
     "VisibilityIndex",
     "build_visibility_index",
+    "own_instance_depth",
 ]
+
+
+def own_instance_depth(depth: torch.Tensor, label: torch.Tensor, instances: torch.Tensor) -> torch.Tensor:
+    """``depth`` ``(1, H, W)`` where the voxel's ``label`` is the pixel's own instance, else 0.
+
+    ``label`` and ``instances`` ``(H, W)``: :meth:`VisibilityIndex.own_voxel_depth`'s map.
+    """
+    return torch.where((label == instances)[None], depth, torch.zeros_like(depth))
 
 
 @dataclass
@@ -231,6 +240,17 @@ class VisibilityIndex:
             its voxel (``(H, W)`` int64, 0 where empty; a track's id on its voxels).
         """
         return self.view_cache.get(("voxel_depth", view), lambda: self._voxel_depth(view))
+
+    def own_voxel_depth(self, view: int) -> torch.Tensor:
+        """:meth:`voxel_depth` only where the voxel is of the pixel's own instance, else 0: ``(1, H, W)``.
+
+        The geometric losses' voxel depth prior (:func:`~vadgs.train.vad.priors.view_targets`):
+        elsewhere the z-buffer sees through missing geometry. Cached per view.
+        """
+        return self.view_cache.get(
+            ("own_voxel_depth", view),
+            lambda: own_instance_depth(*self.voxel_depth(view), self.instances(view)),
+        )
 
     def _voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         depth, vidx = self.voxel_raster(view)
