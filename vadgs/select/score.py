@@ -91,7 +91,9 @@ def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]
     return shared, dist_dot
 
 
-def ray_angles(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def ray_angles(
+    covis: Covisibility, ref: int, entries: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The triangulation angle of ``ref`` with every other view at each voxel both see.
 
     ``θ(p)`` is the angle at voxel centre ``p`` between the rays to the two camera centres.
@@ -100,6 +102,8 @@ def ray_angles(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tenso
     Args:
         covis: the views, voxels and visibility.
         ref: the reference view.
+        entries: ``(seen, views, positions)`` when the caller has them: ``covis.voxels_of(ref)``
+            and ``covis.entries_of(seen)`` (saves their two reads by the host).
 
     Returns:
         ``(view, voxel, angle)``, each ``(n,)``: for every non-zero ``(view, voxel)`` of a view
@@ -113,8 +117,11 @@ def ray_angles(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tenso
         ([1], [0], 45.0)
     """
     with torch.no_grad():
-        seen = covis.voxels_of(ref)
-        view, pos = covis.entries_of(seen)
+        if entries is None:
+            seen = covis.voxels_of(ref)
+            view, pos = covis.entries_of(seen)
+        else:
+            seen, view, pos = entries
         keep = view != ref
         view, voxel = view[keep], seen[pos[keep]]
         centers = camera_centers(covis.world_to_cam)
@@ -126,7 +133,12 @@ def ray_angles(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tenso
         return view, voxel, torch.rad2deg(torch.atan2(sin, (to_ref * to_src).sum(-1)))
 
 
-def triangulation_angles(covis: Covisibility, ref: int, percentile: float = 75.0) -> torch.Tensor:
+def triangulation_angles(
+    covis: Covisibility,
+    ref: int,
+    percentile: float = 75.0,
+    entries: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
     """Each view's triangulation angle with ``ref`` over the voxels both see: a percentile, degrees.
 
     The ``percentile``-th percentile (nearest rank, rounded down) of :func:`ray_angles` over the
@@ -138,6 +150,7 @@ def triangulation_angles(covis: Covisibility, ref: int, percentile: float = 75.0
         covis: the views, voxels and visibility.
         ref: the reference view.
         percentile: in ``[0, 100]``.
+        entries: see :func:`ray_angles`.
 
     Returns:
         ``(V,)`` degrees, ``0`` for ``ref`` and for views sharing no voxel with it.
@@ -150,7 +163,7 @@ def triangulation_angles(covis: Covisibility, ref: int, percentile: float = 75.0
         [0.0, 6.911, 0.013]
     """
     with torch.no_grad():
-        view, _, theta = ray_angles(covis, ref)
+        view, _, theta = ray_angles(covis, ref, entries)
         num = covis.num_views
         counts = torch.zeros(num, dtype=torch.long, device=theta.device).index_add_(
             0, view, torch.ones_like(view)

@@ -259,7 +259,7 @@ def select_views(
         seen = covis.voxels_of(ref)
         if len(seen) == 0:
             return ViewSelection(_empty(device), 0.0, "no_voxels: the reference sees none of the voxels")
-        entry_views, _ = covis.entries_of(seen)
+        entry_views, entry_pos = covis.entries_of(seen)
         shared_ref = torch.bincount(entry_views, minlength=num)
         mask = (shared_ref >= config.min_shared) & ok
         mask[ref] = False
@@ -270,7 +270,8 @@ def select_views(
         sub = covis.restrict(seen, views)
         scores = diversity_scores(sub, config.eps, config.count_exponent)
         s_ref = scores.score[local_ref]
-        wide = triangulation_angles(sub, local_ref) >= least
+        # on the full covisibility, whose entries of the seen voxels are at hand: the same angles
+        wide = triangulation_angles(covis, ref, entries=(seen, entry_views, entry_pos))[views] >= least
         local = torch.nonzero((s_ref > 0) & wide).squeeze(1)  # excludes ref (0 on the diagonal)
         cand = views[local]
         total = len(local)
