@@ -35,7 +35,7 @@ STEPS = {
     "patchmatch": (("patchmatch.py",), ("patchmatch",)),
     "consistency": (("reconstruct.py", "vad/fusion.py"), ("_consistent", "consistent_depth")),
     "fusion": (("mvs/fusion.py",), ("fuse_depth_maps",)),
-    "add": (("vad.py", "vad/strategy.py"), ("_add",)),
+    "add": (("vad.py", "vad/strategy.py", "vad/event.py"), ("_add", "add_reconstructions")),
     "renders": (("trainer.py",), ("render_geometry",)),
 }
 

@@ -4,7 +4,7 @@ Trains street_a (or another scene with a sign and ``gt/static.ply``) with the vi
 strategy and, every ``--every`` steps and right after each event, prints one JSON line: the
 Gaussian count, the sign's completeness (share of its true surface within 10 cm of a static
 Gaussian centre; "board": above 4.5 m), the Gaussians within 10 cm of the sign and their mean
-opacity, and how many of those were added by events (a per-Gaussian tag that follows clone,
+opacity, and how many of those were added by events (the model's ``provenance``, which follows clone,
 split and prune). It tells whether a low completeness comes from the reconstruction at the event
 or from the added Gaussians not surviving training. Writes ``trace.json`` next to the run.
 
@@ -35,7 +35,7 @@ from vadgs.train.vad import VisibilityAwareDensification
 
 
 class TracedStrategy(VisibilityAwareDensification):
-    """The strategy, plus a per-Gaussian ``trace_tag`` (event number that added it, 0: not).
+    """The strategy, tracing the sign's completeness and the Gaussians events added near it.
 
     A benchmark's subclass: it holds the model (``self.model``, set after the trainer is built) to
     measure completeness; the library's strategy sees only ``params``.
@@ -48,13 +48,6 @@ class TracedStrategy(VisibilityAwareDensification):
         self.trace: list[dict] = []
         self.model = None
 
-    def _add(self, params, optimizers, state, rec, keep) -> None:
-        n = params["means"].shape[0]
-        if "trace_tag" not in state:
-            state["trace_tag"] = torch.zeros(n, dtype=torch.int64)
-        super()._add(params, optimizers, state, rec, keep)
-        state["trace_tag"][n:] = len(state["vad_events"]) + 1
-
     def step_post_backward(self, params, optimizers, state, step, info) -> None:
         events = len(state["vad_events"])
         super().step_post_backward(params, optimizers, state, step, info)
@@ -66,8 +59,7 @@ class TracedStrategy(VisibilityAwareDensification):
         static = model.node_ids[g.ids] == -1
         centres = g.means.detach()[static].numpy()
         opacity = g.opacities.detach()[static]
-        tags = state.get("trace_tag", torch.zeros(model.num_gaussians, dtype=torch.int64))
-        tag = tags[g.ids][static]
+        tag = model.provenance[g.ids][static]  # the event that added each Gaussian (0: none)
         c = surface_completeness(centres, self.surface)
         near = torch.from_numpy(self.tree.query(centres)[0] < 0.1)
         row = {

@@ -19,7 +19,7 @@ from vadgs.data import load_scene, sample_scene_path
 from vadgs.train.checkpoint import load_checkpoint
 from vadgs.train.scenes import open_scene, scene_fingerprint
 from vadgs.train.vad.config import VisibilityDensifyConfig
-from vadgs.train.vad.event import _event_summary
+from vadgs.train.vad.event_log import event_summary
 
 
 def _tree(root: Path) -> dict[str, str]:
@@ -161,11 +161,11 @@ def test_event_summary_counts_the_instances_that_added_nothing():
         "total_s": 1.0,
         "instances": instances,
     }
-    line = _event_summary(entry, VisibilityDensifyConfig())
+    line = event_summary(entry, VisibilityDensifyConfig())
     assert (
         "4 attempted, 1 repaired (+120 Gaussians), 3 added nothing (car 7: explained; "
         "building 9: selection:no_voxels; building 11: no_consistent_pixels), skipped: none" in line
     )
     entry["instances"] = instances[:1]
     entry["attempted"] = 1
-    assert "1 repaired (+120 Gaussians), skipped: none" in _event_summary(entry, VisibilityDensifyConfig())
+    assert "1 repaired (+120 Gaussians), skipped: none" in event_summary(entry, VisibilityDensifyConfig())

@@ -247,7 +247,7 @@ class TestUnknownKeys:
 
     def test_vad_adds_with_defaults(self):
         """New VAD-GS Gaussians: ``colors`` = logit of the MVS colour, ``features`` (unknown) = 0."""
-        from vadgs.train.vad import VisibilityAwareDensification
+        from vadgs.train.vad import VisibilityAwareDensification, flat_gaussians
         from vadgs.train.vad.reconstruct import InstanceReconstruction
 
         splats, opts = _appearance()
@@ -257,7 +257,10 @@ class TestUnknownKeys:
             torch.randn(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2), rgb, torch.full((2,), 0.1),
             None, [0], [], [], "ok",
         )  # fmt: skip
-        VisibilityAwareDensification()._add(splats, opts, None, rec)
+        cfg = VisibilityAwareDensification().config
+        ops.add_gaussians(
+            splats, opts, None, flat_gaussians(splats, rec, None, cfg.new_opacity, cfg.flatness)
+        )
         assert splats["means"].shape[0] == 7
         torch.testing.assert_close(splats["colors"][5:].detach(), torch.logit(rgb))
         assert torch.equal(splats["features"][5:], torch.zeros(2, 32))

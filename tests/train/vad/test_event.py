@@ -1,6 +1,8 @@
 """The steps of a VAD-GS event (:mod:`vadgs.train.vad.event`) against naive references and
-hand-computed values: which instances an event skips (cooldown, a moving object in a static
-model), what its log counts, :func:`merge_priors` and :func:`flat_gaussians`.
+hand-computed values: each step alone (:func:`skip_reason`, :func:`candidates`, the budget,
+:func:`reconstruct_pairs`, :func:`add_reconstructions`), which instances an event skips (cooldown,
+a moving object in a static model), what its log counts, :func:`merge_priors` and
+:func:`flat_gaussians`.
 
 The event runs for real (:func:`~vadgs.train.vad.event.run_event` through the strategy's
 ``densify``) on stand-ins of what it reads: the detection's rows, the index's classes and the
@@ -26,9 +28,22 @@ from vadgs.train.vad import (
     VisibilityAwareDensification,
     flat_gaussians,
 )
+from vadgs.train.vad.config import VisibilityDensifyConfig
+from vadgs.train.vad.event import (
+    Attempt,
+    EventBudget,
+    EventInputs,
+    add_reconstructions,
+    candidates,
+    event_budget,
+    over_budget,
+    reconstruct_pairs,
+    skip_reason,
+    wave_room,
+)
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.priors import merge_priors
-from vadgs.train.vad.reconstruct import ViewRender
+from vadgs.train.vad.reconstruct import MatchPlan, ViewRender
 from vadgs.train.vad.state import compact_render
 
 C0 = 0.28209479177387814  # the SH band-0 constant
@@ -198,13 +213,6 @@ class TestEventLog:
         assert "1 added nothing (cell 10: explained)" in summary and "added to sign 11 (+4)" in summary
         assert "static 10" not in summary
 
-    def test_outcome_names(self):
-        assert event_module._outcome("ok") == "ok"
-        assert event_module._outcome("ok (seen)") == "ok (seen)"
-        why = "selection:no_candidates: no view shares >= 2 voxels and a baseline with it"
-        assert event_module._outcome(why) == "selection:no_candidates"
-        assert event_module._outcome(why + " (seen)") == "selection:no_candidates (seen)"
-
     def test_points_and_added(self, monkeypatch):
         """``points``: the consistent MVS points of the instance's references; ``added``: the
         Gaussians it got (what remains once the explained points are left out and the rest thinned)."""
@@ -286,6 +294,189 @@ class TestRendersOfAnEvent:
         got = [(g["instance"], g["view"], g["added"], float(g["depth"].max())) for g in got]
         assert got == [(1, 0, 5, 4.0)]
         assert params["means"].shape[0] == 9
+
+
+# -- each step alone ---------------------------------------------------------------------------------
+
+
+class TestSkipReason:
+    CFG = VisibilityDensifyConfig(cooldown_events=2, skip_classes=("sky", "vegetation"))
+
+    def reason(self, instance, has_nodes=True, last_done=None, event=5):
+        classes = {1: "sky", 2: "car", 3: "sign", 4: "vegetation"}
+        return skip_reason(instance, self.CFG, classes, {2, 4}, has_nodes, last_done or {}, event)
+
+    def test_rules_by_hand(self):
+        assert [self.reason(i) for i in (1, 2, 3, 4, 99)] == ["skip_class", None, None, "skip_class", None]
+        assert self.reason(2, has_nodes=False) == "static_model"  # a moving one in a static model
+        assert self.reason(3, has_nodes=False) is None  # a static one: the model holds it
+        assert self.reason(4, has_nodes=False) == "skip_class"  # the class rule first
+
+    def test_cooldown_is_inclusive_and_never_for_the_never_done(self):
+        # reconstructed at event 3, cooldown 2: waits at events 4 and 5, attempted at 6
+        assert [self.reason(3, last_done={3: 3}, event=e) for e in (4, 5, 6)] == [
+            "cooldown",
+            "cooldown",
+            None,
+        ]
+        assert self.reason(3, last_done={7: 5}, event=5) is None  # another instance's
+
+
+class TestCandidates:
+    def test_against_naive(self):
+        g = torch.Generator().manual_seed(3)
+        n = 40
+        inst = torch.randint(0, 6, (n,), generator=g)
+        view = torch.randint(0, 4, (n,), generator=g)
+        pixels = torch.randint(1, 500, (n,), generator=g)
+        flagged = torch.rand(n, generator=g) < 0.6
+        f = torch.full((n,), float("nan"))
+        rows = IncompleteInstances(view, inst, flagged, f, f, f, pixels, torch.zeros(n, dtype=torch.int64))
+        views = [10, 11, 12, 13]
+        reasons = {2: "cooldown", 5: "skip_class"}
+        got = candidates(rows, views, reasons.get)
+        kept: dict[int, list[tuple[int, int]]] = {}
+        skipped: dict[str, int] = {}
+        for k in range(n):  # row by row
+            i = int(inst[k])
+            if not flagged[k]:
+                continue
+            if i in reasons:
+                skipped[reasons[i]] = skipped.get(reasons[i], 0) + (
+                    i not in kept and i not in kept.get(-i, [])
+                )
+                kept.setdefault(-i, []).append(i)  # seen: counted once
+                continue
+            kept.setdefault(i, []).append((views[int(view[k])], int(pixels[k])))
+        kept = {i: v for i, v in kept.items() if i >= 0}
+        assert got.views == kept
+        assert got.skipped == skipped and set(skipped) == {"cooldown", "skip_class"}
+        assert got.rows == int(flagged.sum())
+        assert got.instances == len(set(inst[flagged].tolist()))
+        assert got.best_pixels() == {i: max(px for _, px in v) for i, v in kept.items()}
+
+
+class TestBudget:
+    def test_event_budget_by_hand(self):
+        cfg = VisibilityDensifyConfig(work_budget=3.0, time_budget=0.5)
+        assert event_budget(cfg, 1000.0, 60.0) == EventBudget(3000.0, 30.0)
+        off = VisibilityDensifyConfig(work_budget=None, time_budget=None)
+        assert event_budget(off, None, 60.0) == EventBudget(math.inf, math.inf)
+        with pytest.raises(ValueError, match=r"EventInputs.trained_pixels: expected a number .* got None"):
+            event_budget(cfg, None, 60.0)
+
+    @pytest.mark.parametrize(
+        ("max_instances", "time_budget", "repaired", "room"),
+        [
+            (None, None, 5, math.inf),
+            (3, None, 1, 2),
+            (3, None, 3, 0),
+            (3, 0.5, 1, 1),
+            (None, 0.5, 0, 1),
+            (2, 0.5, 2, 0),
+        ],
+    )
+    def test_wave_room(self, max_instances, time_budget, repaired, room):
+        cfg = VisibilityDensifyConfig(max_instances=max_instances, time_budget=time_budget)
+        assert wave_room(cfg, repaired) == room
+
+    def test_over_budget(self, monkeypatch):
+        clock = iter([100.0, 100.0, 131.0])
+        monkeypatch.setattr(event_module.time, "perf_counter", lambda: next(clock))
+        budget = EventBudget(work=50.0, seconds=30.0)
+        assert over_budget(budget, 51.0, 100.0) == "work_budget"  # the clock not read: it is not spent
+        assert over_budget(budget, 50.0, 100.0) is None  # at the budget: not past it
+        assert over_budget(budget, 10.0, 100.0) is None
+        assert over_budget(budget, 10.0, 100.0) == "time_budget"  # 31 s > 30 s
+        assert next(clock, None) is None
+
+
+def _plan(ref: int, instance: int, work: float) -> MatchPlan:
+    fields = dict.fromkeys(MatchPlan._fields)
+    return MatchPlan(**{**fields, "ref": ref, "instance": instance, "work": work})
+
+
+class TestReconstructPairs:
+    def test_matched_together_finished_in_order_away_from_the_points_taken(self, monkeypatch):
+        """Every plan of the wave matched in one call; each pair finished with the points the wave's
+        earlier pairs took in its frame (the world, or the moving instance's own)."""
+        matched_calls, finished = [], []
+
+        def match_plans(index, plans, config, renders):
+            matched_calls.append([(p.instance, p.ref) for p in plans])
+            return [f"matched {p.instance}/{p.ref}" for p in plans]
+
+        def finish_match(index, plan, matched, config, generator, renders, occupied=None):
+            finished.append((matched, None if occupied is None else occupied[:, 0].tolist()))
+            return _rec(plan.instance, 0, 0)._replace(points=torch.full((2, 3), float(plan.ref)))
+
+        monkeypatch.setattr(event_module, "match_plans", match_plans)
+        monkeypatch.setattr(event_module, "finish_match", finish_match)
+        nothing = _rec(4, 0, 0)  # a pair with nothing to match: its result as planned
+        wave = [
+            Attempt(1, [5, 6], [_plan(5, 1, 1.0), _plan(6, 1, 2.0)]),
+            Attempt(4, [7], [nothing]),
+            Attempt(21, [8], [_plan(8, 21, 4.0)]),  # moving: its own frame
+            Attempt(3, [9], [_plan(9, 3, 8.0)]),
+        ]
+        ev = SimpleNamespace(
+            index=None, reconstruct=None, generator=None, inputs=SimpleNamespace(tracks={21: 0})
+        )
+        occupied: dict = {}
+        recs = reconstruct_pairs(ev, wave, lambda v: None, occupied)
+        assert matched_calls == [[(1, 5), (1, 6), (21, 8), (3, 9)]]
+        assert finished == [
+            ("matched 1/5", None),
+            ("matched 1/6", [5.0, 5.0]),
+            ("matched 21/8", None),  # the world's points are not in its frame
+            ("matched 3/9", [5.0, 5.0, 6.0, 6.0]),
+        ]
+        assert [len(r) for r in recs] == [2, 1, 1, 1] and recs[1][0] is nothing
+        assert sorted(occupied, key=str) == [21, None] and len(occupied[None]) == 3
+        assert (wave[0].work, wave[1].work) == (3.0, nothing.work)  # the plans' work, summed
+
+
+class TestAddReconstructions:
+    def test_one_hop_to_the_model(self):
+        """The rows appended are :func:`flat_gaussians` of each reconstruction, in order, on the
+        node of its track; the optimizer's moments follow."""
+        params = {
+            "means": torch.zeros(2, 3),
+            "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1),
+            "log_scales": torch.zeros(2, 3),
+            "opacity_logits": torch.zeros(2),
+            "sh_dc": torch.zeros(2, 1, 3),
+            "sh_rest": torch.zeros(2, 3, 3),
+            "node_ids": torch.tensor([-1, 0]),
+            "provenance": torch.zeros(2, dtype=torch.int64),
+        }
+        params = {k: torch.nn.Parameter(v, requires_grad=v.is_floating_point()) for k, v in params.items()}
+        opt = {"means": torch.optim.Adam([params["means"]], lr=0.1)}
+        params["means"].grad = torch.ones(2, 3)
+        opt["means"].step()
+        cfg = VisibilityDensifyConfig(new_opacity=0.3, flatness=0.5)
+        ev = EventInputs(None, None, None, None, cfg, None, track_nodes={21: 1, 30: 0}, trained_pixels=None)
+        moving, static = _rec(21, 3, 3, track=21), _rec(4, 2, 2)
+        adds = [(21, 0, moving), (4, 0, static)]
+        add_reconstructions(
+            ev, params, opt, None, adds, lambda v: pytest.fail("no render without on_addition"), 7, 0
+        )
+        expect = [flat_gaussians(params, r, None, 0.3, 0.5, 7, n) for r, n in ((moving, 1), (static, -1))]
+        assert params["means"].shape[0] == 2 + 3 + 2
+        for k in params:
+            want = torch.cat([expect[0][k], expect[1][k]]).to(params[k].dtype)
+            assert torch.equal(params[k][2:].detach(), want), k
+        assert params["node_ids"].tolist() == [-1, 0, 1, 1, 1, -1, -1]
+        assert params["provenance"].tolist() == [0, 0] + [7] * 5
+        assert torch.equal(opt["means"].state[params["means"]]["exp_avg"][2:], torch.zeros(5, 3))
+
+    def test_max_instances_counts_the_repaired(self, monkeypatch):
+        """One counter: an instance that adds nothing uses up no ``max_instances`` slot."""
+        ev = _Event(monkeypatch, {1: 400, 2: 300, 3: 200}, made={1: (0, 5)}, max_instances=1)
+        entry = ev.run(_splats())
+        assert [i["instance"] for i in entry["instances"]] == [1, 2]
+        assert (entry["attempted"], entry["repaired"], entry["added"]) == (2, 1, 3)
+        assert entry["skipped"] == {"max_instances": 1}
 
 
 # -- merge_priors ------------------------------------------------------------------------------------
@@ -383,8 +574,10 @@ class TestFlatGaussians:
             "node_ids": torch.zeros(2, dtype=torch.int64),
             "provenance": torch.zeros(2, dtype=torch.int64),
         }
-        new = flat_gaussians(params, _fused(), None, new_opacity=0.3, flatness=0.2, event=4)
-        assert set(new) == set(params) - {"node_ids"}  # node_ids: the caller's
+        new = flat_gaussians(params, _fused(), None, new_opacity=0.3, flatness=0.2, event=4, node=2)
+        assert set(new) == set(params)
+        assert new["node_ids"].tolist() == [2, 2, 2] and new["node_ids"].dtype == torch.int64
+        assert flat_gaussians(params, _fused())["node_ids"].tolist() == [-1, -1, -1]  # static by default
         self._check_geometry(new, "means", "quats", "log_scales", "opacity_logits", [0, 1, 2])
         expect_dc = [[[(0.5 - 0.5) / C0, (0.25 - 0.5) / C0, (1.0 - 0.5) / C0]]]
         torch.testing.assert_close(new["sh_dc"][:1], torch.tensor(expect_dc))

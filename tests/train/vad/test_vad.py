@@ -20,6 +20,7 @@ from vadgs.train.vad import (
     pick_references,
     rank_instances,
 )
+from vadgs.train.vad.event import EventInputs, add_reconstructions
 from vadgs.train.vad.reconstruct import reconstruct_instance
 
 BUILDING = 9  # a large facade of the sample scene with LiDAR on its lower part
@@ -195,7 +196,8 @@ class TestMovingObject:
         ctx = StrategyContext(lambda v: None, total_steps=1, steps_per_cycle=1, track_nodes={CAR: 0})
         vad = VisibilityAwareDensification()
         vad.prepare(context=ctx, index=index)
-        vad._add(model.params, None, None, rec, torch.ones(rec.points.shape[0], dtype=torch.bool))
+        ev = EventInputs(index, vad.inputs, ctx.render, None, vad.config, None, ctx.track_nodes, None)
+        add_reconstructions(ev, model.params, None, None, [(CAR, ref, rec)], ctx.render, 1, 0)
         assert model.num_gaussians == 1 + rec.points.shape[0]
         assert (model.node_ids[1:] == 0).all()
         # the node's means are stored in the object frame and moved by the track's pose

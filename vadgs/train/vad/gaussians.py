@@ -1,29 +1,23 @@
 """New Gaussians from an instance's fused MVS points (paper, Sec. 3.3, "Densification").
 
 :func:`flat_gaussians` turns each kept point into a flat disc oriented by its MVS normal
-(:func:`~vadgs.geometry.rotation.normals_to_quats`); :func:`add_reconstruction` adds them with
-their optimizer state
-(:func:`~vadgs.train.strategy.ops.add_gaussians`), static or attached to the object's node.
+(:func:`~vadgs.geometry.rotation.normals_to_quats`), static or attached to the object's node, in
+the model's layout: the event (:func:`~vadgs.train.vad.event.add_reconstructions`) hands them
+straight to :func:`~vadgs.train.strategy.ops.add_gaussians`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, MutableMapping
+from collections.abc import Mapping
 from typing import Any
 
 import torch
 
 from vadgs.geometry.rotation import normals_to_quats
 from vadgs.train.strategy import ops
-from vadgs.train.vad.config import VisibilityDensifyConfig
-from vadgs.train.vad.reconstruct import (
-    InstanceReconstruction,
-)
+from vadgs.train.vad.reconstruct import InstanceReconstruction
 
-__all__ = [
-    "add_reconstruction",
-    "flat_gaussians",
-]
+__all__ = ["flat_gaussians"]
 
 
 _C0 = 0.28209479177387814
@@ -36,6 +30,7 @@ def flat_gaussians(
     new_opacity: float = 0.5,
     flatness: float = 0.2,
     event: int = 1,
+    node: int = -1,
 ) -> dict[str, torch.Tensor]:
     """New flat Gaussians from an instance's (kept) fused points, in ``params``' layout.
 
@@ -46,8 +41,9 @@ def flat_gaussians(
     entry the new rows get ``event`` (1-based). Entries of other layouts: gsplat's appearance
     ``colors`` ``(N, 3)`` get the logit of the MVS colour (as gsplat's ``simple_trainer``
     initialises them); every other unknown per-Gaussian entry (e.g. gsplat's ``features``) gets
-    zeros of its trailing shape and dtype. ``node_ids`` is left to the caller (it depends on the
-    model's tracks). Not differentiable (new leaf values).
+    zeros of its trailing shape and dtype. Where ``params`` has ``node_ids`` the new rows get
+    ``node``. Not differentiable (new leaf values): the rows
+    :func:`~vadgs.train.strategy.ops.add_gaussians` appends.
 
     Args:
         params: the per-Gaussian tensors (vadgs's or gsplat's names,
@@ -57,9 +53,12 @@ def flat_gaussians(
         new_opacity: opacity of the new Gaussians, in (0, 1).
         flatness: thickness along the normal relative to the width.
         event: the 1-based event number written to ``provenance``.
+        node: the track node the new Gaussians join (``-1``: static), written to ``node_ids``;
+            their ``means`` are then in that node's object frame (``rec.track``'s, as
+            :func:`~vadgs.train.vad.reconstruct.finish_match` gives them).
 
     Returns:
-        ``{name: (m, ...)}`` for every entry of ``params`` but ``node_ids``.
+        ``{name: (m, ...)}`` for every entry of ``params``.
     """
     names = ops.param_names(params)
     p = getattr(params, "params", params)
@@ -82,10 +81,11 @@ def flat_gaussians(
     if names.sh_dc is not None and names.sh_rest is not None:
         new[names.sh_dc] = ((col[:, :3] - 0.5) / _C0)[:, None, :]
         new[names.sh_rest] = torch.zeros(m, *p[names.sh_rest].shape[1:], device=dev, dtype=dt)
-    if "provenance" in p:
-        new["provenance"] = torch.full((m,), event, dtype=torch.int64, device=p["provenance"].device)
+    for k, value in (("provenance", event), ("node_ids", node)):
+        if k in p:
+            new[k] = torch.full((m,), value, dtype=torch.int64, device=p[k].device)
     for k in p.keys():
-        if k in new or k == "node_ids":
+        if k in new:
             continue
         t = p[k]
         if k == "colors" and t.shape[1:] == (3,) and t.is_floating_point():
@@ -93,29 +93,3 @@ def flat_gaussians(
         else:
             new[k] = torch.zeros(m, *t.shape[1:], device=t.device, dtype=t.dtype)
     return new
-
-
-def add_reconstruction(
-    params: MutableMapping[str, torch.Tensor],
-    optimizers: Any,
-    state: dict[str, Any] | None,
-    rec: InstanceReconstruction,
-    keep: torch.Tensor | None,
-    event: int,
-    config: VisibilityDensifyConfig,
-    track_nodes: Callable[[], Mapping[int, int]],
-) -> None:
-    """Add the :func:`flat_gaussians` of ``rec``'s (kept) points (``VisibilityAwareDensification._add``).
-
-    Through :func:`~vadgs.train.strategy.ops.add_gaussians`, with ``node_ids`` (when ``params`` has
-    them) the node of the instance's track (``track_nodes()``: track id → node, asked only then),
-    or -1 for a static instance.
-    """
-    new = flat_gaussians(params, rec, keep, config.new_opacity, config.flatness, event)
-    p = getattr(params, "params", params)
-    node_ids = None
-    if "node_ids" in p:
-        node = -1 if rec.track is None else track_nodes()[rec.track]
-        m = new[ops.param_names(params).means].shape[0]
-        node_ids = torch.full((m,), node, dtype=torch.int64, device=p["node_ids"].device)
-    ops.add_gaussians(params, optimizers, state, new, node_ids)

@@ -24,12 +24,11 @@ from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, initialize
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig
 from vadgs.train.vad.detect import EventRenders, detect, observe_view
 from vadgs.train.vad.event import EventInputs, run_event
-from vadgs.train.vad.gaussians import add_reconstruction
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.info import check_info, check_info_values
 from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.priors import state_priors, view_targets
-from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender
+from vadgs.train.vad.reconstruct import ViewRender
 from vadgs.train.vad.visibility import VisibilityIndex, build_visibility_index
 
 __all__ = ["VisibilityAwareDensification"]
@@ -357,7 +356,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             generator=context.generator,
             config=self.config,
             reconstruct=self.config.effective_reconstruct(),
-            add=self._add,
+            track_nodes=self._track_nodes(),
             trained_pixels=None if self.config.work_budget is None else self.trained_pixels(step),
             on_progress=self.on_progress,
             on_addition=self.on_addition,
@@ -365,19 +364,8 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         )
         return run_event(event, params, optimizers, state, step)
 
-    def _add(
-        self,
-        params: MutableMapping[str, torch.Tensor],
-        optimizers: Any,
-        state: dict[str, Any] | None,
-        rec: InstanceReconstruction,
-        keep: torch.Tensor | None = None,
-        event: int = 1,
-    ) -> None:
-        """Add the flat Gaussians of the (kept) points (:func:`~vadgs.train.vad.event.add_reconstruction`)."""
-        add_reconstruction(params, optimizers, state, rec, keep, event, self.config, self._track_nodes)
-
     def _track_nodes(self) -> Mapping[int, int]:
+        """Track id → node of ``params["node_ids"]``: the context's, else the inputs' tracks in order."""
         if self.context is not None and self.context.track_nodes is not None:
             return self.context.track_nodes
         return {t: k for k, t in enumerate(sorted(self._inputs().tracks))}
