@@ -4,7 +4,8 @@
 - :mod:`~vadgs.train.vad.config`: its settings (:class:`VisibilityDensifyConfig`) and what the loop
   gives it (:class:`StrategyContext`);
 - :mod:`~vadgs.train.vad.event`: one event's flow (:func:`~vadgs.train.vad.event.run_event`, given an
-  :class:`~vadgs.train.vad.event.EventInputs` by the strategy's ``densify``), its log and summary;
+  :class:`~vadgs.train.vad.event.EventInputs` by the strategy's ``densify``) in named steps, and
+  :mod:`~vadgs.train.vad.event_log` its log and summary;
 - :mod:`~vadgs.train.vad.info`: what a loop's ``info`` must carry for the base strategy, checked;
 - :mod:`~vadgs.train.vad.state`: the strategy's state in checkpoints (packed losslessly);
 - :mod:`~vadgs.train.vad.inputs`: the data it sees (:class:`VisibilityInputs`, from a vadgs scene or
