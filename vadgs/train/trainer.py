@@ -265,7 +265,8 @@ class Trainer:
             path: the checkpoint or its run folder.
             scene: the scene (default: reloaded from the stored reference).
             config_changes: changes to the stored configuration that a resumed run can honour
-                (:data:`RESUMABLE_CHANGES`): ``iterations`` (>= the checkpoint's step; extending a
+                (:data:`~vadgs.train.checkpoint.RESUMABLE_CHANGES`): ``iterations`` (>= the
+                checkpoint's step; extending a
                 run also stretches the means' learning-rate decay and VAD-GS's event window, which
                 follow ``iterations``), ``max_minutes``, ``device``, ``threads``,
                 ``checkpoint_every``, ``checkpoint_minutes``, ``log_every``.
