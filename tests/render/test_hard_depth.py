@@ -116,7 +116,7 @@ class TestTrainerFusedHardDepth:
                 vad=VisibilityDensifyConfig(every_cycles=10**6),
             )  # fmt: skip
             trainer = Trainer(scene, cfg, progress=False)
-            calls = _count_calls(trainer, "render_hard_depth")
+            calls = _count_calls(trainer.model, "render_depth")  # a second render
             # keep the step's gradients: no optimizer update, no zeroing
             trainer.optimizer.step = trainer.optimizer.zero_grad = lambda *a, **k: None
             res = trainer.train_step()

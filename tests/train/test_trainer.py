@@ -190,6 +190,23 @@ class TestHardDepth:
             full = tr.render_view(v, opacity_override=1.0).raster.depth
             assert torch.equal(tr.render_hard_depth(v), full)
 
+    def test_fused_render_gives_the_same_depth(self, tiny_scene, tiny_config):
+        """``objective.render_hard_depth``'s two ways: the step's own pass and a second render."""
+        config = dataclasses.replace(tiny_config, geometry=GeometricLossConfig(hard_stride=1))
+        tr = Trainer(tiny_scene, config, progress=False)
+        v = tr.train_views[0]
+        with torch.no_grad():
+            step_render = tr.render_view(v, hard_depth=True)
+            fused = tr.render_hard_depth(v, 1, step_render)
+            apart = tr.render_hard_depth(v, 1)
+            assert fused is step_render.raster.hard_depth
+            assert float((apart > 0).float().mean()) > 0.3
+            torch.testing.assert_close(fused, apart, atol=1e-4, rtol=1e-4)
+            with pytest.raises(ValueError, match=r"^stride: expected 1 with a fused render"):
+                tr.render_hard_depth(v, 2, step_render)
+            with pytest.raises(ValueError, match=r"^fused: expected a render made with hard_depth=True"):
+                tr.render_hard_depth(v, 1, tr.render_view(v))
+
     def test_strided_render_is_the_full_render_at_those_pixels(self, tiny_scene, tiny_config):
         config = dataclasses.replace(tiny_config, geometry=GeometricLossConfig(hard_stride=2))
         tr = Trainer(tiny_scene, config, progress=False)

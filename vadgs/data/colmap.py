@@ -34,7 +34,8 @@ carries the points as :attr:`Scene.sfm_points <vadgs.data.scene.Scene>` instead.
 
 Around the loader: :func:`find_colmap_model` recognises a model or project folder,
 :func:`distorted_cameras` and :func:`undistort_colmap` (pycolmap's undistorter) give a pinhole
-model, and :func:`match_colmap_views` checks that a model belongs to another scene's views
+model, and :func:`~vadgs.data.colmap_model.match_colmap_views` checks that a model belongs to
+another scene's views
 (the model folders and cameras: :mod:`vadgs.data.colmap_model`, re-exported here);
 :func:`open_colmap_project` does all of it for ``vadgs train``.
 """

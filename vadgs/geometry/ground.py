@@ -38,7 +38,8 @@ def ground_frame(
     plane (the larger first); the origin is the points' median along each of the three axes (the
     middle two averaged). A rotated, shifted or uniformly scaled copy of the scene has the same
     frame, moved with it, up to the sign of each axis (an eigen-solver's choice): what is built on
-    it (:func:`ground_cells`, the thinning of new points) is symmetric about the origin.
+    it (:func:`~vadgs.train.vad.instances.ground_cells`, the thinning of new points) is symmetric
+    about the origin.
 
     With ``walls``, the ground axes are then turned about the up onto the scene's walls (a
     Manhattan alignment): the turn, searched over a quarter turn from the principal axes, that

@@ -1,4 +1,4 @@
-r"""The diversity score between two views (paper, "Diversity-Aware View Selection", eq. diversity).
+r"""The diversity score between two views (paper, Sec. 4.2, Eq. (eq.diversity)).
 
 .. math::
 
@@ -224,7 +224,7 @@ def diversity_score(
     eps: float = 0.1,
     count_exponent: float = 1.0,
 ) -> torch.Tensor:
-    r"""The diversity score of pairs of views from their shared-voxel statistics and poses.
+    r"""The diversity score of pairs of views (paper, Sec. 4.2, Eq. (eq.diversity)).
 
     .. math::
 

@@ -1,7 +1,7 @@
 r"""Select the supporting views of a reference view: diversity-aware (max-weight k-clique) or a baseline.
 
 For a reference view ``R`` and a set of voxels (one instance's, or everything ``R`` sees), the
-diversity-aware selection (paper, "Diversity-Aware View Selection"; supplement, "View Selection")
+diversity-aware selection (paper, Sec. 4.2; supplement, "View Selection")
 
 1. keeps the voxels ``R`` sees and, as candidates, the views sharing at least ``min_shared`` of
    them (the union of their visibility sets, across all cameras and timestamps);

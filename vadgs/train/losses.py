@@ -292,7 +292,8 @@ class GeometricLossConfig:
       paper's: every pixel (1).
     - ``hard_fused``: composite the hard depth in the step's own render pass instead of a second
       render (the same loss and gradients, to float32 rounding, as the second render at
-      ``hard_stride`` 1); a cost setting only, off by default.
+      ``hard_stride`` 1); a cost setting only, off by default. Both ways are
+      :func:`~vadgs.train.objective.render_hard_depth`.
 
     Attributes:
         lambda_normal: weight of the normal term (0 disables it).

@@ -473,7 +473,8 @@ class GaussianModel(nn.Module):
 
         ``color`` is ``(1, 0, H, W)`` (``(1, 1, H, W)`` of zeros with the gsplat backend); depth,
         alpha, normals and the rest equal :meth:`render`'s (each channel is composited on its own),
-        at less cost: for the hard depth loss (``opacity_override=1.0``) and other depth-only renders.
+        at less cost: for the hard depth loss (``opacity_override=1.0``:
+        :func:`~vadgs.train.objective.render_hard_depth`) and other depth-only renders.
         """
         g, opac = self._to_render(world_to_cam, K, frame, opacity_override)
         channels = 1 if config is not None and config.backend == "gsplat" else 0  # gsplat: >= 1 channel

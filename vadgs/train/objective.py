@@ -13,6 +13,7 @@ the appearance-corrected render, the appearance regulariser, the sparse LiDAR de
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -23,9 +24,71 @@ from vadgs.train import losses as L
 from vadgs.train.appearance import AppearanceModel, correct_view, view_camera
 from vadgs.train.config import TrainConfig
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.model import ModelRender
+from vadgs.train.model import GaussianModel, ModelRender
 
-__all__ = ["Objective"]
+if TYPE_CHECKING:
+    from vadgs.render import RasterConfig
+
+__all__ = ["Objective", "render_hard_depth"]
+
+
+def render_hard_depth(
+    model: GaussianModel,
+    world_to_cam: torch.Tensor,
+    K: torch.Tensor,
+    image_size: tuple[int, int],
+    frame: int,
+    config: RasterConfig | None = None,
+    stride: int = 1,
+    fused: ModelRender | None = None,
+) -> torch.Tensor:
+    r"""The depth of :math:`\mathcal{L}_\text{hard}` (paper, Sec. 4.4, Eq. (eq.loss)): opacities fixed to 1.
+
+    The paper's hard depth loss measures "depth errors using fixed [...] Gaussian opacities": the
+    view's depth rendered with every opacity 1 (no gradient to the opacity logits), the first
+    surface along each ray, which a floater cannot escape by fading. The one place the trainer
+    gets it from, two ways with the same values (to float32 rounding at ``stride`` 1):
+
+    - a second, depth-only render of the model
+      (:meth:`~vadgs.train.model.GaussianModel.render_depth` with ``opacity_override=1.0``) on
+      every ``stride``-th pixel row and column: a camera with ``fx, fy, cx, cy`` divided by
+      ``stride`` (``GeometricLossConfig.hard_stride``); pixel ``(s i, s j)`` of the view is
+      pixel ``(i, j)`` here;
+    - ``fused``: the step's own render, made with ``hard_depth=True``
+      (:func:`~vadgs.render.rasterize_gaussians` composites the hard depth in the same pass;
+      ``GeometricLossConfig.hard_fused``): its ``raster.hard_depth``, no render here.
+
+    Args:
+        model: the Gaussians.
+        world_to_cam: ``(1, 4, 4)`` the view's camera.
+        K: ``(1, 3, 3)`` its intrinsics at the view's size.
+        image_size: the view's ``(H, W)``.
+        frame: the view's frame position (moving objects posed there).
+        config: the rasterizer's settings.
+        stride: the pixel stride (>= 1; 1 with ``fused``).
+        fused: the step's render of this view made with ``hard_depth=True``, or None.
+
+    Returns:
+        ``(1, 1, ceil(H / stride), ceil(W / stride))`` depth (0 where no Gaussian is hit).
+    """
+    if fused is not None:
+        if stride != 1:
+            raise ValueError(
+                f"stride: expected 1 with a fused render (its hard depth is per pixel), got {stride}"
+            )
+        hard = fused.raster.hard_depth
+        if hard is None:
+            raise ValueError(
+                "fused: expected a render made with hard_depth=True, got one without a hard depth"
+            )
+        return hard
+    if stride < 1:
+        raise ValueError(f"stride: expected an integer >= 1, got {stride}")
+    K = K.clone()
+    K[:, :2] /= stride
+    h, w = image_size
+    size = (-(-h // stride), -(-w // stride))
+    return model.render_depth(world_to_cam, K, size, frame, config, opacity_override=1.0).depth
 
 
 class Objective:
@@ -92,10 +155,10 @@ class Objective:
         return correct_view(self.appearance, self.scene, view, color, held_out=False)
 
     def wants_hard(self, step: int, view: int) -> bool:
-        """Whether the step's loss includes the hard depth term (so its render may composite it).
+        """Whether the step's loss includes the hard depth term (its render may then composite it).
 
         :meth:`~vadgs.train.losses.GeometricLossConfig.hard_applies` at ``step``, for a view with a
-        target depth.
+        target depth; the depth itself is :func:`render_hard_depth`'s.
         """
         cfg = self.config
         if self.geometry_targets is None or not cfg.geometry.hard_applies(step, cfg.iterations):
@@ -113,9 +176,10 @@ class Objective:
             view: the view rendered.
             out: its raw render; the colour loss compares its :meth:`corrected_color` with the
                 image; ``extra_losses`` get it as given.
-            render_hard: ``(view, s) -> (1, 1, ceil(H/s), ceil(W/s))`` the view's depth with every
-                opacity 1 on every ``s``-th pixel row and column (``s = config.geometry.hard_stride``, the
-                stride the targets are sampled at); called on the steps the hard depth loss applies.
+            render_hard: ``(view, s) -> (1, 1, ceil(H/s), ceil(W/s))`` the view's
+                :func:`render_hard_depth` on every ``s``-th pixel row and column (``s =
+                config.geometry.hard_stride``, the stride the targets are sampled at); called on
+                the steps the hard depth loss applies.
         """
         cfg = self.config
         color = self.corrected_color(view, out.color)

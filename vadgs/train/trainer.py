@@ -57,7 +57,7 @@ from vadgs.train.divergence import DivergenceMonitor, NonFiniteLossError
 from vadgs.train.init import init_gaussians
 from vadgs.train.loop import run_loop
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, ModelRender, adam, make_optimizer
-from vadgs.train.objective import Objective
+from vadgs.train.objective import Objective, render_hard_depth
 from vadgs.train.sampler import ViewSampler
 from vadgs.train.scenes import open_scene
 from vadgs.train.strategy import DefaultStrategy, GeometryPriors, Strategy
@@ -265,7 +265,8 @@ class Trainer:
             path: the checkpoint or its run folder.
             scene: the scene (default: reloaded from the stored reference).
             config_changes: changes to the stored configuration that a resumed run can honour
-                (:data:`RESUMABLE_CHANGES`): ``iterations`` (>= the checkpoint's step; extending a
+                (:data:`~vadgs.train.checkpoint.RESUMABLE_CHANGES`): ``iterations`` (>= the
+                checkpoint's step; extending a
                 run also stretches the means' learning-rate decay and VAD-GS's event window, which
                 follow ``iterations``), ``max_minutes``, ``device``, ``threads``,
                 ``checkpoint_every``, ``checkpoint_minutes``, ``log_every``.
@@ -440,25 +441,19 @@ class Trainer:
             self._camera_keys[view] = (cams.K.detach().cpu().numpy().tobytes(), tuple(cams.image_size))
         return cam
 
-    def render_hard_depth(self, view: int, stride: int | None = None) -> torch.Tensor:
-        """The depth ``(1, 1, ceil(H / s), ceil(W / s))`` of a view with every opacity fixed to 1.
+    def render_hard_depth(
+        self, view: int, stride: int | None = None, fused: ModelRender | None = None
+    ) -> torch.Tensor:
+        """A view's :func:`~vadgs.train.objective.render_hard_depth` (the paper's hard depth loss's).
 
-        Rendered on every ``s = stride``-th pixel row and column (default ``config.geometry.hard_stride``;
-        pixel ``(s i, s j)`` of the view is pixel ``(i, j)`` here); the paper's hard depth loss
-        compares it with the target depth at those pixels.
+        ``(1, 1, ceil(H / s), ceil(W / s))``: the view's depth with every opacity fixed to 1 on
+        every ``s = stride``-th pixel row and column (default ``config.geometry.hard_stride``), or
+        ``fused``'s (the step's render made with ``hard_depth=True``).
         """
         s = self.config.geometry.hard_stride if stride is None else stride
-        world_to_cam, K, (h, w) = self.camera(view)
-        K = K.clone()
-        K[:, :2] /= s
-        return self.model.render_depth(
-            world_to_cam,
-            K,
-            (-(-h // s), -(-w // s)),
-            self.scene.view_frame_position(view),
-            self.config.raster,
-            opacity_override=1.0,
-        ).depth
+        world_to_cam, K, size = self.camera(view)
+        frame = self.scene.view_frame_position(view)
+        return render_hard_depth(self.model, world_to_cam, K, size, frame, self.config.raster, s, fused)
 
     @torch.no_grad()
     def render_geometry(self, view: int) -> ViewRender:
@@ -475,9 +470,9 @@ class Trainer:
             g["lr"] = self._lrs(step)[g["name"]]
         self.model.active_sh_degree = min(step // cfg.sh_degree_interval, self.model.sh_degree)
         view = self.sampler.next()
-        # the hard depth in this pass
+        # the hard depth composited in this pass (GeometricLossConfig.hard_fused), or rendered apart
         fused = cfg.geometry.hard_fused and self.objective.wants_hard(step, view)
-        out = self.render_view(view, hard_depth=True) if fused else self.render_view(view)
+        out = self.render_view(view, hard_depth=fused)
         info = {
             "raster": out.raster,
             "ids": out.ids,
@@ -489,13 +484,9 @@ class Trainer:
         # a ParameterDict is a mutable mapping of str to tensors; its stubs do not say so
         params = cast(MutableMapping[str, torch.Tensor], self.model.params)
         self.strategy.step_pre_backward(params, self.optimizer, self.state, step, info)
-        render_hard: Callable[[int, int], torch.Tensor] = self.render_hard_depth
-        if fused:
-            hard = out.raster.hard_depth
-            assert hard is not None  # rendered with hard_depth=True
 
-            def render_hard(_v: int, _s: int) -> torch.Tensor:
-                return hard
+        def render_hard(v: int, s: int) -> torch.Tensor:
+            return self.render_hard_depth(v, s, out if fused else None)
 
         terms = self.objective(step, view, out, render_hard)
         total = torch.stack([t.reshape(()) for t in terms.values()]).sum()

@@ -354,7 +354,7 @@ class TestWholeViews:
 
     def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
         from vadgs.select import ViewSelectionConfig
-        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
+        from vadgs.train.vad.reconstruct import _select_supports, instance_frame
 
         # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
         selection = ViewSelectionConfig(min_shared=1, k=2)
@@ -364,7 +364,7 @@ class TestWholeViews:
             for inst in torch.unique(maps[k]).tolist():
                 if inst <= 0 or int((maps[k] == inst).sum()) < 50 or index.cut_by_border(ref, inst):
                     continue
-                frame = _instance_frame(index, ref, inst, None, ReconstructConfig())
+                frame = instance_frame(index, ref, inst, None, ReconstructConfig())
                 if isinstance(frame, str):
                     continue
                 sel = {
@@ -443,11 +443,11 @@ class TestSeenSupports:
     def test_reference_seeing_one_voxel_asks_supports_to_share_it(self, scene, index):
         """A far cell of a real log's ground grid shows its reference one voxel: supports share that one."""
         from vadgs.select import ViewSelectionConfig, select_views
-        from vadgs.train.vad.reconstruct import _instance_frame, _select_supports
+        from vadgs.train.vad.reconstruct import _select_supports, instance_frame
 
         ref = self._ref(scene, index)
         blind = self._blind(index, ref)
-        frame = _instance_frame(blind, ref, BUILDING, None, ReconstructConfig())
+        frame = instance_frame(blind, ref, BUILDING, None, ReconstructConfig())
         ids = torch.nonzero(frame.voxels).flatten()
         shown = ids[torch.isin(ids, index.seen_voxels(ref))].tolist()
         others = [v for v in scene.train_views if v != ref]

@@ -46,7 +46,7 @@ class VisibilityDensifyConfig:
         every_cycles: detection and densification every this many complete sampling cycles.
         scene_depth: the scene's length unit, its typical view depth: every length left unset
             below (``voxel_size``, ``cell_size``, ``reconstruct.fallback_depth_range`` /
-            ``min_depth``, and the internal ones of :data:`~vadgs.train.vad.visibility.LENGTHS`) is its
+            ``min_depth``, and the internal ones of :data:`~vadgs.train.vad.lengths.LENGTHS`) is its
             value for a scene of depth 10 times ``scene_depth / 10``, so that VAD-GS does the same
             on a scene at any scale. None (default): the inputs'
             (:meth:`~vadgs.train.vad.inputs.VisibilityInputs.median_view_depth`: 10 for vadgs's

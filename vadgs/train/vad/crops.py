@@ -1,9 +1,10 @@
-"""An instance's crops at its matching scale: step 3a of reconstructing it by multi-view stereo.
+"""An instance's crops at its matching scale: step 3a of its multi-view stereo (paper, Sec. 4.3).
 
 :func:`~vadgs.train.vad.reconstruct.reconstruct_instance` matches an instance on crops around it in
 each group view, at a scale of its own (:func:`match_scale`): finer than the scene's resolution
 for small instances (a sign), coarser for large ones (a facade). :func:`crop_group` makes the
-crops (:class:`Crops`), which PatchMatch turns into :class:`MatchedCrops`; :func:`render_maps`
+crops (:class:`Crops`, sources restricted to each view's :func:`matching_region`: the paper's
+static or dynamic region), which PatchMatch turns into :class:`MatchedCrops`; :func:`render_maps`
 reads the Gaussians' render of a view (the matching's initialisation and the test of what is
 already explained); the helpers resample maps between the scene's resolution and the matching
 scale (:func:`repeat`: nearest upsampling; :func:`pool_valid`: means of the valid pixels of each
@@ -30,6 +31,7 @@ __all__ = [
     "MatchedCrops",
     "crop_group",
     "match_scale",
+    "matching_region",
     "pool_valid",
     "render_maps",
     "repeat",
@@ -200,13 +202,37 @@ def render_maps(
     return d, a, n
 
 
+def matching_region(index: VisibilityIndex, view: int, instance: int, track: int | None) -> torch.Tensor:
+    """Where a view's pixels may match an instance: the static or the dynamic region (paper, Sec. 4.3).
+
+    The paper restricts patch matching "within either static or dynamic regions across all relevant
+    views": a static instance is matched against the view's static pixels (no moving object's,
+    and none outside the view's valid pixels), a moving object (``track`` given) only against its
+    own pixels, in its own frame (:func:`~vadgs.train.vad.reconstruct.instance_frame`).
+
+    Args:
+        index: the visibility index (its instance maps and valid pixels).
+        view: the view.
+        instance: the instance's id in the instance maps.
+        track: the instance's track id when it moves, else None.
+
+    Returns:
+        ``(H, W)`` bool on the index's device.
+    """
+    ins = index.instances(view)
+    if track is not None:
+        return ins == instance
+    moving = torch.tensor(sorted(index.inputs.tracks), dtype=ins.dtype, device=ins.device)
+    return ~torch.isin(ins, moving) & index.valid(view)
+
+
 class Crops(NamedTuple):
     """Step 3's input: the group's images and masks cropped around the instance, at the matching scale."""
 
     members: list[int]  # group positions whose instance mask is large enough to be a reference
     images: torch.Tensor  # (G, 3, h, w) full images of the group at the matching scale
     masks: list[torch.Tensor]  # per group view (h, w): the instance
-    regions: torch.Tensor  # (G, 1, h, w): where sources may match (static or the object)
+    regions: torch.Tensor  # (G, 1, h, w): where sources may match (matching_region)
     K: torch.Tensor  # (G, 3, 3) at the matching scale
     corners: list[tuple[int, int]]  # per member: top-left of its crop, at the matching scale
     size: tuple[int, int]  # crop (ch, cw) at the matching scale
@@ -225,9 +251,9 @@ def crop_group(
 ) -> Crops | str:
     """Step 3a: crops around the instance in each group view, at its matching scale (:func:`match_scale`).
 
-    Sources match only inside their region: static pixels for a static instance, the object's own
-    pixels for a moving one. The group's images, masks and intrinsics move to ``device`` (where
-    the matching runs), once.
+    Sources match only inside their :func:`matching_region`: static pixels for a static instance,
+    the object's own pixels for a moving one. The group's images, masks and intrinsics move to
+    ``device`` (where the matching runs), once.
     """
     inputs = index.inputs
     h, w = index.cameras.image_size
@@ -242,14 +268,7 @@ def crop_group(
     if scale.down > 1:
         corners, ch, cw = _align_crops(corners, ch, cw, scale.down, (h, w))
 
-    def region(v: int) -> torch.Tensor:
-        ins = index.instances(v)
-        if track is not None:
-            return ins == instance
-        static = ~torch.isin(ins, torch.tensor(sorted(inputs.tracks), dtype=ins.dtype, device=ins.device))
-        return static & index.valid(v)
-
-    regions = torch.stack([region(v) for v in group])[:, None]
+    regions = torch.stack([matching_region(index, v, instance, track) for v in group])[:, None]
     K = index.cameras.K[group]
     corners_lo, size_lo = corners, (ch, cw)
     if scale.up > 1:

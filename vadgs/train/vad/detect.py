@@ -1,4 +1,4 @@
-"""Incompleteness detection of an event (paper, Sec. 3.2, Eq. 4–5).
+"""Incompleteness detection of an event (paper, Sec. 4.1; thresholds: Sec. 5.2).
 
 :func:`detect_view` runs :func:`~vadgs.train.vad.incomplete.find_incomplete` on one view's render
 against the visibility index's voxel depth; :func:`detect` on many views, reusing the tests the

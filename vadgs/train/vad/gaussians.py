@@ -1,4 +1,4 @@
-"""New Gaussians from an instance's fused MVS points (paper, Sec. 3.3, "Densification").
+"""New Gaussians from an instance's fused MVS points (paper, Sec. 4.3 and Fig. 4).
 
 :func:`flat_gaussians` turns each kept point into a flat disc oriented by its MVS normal
 (:func:`~vadgs.geometry.rotation.normals_to_quats`), static or attached to the object's node, in

@@ -1,4 +1,4 @@
-"""Derived instance maps, for scenes without instance masks (supplement, "Instance masks").
+"""Derived instance maps, for scenes without instance masks (paper, Sec. 4.1: its instances).
 
 VAD-GS tests and reconstructs per instance. Where a dataset has no segmentation,
 :func:`derive_instance_map` stands in for it: the static voxels are cut into ground cells

@@ -1,4 +1,4 @@
-"""VAD-GS's lengths and how they scale with the scene (supplement, "Implementation details").
+"""VAD-GS's lengths and how they scale with the scene (paper, Sec. 5.2).
 
 :data:`LENGTHS` are written for a scene of depth :data:`REFERENCE_DEPTH`; :func:`scene_lengths`
 scales them to another scene's depth (the visibility index, :mod:`vadgs.train.vad.visibility`,

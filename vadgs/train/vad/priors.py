@@ -1,4 +1,4 @@
-"""The geometric priors of the losses: MVS depth and normals of the reconstructed views (Sec. 3.4).
+"""The geometric priors of the losses: MVS depth and normals of the reconstructed views (paper, Sec. 4.4).
 
 :func:`merge_priors` keeps each event's MVS depth and normals in the strategy's state
 (``state["vad_priors"]``); :func:`view_targets` (the strategy's ``geometry_targets``) reads them

@@ -21,7 +21,7 @@ flagged by :func:`~vadgs.train.vad.incomplete.find_incomplete`:
    object's own frame), with :func:`vadgs.mvs.fuse_depth_maps` (one point per consistent pixel);
 6. returns each member's consistent depth and normals at the scene's resolution as priors.
 
-This module holds steps 1–3 (``_instance_frame``, ``_select_supports``, :func:`match_plans`, and
+This module holds steps 1–3 (:func:`instance_frame`, ``_select_supports``, :func:`match_plans`, and
 :func:`match_work`, the matching's cost) and :func:`reconstruct_instance`, which runs them all on
 the device of the index, in three parts that an event runs over all its (instance, reference)
 pairs: :func:`plan_match` (steps 1–3a, pair by pair: a :class:`MatchPlan`), :func:`match_plans`
@@ -57,10 +57,12 @@ if TYPE_CHECKING:
     from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
+    "InstanceFrame",
     "InstanceReconstruction",
     "MatchPlan",
     "ViewRender",
     "finish_match",
+    "instance_frame",
     "match_plans",
     "match_work",
     "plan_match",
@@ -118,24 +120,46 @@ class ViewRender(NamedTuple):
     normals: torch.Tensor
 
 
-class _InstanceFrame(NamedTuple):
-    """Step 1's result: where the instance is matched and which voxels stand for it."""
+class InstanceFrame(NamedTuple):
+    """Step 1's result (:func:`instance_frame`): where the instance is matched, which voxels stand for it.
+
+    Attributes:
+        covis: the voxels' visibility sets: the scene's static grid, or the track's own grid.
+        voxels: ``(M,)`` bool: the voxels of ``covis`` that stand for the instance.
+        world_to_cam: ``(V, 4, 4)``: from the instance's frame (the world for a static instance,
+            the object's frame for a track) to each view's camera.
+        allowed: ``(V,)`` bool: the views that may support (a track's: those where its pose is known).
+    """
 
     covis: Covisibility
-    voxels: torch.Tensor  # (M,) bool
-    world_to_cam: torch.Tensor  # (V, 4, 4): world (static) or object frame (track) to each view
-    allowed: torch.Tensor  # (V,) bool: views that may support
+    voxels: torch.Tensor
+    world_to_cam: torch.Tensor
+    allowed: torch.Tensor
 
 
-def _instance_frame(
+def instance_frame(
     index: VisibilityIndex, ref: int, instance: int, track: int | None, cfg: ReconstructConfig
-) -> _InstanceFrame | str:
+) -> InstanceFrame | str:
     """Step 1: the instance's voxels (their visibility sets are the candidate views) and its frame.
 
-    A moving object: all voxels of its own grid, in its frame, views where its pose is known. A
-    static instance with almost no voxels of its own (the LiDAR missed it): the voxels the z-buffer
-    sees *through* it in the reference view, whose observers also look at the missing surface.
-    Returns the reason as a string when there is nothing to match.
+    The paper (Sec. 4.3) treats a rigid moving vehicle as static "by transforming all observation
+    views into its local coordinate system": a moving object (``track`` given) is matched in its
+    object frame, on all voxels of its own grid, among the views where its pose is known
+    (``world_to_cam`` = :meth:`~vadgs.train.vad.visibility.VisibilityIndex.object_cameras`). A
+    static instance is matched in the world; with almost no voxels of its own (the LiDAR missed
+    it), on the voxels the z-buffer sees *through* it in the reference view, whose observers also
+    look at the missing surface.
+
+    Args:
+        index: the visibility index.
+        ref: the reference view.
+        instance: the instance's id in the instance maps.
+        track: the instance's track id when it moves, else None.
+        cfg: the settings (``min_instance_voxels``).
+
+    Returns:
+        :class:`InstanceFrame`, or the reason as a string when there is nothing to match
+        (``"no_lidar_on_track"``, ``"no_voxels"``).
     """
     inputs = index.inputs
     dev = index.cameras.K.device
@@ -145,7 +169,7 @@ def _instance_frame(
         covis = index.track_covis[track]
         valid = inputs.tracks[track].valid.to(dev)
         pos = torch.tensor([inputs.frame_position(v) for v in range(inputs.num_views)], device=dev)
-        return _InstanceFrame(
+        return InstanceFrame(
             covis,
             torch.ones(covis.num_voxels, dtype=torch.bool, device=dev),
             index.object_cameras(track),
@@ -161,7 +185,7 @@ def _instance_frame(
         count = int(voxels.sum())
     if count == 0:
         return "no_voxels"
-    return _InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
+    return InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
 
 
 def _select_supports(
@@ -169,7 +193,7 @@ def _select_supports(
     ref: int,
     instance: int,
     track: int | None,
-    frame: _InstanceFrame,
+    frame: InstanceFrame,
     cfg: ReconstructConfig,
     generator: torch.Generator | None,
 ) -> ViewSelection:
@@ -202,7 +226,7 @@ def _select_among(
     ref: int,
     instance: int,
     covis: Covisibility,
-    frame: _InstanceFrame,
+    frame: InstanceFrame,
     cfg: ReconstructConfig,
     generator: torch.Generator | None,
 ) -> ViewSelection:
@@ -224,7 +248,7 @@ def _select_among(
 
 
 def _depth_range(
-    frame: _InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig, lengths: dict, pixels: torch.Tensor
+    frame: InstanceFrame, w2c_ref: torch.Tensor, cfg: ReconstructConfig, lengths: dict, pixels: torch.Tensor
 ) -> tuple[tuple[float, float], float]:
     """PatchMatch's depth range from the instance's voxels as the reference sees them, and ``pixels``.
 
@@ -546,7 +570,7 @@ def plan_match(
     with checking(False):  # see reconstruct_instance
         if int((index.instances(ref) == instance).sum()) < cfg.min_pixels:
             return nothing("instance_too_small_in_reference")
-        frame = _instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
+        frame = instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
         if isinstance(frame, str):
             return nothing(frame)
         sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.

@@ -1,4 +1,4 @@
-"""Which flagged instances to reconstruct, and from which reference views (paper, Sec. 3.3).
+"""Which flagged instances to reconstruct, and from which reference views (paper, Sec. 4.2).
 
 :func:`rank_instances` orders an event's flagged instances; :func:`pick_references` chooses each
 one's reference views (the largest first, then views of other cameras or frames apart).

@@ -79,7 +79,8 @@ class VisibilityIndex:
             (:func:`ground_frame`: the cameras' up, the points' principal ground axes, their
             median); the identity for a grid built in the world.
         scene_depth: the scene's length unit (``VisibilityInputs.median_view_depth``; 10 for
-            vadgs's scenes) that the lengths left unset were derived from (:data:`LENGTHS`).
+            vadgs's scenes) that the lengths left unset were derived from
+            (:data:`~vadgs.train.vad.lengths.LENGTHS`).
     """
 
     inputs: VisibilityInputs
