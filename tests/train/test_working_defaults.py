@@ -304,14 +304,14 @@ class TestCheckpointSize:
         for k, v in full.model.params.items():
             assert torch.equal(v, resumed.model.params[k]), k
 
-    def test_pack_is_lossless_with_negative_zero_and_old_states_load(self):
+    def test_pack_is_lossless_with_negative_zero(self):
+        # (unpacked states of older checkpoints are not read: format version 2 refuses them whole)
         d = torch.zeros(1, 5, 7)
         d[0, 2, 3], d[0, 0, 0] = 4.25, -0.0
         n = torch.randn(3, 5, 7)
         back = unpack_state(pack_state({"vad_priors": {1: (d, n)}}))["vad_priors"][1]
         assert torch.equal(back[0].view(torch.int32), d.view(torch.int32)) and torch.equal(back[1], n)
-        old = {"vad_priors": {1: (d, n)}, "grad2d": None}
-        assert unpack_state(old) is old and pack_state({"grad2d": None}) == {"grad2d": None}
+        assert unpack_state(pack_state({"grad2d": None}))["grad2d"] is None
 
 
 def test_vad_resume_with_packed_priors_and_render_cache_is_exact(tmp_path, tiny_scene):
