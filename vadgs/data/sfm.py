@@ -37,7 +37,7 @@ have no baseline: COLMAP cannot place them). One process writes a project at a t
 the project's lock (:class:`vadgs.train.session.RunLock`, ``PROJECT/.vadgs.lock``).
 
 ``vadgs train PROJECT`` keeps the undistorted copy of a distorted model in
-``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap.open_colmap_project`), so later runs link
+``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap_project.open_colmap_project`), so later runs link
 to it instead of undistorting again; a new model (``overwrite``) removes it.
 
 Nothing is written next to the photos; the work happens in a temporary folder inside ``PROJECT``
@@ -441,21 +441,6 @@ def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
         say(f"removed {work}: the work folder of a killed vadgs sfm (pid {pid}, not running)")
 
 
-@contextlib.contextmanager
-def _quiet_colmap():
-    """The pycolmap log off but for fatal errors (ours are one line each); all of it with ``--debug``."""
-    import pycolmap
-
-    from vadgs.data import colmap
-
-    before = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(before, 3 if colmap.COLMAP_LOG_LEVEL > 0 else 0)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = before
-
-
 def _sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
     return [
         (a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + overlap, len(names)))
@@ -578,6 +563,8 @@ def _run_sfm_locked(
     import pycolmap
     from tqdm import tqdm
 
+    from vadgs.data.colmap_project import colmap_logging
+
     replaced = _check_project(out, photos, overwrite, names)
     _remove_dead_work(out, say)
     in_place = (out / "images").resolve() == photos.resolve()
@@ -637,7 +624,7 @@ def _run_sfm_locked(
             f"{', ...' if len(groups) > 4 else ''})"
         )
         bar = tqdm(total=len(names), desc="features", unit="photo", disable=not progress)
-        with _quiet_colmap(), bar:
+        with colmap_logging(fatal_only=True), bar:
             for group in groups:
                 camera_id = -1
                 for i in range(0, len(group), chunk):
@@ -670,7 +657,7 @@ def _run_sfm_locked(
         listable = not any(any(c.isspace() for c in name) for name in names)
         step = max(1, -(-len(pairs) // 20)) if listable else len(pairs)
         bar = tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress)
-        with _quiet_colmap(), bar:
+        with colmap_logging(fatal_only=True), bar:
             for i in range(0, len(pairs), step):
                 if not listable and matcher == "exhaustive":
                     pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
@@ -698,7 +685,7 @@ def _run_sfm_locked(
         options.random_seed = int(seed)
         (work / "models").mkdir()
         bar = tqdm(total=len(names), desc="registering", unit="photo", disable=not progress)
-        with _quiet_colmap(), bar:
+        with colmap_logging(fatal_only=True), bar:
             models = pycolmap.incremental_mapping(
                 db, images_dir, work / "models", options, next_image_callback=lambda: bar.update(1)
             )
@@ -759,7 +746,7 @@ def _run_sfm_locked(
                              key=lambda q: len(q.parts), reverse=True):  # fmt: skip
             with contextlib.suppress(OSError):
                 folder.rmdir()  # only when empty
-        from vadgs.data.colmap import UNDISTORT_CACHE
+        from vadgs.data.colmap_project import UNDISTORT_CACHE
 
         _remove(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
         if (work / "database.db").exists():

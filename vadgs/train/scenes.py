@@ -39,8 +39,8 @@ def open_scene(ref: dict[str, Any]) -> Scene:
     """Load the scene a run refers to: ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``.
 
     ``dgp`` references may carry ``cameras`` and ``test_frames``. ``colmap`` references are the
-    recipe of :func:`vadgs.data.colmap.open_colmap_project`, reopened by
-    :func:`~vadgs.data.colmap.reopen_colmap_project`: ``path`` (the model used, the
+    recipe of :func:`vadgs.data.colmap_project.open_colmap_project`, reopened by
+    :func:`~vadgs.data.colmap_project.reopen_colmap_project`: ``path`` (the model used, the
     undistorted copy in the run folder if the input was distorted), ``images``, ``test_every``
     and ``transform`` (the normalising similarity, re-applied as recorded; None: COLMAP's frame).
     """
