@@ -15,7 +15,8 @@ from PIL import Image
 from vadgs.cli import main
 from vadgs.data import open_colmap_project
 from vadgs.data.colmap_model import colmap_world_to_cam
-from vadgs.data.sfm import _sequential_pairs, find_photos, photo_groups, run_sfm
+from vadgs.data.photos import find_photos, photo_groups
+from vadgs.data.sfm import _sequential_pairs, run_sfm
 from vadgs.train.scenes import scene_ref
 
 from .photo_sample import SIDEWAYS, photo_cameras, write_photo_set

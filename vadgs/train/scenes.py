@@ -184,7 +184,7 @@ def folder_kind(path: str | Path) -> str | None:
 
     ``"benchmark"`` (a ``scene.json``, or that file itself), ``"colmap"`` (a COLMAP model or
     project), ``"run"`` (a vadgs run: a checkpoint or its ``metrics.json``), ``"photos"`` (photos
-    ``vadgs sfm`` takes, :data:`vadgs.data.sfm.PHOTO_SUFFIXES`, in the folder itself).
+    ``vadgs sfm`` takes, :data:`vadgs.data.photos.PHOTO_SUFFIXES`, in the folder itself).
 
     For the messages of a command given the wrong kind of folder (a run where a scene goes, photos
     where a project goes, ...).
@@ -195,7 +195,7 @@ def folder_kind(path: str | Path) -> str | None:
         'benchmark'
     """
     from vadgs.data import find_colmap_model
-    from vadgs.data.sfm import PHOTO_SUFFIXES
+    from vadgs.data.photos import PHOTO_SUFFIXES
     from vadgs.runfolder import is_vadgs_folder
     from vadgs.train.checkpoint import CHECKPOINT_NAME
 
@@ -213,7 +213,7 @@ def folder_kind(path: str | Path) -> str | None:
 
 def _not_a_scene(path: Path, kind: str | None) -> str:
     """Why ``path`` (of :func:`folder_kind` ``kind``) is no scene, and what to run instead."""
-    from vadgs.data.sfm import PHOTO_SUFFIXES
+    from vadgs.data.photos import PHOTO_SUFFIXES
 
     if kind == "run":
         return (
