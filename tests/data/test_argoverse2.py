@@ -21,7 +21,7 @@ pytest.importorskip("pyarrow")
 
 from tests.data import argoverse2_log as av2log
 from vadgs.data import load_argoverse2
-from vadgs.data.argoverse2 import (
+from vadgs.data.argoverse2_tables import (
     Argoverse2Poses,
     argoverse2_sync,
     interpolate_city_SE3_ego,

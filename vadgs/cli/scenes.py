@@ -233,7 +233,8 @@ class ConvertCommand(Command):
 
     def _argoverse2(self, cameras, frames):
         """The Argoverse 2 log SRC, its image/sweep matching printed (dropped sweeps once, not warned)."""
-        from vadgs.data.argoverse2 import ARGOVERSE2_LIDARS, argoverse2_sync, load_argoverse2
+        from vadgs.data.argoverse2 import ARGOVERSE2_LIDARS, load_argoverse2
+        from vadgs.data.argoverse2_tables import argoverse2_sync
 
         lidars = None if self.no_lidar else (self.lidars.split(",") if self.lidars else ARGOVERSE2_LIDARS)
         print(argoverse2_sync(self.src, cameras, frames).summary())
