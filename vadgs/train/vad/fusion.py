@@ -5,7 +5,7 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
 4. :func:`consistent_depth` keeps the pixels whose depth at least ``min_consistent_views`` other
    members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
    relative depth) and completes the textureless parts of static planar instances
-   (:func:`~vadgs.mvs.complete_planar_batch`: all members at once);
+   (:func:`~vadgs.mvs.complete_planar`: all members at once);
 5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
    explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
    in the instance's frame), thinned to one per cell of the point spacing (:func:`thin_points`);
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from vadgs.geometry.camera import invert_rigid
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.planar import complete_planar_batch
+from vadgs.mvs.planar import complete_planar
 from vadgs.train.vad.crops import Crops, MatchedCrops, pool_valid, render_maps, repeat
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
@@ -77,7 +77,7 @@ def consistent_depth(
     if planar:  # every member at once: one host read
         dev = depth.device
         others = torch.tensor([[j for j in range(len(group)) if j != m] for m in crops.members], device=dev)
-        depth, plane_n, add = complete_planar_batch(
+        depth, plane_n, add = complete_planar(
             depth, keep, matched.masks, matched.images, matched.K, invert_rigid(w2c),
             crops.images[others], torch.stack(crops.masks)[others][:, :, None], crops.K[others],
             world_to_cam[others], cfg.planar, generator, res.normal,
