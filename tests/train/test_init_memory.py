@@ -48,7 +48,7 @@ class TestVoxelAccumulator:
 _PEAK = r"""
 import json, sys, torch
 torch.set_num_threads(1)
-from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+from vadgs.process import peak_rss_mb, reset_peak_rss
 from vadgs.data import load_scene
 from vadgs.train.init import InitConfig, init_gaussians
 
@@ -85,7 +85,7 @@ def test_reset_peak_rss_starts_the_peak_over():
     peak is the resident set again, and a 100 MB stage reads as about 100 MB."""
     script = r"""
 import json, numpy as np
-from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+from vadgs.process import peak_rss_mb, reset_peak_rss
 a = np.ones(400 * 2**20, dtype=np.uint8); del a
 high = peak_rss_mb()
 ok = reset_peak_rss()
