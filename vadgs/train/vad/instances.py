@@ -11,17 +11,67 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import torch
 
-from vadgs.geometry.camera import project_points
+from vadgs.geometry.camera import Cameras, project_points
+from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.lengths import scene_lengths
 
 __all__ = [
+    "InstanceMapSource",
     "box_corners",
     "derive_instance_map",
 ]
+
+
+class InstanceMapSource(Protocol):
+    """What :func:`derive_instance_map` reads of a scene's voxels and tracks.
+
+    :class:`~vadgs.train.vad.visibility.VisibilityIndex` has it all (the visibility module imports
+    this one, so the index is named by what it offers, not by its class; mypy checks that it
+    offers it).
+    """
+
+    @property
+    def inputs(self) -> VisibilityInputs:
+        """The views' frames (``frame_position``) and the tracks."""
+        ...
+
+    @property
+    def grow(self) -> int:
+        """Pixels a derived map grows beyond the voxels."""
+        ...
+
+    @property
+    def scene_depth(self) -> float:
+        """The scene's length unit (:func:`~vadgs.train.vad.lengths.scene_lengths`)."""
+        ...
+
+    def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Static voxel depth ``(1, H, W)`` and index ``(H, W)`` (-1: no voxel) of a view."""
+        ...
+
+    def cell_ids(self) -> torch.Tensor:
+        """``(M,)`` derived instance id of each static voxel (its ground cell)."""
+        ...
+
+    def camera(self, view: int) -> Cameras:
+        """The view's camera at its own size."""
+        ...
+
+    def valid(self, view: int) -> torch.Tensor:
+        """``(H, W)`` bool: the view's own pixels (not padding)."""
+        ...
+
+    def box_corners(self, track: int) -> torch.Tensor:
+        """``(8, 3)`` box corners of a track in its object frame."""
+        ...
+
+    def size(self, view: int) -> tuple[int, int]:
+        """``(H, W)`` of the view (its own)."""
+        ...
 
 
 def box_corners(track) -> torch.Tensor:
@@ -43,7 +93,7 @@ def box_corners(track) -> torch.Tensor:
     return torch.where(pick, hi, lo)
 
 
-def derive_instance_map(index: Any, view: int) -> torch.Tensor:
+def derive_instance_map(index: InstanceMapSource, view: int) -> torch.Tensor:
     """An instance map for a scene without one, from the voxel index map and the tracks.
 
     Static pixels take the id of their voxel's ground cell (``index.cell_size`` metres square,
@@ -55,8 +105,8 @@ def derive_instance_map(index: Any, view: int) -> torch.Tensor:
     geometry near what the LiDAR saw.
 
     Args:
-        index: the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex` (typed ``Any``: the
-            index module imports this one, not the other way round).
+        index: what it reads of the scene (:class:`InstanceMapSource`): the scene's
+            :class:`~vadgs.train.vad.visibility.VisibilityIndex`.
         view: the view's index.
 
     Returns:
