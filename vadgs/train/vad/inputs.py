@@ -252,6 +252,8 @@ class VisibilityInputs:
     ) -> VisibilityInputs:
         """The inputs of gsplat's COLMAP ``Parser`` (``examples/datasets/colmap.py``), duck-typed.
 
+        The parser is read by :func:`vadgs.data.gsplat_parser.read_gsplat_parser`.
+
         Reads ``image_names``, ``image_paths``, ``camtoworlds`` (``(N, 4, 4)`` OpenCV
         camera-to-world), ``camera_ids``, ``Ks_dict``, ``imsize_dict`` (camera id → ``(W, H)``),
         ``points`` and ``point_indices`` (image name → indices of the points it sees: the TRACK
