@@ -167,13 +167,13 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
 
 
 def _hwm_gb() -> float:
-    from vadgs.train.loop import peak_rss_mb
+    from vadgs.process import peak_rss_mb
 
     return peak_rss_mb() / 1024
 
 
 def _reset_hwm() -> None:
-    from vadgs.train.loop import reset_peak_rss
+    from vadgs.process import reset_peak_rss
 
     reset_peak_rss()  # the peak from here on
 

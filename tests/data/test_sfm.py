@@ -282,7 +282,7 @@ class TestBadInput:
         assert "expected at least 2 distinct photos, got 1 (a.jpg; b.jpg is identical to it" in err
         assert not (tmp_path / "p").exists()
         # a project another process is writing
-        from vadgs.train.session import RunLock
+        from vadgs.runlock import RunLock
 
         with RunLock(tmp_path / "busy", "vadgs sfm"):
             assert sfm(tmp_path / "busy") != 0

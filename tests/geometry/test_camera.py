@@ -17,6 +17,7 @@ from vadgs.geometry import (
     project_points,
     relative_pose,
     scale_intrinsics,
+    shift_K,
 )
 
 
@@ -256,6 +257,18 @@ class TestCameras:
             Cameras(intrinsics(2), T, (0, 4))
         with pytest.raises(ValueError, match="image_size"):
             Cameras(intrinsics(2), T, "big")
+
+
+class TestShiftK:
+    def test_a_point_lands_at_its_pixel_in_the_crop(self):
+        K = torch.tensor([[[50.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]]], dtype=torch.float64)
+        w2c = random_rigid(1)
+        pts = torch.tensor([[[0.3, -0.2, 4.0], [1.0, 0.5, 6.0]]], dtype=torch.float64)
+        pts = (pts - w2c[:, None, :3, 3]) @ w2c[0, :3, :3]  # in front of the camera
+        uv, _ = project_points(pts, K, w2c)
+        uv_crop, _ = project_points(pts, shift_K(K, 7, 5), w2c)
+        assert torch.allclose(uv_crop, uv - torch.tensor([7.0, 5.0], dtype=torch.float64))
+        assert K[0, 0, 2] == 31.5  # a copy: K is unchanged
 
 
 def _cams(n=3, size=(10, 12)):

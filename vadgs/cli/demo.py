@@ -9,8 +9,8 @@ from pathlib import Path
 
 from vadgs.checks import check_at_least
 from vadgs.cli._common import Command, Flag, check_out_dir, metrics_summary, scene_arg
+from vadgs.runlock import RunLock
 from vadgs.train.run import finish_run
-from vadgs.train.session import RunLock
 
 
 @dataclass(frozen=True)

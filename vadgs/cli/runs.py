@@ -3,7 +3,7 @@
 Each finds the run's scene where the run recorded it (absolute, from any current folder), checks
 its fingerprint, and takes ``--scene FOLDER`` for a run whose scene moved
 (:func:`~vadgs.train.run.load_run`). Those that write into the run folder hold its lock
-(:class:`~vadgs.train.session.RunLock`) while they run.
+(:class:`~vadgs.runlock.RunLock`) while they run.
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from vadgs.cli._common import Command, Flag, Positional, check_out_dir, lidar_de
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, read_manifest, record_files, recorded_files
+from vadgs.runlock import RunLock
 from vadgs.train.results.trajectory import MAX_FRAMES
 from vadgs.train.run import Run, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_CHECKS
-from vadgs.train.session import RunLock
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
 

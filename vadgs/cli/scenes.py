@@ -94,8 +94,8 @@ class VisibilityCommand(Command):
 
     def _write(self, scene, out: Path) -> int:
         from vadgs.data.lidar import accumulate_lidar
+        from vadgs.data.observations import sfm_observations
         from vadgs.geometry import ZBufferConfig, rasterize_voxels, voxelize
-        from vadgs.train.vad.inputs import sfm_observations
         from vadgs.viz import colorize_depth, colorize_index, image_to_uint8, save_panel
 
         t0 = time.perf_counter()

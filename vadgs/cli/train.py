@@ -103,9 +103,9 @@ class TrainCommand:
 
     def main(self) -> int:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
+        from vadgs.runlock import RunLock
         from vadgs.train.checkpoint import CHECKPOINT_NAME, check_new_run
         from vadgs.train.run import train_scene
-        from vadgs.train.session import RunLock
 
         out = check_out_dir(self.out, create=False)
         RunLock.check_free(out)  # before the checks below: a run in use is named by its pid

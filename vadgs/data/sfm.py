@@ -34,7 +34,7 @@ every registered camera has its photo's upright size.
 decoded (:func:`vadgs.data.images.read_image`), so a truncated or corrupt one is named and the run
 refused; photos with identical pixels are named and all but the first left out (identical photos
 have no baseline: COLMAP cannot place them). One process writes a project at a time: the run holds
-the project's lock (:class:`vadgs.train.session.RunLock`, ``PROJECT/.vadgs.lock``).
+the project's lock (:class:`vadgs.runlock.RunLock`, ``PROJECT/.vadgs.lock``).
 
 ``vadgs train PROJECT`` keeps the undistorted copy of a distorted model in
 ``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap_project.open_colmap_project`), so later
@@ -158,7 +158,7 @@ def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
     """
     import socket
 
-    from vadgs.train.session import pid_alive
+    from vadgs.process import pid_alive
 
     for work in sorted(project.glob(_WORK_PREFIX + "*")):
         marker = work / _WORK_MARKER
@@ -226,7 +226,7 @@ def run_sfm(
         ValueError: ``photos`` a file, no or fewer than two (distinct) photos, an unreadable photo,
             a bad option, ``out`` equal to or inside ``photos``, an existing project without
             ``overwrite``, or no photo registered (one line each, naming it).
-        vadgs.train.session.RunInUseError: another process is writing ``out``.
+        vadgs.runlock.RunInUseError: another process is writing ``out``.
     """
     say = log or (lambda _s: None)
     photos, out = Path(photos), Path(out)
@@ -247,7 +247,7 @@ def run_sfm(
     check_out_outside(photos, out)
     if len(names) < 2:
         raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)} ({names[0]})")
-    from vadgs.train.session import RunLock
+    from vadgs.runlock import RunLock
 
     created = not out.exists()
     with RunLock(out, "vadgs sfm", log=log):

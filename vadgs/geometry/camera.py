@@ -36,6 +36,7 @@ __all__ = [
     "project_points",
     "relative_pose",
     "scale_intrinsics",
+    "shift_K",
 ]
 
 
@@ -227,6 +228,19 @@ def scale_intrinsics(K: torch.Tensor, scale: float | tuple[float, float]) -> tor
     out[..., 0, 2] += 0.5 * sx - 0.5
     out[..., 1, 2] += 0.5 * sy - 0.5
     return out
+
+
+def shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
+    """Intrinsics ``(..., 3, 3)`` of the crop whose top-left corner is pixel ``(x0, y0)`` (a copy).
+
+    Example:
+        >>> shift_K(torch.eye(3), 2, 5)[:2, 2].tolist()
+        [-2.0, -5.0]
+    """
+    K = K.clone()
+    K[..., 0, 2] -= x0
+    K[..., 1, 2] -= y0
+    return K
 
 
 def cameras_in_object_frame(world_to_cam: torch.Tensor, object_to_world: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from vadgs.train.vad.instances import ground_cells
+from vadgs.geometry.ground import ground_cells
 
 
 def _rot(axis: str, angle: float) -> torch.Tensor:

@@ -12,9 +12,9 @@ from tests.train.vad.test_vad import BUILDING, CAR, _model, _trainer
 from tests.train.vad.test_vad import gt_points as gt_points
 from tests.train.vad.test_vad import index as index
 from tests.train.vad.test_vad import scene as scene
+from vadgs.geometry.points import thin_points
 from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 from vadgs.train.vad.crops import MatchScale, match_scale
-from vadgs.train.vad.fusion import thin_points
 from vadgs.train.vad.reconstruct import ViewRender, instance_frame, reconstruct_instance
 
 

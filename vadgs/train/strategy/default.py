@@ -15,7 +15,11 @@ from vadgs.checks import FieldCheck, bool_field, check_fields, float_field, int_
 from vadgs.train.strategy import ops
 from vadgs.train.strategy.base import ConfiguredStrategy
 
-__all__ = ["DefaultStrategy", "DefaultStrategyConfig"]
+__all__ = ["GSPLAT_META", "DefaultStrategy", "DefaultStrategyConfig"]
+
+GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
+"""Where the gsplat keys of a loop's ``info`` come from (for the messages of
+:func:`vadgs.train.vad.check_info`)."""
 
 
 @dataclass(frozen=True)
@@ -107,6 +111,26 @@ class DefaultStrategy(ConfiguredStrategy):
 
     def __init__(self, config: DefaultStrategyConfig | None = None, **settings: Any) -> None:
         self._take_config(config, settings)
+
+    def info_keys(self, packed: bool = False) -> list[dict[str, str]]:
+        """What the step methods read from ``info``: alternatives of ``{key: where it comes from}``.
+
+        vadgs's render (``raster``, ``image_size``) or gsplat's meta (``means2d``, ``width``,
+        ``height``, ``radii``; ``gaussian_ids`` too when ``packed``). The declaration
+        :func:`vadgs.train.vad.check_info` checks a loop's ``info`` against.
+
+        Example:
+            >>> [sorted(a) for a in DefaultStrategy().info_keys()]
+            [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
+        """
+        meta = dict.fromkeys(("means2d", "width", "height", "radii"), GSPLAT_META)
+        if packed:
+            meta["gaussian_ids"] = GSPLAT_META + " with packed=True"
+        own = {
+            "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
+            "image_size": "the view's (H, W)",
+        }
+        return [own, meta]
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """Statistics allocated at the first update; the scene scale for the size thresholds.

@@ -8,7 +8,8 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
    (:func:`~vadgs.mvs.complete_planar`: all members at once);
 5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
    explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
-   in the instance's frame), thinned to one per cell of the point spacing (:func:`thin_points`);
+   in the instance's frame), thinned to one per cell of the point spacing
+   (:func:`~vadgs.geometry.points.thin_points`);
 6. :func:`depth_priors` gives each member's consistent depth and normals at the scene's
    resolution, the geometric losses' priors.
 """
@@ -22,10 +23,12 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.geometry.camera import invert_rigid
+from vadgs.geometry.points import thin_points
+from vadgs.geometry.resample import pool_valid, repeat
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
 from vadgs.mvs.planar import complete_planar
-from vadgs.train.vad.crops import Crops, MatchedCrops, pool_valid, render_maps, repeat
+from vadgs.train.vad.crops import Crops, MatchedCrops, render_maps
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
 
@@ -35,7 +38,6 @@ __all__ = [
     "depth_priors",
     "explained_pixels",
     "fuse_points",
-    "thin_points",
 ]
 
 
@@ -121,43 +123,6 @@ def explained_pixels(
         mvs = cons.depth[k]
         out[k] = (a >= cfg.explained_alpha) & (d > 0) & (d <= mvs * (1 + cfg.explained_tolerance))
     return out & cons.keep
-
-
-def thin_points(
-    points: torch.Tensor, cell: float | torch.Tensor, existing: torch.Tensor | None = None
-) -> torch.Tensor:
-    """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
-
-    Args:
-        points: ``(P, 3)``, in their priority order (the first point of a voxel is kept).
-        cell: voxel edge.
-        existing: optional ``(Q, 3)`` points (same frame) whose voxels are taken.
-
-    Returns:
-        ``(P,)`` bool: the points kept. On the device of ``points``.
-
-    Example:
-        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.31, 0.0, 0.0]])
-        >>> thin_points(p, 0.1).tolist()
-        [True, False, True]
-        >>> thin_points(p, 0.1, existing=torch.tensor([[0.35, 0.05, 0.05]])).tolist()
-        [True, False, False]
-    """
-    if points.shape[0] == 0:
-        return torch.zeros(0, dtype=torch.bool, device=points.device)
-    cell = torch.as_tensor(cell, dtype=points.dtype, device=points.device).clamp_min(1e-6)
-    every = points if existing is None else torch.cat([existing.to(points), points])
-    q = torch.floor(every / cell).long()
-    q = q - q.min(0).values
-    span = q.max(0).values + 1
-    keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-    # the first point of each voxel: a stable sort keeps each voxel's points in their order
-    order = torch.argsort(keys, stable=True)
-    ordered = keys[order]
-    first = torch.ones_like(ordered, dtype=torch.bool)
-    first[1:] = ordered[1:] != ordered[:-1]
-    keep = torch.zeros_like(first).scatter_(0, order, first)
-    return keep[every.shape[0] - points.shape[0] :]
 
 
 def fuse_points(

@@ -658,7 +658,7 @@ def reconstruct_instance(
     consistency (:func:`~vadgs.mvs.geometric_consistency`) and planar completion
     (:func:`~vadgs.mvs.complete_planar`), the pixels the Gaussians already explain, fusion
     (:func:`~vadgs.mvs.fuse_depth_maps`, one point per consistent unexplained pixel, thinned to one
-    per cell of the point spacing by :func:`~vadgs.train.vad.fusion.thin_points`), depth priors.
+    per cell of the point spacing by :func:`~vadgs.geometry.points.thin_points`), depth priors.
 
     Args:
         index: the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex`.

@@ -23,12 +23,12 @@ import torch.nn.functional as F
 from vadgs.checks import float_field
 from vadgs.data.cache import ByteCache
 from vadgs.geometry.camera import Cameras, invert_rigid
-from vadgs.geometry.ground import ground_frame, points_in_frame, sample_rows
+from vadgs.geometry.ground import ground_cells, ground_frame, points_in_frame, sample_rows
 from vadgs.geometry.voxel import PointChunk, VoxelGrid, voxelize, voxelize_chunks
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
 from vadgs.train.vad.inputs import VisibilityInputs
-from vadgs.train.vad.instances import box_corners, derive_instance_map, ground_cells
+from vadgs.train.vad.instances import box_corners, derive_instance_map
 from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
 
 __all__ = [
@@ -195,9 +195,9 @@ class VisibilityIndex:
     def cell_ids(self) -> torch.Tensor:
         """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell.
 
-        The cells are :func:`ground_cells` of the voxel centres in the static grid's ground frame
-        (:meth:`ground_frame`): they move with the scene, so a rotated, shifted or rescaled copy of
-        it (gsplat's Parser normalisation) is cut into the same cells.
+        The cells are :func:`~vadgs.geometry.ground.ground_cells` of the voxel centres in the static
+        grid's ground frame (:meth:`ground_frame`): they move with the scene, so a rotated, shifted or
+        rescaled copy of it (gsplat's Parser normalisation) is cut into the same cells.
         """
         if self._cells is None:
             eye = torch.eye(3, dtype=torch.float64, device=self.grid.centers.device)
