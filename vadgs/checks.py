@@ -12,6 +12,11 @@ the environment variable ``VADGS_CHECKS=0`` before importing vadgs, call
 :func:`set_checks_enabled`, or use the :func:`checking` context manager (kornia's
 ``KORNIA_CHECKS`` in spirit).
 
+The settings dataclasses (every ``*Config`` of the library, the scene references, the CLI's
+commands) check their fields one way: each field's rule stands next to it (:func:`checked`,
+:func:`nested`; the rules :func:`int_field`, :func:`float_field`, ...), and their base
+:class:`Checked` runs the rules at construction, hence also in :func:`dataclasses.replace`.
+
 Shape specs are sequences whose items are an ``int`` (that exact size), a ``str`` (a named
 dimension: every use of the same name within one call must agree) or ``"*"`` (any number of
 leading dimensions, only as the first item) or ``"_"`` (any size).
@@ -50,8 +55,6 @@ __all__ = [
     "check_fields",
     "check_finite",
     "check_intrinsics",
-    "check_quaternions",
-    "check_rigid_last_row",
     "check_same_device",
     "check_shape",
     "check_size",
@@ -208,64 +211,49 @@ def first_false(flags: Sequence[torch.Tensor]) -> int | None:
     return ok.tolist().index(False)
 
 
-def check_intrinsics(K: torch.Tensor, name: str = "K") -> None:
-    """Value check of ``(*, 3, 3)`` pinhole intrinsics: finite, ``fx = K[..., 0, 0] > 0``, ``fy > 0``.
+def check_intrinsics(K: torch.Tensor, name: str = "K", pinhole: bool = False) -> None:
+    """Check ``(*, 3, 3)`` intrinsics: finite, positive focal lengths ``K[..., 0, 0]``, ``K[..., 1, 1]``.
+
+    The shape is always checked; the values are a value check (:func:`checks_enabled`). With
+    ``pinhole`` (a ``K`` read from a file or given by a user) also the form
+    ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (to 1e-9).
 
     Example:
         >>> check_intrinsics(torch.zeros(2, 3, 3))
         Traceback (most recent call last):
         ...
         ValueError: K: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], got fx=0, fy=0 at (0,)
+        >>> check_intrinsics(torch.eye(3) * 2, "raw_K", pinhole=True)
+        Traceback (most recent call last):
+        ...
+        ValueError: raw_K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got [[2.0, 0.0, 0.0], [...]]
     """
+    check_shape(K, name, ("*", 3, 3))
     check_finite(K, name)
-    if checks_enabled():
-        f = K.detach()[..., [0, 1], [0, 1]]
-        bad = ~(f > 0).all(-1)
+    if not checks_enabled():
+        return
+    K = K.detach()
+    f = K[..., [0, 1], [0, 1]]
+    bad = ~(f > 0).all(-1)
+    if bool(bad.any()):
+        at = tuple(int(i) for i in bad.nonzero()[0]) if bad.dim() else ()
+        fx, fy = (float(v) for v in f[at])
+        where = f" at {at}" if at else ""
+        raise ValueError(
+            f"{name}: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], "
+            f"got fx={fx:g}, fy={fy:g}{where}"
+        )
+    if pinhole:
+        form = K.double()[..., [1, 2, 2, 2], [0, 0, 1, 2]] - K.new_tensor(
+            [0.0, 0.0, 0.0, 1.0], dtype=torch.float64
+        )
+        bad = (form.abs() > 1e-9).any(-1)
         if bool(bad.any()):
             at = tuple(int(i) for i in bad.nonzero()[0]) if bad.dim() else ()
-            fx, fy = (float(v) for v in f[at])
+            where = f" at {at}" if at else ""
             raise ValueError(
-                f"{name}: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], "
-                f"got fx={fx:g}, fy={fy:g} at {at}"
+                f"{name}: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K[at].tolist()}{where}"
             )
-
-
-def check_quaternions(q: torch.Tensor, name: str = "quats") -> None:
-    """Value check of ``(*, 4)`` quaternions: finite and of non-zero norm (a zero one has no rotation).
-
-    Example:
-        >>> check_quaternions(torch.tensor([[1.0, 0, 0, 0], [0, 0, 0, 0]]))
-        Traceback (most recent call last):
-        ...
-        ValueError: quats: expected non-zero quaternions, got 1 of norm 0 (first: row 1)
-    """
-    check_finite(q, name)
-    if checks_enabled() and q.numel():
-        zero = q.detach().norm(dim=-1) < 1e-12
-        if bool(zero.any()):
-            first = int(zero.flatten().nonzero()[0, 0])
-            raise ValueError(
-                f"{name}: expected non-zero quaternions, got {int(zero.sum())} of norm 0 (first: row {first})"
-            )
-
-
-def check_rigid_last_row(T: torch.Tensor, name: str) -> None:
-    """Value check of ``(*, 4, 4)`` transforms: finite, last row ``(0, 0, 0, 1)`` (within 1e-5).
-
-    Example:
-        >>> check_rigid_last_row(torch.zeros(4, 4), "transform")
-        Traceback (most recent call last):
-        ...
-        ValueError: transform: expected a transform with last row (0, 0, 0, 1), got [0.0, 0.0, 0.0, 0.0]
-    """
-    check_finite(T, name)
-    if checks_enabled() and T.numel():
-        row = T.detach()[..., 3, :].reshape(-1, 4)
-        want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=row.dtype, device=row.device)
-        bad = ((row - want).abs() > 1e-5).any(-1)
-        if bool(bad.any()):
-            got = row[int(bad.nonzero()[0, 0])].tolist()
-            raise ValueError(f"{name}: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 def check_size(size: Sequence[int], name: str = "image_size") -> tuple[int, int]:
