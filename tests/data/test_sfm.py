@@ -229,7 +229,10 @@ class TestBadInput:
             ),
             ([str(tmp_path / "one")], "expected at least 2 photos, got 1 (a.jpg)"),
             ([str(tmp_path / "one"), "--matcher", "vocab"], "--matcher"),
-            ([str(tmp_path / "one"), "--max-image-size", "-1"], "--max-image-size: expected >= 0, got -1"),
+            (
+                [str(tmp_path / "one"), "--max-image-size", "-1"],
+                "--max-image-size: expected an integer >= 0, got -1",
+            ),
         ]
         for argv, message in cases:
             assert main(["sfm", *argv, "--out", str(tmp_path / "p")]) == 2, argv

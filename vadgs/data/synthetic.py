@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from vadgs.checks import check_fields, choice_field, float_field, int_field
+from vadgs.checks import Checked, checked, choice_field, float_field, int_field
 from vadgs.data.assemble import MAX_IMAGE_PIXELS
 from vadgs.data.synthetic_sensors import (
     LIDAR_IN_EGO,
@@ -58,9 +58,28 @@ _LANES = (-5.25, -1.75, 1.75, 5.25)  # lane centres; traffic drives on the right
 
 _SIGN_COLORS = ((0.1, 0.35, 0.75), (0.8, 0.15, 0.12), (0.1, 0.55, 0.25))
 
+#: The most LiDAR points per frame :func:`make_segment` casts (about 1.6 rays each): 25 Waymo
+#: TOP sweeps, 6.4M rays, about 0.5 GB of ray arrays.
+MAX_SEGMENT_LIDAR_POINTS = 4_000_000
+#: The most objects of each kind (moving cars, parked cars, signs).
+MAX_SEGMENT_OBJECTS = 1000
+
+
+def _vfov(name: str, value: Any) -> tuple[float, float]:
+    """``(min, max)`` elevation in degrees: two finite numbers, ``-90 <= min < max <= 90``."""
+    try:
+        lo, hi = (float_field(-90, 90)(name, v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name}: expected (min, max) degrees with -90 <= min < max <= 90, got {value!r}"
+        ) from None
+    if not lo < hi:
+        raise ValueError(f"{name}: expected (min, max) degrees with min < max, got {value!r}")
+    return (lo, hi)
+
 
 @dataclass(frozen=True)
-class SegmentConfig:
+class SegmentConfig(Checked):
     """What :func:`make_segment` writes.
 
     Attributes:
@@ -91,27 +110,27 @@ class SegmentConfig:
         lidar_range: its range in metres.
     """
 
-    frames: int = 4
-    cameras: int = 2
-    width: int = 64
-    height: int = 48
-    side_height: int | None = None
-    hfov_deg: float = 50.4
-    lidar_points: int = 2000
-    moving_cars: int = 3
-    parked_cars: int = 4
-    signs: int = 2
-    seed: int = 0
-    speed: float = 10.0
-    rate_hz: float = 10.0
-    image_format: str = "jpg"
-    jpeg_quality: int = 90
-    lidar_beams: int = 64
-    lidar_vfov: tuple[float, float] = (-17.6, 2.4)
-    lidar_range: float = 75.0
+    frames: int = checked(4, int_field(1, 100_000))
+    cameras: int = checked(2, int_field(1, len(RIG)))
+    width: int = checked(64, int_field(1, 1 << 16))
+    height: int = checked(48, int_field(1, 1 << 16))
+    side_height: int | None = checked(None, int_field(1, 1 << 16, optional=True))
+    hfov_deg: float = checked(50.4, float_field(0, 170, lo_open=True, hi_open=True))
+    lidar_points: int = checked(2000, int_field(1, MAX_SEGMENT_LIDAR_POINTS))
+    moving_cars: int = checked(3, int_field(0, MAX_SEGMENT_OBJECTS))
+    parked_cars: int = checked(4, int_field(0, MAX_SEGMENT_OBJECTS))
+    signs: int = checked(2, int_field(0, MAX_SEGMENT_OBJECTS))
+    seed: int = checked(0, int_field(0, 2**63 - 1))
+    speed: float = checked(10.0, float_field(0, 100))
+    rate_hz: float = checked(10.0, float_field(0, 1000, lo_open=True))
+    image_format: str = checked("jpg", choice_field(("jpg", "png")))
+    jpeg_quality: int = checked(90, int_field(1, 100))
+    lidar_beams: int = checked(64, int_field(1, 4096))
+    lidar_vfov: tuple[float, float] = checked((-17.6, 2.4), _vfov)
+    lidar_range: float = checked(75.0, float_field(0, 1000, lo_open=True))
 
     def __post_init__(self) -> None:
-        check_fields(self, _SEGMENT_FIELDS)
+        super().__post_init__()
         for name in ("height", "side_height"):
             h = getattr(self, name)
             if h is not None and h * self.width > MAX_IMAGE_PIXELS:
@@ -134,47 +153,6 @@ class SegmentConfig:
 
 # ---------------------------------------------------------------------------------------------------
 # the world: boxes with a bottom-centre origin
-
-
-#: The most LiDAR points per frame :func:`make_segment` casts (about 1.6 rays each): 25 Waymo
-#: TOP sweeps, 6.4M rays, about 0.5 GB of ray arrays.
-MAX_SEGMENT_LIDAR_POINTS = 4_000_000
-#: The most objects of each kind (moving cars, parked cars, signs).
-MAX_SEGMENT_OBJECTS = 1000
-
-
-def _vfov(name: str, value: Any) -> tuple[float, float]:
-    """``(min, max)`` elevation in degrees: two finite numbers, ``-90 <= min < max <= 90``."""
-    try:
-        lo, hi = (float_field(-90, 90)(name, v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name}: expected (min, max) degrees with -90 <= min < max <= 90, got {value!r}"
-        ) from None
-    if not lo < hi:
-        raise ValueError(f"{name}: expected (min, max) degrees with min < max, got {value!r}")
-    return (lo, hi)
-
-
-_SEGMENT_FIELDS = {
-    "frames": int_field(1, 100_000),
-    **{name: int_field(1, 1 << 16) for name in ("width", "height")},
-    "lidar_points": int_field(1, MAX_SEGMENT_LIDAR_POINTS),
-    "lidar_beams": int_field(1, 4096),
-    "cameras": int_field(1, len(RIG)),
-    "side_height": int_field(1, 1 << 16, optional=True),
-    **{name: int_field(0, MAX_SEGMENT_OBJECTS) for name in ("moving_cars", "parked_cars", "signs")},
-    "seed": int_field(0, 2**63 - 1),
-    "image_format": choice_field(("jpg", "png")),
-    "jpeg_quality": int_field(1, 100),
-    "hfov_deg": float_field(0, 170, lo_open=True, hi_open=True),
-    "speed": float_field(0, 100),
-    "rate_hz": float_field(0, 1000, lo_open=True),
-    "lidar_vfov": _vfov,
-    "lidar_range": float_field(0, 1000, lo_open=True),
-}
-"""The check of each :class:`SegmentConfig` field (:func:`vadgs.checks.check_fields`); every image
-also at most :data:`~vadgs.data.assemble.MAX_IMAGE_PIXELS` (what the loaders read)."""
 
 
 def _yaw_pose(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:

@@ -22,7 +22,7 @@ import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from kornia.geometry.linalg import transform_points
 
-from vadgs.checks import check_finite, check_intrinsics, check_rigid_last_row, check_shape, check_size
+from vadgs.checks import check_finite, check_intrinsics, check_shape, check_size, checks_enabled
 
 __all__ = [
     "Cameras",
@@ -38,6 +38,25 @@ __all__ = [
     "scale_intrinsics",
     "shift_K",
 ]
+
+
+def _check_rigid_last_row(T: torch.Tensor, name: str) -> None:
+    """Value check of ``(*, 4, 4)`` transforms: finite, last row ``(0, 0, 0, 1)`` (within 1e-5).
+
+    Example:
+        >>> _check_rigid_last_row(torch.zeros(4, 4), "transform")
+        Traceback (most recent call last):
+        ...
+        ValueError: transform: expected a transform with last row (0, 0, 0, 1), got [0.0, 0.0, 0.0, 0.0]
+    """
+    check_finite(T, name)
+    if checks_enabled() and T.numel():
+        row = T.detach()[..., 3, :].reshape(-1, 4)
+        want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=row.dtype, device=row.device)
+        bad = ((row - want).abs() > 1e-5).any(-1)
+        if bool(bad.any()):
+            got = row[int(bad.nonzero()[0, 0])].tolist()
+            raise ValueError(f"{name}: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
@@ -57,7 +76,7 @@ def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
         tensor([-1., -2., -3.])
     """
     check_shape(transform, "transform", ("*", 4, 4))
-    check_rigid_last_row(transform, "transform")
+    _check_rigid_last_row(transform, "transform")
     rot = transform[..., :3, :3]
     trans = transform[..., :3, 3:]
     rot_t = rot.transpose(-1, -2)
@@ -120,7 +139,7 @@ def project_points(
     check_intrinsics(K)
     if world_to_cam is not None:
         check_shape(world_to_cam, "world_to_cam", ("B", 4, 4), dims)
-        check_rigid_last_row(world_to_cam, "world_to_cam")
+        _check_rigid_last_row(world_to_cam, "world_to_cam")
         points = transform_points(world_to_cam, points)
     z = points[..., 2]
     xy = points[..., :2] / z.unsqueeze(-1)

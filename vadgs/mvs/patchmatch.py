@@ -49,7 +49,17 @@ import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from torch import nn
 
-from vadgs.checks import check_finite, check_shape, checks_enabled
+from vadgs.checks import (
+    Checked,
+    bool_field,
+    check_finite,
+    check_shape,
+    checked,
+    checks_enabled,
+    choice_field,
+    float_field,
+    int_field,
+)
 from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
@@ -63,7 +73,7 @@ __all__ = ["PatchMatch", "PatchMatchConfig", "PatchMatchResult", "patchmatch", "
 
 
 @dataclass(frozen=True)
-class PatchMatchConfig:
+class PatchMatchConfig(Checked):
     """Settings of :func:`patchmatch`.
 
     Attributes:
@@ -107,53 +117,28 @@ class PatchMatchConfig:
             32.4 % of the depths within 1 %, mean of 3 seeds).
     """
 
-    iterations: int = 3
-    window_radius: int = 5
-    window_step: int = 2
-    sigma_spatial: float | None = None
-    sigma_color: float = 0.2
-    min_variance: float = 1e-5
-    propagation: str = "acmh"
-    num_refine: int = 3
-    depth_perturbation: float = 0.05
-    normal_perturbation: float = 0.5
-    view_selection: str = "acmh"
-    top_k: int = 2
-    good_threshold: float = 0.8
-    bad_threshold: float = 1.2
-    beta: float = 0.3
-    max_cost: float = 0.6
-    seed: int | None = 0
-    chunk_size: int | None = None
-    pyramid_levels: int = 2
-    fine_iterations: int = 1
-    fine_propagation: str | None = None
-    joint_scoring: bool = False
-
-    def __post_init__(self) -> None:
-        if self.pyramid_levels < 1 or self.fine_iterations < 0:
-            raise ValueError(
-                f"pyramid_levels, fine_iterations: expected >= 1 and >= 0, got {self.pyramid_levels}, "
-                f"{self.fine_iterations}"
-            )
-        if self.iterations < 0:
-            raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
-        if self.window_radius < 1 or self.window_step < 1:
-            raise ValueError(
-                f"window_radius, window_step: expected >= 1, got {self.window_radius}, {self.window_step}"
-            )
-        for name in ("propagation", "fine_propagation"):
-            value = getattr(self, name)
-            if value not in ("acmh", "cross") and not (name == "fine_propagation" and value is None):
-                raise ValueError(f"{name}: expected 'acmh' or 'cross', got {value!r}")
-        if self.view_selection not in ("acmh", "topk", "mean"):
-            raise ValueError(
-                f"view_selection: expected 'acmh', 'topk' or 'mean', got {self.view_selection!r}"
-            )
-        if not 0 <= self.num_refine <= 6:
-            raise ValueError(f"num_refine: expected 0 to 6, got {self.num_refine}")
-        if self.top_k < 1:
-            raise ValueError(f"top_k: expected >= 1, got {self.top_k}")
+    iterations: int = checked(3, int_field(0))
+    window_radius: int = checked(5, int_field(1))
+    window_step: int = checked(2, int_field(1))
+    sigma_spatial: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    sigma_color: float = checked(0.2, float_field(0, lo_open=True))
+    min_variance: float = checked(1e-5, float_field(0))
+    propagation: str = checked("acmh", choice_field(("acmh", "cross")))
+    num_refine: int = checked(3, int_field(0, 6))
+    depth_perturbation: float = checked(0.05, float_field(0))
+    normal_perturbation: float = checked(0.5, float_field(0))
+    view_selection: str = checked("acmh", choice_field(("acmh", "topk", "mean")))
+    top_k: int = checked(2, int_field(1))
+    good_threshold: float = checked(0.8, float_field(0))
+    bad_threshold: float = checked(1.2, float_field(0))
+    beta: float = checked(0.3, float_field(0, lo_open=True))
+    max_cost: float = checked(0.6, float_field(0))
+    seed: int | None = checked(0, int_field(optional=True))
+    chunk_size: int | None = checked(None, int_field(1, optional=True))
+    pyramid_levels: int = checked(2, int_field(1))
+    fine_iterations: int = checked(1, int_field(0))
+    fine_propagation: str | None = checked(None, choice_field(("acmh", "cross", None)))
+    joint_scoring: bool = checked(False, bool_field())
 
 
 class PatchMatchResult(NamedTuple):

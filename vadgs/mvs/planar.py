@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_finite, check_shape, checks_enabled
+from vadgs.checks import Checked, check_finite, check_shape, checked, checks_enabled, float_field, int_field
 from vadgs.geometry import backproject_depth, project_points
 
 __all__ = [
@@ -155,7 +155,7 @@ def _near(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
 
 
 @dataclass(frozen=True)
-class PlanarCompletionConfig:
+class PlanarCompletionConfig(Checked):
     """Settings of :func:`complete_planar`.
 
     Attributes:
@@ -171,14 +171,14 @@ class PlanarCompletionConfig:
             are too noisy for it (the measurement: ``docs/results.md``).
     """
 
-    min_pixels: int = 30
-    min_inlier_ratio: float = 0.6
-    rel_threshold: float = 0.02
-    max_gap: float = 8.0
-    color_tolerance: float = 0.06
-    min_views: int = 1
-    iterations: int = 200
-    max_normal_angle: float | None = None
+    min_pixels: int = checked(30, int_field(0))
+    min_inlier_ratio: float = checked(0.6, float_field(0, 1))
+    rel_threshold: float = checked(0.02, float_field(0, lo_open=True))
+    max_gap: float = checked(8.0, float_field(0))
+    color_tolerance: float = checked(0.06, float_field(0))
+    min_views: int = checked(1, int_field(0))
+    iterations: int = checked(200, int_field(1))
+    max_normal_angle: float | None = checked(None, float_field(0, 180, optional=True))
 
 
 def _inliers(

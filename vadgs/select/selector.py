@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from vadgs.checks import check_shape
+from vadgs.checks import Checked, check_shape, checked, choice_field, float_field, int_field
 from vadgs.select.baselines import colmap_scores, consecutive_views, mvsnet_scores, top_k_views
 from vadgs.select.clique import MAX_SUBSETS, max_weight_clique
 from vadgs.select.covisibility import Covisibility
@@ -51,7 +51,7 @@ METHODS = ("diversity", "consecutive", "mvsnet", "colmap")
 
 
 @dataclass(frozen=True)
-class ViewSelectionConfig:
+class ViewSelectionConfig(Checked):
     """Settings of :func:`select_views`.
 
     Attributes:
@@ -79,20 +79,19 @@ class ViewSelectionConfig:
             nearest frames), ``"mvsnet"``, ``"colmap"`` (see :mod:`vadgs.select.baselines`).
     """
 
-    k: int = 4
-    lam: float = 0.5
-    noise_std: float = 0.05
-    eps: float = 0.1
-    count_exponent: float = 2.0
-    min_shared: int = 8
-    min_angle: float = 1.0
-    min_parallax: float = 0.0
-    max_candidates: int = 24
-    method: str = "diversity"
+    k: int = checked(4, int_field(1))
+    lam: float = checked(0.5, float_field(0))
+    noise_std: float = checked(0.05, float_field(0))
+    eps: float = checked(0.1, float_field(0, lo_open=True))
+    count_exponent: float = checked(2.0, float_field(0))
+    min_shared: int = checked(8, int_field(1))
+    min_angle: float = checked(1.0, float_field(0, 90, hi_open=True, note=" degrees"))
+    min_parallax: float = checked(0.0, float_field(0, note=" pixels"))
+    max_candidates: int = checked(24, int_field(1))
+    method: str = checked("diversity", choice_field(METHODS))
 
     def __post_init__(self) -> None:
-        if self.k < 1:
-            raise ValueError(f"k: expected >= 1, got {self.k}")
+        super().__post_init__()
         if self.max_candidates < self.k:
             raise ValueError(f"max_candidates: expected >= k = {self.k}, got {self.max_candidates}")
         subsets = math.comb(self.max_candidates, self.k)
@@ -101,17 +100,6 @@ class ViewSelectionConfig:
                 f"max_candidates, k: expected C(max_candidates, k) <= {MAX_SUBSETS:.3g} subsets (the clique "
                 f"search's bound), got C({self.max_candidates}, {self.k}) = {subsets:.3g}"
             )
-        if self.noise_std < 0 or self.eps <= 0 or self.lam < 0 or self.min_shared < 1:
-            raise ValueError(
-                "expected noise_std >= 0, eps > 0, lam >= 0, min_shared >= 1, got "
-                f"noise_std={self.noise_std}, eps={self.eps}, lam={self.lam}, min_shared={self.min_shared}"
-            )
-        if not 0 <= self.min_angle < 90:
-            raise ValueError(f"min_angle: expected degrees in [0, 90), got {self.min_angle}")
-        if self.min_parallax < 0:
-            raise ValueError(f"min_parallax: expected pixels >= 0, got {self.min_parallax}")
-        if self.method not in METHODS:
-            raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
 
     def least_angle(self, focal: float | None) -> float:
         """The least triangulation angle, degrees: ``min_angle``, or ``min_parallax`` pixels at ``focal``."""

@@ -11,12 +11,12 @@ nearest neighbours as scale (3DGS).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
+from vadgs.checks import Checked, bool_field, checked, float_field, int_field
 from vadgs.data.cache import ByteCache
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import ColmapPoints, Scene
@@ -28,7 +28,7 @@ __all__ = ["InitConfig", "init_gaussians"]
 
 
 @dataclass(frozen=True)
-class InitConfig:
+class InitConfig(Checked):
     """Settings of :func:`init_gaussians`.
 
     Attributes:
@@ -45,36 +45,26 @@ class InitConfig:
         seed: for the random subsets.
     """
 
-    use_lidar: bool = True
-    voxel_size: float = 0.1
-    object_voxel_size: float = 0.05
-    max_points: int = 150_000
-    max_object_points: int = 20_000
-    knn: int = 3
-    min_scale: float = 0.005
-    max_scale: float = 1.0
-    init_opacity: float = 0.1
-    sh_degree: int = 3
-    sky_degree: int = 2
-    seed: int = 0
+    use_lidar: bool = checked(True, bool_field())
+    voxel_size: float = checked(0.1, float_field(0, note=" (0 keeps every point)"))
+    object_voxel_size: float = checked(0.05, float_field(0, note=" (0 keeps every point)"))
+    max_points: int = checked(150_000, int_field(1))
+    max_object_points: int = checked(20_000, int_field(0))
+    knn: int = checked(3, int_field(1))
+    min_scale: float = checked(0.005, float_field(0, lo_open=True))
+    max_scale: float = checked(1.0, float_field(0, lo_open=True))
+    init_opacity: float = checked(0.1, float_field(0, 1, lo_open=True, hi_open=True))
+    sh_degree: int = checked(3, int_field(0, 3))
+    sky_degree: int = checked(2, int_field(0, 3))
+    seed: int = checked(0, int_field(0))
 
     def __post_init__(self) -> None:
-        if not (0 <= self.voxel_size < math.inf and 0 <= self.object_voxel_size < math.inf):
+        super().__post_init__()
+        if not self.min_scale <= self.max_scale:
             raise ValueError(
-                "voxel_size, object_voxel_size: expected finite numbers >= 0 (0 keeps every point), "
-                f"got {self.voxel_size}, {self.object_voxel_size}"
+                f"min_scale, max_scale: expected min_scale <= max_scale, got {self.min_scale}, "
+                f"{self.max_scale}"
             )
-        if not (0 < self.min_scale <= self.max_scale < math.inf):
-            raise ValueError(
-                f"min_scale, max_scale: expected 0 < min_scale <= max_scale (finite), "
-                f"got {self.min_scale}, {self.max_scale}"
-            )
-        if self.max_points < 1 or self.max_object_points < 0 or self.knn < 1:
-            raise ValueError("max_points >= 1, max_object_points >= 0, knn >= 1 expected")
-        if not 0 < self.init_opacity < 1:
-            raise ValueError(f"init_opacity: expected in (0, 1), got {self.init_opacity}")
-        if not (0 <= self.sh_degree <= 3 and 0 <= self.sky_degree <= 3):
-            raise ValueError(f"sh_degree, sky_degree: expected 0..3, got {self.sh_degree}, {self.sky_degree}")
 
 
 _IMAGE_CACHE_BYTES = 512 * 2**20  # init_gaussians' image cache (float32 images read for colours)

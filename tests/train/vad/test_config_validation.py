@@ -1,8 +1,9 @@
 """The Python API validates like the CLI (issue 39, item 5).
 
 Every field of :class:`VisibilityDensifyConfig`, :class:`ReconstructConfig` and
-:class:`IncompleteConfig` has one check (``_FIELDS`` of its module, :func:`vadgs.checks.check_fields`),
-run at construction and, on :class:`VisibilityAwareDensification`, when a setting is set later;
+:class:`IncompleteConfig` has one rule, next to the field (:func:`vadgs.checks.checked`;
+``tests/test_config_rules.py`` checks every config of the package), run at construction and,
+on :class:`VisibilityAwareDensification`, when a setting is set later;
 ``initialize_state(scene_scale)``, the loop's ``info`` and ``geometry_targets`` before ``prepare``
 raise a :class:`ValueError` naming the argument, the expected and the actual.
 """
@@ -94,12 +95,6 @@ class TestEveryField:
     def test_bad_value_given_to_the_strategy(self, name, bad):
         with pytest.raises(ValueError, match=f"^{name}"):
             VisibilityAwareDensification(**{name: bad})
-
-    def test_every_field_has_a_check(self):
-        from vadgs.train.vad import config, incomplete, reconstruct_config
-
-        for cls, module in zip(CONFIGS, (config, reconstruct_config, incomplete)):
-            assert set(module._FIELDS) == {f.name for f in dataclasses.fields(cls)}, cls
 
 
 class TestMessages:

@@ -27,13 +27,13 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_fields, check_shape, float_field, int_field, ints_field
+from vadgs.checks import Checked, check_shape, checked, float_field, int_field, ints_field
 
 __all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "find_incomplete_ids"]
 
 
 @dataclass(frozen=True)
-class IncompleteConfig:
+class IncompleteConfig(Checked):
     """Thresholds of :func:`find_incomplete` (paper values by default).
 
     Attributes:
@@ -45,25 +45,12 @@ class IncompleteConfig:
         ignore_ids: instance ids never tested (0 = sky / none).
     """
 
-    depth_ratio: float = 1.1
-    alpha_threshold: float = 0.7
-    low_alpha_fraction: float = 0.25
-    min_pixels: int = 20
-    min_alpha_for_depth: float = 0.05
-    ignore_ids: tuple[int, ...] = (0,)
-
-    def __post_init__(self) -> None:
-        check_fields(self, _FIELDS)
-
-
-_FIELDS = {
-    "depth_ratio": float_field(0, lo_open=True),
-    "alpha_threshold": float_field(0, 1),
-    "low_alpha_fraction": float_field(0, 1),
-    "min_pixels": int_field(0),
-    "min_alpha_for_depth": float_field(0, 1),
-    "ignore_ids": ints_field("instance ids"),
-}
+    depth_ratio: float = checked(1.1, float_field(0, lo_open=True))
+    alpha_threshold: float = checked(0.7, float_field(0, 1))
+    low_alpha_fraction: float = checked(0.25, float_field(0, 1))
+    min_pixels: int = checked(20, int_field(0))
+    min_alpha_for_depth: float = checked(0.05, float_field(0, 1))
+    ignore_ids: tuple[int, ...] = checked((0,), ints_field("instance ids"))
 
 
 class IncompleteInstances(NamedTuple):
