@@ -245,10 +245,11 @@ class Covisibility:
         return self.incidence.indices()[1, view_ptr[view] : view_ptr[view + 1]]
 
     def seen_by(self, view: int) -> torch.Tensor:
-        """``(M,)`` bool: the voxels view ``view`` sees."""
-        mask = torch.zeros(self.num_voxels, dtype=torch.bool, device=self.voxel_centers.device)
-        mask[self.voxels_of(view)] = True
-        return mask
+        """``(M,)`` bool: the voxels view ``view`` sees (no read by the host: ``O(entries)``)."""
+        rows, cols = self.incidence.indices()
+        mask = torch.zeros(self.num_voxels + 1, dtype=torch.bool, device=rows.device)
+        mask[torch.where(rows == view, cols, self.num_voxels)] = True  # others to a spare slot
+        return mask[:-1].to(self.voxel_centers.device)
 
     def entries_of(self, voxels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The (view, position in ``voxels``) pairs of the incidence entries of some voxels.
