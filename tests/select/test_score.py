@@ -213,6 +213,27 @@ class TestCovisibility:
         by_ids = covis.restrict(torch.nonzero(mask).squeeze(1))
         assert torch.equal(by_ids.incidence.to_dense(), sub.incidence.to_dense())
 
+    def test_restrict_with_sizes_reads_nothing(self):
+        """Given the sizes (read with other values), the restriction is the same, without a read.
+
+        Value checks off (the new covisibility's finite-value checks read too), as an event runs it.
+        """
+        from vadgs.checks import checking
+
+        from ..launch_count import LaunchCounter
+
+        centers, visible, w2c = random_scene(seed=6)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        mask = torch.arange(len(centers)) % 3 == 0
+        sizes = covis.restrict_sizes(mask).tolist()
+        assert sizes == [int(mask.sum()), int(covis.incidence.to_dense()[:, mask].sum())]
+        with LaunchCounter() as counter, checking(False):
+            sub = covis.restrict(mask, sizes=(sizes[0], sizes[1]))
+        assert counter.host_reads == 0
+        expected = covis.restrict(mask)
+        assert torch.equal(sub.incidence.indices(), expected.incidence.indices())
+        assert torch.equal(sub.voxel_centers, expected.voxel_centers)
+
 
 class TestTriangulationAngles:
     def test_against_naive_loop(self):
