@@ -175,7 +175,7 @@ def survey_instance(
     depths = {v: (stats[3 * k], stats[3 * k + 1], stats[3 * k + 2]) for k, v in enumerate(views)}
     covis = None
     if track is not None or count >= cfg.min_instance_voxels:
-        if count == 0:
+        if count == 0 and track is None:  # (a track's grid is matched whatever it holds)
             return InstanceSurvey(instance, track, "no_voxels", None, allowed, cut, pixels, depths)
         with checking(False):
             covis = frame.covis.restrict(frame.voxels, sizes=(count, entries))
