@@ -2,7 +2,7 @@
 
 :func:`~vadgs.train.vad.event.run_event` plans every pair of a wave of instances (selection,
 crops), matches all of them in few :func:`~vadgs.mvs.patchmatch` calls
-(:func:`~vadgs.train.vad.reconstruct.match_plans`: crops padded to the largest of a call, each
+(:func:`~vadgs.train.vad.matching.match_plans`: crops padded to the largest of a call, each
 reference its own depth range and pixels), then fuses pair by pair. A batched call draws other
 random numbers than one call per pair, so the two agree in distribution, not bit for bit: checked
 here on the bundled sample at half resolution, per pair (the same crops; as many pixels matched;
@@ -19,7 +19,7 @@ import torch
 
 import vadgs.train.vad.event as event_module
 from vadgs.train.vad.crops import MatchedCrops
-from vadgs.train.vad.reconstruct import MatchPlan, match_plans
+from vadgs.train.vad.matching import MatchPlan, match_plans
 
 
 def _trainer(match_padding):
@@ -137,7 +137,7 @@ def _inputs(b: int, h: int, w: int, v: int = 4):
 
 class TestBatches:
     def test_similar_crops_share_a_call(self):
-        from vadgs.train.vad.reconstruct import _batches
+        from vadgs.train.vad.matching import _batches
 
         plans = [_inputs(5, 29, 40), _inputs(5, 53, 42), _inputs(5, 24, 80), _inputs(4, 40, 61, v=3)]
         assert _batches(plans, 4.0, 2, False) == [[0, 1, 2, 3]]  # padded 53x80 <= 4 x 29x40
@@ -145,14 +145,14 @@ class TestBatches:
         assert sorted(_batches(plans, 1.0, 2, False)) == [[0], [1], [2], [3]]
 
     def test_the_padded_size_counts_both_sides(self):
-        from vadgs.train.vad.reconstruct import _batches
+        from vadgs.train.vad.matching import _batches
 
         plans = [_inputs(3, 20, 140), _inputs(3, 140, 20)]  # padded 140x140: 7 times either
         assert sorted(_batches(plans, 4.0, 2, False)) == [[0], [1]]
         assert _batches(plans, 8.0, 2, False) == [[0, 1]]
 
     def test_fewer_views_than_top_k_apart_and_the_call_size_capped(self):
-        from vadgs.train.vad.reconstruct import MAX_CALL_PIXEL_VIEWS, _batches
+        from vadgs.train.vad.matching import MAX_CALL_PIXEL_VIEWS, _batches
 
         assert sorted(_batches([_inputs(2, 30, 30, v=1), _inputs(3, 30, 30)], None, 2, False)) == [[0], [1]]
         assert _batches([_inputs(2, 30, 30, v=1), _inputs(3, 30, 30, v=1)], None, 2, False) == [[0, 1]]

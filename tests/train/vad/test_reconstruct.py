@@ -15,7 +15,8 @@ from tests.train.vad.test_vad import scene as scene
 from vadgs.geometry.points import thin_points
 from vadgs.train.vad import ReconstructConfig, VisibilityDensifyConfig
 from vadgs.train.vad.crops import MatchScale, match_scale
-from vadgs.train.vad.reconstruct import ViewRender, instance_frame, reconstruct_instance
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
+from vadgs.train.vad.survey import instance_frame
 
 
 class TestMatchScale:
@@ -367,7 +368,7 @@ class TestEventLog:
 
     def test_match_work(self):
         from vadgs.mvs import PatchMatchConfig
-        from vadgs.train.vad.reconstruct import match_work
+        from vadgs.train.vad.matching import match_work
 
         masks = torch.zeros(2, 1, 8, 8, dtype=torch.bool)
         masks[0, 0, :4] = True  # 32 + 10 reference pixels
@@ -446,7 +447,7 @@ class TestViewsOfDifferentSizes:
 
 
 class TestInstanceFrame:
-    """Step 1 (``reconstruct.instance_frame``): a moving car is matched in its object frame."""
+    """Step 1 (``survey.instance_frame``): a moving car is matched in its object frame."""
 
     def test_moving_car_in_its_object_frame(self, scene, index):
         ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))

@@ -354,7 +354,8 @@ class TestWholeViews:
 
     def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
         from vadgs.select import ViewSelectionConfig
-        from vadgs.train.vad.reconstruct import _select_supports, instance_frame
+        from vadgs.train.vad.reconstruct import _select_supports
+        from vadgs.train.vad.survey import instance_frame
 
         # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
         selection = ViewSelectionConfig(min_shared=1, k=2)
@@ -443,7 +444,8 @@ class TestSeenSupports:
     def test_reference_seeing_one_voxel_asks_supports_to_share_it(self, scene, index):
         """A far cell of a real log's ground grid shows its reference one voxel: supports share that one."""
         from vadgs.select import ViewSelectionConfig, select_views
-        from vadgs.train.vad.reconstruct import _select_supports, instance_frame
+        from vadgs.train.vad.reconstruct import _select_supports
+        from vadgs.train.vad.survey import instance_frame
 
         ref = self._ref(scene, index)
         blind = self._blind(index, ref)

@@ -66,7 +66,7 @@ class VisibilityDensifyConfig(Checked):
         max_instances: at most this many instances reconstructed per event, in the order of
             ``ranking`` (``None``, the default: every flagged instance, within ``work_budget``).
         work_budget: an event stops starting new instances once its PatchMatch has done this
-            many pixel-sweeps (:func:`~vadgs.train.vad.reconstruct.match_work`: reference pixels ×
+            many pixel-sweeps (:func:`~vadgs.train.vad.matching.match_work`: reference pixels ×
             source views × sweeps) per training pixel so far (the steps so far × the training
             views' mean pixel count); the instances left are logged as skipped
             (``"work_budget"``) and tried at the next event. The first instance is always tried.

@@ -136,13 +136,16 @@ def fuse_points(
     occupied: torch.Tensor | None,
     generator: torch.Generator | None,
     device: torch.device,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Step 5b: ``(points, normals, colors, spacing)`` of the ``new`` pixels, in the instance's frame.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """Step 5b: ``(points, normals, colors, spacing, consistent)``, the points of the ``new`` pixels.
+
+    Points, normals, colours and spacing in the instance's frame.
 
     One point per pixel (:func:`~vadgs.mvs.fuse_depth_maps`), its spacing the pixel footprint at its
     depth; with ``cfg.thin_points``, one per cell of the spacing (times ``thin_factor`` for a
     coarsely matched instance; cells of the static grid's frame, or a moving object's own) and none
-    in a cell of ``occupied``; at most ``cfg.max_points``, drawn with ``generator``.
+    in a cell of ``occupied``; at most ``cfg.max_points``, drawn with ``generator``. ``consistent``:
+    the consistent pixels (``cons.keep``), counted in the thinning's read.
     """
     fused = fuse_depth_maps(  # one point per such pixel, in the instance's frame
         cons.depth, matched.images, matched.K, matched.world_to_cam, cons.normal, new,
@@ -151,18 +154,21 @@ def fuse_points(
     seed_w2c, seed_K = matched.world_to_cam[fused.view_index], matched.K[fused.view_index]
     z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
     points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
+    consistent = cons.keep.sum()
     if cfg.thin_points and points.shape[0]:  # one per cell of the scene resolution's spacing, or coarser
         spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
         local, taken = points, None if occupied is None else occupied.to(device)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
             local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
-        keep = thin_points(local, spacing.median(), taken).nonzero().squeeze(1)  # one read
+        kept = thin_points(local, spacing.median(), taken)
+        n, consistent = torch.stack([kept.sum(), consistent.to(kept.device)]).tolist()  # one read
+        keep = torch.nonzero_static(kept, size=n).squeeze(1)
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)
         sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].to(device)
         points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
-    return points, normals, colors, spacing
+    return points, normals, colors, spacing, int(consistent)
 
 
 def depth_priors(cons: ConsistentDepth, crops: Crops, size: tuple[int, int]) -> tuple[list, list]:

@@ -103,7 +103,7 @@ class ReconstructConfig(Checked):
             at each view's timestamp); the reason then ends in ``"(seen)"``. ``False``: the
             visibility sets only, as the paper's supplement.
         match_padding: the pairs of an event are matched together
-            (:func:`~vadgs.train.vad.reconstruct.match_plans`): a batched PatchMatch call pads
+            (:func:`~vadgs.train.vad.matching.match_plans`): a batched PatchMatch call pads
             every crop to the largest of the call, whose pixels are at most this many times a
             crop's (the fewer calls, the fewer kernel launches on a GPU; the more padding, the
             more pixels scored: each reference scores the union of the call's masks). 1: equal

@@ -121,6 +121,10 @@ class VisibilityIndex:
 
     def cut_by_border_views(self, views: Sequence[int], instance: int) -> list[bool]:
         """:meth:`cut_by_border` of each of ``views``, in one host read (views of a size batched)."""
+        return [bool(f) for f in self.border_cuts(views, instance).tolist()] if len(views) else []
+
+    def border_cuts(self, views: Sequence[int], instance: int) -> torch.Tensor:
+        """``(len(views),)`` bool on the device: :meth:`cut_by_border` of each view (no read)."""
         by_size: dict[tuple[int, int], list[int]] = {}
         for k, v in enumerate(views):
             by_size.setdefault(self.size(v), []).append(k)
@@ -131,12 +135,11 @@ class VisibilityIndex:
             edges = torch.cat([m[:, 0], m[:, -1], m[:, :, 0], m[:, :, -1]], 1)  # (n, 2w + 2h)
             parts.append(edges.any(1))
             order += ks
+        dev = self.cameras.K.device
         if not parts:
-            return []
-        flags = torch.cat(parts).tolist()
-        out = [False] * len(views)
-        for k, f in zip(order, flags):
-            out[k] = bool(f)
+            return torch.zeros(0, dtype=torch.bool, device=dev)
+        out = torch.zeros(len(views), dtype=torch.bool, device=parts[0].device)
+        out[torch.tensor(order, device=out.device)] = torch.cat(parts)
         return out
 
     def valid(self, view: int) -> torch.Tensor:
