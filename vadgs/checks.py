@@ -216,7 +216,8 @@ def check_intrinsics(K: torch.Tensor, name: str = "K", pinhole: bool = False) ->
 
     The shape is always checked; the values are a value check (:func:`checks_enabled`). With
     ``pinhole`` (a ``K`` read from a file or given by a user) also the form
-    ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (to 1e-9).
+    ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (to 1e-9), and the values whatever
+    :func:`checks_enabled` says: a file is refused at load, never trained on.
 
     Example:
         >>> check_intrinsics(torch.zeros(2, 3, 3))
@@ -230,7 +231,7 @@ def check_intrinsics(K: torch.Tensor, name: str = "K", pinhole: bool = False) ->
     """
     check_shape(K, name, ("*", 3, 3))
     check_finite(K, name)
-    if not checks_enabled():
+    if not pinhole and not checks_enabled():
         return
     K = K.detach()
     f = K[..., [0, 1], [0, 1]]

@@ -14,7 +14,7 @@ import pytest
 import torch
 from PIL import Image
 
-from vadgs.checks import check_intrinsics
+from vadgs.checks import check_intrinsics, checking
 from vadgs.data import ValidationReport, load_scene, sample_scene_path, validate_scene
 from vadgs.data.checks import check_rigid
 from vadgs.data.scene import npz_headers
@@ -267,6 +267,17 @@ class TestHelpers:
             ValueError, match=r"^k: expected positive focal lengths .*, got fx=100, fy=-1 at \(1,\)$"
         ):
             check_intrinsics(K, "k")
+
+    def test_a_file_K_is_checked_with_value_checks_off(self):
+        # VADGS_CHECKS / checking(False) skip the value checks of tensors the caller vouches for,
+        # never those of a K read from a file or given by a user (pinhole=True)
+        K = torch.tensor([[0.0, 0, 5], [0, 90, 4], [0, 0, 1]])
+        with checking(False):
+            check_intrinsics(K)  # a value check: off
+            with pytest.raises(ValueError, match=r"^K: expected positive focal lengths .*, got fx=0, fy=90$"):
+                check_intrinsics(K, pinhole=True)
+            with pytest.raises(ValueError, match=r"^K: expected \[\[fx, s, cx\]"):
+                check_intrinsics(torch.tensor([[9.0, 0, 5], [1.0, 9, 4], [0, 0, 1]]), pinhole=True)
 
     def test_check_rigid_tolerance(self):
         T = torch.eye(4)
