@@ -343,8 +343,9 @@ def _costs(
         prod = x * px.ref[:, None, :, :, None, p0 : p0 + pc]  # (B, V, 2, S, K, pc): w x, w x (r - mean) / std
         mean, cov = prod.sum(3).unbind(2)
         var = torch.addcmul((prod[:, :, 0] * x[:, :, 0]).sum(2), mean, mean, value=-1)
-        # 1 - ncc, in [0, 2] up to rounding (clamped once, in the result)
-        costs.append(torch.addcmul(src.one, cov, var.clamp_min(min_variance).rsqrt(), value=-1))
+        # 1 - ncc, in [0, 2] up to rounding (clamped once, in the result); where var < min_variance
+        # (NaN or infinite here) the mask below puts the worst cost
+        costs.append(torch.addcmul(src.one, cov, var.rsqrt(), value=-1))
         variances.append(var)
     cost = torch.cat(costs, dim=-1) if len(costs) > 1 else costs[0]
     var = torch.cat(variances, dim=-1) if len(variances) > 1 else variances[0]
@@ -352,7 +353,7 @@ def _costs(
     # centre does not land in front of the source camera inside its image (and mask).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    outside = c0[..., :2].abs().amax(-1) > cz  # or behind (vector_norm(ord=inf) is 10x slower on CPU)
+    outside = torch.linalg.vector_norm(c0[..., :2], ord=math.inf, dim=-1) > cz  # or behind
     bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
@@ -367,25 +368,39 @@ def _costs(
     return cost.masked_fill_(bad, MAX_COST), nr
 
 
-def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor) -> torch.Tensor:
-    """ACMH view weights ``(B, V, P)`` from the costs ``(B, V, N, P)`` of N hypotheses."""
+def _view_weights(
+    costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """ACMH view weights ``(B, V, P)`` from the costs ``(B, V, N, P)`` of N hypotheses, their sum and where it is positive.
+
+    The sum ``(B, 1, P)`` and its mask serve every :func:`_aggregate` call of a half-sweep.
+    """
     good = costs < cfg.good_threshold
     n_good = good.sum(2)
-    dropped = (n_good < 2) | ((costs > cfg.bad_threshold).sum(2) > 3)
+    dropped = n_good < 2
+    n = costs.shape[2]
+    if n > 3:  # more than three bad costs: the 4th largest is bad
+        dropped = dropped | (costs.kthvalue(n - 3, dim=2).values > cfg.bad_threshold)
     conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
-    return (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
+    weights = (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
+    wsum = weights.sum(1, keepdim=True)
+    return weights, wsum, wsum > 0
 
 
-def _aggregate(costs: torch.Tensor, weights: torch.Tensor | None, cfg: PatchMatchConfig) -> torch.Tensor:
-    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``."""
+def _aggregate(
+    costs: torch.Tensor,
+    weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+    cfg: PatchMatchConfig,
+) -> torch.Tensor:
+    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)`` (``weights``: :func:`_view_weights`'s)."""
     if cfg.view_selection == "mean":
         return costs.mean(1)
     topk = costs.topk(min(cfg.top_k, costs.shape[1]), dim=1, largest=False).values.mean(1)
     if cfg.view_selection == "topk" or weights is None:
         return topk
-    wsum = weights.sum(1, keepdim=True)  # (B, 1, P)
-    weighted = (costs * weights[:, :, None]).sum(1) / wsum
-    return torch.where(wsum > 0, weighted, topk)
+    w, wsum, has = weights
+    weighted = (costs * w[:, :, None]).sum(1) / wsum
+    return torch.where(has, weighted, topk)
 
 
 def _scored_pixels(active: torch.Tensor, even: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
@@ -917,46 +932,50 @@ def _patchmatch_level(
         normal = _random_normals(rays_all, gen)
         depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
     if n_act:
-        # State of the scored pixels and the sentinel (infinite cost, never chosen when another
-        # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs.
-        nr0 = (normal * rays_all).sum(-1, keepdim=True)
-        hyp = _take(torch.cat([depth[..., None], normal, nr0], -1), idx)
-        init = [hyp[..., :4]]
+        init = [_take(torch.cat([depth[..., None], normal], -1), idx)]
         if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
             init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
-        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, float("inf")], device=dev, dtype=dt)
-        state = torch.cat(
-            [
-                F.pad(hyp, (0, 1 + nv), value=MAX_COST),
-                F.pad(sentinel, (0, nv), value=MAX_COST).expand(bsz, 1, -1),
-            ],
-            1,
-        )
         kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
         its = range(start_iteration, start_iteration + iterations)
-        half = torch.tensor(
-            [[cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its],
-            device=dev,
-            dtype=dt,
-        )  # (iterations, 8): noise = (2u - 1) * half
-        neg_half, twice = -half, 2 * half
-        n_prop = nbr.shape[1]  # the current hypothesis and the propagated ones
+        halves = [[cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its]
+        # (2, iterations, 8): noise = -half + u * 2 half (the signs and doublings exact in any dtype)
+        scale = torch.tensor([[[-x for x in h] for h in halves], [[2 * x for x in h] for h in halves]], device=dev, dtype=dt)
+        # NB: nbr.shape[1] is the pixel count, not 1 + R: with joint_scoring the view weights see
+        # the refinements too (kept as it was; see the report of issue 48's launch work)
+        n_prop = nbr.shape[1]
 
-        def keep_best(sl: slice, cands, costs, nr, vw) -> None:
-            """Write the best of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
-            agg_all = _aggregate(costs, vw, cfg)  # (B, N, P)
-            best = agg_all.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-            record = torch.cat([cands, nr[..., None], agg_all[..., None], costs.permute(0, 2, 3, 1)], -1)
+        def keep_best(sl: slice, cands, costs, nr, agg) -> None:
+            """Write the best of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``, aggregated ``agg``) to the state."""
+            best = agg.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+            record = torch.cat([cands, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
             state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
 
-        first_hyp = torch.stack(init, 1)  # (B, K, P, 4)
+        # State of the scored pixels and the sentinel (infinite cost, never chosen when another
+        # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs; the
+        # initial hypotheses' (the better-scoring one where there are two).
+        first_hyp = torch.stack(init, 1) if len(init) > 1 else init[0][:, None]  # (B, K, P, 4)
         costs, nr = _costs(src, pixels, first_hyp, cfg.min_variance, chunk)
-        keep_best(slice(0, n_act), first_hyp, costs, nr, None)
+        agg = _aggregate(costs, None, cfg)
+        record = torch.cat([first_hyp, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
+        if len(init) > 1:
+            best = agg.argmin(1)[:, None, :, None]
+            record = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))
+        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, math.inf] + [MAX_COST] * nv, device=dev, dtype=dt)
+        state = torch.cat([record[:, 0], sentinel.expand(bsz, 1, -1)], 1)
+        # The random numbers of the refinements of both colours: all the level's at once unless
+        # random hypotheses are drawn between them (the same numbers either way on the CPU).
+        upfront = bool(kinds) and iterations > 0 and not any("r" in kind for kind in kinds)
+        if upfront:
+            u = torch.rand((iterations, bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
+            noises = torch.addcmul(scale[0, :, None, None], u, scale[1, :, None, None])
         for i in range(iterations):
-            if kinds:  # the random numbers of the refinements of both colours
-                u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
-                noise = torch.addcmul(neg_half[i], u, twice[i])
+            if kinds:
+                if upfront:
+                    noise = noises[i]
+                else:
+                    u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
+                    noise = torch.addcmul(scale[0, i], u, scale[1, i])
             for sl, px in zip(colours, parts):
                 cur = state[:, sl]
                 cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
@@ -975,15 +994,17 @@ def _patchmatch_level(
                     if cfg.view_selection == "acmh"
                     else None
                 )
+                agg = _aggregate(costs, vw, cfg)  # (B, N, P)
                 if kinds and not cfg.joint_scoring:
                     # Refine the propagation's winner (ACMH), scored with the same view weights.
-                    win = _aggregate(costs, vw, cfg).argmin(1)[:, None, :, None]
+                    win = agg.argmin(1)[:, None, :, None]
                     base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
                     c, r_nr = _costs(src, px, refined, cfg.min_variance, chunk)
                     cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
                     costs, nr = torch.cat([costs, c], 2), torch.cat([nr, r_nr], 1)
-                keep_best(sl, cands, costs, nr, vw)
+                    agg = torch.cat([agg, _aggregate(c, vw, cfg)], 1)
+                keep_best(sl, cands, costs, nr, agg)
         padded = region is not None
         depth = _put(depth, slot, state[:, :n_act, 0], padded)
         normal = _put(normal, slot, state[:, :n_act, 1:4], padded)
