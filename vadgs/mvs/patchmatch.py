@@ -512,19 +512,23 @@ def _refinements(
     ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random. ``lo``, ``hi``: numbers or
     ``(B,)`` tensors.
     """
-    z, n = cur[..., 0], cur[..., 1:]
+    k = len(kinds)  # a prefix of ("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")
+    z, n = cur[..., 0], cur[..., 1:4]
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
-    pd = (z[..., None] * noise[..., :2].exp()).clamp_(lo, hi)  # (B, P, 2)
-    m = n[:, :, None] + noise[..., 2:].unflatten(-1, (2, 3))  # (B, P, 2, 3), |m| >= 1/2
+    out = cur[:, None, :, :4].repeat(1, k, 1, 1)  # (B, k, P, 4): "c" everywhere, then overwritten
+    nd = min(k, 2)  # perturbed depths: kinds 0 and 1 (the i-th draw for kind i)
+    torch.mul(z[..., None], noise[..., :nd].exp(), out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
+    # the perturbed normal: kinds 0 and 2 (both the first draw; the second is never used)
+    m = n + noise[..., 2:5]  # |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
-    facing = torch.bmm(m.view(-1, 2, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1) < -1e-3
-    pn = torch.where(facing, m, n[:, :, None])
-    rd, rn = z, n  # random hypotheses, drawn only when a kind asks for them
-    if any("r" in kind for kind in kinds):
+    facing = torch.bmm(m.view(-1, 1, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1, 1) < -1e-3
+    pn = out[:, 0:3:2, :, 1:4].transpose(1, 2)  # (B, P, 1 or 2, 3)
+    torch.where(facing.expand_as(pn), m[:, :, None].expand_as(pn), n[:, :, None].expand_as(pn), out=pn)
+    if k > 3:  # random hypotheses: depths for kinds 3 and 4, normals for kinds 3 and 5
         rd, rn = _random_depth(z.shape, lo, hi, gen, z), _random_normals(rays, gen)
-    depths = [{"p": pd[..., i % 2], "c": z, "r": rd}[kd] for i, (kd, _) in enumerate(kinds)]
-    normals = [{"p": pn[:, :, i % 2], "c": n, "r": rn}[kn] for i, (_, kn) in enumerate(kinds)]
-    return torch.cat([torch.stack(depths, 1)[..., None], torch.stack(normals, 1)], -1)
+        out[:, 3:5, :, 0] = rd[:, None]
+        out[:, 3:6:2, :, 1:4] = rn[:, None]
+    return out
 
 
 def _apply_init(depth, normal, init_depth, init_normal, rays, lo, hi):
