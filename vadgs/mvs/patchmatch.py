@@ -437,31 +437,34 @@ def _put(x: torch.Tensor, slot: torch.Tensor, values: torch.Tensor, padded: bool
 
 
 def _neighbour_table(
-    xs: torch.Tensor, ys: torch.Tensor, h: int, w: int, lut: torch.Tensor, kind: str
+    idx: torch.Tensor, h: int, w: int, lut: torch.Tensor, sentinel: int, kind: str
 ) -> torch.Tensor:
-    """``(N, P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
+    """``(N, P, 1 + R, L)`` indices into the scored pixels: each pixel ``idx``, its regions' neighbours.
 
-    ``xs``, ``ys`` ``(N, P)`` and ``lut`` ``(N, HW + 1)`` (the scored pixel of each pixel) are of one
-    reference each, or ``N = 1`` for all. Regions are padded to the longest; padding, neighbours
-    outside the image and unscored neighbours point to the sentinel ``lut[:, h * w]`` (whose cost
-    is infinite), a region with no other neighbour to the pixel itself. A few broadcasts, once per
-    level.
+    ``idx`` ``(N, P)`` (flat pixel indices) and ``lut`` ``(N, HW + 1)`` (the scored pixel of each
+    pixel) are of one reference each, or ``N = 1`` for all. Regions are padded to the longest;
+    padding, neighbours outside the image and unscored neighbours point to ``sentinel`` (the
+    index of a state row whose cost is infinite), a region with no other neighbour to the
+    pixel itself. The neighbours are looked up in ``lut`` padded by the sentinel around the image,
+    so that an offset is one addition: a handful of launches, once per level.
     """
     regions = [[(0, 0)], *propagation_regions(kind)]  # the pixel itself, then its R regions
     longest = max(len(r) for r in regions)
-    far = 2 * (h + w)  # a padding offset that always lands outside the image
-    off = torch.tensor(
-        [[list(o) for o in r] + [[far, far]] * (longest - len(r)) for r in regions], device=xs.device
-    )  # (R, L, 2)
-    qx = xs[..., None, None] + off[..., 0]
-    qy = ys[..., None, None] + off[..., 1]
-    outside = (qx < 0) | (qx >= w) | (qy < 0) | (qy >= h)
-    q = (qy * w + qx).masked_fill_(outside, h * w)
-    table = torch.gather(lut, 1, q.view(q.shape[0], -1)).view(q.shape)
+    pad = max(max(abs(dx), abs(dy)) for r in regions for dx, dy in r)
+    wp = w + 2 * pad
+    # (2, R, L): flat offsets in the padded table (from the pixel's padded index less pad * (wp + 1)),
+    # and 1 for a neighbour, 0 for padding (then the offset is 0: a corner of the padding)
+    rows = [[[(dy + pad) * wp + dx + pad for dx, dy in r] + [0] * (longest - len(r)) for r in regions]]
+    rows.append([[1] * len(r) + [0] * (longest - len(r)) for r in regions])
+    off, real = torch.tensor(rows, device=idx.device).unbind()
+    padded = F.pad(lut[:, : h * w].view(-1, h, w), (pad, pad, pad, pad), value=sentinel)
+    base = torch.add(idx, torch.div(idx, w, rounding_mode="floor"), alpha=wp - w)  # y wp + x
+    q = torch.addcmul(off, base[..., None, None], real)
+    table = torch.gather(padded.view(padded.shape[0], -1), 1, q.view(q.shape[0], -1)).view(q.shape)
     # A region wholly outside the image (or unscored) would offer only the sentinel, a plane of
     # fixed absolute depth: it offers the pixel's own plane instead (a tie with the current plane,
     # which argmin keeps), so that the search is equivariant to the scale of the world.
-    empty = (table == lut[:, h * w, None, None, None]).all(-1, keepdim=True)
+    empty = (table == sentinel).all(-1, keepdim=True)
     return torch.where(empty, table[..., :1, :1], table)
 
 
@@ -921,7 +924,7 @@ def _patchmatch_level(
     ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
     pixels = _Pixels(idx, rays, cols, rows, ref)
     na = lut.shape[0]  # 1: the same pixels for all
-    nbr = _neighbour_table(xs[idx[:na]], ys[idx[:na]], h, w, lut, cfg.propagation)  # (1 or B, P, 1 + R, L)
+    nbr = _neighbour_table(idx[:na], h, w, lut, n_act, cfg.propagation)  # (1 or B, P, 1 + R, L)
     batch = None if region is None else torch.arange(bsz, device=dev).view(bsz, 1, 1, 1)
     del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
