@@ -952,10 +952,13 @@ def _patchmatch_level(
         # the refinements too (kept as it was; see the report of issue 48's launch work)
         n_prop = nbr.shape[1]
 
-        def keep_best(sl: slice, cands, costs, nr, agg) -> None:
-            """Write the best of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``, aggregated ``agg``) to the state."""
-            best = agg.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-            record = torch.cat([cands, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
+        def records(cands, nr, agg, costs) -> torch.Tensor:
+            """``(B, N, P, 6 + V)`` state rows of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``)."""
+            return torch.cat([cands, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
+
+        def keep_best(sl: slice, record: torch.Tensor) -> None:
+            """Write the best-scoring of the rows ``record`` ``(B, N, P, 6 + V)`` to the state."""
+            best = record[..., 5].argmin(1)[:, None, :, None]  # (B, 1, P, 1)
             state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
 
         # State of the scored pixels and the sentinel (infinite cost, never chosen when another
@@ -964,7 +967,7 @@ def _patchmatch_level(
         first_hyp = torch.stack(init, 1) if len(init) > 1 else init[0][:, None]  # (B, K, P, 4)
         costs, nr = _costs(src, pixels, first_hyp, cfg.min_variance, chunk)
         agg = _aggregate(costs, None, cfg)
-        record = torch.cat([first_hyp, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
+        record = records(first_hyp, nr, agg, costs)
         if len(init) > 1:
             best = agg.argmin(1)[:, None, :, None]
             record = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))
@@ -1008,10 +1011,12 @@ def _patchmatch_level(
                     base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
                     c, r_nr = _costs(src, px, refined, cfg.min_variance, chunk)
-                    cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
-                    costs, nr = torch.cat([costs, c], 2), torch.cat([nr, r_nr], 1)
-                    agg = torch.cat([agg, _aggregate(c, vw, cfg)], 1)
-                keep_best(sl, cands, costs, nr, agg)
+                    record = torch.cat(  # current, propagated, refined
+                        [records(cands, nr, agg, costs), records(refined, r_nr, _aggregate(c, vw, cfg), c)], 1
+                    )
+                else:
+                    record = records(cands, nr, agg, costs)
+                keep_best(sl, record)
         padded = region is not None
         depth = _put(depth, slot, state[:, :n_act, 0], padded)
         normal = _put(normal, slot, state[:, :n_act, 1:4], padded)
