@@ -102,7 +102,7 @@ class PatchMatchConfig:
         joint_scoring: score the random refinements together with the propagated planes, in one
             cost evaluation per half-sweep, around the likeliest winner known before scoring (the
             plane of lowest cost where it was last scored) instead of around the propagation's
-            winner: about a quarter fewer kernel launches (992 instead of 1,288 for the defaults,
+            winner: about a fifth fewer kernel launches (904 instead of 1,160 for the defaults,
             ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.6 % instead of
             32.4 % of the depths within 1 %, mean of 3 seeds).
     """
@@ -371,7 +371,7 @@ def _costs(
 def _view_weights(
     costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """ACMH view weights ``(B, V, P)`` from the costs ``(B, V, N, P)`` of N hypotheses, their sum and where it is positive.
+    """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, their sum, where > 0.
 
     The sum ``(B, 1, P)`` and its mask serve every :func:`_aggregate` call of a half-sweep.
     """
@@ -392,7 +392,10 @@ def _aggregate(
     weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
     cfg: PatchMatchConfig,
 ) -> torch.Tensor:
-    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)`` (``weights``: :func:`_view_weights`'s)."""
+    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``.
+
+    ``weights``: :func:`_view_weights`'s (``None``: the mean of the ``top_k`` best views).
+    """
     if cfg.view_selection == "mean":
         return costs.mean(1)
     topk = costs.topk(min(cfg.top_k, costs.shape[1]), dim=1, largest=False).values.mean(1)
@@ -509,11 +512,13 @@ def _refinements(
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
-    Two perturbed depths (relative: ``z exp(noise[..., i])``) and two perturbed normals (``n``
-    plus ``noise[..., 2 + 3 i : 5 + 3 i]``, normalised, kept only when they face the camera), the
-    ``noise`` ``(B, P, 8)`` uniform, combined as ``kinds`` says: ``"p"`` perturbed (the
-    ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random. ``lo``, ``hi``: numbers or
-    ``(B,)`` tensors.
+    Two perturbed depths (relative: ``z exp(noise[..., i])``) and a perturbed normal (``n`` plus
+    ``noise[..., 2:5]``, normalised, kept only when it faces the camera), the ``noise``
+    ``(B, P, 8)`` uniform (``noise[..., 5:]`` is drawn but unused), combined as ``kinds`` says:
+    ``"p"`` perturbed (the ``i % 2``-th depth, the normal), ``"c"`` current, ``"r"`` random.
+    ``kinds`` is a prefix of ACMH's list (see :func:`_patchmatch_level`): the result is the current
+    plane repeated, with the perturbed and random parts written over it (a fixed handful of
+    launches). ``lo``, ``hi``: numbers or ``(B,)`` tensors.
     """
     k = len(kinds)  # a prefix of ("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")
     z, n = cur[..., 0], cur[..., 1:4]
@@ -945,11 +950,15 @@ def _patchmatch_level(
             init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
         kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
         its = range(start_iteration, start_iteration + iterations)
-        halves = [[cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its]
+        halves = [
+            [cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its
+        ]
         # (2, iterations, 8): noise = -half + u * 2 half (the signs and doublings exact in any dtype)
-        scale = torch.tensor([[[-x for x in h] for h in halves], [[2 * x for x in h] for h in halves]], device=dev, dtype=dt)
-        # NB: nbr.shape[1] is the pixel count, not 1 + R: with joint_scoring the view weights see
-        # the refinements too (kept as it was; see the report of issue 48's launch work)
+        scale = torch.tensor(
+            [[[-x for x in h] for h in halves], [[2 * x for x in h] for h in halves]], device=dev, dtype=dt
+        )
+        # NB: nbr.shape[1] is the pixel count, not 1 + R, so with joint_scoring the view weights
+        # see the refinements too (kept as it was, to keep its results)
         n_prop = nbr.shape[1]
 
         def records(cands, nr, agg, costs) -> torch.Tensor:
