@@ -113,8 +113,8 @@ class PatchMatchConfig(Checked):
             cost evaluation per half-sweep, around the likeliest winner known before scoring (the
             plane of lowest cost where it was last scored) instead of around the propagation's
             winner: about a fifth fewer kernel launches (904 instead of 1,160 for the defaults,
-            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.6 % instead of
-            32.4 % of the depths within 1 %, mean of 3 seeds).
+            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.7 % instead of
+            32.4 % of the raw depths within 1 %, mean of seeds 0-2).
     """
 
     iterations: int = checked(3, int_field(0))
@@ -942,9 +942,6 @@ def _patchmatch_level(
         scale = torch.tensor(
             [[[-x for x in h] for h in halves], [[2 * x for x in h] for h in halves]], device=dev, dtype=dt
         )
-        # NB: nbr.shape[1] is the pixel count, not 1 + R, so with joint_scoring the view weights
-        # see the refinements too (kept as it was, to keep its results)
-        n_prop = nbr.shape[1]
 
         def records(cands, nr, agg, costs) -> torch.Tensor:
             """``(B, N, P, 6 + V)`` state rows of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``)."""
@@ -983,6 +980,7 @@ def _patchmatch_level(
             for sl, px in zip(colours, parts):
                 cur = state[:, sl]
                 cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
+                n_prop = cands.shape[1]  # current and propagated: what the view weights see
                 if kinds and cfg.joint_scoring:
                     # Refine the likeliest winner: the plane of lowest cost where it was scored
                     # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
