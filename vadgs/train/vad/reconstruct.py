@@ -21,7 +21,7 @@ flagged by :func:`~vadgs.train.vad.incomplete.find_incomplete`:
    object's own frame), with :func:`vadgs.mvs.fuse_depth_maps` (one point per consistent pixel);
 6. returns each member's consistent depth and normals at the scene's resolution as priors.
 
-This module holds steps 1–3 (:func:`instance_frame`, ``_select_supports``, :func:`match_plans`, and
+This module holds steps 1–3 (:func:`instance_frame`, ``select_supports``, :func:`match_plans`, and
 :func:`match_work`, the matching's cost) and :func:`reconstruct_instance`, which runs them all on
 the device of the index, in three parts that an event runs over all its (instance, reference)
 pairs: :func:`plan_match` (steps 1–3a, pair by pair: a :class:`MatchPlan`), :func:`match_plans`
@@ -57,16 +57,20 @@ if TYPE_CHECKING:
     from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
+    "MAX_CALL_PIXEL_VIEWS",
     "InstanceFrame",
     "InstanceReconstruction",
+    "MatchInputs",
     "MatchPlan",
     "ViewRender",
     "finish_match",
     "instance_frame",
+    "match_batches",
     "match_plans",
     "match_work",
     "plan_match",
     "reconstruct_instance",
+    "select_supports",
 ]
 
 
@@ -188,7 +192,7 @@ def instance_frame(
     return InstanceFrame(index.covis, voxels, index.cameras.world_to_cam, index.allowed)
 
 
-def _select_supports(
+def select_supports(
     index: VisibilityIndex,
     ref: int,
     instance: int,
@@ -206,6 +210,18 @@ def _select_supports(
     then asks its supports to share all it shows. The reason ends in ``" (seen)"`` when the
     z-buffers were used: the selection's on them when the reference shows any voxel there, else
     the visibility sets'.
+
+    Args:
+        index: the scene's visibility index.
+        ref: the reference view.
+        instance: the instance id.
+        track: the instance's track id when it moves, else None.
+        frame: the instance's frame (:func:`instance_frame`).
+        cfg: the reconstruction's settings.
+        generator: the random numbers of the selection.
+
+    Returns:
+        The :class:`~vadgs.select.ViewSelection` of the supporting views.
     """
     sel = _select_among(index, ref, instance, frame.covis.restrict(frame.voxels), frame, cfg, generator)
     if not (cfg.seen_supports and sel.reason.startswith(("no_voxels", "no_candidates", "narrow_baselines"))):
@@ -302,7 +318,7 @@ class MatchPlan(NamedTuple):
     work: float
 
 
-class _MatchInputs(NamedTuple):
+class MatchInputs(NamedTuple):
     """One plan's PatchMatch inputs, one row per member (``b``), sources ``V`` of size ``(hs, ws)``."""
 
     images: torch.Tensor  # (b, 3, ch, cw)
@@ -319,7 +335,7 @@ class _MatchInputs(NamedTuple):
 
 def _match_inputs(
     index: VisibilityIndex, plan: MatchPlan, render_prior: Callable[[int], ViewRender] | None
-) -> _MatchInputs:
+) -> MatchInputs:
     """Step 3b's inputs of one plan: each member's crop as reference against all other group views."""
     crops, group, world_to_cam = plan.crops, plan.group, plan.world_to_cam
     ch, cw = crops.size
@@ -340,7 +356,7 @@ def _match_inputs(
     shift = torch.zeros(len(corners), 3, 3, device=dev, dtype=crops.K.dtype)
     shift[:, :2, 2] = torch.tensor(corners, device=dev, dtype=crops.K.dtype)
     others = torch.tensor([[j for j in range(len(group)) if j != i] for i in crops.members], device=dev)
-    return _MatchInputs(
+    return MatchInputs(
         torch.stack(ref_imgs),
         torch.stack(ref_masks),
         crops.K[members] - shift,  # shift_K of each member's crop
@@ -360,7 +376,9 @@ def _match_inputs(
 MAX_CALL_PIXEL_VIEWS = 1 << 20
 
 
-def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean: bool) -> list[list[int]]:
+def match_batches(
+    inputs: list[MatchInputs], padding: float | None, top_k: int, mean: bool
+) -> list[list[int]]:
     """The plans matched together, in groups of one PatchMatch call each.
 
     A call's padded crop (the largest height by the largest width) is at most ``padding`` times
@@ -368,6 +386,11 @@ def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean
     fewer source views than the others are padded with views that match nothing, which
     changes nothing but the ``top_k`` fallback of fewer than ``top_k`` views and ``"mean"``
     aggregation (``mean``): such plans are matched only with plans of as many views.
+
+    Only the inputs' shapes are read (``images`` and ``src_images``).
+
+    Returns:
+        The indices of ``inputs`` of each call, in ascending order within a call.
     """
     order = sorted(range(len(inputs)), key=lambda i: -inputs[i].images.shape[-2] * inputs[i].images.shape[-1])
     out: list[dict] = []  # key (exact view count or -1), size, smallest area, references, views, plans
@@ -393,7 +416,7 @@ def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean
 
 
 def _match_batch(
-    parts: list[_MatchInputs], ranges: list[tuple[float, float]], pm: PatchMatchConfig
+    parts: list[MatchInputs], ranges: list[tuple[float, float]], pm: PatchMatchConfig
 ) -> PatchMatchResult:
     """One :func:`~vadgs.mvs.patchmatch` call on the plans' inputs ``parts``, padded to one size."""
     if len(parts) == 1:
@@ -491,7 +514,7 @@ def _match_plans(
     inputs = [_match_inputs(index, plan, render_prior) for plan in plans]
     out: list[MatchedCrops | None] = [None] * len(plans)
     pm = cfg.patchmatch
-    for batch in _batches(inputs, cfg.match_padding, pm.top_k, pm.view_selection == "mean"):
+    for batch in match_batches(inputs, cfg.match_padding, pm.top_k, pm.view_selection == "mean"):
         parts = [inputs[i] for i in batch]
         res = _match_batch(parts, [plans[i].depth_range for i in batch], pm)
         n0 = 0
@@ -573,7 +596,7 @@ def plan_match(
         frame = instance_frame(index, ref, instance, track, cfg)  # 1. voxels and frame
         if isinstance(frame, str):
             return nothing(frame)
-        sel = _select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
+        sel = select_supports(index, ref, instance, track, frame, cfg, generator)  # 2.
         group = [ref, *sel.views.tolist()]
         if len(group) < 2:
             return nothing(f"selection:{sel.reason}")
