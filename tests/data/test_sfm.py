@@ -15,7 +15,7 @@ from PIL import Image
 from vadgs.cli import main
 from vadgs.data import open_colmap_project
 from vadgs.data.colmap_model import colmap_world_to_cam
-from vadgs.data.sfm import _sequential_pairs, find_photos, photo_groups, run_sfm
+from vadgs.data.sfm import find_photos, photo_groups, run_sfm, sequential_pairs
 from vadgs.train.scenes import scene_ref
 
 from .photo_sample import SIDEWAYS, photo_cameras, write_photo_set
@@ -294,7 +294,7 @@ class TestBadInput:
             (tmp_path / name).parent.mkdir(exist_ok=True)
             Image.new("RGB", size).save(tmp_path / name)
         (tmp_path / ".hidden.png").write_bytes(b"")
-        assert _sequential_pairs("abcd", 2) == [("a", "b"), ("a", "c"), ("b", "c"), ("b", "d"), ("c", "d")]
+        assert sequential_pairs("abcd", 2) == [("a", "b"), ("a", "c"), ("b", "c"), ("b", "d"), ("c", "d")]
         names = find_photos(tmp_path)
         assert names == ["a.png", "b.png", "sub/c.jpg"]
         assert photo_groups(tmp_path, names) == [["a.png", "b.png"], ["sub/c.jpg"]]

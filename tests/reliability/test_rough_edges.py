@@ -11,7 +11,7 @@ from PIL import Image
 
 from vadgs.cli import main
 from vadgs.data.images import exif_orientation, upright_image
-from vadgs.data.sfm import _read_header, find_photos, unsupported_photos
+from vadgs.data.sfm import find_photos, read_photo_header, unsupported_photos
 
 
 def _photo(path: Path, seed: int, exif: Image.Exif | None = None) -> None:
@@ -55,7 +55,7 @@ class TestPhotos:
         _photo(path, 1, exif)
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
-            header = _read_header(path)  # what vadgs sfm reads: not "turned"
+            header = read_photo_header(path)  # what vadgs sfm reads: not "turned"
             assert header.orientation == 1 and header.size == (40, 30)
             assert exif_orientation(path) == 1  # what loading a COLMAP project reads
             assert upright_image(path, tmp_path / "b.jpg") == 1  # what vadgs sfm copies: as stored
@@ -66,7 +66,7 @@ class TestPhotos:
         }
         exif[0x0112] = 6  # a real rotation still turns
         _photo(path, 1, exif)
-        assert _read_header(path).orientation == 6 and upright_image(path, tmp_path / "b.jpg") == 6
+        assert read_photo_header(path).orientation == 6 and upright_image(path, tmp_path / "b.jpg") == 6
         assert Image.open(tmp_path / "b.jpg").size == (30, 40)
 
     def test_corrupt_exif_warning_names_the_photo(self, tmp_path):
@@ -80,7 +80,7 @@ class TestPhotos:
         path.write_bytes(bytes(data))
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
-            header = _read_header(path)
+            header = read_photo_header(path)
         assert header.size == (40, 30) and header.orientation == 1
         assert w, "PIL warns about the damaged EXIF block"
         for x in w:

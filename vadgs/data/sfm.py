@@ -78,10 +78,13 @@ __all__ = [
     "OTHER_PHOTO_SUFFIXES",
     "PHOTO_SUFFIXES",
     "SEQUENTIAL_OVERLAP",
+    "PhotoHeader",
     "SfmResult",
     "find_photos",
     "photo_groups",
+    "read_photo_header",
     "run_sfm",
+    "sequential_pairs",
     "unsupported_photos",
 ]
 
@@ -220,19 +223,26 @@ def _left_out(names: Sequence[str]) -> str:
     )
 
 
-class _PhotoHeader(NamedTuple):
+class PhotoHeader(NamedTuple):
+    """What ``vadgs sfm`` reads of a photo's header (:func:`read_photo_header`)."""
+
     size: tuple[int, int]  # stored pixel grid (W, H)
     camera: tuple  # EXIF make, model, focal length (empty strings when absent)
     orientation: int  # EXIF orientation tag (1: as stored)
 
 
-def _read_header(path: Path) -> _PhotoHeader:
+def read_photo_header(path: Path) -> PhotoHeader:
+    """A photo's stored size, camera (EXIF make, model, focal length) and EXIF orientation tag.
+
+    Raises:
+        ValueError: the photo cannot be read, naming it.
+    """
     try:
         with warnings_naming(path), Image.open(path) as im:
             exif = im.getexif()
             focal = exif.get_ifd(0x8769).get(_EXIF_FOCAL, "")
             camera = (*(str(exif.get(tag, "")).strip() for tag in _EXIF_CAMERA), str(focal))
-            return _PhotoHeader(im.size, camera, exif_orientation_tag(exif, path))
+            return PhotoHeader(im.size, camera, exif_orientation_tag(exif, path))
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
         raise ValueError(f"PHOTOS: {path} is not a readable photo ({type(e).__name__}: {e})") from None
 
@@ -255,10 +265,10 @@ def photo_groups(folder: str | Path, names: Sequence[str], camera_mode: str = "a
     """
     if camera_mode not in CAMERA_MODES:
         raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
-    return _groups({name: _read_header(Path(folder) / name) for name in names}, camera_mode)
+    return _groups({name: read_photo_header(Path(folder) / name) for name in names}, camera_mode)
 
 
-def _groups(headers: dict[str, _PhotoHeader], camera_mode: str) -> list[list[str]]:
+def _groups(headers: dict[str, PhotoHeader], camera_mode: str) -> list[list[str]]:
     names = list(headers)
     if camera_mode == "per-image":
         return [[name] for name in names]
@@ -456,7 +466,13 @@ def _quiet_colmap():
         pycolmap.logging.minloglevel = before
 
 
-def _sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
+def sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
+    """The pairs matched in sequence: each photo with the ``overlap`` photos after it.
+
+    Example:
+        >>> sequential_pairs("abc", 1)
+        [('a', 'b'), ('b', 'c')]
+    """
     return [
         (a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + overlap, len(names)))
     ]
@@ -581,7 +597,7 @@ def _run_sfm_locked(
     replaced = _check_project(out, photos, overwrite, names)
     _remove_dead_work(out, say)
     in_place = (out / "images").resolve() == photos.resolve()
-    turned = {n: o for n in names if (o := _read_header(photos / n).orientation) != 1}
+    turned = {n: o for n in names if (o := read_photo_header(photos / n).orientation) != 1}
     if in_place and turned:
         first = next(iter(turned))
         raise ValueError(
@@ -614,7 +630,7 @@ def _run_sfm_locked(
         if not in_place:
             _place_photos(photos, names, work / "images", link)
         images_dir = photos if in_place else work / "images"
-        headers = {name: _read_header(images_dir / name) for name in names}
+        headers = {name: read_photo_header(images_dir / name) for name in names}
         groups = _groups(headers, camera_mode)
         if turned:
             first = next(iter(turned))
@@ -663,7 +679,7 @@ def _run_sfm_locked(
         if matcher == "exhaustive":
             pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
         else:
-            pairs = _sequential_pairs(names, SEQUENTIAL_OVERLAP)
+            pairs = sequential_pairs(names, SEQUENTIAL_OVERLAP)
         say(f"matching: {len(pairs)} pairs ({matcher})")
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = nthreads
@@ -776,7 +792,7 @@ def _run_sfm_locked(
     return result
 
 
-def _group_label(header: _PhotoHeader) -> str:
+def _group_label(header: PhotoHeader) -> str:
     make, model, _ = header.camera
     label = f"{header.size[0]}x{header.size[1]}"
     return f"{label} {make} {model}".strip() if (make or model) else label
@@ -796,7 +812,7 @@ def _camera_of(db: Path, name: str) -> int:
         database.close()
 
 
-def _check_sizes(rec: pycolmap.Reconstruction, photos: Path, headers: dict[str, _PhotoHeader]) -> None:
+def _check_sizes(rec: pycolmap.Reconstruction, photos: Path, headers: dict[str, PhotoHeader]) -> None:
     """Every registered camera has its photo's stored size (what vadgs reads), else a ValueError."""
     for im in rec.images.values():
         if not im.has_pose:

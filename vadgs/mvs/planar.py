@@ -35,6 +35,7 @@ __all__ = [
     "complete_planar",
     "complete_planar_batch",
     "fit_plane_ransac",
+    "near_pixels",
 ]
 
 
@@ -142,7 +143,7 @@ def _fit_plane(
     return PlaneFit(normal, offset, inliers)
 
 
-def _near(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
+def near_pixels(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
     """``(H, W)`` bool: pixels within Euclidean distance ``max_gap`` of a set pixel of ``mask``.
 
     ``distance_transform_edt(~mask) <= max_gap`` on the mask's device: a dilation by the disk of
@@ -262,7 +263,7 @@ def complete_planar(
     # candidates: empty region pixels near an inlier
     inl = torch.zeros_like(good[0])
     inl[gy, gx] = fit.inliers
-    cand = region & ~good & _near(inl, cfg.max_gap)[None]
+    cand = region & ~good & near_pixels(inl, cfg.max_gap)[None]
     ys, xs = torch.nonzero(cand[0], as_tuple=True)  # one read
     if ys.numel() == 0:
         return depth, normal, none
