@@ -495,7 +495,7 @@ def match_plans(
 
     A batched call draws other random numbers than one call per plan, and its references score
     the union of their masks (padded pixels score nothing), so results agree with per-plan calls
-    in distribution, not bit for bit (``tests/train/vad/test_event_batch.py``).
+    in distribution, not bit for bit (``tests/train/vad/test_vad_end_to_end.py``).
 
     Returns:
         Per plan, its :class:`~vadgs.train.vad.crops.MatchedCrops`.
