@@ -9,7 +9,9 @@ import dataclasses
 import torch
 
 from tests.train.vad.sample import BUILDING, sample_model, sample_trainer
-from vadgs.train.vad import ReconstructConfig
+from vadgs.train.vad import ReconstructConfig, ViewRender
+from vadgs.train.vad.detect import EventRenders, keep_render, view_map
+from vadgs.train.vad.state import compact_render, expand_render
 
 
 class TestEventReusesTheLoopsRenders:
@@ -113,3 +115,48 @@ class TestEventReusesTheLoopsRenders:
             (torch.uint8, (1, h, w)),
             (torch.int8, (2, h, w)),
         ]
+
+
+def _render(seed: int, h: int = 6, w: int = 8) -> ViewRender:
+    g = torch.Generator().manual_seed(seed)
+    normal = torch.nn.functional.normalize(torch.randn(3, h, w, generator=g), dim=0)
+    return ViewRender(torch.rand(1, h, w, generator=g) * 10, torch.rand(1, h, w, generator=g), normal)
+
+
+class TestKeepRender:
+    """:func:`keep_render` alone: 5 bytes a pixel kept, the oldest dropped beyond the bound."""
+
+    def test_the_oldest_is_dropped_beyond_the_bound(self):
+        one = 5 * 6 * 8  # float16 depth, uint8 opacity, two int8 codes of the normal
+        store, dropped = {}, []
+        for v in (3, 1, 4):
+            keep_render(store, v, _render(v), 2 * one, on_drop=lambda view, kept: dropped.append(view))
+        assert list(store) == [1, 4] and dropped == [3]
+        for v, kept in store.items():  # as compact_render keeps it
+            assert all(torch.equal(a, b) for a, b in zip(kept, compact_render(*_render(v))))
+        keep_render(store, 1, _render(9), 2 * one, on_drop=lambda view, kept: dropped.append(view))
+        assert list(store) == [4, 1] and dropped == [3]  # a view's new render replaces its own
+        keep_render(store, 5, _render(5), 10 * one)
+        assert list(store) == [4, 1, 5]
+        keep_render(store, 7, _render(7), one // 2)  # a bound below one render still keeps the newest
+        assert list(store) == [7]
+        keep_render(store, 7, _render(7), 0)  # none kept at a bound of 0
+        assert store == {}
+
+    def test_event_renders_read_kept_views_and_render_the_others_once(self):
+        calls = []
+        kept = {2: compact_render(*_render(2))}
+        renders = EventRenders(lambda v: calls.append(v) or _render(v), kept)
+        for v in (2, 5, 2, 5):
+            out = renders(v)
+        assert calls == [5] and renders.rendered == 1
+        d, a, n = expand_render(kept[2])
+        assert torch.equal(renders(2).depth, d) and torch.equal(renders(2).alpha, a)
+        assert torch.equal(renders(2).normals, n)
+        assert torch.equal(out.depth, _render(5).depth)
+
+    def test_view_map(self):
+        x = torch.rand(1, 3, 4, 5, requires_grad=True)
+        assert view_map(x).shape == (3, 4, 5) and not view_map(x).requires_grad
+        assert view_map(torch.rand(4, 5)).shape == (1, 4, 5)
+        assert view_map(torch.rand(2, 4, 5)).shape == (2, 4, 5)
