@@ -275,12 +275,13 @@ def main() -> None:
     pairs: list[Pair] = []
     # the event plans every (instance, reference) pair, matches them together and finishes each:
     # a pair's reconstruction is its plan when there is nothing to match, else its finish
-    plan, finish = event_module.plan_match, event_module.finish_match
+    plan, finish = event_module.plan_matches, event_module.finish_match
 
-    def planned(index: Any, ref: int, inst: int, *a: Any, **k: Any) -> Any:
-        out = plan(index, ref, inst, *a, **k)
-        if isinstance(out, InstanceReconstruction):
-            pairs.append(Pair(inst, ref, out.reason, out.points.cpu(), list(out.views)))
+    def planned(index: Any, refs: list[int], inst: int, *a: Any, **k: Any) -> Any:
+        out = plan(index, refs, inst, *a, **k)
+        for ref, got in zip(refs, out):
+            if isinstance(got, InstanceReconstruction):
+                pairs.append(Pair(inst, ref, got.reason, got.points.cpu(), list(got.views)))
         return out
 
     def finished(index: Any, match_plan: Any, *a: Any, **k: Any) -> Any:
@@ -289,7 +290,7 @@ def main() -> None:
         return rec
 
     if args.breakdown or args.held_out:
-        event_module.plan_match = planned  # type: ignore[assignment]
+        event_module.plan_matches = planned  # type: ignore[assignment]
         event_module.finish_match = finished  # type: ignore[assignment]
     chosen = {"min_angle": args.min_angle, "min_parallax": args.min_parallax}
     chosen = {k: v for k, v in chosen.items() if v is not None}

@@ -3,7 +3,7 @@
 Trains ``STEPS`` steps of a street scene at half resolution with ``benchmarks/street_config.json``
 and VAD-GS without a budget (``work_budget=None``: every candidate attempted; otherwise the
 defaults), on one thread, then prints each event's work (PatchMatch pixel-sweeps,
-:func:`vadgs.train.vad.reconstruct.match_work`) per training pixel so far, and each instance's work
+:func:`vadgs.train.vad.matching.match_work`) per training pixel so far, and each instance's work
 cumulated in ranking order: the ``work_budget`` at which the event would stop after it::
 
     python benchmarks/event_work.py ../shared/data/street_a --steps 452    # the first event (step 449)

@@ -477,10 +477,11 @@ def compare_renderers(sizes: dict[str, Any], device: str, impl: str) -> dict[str
 _OPS = [
     ("vadgs.train.vad.visibility", "rasterize_voxels", "zbuffer"),
     ("vadgs.train.vad.reconstruct", "select_views", "selection"),
-    ("vadgs.train.vad.reconstruct", "patchmatch", "patchmatch"),
-    # an event's (instance, reference) pairs: planned one by one, matched together, fused one by
-    # one; "reconstruct" (one pair's share of the three) is derived from them (_pair_shares)
-    ("vadgs.train.vad.event", "plan_match", "plan"),
+    ("vadgs.train.vad.matching", "patchmatch", "patchmatch"),
+    # an event's (instance, reference) pairs: planned instance by instance, matched together, fused
+    # one by one; "reconstruct" (one matched pair's share of the three) is derived from them
+    # (_pair_shares)
+    ("vadgs.train.vad.event", "plan_matches", "plan"),
     ("vadgs.train.vad.event", "match_plans", "match"),
     ("vadgs.train.vad.event", "finish_match", "finish"),
 ]
@@ -488,8 +489,8 @@ _DERIVED = ("reconstruct",)  # no call of its own: no replay
 
 
 def _pair_shares(record: dict[str, dict[str, Any]]) -> None:
-    """``record["reconstruct"]``: each pair's share of its event's plan, match and finish times."""
-    pairs = len(record.get("plan", {}).get("calls_ms", []))
+    """``record["reconstruct"]``: each matched pair's share of its event's plan, match and finish times."""
+    pairs = len(record.get("finish", {}).get("calls_ms", []))
     total = sum(sum(record.get(k, {}).get("calls_ms", [])) for k in ("plan", "match", "finish"))
     record["reconstruct"] = {"calls_ms": [total / pairs] * pairs if pairs else [], "first": None}
 

@@ -11,6 +11,7 @@ both are valid, masks) and their accuracy against ground truth::
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/patchmatch_launches.py count --old ../main
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/patchmatch_launches.py compare --old ../main
+    OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/patchmatch_launches.py joint   # accuracy
 
 ``compare`` includes street_a frame 20 (480x288, 4 sources) and its largest moving car (object
 frame, regions) when ``../shared/data/street_a`` is there.
@@ -158,6 +159,26 @@ def results(path: str, seed: int = 0) -> None:
     torch.save(out, path)
 
 
+def joint_accuracy(seeds: tuple[int, ...] = (0, 1, 2)) -> None:
+    """The default against ``joint_scoring`` on street_a frame 20: raw depths within 1 % / 5 % of truth."""
+    from vadgs.mvs import patchmatch
+
+    probs = _street_problems()
+    if not probs:
+        raise SystemExit(f"joint: needs {STREET_A}")
+    args, kw, gt, cfg = probs["street_a frame 20 (480x288, 4 sources)"]
+    known = gt > 0
+    for joint in (False, True):
+        row = []
+        for seed in seeds:
+            d = patchmatch(*args, dataclasses.replace(cfg, seed=seed, joint_scoring=joint), **kw).raw_depth
+            rel = (d - gt).abs() / gt.clamp_min(1e-6)
+            row.append([float(((rel <= t) & (d > 0) & known).sum() / known.sum()) for t in (0.01, 0.05)])
+        cells = ", ".join(f"seed {s}: {100 * a:.1f} / {100 * b:.1f} %" for s, (a, b) in zip(seeds, row))
+        mean = [100 * sum(r[i] for r in row) / len(row) for i in (0, 1)]
+        print(f"joint_scoring={joint}: within 1 / 5 % {cells}; mean {mean[0]:.1f} / {mean[1]:.1f} %")
+
+
 def _accuracy(depth: torch.Tensor, gt: torch.Tensor) -> tuple[float, float]:
     known = gt > 0
     rel = (depth - gt).abs() / gt.clamp_min(1e-6)
@@ -174,7 +195,7 @@ def _in_tree(tree: str, *argv: str) -> str:
 def main() -> None:
     """Command line."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["count", "compare", "_count_json", "_results"])
+    ap.add_argument("what", choices=["count", "compare", "joint", "_count_json", "_results"])
     ap.add_argument("--old", help="a tree whose vadgs to run the same problems with (subprocess)")
     ap.add_argument("--rounds", type=int, default=5, help="timed calls per problem (after a warm-up)")
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -188,6 +209,9 @@ def main() -> None:
         return
     if args.what == "_results":
         results(args.out, args.seed)
+        return
+    if args.what == "joint":
+        joint_accuracy()
         return
     if args.what == "count":
         new = json.loads(_in_tree(REPO, "_count_json", "--rounds", "0"))

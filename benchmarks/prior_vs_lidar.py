@@ -2,10 +2,14 @@
 
 VAD-GS's prior where no MVS depth exists is the voxel depth of the pixel's own instance; for a
 moving object, its grid posed at the view's time. Prints, on the tracks' pixels and on the rest,
-how much of the prior lies more than 10 % off the sweep, then by track. Used for issue 47 on
-PandaSet 002 (docs/results.md, "A real log")::
+how much of the prior lies more than 10 % off the sweep, then by track. ``--tracks-only`` then
+rasterises the tracks' grids alone three ways, to tell where a track's prior leaves its sweep:
+every voxel of the grid (its points from every frame, gathered with each frame's cuboid), only the
+voxels the view's own sweep observed, and those with the track's mask eroded by 1 and 2 pixels
+(its silhouette). Used for issue 47 on PandaSet 002 (docs/results.md, "A real log")::
 
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --scale 0.5
+    OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --tracks-only
 """
 
 from __future__ import annotations
@@ -13,12 +17,59 @@ from __future__ import annotations
 import argparse
 import warnings
 from collections import defaultdict
+from dataclasses import replace
 
 import torch
+import torch.nn.functional as F
 
 from vadgs.data import load_scene
 from vadgs.data.lidar import lidar_depth_map
+from vadgs.geometry import Cameras
+from vadgs.geometry.zbuffer import rasterize_voxels
 from vadgs.train.trainer import Trainer
+
+
+def track_depth(index, view: int, observed: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """The nearest track voxel surface ``(H, W)`` and its track id (0: none) of one view."""
+    depth = torch.zeros_like(index.voxel_raster(view)[0][0])
+    label = torch.zeros(depth.shape, dtype=torch.long, device=depth.device)
+    fpos, cams = index.inputs.frame_position(view), index.camera(view)
+    config = replace(index.zbuffer, only_observed=observed)
+    for tid, grid in index.track_grids.items():
+        track = index.inputs.tracks[tid]
+        if not bool(track.valid[fpos]):
+            continue
+        o2w = track.object_to_world[fpos].to(cams.world_to_cam)
+        obj = Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size)
+        d = index.pad(rasterize_voxels(grid, obj, [view], config).depth[0])[0]
+        closer = (d > 0) & ((depth == 0) | (d < depth))
+        depth, label = torch.where(closer, d, depth), torch.where(closer, tid, label)
+    return depth, label
+
+
+def tracks_only(scene, index) -> None:
+    """Print the tracks' prior against the sweeps: every voxel, observed voxels, eroded masks."""
+    variants = (("every voxel", False, 0), ("observed voxels", True, 0))
+    variants += (("observed, eroded 1 px", True, 1), ("observed, eroded 2 px", True, 2))
+    for name, observed, erode in variants:
+        n = front = behind = 0
+        for v in scene.train_views:
+            sweep = lidar_depth_map(scene, v)[0, 0]
+            h, w = sweep.shape
+            d, label = track_depth(index, v, observed)
+            d, label = d[:h, :w], label[:h, :w]
+            own = ((label > 0) & (label == index.instances(v)[:h, :w])).float()[None, None]
+            if erode:
+                own = -F.max_pool2d(-own, 2 * erode + 1, 1, erode)
+            m = (own[0, 0] > 0.5) & (d > 0) & (sweep > 0)
+            rel = (d[m] - sweep[m]) / sweep[m]
+            n += int(m.sum())
+            front += int((rel < -0.1).sum())
+            behind += int((rel > 0.1).sum())
+        print(
+            f"{name}: {n} pixels with a prior and a return, {100 * front / max(n, 1):.1f} % in front "
+            f"by > 10 %, {100 * behind / max(n, 1):.1f} % behind"
+        )
 
 
 def main() -> None:
@@ -26,12 +77,16 @@ def main() -> None:
     ap.add_argument("scene")
     ap.add_argument("checkpoint", help="a VAD-GS run's checkpoint")
     ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--tracks-only", action="store_true", help="the tracks' grids alone, three ways")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")
     scene = load_scene(args.scene, scale=args.scale)
     tr = Trainer.from_checkpoint(args.checkpoint, scene, out_dir=None, progress=False)
     index = tr.strategy.prepare()
+    if args.tracks_only:
+        tracks_only(scene, index)
+        return
     tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
     groups: dict[str, list[float]] = defaultdict(lambda: [0, 0, 0.0])  # pixels, > 10 % off, sum AbsRel
     per_track: dict[int, list[int]] = defaultdict(lambda: [0, 0])

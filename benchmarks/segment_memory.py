@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+from vadgs.process import peak_rss_mb, reset_peak_rss
 
 
 def _status(key: str) -> float:

@@ -10,7 +10,7 @@ builds a VAD-GS trainer and measures each stage as a run meets it:
 - ``step``: one training step with VAD-GS attached (ms, median of the steps after the first two,
   which build the index and the first z-buffers);
 - ``instance``: one (instance, reference) reconstruction at an event (s: the event's
-  ``plan_match``, ``match_plans`` and ``finish_match`` over its pairs: view selection, crops,
+  ``plan_matches``, ``match_plans`` and ``finish_match`` over its pairs: view selection, crops,
   PatchMatch, consistency, fusion), at an event after the steps above; the event
   tests the views the loop trained (a real run's event, after five sampling cycles, has tested
   every view from the loop's renders) and reconstructs at most ``--instances``;
@@ -57,7 +57,7 @@ _TIMED = [
     ("vadgs.train.vad.strategy", "build_visibility_index", "index"),
     ("vadgs.train.vad.visibility", "rasterize_voxels", "zbuffer"),
     ("vadgs.train.vad.detect", "find_incomplete", "incomplete"),
-    ("vadgs.train.vad.event", "plan_match", "plan"),  # an event's pairs: planned one by one,
+    ("vadgs.train.vad.event", "plan_matches", "plan"),  # an event's pairs: planned per instance,
     ("vadgs.train.vad.event", "match_plans", "match"),  # matched together,
     ("vadgs.train.vad.event", "finish_match", "finish"),  # fused one by one
 ]
@@ -167,13 +167,13 @@ def measure(path: str, scale: float, steps: int, instances: int, eval_views: int
 
 
 def _hwm_gb() -> float:
-    from vadgs.train.loop import peak_rss_mb
+    from vadgs.process import peak_rss_mb
 
     return peak_rss_mb() / 1024
 
 
 def _reset_hwm() -> None:
-    from vadgs.train.loop import reset_peak_rss
+    from vadgs.process import reset_peak_rss
 
     reset_peak_rss()  # the peak from here on
 

@@ -87,7 +87,7 @@ class TestBatchConfig:
             BatchConfig(cpus_per_scene=-1)
         with pytest.raises(ValueError, match="max_retries"):
             BatchConfig(max_retries=-1)
-        with pytest.raises(TypeError, match="train: expected a TrainConfig or None, got tuple"):
+        with pytest.raises(ValueError, match="train: expected None or a TrainConfig, got tuple"):
             BatchConfig(train=("--vad",))
 
     def test_train_args_are_parsed_in_the_driver(self, scenes, tmp_path, capsys):

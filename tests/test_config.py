@@ -69,7 +69,7 @@ class TestConfigFromDict:
             ),
             ({"bogus": 1}, r"config: unknown key\(s\) \['bogus'\]"),
             ({"raster": {"bogus": 1}}, r"config.raster: unknown key\(s\) \['bogus'\]"),
-            ({"raster": {"near": -1.0}}, r"config.raster: near, far: expected 0 < near < far"),
+            ({"raster": {"near": -1.0}}, r"config.raster: near: expected a finite number > 0, got -1.0"),
         ],
     )
     def test_train_config_errors(self, data, match):

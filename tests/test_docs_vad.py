@@ -95,7 +95,7 @@ def test_map_covers_the_papers_steps():
     for name in (
         "vadgs.select.score.diversity_score",
         "vadgs.train.vad.crops.matching_region",
-        "vadgs.train.vad.reconstruct.instance_frame",
+        "vadgs.train.vad.survey.instance_frame",
         "vadgs.train.objective.render_hard_depth",
     ):
         assert name in functions, name
@@ -104,7 +104,7 @@ def test_map_covers_the_papers_steps():
 def test_map_check_fails_on_a_moved_function():
     """The checks above are not vacuous: names that left their module do not resolve there."""
     for moved in (
-        "vadgs.train.vad.reconstruct._instance_frame",
+        "vadgs.train.vad.reconstruct.instance_frame",
         "vadgs.train.vad.event.add_reconstruction",
         "vadgs.nowhere.function",
     ):

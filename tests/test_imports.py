@@ -1,4 +1,5 @@
-"""No import circle in ``vadgs``: every module imports, and the graph of its imports has no cycle.
+"""No import circle in ``vadgs``: every module imports, the graph of its imports has no cycle, and
+no module imports from a package above its own (:data:`FLOORS`).
 
 The graph is read from the source (AST): module-level imports, the lazy ones inside functions
 (a lazy import only hides a circle until the function runs) and those of ``if TYPE_CHECKING:``
@@ -63,9 +64,9 @@ def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
     return {m for m in found if m in modules}
 
 
-def import_graph() -> nx.DiGraph:
-    """``vadgs`` module → the ``vadgs`` modules it imports."""
-    modules = _modules()
+def import_graph(modules: dict[str, Path] | None = None) -> nx.DiGraph:
+    """``vadgs`` module → the ``vadgs`` modules it imports (of ``modules``: default, the real ones)."""
+    modules = _modules() if modules is None else modules
     g = nx.DiGraph()
     for name, path in modules.items():
         g.add_node(name)
@@ -112,6 +113,85 @@ def test_the_graph_sees_lazy_and_type_checking_imports(tmp_path, monkeypatch):
     modules = {"vadgs": pkg / "__init__.py", **{f"vadgs.{m}": pkg / f"{m}.py" for m in "abc"}}
     assert _imports("vadgs.a", pkg / "a.py", modules) == {"vadgs.b"}
     assert _imports("vadgs.b", pkg / "b.py", modules) == {"vadgs.a", "vadgs.c"}
+
+
+# Issue 50: the packages' order. Imports flow one way, down the floors (docs/design.md, ARCHITECTURE):
+# tools that import nothing of vadgs; geometry and the run folder's tools; what stands on geometry
+# (data feeds the methods, render / mvs / select are them); train, which sees everything; what
+# drives train (batch, the viewer); the command line on top. A module imports from its own package
+# or from a package on a lower floor, never from one on its floor or above, lazily or under
+# ``if TYPE_CHECKING:`` included. A new top-level module or package takes a floor here.
+FLOORS: tuple[frozenset[str], ...] = (
+    frozenset({"checks", "config", "io", "process"}),
+    frozenset({"vadgs", "geometry", "runfolder", "runlock", "viz"}),
+    frozenset({"data", "mvs", "render", "select"}),
+    frozenset({"train"}),
+    frozenset({"batch", "viewer"}),
+    frozenset({"cli"}),
+)
+
+
+def _package(module: str) -> str:
+    """The top-level package (or module) of ``vadgs`` a module belongs to; ``"vadgs"`` for the root."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def _floor_errors(graph: nx.DiGraph, floors: tuple[frozenset[str], ...]) -> list[str]:
+    """Each import that does not go down the floors, and each package without a floor."""
+    floor = {p: i for i, ps in enumerate(floors) for p in ps}
+    found = [f"{p}: on no floor" for p in sorted({_package(m) for m in graph}) if p not in floor]
+    for a, b in sorted(graph.edges()):
+        pa, pb = _package(a), _package(b)
+        if pa != pb and pa in floor and pb in floor and floor[pb] >= floor[pa]:
+            found.append(f"{a} (floor {floor[pa]}) imports {b} (floor {floor[pb]})")
+    return found
+
+
+def test_imports_go_down_the_floors():
+    g = import_graph()
+    assert {_package(m) for m in g} == set().union(*FLOORS), "a floor names a package that is gone"
+    assert _floor_errors(g, FLOORS) == []
+    # the packages the design names stand where it says
+    floor = {p: i for i, ps in enumerate(FLOORS) for p in ps}
+    assert floor["geometry"] < floor["render"] == floor["mvs"] == floor["select"] < floor["train"]
+    assert floor["data"] < floor["train"] < floor["cli"]
+
+
+def test_the_scan_sees_an_upward_import(tmp_path):
+    pkg = tmp_path / "vadgs"
+    for sub in ("geometry", "data", "train"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "geometry" / "a.py").write_text("def f():\n    from vadgs.train import t\n")  # lazy, upward
+    (pkg / "data" / "d.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom vadgs.geometry import a\n"  # down: allowed
+        "if TYPE_CHECKING:\n    from vadgs.train.t import T\n"  # a type hint, upward
+    )
+    (pkg / "train" / "t.py").write_text("from vadgs.data import d\nfrom ..geometry.a import f\n")  # down
+    (pkg / "tools.py").write_text("")
+    modules = {
+        "vadgs": pkg / "__init__.py",
+        "vadgs.tools": pkg / "tools.py",
+        **{f"vadgs.{s}": pkg / s / "__init__.py" for s in ("geometry", "data", "train")},
+        "vadgs.geometry.a": pkg / "geometry" / "a.py",
+        "vadgs.data.d": pkg / "data" / "d.py",
+        "vadgs.train.t": pkg / "train" / "t.py",
+    }
+    floors = (frozenset({"vadgs", "geometry"}), frozenset({"data"}), frozenset({"train"}))
+    assert _floor_errors(import_graph(modules), floors) == [
+        "tools: on no floor",
+        "vadgs.data.d (floor 1) imports vadgs.train.t (floor 2)",
+        "vadgs.geometry.a (floor 0) imports vadgs.train.t (floor 2)",
+    ]
+    # a sideways import (one floor, two packages) is refused as well
+    sideways = (frozenset({"vadgs", "geometry", "tools"}), frozenset({"data", "train"}))
+    assert _floor_errors(import_graph(modules), sideways) == [
+        "vadgs.data.d (floor 1) imports vadgs.train.t (floor 1)",
+        "vadgs.geometry.a (floor 0) imports vadgs.train.t (floor 1)",
+        "vadgs.train.t (floor 1) imports vadgs.data.d (floor 1)",
+    ]
 
 
 # Issue 41: a module imports only public names of another (what one module needs of another is

@@ -31,12 +31,22 @@ import re
 import socket
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from vadgs.checks import (
+    Checked,
+    bool_field,
+    checked,
+    choice_field,
+    float_field,
+    instance_field,
+    int_field,
+    nested,
+)
 from vadgs.io import atomic_write
 from vadgs.runfolder import check_output_folder, record_files
 from vadgs.train.config import TrainConfig
@@ -65,7 +75,7 @@ class RunInterrupted(RuntimeError):
 
 
 @dataclass(frozen=True)
-class BatchConfig:
+class BatchConfig(Checked):
     """How the scenes of a batch are scheduled and trained.
 
     Attributes:
@@ -86,27 +96,16 @@ class BatchConfig:
         progress: print a line each time a run ends.
     """
 
-    address: str | None = None
-    cpus_per_scene: float = 1.0
-    gpus_per_scene: float = 0.0
-    threads: int = 0
-    max_retries: int = 3
-    train: TrainConfig | None = None
-    scene_kind: str | None = None
-    scene_options: dict[str, Any] = field(default_factory=dict, hash=False)
-    runtime_env: dict[str, Any] | None = field(default=None, hash=False)
-    progress: bool = True
-
-    def __post_init__(self) -> None:
-        if self.cpus_per_scene < 0 or self.gpus_per_scene < 0:
-            raise ValueError(
-                f"cpus_per_scene / gpus_per_scene: expected >= 0, got {self.cpus_per_scene} / "
-                f"{self.gpus_per_scene}"
-            )
-        if self.max_retries < 0 or self.threads < 0:
-            raise ValueError(f"max_retries / threads: expected >= 0, got {self.max_retries} / {self.threads}")
-        if self.train is not None and not isinstance(self.train, TrainConfig):
-            raise TypeError(f"train: expected a TrainConfig or None, got {type(self.train).__name__}")
+    address: str | None = checked(None, instance_field(str, optional=True))
+    cpus_per_scene: float = checked(1.0, float_field(0))
+    gpus_per_scene: float = checked(0.0, float_field(0))
+    threads: int = checked(0, int_field(0, note=" (0 = cpus_per_scene)"))
+    max_retries: int = checked(3, int_field(0))
+    train: TrainConfig | None = nested(TrainConfig, optional=True)
+    scene_kind: str | None = checked(None, choice_field(("benchmark", "dgp", "colmap", None)))
+    scene_options: dict[str, Any] = checked(rule=instance_field(dict), default_factory=dict, hash=False)
+    runtime_env: dict[str, Any] | None = checked(None, instance_field(dict, optional=True), hash=False)
+    progress: bool = checked(True, bool_field())
 
     @property
     def torch_threads(self) -> int:

@@ -12,6 +12,11 @@ the environment variable ``VADGS_CHECKS=0`` before importing vadgs, call
 :func:`set_checks_enabled`, or use the :func:`checking` context manager (kornia's
 ``KORNIA_CHECKS`` in spirit).
 
+The settings dataclasses (every ``*Config`` of the library, the scene references, the CLI's
+commands) check their fields one way: each field's rule stands next to it (:func:`checked`,
+:func:`nested`; the rules :func:`int_field`, :func:`float_field`, ...), and their base
+:class:`Checked` runs the rules at construction, hence also in :func:`dataclasses.replace`.
+
 Shape specs are sequences whose items are an ``int`` (that exact size), a ``str`` (a named
 dimension: every use of the same name within one call must agree) or ``"*"`` (any number of
 leading dimensions, only as the first item) or ``"_"`` (any size).
@@ -30,6 +35,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import numbers
 import operator
@@ -42,20 +48,17 @@ import torch
 
 __all__ = [
     "MAX_THREADS",
+    "RULE",
+    "Checked",
     "FieldCheck",
     "bool_field",
-    "check_at_least",
-    "check_at_most",
     "check_fields",
     "check_finite",
     "check_intrinsics",
-    "check_non_negative",
-    "check_positive",
-    "check_quaternions",
-    "check_rigid_last_row",
     "check_same_device",
     "check_shape",
     "check_size",
+    "checked",
     "checking",
     "checks_enabled",
     "choice_field",
@@ -65,6 +68,7 @@ __all__ = [
     "int_field",
     "ints_field",
     "names_field",
+    "nested",
     "pair_field",
     "set_checks_enabled",
 ]
@@ -207,64 +211,50 @@ def first_false(flags: Sequence[torch.Tensor]) -> int | None:
     return ok.tolist().index(False)
 
 
-def check_intrinsics(K: torch.Tensor, name: str = "K") -> None:
-    """Value check of ``(*, 3, 3)`` pinhole intrinsics: finite, ``fx = K[..., 0, 0] > 0``, ``fy > 0``.
+def check_intrinsics(K: torch.Tensor, name: str = "K", pinhole: bool = False) -> None:
+    """Check ``(*, 3, 3)`` intrinsics: finite, positive focal lengths ``K[..., 0, 0]``, ``K[..., 1, 1]``.
+
+    The shape is always checked; the values are a value check (:func:`checks_enabled`). With
+    ``pinhole`` (a ``K`` read from a file or given by a user) also the form
+    ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (to 1e-9), and the values whatever
+    :func:`checks_enabled` says: a file is refused at load, never trained on.
 
     Example:
         >>> check_intrinsics(torch.zeros(2, 3, 3))
         Traceback (most recent call last):
         ...
         ValueError: K: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], got fx=0, fy=0 at (0,)
+        >>> check_intrinsics(torch.eye(3) * 2, "raw_K", pinhole=True)
+        Traceback (most recent call last):
+        ...
+        ValueError: raw_K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got [[2.0, 0.0, 0.0], [...]]
     """
+    check_shape(K, name, ("*", 3, 3))
     check_finite(K, name)
-    if checks_enabled():
-        f = K.detach()[..., [0, 1], [0, 1]]
-        bad = ~(f > 0).all(-1)
+    if not pinhole and not checks_enabled():
+        return
+    K = K.detach()
+    f = K[..., [0, 1], [0, 1]]
+    bad = ~(f > 0).all(-1)
+    if bool(bad.any()):
+        at = tuple(int(i) for i in bad.nonzero()[0]) if bad.dim() else ()
+        fx, fy = (float(v) for v in f[at])
+        where = f" at {at}" if at else ""
+        raise ValueError(
+            f"{name}: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], "
+            f"got fx={fx:g}, fy={fy:g}{where}"
+        )
+    if pinhole:
+        form = K.double()[..., [1, 2, 2, 2], [0, 0, 1, 2]] - K.new_tensor(
+            [0.0, 0.0, 0.0, 1.0], dtype=torch.float64
+        )
+        bad = (form.abs() > 1e-9).any(-1)
         if bool(bad.any()):
             at = tuple(int(i) for i in bad.nonzero()[0]) if bad.dim() else ()
-            fx, fy = (float(v) for v in f[at])
+            where = f" at {at}" if at else ""
             raise ValueError(
-                f"{name}: expected positive focal lengths K[..., 0, 0], K[..., 1, 1], "
-                f"got fx={fx:g}, fy={fy:g} at {at}"
+                f"{name}: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K[at].tolist()}{where}"
             )
-
-
-def check_quaternions(q: torch.Tensor, name: str = "quats") -> None:
-    """Value check of ``(*, 4)`` quaternions: finite and of non-zero norm (a zero one has no rotation).
-
-    Example:
-        >>> check_quaternions(torch.tensor([[1.0, 0, 0, 0], [0, 0, 0, 0]]))
-        Traceback (most recent call last):
-        ...
-        ValueError: quats: expected non-zero quaternions, got 1 of norm 0 (first: row 1)
-    """
-    check_finite(q, name)
-    if checks_enabled() and q.numel():
-        zero = q.detach().norm(dim=-1) < 1e-12
-        if bool(zero.any()):
-            first = int(zero.flatten().nonzero()[0, 0])
-            raise ValueError(
-                f"{name}: expected non-zero quaternions, got {int(zero.sum())} of norm 0 (first: row {first})"
-            )
-
-
-def check_rigid_last_row(T: torch.Tensor, name: str) -> None:
-    """Value check of ``(*, 4, 4)`` transforms: finite, last row ``(0, 0, 0, 1)`` (within 1e-5).
-
-    Example:
-        >>> check_rigid_last_row(torch.zeros(4, 4), "transform")
-        Traceback (most recent call last):
-        ...
-        ValueError: transform: expected a transform with last row (0, 0, 0, 1), got [0.0, 0.0, 0.0, 0.0]
-    """
-    check_finite(T, name)
-    if checks_enabled() and T.numel():
-        row = T.detach()[..., 3, :].reshape(-1, 4)
-        want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=row.dtype, device=row.device)
-        bad = ((row - want).abs() > 1e-5).any(-1)
-        if bool(bad.any()):
-            got = row[int(bad.nonzero()[0, 0])].tolist()
-            raise ValueError(f"{name}: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 def check_size(size: Sequence[int], name: str = "image_size") -> tuple[int, int]:
@@ -290,117 +280,64 @@ def check_same_device(*named: tuple[str, torch.Tensor]) -> None:
         raise ValueError(f"expected all tensors on one device, got {devices}")
 
 
-def check_at_least(config: object, minimum: float, *names: str, note: str = "") -> None:
-    """Raise ``ValueError`` unless every field ``names`` of ``config`` is ``>= minimum`` (NaN fails).
-
-    The message names the fields together, the bound and the values, e.g.
-    ``"log_every, hard_every: expected >= 1, got 50, 0"`` (``note`` follows the bound). For the
-    ``__post_init__`` of a frozen config dataclass.
-
-    Example:
-        >>> from types import SimpleNamespace
-        >>> check_at_least(SimpleNamespace(a=1, b=0), 1, "a", "b")
-        Traceback (most recent call last):
-        ...
-        ValueError: a, b: expected >= 1, got 1, 0
-    """
-    values = [getattr(config, name) for name in names]
-    if not all(v >= minimum for v in values):
-        got = ", ".join(str(v) for v in values)
-        raise ValueError(f"{', '.join(names)}: expected >= {minimum:g}{note}, got {got}")
-
-
-def check_at_most(config: object, maximum: float, *names: str, note: str = "") -> None:
-    """Raise ``ValueError`` unless every field ``names`` of ``config`` is ``<= maximum`` (NaN fails).
-
-    The upper bound of a count a user types (threads, ports, frames), checked before any work; the
-    message names the fields, the bound (``note`` follows it: how to raise it) and the values.
-
-    Example:
-        >>> from types import SimpleNamespace
-        >>> check_at_most(SimpleNamespace(port=70000), 65535, "port")
-        Traceback (most recent call last):
-        ...
-        ValueError: port: expected <= 65535, got 70000
-    """
-    values = [getattr(config, name) for name in names]
-    if not all(v <= maximum for v in values):
-        got = ", ".join(str(v) for v in values)
-        raise ValueError(f"{', '.join(names)}: expected <= {maximum:g}{note}, got {got}")
-
-
-def check_positive(config: object, *names: str) -> None:
-    """Raise ``ValueError`` unless every field ``names`` of ``config`` is a finite number > 0.
-
-    Fields that are None (an optional setting left unset) pass. For the ``__post_init__`` of a
-    frozen config dataclass, like :func:`check_at_least`.
-
-    Example:
-        >>> from types import SimpleNamespace
-        >>> check_positive(SimpleNamespace(fps=10.0, scale=0.0), "fps", "scale")
-        Traceback (most recent call last):
-        ...
-        ValueError: scale: expected a positive number, got 0.0
-    """
-    bad = [n for n in names if not _positive_or_none(getattr(config, n))]
-    if bad:
-        got = ", ".join(str(getattr(config, n)) for n in bad)
-        raise ValueError(f"{', '.join(bad)}: expected a positive number, got {got}")
-
-
-def check_non_negative(config: object, *names: str) -> None:
-    """Raise ``ValueError`` unless every field ``names`` of ``config`` is a finite number >= 0.
-
-    For weights and learning rates, where 0 switches a term off and NaN, infinity or a negative
-    value would train silently wrong. Like :func:`check_positive` (None passes).
-
-    Example:
-        >>> from types import SimpleNamespace
-        >>> check_non_negative(SimpleNamespace(lambda_lidar=float("nan"), ssim_weight=0.2), "lambda_lidar")
-        Traceback (most recent call last):
-        ...
-        ValueError: lambda_lidar: expected a finite number >= 0, got nan
-    """
-    bad = [n for n in names if not _non_negative_or_none(getattr(config, n))]
-    if bad:
-        got = ", ".join(str(getattr(config, n)) for n in bad)
-        raise ValueError(f"{', '.join(bad)}: expected a finite number >= 0, got {got}")
-
-
-def _non_negative_or_none(value: float | None) -> bool:
-    return value is None or (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0)
-
-
-def _positive_or_none(value: float | None) -> bool:
-    return value is None or (math.isfinite(value) and value > 0)
-
-
-# -- per-field checks of config dataclasses ------------------------------------------------------------
+# -- the settings dataclasses: each field's rule declared next to it -------------------------------
 
 FieldCheck = Callable[[str, Any], Any]
-"""A field's check: ``check(name, value)`` returns the value (normalised: a numpy int becomes an
+"""A field's rule: ``rule(name, value)`` returns the value (normalised: a numpy int becomes an
 ``int``, a list a tuple) or raises :class:`ValueError` naming ``name``, the expected and the actual."""
 
+RULE = "vadgs.rule"
+"""The key of a field's rule in its :func:`dataclasses.field` metadata (set by :func:`checked`)."""
 
-def check_fields(obj: object, checks: Mapping[str, FieldCheck]) -> None:
-    """Run the check of every field ``checks`` names on ``obj``, storing the normalised values.
 
-    For the ``__post_init__`` of a (frozen) config dataclass: one table of field → check, which a
-    mutable holder of the same settings (:class:`~vadgs.train.vad.VisibilityAwareDensification`)
-    also runs on a field set after construction.
+def checked(default: Any = dataclasses.MISSING, rule: FieldCheck | None = None, **field_kwargs: Any) -> Any:
+    """A dataclass field whose rule (a :data:`FieldCheck` such as ``int_field(1)``) stands next to it.
+
+    The rule runs in :class:`Checked`'s ``__post_init__``: at construction, hence also in
+    :func:`dataclasses.replace` (which constructs). ``field_kwargs`` go to :func:`dataclasses.field`
+    (``default_factory``, ``hash``, ...).
 
     Example:
-        >>> from types import SimpleNamespace
-        >>> check_fields(SimpleNamespace(every=0), {"every": int_field(1)})
+        >>> @dataclasses.dataclass(frozen=True)
+        ... class Every(Checked):
+        ...     every: int = checked(5, int_field(1))
+        >>> dataclasses.replace(Every(), every=0)
         Traceback (most recent call last):
         ...
         ValueError: every: expected an integer >= 1, got 0
     """
-    for name, check in checks.items():
-        value = getattr(obj, name)
-        checked = check(name, value)
-        if checked is not value:
-            object.__setattr__(obj, name, checked)
+    if rule is None:
+        raise ValueError("rule: expected a field check such as int_field(1), got None")
+    return dataclasses.field(default=default, metadata={RULE: rule}, **field_kwargs)
+
+
+def nested(cls: type, optional: bool = False) -> Any:
+    """A field holding a nested settings dataclass ``cls``: by default ``cls()`` (None when ``optional``)."""
+    if optional:
+        return checked(None, instance_field(cls, optional=True))
+    return checked(rule=instance_field(cls), default_factory=cls)
+
+
+def check_fields(obj: Any) -> None:
+    """Run the rule of each field of the dataclass ``obj`` (:func:`checked`), storing normalised values."""
+    for f in dataclasses.fields(obj):
+        rule = f.metadata.get(RULE)
+        if rule is not None:
+            value = getattr(obj, f.name)
+            out = rule(f.name, value)
+            if out is not value:
+                object.__setattr__(obj, f.name, out)
+
+
+class Checked:
+    """Base of every settings dataclass of vadgs: its ``__post_init__`` runs each field's rule.
+
+    The rules stand next to the fields (:func:`checked`, :func:`nested`); a rule relating several
+    fields goes in the subclass's ``__post_init__``, after ``super().__post_init__()``.
+    """
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
 
 def _bounds(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
@@ -456,10 +393,12 @@ def float_field(
     hi_open: bool = False,
     optional: bool = False,
     note: str = "",
+    finite: bool = True,
 ) -> FieldCheck:
     """A finite real number (an ``int`` or numpy scalar passes, as a ``float``; not a ``bool``).
 
-    ``lo`` / ``hi`` bound it (``lo_open`` / ``hi_open``: strictly).
+    ``lo`` / ``hi`` bound it (``lo_open`` / ``hi_open``: strictly); ``finite=False`` lets infinity
+    pass (not NaN).
 
     Example:
         >>> float_field(0, 1, lo_open=True, hi_open=True)("new_opacity", float("nan"))
@@ -467,7 +406,8 @@ def float_field(
         ...
         ValueError: new_opacity: expected a finite number in (0, 1), got nan
     """
-    want = ("None or " if optional else "") + "a finite number" + _bounds(lo, hi, lo_open, hi_open) + note
+    kind = "a finite number" if finite else "a number (inf allowed)"
+    want = ("None or " if optional else "") + kind + _bounds(lo, hi, lo_open, hi_open) + note
 
     def check(name: str, value: Any) -> Any:
         if value is None and optional:
@@ -475,7 +415,9 @@ def float_field(
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise ValueError(f"{name}: expected {want}, got {type(value).__name__} {value!r}")
         out = float(value)
-        if not (math.isfinite(out) and _within(out, lo, hi, lo_open, hi_open)):
+        if not (
+            (math.isfinite(out) or not (finite or math.isnan(out))) and _within(out, lo, hi, lo_open, hi_open)
+        ):
             raise ValueError(f"{name}: expected {want}, got {value!r}")
         return out
 
@@ -545,8 +487,8 @@ def _sequence(name: str, value: Any, what: str, example: str) -> tuple:
     return tuple(value)
 
 
-def names_field(what: str = "names") -> FieldCheck:
-    """A sequence of strings (returned as a tuple); a bare string is refused, not split into letters.
+def names_field(what: str = "names", optional: bool = False) -> FieldCheck:
+    """A sequence of strings (returned as a tuple; None when ``optional``); a bare string is refused.
 
     Example:
         >>> names_field("class names")("skip_classes", "road")
@@ -556,6 +498,8 @@ def names_field(what: str = "names") -> FieldCheck:
     """
 
     def check(name: str, value: Any) -> Any:
+        if value is None and optional:
+            return None
         items = _sequence(name, value, what, "('road', 'sky')")
         bad = [v for v in items if not isinstance(v, str)]
         if bad:

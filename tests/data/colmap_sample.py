@@ -15,7 +15,7 @@ import torch
 
 from vadgs.data import load_scene, sample_scene_path
 from vadgs.geometry import invert_rigid
-from vadgs.geometry.voxel import observing_views
+from vadgs.geometry.camera import observing_views
 
 
 def write_sample_colmap(

@@ -21,7 +21,7 @@ pytest.importorskip("pyarrow")
 
 from tests.data import argoverse2_log as av2log
 from vadgs.data import load_argoverse2
-from vadgs.data.argoverse2 import (
+from vadgs.data.argoverse2_tables import (
     Argoverse2Poses,
     argoverse2_sync,
     interpolate_city_SE3_ego,
@@ -274,6 +274,23 @@ class TestRefused:
         with pytest.raises(ValueError, match=message) as err:
             load_argoverse2(log_dir)
         assert str(path) in str(err.value)
+
+    @pytest.mark.parametrize("sensor", ["ring_front_center", "down_lidar"])
+    def test_sensor_without_extrinsics(self, log, tmp_path, sensor):
+        """A selected camera or LiDAR without a row of the extrinsics: one line naming both."""
+        import pyarrow.compute as pc
+        import pyarrow.feather as feather
+
+        log_dir = _copy(log, tmp_path)
+        path = log_dir / "calibration" / "egovehicle_SE3_sensor.feather"
+        table = feather.read_table(path)
+        feather.write_feather(table.filter(pc.not_equal(table.column("sensor_name"), sensor)), path)
+        with pytest.raises(ValueError, match=f"no row of sensor_name '{sensor}', have ") as err:
+            load_argoverse2(log_dir)
+        assert str(path) in str(err.value)
+        if sensor == "down_lidar":  # without that LiDAR's points the log loads
+            frames = load_argoverse2(log.log_dir).frames
+            assert len(load_argoverse2(log_dir, lidars=["up_lidar"]).frames) == len(frames)
 
     def test_bad_sweep_named_when_read(self, log, tmp_path):
         import pyarrow.feather as feather

@@ -371,7 +371,7 @@ class TestWaymoReal:
         assert len(vehicles["pinhole"]) >= 20 and np.median(vehicles["pinhole"]) >= 0.9
 
     def test_release_vehicle_pose_float32(self):
-        from vadgs.data.waymo import read_waymo_poses
+        from vadgs.data.waymo_parquet import read_waymo_poses
 
         raw = _table("vehicle_pose", WAYMO_RELEASE, RELEASE_SEG)
         col = raw["[VehiclePoseComponent].world_from_vehicle.transform"]
@@ -396,7 +396,7 @@ class TestWaymoReal:
         import pyarrow.parquet as pq
 
         from vadgs.data import load_waymo
-        from vadgs.data.waymo import waymo_camera_name
+        from vadgs.data.waymo_parquet import waymo_camera_name
 
         hkp = _table("camera_hkp", WAYMO_RELEASE, RELEASE_SEG, columns=["key.camera_name"])["key.camera_name"]
         assert isinstance(hkp[0], str)

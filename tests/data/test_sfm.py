@@ -15,7 +15,8 @@ from PIL import Image
 from vadgs.cli import main
 from vadgs.data import open_colmap_project
 from vadgs.data.colmap_model import colmap_world_to_cam
-from vadgs.data.sfm import find_photos, photo_groups, run_sfm, sequential_pairs
+from vadgs.data.photos import find_photos, photo_groups
+from vadgs.data.sfm import run_sfm, sequential_pairs
 from vadgs.train.scenes import scene_ref
 
 from .photo_sample import SIDEWAYS, photo_cameras, write_photo_set
@@ -228,7 +229,10 @@ class TestBadInput:
             ),
             ([str(tmp_path / "one")], "expected at least 2 photos, got 1 (a.jpg)"),
             ([str(tmp_path / "one"), "--matcher", "vocab"], "--matcher"),
-            ([str(tmp_path / "one"), "--max-image-size", "-1"], "--max-image-size: expected >= 0, got -1"),
+            (
+                [str(tmp_path / "one"), "--max-image-size", "-1"],
+                "--max-image-size: expected an integer >= 0, got -1",
+            ),
         ]
         for argv, message in cases:
             assert main(["sfm", *argv, "--out", str(tmp_path / "p")]) == 2, argv
@@ -281,7 +285,7 @@ class TestBadInput:
         assert "expected at least 2 distinct photos, got 1 (a.jpg; b.jpg is identical to it" in err
         assert not (tmp_path / "p").exists()
         # a project another process is writing
-        from vadgs.train.session import RunLock
+        from vadgs.runlock import RunLock
 
         with RunLock(tmp_path / "busy", "vadgs sfm"):
             assert sfm(tmp_path / "busy") != 0

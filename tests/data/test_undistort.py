@@ -101,7 +101,7 @@ class TestUndistortedIntrinsics:
     def test_exception(self):
         with pytest.raises(ValueError, match=r"K: expected shape \(3, 3\)"):
             undistorted_intrinsics(torch.eye(4), distortion_coefficients([0.0] * 4), (6, 8))
-        with pytest.raises(ValueError, match="fx, fy > 0"):
+        with pytest.raises(ValueError, match=r"^K: expected positive focal lengths .*, got fx=-1, fy=-1$"):
             undistorted_intrinsics(-torch.eye(3), distortion_coefficients([0.0] * 4), (6, 8))
         with pytest.raises(ValueError, match="image_size"):
             undistorted_intrinsics(_t(SMALL_K), distortion_coefficients([0.1] * 4), (0, 8))

@@ -14,8 +14,9 @@ import pytest
 import torch
 from PIL import Image
 
+from vadgs.checks import check_intrinsics, checking
 from vadgs.data import ValidationReport, load_scene, sample_scene_path, validate_scene
-from vadgs.data.checks import check_intrinsics, check_rigid
+from vadgs.data.checks import check_rigid
 from vadgs.data.scene import npz_headers
 
 from .sample_copy import copy_sample_scene
@@ -162,11 +163,12 @@ class TestMetadata:
         [
             (
                 lambda m: m["cameras"]["front"].update(K=[[0, 0, 120], [0, 0, 72], [0, 0, 1]]),
-                r"cameras.front.K: expected positive focal lengths fx, fy, got fx=0, fy=0",
+                r"cameras.front.K: expected positive focal lengths K\[..., 0, 0\], K\[..., 1, 1\], "
+                r"got fx=0, fy=0$",
             ),
             (
                 lambda m: m["cameras"]["front"].update(K=[[192, 0, 120], [0, 192, 72], [0, 0, 0]]),
-                r"cameras.front.K: expected an upper-triangular K with last row \(0, 0, 1\)",
+                r"cameras.front.K: expected \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\], got \[\[192.0, ",
             ),
             (
                 lambda m: m["cameras"]["front"].update(width="abc"),
@@ -249,11 +251,33 @@ class TestMetadata:
 
 class TestHelpers:
     def test_check_intrinsics(self):
-        check_intrinsics(torch.tensor([[100.0, 0, 5], [0, 90, 4], [0, 0, 1]]))
+        check_intrinsics(torch.tensor([[100.0, 0, 5], [0, 90, 4], [0, 0, 1]]), pinhole=True)
         with pytest.raises(ValueError, match="K: expected finite"):
-            check_intrinsics(torch.full((3, 3), float("nan")))
-        with pytest.raises(ValueError, match=r"expected shape \(3, 3\)"):
-            check_intrinsics(torch.eye(4))
+            check_intrinsics(torch.full((3, 3), float("nan")), pinhole=True)
+        with pytest.raises(ValueError, match=r"expected shape \(\*, 3, 3\), got \(4, 4\)"):
+            check_intrinsics(torch.eye(4), pinhole=True)
+        with pytest.raises(
+            ValueError, match=r"^K: expected \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\], got "
+        ):
+            check_intrinsics(torch.tensor([[100.0, 0, 5], [1e-3, 90, 4], [0, 0, 1]]), pinhole=True)
+        check_intrinsics(torch.tensor([[100.0, 0, 5], [1e-3, 90, 4], [0, 0, 1]]))  # the form only when asked
+        K = torch.tensor([[100.0, 0, 5], [0, 90, 4], [0, 0, 1]]).repeat(2, 1, 1)
+        K[1, 1, 1] = -1.0
+        with pytest.raises(
+            ValueError, match=r"^k: expected positive focal lengths .*, got fx=100, fy=-1 at \(1,\)$"
+        ):
+            check_intrinsics(K, "k")
+
+    def test_a_file_K_is_checked_with_value_checks_off(self):
+        # VADGS_CHECKS / checking(False) skip the value checks of tensors the caller vouches for,
+        # never those of a K read from a file or given by a user (pinhole=True)
+        K = torch.tensor([[0.0, 0, 5], [0, 90, 4], [0, 0, 1]])
+        with checking(False):
+            check_intrinsics(K)  # a value check: off
+            with pytest.raises(ValueError, match=r"^K: expected positive focal lengths .*, got fx=0, fy=90$"):
+                check_intrinsics(K, pinhole=True)
+            with pytest.raises(ValueError, match=r"^K: expected \[\[fx, s, cx\]"):
+                check_intrinsics(torch.tensor([[9.0, 0, 5], [1.0, 9, 4], [0, 0, 1]]), pinhole=True)
 
     def test_check_rigid_tolerance(self):
         T = torch.eye(4)

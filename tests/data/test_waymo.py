@@ -17,8 +17,8 @@ pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 
 from vadgs.data import Scene, load_waymo  # noqa: E402
-from vadgs.data.waymo import read_waymo_poses, waymo_camera_name  # noqa: E402
 from vadgs.data.waymo_lidar import waymo_beam_inclinations, waymo_range_image_to_points  # noqa: E402
+from vadgs.data.waymo_parquet import read_waymo_poses, waymo_camera_name  # noqa: E402
 from vadgs.geometry import project_points  # noqa: E402
 
 SEG = "1005081002024129653_5313_150_5333_150"

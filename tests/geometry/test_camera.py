@@ -12,10 +12,12 @@ from vadgs.geometry import (
     camera_centers,
     cameras_in_object_frame,
     invert_rigid,
+    observing_views,
     pixel_grid,
     project_points,
     relative_pose,
     scale_intrinsics,
+    shift_K,
 )
 
 
@@ -255,3 +257,65 @@ class TestCameras:
             Cameras(intrinsics(2), T, (0, 4))
         with pytest.raises(ValueError, match="image_size"):
             Cameras(intrinsics(2), T, "big")
+
+
+class TestShiftK:
+    def test_a_point_lands_at_its_pixel_in_the_crop(self):
+        K = torch.tensor([[[50.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]]], dtype=torch.float64)
+        w2c = random_rigid(1)
+        pts = torch.tensor([[[0.3, -0.2, 4.0], [1.0, 0.5, 6.0]]], dtype=torch.float64)
+        pts = (pts - w2c[:, None, :3, 3]) @ w2c[0, :3, :3]  # in front of the camera
+        uv, _ = project_points(pts, K, w2c)
+        uv_crop, _ = project_points(pts, shift_K(K, 7, 5), w2c)
+        assert torch.allclose(uv_crop, uv - torch.tensor([7.0, 5.0], dtype=torch.float64))
+        assert K[0, 0, 2] == 31.5  # a copy: K is unchanged
+
+
+def _cams(n=3, size=(10, 12)):
+    g = torch.Generator().manual_seed(5)
+    K = torch.tensor([[8.0, 0, 5.5], [0, 8.0, 4.5], [0, 0, 1]]).expand(n, 3, 3).clone()
+    T = torch.eye(4).repeat(n, 1, 1)
+    T[:, :3, 3] = torch.rand(n, 3, generator=g) - 0.5
+    return Cameras(K, T, size)
+
+
+class TestObservingViews:
+    def test_equals_naive_loop(self):
+        g = torch.Generator().manual_seed(6)
+        pts = (torch.rand(200, 3, generator=g) - 0.5) * torch.tensor([6.0, 6.0, 8.0])
+        cams = _cams(4)
+        pi, vi = observing_views(pts, cams, view_ids=[10, 11, 12, 13])
+        ref = []
+        for p in range(200):
+            for b in range(4):
+                x = cams.world_to_cam[b, :3, :3] @ pts[p] + cams.world_to_cam[b, :3, 3]
+                u = 8.0 * x[0] / x[2] + 5.5
+                v = 8.0 * x[1] / x[2] + 4.5
+                if x[2] > 0.1 and -0.5 <= u < 11.5 and -0.5 <= v < 9.5:
+                    ref.append((p, 10 + b))
+        assert list(zip(pi.tolist(), vi.tolist())) == ref
+        assert len(ref) > 20
+
+    def test_groups(self):
+        g = torch.Generator().manual_seed(7)
+        pts = (torch.rand(100, 3, generator=g) - 0.5) * torch.tensor([2.0, 2.0, 4.0]) + torch.tensor(
+            [0, 0, 3.0]
+        )
+        cams = _cams(4)
+        pg = torch.randint(0, 2, (100,), generator=g)
+        cg = torch.tensor([0, 0, 1, 1])
+        pi, vi = observing_views(pts, cams, groups=(pg, cg))
+        full = set(zip(*observing_views(pts, cams)))
+        full = {(int(p), int(v)) for p, v in full}
+        want = {(p, v) for p, v in full if int(pg[p]) == int(cg[v])}
+        assert set(zip(pi.tolist(), vi.tolist())) == want
+        assert (pi.diff() >= 0).all()
+
+    def test_exception(self):
+        cams = _cams(2)
+        with pytest.raises(ValueError, match="points"):
+            observing_views(torch.rand(5, 2), cams)
+        with pytest.raises(ValueError, match="view_ids"):
+            observing_views(torch.rand(5, 3), cams, view_ids=[0])
+        with pytest.raises(ValueError, match=r"groups\[0\]"):
+            observing_views(torch.rand(5, 3), cams, groups=(torch.zeros(4), torch.zeros(2)))

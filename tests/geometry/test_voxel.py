@@ -10,10 +10,8 @@ import pytest
 import torch
 
 from vadgs.geometry import (
-    Cameras,
     PointChunk,
     VoxelGrid,
-    observing_views,
     unique_cells,
     voxel_labels,
     voxelize,
@@ -193,56 +191,6 @@ class TestVoxelize:
             voxelize(torch.rand(5, 3), 0.5, (torch.tensor([0]), torch.tensor([-1])))
         with pytest.raises(ValueError, match="num_views"):
             voxelize(torch.rand(5, 3), 0.5, (torch.tensor([0]), torch.tensor([3])), num_views=2)
-
-
-def _cams(n=3, size=(10, 12)):
-    g = torch.Generator().manual_seed(5)
-    K = torch.tensor([[8.0, 0, 5.5], [0, 8.0, 4.5], [0, 0, 1]]).expand(n, 3, 3).clone()
-    T = torch.eye(4).repeat(n, 1, 1)
-    T[:, :3, 3] = torch.rand(n, 3, generator=g) - 0.5
-    return Cameras(K, T, size)
-
-
-class TestObservingViews:
-    def test_equals_naive_loop(self):
-        g = torch.Generator().manual_seed(6)
-        pts = (torch.rand(200, 3, generator=g) - 0.5) * torch.tensor([6.0, 6.0, 8.0])
-        cams = _cams(4)
-        pi, vi = observing_views(pts, cams, view_ids=[10, 11, 12, 13])
-        ref = []
-        for p in range(200):
-            for b in range(4):
-                x = cams.world_to_cam[b, :3, :3] @ pts[p] + cams.world_to_cam[b, :3, 3]
-                u = 8.0 * x[0] / x[2] + 5.5
-                v = 8.0 * x[1] / x[2] + 4.5
-                if x[2] > 0.1 and -0.5 <= u < 11.5 and -0.5 <= v < 9.5:
-                    ref.append((p, 10 + b))
-        assert list(zip(pi.tolist(), vi.tolist())) == ref
-        assert len(ref) > 20
-
-    def test_groups(self):
-        g = torch.Generator().manual_seed(7)
-        pts = (torch.rand(100, 3, generator=g) - 0.5) * torch.tensor([2.0, 2.0, 4.0]) + torch.tensor(
-            [0, 0, 3.0]
-        )
-        cams = _cams(4)
-        pg = torch.randint(0, 2, (100,), generator=g)
-        cg = torch.tensor([0, 0, 1, 1])
-        pi, vi = observing_views(pts, cams, groups=(pg, cg))
-        full = set(zip(*observing_views(pts, cams)))
-        full = {(int(p), int(v)) for p, v in full}
-        want = {(p, v) for p, v in full if int(pg[p]) == int(cg[v])}
-        assert set(zip(pi.tolist(), vi.tolist())) == want
-        assert (pi.diff() >= 0).all()
-
-    def test_exception(self):
-        cams = _cams(2)
-        with pytest.raises(ValueError, match="points"):
-            observing_views(torch.rand(5, 2), cams)
-        with pytest.raises(ValueError, match="view_ids"):
-            observing_views(torch.rand(5, 3), cams, view_ids=[0])
-        with pytest.raises(ValueError, match=r"groups\[0\]"):
-            observing_views(torch.rand(5, 3), cams, groups=(torch.zeros(4), torch.zeros(2)))
 
 
 class TestVoxelizeChunks:

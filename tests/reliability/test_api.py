@@ -13,13 +13,13 @@ from tests.mvs.mvs_scenes import plane_scene
 from vadgs.checks import checking
 from vadgs.geometry import normals_to_quats
 from vadgs.geometry.camera import backproject_depth, invert_rigid, project_points
+from vadgs.geometry.points import voxel_downsample
 from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.geometry.voxel import voxelize
 from vadgs.mvs import PatchMatchConfig, patchmatch
 from vadgs.mvs.planar import fit_plane_ransac
 from vadgs.select import ViewSelectionConfig, max_weight_clique, top_k_views
 from vadgs.select.clique import MAX_CLIQUES
-from vadgs.train.init import voxel_downsample
 
 K_OK = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]]])
 NAN = float("nan")

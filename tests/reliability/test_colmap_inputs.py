@@ -14,8 +14,9 @@ import pytest
 from PIL import Image
 
 from tests.data.colmap_sample import write_sample_colmap
-from vadgs.data.colmap import load_colmap, open_colmap_project
+from vadgs.data.colmap import load_colmap
 from vadgs.data.colmap_files import check_image_name, diagnose_model_files
+from vadgs.data.colmap_project import open_colmap_project
 
 
 @pytest.fixture(scope="module")

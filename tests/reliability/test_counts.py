@@ -73,7 +73,7 @@ CASES = [
         "--trajectory orbit:5: expected at most 4 frames (--max-frames raises it), got 5",
     ),
     (["--video", "{run}/v.mp4", "--trajectory", "orbit:" + "9" * 5000], "expected at most 100000 frames"),
-    (["--video", "{run}/v.mp4", "--max-frames", "0"], "--max-frames: expected >= 1, got 0"),
+    (["--video", "{run}/v.mp4", "--max-frames", "0"], "--max-frames: expected an integer >= 1, got 0"),
     (
         ["--video", "{run}/v.mp4", "--trajectory", "shift:nan"],
         "--trajectory: expected finite metres in shift:METRES or shift:X,Y,Z, got 'shift:nan'",
@@ -103,7 +103,7 @@ CASES = [
         ["--video", "{run}/config.json/v.mp4"],
         "--video {run}/config.json: expected a folder, got an existing file",
     ),
-    (["--threads", "100000000"], "--threads: expected <= 1024, got 100000000"),
+    (["--threads", "100000000"], "--threads: expected an integer in [0, 1024], got 100000000"),
 ]
 
 
@@ -146,7 +146,7 @@ class TestRenderCounts:
 
     def test_view_port_bounded(self, run, capsys):
         assert main(["view", str(run), "--port", "70000"]) == 2
-        assert _one_line(capsys) == "vadgs view: error: --port: expected <= 65535, got 70000"
+        assert _one_line(capsys) == "vadgs view: error: --port: expected an integer in [1, 65535], got 70000"
 
 
 class TestCheckVideoPath:

@@ -11,7 +11,7 @@ from PIL import Image
 
 from vadgs.cli import main
 from vadgs.data.images import exif_orientation, upright_image
-from vadgs.data.sfm import find_photos, read_photo_header, unsupported_photos
+from vadgs.data.photos import find_photos, read_photo_header, unsupported_photos
 
 
 def _photo(path: Path, seed: int, exif: Image.Exif | None = None) -> None:
@@ -136,15 +136,23 @@ class TestTrainConfigFields:
     @pytest.mark.parametrize(
         ("changes", "message"),
         [
-            ({"iterations": 2.5}, "iterations: expected an integer, got float 2.5"),
-            ({"iterations": True}, "iterations: expected an integer, got bool True"),
-            ({"seed": -1}, r"seed: expected an integer in \[0, 2\^63 - 1\], got -1"),
-            ({"seed": 2**64}, r"seed: expected an integer in \[0, 2\^63 - 1\]"),
-            ({"cache_gb": "2"}, "cache_gb: expected a number, got str '2'"),
-            ({"max_minutes": None}, "max_minutes: expected a number, got NoneType None"),
+            ({"iterations": 2.5}, "iterations: expected an integer >= 1, got 2.5"),
+            ({"iterations": True}, "iterations: expected an integer >= 1, got True"),
+            ({"seed": -1}, r"seed: expected an integer in \[0, 9223372036854775807\], got -1"),
+            (
+                {"seed": 2**64},
+                r"seed: expected an integer in \[0, "
+                r"9223372036854775807\], got 18446744073709551616",
+            ),
+            ({"cache_gb": "2"}, r"cache_gb: expected a finite number > 0 \(GB\), got str '2'"),
+            (
+                {"max_minutes": None},
+                r"max_minutes: expected a finite number >= 0 \(0 = "
+                r"no limit\), got NoneType None",
+            ),
             ({"vad": {}}, r"vad: expected None or a VisibilityDensifyConfig, got dict \{\}"),
             ({"strategy": None}, "strategy: expected a DefaultStrategyConfig, got NoneType None"),
-            ({"device": 0}, "device: expected a torch device name such as 'cpu' or 'cuda', got int 0"),
+            ({"device": 0}, "device: expected a torch device such as 'cpu' or 'cuda', got 0"),
         ],
     )
     def test_refused_at_construction(self, changes, message):

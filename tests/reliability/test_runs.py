@@ -102,10 +102,10 @@ def test_threads_cover_loading_and_the_final_evaluation(tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--lr.means", "nan"], "--lr.means: expected a positive number, got nan"),
-        (["--lr.means", "inf"], "--lr.means: expected a positive number, got inf"),
-        (["--lr.means", "-1"], "--lr.means: expected a positive number, got -1.0"),
-        (["--lr.means-final", "0"], "--lr.means-final: expected a positive number, got 0.0"),
+        (["--lr.means", "nan"], "--lr.means: expected a finite number > 0, got nan"),
+        (["--lr.means", "inf"], "--lr.means: expected a finite number > 0, got inf"),
+        (["--lr.means", "-1"], "--lr.means: expected a finite number > 0, got -1.0"),
+        (["--lr.means-final", "0"], "--lr.means-final: expected a finite number > 0, got 0.0"),
         (["--lr.opacity-logits", "-0.1"], "--lr.opacity-logits: expected a finite number >= 0, got -0.1"),
         (["--lr.sh-dc", "nan"], "--lr.sh-dc: expected a finite number >= 0, got nan"),
         (["--lambda-lidar", "nan"], "--lambda-lidar: expected a finite number >= 0, got nan"),
@@ -114,15 +114,15 @@ def test_threads_cover_loading_and_the_final_evaluation(tmp_path, monkeypatch):
             ["--geometry.lambda-normal", "inf"],
             "--geometry.lambda-normal: expected a finite number >= 0, got inf",
         ),
-        (["--ssim-weight", "2"], "--ssim-weight: expected a number in [0, 1], got 2.0"),
-        (["--iterations", "0"], "--iterations: expected >= 1, got 0"),
+        (["--ssim-weight", "2"], "--ssim-weight: expected a finite number in [0, 1], got 2.0"),
+        (["--iterations", "0"], "--iterations: expected an integer >= 1, got 0"),
         (
             ["--init.voxel-size", "nan"],
-            "--init.voxel-size, --init.object-voxel-size: expected finite numbers >= 0",
+            "--init.voxel-size: expected a finite number >= 0 (0 keeps every point), got nan",
         ),
         (
             ["--init.min-scale", "0"],
-            "--init.min-scale, --init.max-scale: expected 0 < min_scale <= max_scale",
+            "--init.min-scale: expected a finite number > 0, got 0.0",
         ),
         (
             ["--scale", "1e6"],

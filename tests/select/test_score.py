@@ -151,6 +151,19 @@ class TestDiversityScores:
         assert out.score.dtype == torch.float64
         np.testing.assert_allclose(out.score.numpy(), _naive_scores(centers, visible, w2c, 0.2)[0], rtol=1e-6)
 
+    @pytest.mark.parametrize("seed", [0, 5])
+    def test_voxel_mask_equals_restriction_bit_for_bit(self, seed):
+        """Entries outside ``voxels`` weigh 0: the values of the restricted covisibility, exactly."""
+        covis = _covis(*random_scene(seed=seed))
+        mask = torch.rand(covis.num_voxels, generator=torch.Generator().manual_seed(seed)) < 0.3
+        masked = diversity_scores(covis, 0.2, 2.0, voxels=mask)
+        restricted = diversity_scores(covis.restrict(mask), 0.2, 2.0)
+        for a, b in zip(masked, restricted):
+            assert torch.equal(a, b)
+        assert 0 < int(masked.shared.diagonal().max()) <= int(mask.sum())
+        with pytest.raises(ValueError, match="voxels"):
+            diversity_scores(covis, voxels=mask[:-1])
+
     def test_shared_stats_symmetric(self):
         covis = _covis(*random_scene(seed=4))
         shared, dist_dot = shared_voxel_stats(covis)
@@ -200,6 +213,27 @@ class TestCovisibility:
         by_ids = covis.restrict(torch.nonzero(mask).squeeze(1))
         assert torch.equal(by_ids.incidence.to_dense(), sub.incidence.to_dense())
 
+    def test_restrict_with_sizes_reads_nothing(self):
+        """Given the sizes (read with other values), the restriction is the same, without a read.
+
+        Value checks off (the new covisibility's finite-value checks read too), as an event runs it.
+        """
+        from vadgs.checks import checking
+
+        from ..launch_count import LaunchCounter
+
+        centers, visible, w2c = random_scene(seed=6)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        mask = torch.arange(len(centers)) % 3 == 0
+        sizes = covis.restrict_sizes(mask).tolist()
+        assert sizes == [int(mask.sum()), int(covis.incidence.to_dense()[:, mask].sum())]
+        with LaunchCounter() as counter, checking(False):
+            sub = covis.restrict(mask, sizes=(sizes[0], sizes[1]))
+        assert counter.host_reads == 0
+        expected = covis.restrict(mask)
+        assert torch.equal(sub.incidence.indices(), expected.incidence.indices())
+        assert torch.equal(sub.voxel_centers, expected.voxel_centers)
+
 
 class TestTriangulationAngles:
     def test_against_naive_loop(self):
@@ -220,6 +254,19 @@ class TestTriangulationAngles:
                 theta = np.sort(np.degrees(np.arccos(np.clip(cos, -1, 1))))
                 expected = theta[math.floor((len(theta) - 1) * 0.75)]
                 assert out[s].item() == pytest.approx(expected, abs=1e-3)
+
+    def test_seen_mask_and_seen_by_without_reads(self):
+        """Given the reference's voxels as a mask, the angles need no read by the host."""
+        from ..launch_count import LaunchCounter
+
+        covis = _covis(*random_scene(num_views=7, num_voxels=60, seed=3))
+        expected = triangulation_angles(covis, 2)
+        with LaunchCounter() as counter:
+            seen = covis.seen_by(2)
+            got = triangulation_angles(covis, 2, seen=seen)
+        assert counter.host_reads == 0
+        assert torch.equal(got, expected)
+        assert torch.nonzero(seen).squeeze(1).tolist() == covis.voxels_of(2).tolist()
 
     def test_short_baseline_far_voxels(self):
         # 1 cm apart at 50 m: 0.0115°; 2 m apart: 2.29° (atan(2 / 50))

@@ -103,6 +103,28 @@ class TestSelectViews:
         assert 4 not in sel.views.tolist() and len(set(sel.views.tolist())) == 3
         assert set(sel.views.tolist()) <= set(sel.candidates.tolist())
 
+    def test_one_read_of_the_device_and_host_ids(self):
+        """The diversity selection reads the device once; its views are host data (``ids``).
+
+        Value checks off, as an event runs it: those of the clique search's host inputs count too.
+        """
+        from vadgs.checks import checking
+
+        from ..launch_count import LaunchCounter
+
+        centers, visible, w2c = random_scene(num_views=10, seed=11, p=0.6)
+        covis = Covisibility.from_visible(visible, centers, w2c)
+        cfg = ViewSelectionConfig(k=3, min_shared=1)
+        for ref in (0, 4):
+            with LaunchCounter() as counter, checking(False):
+                sel = select_views(ref, covis, cfg, torch.Generator().manual_seed(ref))
+            assert counter.host_reads == 1 and sel.complete
+            assert sel.views.device.type == "cpu" and sel.ids == sel.views.tolist() and len(sel.ids) == 3
+            # the same choice as a selection on the restriction to the voxels ref sees
+            sub = covis.restrict(covis.voxels_of(ref))
+            again = select_views(ref, sub, cfg, torch.Generator().manual_seed(ref))
+            assert again.ids == sel.ids and again.score == sel.score
+
     def test_exact_against_brute_force(self):
         centers, visible, w2c = random_scene(num_views=10, seed=11, p=0.6)
         covis = Covisibility.from_visible(visible, centers, w2c)

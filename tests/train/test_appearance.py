@@ -201,9 +201,13 @@ class TestConfig:
     @pytest.mark.parametrize(
         ("data", "match"),
         [
-            ({"lr": 0.0}, r"appearance.lr: expected > 0, got 0.0"),
-            ({"reg": -1.0}, r"appearance.reg: expected >= 0, got -1.0"),
-            ({"frame_reg": float("nan")}, r"appearance.frame_reg: expected >= 0"),
+            ({"lr": 0.0}, r"config.appearance: lr: expected a finite number > 0, got 0.0"),
+            ({"reg": -1.0}, r"config.appearance: reg: expected a finite number >= 0, got -1.0"),
+            (
+                {"frame_reg": float("nan")},
+                r"config.appearance: frame_reg: expected a "
+                r"finite number >= 0, got nan",
+            ),
             ({"lr": "fast"}, r"config.appearance.lr: expected float, got str 'fast'"),
             ({"per_frame": 1}, r"config.appearance.per_frame: expected bool, got int 1"),
             ({"bogus": 1}, r"config.appearance: unknown key\(s\) \['bogus'\]"),
@@ -313,4 +317,4 @@ class TestCli:
         assert "--appearance cannot be honoured" in capsys.readouterr().err
         bad = ["train", *TINY, "--out", str(tmp_path / "bad"), "--appearance", "--appearance.lr", "-1"]
         assert main(bad) == 2
-        assert "--appearance.lr: expected > 0" in capsys.readouterr().err
+        assert "--appearance.lr: expected a finite number > 0" in capsys.readouterr().err

@@ -10,10 +10,10 @@ import torch
 from vadgs.cli import main as _main
 from vadgs.data import load_colmap
 from vadgs.data.colmap_model import distorted_cameras
+from vadgs.data.observations import sfm_observations
 from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.scenes import open_scene
 from vadgs.train.vad import build_visibility_index
-from vadgs.train.vad.inputs import sfm_observations
 
 from ..data.colmap_sample import write_sample_colmap
 

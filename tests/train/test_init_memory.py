@@ -8,47 +8,11 @@ import subprocess
 import sys
 
 import pytest
-import torch
-
-from vadgs.train.init import VoxelAccumulator, voxel_downsample
-
-
-class TestVoxelAccumulator:
-    @pytest.mark.parametrize("chunks", [1, 2, 7])
-    def test_chunks_equal_one_downsample_bit_for_bit(self, chunks):
-        g = torch.Generator().manual_seed(0)
-        points = torch.rand(5000, 3, generator=g) * 4 - 2
-        colors = torch.rand(5000, 3, generator=g)
-        acc = VoxelAccumulator(0.25)
-        for p, c in zip(points.tensor_split(chunks), colors.tensor_split(chunks)):
-            acc.add(p, c)
-        p, c = acc.result()
-        rp, rc = voxel_downsample(points, colors, 0.25)
-        assert torch.equal(p, rp) and torch.equal(c, rc)
-        assert p.shape[0] == int(torch.unique(torch.floor(points / 0.25), dim=0).shape[0])
-
-    def test_holds_voxels_not_points(self):
-        acc = VoxelAccumulator(1.0)
-        g = torch.Generator().manual_seed(1)
-        for _ in range(20):  # 20 "sweeps" of the same 27 voxels
-            acc.add(torch.rand(10_000, 3, generator=g) * 3, torch.rand(10_000, 3, generator=g))
-        p, c = acc.result()
-        assert p.shape == (27, 3) and acc._sums.shape == (27, 6)  # 200,000 points, 27 rows held
-        assert bool(((c > 0.45) & (c < 0.55)).all())  # the mean of uniform colours
-
-    def test_no_voxels_keeps_every_point_and_empty(self):
-        acc = VoxelAccumulator(0.0)
-        acc.add(torch.ones(2, 3), torch.zeros(2, 3))
-        acc.add(torch.zeros(1, 3), torch.ones(1, 3))
-        p, c = acc.result()
-        assert p.tolist() == [[1, 1, 1], [1, 1, 1], [0, 0, 0]] and c[:, 0].tolist() == [0, 0, 1]
-        assert [t.shape for t in VoxelAccumulator(0.5).result()] == [(0, 3), (0, 3)]
-
 
 _PEAK = r"""
 import json, sys, torch
 torch.set_num_threads(1)
-from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+from vadgs.process import peak_rss_mb, reset_peak_rss
 from vadgs.data import load_scene
 from vadgs.train.init import InitConfig, init_gaussians
 
@@ -85,7 +49,7 @@ def test_reset_peak_rss_starts_the_peak_over():
     peak is the resident set again, and a 100 MB stage reads as about 100 MB."""
     script = r"""
 import json, numpy as np
-from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+from vadgs.process import peak_rss_mb, reset_peak_rss
 a = np.ones(400 * 2**20, dtype=np.uint8); del a
 high = peak_rss_mb()
 ok = reset_peak_rss()

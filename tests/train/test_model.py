@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from vadgs.geometry.rotation import quaternion_to_rotation
-from vadgs.train.init import InitConfig, init_gaussians, knn_scales, voxel_downsample
+from vadgs.train.init import InitConfig, init_gaussians
 from vadgs.train.model import PER_GAUSSIAN, GaussianModel, gaussians_at, make_optimizer
 
 
@@ -135,13 +135,6 @@ class TestRenderDepth:
 
 
 class TestInit:
-    def test_voxel_downsample_and_knn(self):
-        p = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [1.0, 0, 0], [3.0, 0, 0]])
-        q, c = voxel_downsample(p, torch.ones(4, 3), 0.1)
-        assert q.shape == (3, 3) and torch.allclose(c, torch.ones(3, 3))
-        naive = torch.stack([torch.cdist(x[None], p)[0].sort().values[1] for x in p])
-        assert torch.allclose(knn_scales(p, 1), naive)
-
     def test_init_nodes(self, tiny_scene):
         model = init_gaussians(
             tiny_scene, InitConfig(voxel_size=0.6, max_points=800, max_object_points=100, sh_degree=0)

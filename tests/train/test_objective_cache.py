@@ -98,5 +98,5 @@ class TestObjectiveCache:
         assert obj.cache.nbytes == len(scene.train_views) * 3 * 72 * 120  # 4 x less than float32
 
     def test_cache_gb_is_checked(self):
-        with pytest.raises(ValueError, match="cache_gb: expected a finite number of GB > 0, got 0"):
+        with pytest.raises(ValueError, match=r"cache_gb: expected a finite number > 0 \(GB\), got 0"):
             TrainConfig(cache_gb=0)

@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from vadgs.cli import main as _main
+from vadgs.runlock import LOCK_NAME, RunInUseError, RunLock
 from vadgs.train.checkpoint import load_checkpoint
 from vadgs.train.run import load_run, train_scene
 from vadgs.train.scenes import open_scene, scene_fingerprint, scene_ref
-from vadgs.train.session import LOCK_NAME, RunInUseError, RunLock
 
 from ..data.sample_copy import copy_sample_scene
 

@@ -50,7 +50,7 @@ def test_peak_is_the_runs_own_not_its_parents():
     parent = r"""
 import subprocess, sys, numpy as np
 ballast = np.ones(1200 * 2**20 // 8)  # 1200 MiB resident in the parent
-child = ("from vadgs.train.loop import peak_rss_mb; import resource; "
+child = ("from vadgs.process import peak_rss_mb; import resource; "
          "print(peak_rss_mb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)")
 print(subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, check=True).stdout)
 """

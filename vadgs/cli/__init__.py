@@ -222,15 +222,15 @@ def _torch_threads(threads: int | None):
 @contextlib.contextmanager
 def _colmap_log_level(level: int | None):
     """The pycolmap log level for the command (``--debug``: everything), restored afterwards."""
-    from vadgs.data import colmap
+    from vadgs.data import colmap_project
 
-    before = colmap.COLMAP_LOG_LEVEL
+    before = colmap_project.COLMAP_LOG_LEVEL
     if level is not None:
-        colmap.COLMAP_LOG_LEVEL = level
+        colmap_project.COLMAP_LOG_LEVEL = level
     try:
         yield
     finally:
-        colmap.COLMAP_LOG_LEVEL = before
+        colmap_project.COLMAP_LOG_LEVEL = before
 
 
 def one_line(e: BaseException) -> str:

@@ -21,7 +21,7 @@ from typing import Annotated, Any, TypeVar
 
 import tyro
 
-from vadgs.checks import MAX_THREADS, check_at_least, check_at_most
+from vadgs.checks import MAX_THREADS, Checked, bool_field, checked, int_field
 
 __all__ = [
     "Command",
@@ -48,21 +48,17 @@ C = TypeVar("C")
 
 
 @dataclass(frozen=True, kw_only=True)
-class Command:
+class Command(Checked):
     """A ``vadgs`` command: its fields are the flags, :meth:`main` runs it.
 
     Two flags every command has (also accepted before the command's name: ``vadgs --threads 2
     check`` is ``vadgs check --threads 2``).
     """
 
-    threads: int = 0
+    threads: int = checked(0, int_field(0, MAX_THREADS))
     """torch CPU threads for the command (0: torch's own count, all cores)"""
-    debug: Flag = False
+    debug: Flag = checked(False, bool_field())
     """show the traceback of an error"""
-
-    def __post_init__(self) -> None:
-        check_at_least(self, 0, "threads")
-        check_at_most(self, MAX_THREADS, "threads")
 
     @classmethod
     def parse(cls: type[C], argv: list[str], prog: str) -> C | None:

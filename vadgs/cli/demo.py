@@ -7,10 +7,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from vadgs.checks import check_at_least
+from vadgs.checks import checked, int_field
 from vadgs.cli._common import Command, Flag, check_out_dir, metrics_summary, scene_arg
+from vadgs.runlock import RunLock
 from vadgs.train.run import finish_run
-from vadgs.train.session import RunLock
 
 
 @dataclass(frozen=True)
@@ -25,17 +25,12 @@ class DemoCommand(Command):
     """output folder (a previous demo there is replaced)"""
     overwrite: Flag = False
     """--out may hold a run that is not a demo's: its files are removed"""
-    iterations: int | None = None
+    iterations: int | None = checked(None, int_field(0, optional=True))
     """override the demo's iteration count (250)"""
     baseline: Flag = False
     """standard densification only (no VAD-GS)"""
     no_progress: Flag = False
     """no progress bar"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.iterations is not None:
-            check_at_least(self, 0, "iterations")
 
     def main(self) -> int:
         """Train, evaluate, write the figures; 0."""

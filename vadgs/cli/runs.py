@@ -3,7 +3,7 @@
 Each finds the run's scene where the run recorded it (absolute, from any current folder), checks
 its fingerprint, and takes ``--scene FOLDER`` for a run whose scene moved
 (:func:`~vadgs.train.run.load_run`). Those that write into the run folder hold its lock
-(:class:`~vadgs.train.session.RunLock`) while they run.
+(:class:`~vadgs.runlock.RunLock`) while they run.
 """
 
 from __future__ import annotations
@@ -19,15 +19,15 @@ from typing import Annotated, Literal
 
 import tyro
 
-from vadgs.checks import check_at_least, check_at_most, check_positive
+from vadgs.checks import checked, float_field, int_field
 from vadgs.cli._common import Command, Flag, Positional, check_out_dir, lidar_depth_line, run_dir
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import check_output_folder, read_manifest, record_files, recorded_files
+from vadgs.runlock import RunLock
 from vadgs.train.results.trajectory import MAX_FRAMES
 from vadgs.train.run import Run, frame_position, load_run
 from vadgs.train.scenes import FINGERPRINT_CHECKS
-from vadgs.train.session import RunLock
 
 __all__ = ["EvalCommand", "ExportCommand", "RenderCommand", "ViewCommand"]
 
@@ -189,24 +189,17 @@ class RenderCommand(Command):
     list: print those the scene offers (default: ego where there is one, else interpolate)"""
     camera: str | None = None
     """camera of the video (default front, else the camera of the most training views)"""
-    fps: float = 10.0
+    fps: float = checked(10.0, float_field(0, lo_open=True))
     """frames per second of the video"""
-    frames_between: int | None = None
+    frames_between: int | None = checked(None, int_field(0, optional=True))
     """poses between consecutive frames (ego, shift; default 0) or training cameras
     (interpolate; default 8)"""
-    max_frames: int = MAX_FRAMES
+    max_frames: int = checked(MAX_FRAMES, int_field(1))
     """the most frames a video may have (orbit:FRAMES, --frames-between), checked before rendering"""
     scene: SceneOpt = None
     """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
     no_progress: Flag = False
     """no progress bar"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive(self, "fps")
-        check_at_least(self, 1, "max_frames")
-        if self.frames_between is not None:
-            check_at_least(self, 0, "frames_between")
 
     def _check_video(self) -> None:
         """The video's name, folder and the counts that need no scene, before the run is loaded.
@@ -391,23 +384,16 @@ class ViewCommand(Command):
     """run folder (or its checkpoint.pt)"""
     host: str = "127.0.0.1"
     """interface to listen on (default this machine only; 0.0.0.0: every interface, no authentication)"""
-    port: int = 8080
+    port: int = checked(8080, int_field(1, 65535))
     """port (the next free one if taken)"""
     frame: int | None = None
     """the scene's frame index shown first (default: its first frame)"""
-    max_gaussians: int = 1_000_000
+    max_gaussians: int = checked(1_000_000, int_field(1))
     """send at most this many Gaussians to the browser (a random subset)"""
-    timeout: float | None = None
+    timeout: float | None = checked(None, float_field(0, lo_open=True, optional=True))
     """stop serving after this many seconds (default: at Ctrl+C)"""
     scene: SceneOpt = None
     """the run's scene folder if it moved, checked by its fingerprint (None: where the run recorded it)"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_at_least(self, 1, "port")
-        check_at_most(self, 65535, "port")
-        check_at_least(self, 1, "max_gaussians")
-        check_positive(self, "timeout")
 
     def main(self) -> int:
         """Serve the viewer until Ctrl+C or the timeout; 0."""

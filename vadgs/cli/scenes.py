@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from vadgs.checks import check_at_least, check_positive
+from vadgs.checks import checked, float_field, int_field
 from vadgs.cli._common import Command, Flag, Positional, check_out_dir, scene_arg
 from vadgs.io import write_json
 
@@ -62,22 +62,16 @@ class VisibilityCommand(Command):
     (default: the bundled sample)"""
     out: str = "outputs/visibility"
     """output folder"""
-    view: int | None = None
+    view: int | None = checked(None, int_field(0, optional=True))
     """view index (default: a middle training view)"""
-    voxel_size: float = 0.2
+    voxel_size: float = checked(0.2, float_field(0, lo_open=True))
     """voxel edge in metres"""
-    scale: float = 1.0
+    scale: float = checked(1.0, float_field(0, lo_open=True))
     """image resolution factor"""
     only_observed: Flag = False
     """rasterise only voxels observed by the view"""
     dgp: Flag = False
     """SCENE is a DGP scene folder"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive(self, "voxel_size", "scale")
-        if self.view is not None:
-            check_at_least(self, 0, "view")
 
     def main(self) -> int:
         """Write the panel and visibility.json; 0."""
@@ -94,8 +88,8 @@ class VisibilityCommand(Command):
 
     def _write(self, scene, out: Path) -> int:
         from vadgs.data.lidar import accumulate_lidar
+        from vadgs.data.observations import sfm_observations
         from vadgs.geometry import ZBufferConfig, rasterize_voxels, voxelize
-        from vadgs.train.vad.inputs import sfm_observations
         from vadgs.viz import colorize_depth, colorize_index, image_to_uint8, save_panel
 
         t0 = time.perf_counter()
@@ -168,7 +162,7 @@ class ConvertCommand(Command):
     """nuScenes table folder (v1.0-mini, v1.0-trainval)"""
     cameras: str | None = None
     """comma-separated camera names (default all)"""
-    scale: float = 1.0
+    scale: float = checked(1.0, float_field(0, lo_open=True))
     """image resolution factor"""
     frames: str | None = None
     """frame positions START:STOP or one position (nuScenes keyframes, Argoverse 2 sweeps; default all)"""
@@ -183,7 +177,6 @@ class ConvertCommand(Command):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, "scale")
         if self.frames is not None and not re.fullmatch(r"\d*:\d+|\d+", self.frames):
             raise ValueError(f"frames: expected START:STOP or one position, got {self.frames!r}")
         if self.scene is None and self.dataset in ("nuscenes", "waymo"):
@@ -233,7 +226,8 @@ class ConvertCommand(Command):
 
     def _argoverse2(self, cameras, frames):
         """The Argoverse 2 log SRC, its image/sweep matching printed (dropped sweeps once, not warned)."""
-        from vadgs.data.argoverse2 import ARGOVERSE2_LIDARS, argoverse2_sync, load_argoverse2
+        from vadgs.data.argoverse2 import ARGOVERSE2_LIDARS, load_argoverse2
+        from vadgs.data.argoverse2_tables import argoverse2_sync
 
         lidars = None if self.no_lidar else (self.lidars.split(",") if self.lidars else ARGOVERSE2_LIDARS)
         print(argoverse2_sync(self.src, cameras, frames).summary())
@@ -262,14 +256,10 @@ class CheckCommand(Command):
     (default: the bundled sample)"""
     full: Flag = False
     """decode every image, depth map, instance map, sweep"""
-    scale: float = 1.0
+    scale: float = checked(1.0, float_field(0, lo_open=True))
     """resolution factor to check against"""
     dgp: Flag = False
     """SCENE is a DGP scene folder"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive(self, "scale")
 
     def main(self) -> int:
         """Print the report; 0 when every check passes, else 1."""

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from vadgs.checks import check_at_least
+from vadgs.checks import checked, int_field
 from vadgs.cli._common import Command, Flag, Positional
 
 __all__ = ["SfmCommand"]
@@ -36,7 +36,7 @@ class SfmCommand(Command):
     """cameras: one per photo size and EXIF camera (auto), one for all, or one per photo"""
     camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE"] = "SIMPLE_RADIAL"
     """COLMAP camera model fitted (vadgs train undistorts the distorted ones)"""
-    max_image_size: int = 1600
+    max_image_size: int = checked(1600, int_field(0))
     """longest side in pixels at which features are detected (the photos are not scaled); 0: full size"""
     link: Flag = False
     """symlink the photos into OUT/images instead of copying them (rotated ones are written upright)"""
@@ -46,10 +46,6 @@ class SfmCommand(Command):
     """random seed of COLMAP's RANSAC and mapping"""
     no_progress: Flag = False
     """no progress bars"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_at_least(self, 0, "max_image_size")
 
     def main(self) -> int:
         """Run SfM, print the summary; 0."""

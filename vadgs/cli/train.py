@@ -23,7 +23,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from vadgs.checks import check_at_least, check_positive
+from vadgs.checks import Checked, checked, float_field, int_field
 from vadgs.cli._common import (
     Command,
     Flag,
@@ -47,7 +47,7 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class TrainCommand:
+class TrainCommand(Checked):
     """Train a model on a scene (``--resume`` continues the run in ``--out`` exactly)."""
 
     scene: Annotated[str | None, Positional, tyro.conf.arg(metavar="SCENE")] = None
@@ -68,7 +68,7 @@ class TrainCommand:
     """--out may hold a previous run: its files are removed and training starts over"""
     no_progress: Flag = False
     """no progress bar"""
-    scale: float | None = None
+    scale: float | None = checked(None, float_field(0, lo_open=True, optional=True))
     """image resolution factor (default: the working resolution, the largest 1/2^k that brings the
     longest image side to <= 1024 px; 0.5 for a rendered benchmark scene, 240x144 for street_a)"""
     dgp: Flag = False
@@ -81,7 +81,7 @@ class TrainCommand:
     """SCENE is a COLMAP model or project folder (detected without it when there is no scene.json)"""
     images: str | None = None
     """COLMAP scene: the images folder (default: images/ next to the model)"""
-    test_every: int | None = None
+    test_every: int | None = checked(None, int_field(0, optional=True))
     """COLMAP scene: hold out every N-th image in name order, index % N == 0 (default 8; 0 = none)"""
     no_normalize: Flag = False
     """COLMAP scene: keep COLMAP's frame and scale (default: cameras centred, up +z, median
@@ -98,11 +98,6 @@ class TrainCommand:
     """show the traceback of an error"""
     train: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
 
-    def __post_init__(self) -> None:
-        check_positive(self, "scale")
-        if self.test_every is not None:
-            check_at_least(self, 0, "test_every")
-
     @classmethod
     def parse(cls, argv: list[str], prog: str = "vadgs train") -> TrainCommand | None:
         """:func:`parse_train` (the flags apply over the defaults, ``--config`` or the checkpoint)."""
@@ -110,9 +105,9 @@ class TrainCommand:
 
     def main(self) -> int:
         """Train (or resume) the run in ``--out``; 0, or 130 when interrupted."""
+        from vadgs.runlock import RunLock
         from vadgs.train.checkpoint import CHECKPOINT_NAME, check_new_run
         from vadgs.train.run import train_scene
-        from vadgs.train.session import RunLock
 
         out = check_out_dir(self.out, create=False)
         RunLock.check_free(out)  # before the checks below: a run in use is named by its pid
@@ -438,11 +433,11 @@ class BatchCommand(Command):
     """batch folder: run folders, summary.json, summary.md"""
     address: str | None = None
     """Ray cluster: auto, ray://HEAD:10001 or HOST:6379 (default: start a local Ray)"""
-    cpus_per_scene: float = 1.0
+    cpus_per_scene: float = checked(1.0, float_field(0, lo_open=True))
     """Ray CPUs per task"""
-    gpus_per_scene: float = 0.0
+    gpus_per_scene: float = checked(0.0, float_field(0))
     """Ray GPUs per task"""
-    max_retries: int = 3
+    max_retries: int = checked(3, int_field(0))
     """retries of a task whose worker/node died"""
     train_args: str = ""
     """arguments of each vadgs train, e.g. --train-args="--vad --iterations 3000" (with "=")"""
@@ -453,9 +448,6 @@ class BatchCommand(Command):
         super().__post_init__()
         if not self.scenes:
             raise ValueError("SCENE: expected at least one scene folder, got none")
-        check_positive(self, "cpus_per_scene")
-        check_at_least(self, 0, "gpus_per_scene")
-        check_at_least(self, 0, "max_retries")
 
     def main(self) -> int:
         """Run the batch; 0 when every run succeeded, else 1."""

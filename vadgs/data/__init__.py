@@ -13,8 +13,9 @@ from pathlib import Path
 
 from vadgs.data.argoverse2 import load_argoverse2
 from vadgs.data.checks import ValidationReport, ValidationRow
-from vadgs.data.colmap import ColmapScene, load_colmap, open_colmap_project, reopen_colmap_project
+from vadgs.data.colmap import ColmapScene, load_colmap
 from vadgs.data.colmap_model import find_colmap_model, match_colmap_views
+from vadgs.data.colmap_project import open_colmap_project, reopen_colmap_project
 from vadgs.data.dgp import load_dgp
 from vadgs.data.export import export_scene
 from vadgs.data.nuscenes import load_nuscenes

@@ -19,7 +19,8 @@
   through the scene at this level; LiDAR files that are not ``.npz`` (nuScenes' ``.pcd.bin``) at
   both levels.
 
-The single checks (:func:`check_intrinsics`, :func:`check_rigid`, :func:`check_split`) are also
+The single checks (:func:`check_rigid`, :func:`check_split`; intrinsics:
+:func:`vadgs.checks.check_intrinsics`) are also
 what the readers run on the metadata they parse. Imports go one way: :mod:`vadgs.data.scene` ←
 this module ← the readers ← :mod:`vadgs.data.validate`.
 
@@ -42,6 +43,7 @@ from typing import NamedTuple
 import torch
 from PIL import Image
 
+from vadgs.checks import check_intrinsics
 from vadgs.data.images import SUPPORTED_MODES, read_image
 from vadgs.data.scene import Scene, npz_headers, read_depth
 
@@ -50,7 +52,6 @@ __all__ = [
     "RIGID_TOLERANCE",
     "ValidationReport",
     "ValidationRow",
-    "check_intrinsics",
     "check_lidar_points",
     "check_png",
     "check_rigid",
@@ -127,25 +128,6 @@ def _row_text(r: ValidationRow) -> str:
 
 def _fmt(x: float) -> str:
     return f"{x:.3g}"
-
-
-def check_intrinsics(K: torch.Tensor, what: str = "K") -> None:
-    """Raise a :class:`ValueError` unless ``K (3, 3)`` is a finite, invertible pinhole matrix.
-
-    Requires positive focal lengths ``fx = K[0, 0]``, ``fy = K[1, 1]``, zeros below the diagonal
-    and ``K[2, 2] = 1``.
-    """
-    K = torch.as_tensor(K, dtype=torch.float64)
-    if tuple(K.shape) != (3, 3):
-        raise ValueError(f"{what}: expected shape (3, 3), got {tuple(K.shape)}")
-    if not bool(torch.isfinite(K).all()):
-        raise ValueError(f"{what}: expected finite values, got {K.tolist()}")
-    fx, fy = float(K[0, 0]), float(K[1, 1])
-    if not (fx > 0 and fy > 0):
-        raise ValueError(f"{what}: expected positive focal lengths fx, fy, got fx={_fmt(fx)}, fy={_fmt(fy)}")
-    last = K[2].tolist()
-    if abs(last[0]) > 1e-9 or abs(last[1]) > 1e-9 or abs(last[2] - 1) > 1e-9 or abs(float(K[1, 0])) > 1e-9:
-        raise ValueError(f"{what}: expected an upper-triangular K with last row (0, 0, 1), got {K.tolist()}")
 
 
 def check_rigid(T: torch.Tensor, what: str, tol: float = RIGID_TOLERANCE) -> None:
@@ -312,7 +294,7 @@ def check_scene(scene: Scene, full: bool = False, tolerance: float = RIGID_TOLER
     for cam in scene.cameras_info.values():
 
         def camera(c=cam) -> str:
-            check_intrinsics(c.K, f"cameras.{c.name}.K")
+            check_intrinsics(c.K, f"cameras.{c.name}.K", pinhole=True)
             (h, w), fx, fy = c.image_size, float(c.K[0, 0]), float(c.K[1, 1])
             return f"fx={fx:.1f} fy={fy:.1f}, {w}x{h}"
 

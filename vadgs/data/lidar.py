@@ -8,8 +8,7 @@ from typing import NamedTuple
 import torch
 
 from vadgs.data.scene import Scene
-from vadgs.geometry.camera import invert_rigid
-from vadgs.geometry.voxel import observing_views
+from vadgs.geometry.camera import invert_rigid, observing_views
 
 __all__ = ["AccumulatedLidar", "accumulate_lidar", "iter_lidar", "lidar_depth_map"]
 

@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from vadgs.checks import check_finite
+from vadgs.checks import check_finite, check_intrinsics
 from vadgs.data._json import DatasetFiles, read_json, require_key
 from vadgs.data.assemble import assemble_scene, check_scale, check_validate_level
-from vadgs.data.checks import check_intrinsics, check_rigid, check_split
+from vadgs.data.checks import check_rigid, check_split
 from vadgs.data.scene import CameraInfo, FrameInfo, InstanceInfo, Scene, Track, ViewInfo, read_lidar_npz
 from vadgs.geometry.camera import scale_intrinsics
 
@@ -199,7 +199,7 @@ def load_scene(
         if w <= 0 or h <= 0:
             raise ValueError(f"scene.json: cameras.{name}: expected positive width and height, got {w}x{h}")
         K = _matrix(_get(c, "K", f"cameras.{name}"), (3, 3), f"cameras.{name}.K")
-        check_intrinsics(K, f"scene.json: cameras.{name}.K")
+        check_intrinsics(K, f"scene.json: cameras.{name}.K", pinhole=True)
         size = (round(h * scale), round(w * scale))
         if scale != 1.0:
             K = scale_intrinsics(K, size[1] / w)

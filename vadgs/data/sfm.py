@@ -34,11 +34,11 @@ every registered camera has its photo's upright size.
 decoded (:func:`vadgs.data.images.read_image`), so a truncated or corrupt one is named and the run
 refused; photos with identical pixels are named and all but the first left out (identical photos
 have no baseline: COLMAP cannot place them). One process writes a project at a time: the run holds
-the project's lock (:class:`vadgs.train.session.RunLock`, ``PROJECT/.vadgs.lock``).
+the project's lock (:class:`vadgs.runlock.RunLock`, ``PROJECT/.vadgs.lock``).
 
 ``vadgs train PROJECT`` keeps the undistorted copy of a distorted model in
-``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap.open_colmap_project`), so later runs link
-to it instead of undistorting again; a new model (``overwrite``) removes it.
+``PROJECT/.vadgs-undistorted`` (:func:`vadgs.data.colmap_project.open_colmap_project`), so later
+runs link to it instead of undistorting again; a new model (``overwrite``) removes it.
 
 Nothing is written next to the photos; the work happens in a temporary folder inside ``PROJECT``
 (``.vadgs-sfm-*``, with a marker file naming its process: the next run into the project removes
@@ -48,12 +48,14 @@ only when ``vadgs sfm`` wrote it (its ``sfm.json`` says so, :func:`vadgs.runfold
 project made elsewhere is never written to, and in one of its own only what it wrote is
 replaced (``sparse/0``, ``database.db``, ``sfm.json``, the photos it put into ``images/``, listed
 in ``sfm.json``'s ``images_written``); the project's other files stay.
+
+The photos (which files, their headers and camera groups): :mod:`vadgs.data.photos`; the
+project's files (what a run may replace, how they move into place): :mod:`vadgs.data.sfm_project`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
 import shutil
@@ -63,39 +65,37 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
-from PIL import Image
-
-from vadgs.data.images import exif_orientation_tag, read_image, upright_image, warnings_naming
-from vadgs.runfolder import SFM_FORMAT, is_sfm_project
+from vadgs.data.photos import (
+    CAMERA_MODES,
+    PhotoHeader,
+    distinct_photos,
+    find_photos,
+    group_photos,
+    left_out_line,
+    read_photo_header,
+    unsupported_photos,
+)
+from vadgs.data.sfm_project import (
+    check_out_outside,
+    check_sfm_project,
+    move_into,
+    place_photos,
+    remove_path,
+)
+from vadgs.runfolder import SFM_FORMAT
 
 if TYPE_CHECKING:  # imported where used: pycolmap is slow to import
     import pycolmap
 
 __all__ = [
-    "CAMERA_MODES",
+    "CAMERA_MODELS",
     "EXHAUSTIVE_MAX",
     "MATCHERS",
-    "OTHER_PHOTO_SUFFIXES",
-    "PHOTO_SUFFIXES",
     "SEQUENTIAL_OVERLAP",
-    "PhotoHeader",
     "SfmResult",
-    "find_photos",
-    "photo_groups",
-    "read_photo_header",
     "run_sfm",
     "sequential_pairs",
-    "unsupported_photos",
 ]
-
-#: The photo files :func:`find_photos` takes (case-insensitive): what both COLMAP and PIL read.
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
-#: Photo files :func:`find_photos` leaves out (COLMAP's image reader does not take them) and
-#: :func:`run_sfm` names in one line, with :func:`unsupported_photos`.
-OTHER_PHOTO_SUFFIXES = (
-    ".webp", ".avif", ".heic", ".heif", ".gif", ".jxl", ".jp2",
-    ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raw",
-)  # fmt: skip
 
 #: ``matcher="auto"`` matches every pair up to this many photos, else sequentially.
 EXHAUSTIVE_MAX = 100
@@ -103,20 +103,11 @@ EXHAUSTIVE_MAX = 100
 #: ``matcher="sequential"``: each photo is matched with this many successors in name order.
 SEQUENTIAL_OVERLAP = 10
 
-#: The ways to make cameras (see the module docstring).
-CAMERA_MODES = ("auto", "single", "per-image")
-
 #: The matchers (see the module docstring).
 MATCHERS = ("auto", "exhaustive", "sequential")
 
 #: The camera models COLMAP may fit that vadgs reads (``vadgs train`` undistorts the distorted ones).
 CAMERA_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "SIMPLE_PINHOLE", "PINHOLE")
-
-#: What :func:`run_sfm` writes into the project (and ``overwrite`` replaces).
-PROJECT_ENTRIES = ("images", "sparse", "database.db", "sfm.json")
-
-_EXIF_CAMERA = (0x010F, 0x0110)  # Make, Model (IFD0)
-_EXIF_FOCAL = 0x920A  # FocalLength (Exif IFD)
 
 
 class SfmResult(NamedTuple):
@@ -156,274 +147,8 @@ class SfmResult(NamedTuple):
         )
 
 
-def find_photos(folder: str | Path) -> list[str]:
-    """The photos in ``folder`` and its subfolders: names relative to it (``/``-separated), sorted.
-
-    Files of other kinds (``.txt``, ``.mov``, ...) and hidden files are skipped.
-
-    Raises:
-        FileNotFoundError: if ``folder`` does not exist.
-        ValueError: if it is a file, or holds no photo (naming the suffixes taken and what else it holds).
-    """
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"PHOTOS {folder}: expected a folder of photos, got a file")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"PHOTOS {folder}: no such folder")
-    names, other = [], 0
-    for rel in _visible_files(folder):
-        if rel.suffix.lower() in PHOTO_SUFFIXES:
-            names.append(rel.as_posix())
-        else:
-            other += 1
-    if not names:
-        left = unsupported_photos(folder)
-        also = f"; {_left_out(left)}" if left else ""
-        raise ValueError(
-            f"PHOTOS {folder}: expected photos ({', '.join(PHOTO_SUFFIXES)}), got none "
-            f"({other} other file(s)){also}"
-        )
-    return names
-
-
-def _visible_files(folder: Path) -> list[Path]:
-    """The files under ``folder`` (relative), hidden ones and those in hidden folders left out."""
-    out = []
-    for path in sorted(folder.rglob("*")):
-        rel = path.relative_to(folder)
-        if not any(part.startswith(".") for part in rel.parts) and path.is_file():
-            out.append(rel)
-    return out
-
-
-def unsupported_photos(folder: str | Path) -> list[str]:
-    """The photos in ``folder`` that :func:`find_photos` leaves out (:data:`OTHER_PHOTO_SUFFIXES`).
-
-    Example:
-        >>> import tempfile
-        >>> d = Path(tempfile.mkdtemp())
-        >>> for name in ("a.jpg", "b.webp", "c.HEIC", "notes.txt"):
-        ...     _ = (d / name).write_bytes(b"")
-        >>> unsupported_photos(d)
-        ['b.webp', 'c.HEIC']
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        return []
-    return [r.as_posix() for r in _visible_files(folder) if r.suffix.lower() in OTHER_PHOTO_SUFFIXES]
-
-
-def _left_out(names: Sequence[str]) -> str:
-    """One line naming the photos of formats that vadgs sfm does not take."""
-    kinds = sorted({Path(n).suffix.lower() for n in names})
-    shown = ", ".join(names[:5]) + (f", ... ({len(names) - 5} more)" if len(names) > 5 else "")
-    return (
-        f"left out {len(names)} photo(s) in formats vadgs sfm does not take ({', '.join(kinds)}): {shown}; "
-        "convert them to JPEG or PNG to use them"
-    )
-
-
-class PhotoHeader(NamedTuple):
-    """What ``vadgs sfm`` reads of a photo's header (:func:`read_photo_header`)."""
-
-    size: tuple[int, int]  # stored pixel grid (W, H)
-    camera: tuple  # EXIF make, model, focal length (empty strings when absent)
-    orientation: int  # EXIF orientation tag (1: as stored)
-
-
-def read_photo_header(path: Path) -> PhotoHeader:
-    """A photo's stored size, camera (EXIF make, model, focal length) and EXIF orientation tag.
-
-    Raises:
-        ValueError: the photo cannot be read, naming it.
-    """
-    try:
-        with warnings_naming(path), Image.open(path) as im:
-            exif = im.getexif()
-            focal = exif.get_ifd(0x8769).get(_EXIF_FOCAL, "")
-            camera = (*(str(exif.get(tag, "")).strip() for tag in _EXIF_CAMERA), str(focal))
-            return PhotoHeader(im.size, camera, exif_orientation_tag(exif, path))
-    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
-        raise ValueError(f"PHOTOS: {path} is not a readable photo ({type(e).__name__}: {e})") from None
-
-
-def photo_groups(folder: str | Path, names: Sequence[str], camera_mode: str = "auto") -> list[list[str]]:
-    """The photos that share a camera: ``names`` in groups (see the module docstring, ``camera_mode``).
-
-    Raises:
-        ValueError: for an unknown ``camera_mode``, an unreadable photo, or ``"single"`` with photos
-            of several sizes.
-
-    Example:
-        >>> import tempfile
-        >>> from PIL import Image
-        >>> d = Path(tempfile.mkdtemp())
-        >>> for name, size in (("a.png", (40, 30)), ("b.png", (40, 30)), ("c.png", (30, 40))):
-        ...     Image.new("RGB", size).save(d / name)
-        >>> photo_groups(d, ["a.png", "b.png", "c.png"])
-        [['a.png', 'b.png'], ['c.png']]
-    """
-    if camera_mode not in CAMERA_MODES:
-        raise ValueError(f"camera_mode: expected one of {list(CAMERA_MODES)}, got {camera_mode!r}")
-    return _groups({name: read_photo_header(Path(folder) / name) for name in names}, camera_mode)
-
-
-def _groups(headers: dict[str, PhotoHeader], camera_mode: str) -> list[list[str]]:
-    names = list(headers)
-    if camera_mode == "per-image":
-        return [[name] for name in names]
-    if camera_mode == "single":
-        sizes = sorted({h.size for h in headers.values()})
-        if len(sizes) > 1:
-            shown = ", ".join(f"{w}x{h}" for w, h in sizes[:4])
-            raise ValueError(
-                f"camera_mode: 'single' needs photos of one size, got {len(sizes)} sizes ({shown}); "
-                "use 'auto' (one camera per size)"
-            )
-        return [list(names)]
-    groups: dict[tuple, list[str]] = {}
-    for name in names:
-        groups.setdefault((headers[name].size, headers[name].camera), []).append(name)
-    return list(groups.values())
-
-
 _WORK_PREFIX = ".vadgs-sfm-"
 _WORK_MARKER = "vadgs-sfm-work.json"
-
-
-def _read_summary(project: Path) -> dict | None:
-    try:
-        data = json.loads((project / "sfm.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
-def _written_images(project: Path) -> list[str]:
-    """The files of ``project/images`` that ``vadgs sfm`` wrote there (names relative to it).
-
-    The list in its ``sfm.json`` (``images_written``).
-
-    Raises:
-        ValueError: an ``sfm.json`` without that list (nothing can tell which files are its).
-    """
-    data = _read_summary(project) or {}
-    written = data.get("images_written")
-    if not (isinstance(written, list) and all(isinstance(n, str) for n in written)):
-        raise ValueError(
-            f"--out {project}: cannot tell which files of {project / 'images'} vadgs sfm wrote (its "
-            "sfm.json lists no images_written); nothing was changed: give a new or empty folder"
-        )
-    images = project / "images"
-    return sorted({n for n in written if _inside(images, n)})
-
-
-def _inside(folder: Path, name: str) -> bool:
-    """``folder / name`` is a path below ``folder`` (no absolute path, ``..`` or symlinked folder)."""
-    from pathlib import PurePosixPath
-
-    pure = PurePosixPath(name)
-    if not name or pure.is_absolute() or ".." in pure.parts:
-        return False
-    cur = folder
-    for part in pure.parts[:-1]:
-        cur = cur / part
-        if cur.is_symlink():
-            return False
-    return True
-
-
-class _Replaced(NamedTuple):
-    """What a run replaces in an existing project of its own (all empty for a new project)."""
-
-    entries: list[Path]  # database.db, sparse/0
-    images: list[Path]  # the photos it wrote into images/ before
-
-
-def _check_project(project: Path, photos: Path, overwrite: bool, names: Sequence[str] = ()) -> _Replaced:
-    """What of ``project`` a run replaces; refuses a project that vadgs sfm did not write.
-
-    A project is ``vadgs sfm``'s when its ``sfm.json`` says so
-    (:func:`vadgs.runfolder.is_sfm_project`); any other COLMAP project (or a folder of other
-    files) is never written to, with or without ``overwrite``. In one of its own, only what it
-    wrote is replaced: ``sparse/0``, ``database.db``, ``sfm.json`` and the photos it put into
-    ``images/`` (:func:`_written_images`), never the project's other files, and never a file of
-    ``images/`` that a new photo would land on but that it did not write.
-    """
-    if project.exists() and not project.is_dir():
-        raise ValueError(f"--out {project}: expected a folder, got an existing file")
-    in_place = (project / "images").resolve() == photos.resolve()
-    held = [
-        e
-        for e in PROJECT_ENTRIES
-        if (project / e).exists() or (project / e).is_symlink()
-        if not (e == "images" and in_place)
-    ]
-    from vadgs.runfolder import foreign_entries
-
-    others = [e for e in foreign_entries(project) if not (e == "images" and in_place)]
-    ours = project.is_dir() and is_sfm_project(project)
-    if others and not ours:  # a COLMAP project made elsewhere, or other files: not ours to write
-        shown = ", ".join(others[:5]) + (f", ... ({len(others)} entries)" if len(others) > 5 else "")
-        if {"sparse", "database.db", "sfm.json"} & set(held):
-            why = "its sfm.json is not vadgs sfm's" if "sfm.json" in held else "no sfm.json of vadgs sfm"
-            raise ValueError(
-                f"--out {project}: holds a COLMAP project that vadgs sfm did not write ({shown}; {why}); "
-                "vadgs sfm never writes into it, its images/ least of all: nothing was changed: give a "
-                "new or empty folder"
-            )
-        raise ValueError(
-            f"--out {project}: destination path '{project}' already exists and is not an empty "
-            f"directory (holds {shown}) nor a vadgs sfm project; nothing was changed: give a new or "
-            "empty folder"
-        )
-    if not ours:
-        return _Replaced([], [])
-    if not overwrite:
-        raise ValueError(f"--out {project}: already holds {', '.join(held)}; --overwrite replaces them")
-    for link in ("sparse", "sparse/0", "images"):
-        if (project / link).is_symlink() and not (link == "images" and in_place):
-            raise ValueError(
-                f"--out {project}: {project / link} is a symbolic link (to {os.readlink(project / link)}); "
-                "vadgs sfm does not replace through links; nothing was changed"
-            )
-    entries = [p for p in (project / "database.db", project / "sparse" / "0") if p.exists() or p.is_symlink()]
-    images = [] if in_place else [project / "images" / n for n in _written_images(project)]
-    images = [p for p in images if p.is_file() or p.is_symlink()]
-    for entry in (*entries, *images):
-        if photos.resolve().is_relative_to(entry.resolve()):
-            raise ValueError(f"PHOTOS {photos}: is inside {entry}, which --overwrite would replace")
-    if not in_place:
-        mine = {p.absolute() for p in images}
-        clash = [
-            n
-            for n in names
-            if (project / "images" / n).exists() and (project / "images" / n).absolute() not in mine
-        ]
-        if clash:
-            raise ValueError(
-                f"--out {project}: {project / 'images'} holds {', '.join(clash[:3])} that vadgs sfm did not "
-                "write, where it would put a photo of that name; nothing was changed: move it away or give "
-                "a new folder"
-            )
-    return _Replaced(entries, images)
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    else:
-        path.unlink(missing_ok=True)
-
-
-def _move_into(src: Path, dst: Path) -> None:
-    """Move the tree ``src`` into ``dst`` file by file (``dst``'s other files stay)."""
-    for path in sorted(src.rglob("*")):
-        if path.is_dir() and not path.is_symlink():
-            continue
-        target = dst / path.relative_to(src)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(path, target)
 
 
 def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
@@ -434,7 +159,7 @@ def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
     """
     import socket
 
-    from vadgs.train.session import pid_alive
+    from vadgs.process import pid_alive
 
     for work in sorted(project.glob(_WORK_PREFIX + "*")):
         marker = work / _WORK_MARKER
@@ -449,21 +174,6 @@ def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
             continue
         shutil.rmtree(work, ignore_errors=True)
         say(f"removed {work}: the work folder of a killed vadgs sfm (pid {pid}, not running)")
-
-
-@contextlib.contextmanager
-def _quiet_colmap():
-    """The pycolmap log off but for fatal errors (ours are one line each); all of it with ``--debug``."""
-    import pycolmap
-
-    from vadgs.data import colmap
-
-    before = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(before, 3 if colmap.COLMAP_LOG_LEVEL > 0 else 0)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = before
 
 
 def sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
@@ -523,7 +233,7 @@ def run_sfm(
         ValueError: ``photos`` a file, no or fewer than two (distinct) photos, an unreadable photo,
             a bad option, ``out`` equal to or inside ``photos``, an existing project without
             ``overwrite``, or no photo registered (one line each, naming it).
-        vadgs.train.session.RunInUseError: another process is writing ``out``.
+        vadgs.runlock.RunInUseError: another process is writing ``out``.
     """
     say = log or (lambda _s: None)
     photos, out = Path(photos), Path(out)
@@ -540,11 +250,11 @@ def run_sfm(
     names = find_photos(photos)
     left = unsupported_photos(photos)
     if left:
-        say(f"PHOTOS {photos}: {_left_out(left)}")
-    _check_out_outside(photos, out)
+        say(f"PHOTOS {photos}: {left_out_line(left)}")
+    check_out_outside(photos, out)
     if len(names) < 2:
         raise ValueError(f"PHOTOS {photos}: expected at least 2 photos, got {len(names)} ({names[0]})")
-    from vadgs.train.session import RunLock
+    from vadgs.runlock import RunLock
 
     created = not out.exists()
     with RunLock(out, "vadgs sfm", log=log):
@@ -554,39 +264,6 @@ def run_sfm(
         )  # fmt: skip
 
 
-def _check_out_outside(photos: Path, out: Path) -> None:
-    """``--out`` is neither ``PHOTOS`` nor inside it (a project's copies are no photos of a next run)."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out}: expected a folder, got an existing file")
-    if out.resolve() == photos.resolve():
-        raise ValueError(
-            f"--out {out}: is PHOTOS itself; give the project its own folder (e.g. {out}_project)"
-        )
-    if out.resolve().is_relative_to(photos.resolve()):
-        raise ValueError(
-            f"--out {out}: is inside PHOTOS {photos}, where its copies of the photos would be taken as "
-            "photos by the next run; give a folder outside PHOTOS"
-        )
-
-
-def _distinct_photos(photos: Path, names: Sequence[str]) -> tuple[list[str], dict[str, str]]:
-    """Every photo decoded (a corrupt one named); ``(names kept, {duplicate: the photo it repeats})``."""
-    seen: dict[str, str] = {}
-    kept, duplicates = [], {}
-    for name in names:
-        try:
-            pixels = read_image(photos / name)
-        except ValueError as e:
-            raise ValueError(f"PHOTOS: {e}; remove or replace that photo") from None
-        key = hashlib.sha1(repr(pixels.shape).encode() + pixels.tobytes()).hexdigest()
-        if key in seen:
-            duplicates[name] = seen[key]
-        else:
-            seen[key] = name
-            kept.append(name)
-    return kept, duplicates
-
-
 def _run_sfm_locked(
     photos, out, names, created, matcher, camera_mode, camera_model, max_image_size, link, overwrite,
     threads, seed, say, progress,
@@ -594,7 +271,9 @@ def _run_sfm_locked(
     import pycolmap
     from tqdm import tqdm
 
-    replaced = _check_project(out, photos, overwrite, names)
+    from vadgs.data.colmap_project import colmap_logging
+
+    replaced = check_sfm_project(out, photos, overwrite, names)
     _remove_dead_work(out, say)
     in_place = (out / "images").resolve() == photos.resolve()
     turned = {n: o for n in names if (o := read_photo_header(photos / n).orientation) != 1}
@@ -605,7 +284,7 @@ def _run_sfm_locked(
             f"{turned[first]}) and PHOTOS is the project's images/, where vadgs sfm would write them "
             "upright over the originals; give --out another folder"
         )
-    names, duplicates = _distinct_photos(photos, names)
+    names, duplicates = distinct_photos(photos, names)
     for dup, first in duplicates.items():
         say(f"{dup} is identical to {first} (same pixels): left out")
     if len(names) < 2:
@@ -628,10 +307,10 @@ def _run_sfm_locked(
         (work / _WORK_MARKER).write_text(json.dumps(owner))  # a killed run's folder: removed next time
         # -- 0. the photos in place, the rotated ones upright: SfM runs on what the project holds
         if not in_place:
-            _place_photos(photos, names, work / "images", link)
+            place_photos(photos, names, work / "images", link)
         images_dir = photos if in_place else work / "images"
         headers = {name: read_photo_header(images_dir / name) for name in names}
-        groups = _groups(headers, camera_mode)
+        groups = group_photos(headers, camera_mode)
         if turned:
             first = next(iter(turned))
             say(
@@ -649,11 +328,11 @@ def _run_sfm_locked(
         size = f"longest side {max_image_size} px" if max_image_size else "full size"
         say(
             f"features: SIFT on {len(names)} photos ({size}), {len(groups)} camera(s) "
-            f"({camera_mode}: {', '.join(_group_label(headers[g[0]]) for g in groups[:4])}"
+            f"({camera_mode}: {', '.join(headers[g[0]].label for g in groups[:4])}"
             f"{', ...' if len(groups) > 4 else ''})"
         )
         bar = tqdm(total=len(names), desc="features", unit="photo", disable=not progress)
-        with _quiet_colmap(), bar:
+        with colmap_logging(fatal_only=True), bar:
             for group in groups:
                 camera_id = -1
                 for i in range(0, len(group), chunk):
@@ -686,7 +365,7 @@ def _run_sfm_locked(
         listable = not any(any(c.isspace() for c in name) for name in names)
         step = max(1, -(-len(pairs) // 20)) if listable else len(pairs)
         bar = tqdm(total=len(pairs), desc="matching", unit="pair", disable=not progress)
-        with _quiet_colmap(), bar:
+        with colmap_logging(fatal_only=True), bar:
             for i in range(0, len(pairs), step):
                 if not listable and matcher == "exhaustive":
                     pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
@@ -714,7 +393,7 @@ def _run_sfm_locked(
         options.random_seed = int(seed)
         (work / "models").mkdir()
         bar = tqdm(total=len(names), desc="registering", unit="photo", disable=not progress)
-        with _quiet_colmap(), bar:
+        with colmap_logging(fatal_only=True), bar:
             models = pycolmap.incremental_mapping(
                 db, images_dir, work / "models", options, next_image_callback=lambda: bar.update(1)
             )
@@ -768,21 +447,21 @@ def _run_sfm_locked(
         # then what the old run wrote removed, the new files moved in; the project's other files stay
         os.replace(work / "sfm.json", out / "sfm.json")
         for entry in replaced.entries:
-            _remove(entry)
+            remove_path(entry)
         for photo in replaced.images:
             photo.unlink(missing_ok=True)
         for folder in sorted({q for p in replaced.images for q in p.parents if out / "images" in q.parents},
                              key=lambda q: len(q.parts), reverse=True):  # fmt: skip
             with contextlib.suppress(OSError):
                 folder.rmdir()  # only when empty
-        from vadgs.data.colmap import UNDISTORT_CACHE
+        from vadgs.data.colmap_project import UNDISTORT_CACHE
 
-        _remove(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
+        remove_path(out / UNDISTORT_CACHE)  # the undistorted copy of the model replaced, if any
         if (work / "database.db").exists():
             os.replace(work / "database.db", out / "database.db")
         for name in ("sparse", "images"):
             if (work / name).exists():
-                _move_into(work / name, out / name)
+                move_into(work / name, out / name)
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         if created and out.is_dir() and not any(out.iterdir()):
@@ -790,12 +469,6 @@ def _run_sfm_locked(
         raise
     shutil.rmtree(work, ignore_errors=True)
     return result
-
-
-def _group_label(header: PhotoHeader) -> str:
-    make, model, _ = header.camera
-    label = f"{header.size[0]}x{header.size[1]}"
-    return f"{label} {make} {model}".strip() if (make or model) else label
 
 
 def _camera_of(db: Path, name: str) -> int:
@@ -824,19 +497,3 @@ def _check_sizes(rec: pycolmap.Reconstruction, photos: Path, headers: dict[str, 
                 f"PHOTOS: {photos / im.name}: COLMAP's camera is {cam.width}x{cam.height}, the photo "
                 f"vadgs reads {w}x{h}"
             )
-
-
-def _place_photos(photos: Path, names: Sequence[str], images: Path, link: bool) -> None:
-    """The photos under ``images`` with their names: copies (bytes and times) or absolute symlinks.
-
-    A photo with an EXIF rotation is written upright (:func:`upright_image`), a file even with ``link``.
-    """
-    for name in names:
-        dst = images / name
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        if upright_image(photos / name, dst) != 1:
-            continue
-        if link:
-            dst.symlink_to((photos / name).resolve())
-        else:
-            shutil.copy2(photos / name, dst)

@@ -9,7 +9,8 @@ Waymo-like rig of up to five cameras and a spinning 64-beam LiDAR.
 
 Everything is ray cast with Embree on the same triangles (boxes), so colour, z-depth, instance
 ids and LiDAR agree exactly: a LiDAR point projected into a view lands on a pixel whose depth is
-the point's depth. Colour is a procedural albedo (a function of the surface point in the box's
+the point's depth (the rig, the ray casting and the shading: :mod:`vadgs.data.synthetic_sensors`).
+Colour is a procedural albedo (a function of the surface point in the box's
 own frame, so every view, and a moving car's every pose, agrees) times a Lambert sun plus
 ambient; there are no shadows and no camera noise. Sky: depth 0, instance 0.
 
@@ -27,24 +28,27 @@ import multiprocessing
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from PIL import Image
 
-from vadgs.checks import check_fields, choice_field, float_field, int_field
+from vadgs.checks import Checked, checked, choice_field, float_field, int_field
 from vadgs.data.assemble import MAX_IMAGE_PIXELS
+from vadgs.data.synthetic_sensors import (
+    LIDAR_IN_EGO,
+    RIG,
+    BoxKind,
+    RayCaster,
+    SegmentBoxes,
+    SegmentWorld,
+    box_triangles,
+    lidar_scan,
+    render_view,
+    rig_cam_to_ego,
+)
 
-__all__ = ["RIG", "SegmentConfig", "check_segment_folder", "make_segment"]
-
-RIG: dict[str, tuple[float, bool]] = {
-    "front": (0.0, False),
-    "front_left": (45.0, False),
-    "front_right": (-45.0, False),
-    "side_left": (90.0, True),
-    "side_right": (-90.0, True),
-}
-"""Camera name → (yaw in degrees, left positive; whether it uses ``side_height``), Waymo's order."""
+__all__ = ["SegmentConfig", "check_segment_folder", "make_segment"]
 
 _ROAD_HALF = 9.0  # |y| < 7: four 3.5 m lanes; 7 < |y| < 9: parking strips
 _WALK = 4.0  # sidewalk width in front of the buildings
@@ -53,12 +57,29 @@ _CURB = 0.15  # sidewalk height
 _LANES = (-5.25, -1.75, 1.75, 5.25)  # lane centres; traffic drives on the right (+x at y < 0)
 
 _SIGN_COLORS = ((0.1, 0.35, 0.75), (0.8, 0.15, 0.12), (0.1, 0.55, 0.25))
-# box kinds (texture)
-_ROAD, _WALKWAY, _BUILDING, _POLE, _BOARD, _CAR = range(6)
+
+#: The most LiDAR points per frame :func:`make_segment` casts (about 1.6 rays each): 25 Waymo
+#: TOP sweeps, 6.4M rays, about 0.5 GB of ray arrays.
+MAX_SEGMENT_LIDAR_POINTS = 4_000_000
+#: The most objects of each kind (moving cars, parked cars, signs).
+MAX_SEGMENT_OBJECTS = 1000
+
+
+def _vfov(name: str, value: Any) -> tuple[float, float]:
+    """``(min, max)`` elevation in degrees: two finite numbers, ``-90 <= min < max <= 90``."""
+    try:
+        lo, hi = (float_field(-90, 90)(name, v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name}: expected (min, max) degrees with -90 <= min < max <= 90, got {value!r}"
+        ) from None
+    if not lo < hi:
+        raise ValueError(f"{name}: expected (min, max) degrees with min < max, got {value!r}")
+    return (lo, hi)
 
 
 @dataclass(frozen=True)
-class SegmentConfig:
+class SegmentConfig(Checked):
     """What :func:`make_segment` writes.
 
     Attributes:
@@ -89,27 +110,27 @@ class SegmentConfig:
         lidar_range: its range in metres.
     """
 
-    frames: int = 4
-    cameras: int = 2
-    width: int = 64
-    height: int = 48
-    side_height: int | None = None
-    hfov_deg: float = 50.4
-    lidar_points: int = 2000
-    moving_cars: int = 3
-    parked_cars: int = 4
-    signs: int = 2
-    seed: int = 0
-    speed: float = 10.0
-    rate_hz: float = 10.0
-    image_format: str = "jpg"
-    jpeg_quality: int = 90
-    lidar_beams: int = 64
-    lidar_vfov: tuple[float, float] = (-17.6, 2.4)
-    lidar_range: float = 75.0
+    frames: int = checked(4, int_field(1, 100_000))
+    cameras: int = checked(2, int_field(1, len(RIG)))
+    width: int = checked(64, int_field(1, 1 << 16))
+    height: int = checked(48, int_field(1, 1 << 16))
+    side_height: int | None = checked(None, int_field(1, 1 << 16, optional=True))
+    hfov_deg: float = checked(50.4, float_field(0, 170, lo_open=True, hi_open=True))
+    lidar_points: int = checked(2000, int_field(1, MAX_SEGMENT_LIDAR_POINTS))
+    moving_cars: int = checked(3, int_field(0, MAX_SEGMENT_OBJECTS))
+    parked_cars: int = checked(4, int_field(0, MAX_SEGMENT_OBJECTS))
+    signs: int = checked(2, int_field(0, MAX_SEGMENT_OBJECTS))
+    seed: int = checked(0, int_field(0, 2**63 - 1))
+    speed: float = checked(10.0, float_field(0, 100))
+    rate_hz: float = checked(10.0, float_field(0, 1000, lo_open=True))
+    image_format: str = checked("jpg", choice_field(("jpg", "png")))
+    jpeg_quality: int = checked(90, int_field(1, 100))
+    lidar_beams: int = checked(64, int_field(1, 4096))
+    lidar_vfov: tuple[float, float] = checked((-17.6, 2.4), _vfov)
+    lidar_range: float = checked(75.0, float_field(0, 1000, lo_open=True))
 
     def __post_init__(self) -> None:
-        check_fields(self, _SEGMENT_FIELDS)
+        super().__post_init__()
         for name in ("height", "side_height"):
             h = getattr(self, name)
             if h is not None and h * self.width > MAX_IMAGE_PIXELS:
@@ -134,71 +155,12 @@ class SegmentConfig:
 # the world: boxes with a bottom-centre origin
 
 
-#: The most LiDAR points per frame :func:`make_segment` casts (about 1.6 rays each): 25 Waymo
-#: TOP sweeps, 6.4M rays, about 0.5 GB of ray arrays.
-MAX_SEGMENT_LIDAR_POINTS = 4_000_000
-#: The most objects of each kind (moving cars, parked cars, signs).
-MAX_SEGMENT_OBJECTS = 1000
-
-
-def _vfov(name: str, value: Any) -> tuple[float, float]:
-    """``(min, max)`` elevation in degrees: two finite numbers, ``-90 <= min < max <= 90``."""
-    try:
-        lo, hi = (float_field(-90, 90)(name, v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"{name}: expected (min, max) degrees with -90 <= min < max <= 90, got {value!r}"
-        ) from None
-    if not lo < hi:
-        raise ValueError(f"{name}: expected (min, max) degrees with min < max, got {value!r}")
-    return (lo, hi)
-
-
-_SEGMENT_FIELDS = {
-    "frames": int_field(1, 100_000),
-    **{name: int_field(1, 1 << 16) for name in ("width", "height")},
-    "lidar_points": int_field(1, MAX_SEGMENT_LIDAR_POINTS),
-    "lidar_beams": int_field(1, 4096),
-    "cameras": int_field(1, len(RIG)),
-    "side_height": int_field(1, 1 << 16, optional=True),
-    **{name: int_field(0, MAX_SEGMENT_OBJECTS) for name in ("moving_cars", "parked_cars", "signs")},
-    "seed": int_field(0, 2**63 - 1),
-    "image_format": choice_field(("jpg", "png")),
-    "jpeg_quality": int_field(1, 100),
-    "hfov_deg": float_field(0, 170, lo_open=True, hi_open=True),
-    "speed": float_field(0, 100),
-    "rate_hz": float_field(0, 1000, lo_open=True),
-    "lidar_vfov": _vfov,
-    "lidar_range": float_field(0, 1000, lo_open=True),
-}
-"""The check of each :class:`SegmentConfig` field (:func:`vadgs.checks.check_fields`); every image
-also at most :data:`~vadgs.data.assemble.MAX_IMAGE_PIXELS` (what the loaders read)."""
-
-
-class _Boxes(NamedTuple):
-    """The scene's boxes; box ``b`` spans ``[-l/2, l/2] x [-w/2, w/2] x [0, h]`` in its own frame."""
-
-    size: np.ndarray  # (B, 3) l, w, h
-    pose: np.ndarray  # (B, 4, 4) box_to_world of the static boxes (moving cars: frame 0)
-    kind: np.ndarray  # (B,) int
-    instance: np.ndarray  # (B,) int
-    color: np.ndarray  # (B, 3) float base colour
-    track: np.ndarray  # (B,) index into the moving cars, -1 for static boxes
-
-
-class _World(NamedTuple):
-    boxes: _Boxes
-    instances: list[dict]
-    car_poses: np.ndarray  # (M, F, 4, 4) object_to_world of each moving car per frame
-    ego_to_world: np.ndarray  # (F, 4, 4)
-
-
 def _yaw_pose(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, z], [0, 0, 0, 1]], dtype=np.float64)
 
 
-def _build_world(cfg: SegmentConfig) -> _World:
+def _build_world(cfg: SegmentConfig) -> SegmentWorld:
     """The street, its instances, the moving cars' poses and the ego trajectory (deterministic)."""
     rng = np.random.default_rng(cfg.seed)
     dt = 1.0 / cfg.rate_hz
@@ -226,13 +188,13 @@ def _build_world(cfg: SegmentConfig) -> _World:
         "road",
         (x1 - x0, 2 * _ROAD_HALF, 0.2),
         _yaw_pose((x0 + x1) / 2, 0, -0.2),
-        _ROAD,
+        BoxKind.ROAD,
         (0.3, 0.3, 0.32),
     )
     for side, name in ((1, "sidewalk_left"), (-1, "sidewalk_right")):
         y = side * (_ROAD_HALF + _GROUND / 2)
-        add(name, "sidewalk", (x1 - x0, _GROUND, 0.2 + _CURB), _yaw_pose((x0 + x1) / 2, y, -0.2), _WALKWAY,
-            (0.62, 0.6, 0.56))  # fmt: skip
+        walk = _yaw_pose((x0 + x1) / 2, y, -0.2)
+        add(name, "sidewalk", (x1 - x0, _GROUND, 0.2 + _CURB), walk, BoxKind.WALKWAY, (0.62, 0.6, 0.56))
     palette = np.array(
         [[0.72, 0.62, 0.5], [0.6, 0.6, 0.62], [0.75, 0.7, 0.6], [0.55, 0.42, 0.36], [0.8, 0.78, 0.72],
          [0.5, 0.55, 0.6], [0.68, 0.5, 0.4], [0.85, 0.8, 0.65]]
@@ -249,22 +211,23 @@ def _build_world(cfg: SegmentConfig) -> _World:
             rgb = np.clip(palette[rng.integers(len(palette))] + rng.uniform(-0.06, 0.06, 3), 0, 1)
             y = side * (y_front + setback + depth / 2)
             add(f"building_{len(instances) + 1}", "building", (length, depth, height),
-                _yaw_pose(x + length / 2, y, 0), _BUILDING, tuple(rgb))  # fmt: skip
+                _yaw_pose(x + length / 2, y, 0), BoxKind.BUILDING, tuple(rgb))  # fmt: skip
             x += length + gap
     for k in range(cfg.signs):
         side = 1 if k % 2 == 0 else -1
         x = float(rng.uniform(15, max(travel + 40, 45)))
         y = side * (_ROAD_HALF + 0.6)
-        iid = add(f"sign_{k}", "sign", (0.12, 0.12, 6.3), _yaw_pose(x, y, _CURB), _POLE, (0.55, 0.56, 0.58))
+        pole = _yaw_pose(x, y, _CURB)
+        iid = add(f"sign_{k}", "sign", (0.12, 0.12, 6.3), pole, BoxKind.POLE, (0.55, 0.56, 0.58))
         board_y = y - side * 0.7  # the board hangs over the road's edge, facing the oncoming ego
-        add("", "", (0.06, 1.4, 1.0), _yaw_pose(x - 0.1, board_y, 5.3), _BOARD,
+        add("", "", (0.06, 1.4, 1.0), _yaw_pose(x - 0.1, board_y, 5.3), BoxKind.BOARD,
             _SIGN_COLORS[k % 3], iid=iid)  # fmt: skip
     car_size = (4.4, 1.9, 1.5)
     for k in range(cfg.parked_cars):
         side = 1 if k % 2 == 0 else -1
         x = float(rng.uniform(-10, travel + 60))
-        add(f"parked_car_{k}", "car", car_size, _yaw_pose(x, side * 8.0, 0, 0 if side < 0 else math.pi), _CAR,
-            tuple(rng.uniform(0.1, 0.9, 3)))  # fmt: skip
+        parked = _yaw_pose(x, side * 8.0, 0, 0 if side < 0 else math.pi)
+        add(f"parked_car_{k}", "car", car_size, parked, BoxKind.CAR, tuple(rng.uniform(0.1, 0.9, 3)))
 
     duration = float(t[-1]) if cfg.frames > 1 else 1.0
     n_on = cfg.moving_cars // 2
@@ -287,7 +250,7 @@ def _build_world(cfg: SegmentConfig) -> _World:
             "car",
             car_size,
             car_poses[k, 0],
-            _CAR,
+            BoxKind.CAR,
             tuple(rng.uniform(0.1, 0.9, 3)),
             dynamic=True,
             tr=k,
@@ -299,7 +262,7 @@ def _build_world(cfg: SegmentConfig) -> _World:
                   math.atan2(0.3 * 2 * np.pi / 8.0 * math.cos(2 * np.pi * tf / 8.0), max(cfg.speed, 1e-6)))
         for tf, s in zip(t, sway)
     ])  # fmt: skip
-    boxes = _Boxes(
+    boxes = SegmentBoxes(
         np.array(size, dtype=np.float32),
         np.stack(pose),
         np.array(kind),
@@ -307,230 +270,17 @@ def _build_world(cfg: SegmentConfig) -> _World:
         np.array(color, dtype=np.float32),
         np.array(track),
     )
-    return _World(boxes, instances, car_poses, ego)
-
-
-# the 12 triangles of a unit box [-.5, .5]^2 x [0, 1] and their outward normals
-_CORNERS = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (0.0, 1.0)])
-_FACES = np.array([
-    [0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5],  # -x, +x
-    [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],  # -y, +y
-    [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3],  # bottom, top
-])  # fmt: skip
-_NORMALS = np.repeat(
-    np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float), 2, 0
-)
-
-
-def _box_triangles(size: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """``(B * 12, 3, 3)`` world triangles of boxes ``size (B, 3)`` at ``pose (B, 4, 4)``."""
-    local = _CORNERS[_FACES][None] * size[:, None, None, :].astype(np.float64)  # (B, 12, 3, 3)
-    world = local @ pose[:, None, :3, :3].transpose(0, 1, 3, 2) + pose[:, None, None, :3, 3]
-    return world.reshape(-1, 3, 3)
-
-
-def _frame_poses(world: _World, frame: int) -> np.ndarray:
-    """``(B, 4, 4)`` box_to_world of every box at a frame."""
-    poses = world.boxes.pose.copy()
-    moving = world.boxes.track >= 0
-    poses[moving] = world.car_poses[world.boxes.track[moving], frame]
-    return poses
-
-
-class _Caster:
-    """Embree over the boxes of one frame."""
-
-    def __init__(self, world: _World, frame: int):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
-        self.poses = _frame_poses(world, frame)
-        self.poses32 = self.poses.astype(np.float32)
-        n_world = np.einsum("bij,tj->bti", self.poses[:, :3, :3], _NORMALS).reshape(-1, 3)
-        self.light = (0.5 + 0.55 * np.clip(n_world @ _SUN, 0, None)).astype(np.float32)  # per triangle
-        per_box = {
-            "tx": self.poses32[:, 0, 3], "ty": self.poses32[:, 1, 3], "tz": self.poses32[:, 2, 3],
-            "cos": self.poses32[:, 0, 0], "sin": self.poses32[:, 1, 0], "h": world.boxes.size[:, 2],
-            "kind": world.boxes.kind,
-        }  # fmt: skip
-        self.tri = {k: np.repeat(v, 12) for k, v in per_box.items()}  # per triangle, for 1-D gathers
-        self.boxes = world.boxes
-        self.scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(self.scene, _box_triangles(world.boxes.size, self.poses).astype(np.float32))
-
-    def cast(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(t, prim)`` of rays ``origin (3,)`` + t ``dirs (N, 3)``; prim -1 (t inf) on a miss."""
-        o = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
-        out = self.scene.run(o, np.ascontiguousarray(dirs, dtype=np.float32), output=1)
-        prim = out["primID"].astype(np.int64)
-        t = np.where(prim >= 0, out["tfar"], np.inf).astype(np.float32)
-        return t, prim
+    return SegmentWorld(boxes, instances, car_poses, ego)
 
 
 # ---------------------------------------------------------------------------------------------------
-# shading
-
-
-def _hash(*ints: np.ndarray) -> np.ndarray:
-    """A float in [0, 1) per element of integer arrays (a small integer hash; deterministic)."""
-    h = np.full(np.broadcast(*ints).shape, 2166136261, dtype=np.uint32)
-    for k, a in enumerate(ints):
-        h ^= (a.astype(np.int64) * (0x9E3779B1 + 2 * k)).astype(np.uint32)
-        h *= np.uint32(16777619)
-        h ^= h >> np.uint32(15)
-    h *= np.uint32(0x2C1B3C6D)
-    h ^= h >> np.uint32(12)
-    return (h >> np.uint32(8)).astype(np.float32) / float(1 << 24)
-
-
-_SUN = (np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])).astype(np.float32)
-_HORIZON = np.array([0.78, 0.85, 0.93], dtype=np.float32)
-_ZENITH = np.array([0.35, 0.55, 0.88], dtype=np.float32)
-
-
-def _albedo(kind, p, n, base, h, box_id):
-    """Procedural albedo ``(N, 3)`` from the box-frame point ``p``, normal ``n`` and box height ``h``.
-
-    Each kind's pattern is computed on its own pixels only.
-    """
-    x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    fine = _hash(np.floor(x * 12), np.floor(y * 12), np.floor(z * 12), box_id)
-    out = base * (np.float32(0.82) + np.float32(0.3) * fine)[:, None]
-    vertical = np.abs(n[:, 2]) < 0.5
-
-    def of(k):
-        i = np.flatnonzero(kind == k)
-        return i, x[i], y[i], z[i]
-
-    # buildings: a grid of windows on the facades (3 m wide bays, 3.2 m floors), roofs darker
-    i, xi, yi, zi = of(_BUILDING)
-    u = np.where(np.abs(n[i, 1]) > 0.5, xi, yi) + box_id[i] * np.float32(1.37)
-    bay, floor = (u / np.float32(3.0)) % 1.0, (zi / np.float32(3.2)) % 1.0
-    win = vertical[i] & (zi > 1.2) & (zi < h[i] - 0.8)
-    win &= (bay > 0.28) & (bay < 0.72) & (floor > 0.3) & (floor < 0.8)
-    w = i[win]
-    glass = 0.12 + 0.12 * _hash(np.floor(u[win] / 3.0), np.floor(zi[win] / 3.2), box_id[w])
-    out[w] = glass[:, None] * np.array([1.0, 1.15, 1.4], dtype=np.float32)
-    out[i[~vertical[i]]] *= 0.6
-    # road: dashed centre line, solid lane edges; sidewalk: 1 m tiles
-    i, xi, yi, _ = of(_ROAD)
-    ay = np.abs(yi)
-    line = ((ay < 0.08) & ((xi % 6.0) < 3.0)) | (np.abs(ay - 7.0) < 0.08)
-    line |= (np.abs(ay - 3.5) < 0.06) & ((xi % 9.0) < 3.0)
-    out[i[line]] = 0.85
-    i, xi, yi, _ = of(_WALKWAY)
-    joint = (((xi % 1.0) < 0.04) | (((yi + 0.5) % 1.0) < 0.04)) & ~vertical[i]
-    out[i[joint]] *= 0.7
-    # sign boards: a white ring on the coloured board (seen from both sides)
-    i, _, yi, zi = of(_BOARD)
-    r = np.hypot(yi, zi - 0.5)
-    out[i[(np.abs(n[i, 0]) > 0.9) & (r > 0.3) & (r < 0.42)]] = 0.92
-    # cars: a dark window band, dark bumpers
-    i, xi, _, zi = of(_CAR)
-    out[i[vertical[i] & (zi > 0.85) & (zi < 1.35) & (np.abs(xi) < 1.5)]] = 0.1
-    out[i[zi < 0.35]] = 0.08
-    return out
-
-
-def _shade(caster: _Caster, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, prim: np.ndarray):
-    """``(N, 3)`` float32 colour of the rays ``origin (3,) + t dirs (N, 3)`` (sky where ``prim < 0``)."""
-    hit = prim >= 0
-    pr = np.maximum(prim, 0)
-    th = np.where(hit, t, 0)
-    tri = caster.tri
-    # box frame: every box is turned about z only (yaw), so p = R_z(-yaw) (pw - t)
-    dx = (origin[0] - np.take(tri["tx"], pr)) + th * dirs[:, 0]
-    dy = (origin[1] - np.take(tri["ty"], pr)) + th * dirs[:, 1]
-    c, s = np.take(tri["cos"], pr), np.take(tri["sin"], pr)
-    p = np.empty((len(pr), 3), np.float32)
-    p[:, 0] = c * dx + s * dy
-    p[:, 1] = c * dy - s * dx
-    h = np.take(tri["h"], pr)
-    p[:, 2] = np.clip((origin[2] - np.take(tri["tz"], pr)) + th * dirs[:, 2], 0, h)
-    b = pr // 12
-    alb = _albedo(np.take(tri["kind"], pr), p, _NORMALS[pr % 12], np.take(caster.boxes.color, b, 0), h, b)
-    rgb = alb * np.take(caster.light, pr)[:, None]
-    sky = np.flatnonzero(~hit)
-    if len(sky):
-        d = dirs[sky]
-        elev = np.clip(d[:, 2] / np.linalg.norm(d, axis=-1), 0, 1)[:, None]
-        rgb[sky] = (1 - elev) * _HORIZON + elev * _ZENITH
-    return rgb
-
-
-# ---------------------------------------------------------------------------------------------------
-# sensors
-
-
-def _cam_to_ego(camera: str) -> np.ndarray:
-    yaw = math.radians(RIG[camera][0])
-    pitch = math.radians(-2.0)
-    fwd = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), math.sin(pitch)])
-    right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
-    down = np.cross(fwd, right)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([right, down, fwd], 1)
-    T[:3, 3] = [1.5 * math.cos(yaw), 0.9 * math.sin(yaw), 1.6]
-    return T
+# the cameras' intrinsics
 
 
 def _intrinsics(cfg: SegmentConfig, camera: str) -> np.ndarray:
     h, w = cfg.image_size(camera)
     f = (w / 2) / math.tan(math.radians(cfg.hfov_deg) / 2)
     return np.array([[f, 0, w / 2 - 0.5], [0, f, h / 2 - 0.5], [0, 0, 1.0]])
-
-
-_LIDAR_IN_EGO = np.array([0.0, 0.0, 2.0])
-_CHUNK = 1 << 19  # rays per Embree call
-
-
-def _render_view(cfg, caster, K, cam_to_world, size) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(rgb uint8 (H, W, 3), depth float16 (H, W), instance uint16 (H, W))`` of one view."""
-    h, w = size
-    R, origin = cam_to_world[:3, :3], cam_to_world[:3, 3]
-    rgb = np.empty((h * w, 3), np.uint8)
-    depth = np.empty(h * w, np.float16)
-    inst = np.empty(h * w, np.uint16)
-    rows = max(1, _CHUNK // w)
-    xs = (np.arange(w) - K[0, 2]) / K[0, 0]
-    for r0 in range(0, h, rows):
-        ys = (np.arange(r0, min(h, r0 + rows)) - K[1, 2]) / K[1, 1]
-        cam = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], 1.0), -1).reshape(-1, 3)
-        dirs = (cam @ R.T).astype(np.float32)  # camera z = 1: the hit distance t is the z-depth
-        t, prim = caster.cast(origin, dirs)
-        sl = slice(r0 * w, r0 * w + len(t))
-        hit = prim >= 0
-        depth[sl] = np.where(hit, t, 0)
-        inst[sl] = np.where(hit, caster.boxes.instance[np.maximum(prim, 0) // 12], 0)
-        rgb[sl] = np.clip(_shade(caster, origin, dirs, t, prim) * 255 + 0.5, 0, 255).astype(np.uint8)
-    return rgb.reshape(h, w, 3), depth.reshape(h, w), inst.reshape(h, w)
-
-
-def _scan(
-    cfg: SegmentConfig, caster: _Caster, origin: np.ndarray, yaw: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(points (N, 3) float32 world, instance (N,) uint16)``: a spin of the LiDAR, N = lidar_points.
-
-    The azimuth step is refined until the hits (within range) reach the requested count; then
-    ``lidar_points`` of them are taken evenly in scan order (beam by beam).
-    """
-    lo, hi = cfg.lidar_vfov
-    elev = np.radians(np.linspace(hi, lo, cfg.lidar_beams))
-    n_az = max(8, math.ceil(1.6 * cfg.lidar_points / cfg.lidar_beams))
-    for _ in range(8):
-        az = yaw + np.linspace(0, 2 * np.pi, n_az, endpoint=False)
-        ce = np.cos(elev)[:, None]
-        dirs = np.stack(np.broadcast_arrays(ce * np.cos(az), ce * np.sin(az), np.sin(elev)[:, None]), -1)
-        t, prim = caster.cast(origin, dirs.reshape(-1, 3))
-        keep = (prim >= 0) & (t <= cfg.lidar_range)
-        if keep.sum() >= cfg.lidar_points:
-            break
-        n_az *= 2
-    idx = np.flatnonzero(keep)
-    if len(idx) > cfg.lidar_points:
-        idx = idx[(np.arange(cfg.lidar_points) * len(idx)) // cfg.lidar_points]
-    pts = origin + t[idx, None].astype(np.float64) * dirs.reshape(-1, 3)[idx]
-    return pts.astype(np.float32), caster.boxes.instance[prim[idx] // 12].astype(np.uint16)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -553,19 +303,19 @@ def _view_files(cfg: SegmentConfig, camera: str, frame: int) -> dict[str, str]:
 _STATE: dict = {}
 
 
-def _init_worker(cfg: SegmentConfig, world: _World, out: Path) -> None:
+def _init_worker(cfg: SegmentConfig, world: SegmentWorld, out: Path) -> None:
     _STATE.update(cfg=cfg, world=world, out=out)
 
 
 def _write_frame(frame: int) -> int:
     """Render and write every view and the LiDAR of one frame; returns its LiDAR point count."""
     cfg, world, out = _STATE["cfg"], _STATE["world"], _STATE["out"]
-    caster = _Caster(world, frame)
+    caster = RayCaster(world, frame)
     ego = world.ego_to_world[frame]
     for camera in cfg.camera_names:
         files = _view_files(cfg, camera, frame)
-        c2w = ego @ _cam_to_ego(camera)
-        rgb, depth, inst = _render_view(cfg, caster, _intrinsics(cfg, camera), c2w, cfg.image_size(camera))
+        c2w = ego @ rig_cam_to_ego(camera)
+        rgb, depth, inst = render_view(caster, _intrinsics(cfg, camera), c2w, cfg.image_size(camera))
         img = Image.fromarray(rgb)
         if cfg.image_format == "jpg":
             img.save(out / files["image"], quality=cfg.jpeg_quality)
@@ -573,8 +323,11 @@ def _write_frame(frame: int) -> int:
             img.save(out / files["image"], compress_level=3)
         np.savez_compressed(out / files["depth"], depth=depth)
         Image.fromarray(inst).save(out / files["instances"], compress_level=3)
-    origin = (ego @ np.append(_LIDAR_IN_EGO, 1.0))[:3]
-    pts, ids = _scan(cfg, caster, origin, math.atan2(ego[1, 0], ego[0, 0]))
+    origin = (ego @ np.append(LIDAR_IN_EGO, 1.0))[:3]
+    yaw = math.atan2(ego[1, 0], ego[0, 0])
+    pts, ids = lidar_scan(
+        caster, origin, yaw, cfg.lidar_beams, cfg.lidar_vfov, cfg.lidar_points, cfg.lidar_range
+    )
     np.savez_compressed(out / f"lidar/{_names(cfg, frame)}.npz", points=pts, instance=ids,
                         origin=origin.astype(np.float32))  # fmt: skip
     return len(pts)
@@ -584,24 +337,24 @@ def _mat(T: np.ndarray) -> list[list[float]]:
     return [[round(float(v), 6) for v in row] for row in T]
 
 
-def _write_meshes(cfg: SegmentConfig, world: _World, out: Path) -> None:
+def _write_meshes(cfg: SegmentConfig, world: SegmentWorld, out: Path) -> None:
     import trimesh
 
     b = world.boxes
     static = b.track < 0
-    tris = _box_triangles(b.size[static], b.pose[static])
+    tris = box_triangles(b.size[static], b.pose[static])
     mesh = trimesh.Trimesh(tris.reshape(-1, 3), np.arange(len(tris) * 3).reshape(-1, 3), process=False)
     mesh.merge_vertices()
     mesh.export(out / "gt" / "static.ply")
     np.save(out / "gt" / "static_face_instance.npy", np.repeat(b.instance[static], 12).astype(np.uint16))
     for i in np.flatnonzero(~static):
-        tris = _box_triangles(b.size[i : i + 1], np.eye(4)[None])
+        tris = box_triangles(b.size[i : i + 1], np.eye(4)[None])
         car = trimesh.Trimesh(tris.reshape(-1, 3), np.arange(36).reshape(-1, 3), process=False)
         car.merge_vertices()
         car.export(out / "gt" / f"object_{b.instance[i]}.ply")
 
 
-def _scene_json(cfg: SegmentConfig, world: _World) -> dict:
+def _scene_json(cfg: SegmentConfig, world: SegmentWorld) -> dict:
     cams = cfg.camera_names
     cameras = {}
     for c in cams:
@@ -610,13 +363,14 @@ def _scene_json(cfg: SegmentConfig, world: _World) -> dict:
             "width": w,
             "height": h,
             "K": _mat(_intrinsics(cfg, c)),
-            "cam_to_ego": _mat(_cam_to_ego(c)),
+            "cam_to_ego": _mat(rig_cam_to_ego(c)),
         }
     frames = []
     for f in range(cfg.frames):
         ego = world.ego_to_world[f]
         views = [
-            {"camera": c, **_view_files(cfg, c, f), "cam_to_world": _mat(ego @ _cam_to_ego(c))} for c in cams
+            {"camera": c, **_view_files(cfg, c, f), "cam_to_world": _mat(ego @ rig_cam_to_ego(c))}
+            for c in cams
         ]
         frames.append({
             "index": f, "timestamp": round(f / cfg.rate_hz, 6), "ego_to_world": _mat(ego),
@@ -653,7 +407,7 @@ def _scene_json(cfg: SegmentConfig, world: _World) -> dict:
             "vfov": list(cfg.lidar_vfov),
             "max_range": cfg.lidar_range,
             "points_per_frame": cfg.lidar_points,
-            "origin_in_ego": _LIDAR_IN_EGO.tolist(),
+            "origin_in_ego": LIDAR_IN_EGO.tolist(),
         },
         "instances": world.instances,
         "tracks": tracks,
@@ -679,7 +433,7 @@ def _progress(it: Iterator[int], total: int, show: bool) -> Iterator[int]:
     return tqdm(it, total=total, desc="segment", unit="frame")
 
 
-def _segment_files(cfg: SegmentConfig, world: _World) -> list[str]:
+def _segment_files(cfg: SegmentConfig, world: SegmentWorld) -> list[str]:
     """Every file :func:`make_segment` writes for ``cfg`` (relative paths; ``scene.json`` last)."""
     files = ["gt/static.ply", "gt/static_face_instance.npy"]
     b = world.boxes

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
-from vadgs.checks import check_finite, check_shape, check_size
+from vadgs.checks import check_intrinsics, check_shape, check_size
 
 __all__ = [
     "OPENCV_DISTORTION",
@@ -148,17 +148,11 @@ def _scaled(K: torch.Tensor, factor: float) -> torch.Tensor:
     return out
 
 
-def _check_intrinsics(K: torch.Tensor, name: str = "K") -> torch.Tensor:
+def _pinhole(K: torch.Tensor, name: str = "K") -> torch.Tensor:
+    """``K (3, 3)`` checked (:func:`~vadgs.checks.check_intrinsics`), as float64."""
     check_shape(K, name, (3, 3))
-    check_finite(K, name)
-    K = K.double()
-    if not (
-        float(K[0, 0]) > 0 and float(K[1, 1]) > 0 and K[2].tolist() == [0.0, 0.0, 1.0] and float(K[1, 0]) == 0
-    ):
-        raise ValueError(
-            f"{name}: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}"
-        )
-    return K
+    check_intrinsics(K, name, pinhole=True)
+    return K.double()
 
 
 def undistorted_intrinsics(
@@ -193,7 +187,7 @@ def undistorted_intrinsics(
         (0.965, [49.5, 29.5])
     """
     h, w = check_size(image_size)
-    K = _check_intrinsics(K)
+    K = _pinhole(K)
     d = distortion_coefficients(distortion)
     if not bool(d.any()):
         return K
@@ -270,7 +264,7 @@ def undistortion_map(
         [3.0, 2.0]
     """
     h, w = check_size(image_size)
-    K, new_K = _check_intrinsics(K), _check_intrinsics(new_K, "new_K")
+    K, new_K = _pinhole(K), _pinhole(new_K, "new_K")
     d = distortion_coefficients(distortion)
     ys, xs = torch.meshgrid(
         torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
@@ -346,7 +340,7 @@ class ImageUndistorter:
     _map: torch.Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self.raw_K = _check_intrinsics(torch.as_tensor(self.raw_K), "raw_K")
+        self.raw_K = _pinhole(torch.as_tensor(self.raw_K), "raw_K")
         self.distortion = distortion_coefficients(self.distortion)
         self.image_size = check_size(self.image_size)
         self.K = undistorted_intrinsics(self.raw_K, self.distortion, self.image_size)

@@ -47,19 +47,18 @@ import numpy as np
 
 from vadgs.data.scene import Scene
 from vadgs.data.scene_json import load_scene
-from vadgs.data.waymo import (
+from vadgs.data.waymo import WAYMO_CAMERA_TO_OPENCV, WAYMO_PIXEL_OFFSET
+from vadgs.data.waymo_lidar import WAYMO_MAX_RANGE_M, waymo_beam_inclinations, waymo_points_to_range_image
+from vadgs.data.waymo_parquet import (
     WAYMO_CAMERA_CALIBRATION,
     WAYMO_CAMERA_IMAGE,
-    WAYMO_CAMERA_TO_OPENCV,
     WAYMO_CAMERAS,
     WAYMO_LIDAR,
     WAYMO_LIDAR_BOX,
     WAYMO_LIDAR_CALIBRATION,
-    WAYMO_PIXEL_OFFSET,
     WAYMO_VEHICLE_POSE,
     pyarrow_parquet,
 )
-from vadgs.data.waymo_lidar import WAYMO_MAX_RANGE_M, waymo_beam_inclinations, waymo_points_to_range_image
 from vadgs.io import safe_filename
 
 __all__ = ["BOX_TYPE_OF_CLASS", "MAX_COLUMNS", "WaymoSegmentSummary", "write_waymo_segment"]

@@ -1,4 +1,4 @@
-"""Geometry: cameras, poses, rotations, plane homographies, voxel grids, the voxel z-buffer, normal codes.
+"""Geometry: cameras, poses, rotations, homographies, voxel grids and z-buffer, point clouds, resampling.
 
 Knows nothing about Gaussians or scenes: every function takes tensors and small dataclasses.
 """
@@ -10,10 +10,12 @@ from vadgs.geometry.camera import (
     cameras_in_object_frame,
     invert_rigid,
     level_up,
+    observing_views,
     pixel_grid,
     project_points,
     relative_pose,
     scale_intrinsics,
+    shift_K,
 )
 from vadgs.geometry.camera_path import (
     CameraPath,
@@ -25,7 +27,7 @@ from vadgs.geometry.camera_path import (
     orbit_path,
     spline_path,
 )
-from vadgs.geometry.ground import ground_frame, points_in_frame, sample_rows
+from vadgs.geometry.ground import ground_cells, ground_frame, points_in_frame, sample_rows
 from vadgs.geometry.homography import (
     apply_homography,
     homography_warp,
@@ -34,12 +36,13 @@ from vadgs.geometry.homography import (
     warp_patches,
 )
 from vadgs.geometry.octahedral import octahedral_decode, octahedral_encode
+from vadgs.geometry.points import VoxelAccumulator, knn_scales, thin_points, voxel_downsample
+from vadgs.geometry.resample import pool_mask, pool_valid, repeat
 from vadgs.geometry.rotation import normals_to_quats, quat_multiply, quaternion_to_rotation, rotation_to_quat
 from vadgs.geometry.voxel import (
     ChunkedVoxels,
     PointChunk,
     VoxelGrid,
-    observing_views,
     unique_cells,
     voxel_labels,
     voxelize,
@@ -52,6 +55,7 @@ __all__ = [
     "Cameras",
     "ChunkedVoxels",
     "PointChunk",
+    "VoxelAccumulator",
     "VoxelGrid",
     "VoxelRaster",
     "VoxelRasterizer",
@@ -62,11 +66,13 @@ __all__ = [
     "cameras_in_object_frame",
     "catmull_rom",
     "focus_point",
+    "ground_cells",
     "ground_frame",
     "homography_warp",
     "interpolate_rigid",
     "invert_rigid",
     "keyframe_path",
+    "knn_scales",
     "level_up",
     "look_at",
     "normals_to_quats",
@@ -78,16 +84,22 @@ __all__ = [
     "plane_distance",
     "plane_homography",
     "points_in_frame",
+    "pool_mask",
+    "pool_valid",
     "project_points",
     "quat_multiply",
     "quaternion_to_rotation",
     "rasterize_voxels",
     "relative_pose",
+    "repeat",
     "rotation_to_quat",
     "sample_rows",
     "scale_intrinsics",
+    "shift_K",
     "spline_path",
+    "thin_points",
     "unique_cells",
+    "voxel_downsample",
     "voxel_labels",
     "voxelize",
     "voxelize_chunks",

@@ -1,5 +1,8 @@
 """Pinhole cameras: batched intrinsics and extrinsics, projection and back-projection.
 
+And which cameras see which points (:func:`observing_views`: the input of the voxels' visibility
+sets, :mod:`vadgs.geometry.voxel`).
+
 Conventions (``docs/conventions.md``): OpenCV camera axes (x right, y down, z forward),
 ``K (B, 3, 3)``, ``world_to_cam (B, 4, 4)`` maps world points into the camera frame,
 ``cam_to_world`` is its inverse, integer pixel coordinates are pixel centres, pixel points are
@@ -12,13 +15,14 @@ checks and the small pieces kornia lacks (rigid inversion, object-frame cameras)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from kornia.geometry.linalg import transform_points
 
-from vadgs.checks import check_finite, check_intrinsics, check_rigid_last_row, check_shape, check_size
+from vadgs.checks import check_finite, check_intrinsics, check_shape, check_size, checks_enabled
 
 __all__ = [
     "Cameras",
@@ -27,11 +31,32 @@ __all__ = [
     "cameras_in_object_frame",
     "invert_rigid",
     "level_up",
+    "observing_views",
     "pixel_grid",
     "project_points",
     "relative_pose",
     "scale_intrinsics",
+    "shift_K",
 ]
+
+
+def _check_rigid_last_row(T: torch.Tensor, name: str) -> None:
+    """Value check of ``(*, 4, 4)`` transforms: finite, last row ``(0, 0, 0, 1)`` (within 1e-5).
+
+    Example:
+        >>> _check_rigid_last_row(torch.zeros(4, 4), "transform")
+        Traceback (most recent call last):
+        ...
+        ValueError: transform: expected a transform with last row (0, 0, 0, 1), got [0.0, 0.0, 0.0, 0.0]
+    """
+    check_finite(T, name)
+    if checks_enabled() and T.numel():
+        row = T.detach()[..., 3, :].reshape(-1, 4)
+        want = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=row.dtype, device=row.device)
+        bad = ((row - want).abs() > 1e-5).any(-1)
+        if bool(bad.any()):
+            got = row[int(bad.nonzero()[0, 0])].tolist()
+            raise ValueError(f"{name}: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
@@ -51,7 +76,7 @@ def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
         tensor([-1., -2., -3.])
     """
     check_shape(transform, "transform", ("*", 4, 4))
-    check_rigid_last_row(transform, "transform")
+    _check_rigid_last_row(transform, "transform")
     rot = transform[..., :3, :3]
     trans = transform[..., :3, 3:]
     rot_t = rot.transpose(-1, -2)
@@ -114,7 +139,7 @@ def project_points(
     check_intrinsics(K)
     if world_to_cam is not None:
         check_shape(world_to_cam, "world_to_cam", ("B", 4, 4), dims)
-        check_rigid_last_row(world_to_cam, "world_to_cam")
+        _check_rigid_last_row(world_to_cam, "world_to_cam")
         points = transform_points(world_to_cam, points)
     z = points[..., 2]
     xy = points[..., :2] / z.unsqueeze(-1)
@@ -222,6 +247,19 @@ def scale_intrinsics(K: torch.Tensor, scale: float | tuple[float, float]) -> tor
     out[..., 0, 2] += 0.5 * sx - 0.5
     out[..., 1, 2] += 0.5 * sy - 0.5
     return out
+
+
+def shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
+    """Intrinsics ``(..., 3, 3)`` of the crop whose top-left corner is pixel ``(x0, y0)`` (a copy).
+
+    Example:
+        >>> shift_K(torch.eye(3), 2, 5)[:2, 2].tolist()
+        [-2.0, -5.0]
+    """
+    K = K.clone()
+    K[..., 0, 2] -= x0
+    K[..., 1, 2] -= y0
+    return K
 
 
 def cameras_in_object_frame(world_to_cam: torch.Tensor, object_to_world: torch.Tensor) -> torch.Tensor:
@@ -355,3 +393,69 @@ def level_up(cam_to_world: torch.Tensor) -> torch.Tensor:
         ref = -y[~sideways].sum(0) if bool((~sideways).any()) else start  # the level photos' up
         up = -up if float(up @ ref) < 0 else up
     return up
+
+
+def observing_views(
+    points: torch.Tensor,
+    cameras: Cameras,
+    view_ids: Sequence[int] | torch.Tensor | None = None,
+    groups: tuple[torch.Tensor, torch.Tensor] | None = None,
+    near: float = 0.1,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which cameras see which points: points in front of a camera that project inside its image.
+
+    For LiDAR, a point is observed by the cameras *of its own frame* that see it: pass
+    ``groups=(point_frame, camera_frame)`` so that each point is tested only against the cameras
+    of the same group (processed group by group, so memory stays ``O(N_group × B_group)``).
+    Occlusion is not tested here; the voxel z-buffer resolves it.
+
+    Args:
+        points: ``(N, 3)`` world points.
+        cameras: ``B`` cameras.
+        view_ids: ``(B,)`` the view id of each camera (default ``0..B-1``).
+        groups: optional ``(point_group (N,), camera_group (B,))`` integer labels.
+        near: minimum z-depth.
+
+    Returns:
+        COO pairs ``(point_idx, view_idx)``, each ``(P,)`` int64, sorted by point.
+
+    Example:
+        >>> K = torch.tensor([[[10.0, 0, 4.5], [0, 10.0, 4.5], [0, 0, 1]]])
+        >>> cams = Cameras(K, torch.eye(4)[None], (10, 10))
+        >>> observing_views(torch.tensor([[0.0, 0, 2], [0, 0, -2], [5, 0, 1]]), cams)
+        (tensor([0]), tensor([0]))
+    """
+    check_shape(points, "points", ("N", 3))
+    b = len(cameras)
+    ids = torch.arange(b) if view_ids is None else torch.as_tensor(view_ids, dtype=torch.int64)
+    if ids.shape != (b,):
+        raise ValueError(f"view_ids: expected shape ({b},), got {tuple(ids.shape)}")
+    ids = ids.to(points.device)
+    if groups is None:
+        point_sel = [torch.arange(points.shape[0], device=points.device)]
+        cam_sel = [torch.arange(b, device=points.device)]
+    else:
+        pg, cg = groups
+        check_shape(pg, "groups[0]", (points.shape[0],))
+        check_shape(cg, "groups[1]", (b,))
+        labels = torch.unique(cg)
+        point_sel = [(pg == g).nonzero().squeeze(1) for g in labels]
+        cam_sel = [(cg == g).nonzero().squeeze(1) for g in labels]
+    h, w = cameras.image_size
+    out_p, out_v = [], []
+    for psel, csel in zip(point_sel, cam_sel):
+        if psel.numel() == 0:
+            continue
+        sub = cameras[csel]
+        uv, z = project_points(points[psel].expand(len(sub), -1, -1), sub.K, sub.world_to_cam)
+        u, v = uv[..., 0], uv[..., 1]
+        ok = (z > near) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
+        bi, pi = ok.nonzero(as_tuple=True)
+        out_p.append(psel[pi])
+        out_v.append(ids[csel[bi]])
+    if not out_p:
+        empty = torch.zeros(0, dtype=torch.int64, device=points.device)
+        return empty, empty.clone()
+    pidx, vidx = torch.cat(out_p), torch.cat(out_v)
+    order = torch.argsort(pidx * (int(ids.max()) + 1) + vidx)
+    return pidx[order], vidx[order]

@@ -2,7 +2,7 @@
 
 :func:`ground_frame` measures it (optionally turned onto the scene's walls); :func:`points_in_frame`
 expresses points in it. Pure geometry: VAD-GS's visibility index cuts its derived instances
-(:func:`vadgs.train.vad.instances.ground_cells`) and thins new points in this frame, so that a
+(:func:`ground_cells`) and thins new points in this frame, so that a
 rotated, shifted or rescaled copy of a scene gets the same cells. :func:`sample_rows` bounds the
 points it is measured on (a segment's LiDAR, read chunk by chunk).
 """
@@ -17,6 +17,7 @@ import torch
 from vadgs.geometry.camera import level_up
 
 __all__ = [
+    "ground_cells",
     "ground_frame",
     "points_in_frame",
     "sample_rows",
@@ -38,7 +39,7 @@ def ground_frame(
     plane (the larger first); the origin is the points' median along each of the three axes (the
     middle two averaged). A rotated, shifted or uniformly scaled copy of the scene has the same
     frame, moved with it, up to the sign of each axis (an eigen-solver's choice): what is built on
-    it (:func:`~vadgs.train.vad.instances.ground_cells`, the thinning of new points) is symmetric
+    it (:func:`ground_cells`, the thinning of new points) is symmetric
     about the origin.
 
     With ``walls``, the ground axes are then turned about the up onto the scene's walls (a
@@ -150,3 +151,63 @@ def sample_rows(chunks: Iterable[torch.Tensor], budget: int) -> torch.Tensor:
             keep = keys < limit
             sample, keys = sample[keep.to(sample.device)], keys[keep]
     return sample if sample is not None else torch.zeros(0, 3)
+
+
+def ground_cells(
+    points: torch.Tensor,
+    cam_to_world: torch.Tensor | None,
+    cell_size: float,
+    frame: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Cell index of each point in a grid of ``cell_size`` ground squares that moves with the scene.
+
+    The squares lie in the ground plane of :func:`ground_frame`, along its axes, one centred on
+    its origin (the points' median): a rotated, shifted or uniformly scaled copy of a scene
+    (``cell_size`` scaled with it) is cut into the same cells, where square cells fixed to the
+    world's axes would cut it elsewhere. Cells are numbered by their number of points, most first
+    (ties: nearest to the origin, then lowest, first).
+
+    Args:
+        points: ``(M, 3)`` points (voxel centres), world frame.
+        cam_to_world: ``(V, 4, 4)`` OpenCV camera-to-world of the views that saw them (unused
+            when ``frame`` is given).
+        cell_size: the squares' edge, in world units (> 0).
+        frame: :func:`ground_frame` of these points and cameras, when already computed.
+
+    Returns:
+        ``(M,)`` int64 cell index in ``[0, number of cells)``, on the points' device.
+
+    Example:
+        >>> import math
+        >>> pts = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([40.0, 8, 3])
+        >>> c2w = torch.eye(4)[None].repeat(2, 1, 1)
+        >>> c2w[:, :3, :3] = torch.tensor([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # level, z up
+        >>> a = ground_cells(pts, c2w, 10.0)
+        >>> c, s = math.cos(1.0), math.sin(1.0)
+        >>> R = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        >>> moved = c2w.clone()
+        >>> moved[:, :3, :3] = R @ c2w[:, :3, :3]
+        >>> b = ground_cells(0.05 * (pts @ R.T) + 3.0, moved, 0.5)  # turned, shifted, 1/20
+        >>> int(a.max()) + 1, bool((a == b).all())
+        (5, True)
+    """
+    if not cell_size > 0:
+        raise ValueError(f"cell_size: expected > 0, got {cell_size}")
+    if len(points) == 0:
+        return torch.zeros(0, dtype=torch.long, device=points.device)
+    if frame is None:
+        if cam_to_world is None:
+            raise ValueError("cam_to_world: expected the cameras (N, 4, 4) when no frame is given, got None")
+        frame = ground_frame(points, cam_to_world)
+    local = points_in_frame(points, *frame)
+    ij = torch.floor(local[:, :2] / cell_size + 0.5).long()  # the origin in a cell's centre
+    _, cell, count = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
+    centre = ij.double().norm(dim=1)  # a cell's distance from the origin, in cells
+    dist = torch.zeros(len(count), dtype=local.dtype, device=local.device)
+    dist = dist.scatter_reduce(0, cell, centre, "amax", include_self=False)
+    height = torch.zeros_like(dist).index_add_(0, cell, local[:, 2] / cell_size) / count  # mean height
+    key = [(-int(n), round(float(d), 6), round(float(h), 6)) for n, d, h in zip(count, dist, height)]
+    order = sorted(range(len(count)), key=lambda c: (*key[c], c))
+    rank = torch.empty_like(count)
+    rank[torch.tensor(order, device=count.device)] = torch.arange(len(count), device=count.device)
+    return rank[cell]

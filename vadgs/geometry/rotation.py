@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from kornia.geometry.conversions import rotation_matrix_to_quaternion
 
-from vadgs.checks import check_finite, check_quaternions, check_shape
+from vadgs.checks import check_finite, check_shape, checks_enabled
 
 __all__ = [
     "normals_to_quats",
@@ -26,6 +26,25 @@ __all__ = [
     "quaternion_to_rotation",
     "rotation_to_quat",
 ]
+
+
+def _check_quaternions(q: torch.Tensor, name: str = "quats") -> None:
+    """Value check of ``(*, 4)`` quaternions: finite and of non-zero norm (a zero one has no rotation).
+
+    Example:
+        >>> _check_quaternions(torch.tensor([[1.0, 0, 0, 0], [0, 0, 0, 0]]))
+        Traceback (most recent call last):
+        ...
+        ValueError: quats: expected non-zero quaternions, got 1 of norm 0 (first: row 1)
+    """
+    check_finite(q, name)
+    if checks_enabled() and q.numel():
+        zero = q.detach().norm(dim=-1) < 1e-12
+        if bool(zero.any()):
+            first = int(zero.flatten().nonzero()[0, 0])
+            raise ValueError(
+                f"{name}: expected non-zero quaternions, got {int(zero.sum())} of norm 0 (first: row {first})"
+            )
 
 
 def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
@@ -49,7 +68,7 @@ def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
                  [0., 0., 1.]]])
     """
     check_shape(quats, "quats", ("*", 4))
-    check_quaternions(quats)
+    _check_quaternions(quats)
     q = quats / quats.norm(dim=-1, keepdim=True)
     w, x, y, z = q.unbind(-1)
     rows = [

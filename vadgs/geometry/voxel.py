@@ -3,22 +3,21 @@ r"""Voxel grids with per-voxel visibility sets (paper, "Voxel-Based Visibility R
 The initial points (accumulated LiDAR, SfM) are voxelised to a uniform density. Each voxel keeps
 its centre, the mean of its points, its point count and its **visibility set**: the union of the
 views that observed its points. A LiDAR point is observed by the cameras of its own frame that
-see it (:func:`observing_views`); an SfM point by the images of its COLMAP track. Visibility is
-stored sparsely as CSR (voxel → sorted view ids), which scales to :math:`10^6` voxels ×
-:math:`10^3` views: memory is linear in the number of (voxel, view) pairs.
+see it (:func:`vadgs.geometry.camera.observing_views`); an SfM point by the images of its COLMAP
+track. Visibility is stored sparsely as CSR (voxel → sorted view ids), which scales to
+:math:`10^6` voxels × :math:`10^3` views: memory is linear in the number of (voxel, view) pairs.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 
 from vadgs.checks import check_finite, check_shape
-from vadgs.geometry.camera import Cameras, project_points
 
 __all__ = [
     "MAX_VOXEL_CELLS",
@@ -26,7 +25,6 @@ __all__ = [
     "PointChunk",
     "VoxelGrid",
     "check_voxel_size",
-    "observing_views",
     "unique_cells",
     "voxel_labels",
     "voxelize",
@@ -589,69 +587,3 @@ def _voxel_normals(
     normal = evecs[:, :, 0].to(means.dtype)
     planar = (n_tot >= 3) & (evals[:, 0] <= flatness * evals[:, 1]) & (evals[:, 1] > 0)
     return torch.where(planar[:, None], normal, torch.zeros_like(normal))
-
-
-def observing_views(
-    points: torch.Tensor,
-    cameras: Cameras,
-    view_ids: Sequence[int] | torch.Tensor | None = None,
-    groups: tuple[torch.Tensor, torch.Tensor] | None = None,
-    near: float = 0.1,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Which cameras see which points: points in front of a camera that project inside its image.
-
-    For LiDAR, a point is observed by the cameras *of its own frame* that see it: pass
-    ``groups=(point_frame, camera_frame)`` so that each point is tested only against the cameras
-    of the same group (processed group by group, so memory stays ``O(N_group × B_group)``).
-    Occlusion is not tested here; the voxel z-buffer resolves it.
-
-    Args:
-        points: ``(N, 3)`` world points.
-        cameras: ``B`` cameras.
-        view_ids: ``(B,)`` the view id of each camera (default ``0..B-1``).
-        groups: optional ``(point_group (N,), camera_group (B,))`` integer labels.
-        near: minimum z-depth.
-
-    Returns:
-        COO pairs ``(point_idx, view_idx)``, each ``(P,)`` int64, sorted by point.
-
-    Example:
-        >>> K = torch.tensor([[[10.0, 0, 4.5], [0, 10.0, 4.5], [0, 0, 1]]])
-        >>> cams = Cameras(K, torch.eye(4)[None], (10, 10))
-        >>> observing_views(torch.tensor([[0.0, 0, 2], [0, 0, -2], [5, 0, 1]]), cams)
-        (tensor([0]), tensor([0]))
-    """
-    check_shape(points, "points", ("N", 3))
-    b = len(cameras)
-    ids = torch.arange(b) if view_ids is None else torch.as_tensor(view_ids, dtype=torch.int64)
-    if ids.shape != (b,):
-        raise ValueError(f"view_ids: expected shape ({b},), got {tuple(ids.shape)}")
-    ids = ids.to(points.device)
-    if groups is None:
-        point_sel = [torch.arange(points.shape[0], device=points.device)]
-        cam_sel = [torch.arange(b, device=points.device)]
-    else:
-        pg, cg = groups
-        check_shape(pg, "groups[0]", (points.shape[0],))
-        check_shape(cg, "groups[1]", (b,))
-        labels = torch.unique(cg)
-        point_sel = [(pg == g).nonzero().squeeze(1) for g in labels]
-        cam_sel = [(cg == g).nonzero().squeeze(1) for g in labels]
-    h, w = cameras.image_size
-    out_p, out_v = [], []
-    for psel, csel in zip(point_sel, cam_sel):
-        if psel.numel() == 0:
-            continue
-        sub = cameras[csel]
-        uv, z = project_points(points[psel].expand(len(sub), -1, -1), sub.K, sub.world_to_cam)
-        u, v = uv[..., 0], uv[..., 1]
-        ok = (z > near) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
-        bi, pi = ok.nonzero(as_tuple=True)
-        out_p.append(psel[pi])
-        out_v.append(ids[csel[bi]])
-    if not out_p:
-        empty = torch.zeros(0, dtype=torch.int64, device=points.device)
-        return empty, empty.clone()
-    pidx, vidx = torch.cat(out_p), torch.cat(out_v)
-    order = torch.argsort(pidx * (int(ids.max()) + 1) + vidx)
-    return pidx[order], vidx[order]

@@ -33,7 +33,16 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_finite, check_shape
+from vadgs.checks import (
+    Checked,
+    bool_field,
+    check_finite,
+    check_shape,
+    checked,
+    choice_field,
+    float_field,
+    int_field,
+)
 from vadgs.geometry.camera import Cameras
 from vadgs.geometry.voxel import VoxelGrid
 
@@ -58,7 +67,7 @@ class VoxelRaster(NamedTuple):
 
 
 @dataclass(frozen=True)
-class ZBufferConfig:
+class ZBufferConfig(Checked):
     """Settings of the voxel z-buffer.
 
     Attributes:
@@ -79,12 +88,17 @@ class ZBufferConfig:
         max_pairs: bound on the padded (voxel, pixel) pairs processed per chunk (memory ~ 40 B each).
     """
 
-    near: float = 0.1
-    far: float = float("inf")
-    only_observed: bool = False
-    depth_mode: str = "auto"
-    plane_tolerance: float = 0.25
-    max_pairs: int = 4_000_000
+    near: float = checked(0.1, float_field(0, lo_open=True))
+    far: float = checked(float("inf"), float_field(0, lo_open=True, finite=False))
+    only_observed: bool = checked(False, bool_field())
+    depth_mode: str = checked("auto", choice_field(("auto", "box", "plane")))
+    plane_tolerance: float = checked(0.25, float_field(0))
+    max_pairs: int = checked(4_000_000, int_field(1))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.near < self.far:
+            raise ValueError(f"near, far: expected near < far, got near={self.near}, far={self.far}")
 
 
 def _boxes_in_view(

@@ -27,7 +27,6 @@ from vadgs.mvs.planar import (
     PlanarCompletionConfig,
     PlaneFit,
     complete_planar,
-    complete_planar_batch,
     fit_plane_ransac,
 )
 
@@ -45,7 +44,6 @@ __all__ = [
     "bilateral_ncc",
     "bilateral_weights",
     "complete_planar",
-    "complete_planar_batch",
     "fill_holes_scanline",
     "fit_plane_ransac",
     "fuse_depth_maps",

@@ -31,14 +31,14 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from vadgs.checks import check_shape
+from vadgs.checks import Checked, bool_field, check_shape, checked, float_field, int_field
 from vadgs.geometry import backproject_depth, invert_rigid, pixel_grid
 
 __all__ = ["FusedPoints", "FusionConfig", "fuse_depth_maps"]
 
 
 @dataclass(frozen=True)
-class FusionConfig:
+class FusionConfig(Checked):
     """Thresholds of :func:`fuse_depth_maps`.
 
     Attributes:
@@ -52,15 +52,14 @@ class FusionConfig:
             test at all, one point per valid pixel; needs ``min_views=0``).
     """
 
-    max_reproj_error: float = 2.0
-    max_rel_depth: float = 0.01
-    max_normal_angle: float = 30.0
-    min_views: int = 2
-    deduplicate: bool = True
+    max_reproj_error: float = checked(2.0, float_field(0))
+    max_rel_depth: float = checked(0.01, float_field(0))
+    max_normal_angle: float = checked(30.0, float_field(0, 180))
+    min_views: int = checked(2, int_field(0))
+    deduplicate: bool = checked(True, bool_field())
 
     def __post_init__(self) -> None:
-        if self.min_views < 0:
-            raise ValueError(f"min_views: expected >= 0, got {self.min_views}")
+        super().__post_init__()
         if not self.deduplicate and self.min_views != 0:
             raise ValueError(f"min_views: expected 0 with deduplicate=False, got {self.min_views}")
 

@@ -49,7 +49,17 @@ import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from torch import nn
 
-from vadgs.checks import check_finite, check_shape, checks_enabled
+from vadgs.checks import (
+    Checked,
+    bool_field,
+    check_finite,
+    check_shape,
+    checked,
+    checks_enabled,
+    choice_field,
+    float_field,
+    int_field,
+)
 from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
@@ -74,7 +84,7 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class PatchMatchConfig:
+class PatchMatchConfig(Checked):
     """Settings of :func:`patchmatch`.
 
     Attributes:
@@ -113,58 +123,33 @@ class PatchMatchConfig:
         joint_scoring: score the random refinements together with the propagated planes, in one
             cost evaluation per half-sweep, around the likeliest winner known before scoring (the
             plane of lowest cost where it was last scored) instead of around the propagation's
-            winner: about a quarter fewer kernel launches (992 instead of 1,288 for the defaults,
-            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.6 % instead of
-            32.4 % of the depths within 1 %, mean of 3 seeds).
+            winner: about a fifth fewer kernel launches (904 instead of 1,160 for the defaults,
+            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.7 % instead of
+            32.4 % of the raw depths within 1 %, mean of seeds 0-2).
     """
 
-    iterations: int = 3
-    window_radius: int = 5
-    window_step: int = 2
-    sigma_spatial: float | None = None
-    sigma_color: float = 0.2
-    min_variance: float = 1e-5
-    propagation: str = "acmh"
-    num_refine: int = 3
-    depth_perturbation: float = 0.05
-    normal_perturbation: float = 0.5
-    view_selection: str = "acmh"
-    top_k: int = 2
-    good_threshold: float = 0.8
-    bad_threshold: float = 1.2
-    beta: float = 0.3
-    max_cost: float = 0.6
-    seed: int | None = 0
-    chunk_size: int | None = None
-    pyramid_levels: int = 2
-    fine_iterations: int = 1
-    fine_propagation: str | None = None
-    joint_scoring: bool = False
-
-    def __post_init__(self) -> None:
-        if self.pyramid_levels < 1 or self.fine_iterations < 0:
-            raise ValueError(
-                f"pyramid_levels, fine_iterations: expected >= 1 and >= 0, got {self.pyramid_levels}, "
-                f"{self.fine_iterations}"
-            )
-        if self.iterations < 0:
-            raise ValueError(f"iterations: expected >= 0, got {self.iterations}")
-        if self.window_radius < 1 or self.window_step < 1:
-            raise ValueError(
-                f"window_radius, window_step: expected >= 1, got {self.window_radius}, {self.window_step}"
-            )
-        for name in ("propagation", "fine_propagation"):
-            value = getattr(self, name)
-            if value not in ("acmh", "cross") and not (name == "fine_propagation" and value is None):
-                raise ValueError(f"{name}: expected 'acmh' or 'cross', got {value!r}")
-        if self.view_selection not in ("acmh", "topk", "mean"):
-            raise ValueError(
-                f"view_selection: expected 'acmh', 'topk' or 'mean', got {self.view_selection!r}"
-            )
-        if not 0 <= self.num_refine <= 6:
-            raise ValueError(f"num_refine: expected 0 to 6, got {self.num_refine}")
-        if self.top_k < 1:
-            raise ValueError(f"top_k: expected >= 1, got {self.top_k}")
+    iterations: int = checked(3, int_field(0))
+    window_radius: int = checked(5, int_field(1))
+    window_step: int = checked(2, int_field(1))
+    sigma_spatial: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    sigma_color: float = checked(0.2, float_field(0, lo_open=True))
+    min_variance: float = checked(1e-5, float_field(0))
+    propagation: str = checked("acmh", choice_field(("acmh", "cross")))
+    num_refine: int = checked(3, int_field(0, 6))
+    depth_perturbation: float = checked(0.05, float_field(0))
+    normal_perturbation: float = checked(0.5, float_field(0))
+    view_selection: str = checked("acmh", choice_field(("acmh", "topk", "mean")))
+    top_k: int = checked(2, int_field(1))
+    good_threshold: float = checked(0.8, float_field(0))
+    bad_threshold: float = checked(1.2, float_field(0))
+    beta: float = checked(0.3, float_field(0, lo_open=True))
+    max_cost: float = checked(0.6, float_field(0))
+    seed: int | None = checked(0, int_field(optional=True))
+    chunk_size: int | None = checked(None, int_field(1, optional=True))
+    pyramid_levels: int = checked(2, int_field(1))
+    fine_iterations: int = checked(1, int_field(0))
+    fine_propagation: str | None = checked(None, choice_field(("acmh", "cross", None)))
+    joint_scoring: bool = checked(False, bool_field())
 
 
 class PatchMatchResult(NamedTuple):
@@ -356,8 +341,9 @@ def match_costs(
         prod = x * px.ref[:, None, :, :, None, p0 : p0 + pc]  # (B, V, 2, S, K, pc): w x, w x (r - mean) / std
         mean, cov = prod.sum(3).unbind(2)
         var = torch.addcmul((prod[:, :, 0] * x[:, :, 0]).sum(2), mean, mean, value=-1)
-        # 1 - ncc, in [0, 2] up to rounding (clamped once, in the result)
-        costs.append(torch.addcmul(src.one, cov, var.clamp_min(min_variance).rsqrt(), value=-1))
+        # 1 - ncc, in [0, 2] up to rounding (clamped once, in the result); where var < min_variance
+        # (NaN or infinite here) the mask below puts the worst cost
+        costs.append(torch.addcmul(src.one, cov, var.rsqrt(), value=-1))
         variances.append(var)
     cost = torch.cat(costs, dim=-1) if len(costs) > 1 else costs[0]
     var = torch.cat(variances, dim=-1) if len(variances) > 1 else variances[0]
@@ -365,7 +351,7 @@ def match_costs(
     # centre does not land in front of the source camera inside its image (and mask).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    outside = c0[..., :2].abs().amax(-1) > cz  # or behind (vector_norm(ord=inf) is 10x slower on CPU)
+    outside = torch.linalg.vector_norm(c0[..., :2], ord=math.inf, dim=-1) > cz  # or behind
     bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
@@ -380,25 +366,42 @@ def match_costs(
     return cost.masked_fill_(bad, MAX_COST), nr
 
 
-def _view_weights(costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor) -> torch.Tensor:
-    """ACMH view weights ``(B, V, P)`` from the costs ``(B, V, N, P)`` of N hypotheses."""
+def _view_weights(
+    costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, their sum, where > 0.
+
+    The sum ``(B, 1, P)`` and its mask serve every :func:`_aggregate` call of a half-sweep.
+    """
     good = costs < cfg.good_threshold
     n_good = good.sum(2)
-    dropped = (n_good < 2) | ((costs > cfg.bad_threshold).sum(2) > 3)
+    dropped = n_good < 2
+    n = costs.shape[2]
+    if n > 3:  # more than three bad costs: the 4th largest is bad
+        dropped = dropped | (costs.kthvalue(n - 3, dim=2).values > cfg.bad_threshold)
     conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
-    return (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
+    weights = (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
+    wsum = weights.sum(1, keepdim=True)
+    return weights, wsum, wsum > 0
 
 
-def _aggregate(costs: torch.Tensor, weights: torch.Tensor | None, cfg: PatchMatchConfig) -> torch.Tensor:
-    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``."""
+def _aggregate(
+    costs: torch.Tensor,
+    weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+    cfg: PatchMatchConfig,
+) -> torch.Tensor:
+    """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``.
+
+    ``weights``: :func:`_view_weights`'s (``None``: the mean of the ``top_k`` best views).
+    """
     if cfg.view_selection == "mean":
         return costs.mean(1)
     topk = costs.topk(min(cfg.top_k, costs.shape[1]), dim=1, largest=False).values.mean(1)
     if cfg.view_selection == "topk" or weights is None:
         return topk
-    wsum = weights.sum(1, keepdim=True)  # (B, 1, P)
-    weighted = (costs * weights[:, :, None]).sum(1) / wsum
-    return torch.where(wsum > 0, weighted, topk)
+    w, wsum, has = weights
+    weighted = (costs * w[:, :, None]).sum(1) / wsum
+    return torch.where(has, weighted, topk)
 
 
 def _scored_pixels(active: torch.Tensor, even: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
@@ -435,31 +438,34 @@ def _put(x: torch.Tensor, slot: torch.Tensor, values: torch.Tensor, padded: bool
 
 
 def _neighbour_table(
-    xs: torch.Tensor, ys: torch.Tensor, h: int, w: int, lut: torch.Tensor, kind: str
+    idx: torch.Tensor, h: int, w: int, lut: torch.Tensor, sentinel: int, kind: str
 ) -> torch.Tensor:
-    """``(N, P, 1 + R, L)`` indices into the scored pixels: each pixel ``(xs, ys)``, its regions' neighbours.
+    """``(N, P, 1 + R, L)`` indices into the scored pixels: each pixel ``idx``, its regions' neighbours.
 
-    ``xs``, ``ys`` ``(N, P)`` and ``lut`` ``(N, HW + 1)`` (the scored pixel of each pixel) are of one
-    reference each, or ``N = 1`` for all. Regions are padded to the longest; padding, neighbours
-    outside the image and unscored neighbours point to the sentinel ``lut[:, h * w]`` (whose cost
-    is infinite), a region with no other neighbour to the pixel itself. A few broadcasts, once per
-    level.
+    ``idx`` ``(N, P)`` (flat pixel indices) and ``lut`` ``(N, HW + 1)`` (the scored pixel of each
+    pixel) are of one reference each, or ``N = 1`` for all. Regions are padded to the longest;
+    padding, neighbours outside the image and unscored neighbours point to ``sentinel`` (the
+    index of a state row whose cost is infinite), a region with no other neighbour to the
+    pixel itself. The neighbours are looked up in ``lut`` padded by the sentinel around the image,
+    so that an offset is one addition: a handful of launches, once per level.
     """
     regions = [[(0, 0)], *propagation_regions(kind)]  # the pixel itself, then its R regions
     longest = max(len(r) for r in regions)
-    far = 2 * (h + w)  # a padding offset that always lands outside the image
-    off = torch.tensor(
-        [[list(o) for o in r] + [[far, far]] * (longest - len(r)) for r in regions], device=xs.device
-    )  # (R, L, 2)
-    qx = xs[..., None, None] + off[..., 0]
-    qy = ys[..., None, None] + off[..., 1]
-    outside = (qx < 0) | (qx >= w) | (qy < 0) | (qy >= h)
-    q = (qy * w + qx).masked_fill_(outside, h * w)
-    table = torch.gather(lut, 1, q.view(q.shape[0], -1)).view(q.shape)
+    pad = max(max(abs(dx), abs(dy)) for r in regions for dx, dy in r)
+    wp = w + 2 * pad
+    # (2, R, L): flat offsets in the padded table (from the pixel's padded index less pad * (wp + 1)),
+    # and 1 for a neighbour, 0 for padding (then the offset is 0: a corner of the padding)
+    rows = [[[(dy + pad) * wp + dx + pad for dx, dy in r] + [0] * (longest - len(r)) for r in regions]]
+    rows.append([[1] * len(r) + [0] * (longest - len(r)) for r in regions])
+    off, real = torch.tensor(rows, device=idx.device).unbind()
+    padded = F.pad(lut[:, : h * w].view(-1, h, w), (pad, pad, pad, pad), value=sentinel)
+    base = torch.add(idx, torch.div(idx, w, rounding_mode="floor"), alpha=wp - w)  # y wp + x
+    q = torch.addcmul(off, base[..., None, None], real)
+    table = torch.gather(padded.view(padded.shape[0], -1), 1, q.view(q.shape[0], -1)).view(q.shape)
     # A region wholly outside the image (or unscored) would offer only the sentinel, a plane of
     # fixed absolute depth: it offers the pixel's own plane instead (a tie with the current plane,
     # which argmin keeps), so that the search is equivariant to the scale of the world.
-    empty = (table == lut[:, h * w, None, None, None]).all(-1, keepdim=True)
+    empty = (table == sentinel).all(-1, keepdim=True)
     return torch.where(empty, table[..., :1, :1], table)
 
 
@@ -504,25 +510,31 @@ def _refinements(
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
-    Two perturbed depths (relative: ``z exp(noise[..., i])``) and two perturbed normals (``n``
-    plus ``noise[..., 2 + 3 i : 5 + 3 i]``, normalised, kept only when they face the camera), the
-    ``noise`` ``(B, P, 8)`` uniform, combined as ``kinds`` says: ``"p"`` perturbed (the
-    ``i % 2``-th of the ``i``-th kind), ``"c"`` current, ``"r"`` random. ``lo``, ``hi``: numbers or
-    ``(B,)`` tensors.
+    Two perturbed depths (relative: ``z exp(noise[..., i])``) and a perturbed normal (``n`` plus
+    ``noise[..., 2:5]``, normalised, kept only when it faces the camera), the ``noise``
+    ``(B, P, 8)`` uniform (``noise[..., 5:]`` is drawn but unused), combined as ``kinds`` says:
+    ``"p"`` perturbed (the ``i % 2``-th depth, the normal), ``"c"`` current, ``"r"`` random.
+    ``kinds`` is a prefix of ACMH's list (see :func:`_patchmatch_level`): the result is the current
+    plane repeated, with the perturbed and random parts written over it (a fixed handful of
+    launches). ``lo``, ``hi``: numbers or ``(B,)`` tensors.
     """
-    z, n = cur[..., 0], cur[..., 1:]
+    k = len(kinds)  # a prefix of ("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")
+    z, n = cur[..., 0], cur[..., 1:4]
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
-    pd = (z[..., None] * noise[..., :2].exp()).clamp_(lo, hi)  # (B, P, 2)
-    m = n[:, :, None] + noise[..., 2:].unflatten(-1, (2, 3))  # (B, P, 2, 3), |m| >= 1/2
+    out = cur[:, None, :, :4].repeat(1, k, 1, 1)  # (B, k, P, 4): "c" everywhere, then overwritten
+    nd = min(k, 2)  # perturbed depths: kinds 0 and 1 (the i-th draw for kind i)
+    torch.mul(z[..., None], noise[..., :nd].exp(), out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
+    # the perturbed normal: kinds 0 and 2 (both the first draw; the second is never used)
+    m = n + noise[..., 2:5]  # |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
-    facing = torch.bmm(m.view(-1, 2, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1) < -1e-3
-    pn = torch.where(facing, m, n[:, :, None])
-    rd, rn = z, n  # random hypotheses, drawn only when a kind asks for them
-    if any("r" in kind for kind in kinds):
+    facing = torch.bmm(m.view(-1, 1, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1, 1) < -1e-3
+    pn = out[:, 0:3:2, :, 1:4].transpose(1, 2)  # (B, P, 1 or 2, 3)
+    torch.where(facing.expand_as(pn), m[:, :, None].expand_as(pn), n[:, :, None].expand_as(pn), out=pn)
+    if k > 3:  # random hypotheses: depths for kinds 3 and 4, normals for kinds 3 and 5
         rd, rn = _random_depth(z.shape, lo, hi, gen, z), _random_normals(rays, gen)
-    depths = [{"p": pd[..., i % 2], "c": z, "r": rd}[kd] for i, (kd, _) in enumerate(kinds)]
-    normals = [{"p": pn[:, :, i % 2], "c": n, "r": rn}[kn] for i, (_, kn) in enumerate(kinds)]
-    return torch.cat([torch.stack(depths, 1)[..., None], torch.stack(normals, 1)], -1)
+        out[:, 3:5, :, 0] = rd[:, None]
+        out[:, 3:6:2, :, 1:4] = rn[:, None]
+    return out
 
 
 def _apply_init(depth, normal, init_depth, init_normal, rays, lo, hi):
@@ -915,7 +927,7 @@ def _patchmatch_level(
     ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
     pixels = MatchPixels(idx, rays, cols, rows, ref)
     na = lut.shape[0]  # 1: the same pixels for all
-    nbr = _neighbour_table(xs[idx[:na]], ys[idx[:na]], h, w, lut, cfg.propagation)  # (1 or B, P, 1 + R, L)
+    nbr = _neighbour_table(idx[:na], h, w, lut, n_act, cfg.propagation)  # (1 or B, P, 1 + R, L)
     batch = None if region is None else torch.arange(bsz, device=dev).view(bsz, 1, 1, 1)
     del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
@@ -930,49 +942,58 @@ def _patchmatch_level(
         normal = _random_normals(rays_all, gen)
         depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
     if n_act:
-        # State of the scored pixels and the sentinel (infinite cost, never chosen when another
-        # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs.
-        nr0 = (normal * rays_all).sum(-1, keepdim=True)
-        hyp = _take(torch.cat([depth[..., None], normal, nr0], -1), idx)
-        init = [hyp[..., :4]]
+        init = [_take(torch.cat([depth[..., None], normal], -1), idx)]
         if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
             init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
-        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, float("inf")], device=dev, dtype=dt)
-        state = torch.cat(
-            [
-                F.pad(hyp, (0, 1 + nv), value=MAX_COST),
-                F.pad(sentinel, (0, nv), value=MAX_COST).expand(bsz, 1, -1),
-            ],
-            1,
-        )
         kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
         its = range(start_iteration, start_iteration + iterations)
-        half = torch.tensor(
-            [[cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its],
-            device=dev,
-            dtype=dt,
-        )  # (iterations, 8): noise = (2u - 1) * half
-        neg_half, twice = -half, 2 * half
-        n_prop = nbr.shape[1]  # the current hypothesis and the propagated ones
+        halves = [
+            [cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its
+        ]
+        # (2, iterations, 8): noise = -half + u * 2 half (the signs and doublings exact in any dtype)
+        scale = torch.tensor(
+            [[[-x for x in h] for h in halves], [[2 * x for x in h] for h in halves]], device=dev, dtype=dt
+        )
 
-        def keep_best(sl: slice, cands, costs, nr, vw) -> None:
-            """Write the best of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``) to the state."""
-            agg_all = _aggregate(costs, vw, cfg)  # (B, N, P)
-            best = agg_all.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-            record = torch.cat([cands, nr[..., None], agg_all[..., None], costs.permute(0, 2, 3, 1)], -1)
+        def records(cands, nr, agg, costs) -> torch.Tensor:
+            """``(B, N, P, 6 + V)`` state rows of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``)."""
+            return torch.cat([cands, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
+
+        def keep_best(sl: slice, record: torch.Tensor) -> None:
+            """Write the best-scoring of the rows ``record`` ``(B, N, P, 6 + V)`` to the state."""
+            best = record[..., 5].argmin(1)[:, None, :, None]  # (B, 1, P, 1)
             state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
 
-        first_hyp = torch.stack(init, 1)  # (B, K, P, 4)
+        # State of the scored pixels and the sentinel (infinite cost, never chosen when another
+        # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs; the
+        # initial hypotheses' (the better-scoring one where there are two).
+        first_hyp = torch.stack(init, 1) if len(init) > 1 else init[0][:, None]  # (B, K, P, 4)
         costs, nr = match_costs(src, pixels, first_hyp, cfg.min_variance, chunk)
-        keep_best(slice(0, n_act), first_hyp, costs, nr, None)
+        agg = _aggregate(costs, None, cfg)
+        record = records(first_hyp, nr, agg, costs)
+        if len(init) > 1:
+            best = agg.argmin(1)[:, None, :, None]
+            record = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))
+        sentinel = torch.tensor([1.0, 0.0, 0.0, -1.0, -1.0, math.inf] + [MAX_COST] * nv, device=dev, dtype=dt)
+        state = torch.cat([record[:, 0], sentinel.expand(bsz, 1, -1)], 1)
+        # The random numbers of the refinements of both colours: all the level's at once unless
+        # random hypotheses are drawn between them (the same numbers either way on the CPU).
+        upfront = bool(kinds) and iterations > 0 and not any("r" in kind for kind in kinds)
+        if upfront:
+            u = torch.rand((iterations, bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
+            noises = torch.addcmul(scale[0, :, None, None], u, scale[1, :, None, None])
         for i in range(iterations):
-            if kinds:  # the random numbers of the refinements of both colours
-                u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
-                noise = torch.addcmul(neg_half[i], u, twice[i])
+            if kinds:
+                if upfront:
+                    noise = noises[i]
+                else:
+                    u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
+                    noise = torch.addcmul(scale[0, i], u, scale[1, i])
             for sl, px in zip(colours, parts):
                 cur = state[:, sl]
                 cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
+                n_prop = cands.shape[1]  # current and propagated: what the view weights see
                 if kinds and cfg.joint_scoring:
                     # Refine the likeliest winner: the plane of lowest cost where it was scored
                     # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
@@ -988,15 +1009,19 @@ def _patchmatch_level(
                     if cfg.view_selection == "acmh"
                     else None
                 )
+                agg = _aggregate(costs, vw, cfg)  # (B, N, P)
                 if kinds and not cfg.joint_scoring:
                     # Refine the propagation's winner (ACMH), scored with the same view weights.
-                    win = _aggregate(costs, vw, cfg).argmin(1)[:, None, :, None]
+                    win = agg.argmin(1)[:, None, :, None]
                     base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
                     c, r_nr = match_costs(src, px, refined, cfg.min_variance, chunk)
-                    cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
-                    costs, nr = torch.cat([costs, c], 2), torch.cat([nr, r_nr], 1)
-                keep_best(sl, cands, costs, nr, vw)
+                    record = torch.cat(  # current, propagated, refined
+                        [records(cands, nr, agg, costs), records(refined, r_nr, _aggregate(c, vw, cfg), c)], 1
+                    )
+                else:
+                    record = records(cands, nr, agg, costs)
+                keep_best(sl, record)
         padded = region is not None
         depth = _put(depth, slot, state[:, :n_act, 0], padded)
         normal = _put(normal, slot, state[:, :n_act, 1:4], padded)

@@ -26,14 +26,13 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_finite, check_shape, checks_enabled
+from vadgs.checks import Checked, check_finite, check_shape, checked, checks_enabled, float_field, int_field
 from vadgs.geometry import backproject_depth, project_points
 
 __all__ = [
     "PlanarCompletionConfig",
     "PlaneFit",
     "complete_planar",
-    "complete_planar_batch",
     "fit_plane_ransac",
     "near_pixels",
 ]
@@ -144,20 +143,20 @@ def _fit_plane(
 
 
 def near_pixels(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
-    """``(H, W)`` bool: pixels within Euclidean distance ``max_gap`` of a set pixel of ``mask``.
+    """``(B, H, W)`` bool: pixels within Euclidean distance ``max_gap`` of a set pixel of ``mask (B, H, W)``.
 
-    ``distance_transform_edt(~mask) <= max_gap`` on the mask's device: a dilation by the disk of
-    integer offsets ``dy^2 + dx^2 <= max_gap^2`` (one convolution, no host read).
+    ``distance_transform_edt(~mask) <= max_gap`` of each mask, on the mask's device: a dilation by
+    the disk of integer offsets ``dy^2 + dx^2 <= max_gap^2`` (one convolution, no host read).
     """
     r = max(0, math.floor(max_gap))
     off = torch.arange(-r, r + 1, device=mask.device, dtype=torch.float64)
     disk = (off[:, None] ** 2 + off[None, :] ** 2 <= max_gap * max_gap).to(torch.float32)
-    hits = torch.nn.functional.conv2d(mask[None, None].to(torch.float32), disk[None, None], padding=r)
-    return hits[0, 0] > 0.5
+    hits = torch.nn.functional.conv2d(mask[:, None].to(torch.float32), disk[None, None], padding=r)
+    return hits[:, 0] > 0.5
 
 
 @dataclass(frozen=True)
-class PlanarCompletionConfig:
+class PlanarCompletionConfig(Checked):
     """Settings of :func:`complete_planar`.
 
     Attributes:
@@ -173,123 +172,14 @@ class PlanarCompletionConfig:
             are too noisy for it (the measurement: ``docs/results.md``).
     """
 
-    min_pixels: int = 30
-    min_inlier_ratio: float = 0.6
-    rel_threshold: float = 0.02
-    max_gap: float = 8.0
-    color_tolerance: float = 0.06
-    min_views: int = 1
-    iterations: int = 200
-    max_normal_angle: float | None = None
-
-
-def complete_planar(
-    depth: torch.Tensor,
-    valid: torch.Tensor,
-    region: torch.Tensor,
-    image: torch.Tensor,
-    K: torch.Tensor,
-    cam_to_world: torch.Tensor,
-    src_images: torch.Tensor,
-    src_regions: torch.Tensor,
-    src_K: torch.Tensor,
-    src_world_to_cam: torch.Tensor,
-    config: PlanarCompletionConfig | None = None,
-    generator: torch.Generator | None = None,
-    normal: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Fill the empty pixels of a planar region of one view from the plane of its valid pixels.
-
-    Args:
-        depth: ``(1, H, W)`` depth of the view (valid where ``valid``).
-        valid: ``(1, H, W)`` bool, consistent pixels.
-        region: ``(1, H, W)`` bool, the region (an instance's mask).
-        image: ``(3, H, W)`` the view's colours.
-        K: ``(3, 3)`` its intrinsics.
-        cam_to_world: ``(4, 4)`` its pose.
-        src_images: ``(V, 3, Hs, Ws)`` other views.
-        src_regions: ``(V, 1, Hs, Ws)`` bool, the region in them (a colour match outside does
-            not count: occluders).
-        src_K: ``(V, 3, 3)`` their intrinsics.
-        src_world_to_cam: ``(V, 4, 4)`` their poses.
-        config: :class:`PlanarCompletionConfig`.
-        generator: seeds RANSAC.
-        normal: optional ``(3, H, W)`` camera-frame normals of the valid pixels: inliers must
-            agree with the plane's normal within ``config.max_normal_angle`` (when set).
-
-    Returns:
-        ``(depth, normal, added)``: the completed depth ``(1, H, W)``, the plane's camera-frame
-        normal ``(3,)`` facing the camera (zeros when no plane was accepted), and ``(1, H, W)``
-        bool, the pixels filled.
-    """
-    cfg = config or PlanarCompletionConfig()
-    dims = check_shape(depth, "depth", (1, "H", "W"))
-    check_shape(valid, "valid", (1, "H", "W"), dims)
-    check_shape(region, "region", (1, "H", "W"), dims)
-    check_shape(image, "image", (3, "H", "W"), dims)
-    sd = check_shape(src_images, "src_images", ("V", 3, "Hs", "Ws"))
-    check_shape(src_regions, "src_regions", ("V", 1, "Hs", "Ws"), sd)
-    none = torch.zeros_like(valid)
-    zero_n = torch.zeros(3, dtype=depth.dtype, device=depth.device)
-    if sd["V"] == 0:
-        return depth, zero_n, none
-    good = valid & region & (depth > 0)
-    gy, gx = torch.nonzero(good[0], as_tuple=True)  # one read: the consistent pixels, row-major
-    if gy.numel() < cfg.min_pixels:
-        return depth, zero_n, none
-    pts = backproject_depth(depth[None], K[None])[0]  # (3, H, W) camera frame
-    p = pts[:, gy, gx].T
-    nrm, angle = None, 90.0  # the angle is unused without normals
-    if normal is not None and cfg.max_normal_angle is not None:
-        nrm = torch.nn.functional.normalize(normal[:, gy, gx].T, dim=-1)
-        angle = cfg.max_normal_angle
-    fit = _fit_plane(p, cfg.rel_threshold * p[:, 2], cfg.iterations, generator, nrm, angle)
-    if fit is None:
-        return depth, zero_n, none
-    inf = torch.full_like(p[:, 2], math.inf)
-    ratio, off, z_min, z_max = torch.stack(
-        [
-            fit.inliers.float().mean().double(),
-            fit.offset.double(),
-            torch.where(fit.inliers, p[:, 2], inf).min().double(),
-            torch.where(fit.inliers, p[:, 2], -inf).max().double(),
-        ]
-    ).tolist()  # one read (float64 holds each value exactly)
-    if ratio < cfg.min_inlier_ratio:
-        return depth, zero_n, none
-    normal, offset = fit.normal, fit.offset
-    if off < 0:  # the camera (origin) on the positive side: the normal faces it
-        normal, offset = -normal, -offset
-    # candidates: empty region pixels near an inlier
-    inl = torch.zeros_like(good[0])
-    inl[gy, gx] = fit.inliers
-    cand = region & ~good & near_pixels(inl, cfg.max_gap)[None]
-    ys, xs = torch.nonzero(cand[0], as_tuple=True)  # one read
-    if ys.numel() == 0:
-        return depth, normal, none
-    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1).to(depth)
-    rays = pix @ torch.linalg.inv(K).T
-    den = rays @ normal
-    z = -offset / torch.where(den.abs() > 1e-9, den, torch.full_like(den, 1e-9))
-    ok = (z > 0.5 * z_min) & (z < 2.0 * z_max)
-    cam = rays * z[:, None]
-    world = cam @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
-    colour = image[:, ys, xs].T  # (P, 3)
-    v = sd["V"]
-    uv, zs = project_points(world[None].expand(v, -1, -1), src_K, src_world_to_cam)
-    qx, qy = uv[..., 0].round().long(), uv[..., 1].round().long()
-    inside = (zs > 0) & (qx >= 0) & (qx < sd["Ws"]) & (qy >= 0) & (qy < sd["Hs"])
-    qx, qy = qx.clamp(0, sd["Ws"] - 1), qy.clamp(0, sd["Hs"] - 1)
-    views = torch.arange(v, device=qx.device)[:, None]
-    sc = src_images.permute(0, 2, 3, 1)[views, qy, qx]  # (V, P, 3): each view's colour there
-    match = (sc - colour).abs().mean(-1) <= cfg.color_tolerance
-    agree = (inside & src_regions[views, 0, qy, qx] & match).long().sum(0)
-    keep = ok & (agree >= cfg.min_views)
-    out = depth.clone()
-    added = torch.zeros_like(valid)
-    out[0, ys, xs] = torch.where(keep, z, out[0, ys, xs])
-    added[0, ys, xs] = keep
-    return out, normal, added
+    min_pixels: int = checked(30, int_field(0))
+    min_inlier_ratio: float = checked(0.6, float_field(0, 1))
+    rel_threshold: float = checked(0.02, float_field(0, lo_open=True))
+    max_gap: float = checked(8.0, float_field(0))
+    color_tolerance: float = checked(0.06, float_field(0))
+    min_views: int = checked(1, int_field(0))
+    iterations: int = checked(200, int_field(1))
+    max_normal_angle: float | None = checked(None, float_field(0, 180, optional=True))
 
 
 def _inliers(
@@ -307,7 +197,7 @@ def _inliers(
     return inl
 
 
-def complete_planar_batch(
+def complete_planar(
     depth: torch.Tensor,
     valid: torch.Tensor,
     region: torch.Tensor,
@@ -322,28 +212,42 @@ def complete_planar_batch(
     generator: torch.Generator | None = None,
     normal: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`complete_planar` of ``b`` views at once, with one host read.
+    """Fill the empty pixels of a planar region of each of ``b`` views from the plane of its valid pixels.
 
-    The same steps on a batch (the group members of a reconstruction): each view's RANSAC triples
-    drawn among its own consistent pixels (uniformly, as :func:`complete_planar`; other draws, so
-    the two agree in distribution), the best plane refined by least squares on its inliers (the
-    smallest eigenvector of their covariance, in float64), candidates and colour tests as masks of
-    the whole view instead of pixel lists. Shapes as :func:`complete_planar`'s with a leading
-    ``b``: ``depth``, ``valid``, ``region`` ``(b, 1, H, W)``, ``image`` ``(b, 3, H, W)``, ``K``
-    ``(b, 3, 3)``, ``cam_to_world`` ``(b, 4, 4)``, ``src_images`` ``(b, V, 3, Hs, Ws)``,
-    ``src_regions`` ``(b, V, 1, Hs, Ws)``, ``src_K`` ``(b, V, 3, 3)``, ``src_world_to_cam``
-    ``(b, V, 4, 4)``, ``normal`` ``(b, 3, H, W)``.
+    See the module docstring for the steps. The ``b`` views (the group members of a
+    reconstruction) are done at once with one host read: each view's RANSAC triples are drawn
+    uniformly among its own consistent pixels, the best plane refined by least squares on its
+    inliers (the smallest eigenvector of their covariance, in float64), candidates and colour tests
+    are masks of the whole view.
+
+    Args:
+        depth: ``(b, 1, H, W)`` depth of the views (valid where ``valid``).
+        valid: ``(b, 1, H, W)`` bool, consistent pixels.
+        region: ``(b, 1, H, W)`` bool, the region (an instance's mask).
+        image: ``(b, 3, H, W)`` the views' colours.
+        K: ``(b, 3, 3)`` their intrinsics.
+        cam_to_world: ``(b, 4, 4)`` their poses.
+        src_images: ``(b, V, 3, Hs, Ws)`` other views of each.
+        src_regions: ``(b, V, 1, Hs, Ws)`` bool, the region in them (a colour match outside does
+            not count: occluders).
+        src_K: ``(b, V, 3, 3)`` their intrinsics.
+        src_world_to_cam: ``(b, V, 4, 4)`` their poses.
+        config: :class:`PlanarCompletionConfig`.
+        generator: seeds RANSAC.
+        normal: optional ``(b, 3, H, W)`` camera-frame normals of the valid pixels: inliers must
+            agree with the plane's normal within ``config.max_normal_angle`` (when set).
 
     Returns:
-        ``(depth, normal, added)``: ``(b, 1, H, W)``, ``(b, 3)`` (zeros where no plane was
-        accepted) and ``(b, 1, H, W)`` bool.
+        ``(depth, normal, added)``: the completed depth ``(b, 1, H, W)``, each plane's
+        camera-frame normal ``(b, 3)`` facing the camera (zeros where no plane was accepted), and
+        ``(b, 1, H, W)`` bool, the pixels filled.
 
     Example:
         >>> d = torch.full((2, 1, 8, 8), 2.0); K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]])
         >>> ok = torch.ones(2, 1, 8, 8, dtype=torch.bool); img = torch.rand(2, 3, 8, 8)
         >>> src = img[:, None]; w2c = torch.eye(4).expand(2, 1, 4, 4)
         >>> Ks, c2w = K.expand(2, 3, 3), torch.eye(4).expand(2, 4, 4)
-        >>> out, n, added = complete_planar_batch(d, ok, ok, img, Ks, c2w, src, ok[:, None], Ks[:, None], w2c)
+        >>> out, n, added = complete_planar(d, ok, ok, img, Ks, c2w, src, ok[:, None], Ks[:, None], w2c)
         >>> n[:, 2].tolist(), bool(added.any())  # planes found (facing the camera), nothing to fill
         ([-1.0, -1.0], False)
     """
@@ -420,11 +324,8 @@ def complete_planar_batch(
     inl_map = torch.zeros(b, hw, dtype=torch.bool, device=dev).scatter_(
         1, idx, inl
     )  # padding: non-good pixels
-    r = max(0, math.floor(cfg.max_gap))
-    off = torch.arange(-r, r + 1, device=dev, dtype=torch.float64)
-    disk = (off[:, None] ** 2 + off[None, :] ** 2 <= cfg.max_gap * cfg.max_gap).to(torch.float32)
-    near = torch.nn.functional.conv2d(inl_map.view(b, 1, h, w).to(torch.float32), disk[None, None], padding=r)
-    cand = (region.reshape(b, hw) & ~good & (near.view(b, hw) > 0.5)) & accept[:, None]
+    near = near_pixels(inl_map.view(b, h, w), cfg.max_gap).view(b, hw)
+    cand = (region.reshape(b, hw) & ~good & near) & accept[:, None]
     # every pixel's depth on its view's plane, its colour against the sources'
     flat = torch.arange(hw, device=dev)
     pix = torch.stack([flat % w, flat // w, torch.ones_like(flat)], -1).to(dt)  # (HW, 3)

@@ -16,7 +16,19 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_finite, check_same_device, check_shape, checks_enabled, first_false
+from vadgs.checks import (
+    Checked,
+    bool_field,
+    check_finite,
+    check_same_device,
+    check_shape,
+    checked,
+    checks_enabled,
+    choice_field,
+    first_false,
+    float_field,
+    int_field,
+)
 
 __all__ = [
     "RasterConfig",
@@ -27,7 +39,7 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class RasterConfig:
+class RasterConfig(Checked):
     """Settings of the rasterizer (gsplat's defaults unless stated).
 
     Attributes:
@@ -52,39 +64,28 @@ class RasterConfig:
             depth; ``tile_size``, ``chunk_size`` and ``backward`` do not apply).
     """
 
-    near: float = 0.01
-    far: float = 1e10
-    eps2d: float = 0.3
-    antialiased: bool = False
-    alpha_max: float = 0.999
-    alpha_min: float = 1.0 / 255.0
-    transmittance_min: float = 1e-4
-    tile_size: int = 8
-    chunk_size: int = 32
-    absgrad: bool = False
-    backward: str = "manual"
-    backend: str = "torch"
+    near: float = checked(0.01, float_field(0, lo_open=True))
+    far: float = checked(1e10, float_field(0, lo_open=True))
+    eps2d: float = checked(0.3, float_field(0))
+    antialiased: bool = checked(False, bool_field())
+    alpha_max: float = checked(0.999, float_field(0, 1, lo_open=True, hi_open=True))
+    alpha_min: float = checked(1.0 / 255.0, float_field(0, 1, lo_open=True, hi_open=True))
+    transmittance_min: float = checked(1e-4, float_field(0, 1, hi_open=True))
+    tile_size: int = checked(8, int_field(1))
+    chunk_size: int = checked(32, int_field(1))
+    absgrad: bool = checked(False, bool_field())
+    backward: str = checked("manual", choice_field(("manual", "autograd")))
+    backend: str = checked("torch", choice_field(("torch", "gsplat")))
 
     def __post_init__(self) -> None:
-        if not 0 < self.near < self.far:
+        super().__post_init__()
+        if not self.near < self.far:
             raise ValueError(f"near, far: expected 0 < near < far, got near={self.near}, far={self.far}")
-        if self.eps2d < 0:
-            raise ValueError(f"eps2d: expected >= 0, got {self.eps2d}")
-        if not 0 < self.alpha_min < self.alpha_max < 1:
+        if not self.alpha_min < self.alpha_max:
             raise ValueError(
                 f"alpha_min, alpha_max: expected 0 < alpha_min < alpha_max < 1, "
                 f"got {self.alpha_min}, {self.alpha_max}"
             )
-        if not 0 <= self.transmittance_min < 1:
-            raise ValueError(f"transmittance_min: expected in [0, 1), got {self.transmittance_min}")
-        if self.tile_size < 1 or self.chunk_size < 1:
-            raise ValueError(
-                f"tile_size, chunk_size: expected positive ints, got {self.tile_size}, {self.chunk_size}"
-            )
-        if self.backward not in ("manual", "autograd"):
-            raise ValueError(f"backward: expected 'manual' or 'autograd', got {self.backward!r}")
-        if self.backend not in ("torch", "gsplat"):
-            raise ValueError(f"backend: expected 'torch' or 'gsplat', got {self.backend!r}")
 
 
 class RenderOutput(NamedTuple):

@@ -245,12 +245,13 @@ class Covisibility:
         return self.incidence.indices()[1, view_ptr[view] : view_ptr[view + 1]]
 
     def seen_by(self, view: int) -> torch.Tensor:
-        """``(M,)`` bool: the voxels view ``view`` sees."""
-        mask = torch.zeros(self.num_voxels, dtype=torch.bool, device=self.voxel_centers.device)
-        mask[self.voxels_of(view)] = True
-        return mask
+        """``(M,)`` bool: the voxels view ``view`` sees (no read by the host: ``O(entries)``)."""
+        rows, cols = self.incidence.indices()
+        mask = torch.zeros(self.num_voxels + 1, dtype=torch.bool, device=rows.device)
+        mask[torch.where(rows == view, cols, self.num_voxels)] = True  # others to a spare slot
+        return mask[:-1].to(self.voxel_centers.device)
 
-    def entries_of(self, voxels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def entries_of(self, voxels: torch.Tensor, total: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The (view, position in ``voxels``) pairs of the incidence entries of some voxels.
 
         Costs ``O(entries of those voxels)``, not ``O(all entries)``: this is what keeps a
@@ -258,6 +259,8 @@ class Covisibility:
 
         Args:
             voxels: 1-D voxel ids.
+            total: their number of entries when the caller read it (:meth:`restrict_sizes`);
+                else it is read here (one read by the host).
 
         Returns:
             ``(views, positions)``, two int64 tensors with one item per entry.
@@ -265,21 +268,38 @@ class Covisibility:
         _, order, voxel_ptr = self._csr
         starts, lens = voxel_ptr[voxels], voxel_ptr[voxels + 1] - voxel_ptr[voxels]
         ends = lens.cumsum(0)
-        total = int(ends[-1]) if len(voxels) else 0  # the one read
+        if total is None:
+            total = int(ends[-1]) if len(voxels) else 0  # the one read
         # the voxel of each entry: the first whose running end lies beyond it (empty ones skipped)
         positions = torch.searchsorted(ends, torch.arange(total, device=lens.device), right=True)
         offsets = torch.arange(total, device=lens.device) - (ends - lens)[positions]
         entries = order[starts[positions] + offsets]
         return self.incidence.indices()[0, entries], positions
 
+    def restrict_sizes(self, voxel_mask: torch.Tensor) -> torch.Tensor:
+        """``(2,)`` int64 on the device: the voxels of a ``(M,)`` bool mask and their entries.
+
+        What :meth:`restrict` reads; a caller that reads it with other values passes it back as
+        ``sizes``.
+        """
+        _, _, voxel_ptr = self._csr
+        mask = voxel_mask.to(voxel_ptr.device)
+        lens = voxel_ptr[1:] - voxel_ptr[:-1]
+        return torch.stack([mask.sum(), torch.where(mask, lens, 0).sum()])
+
     def restrict(
-        self, voxel_mask: torch.Tensor | None = None, views: torch.Tensor | None = None
+        self,
+        voxel_mask: torch.Tensor | None = None,
+        views: torch.Tensor | None = None,
+        sizes: tuple[int, int] | None = None,
     ) -> Covisibility:
         """Keep only some voxels (e.g. one instance's) and optionally some views.
 
         Args:
             voxel_mask: ``(M,)`` bool, or 1-D increasing voxel ids; ``None`` keeps all voxels.
             views: optional 1-D increasing view ids to keep.
+            sizes: for a bool ``voxel_mask``, its :meth:`restrict_sizes` when the caller read
+                them: no read by the host here without ``views``.
 
         Returns:
             A :class:`Covisibility` over the kept voxels and views, both renumbered from ``0`` in
@@ -297,13 +317,17 @@ class Covisibility:
             ids = torch.arange(self.num_voxels, device=device)
         elif voxel_mask.dtype == torch.bool:
             check_shape(voxel_mask, "voxel_mask", (self.num_voxels,))
-            ids = torch.nonzero(voxel_mask.to(device)).squeeze(1)
+            if sizes is None:
+                ids = torch.nonzero(voxel_mask.to(device)).squeeze(1)
+            else:
+                ids = torch.nonzero_static(voxel_mask.to(device), size=sizes[0]).squeeze(1)
         else:
             ids = voxel_mask.long().to(device)
             increasing = len(ids) < 2 or not checks_enabled() or bool((ids[1:] > ids[:-1]).all())
             if ids.dim() != 1 or not increasing:
                 raise ValueError("voxel_mask: expected a bool mask or increasing 1-D voxel ids")
-        rows, cols = self.entries_of(ids)
+        total = None if sizes is None or voxel_mask is None or voxel_mask.dtype != torch.bool else sizes[1]
+        rows, cols = self.entries_of(ids, total)
         num_views = self.num_views
         w2c, cams, frames = self.world_to_cam, self.camera_ids, self.frame_ids
         if views is not None:

@@ -60,7 +60,9 @@ class DiversityScores(NamedTuple):
     dist_dot: torch.Tensor
 
 
-def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]:
+def shared_voxel_stats(
+    covis: Covisibility, voxels: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Shared voxel counts ``N`` and distance products ``d_R^T d_S`` of all pairs of views.
 
     Two sparse products, ``B B^T`` and ``A A^T`` (see the module docstring); no loop over pairs.
@@ -68,6 +70,8 @@ def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]
 
     Args:
         covis: the views, voxels and visibility.
+        voxels: optional ``(M,)`` bool, the voxels that count (the others' entries weigh 0: the
+            same values as on ``covis.restrict(voxels)``, without its reads by the host).
 
     Returns:
         ``(shared, dist_dot)``, both ``(V, V)`` dense and symmetric, dtype of the voxel centres.
@@ -86,14 +90,17 @@ def shared_voxel_stats(covis: Covisibility) -> tuple[torch.Tensor, torch.Tensor]
         centers = camera_centers(covis.world_to_cam)  # (V, 3)
         dist = (covis.voxel_centers[idx[1]] - centers[idx[0]].to(covis.voxel_centers.dtype)).norm(dim=-1)
         shape = (inc.shape[0], inc.shape[1])
-        shared = sparse_gram(idx, inc.values(), inc.values(), shape)
+        ones = inc.values()
+        if voxels is not None:
+            check_shape(voxels, "voxels", (covis.num_voxels,))
+            ones = voxels.to(ones.device)[idx[1]].to(ones.dtype)
+            dist = dist * ones.to(dist.dtype)
+        shared = sparse_gram(idx, ones, ones, shape)
         dist_dot = sparse_gram(idx, dist, dist, shape)
     return shared, dist_dot
 
 
-def ray_angles(
-    covis: Covisibility, ref: int, entries: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def ray_angles(covis: Covisibility, ref: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The triangulation angle of ``ref`` with every other view at each voxel both see.
 
     ``θ(p)`` is the angle at voxel centre ``p`` between the rays to the two camera centres.
@@ -102,8 +109,6 @@ def ray_angles(
     Args:
         covis: the views, voxels and visibility.
         ref: the reference view.
-        entries: ``(seen, views, positions)`` when the caller has them: ``covis.voxels_of(ref)``
-            and ``covis.entries_of(seen)`` (saves their two reads by the host).
 
     Returns:
         ``(view, voxel, angle)``, each ``(n,)``: for every non-zero ``(view, voxel)`` of a view
@@ -117,27 +122,26 @@ def ray_angles(
         ([1], [0], 45.0)
     """
     with torch.no_grad():
-        if entries is None:
-            seen = covis.voxels_of(ref)
-            view, pos = covis.entries_of(seen)
-        else:
-            seen, view, pos = entries
+        seen = covis.voxels_of(ref)
+        view, pos = covis.entries_of(seen)
         keep = view != ref
         view, voxel = view[keep], seen[pos[keep]]
-        centers = camera_centers(covis.world_to_cam)
-        p = covis.voxel_centers[voxel]
-        to_ref = torch.nn.functional.normalize(centers[ref] - p, dim=-1)
-        to_src = torch.nn.functional.normalize(centers[view] - p, dim=-1)
-        # atan2(|a x b|, a . b): exact to rounding at hundredths of a degree, where acos is not
-        sin = torch.linalg.cross(to_ref, to_src).norm(dim=-1)
-        return view, voxel, torch.rad2deg(torch.atan2(sin, (to_ref * to_src).sum(-1)))
+        return view, voxel, _angles(covis, ref, view, voxel)
+
+
+def _angles(covis: Covisibility, ref: int, view: torch.Tensor, voxel: torch.Tensor) -> torch.Tensor:
+    """Degrees between the rays from voxel ``voxel[i]`` to ``ref``'s and ``view[i]``'s camera centres."""
+    centers = camera_centers(covis.world_to_cam)
+    p = covis.voxel_centers[voxel]
+    to_ref = torch.nn.functional.normalize(centers[ref] - p, dim=-1)
+    to_src = torch.nn.functional.normalize(centers[view] - p, dim=-1)
+    # atan2(|a x b|, a . b): exact to rounding at hundredths of a degree, where acos is not
+    sin = torch.linalg.cross(to_ref, to_src).norm(dim=-1)
+    return torch.rad2deg(torch.atan2(sin, (to_ref * to_src).sum(-1)))
 
 
 def triangulation_angles(
-    covis: Covisibility,
-    ref: int,
-    percentile: float = 75.0,
-    entries: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    covis: Covisibility, ref: int, percentile: float = 75.0, seen: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Each view's triangulation angle with ``ref`` over the voxels both see: a percentile, degrees.
 
@@ -146,11 +150,14 @@ def triangulation_angles(
     PatchMatch (75th, and at least 1°). A pair whose rays meet at a small angle fixes depth poorly:
     the diversity score does not see it when every baseline is short (a car waiting at a light).
 
+    Computed over every entry of the incidence, those at voxels ``ref`` does not see left out by a
+    mask (no read by the host: ``O(entries)``).
+
     Args:
         covis: the views, voxels and visibility.
         ref: the reference view.
         percentile: in ``[0, 100]``.
-        entries: see :func:`ray_angles`.
+        seen: ``covis.seen_by(ref)`` when the caller has it.
 
     Returns:
         ``(V,)`` degrees, ``0`` for ``ref`` and for views sharing no voxel with it.
@@ -163,15 +170,18 @@ def triangulation_angles(
         [0.0, 6.911, 0.013]
     """
     with torch.no_grad():
-        view, _, theta = ray_angles(covis, ref, entries)
+        view, voxel = covis.incidence.indices()
+        if seen is None:
+            seen = covis.seen_by(ref)
+        use = seen[voxel] & (view != ref)
+        theta = torch.where(use, _angles(covis, ref, view, voxel), torch.inf)
         num = covis.num_views
-        counts = torch.zeros(num, dtype=torch.long, device=theta.device).index_add_(
-            0, view, torch.ones_like(view)
-        )
-        # grouped percentile: sort by angle, then stably by view
+        counts = torch.zeros(num, dtype=torch.long, device=theta.device).index_add_(0, view, use.long())
+        entries = torch.zeros_like(counts).index_add_(0, view, torch.ones_like(view))
+        # grouped percentile: sort by angle, then stably by view (each view's unused entries last)
         order = torch.argsort(theta, stable=True)
         order = order[torch.argsort(view[order], stable=True)]
-        start = torch.cumsum(counts, 0) - counts
+        start = torch.cumsum(entries, 0) - entries
         rank = torch.floor((counts - 1).clamp_min(0).to(theta.dtype) * percentile / 100).long()
         padded = torch.cat([theta[order], theta.new_zeros(1)])  # a view sharing nothing reads the 0
         at = torch.where(counts > 0, start + rank, len(theta))
@@ -263,7 +273,9 @@ def diversity_score(
     return density * ratio * sin
 
 
-def diversity_scores(covis: Covisibility, eps: float = 0.1, count_exponent: float = 1.0) -> DiversityScores:
+def diversity_scores(
+    covis: Covisibility, eps: float = 0.1, count_exponent: float = 1.0, voxels: torch.Tensor | None = None
+) -> DiversityScores:
     """Score every ordered pair of views at once (:func:`diversity_score` on ``(V, V)``).
 
     Runs under ``torch.no_grad()``: view selection is a search, nothing is learned.
@@ -273,6 +285,7 @@ def diversity_scores(covis: Covisibility, eps: float = 0.1, count_exponent: floa
             score views for that instance).
         eps: ``ε`` in metres (see :func:`pose_terms`).
         count_exponent: see :func:`diversity_score`.
+        voxels: optional ``(M,)`` bool, the voxels that count (see :func:`shared_voxel_stats`).
 
     Returns:
         A :class:`DiversityScores` with ``score[r, s]`` for reference ``r`` and support ``s``.
@@ -288,7 +301,7 @@ def diversity_scores(covis: Covisibility, eps: float = 0.1, count_exponent: floa
         ([2.0, 2.0, 0.0], True, 0.0)
     """
     with torch.no_grad():
-        shared, dist_dot = shared_voxel_stats(covis)
+        shared, dist_dot = shared_voxel_stats(covis, voxels)
         w2c = covis.world_to_cam
         score = diversity_score(shared, dist_dot, w2c[:, None], w2c[None, :], eps, count_exponent)
         score.fill_diagonal_(0)

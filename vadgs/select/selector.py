@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from vadgs.checks import check_shape
+from vadgs.checks import Checked, check_shape, checked, choice_field, float_field, int_field
 from vadgs.select.baselines import colmap_scores, consecutive_views, mvsnet_scores, top_k_views
 from vadgs.select.clique import MAX_SUBSETS, max_weight_clique
 from vadgs.select.covisibility import Covisibility
@@ -51,7 +51,7 @@ METHODS = ("diversity", "consecutive", "mvsnet", "colmap")
 
 
 @dataclass(frozen=True)
-class ViewSelectionConfig:
+class ViewSelectionConfig(Checked):
     """Settings of :func:`select_views`.
 
     Attributes:
@@ -79,20 +79,19 @@ class ViewSelectionConfig:
             nearest frames), ``"mvsnet"``, ``"colmap"`` (see :mod:`vadgs.select.baselines`).
     """
 
-    k: int = 4
-    lam: float = 0.5
-    noise_std: float = 0.05
-    eps: float = 0.1
-    count_exponent: float = 2.0
-    min_shared: int = 8
-    min_angle: float = 1.0
-    min_parallax: float = 0.0
-    max_candidates: int = 24
-    method: str = "diversity"
+    k: int = checked(4, int_field(1))
+    lam: float = checked(0.5, float_field(0))
+    noise_std: float = checked(0.05, float_field(0))
+    eps: float = checked(0.1, float_field(0, lo_open=True))
+    count_exponent: float = checked(2.0, float_field(0))
+    min_shared: int = checked(8, int_field(1))
+    min_angle: float = checked(1.0, float_field(0, 90, hi_open=True, note=" degrees"))
+    min_parallax: float = checked(0.0, float_field(0, note=" pixels"))
+    max_candidates: int = checked(24, int_field(1))
+    method: str = checked("diversity", choice_field(METHODS))
 
     def __post_init__(self) -> None:
-        if self.k < 1:
-            raise ValueError(f"k: expected >= 1, got {self.k}")
+        super().__post_init__()
         if self.max_candidates < self.k:
             raise ValueError(f"max_candidates: expected >= k = {self.k}, got {self.max_candidates}")
         subsets = math.comb(self.max_candidates, self.k)
@@ -101,17 +100,6 @@ class ViewSelectionConfig:
                 f"max_candidates, k: expected C(max_candidates, k) <= {MAX_SUBSETS:.3g} subsets (the clique "
                 f"search's bound), got C({self.max_candidates}, {self.k}) = {subsets:.3g}"
             )
-        if self.noise_std < 0 or self.eps <= 0 or self.lam < 0 or self.min_shared < 1:
-            raise ValueError(
-                "expected noise_std >= 0, eps > 0, lam >= 0, min_shared >= 1, got "
-                f"noise_std={self.noise_std}, eps={self.eps}, lam={self.lam}, min_shared={self.min_shared}"
-            )
-        if not 0 <= self.min_angle < 90:
-            raise ValueError(f"min_angle: expected degrees in [0, 90), got {self.min_angle}")
-        if self.min_parallax < 0:
-            raise ValueError(f"min_parallax: expected pixels >= 0, got {self.min_parallax}")
-        if self.method not in METHODS:
-            raise ValueError(f"method: expected one of {METHODS}, got {self.method!r}")
 
     def least_angle(self, focal: float | None) -> float:
         """The least triangulation angle, degrees: ``min_angle``, or ``min_parallax`` pixels at ``focal``."""
@@ -128,6 +116,9 @@ class ViewSelectionConfig:
 @dataclass(frozen=True)
 class ViewSelection:
     """The supporting views chosen for one reference view.
+
+    The view ids are host data (CPU tensors): the choice is made on the host, after one read of
+    what it needs (:func:`select_views`).
 
     Attributes:
         views: ``(s,)`` int64 view ids, ``s <= k`` (fewer, or none, only when ``reason`` says why).
@@ -146,13 +137,18 @@ class ViewSelection:
     candidates: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
 
     @property
+    def ids(self) -> list[int]:
+        """``views`` as Python ints (a CPU tensor's values: no read of a device)."""
+        return [int(v) for v in self.views.numpy()]
+
+    @property
     def complete(self) -> bool:
         """Whether ``k`` views were found (``reason == "ok"``, possibly capped)."""
         return self.reason.startswith("ok")
 
 
-def _empty(device: torch.device) -> torch.Tensor:
-    return torch.zeros(0, dtype=torch.long, device=device)
+def _empty() -> torch.Tensor:
+    return torch.zeros(0, dtype=torch.long)
 
 
 def _allowed(allowed: torch.Tensor | None, num_views: int, device: torch.device) -> torch.Tensor:
@@ -167,7 +163,6 @@ def _allowed(allowed: torch.Tensor | None, num_views: int, device: torch.device)
 def _select_baseline(
     ref: int, covis: Covisibility, config: ViewSelectionConfig, allowed: torch.Tensor
 ) -> ViewSelection:
-    device = covis.world_to_cam.device
     if config.method == "consecutive":
         if covis.camera_ids is None or covis.frame_ids is None:
             raise ValueError("method='consecutive' needs covis.camera_ids and covis.frame_ids")
@@ -180,8 +175,9 @@ def _select_baseline(
         cand = top_k_views(scores, ref, covis.num_views, allowed)
         views = cand[: config.k]
         score = float(scores[views].sum()) if len(views) else 0.0
+    cand, views = cand.cpu(), views.cpu()
     if len(cand) == 0:
-        return ViewSelection(_empty(device), 0.0, f"no_candidates: {config.method} found none", cand)
+        return ViewSelection(_empty(), 0.0, f"no_candidates: {config.method} found none", cand)
     if len(views) < config.k:
         reason = f"few_candidates: {len(cand)} candidates < k={config.k}"
         return ViewSelection(views, score, reason, cand)
@@ -213,6 +209,11 @@ def select_views(
     ``d_R``, ``d_S`` of every pair, candidates among themselves included, count only those), for
     ``ref`` and the views sharing at least ``min_shared`` of them. Runs under ``torch.no_grad()``;
     nothing is differentiable.
+
+    The diversity method reads the device once: the scores, counts and angles of every view are
+    computed on ``covis``'s device over all its entries (those at voxels ``ref`` does not see
+    weigh nothing: ``O(entries)``, so restrict a scene-sized ``covis`` to an instance first), then
+    read together; the candidates, the noise and the clique search are on the host.
 
     Args:
         ref: the reference view, an index into ``covis``'s views.
@@ -256,46 +257,51 @@ def select_views(
     with torch.no_grad():
         if config.method != "diversity":
             return _select_baseline(ref, covis, config, ok)
-        seen = covis.voxels_of(ref)
-        if len(seen) == 0:
-            return ViewSelection(_empty(device), 0.0, "no_voxels: the reference sees none of the voxels")
-        entry_views, entry_pos = covis.entries_of(seen)
-        shared_ref = torch.bincount(entry_views, minlength=num)
+        # everything the choice needs, for every view, on the device; then one read of it all
+        rows, cols = covis.incidence.indices()
+        seen = covis.seen_by(ref)
+        shared_ref = torch.zeros(num, dtype=torch.long, device=device).index_add_(0, rows, seen[cols].long())
         mask = (shared_ref >= config.min_shared) & ok
         mask[ref] = False
-        flags = (mask | (torch.arange(num, device=device) == ref)).tolist()  # one read
-        kept = [v for v, f in enumerate(flags) if f]
-        views = torch.tensor(kept, dtype=torch.long, device=device)
-        local_ref = kept.index(ref)
-        sub = covis.restrict(seen, views)
-        scores = diversity_scores(sub, config.eps, config.count_exponent)
-        s_ref = scores.score[local_ref]
-        # on the full covisibility, whose entries of the seen voxels are at hand: the same angles
-        wide = triangulation_angles(covis, ref, entries=(seen, entry_views, entry_pos))[views] >= least
-        local = torch.nonzero((s_ref > 0) & wide).squeeze(1)  # excludes ref (0 on the diagonal)
-        cand = views[local]
-        total = len(local)
+        # the scores on the voxels ref sees: those of covis.restrict(seen) (its reads left out)
+        scores = diversity_scores(covis, config.eps, config.count_exponent, voxels=seen)
+        s_ref = scores.score[ref]
+        wide = triangulation_angles(covis, ref, seen=seen) >= least
+        flags = torch.stack([mask & (s_ref > 0) & wide, mask & (s_ref > 0) & ~wide])
+        packed = torch.cat(
+            [seen.any().double()[None], flags.double().flatten(), scores.score.double().flatten(),
+             scores.shared.double().flatten()]
+        )  # fmt: skip
+        host = packed.tolist()  # the one read
+        if not host[0]:
+            return ViewSelection(_empty(), 0.0, "no_voxels: the reference sees none of the voxels")
+        good = [v for v in range(num) if host[1 + v]]
+        narrow = sum(map(bool, host[1 + num : 1 + 2 * num]))
+        at = 1 + 2 * num
+        score = torch.tensor(host[at : at + num * num], dtype=scores.score.dtype).view(num, num)
+        shared = torch.tensor(host[at + num * num :], dtype=torch.float64).view(num, num)
+        cand = torch.tensor(good, dtype=torch.long)  # on the host
+        total = len(good)
         if total == 0:
             reason = f"no_candidates: no view shares >= {config.min_shared} voxels and a baseline with it"
-            narrow = int(((s_ref > 0) & ~wide).sum())
             if narrow:
                 reason = (
                     f"narrow_baselines: {narrow} views share >= {config.min_shared} voxels with it, all at a "
                     f"triangulation angle < {least:.3g}°"
                 )
-            return ViewSelection(_empty(device), 0.0, reason, cand)
-        node = s_ref[local]
-        pair = scores.score[local][:, local]
+            return ViewSelection(_empty(), 0.0, reason, cand)
+        node = score[ref][cand]
+        pair = score[cand][:, cand]
         pair = (pair + pair.T) / 2
         if config.noise_std > 0:
             gdev = generator.device if generator is not None else torch.device("cpu")
             xi_node = torch.randn(total, generator=generator, device=gdev, dtype=node.dtype)
             xi_pair = torch.randn(total, total, generator=generator, device=gdev, dtype=node.dtype).triu(1)
             xi_pair = xi_pair + xi_pair.T
-            node = node * (1 + config.noise_std * xi_node.to(device))
-            pair = pair * (1 + config.noise_std * xi_pair.to(device))
+            node = node * (1 + config.noise_std * xi_node.cpu())
+            pair = pair * (1 + config.noise_std * xi_pair.cpu())
         edge = config.lam * pair
-        adjacency = scores.shared[local][:, local] >= config.min_shared
+        adjacency = shared[cand][:, cand] >= config.min_shared
         adjacency.fill_diagonal_(False)
         capped = ""
         if total > config.max_candidates:

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from vadgs.checks import check_same_device, check_shape
+from vadgs.checks import Checked, bool_field, check_same_device, check_shape, checked, float_field
 from vadgs.data.scene import Scene
 
 __all__ = [
@@ -110,7 +110,7 @@ def identity_deviation(matrix: torch.Tensor, bias: torch.Tensor) -> torch.Tensor
 
 
 @dataclass(frozen=True)
-class AppearanceConfig:
+class AppearanceConfig(Checked):
     """Settings of the per-camera appearance model (``TrainConfig.appearance``).
 
     Attributes:
@@ -124,19 +124,11 @@ class AppearanceConfig:
         frame_reg: weight of the squared per-frame residual of the view (with ``per_frame``).
     """
 
-    per_frame: bool = False
-    centered: bool = True
-    lr: float = 2e-3
-    reg: float = 1e-3
-    frame_reg: float = 1e-2
-
-    def __post_init__(self) -> None:
-        if not self.lr > 0:
-            raise ValueError(f"appearance.lr: expected > 0, got {self.lr}")
-        for name in ("reg", "frame_reg"):
-            value = getattr(self, name)
-            if not value >= 0:
-                raise ValueError(f"appearance.{name}: expected >= 0, got {value}")
+    per_frame: bool = checked(False, bool_field())
+    centered: bool = checked(True, bool_field())
+    lr: float = checked(2e-3, float_field(0, lo_open=True))
+    reg: float = checked(1e-3, float_field(0))
+    frame_reg: float = checked(1e-2, float_field(0))
 
 
 class AppearanceModel(nn.Module):

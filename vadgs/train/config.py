@@ -1,6 +1,6 @@
 """The training run's settings: :class:`TrainConfig` and its :class:`LearningRates`.
 
-Frozen dataclasses, checked in ``__post_init__``, stored in every checkpoint
+Frozen dataclasses, each field checked by its rule (:func:`vadgs.checks.checked`), stored in every checkpoint
 (:meth:`TrainConfig.to_dict` / :meth:`TrainConfig.from_dict`, through
 :func:`vadgs.config.config_from_dict`); :class:`~vadgs.train.trainer.Trainer` runs them.
 """
@@ -8,21 +8,12 @@ Frozen dataclasses, checked in ``__post_init__``, stored in every checkpoint
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from vadgs.checks import (
-    MAX_THREADS,
-    check_at_least,
-    check_at_most,
-    check_non_negative,
-    check_positive,
-    instance_field,
-)
+from vadgs.checks import MAX_THREADS, Checked, checked, float_field, int_field, nested
 from vadgs.data.cache import DEFAULT_CACHE_GB
 from vadgs.render import RasterConfig
 from vadgs.train.appearance import AppearanceConfig
@@ -40,30 +31,41 @@ __all__ = [
     "scale_schedule",
 ]
 
+_MAX_SEED = 2**63 - 1  # torch.manual_seed takes up to 2^64 - 1; the sampler adds to it
+_POSITIVE = float_field(0, lo_open=True)
+_RATE = float_field(0)  # a learning rate or a weight: 0 switches it off
+
+
+def _device(name: str, value: object) -> str:
+    """A torch device name such as ``"cpu"``, ``"cuda"`` or ``"cuda:1"``."""
+    try:
+        if isinstance(value, str):
+            torch.device(value)
+            return value
+    except (RuntimeError, TypeError):
+        pass
+    raise ValueError(f"{name}: expected a torch device such as 'cpu' or 'cuda', got {value!r}")
+
 
 @dataclass(frozen=True)
-class LearningRates:
+class LearningRates(Checked):
     """Adam learning rates (3DGS's).
 
     ``means`` decays exponentially to ``means_final``; both are multiplied by the scene scale.
     """
 
-    means: float = 1.6e-4
-    means_final: float = 1.6e-6
-    quats: float = 1e-3
-    log_scales: float = 5e-3
-    opacity_logits: float = 5e-2
-    sh_dc: float = 2.5e-3
-    sh_rest: float = 2.5e-3 / 20
-    sky: float = 1e-2
-
-    def __post_init__(self) -> None:
-        check_positive(self, "means", "means_final")  # the decay is exponential: log of both
-        check_non_negative(self, "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "sky")
+    means: float = checked(1.6e-4, _POSITIVE)  # the decay is exponential: log of both
+    means_final: float = checked(1.6e-6, _POSITIVE)
+    quats: float = checked(1e-3, _RATE)
+    log_scales: float = checked(5e-3, _RATE)
+    opacity_logits: float = checked(5e-2, _RATE)
+    sh_dc: float = checked(2.5e-3, _RATE)
+    sh_rest: float = checked(2.5e-3 / 20, _RATE)
+    sky: float = checked(1e-2, _RATE)
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Checked):
     """Everything a run depends on.
 
     Composed frozen dataclasses; JSON round trip with :meth:`to_dict` / :meth:`from_dict`.
@@ -115,68 +117,31 @@ class TrainConfig:
             (0 = off).
     """
 
-    iterations: int = 3000
-    seed: int = 0
-    init: InitConfig = field(default_factory=InitConfig)
-    strategy: DefaultStrategyConfig = field(default_factory=DefaultStrategyConfig)
-    raster: RasterConfig = field(default_factory=RasterConfig)
-    lr: LearningRates = field(default_factory=LearningRates)
-    ssim_weight: float = 0.2
-    sh_degree_interval: int = 1000
-    lambda_lidar: float = 0.05
-    geometry: GeometricLossConfig = field(default_factory=GeometricLossConfig)
-    vad: VisibilityDensifyConfig | None = None
-    appearance: AppearanceConfig | None = None
-    device: str = "cpu"
-    checkpoint_every: int = 500
-    checkpoint_minutes: float = 5.0
-    log_every: int = 50
-    max_minutes: float = 0.0
-    cache_gb: float = DEFAULT_CACHE_GB
-    threads: int = 0
-    diverge_distance: float = 100.0
-    diverge_share: float = 0.2
-    diverge_loss_factor: float = 10.0
+    iterations: int = checked(3000, int_field(1))
+    seed: int = checked(0, int_field(0, _MAX_SEED))
+    init: InitConfig = nested(InitConfig)
+    strategy: DefaultStrategyConfig = nested(DefaultStrategyConfig)
+    raster: RasterConfig = nested(RasterConfig)
+    lr: LearningRates = nested(LearningRates)
+    ssim_weight: float = checked(0.2, float_field(0, 1))
+    sh_degree_interval: int = checked(1000, int_field(1))
+    lambda_lidar: float = checked(0.05, _RATE)
+    geometry: GeometricLossConfig = nested(GeometricLossConfig)
+    vad: VisibilityDensifyConfig | None = nested(VisibilityDensifyConfig, optional=True)
+    appearance: AppearanceConfig | None = nested(AppearanceConfig, optional=True)
+    device: str = checked("cpu", _device)
+    checkpoint_every: int = checked(500, int_field(0, note=" (0 = off)"))
+    checkpoint_minutes: float = checked(5.0, float_field(0, note=" (0 = off)"))
+    log_every: int = checked(50, int_field(1))
+    max_minutes: float = checked(0.0, float_field(0, note=" (0 = no limit)"))
+    cache_gb: float = checked(DEFAULT_CACHE_GB, float_field(0, lo_open=True, note=" (GB)"))
+    threads: int = checked(0, int_field(0, MAX_THREADS, note=" (0 = torch's own count)"))
+    diverge_distance: float = checked(100.0, float_field(0, note=" (0 = off)"))
+    diverge_share: float = checked(0.2, float_field(0, 1))
+    diverge_loss_factor: float = checked(10.0, float_field(0, note=" (0 = off)"))
 
     def __post_init__(self) -> None:
-        # types first (as from_dict checks them): a bool, 2.5 or "2" fails here, not deep in a run
-        for name in _INT_FIELDS:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-                raise ValueError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
-            if type(value) is not int:  # a numpy integer: stored as an int (the JSON of to_dict)
-                object.__setattr__(self, name, int(value))
-        for name in _NUMBER_FIELDS:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
-                raise ValueError(f"{name}: expected a number, got {type(value).__name__} {value!r}")
-            if type(value) not in (int, float):  # a numpy number: stored as a float
-                object.__setattr__(self, name, float(value))
-        for name, cls in _NESTED_FIELDS.items():
-            instance_field(cls, optional=name in ("vad", "appearance"))(name, getattr(self, name))
-        if not isinstance(self.device, str):
-            raise ValueError(
-                f"device: expected a torch device name such as 'cpu' or 'cuda', got "
-                f"{type(self.device).__name__} {self.device!r}"
-            )
-        if not 0 <= self.seed <= _MAX_SEED:
-            raise ValueError(f"seed: expected an integer in [0, 2^63 - 1], got {self.seed}")
-        check_at_least(self, 1, "iterations")
-        check_non_negative(self, "ssim_weight", "lambda_lidar")
-        check_non_negative(
-            self, "checkpoint_minutes", "diverge_distance", "diverge_share", "diverge_loss_factor"
-        )
-        if self.ssim_weight > 1:
-            raise ValueError(f"ssim_weight: expected a number in [0, 1], got {self.ssim_weight}")
-        if not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
-            raise ValueError(
-                f"max_minutes: expected a finite number >= 0 (0 = no limit), got {self.max_minutes}"
-            )
-        check_at_least(self, 0, "threads", "checkpoint_every", note=" (0 = off)")
-        if not (math.isfinite(self.cache_gb) and self.cache_gb > 0):
-            raise ValueError(f"cache_gb: expected a finite number of GB > 0, got {self.cache_gb}")
-        check_at_most(self, MAX_THREADS, "threads")
-        check_at_least(self, 1, "sh_degree_interval", "log_every")
+        super().__post_init__()
         g = self.geometry
         if g.hard_fused and (g.hard_stride != 1 or self.raster.backend != "torch" or self.raster.antialiased):
             raise ValueError(
@@ -184,12 +149,6 @@ class TrainConfig:
                 f"antialiasing, got geometry.hard_stride {g.hard_stride}, backend "
                 f"{self.raster.backend!r}, antialiased {self.raster.antialiased}"
             )
-        try:
-            torch.device(self.device)
-        except (RuntimeError, TypeError):
-            raise ValueError(
-                f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r}"
-            ) from None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON-serialisable)."""
@@ -225,22 +184,6 @@ class TrainConfig:
             target[parts[-1]] = v
         return TrainConfig.from_dict(flat)
 
-
-_INT_FIELDS = ("iterations", "seed", "sh_degree_interval", "checkpoint_every", "log_every", "threads")
-_NUMBER_FIELDS = (
-    "ssim_weight", "lambda_lidar", "checkpoint_minutes", "max_minutes", "cache_gb",
-    "diverge_distance", "diverge_share", "diverge_loss_factor",
-)  # fmt: skip
-_NESTED_FIELDS: dict[str, type] = {
-    "init": InitConfig,
-    "strategy": DefaultStrategyConfig,
-    "raster": RasterConfig,
-    "lr": LearningRates,
-    "geometry": GeometricLossConfig,
-    "vad": VisibilityDensifyConfig,
-    "appearance": AppearanceConfig,
-}
-_MAX_SEED = 2**63 - 1  # torch.manual_seed takes up to 2^64 - 1; the sampler adds to it
 
 SCHEDULE_ITERATIONS = 3000
 """The run length the step counts of the default schedule are set for (``TrainConfig.iterations``):

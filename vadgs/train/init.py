@@ -11,25 +11,24 @@ nearest neighbours as scale (3DGS).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
+from vadgs.checks import Checked, bool_field, checked, float_field, int_field
 from vadgs.data.cache import ByteCache
 from vadgs.data.lidar import accumulate_lidar
 from vadgs.data.scene import ColmapPoints, Scene
 from vadgs.geometry.camera import project_points
-from vadgs.geometry.voxel import check_voxel_size, unique_cells
+from vadgs.geometry.points import VoxelAccumulator, knn_scales, voxel_downsample
 from vadgs.train.model import GaussianModel
 
-__all__ = ["InitConfig", "VoxelAccumulator", "init_gaussians", "knn_scales", "voxel_downsample"]
+__all__ = ["InitConfig", "init_gaussians"]
 
 
 @dataclass(frozen=True)
-class InitConfig:
+class InitConfig(Checked):
     """Settings of :func:`init_gaussians`.
 
     Attributes:
@@ -46,158 +45,29 @@ class InitConfig:
         seed: for the random subsets.
     """
 
-    use_lidar: bool = True
-    voxel_size: float = 0.1
-    object_voxel_size: float = 0.05
-    max_points: int = 150_000
-    max_object_points: int = 20_000
-    knn: int = 3
-    min_scale: float = 0.005
-    max_scale: float = 1.0
-    init_opacity: float = 0.1
-    sh_degree: int = 3
-    sky_degree: int = 2
-    seed: int = 0
+    use_lidar: bool = checked(True, bool_field())
+    voxel_size: float = checked(0.1, float_field(0, note=" (0 keeps every point)"))
+    object_voxel_size: float = checked(0.05, float_field(0, note=" (0 keeps every point)"))
+    max_points: int = checked(150_000, int_field(1))
+    max_object_points: int = checked(20_000, int_field(0))
+    knn: int = checked(3, int_field(1))
+    min_scale: float = checked(0.005, float_field(0, lo_open=True))
+    max_scale: float = checked(1.0, float_field(0, lo_open=True))
+    init_opacity: float = checked(0.1, float_field(0, 1, lo_open=True, hi_open=True))
+    sh_degree: int = checked(3, int_field(0, 3))
+    sky_degree: int = checked(2, int_field(0, 3))
+    seed: int = checked(0, int_field(0))
 
     def __post_init__(self) -> None:
-        if not (0 <= self.voxel_size < math.inf and 0 <= self.object_voxel_size < math.inf):
+        super().__post_init__()
+        if not self.min_scale <= self.max_scale:
             raise ValueError(
-                "voxel_size, object_voxel_size: expected finite numbers >= 0 (0 keeps every point), "
-                f"got {self.voxel_size}, {self.object_voxel_size}"
+                f"min_scale, max_scale: expected min_scale <= max_scale, got {self.min_scale}, "
+                f"{self.max_scale}"
             )
-        if not (0 < self.min_scale <= self.max_scale < math.inf):
-            raise ValueError(
-                f"min_scale, max_scale: expected 0 < min_scale <= max_scale (finite), "
-                f"got {self.min_scale}, {self.max_scale}"
-            )
-        if self.max_points < 1 or self.max_object_points < 0 or self.knn < 1:
-            raise ValueError("max_points >= 1, max_object_points >= 0, knn >= 1 expected")
-        if not 0 < self.init_opacity < 1:
-            raise ValueError(f"init_opacity: expected in (0, 1), got {self.init_opacity}")
-        if not (0 <= self.sh_degree <= 3 and 0 <= self.sky_degree <= 3):
-            raise ValueError(f"sh_degree, sky_degree: expected 0..3, got {self.sh_degree}, {self.sky_degree}")
-
-
-def voxel_downsample(
-    points: torch.Tensor, colors: torch.Tensor, voxel_size: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Average points and colours per voxel.
-
-    Args:
-        points: ``(N, 3)``.
-        colors: ``(N, C)``.
-        voxel_size: edge length; ``0`` keeps every point.
-
-    Returns:
-        ``(M, 3)`` points and ``(M, C)`` colours, ``M <= N``.
-
-    Example:
-        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [1.0, 0.0, 0.0]])
-        >>> voxel_downsample(p, torch.ones(3, 1), 0.1)[0][:, 0].tolist()
-        [0.019999999552965164, 1.0]
-    """
-    if voxel_size <= 0 or points.shape[0] == 0:
-        return points, colors
-    check_voxel_size(points, voxel_size)
-    keys = torch.floor(points / voxel_size).long()
-    _, inv = unique_cells(keys)
-    m = int(inv.max()) + 1
-    cnt = torch.zeros(m, dtype=points.dtype, device=points.device).index_add_(
-        0, inv, torch.ones_like(points[:, 0])
-    )
-    p = torch.zeros(m, 3, dtype=points.dtype, device=points.device).index_add_(0, inv, points) / cnt[:, None]
-    c = torch.zeros(m, colors.shape[1], dtype=colors.dtype, device=colors.device).index_add_(0, inv, colors)
-    return p, c / cnt[:, None].to(colors.dtype)
 
 
 _IMAGE_CACHE_BYTES = 512 * 2**20  # init_gaussians' image cache (float32 images read for colours)
-
-
-class VoxelAccumulator:
-    """:func:`voxel_downsample` of points given in chunks: memory follows the voxels, not the points.
-
-    Each chunk's points and colours are summed into the voxels met so far, so the result of
-    :meth:`add` for every chunk then :meth:`result` equals ``voxel_downsample`` of all chunks
-    concatenated in order (the same additions, voxel by voxel, in the same order: bit for bit on
-    one thread), while only the occupied voxels are held: initialising from a 200-frame segment's
-    30 million LiDAR points holds their voxels, not the points.
-
-    Example:
-        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0], [1.0, 0.0, 0.0]])
-        >>> acc = VoxelAccumulator(0.1)
-        >>> acc.add(p[:1], torch.ones(1, 1)); acc.add(p[1:], torch.ones(2, 1))
-        >>> all(torch.equal(a, b) for a, b in zip(acc.result(), voxel_downsample(p, torch.ones(3, 1), 0.1)))
-        True
-    """
-
-    def __init__(self, voxel_size: float) -> None:
-        self.voxel_size = voxel_size
-        self._keys: torch.Tensor | None = None  # (M, 3) sorted voxel keys
-        self._sums: torch.Tensor | None = None  # (M, 3 + C): points, colours
-        self._count: torch.Tensor | None = None  # (M,)
-        self._kept: list[torch.Tensor] = []  # voxel_size <= 0: every point
-
-    def add(self, points: torch.Tensor, colors: torch.Tensor) -> None:
-        """Add ``(N, 3)`` points and their ``(N, C)`` colours."""
-        if points.shape[0] == 0:
-            return
-        both = torch.cat([points, colors.to(points.dtype)], 1)
-        if self.voxel_size <= 0:
-            self._kept.append(both)
-            return
-        check_voxel_size(points, self.voxel_size)
-        keys = torch.floor(points / self.voxel_size).long()
-        ones = torch.ones_like(points[:, 0])
-        if self._keys is not None:  # the voxels so far first: their sums are added before the new points
-            assert self._sums is not None and self._count is not None  # set with _keys
-            keys = torch.cat([self._keys, keys])
-            both = torch.cat([self._sums, both])
-            ones = torch.cat([self._count, ones])
-        self._keys, inv = unique_cells(keys)
-        m = self._keys.shape[0]
-        self._count = torch.zeros(m, dtype=points.dtype, device=points.device).index_add_(0, inv, ones)
-        self._sums = torch.zeros(m, both.shape[1], dtype=points.dtype, device=points.device).index_add_(
-            0, inv, both
-        )
-
-    def result(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The ``(M, 3)`` points and ``(M, C)`` colours (each voxel's mean)."""
-        if self.voxel_size <= 0:
-            both = torch.cat(self._kept) if self._kept else torch.zeros(0, 6)
-            return both[:, :3], both[:, 3:]
-        if self._keys is None:
-            return torch.zeros(0, 3), torch.zeros(0, 3)
-        assert self._sums is not None and self._count is not None  # set with _keys
-        cnt = self._count[:, None]
-        return self._sums[:, :3] / cnt, self._sums[:, 3:] / cnt
-
-
-def knn_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
-    """Root-mean-square distance of every point to its ``k`` nearest neighbours (3DGS's initial scale).
-
-    Uses SciPy's ``cKDTree``. Not differentiable.
-
-    Args:
-        points: ``(N, 3)``.
-        k: neighbours.
-
-    Returns:
-        ``(N,)`` distances (``1.0`` for a lone point).
-
-    Example:
-        >>> knn_scales(torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]]), k=1).tolist()
-        [1.0, 1.0, 2.0]
-    """
-    n = points.shape[0]
-    if n < 2:
-        return torch.ones(n, dtype=points.dtype, device=points.device)
-    from scipy.spatial import cKDTree
-
-    pts = points.detach().cpu().double().numpy()
-    kk = min(k, n - 1)
-    d, _ = cKDTree(pts).query(pts, k=kk + 1)
-    rms = np.sqrt((d[:, 1:] ** 2).mean(1))
-    return torch.from_numpy(rms).to(points)
 
 
 def _point_colors(

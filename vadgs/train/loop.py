@@ -13,7 +13,6 @@ bar, the undo snapshot of the step in flight and the checkpoint cadence. It does
 
 from __future__ import annotations
 
-import resource
 import sys
 import time
 from collections.abc import Callable
@@ -21,6 +20,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
 from vadgs.io import write_json
+from vadgs.process import peak_rss_mb
 from vadgs.runfolder import record_files, recorded_files
 from vadgs.train.checkpoint import CHECKPOINT_NAME, StepSnapshot, clear_run, remove_run_tmp
 from vadgs.train.session import RunLog, stop_on_signals
@@ -30,8 +30,6 @@ __all__ = [
     "TrainResult",
     "add_exception_note",
     "checkpoint_due",
-    "peak_rss_mb",
-    "reset_peak_rss",
     "run_loop",
     "save_after_failure",
 ]
@@ -231,39 +229,6 @@ def run_loop(trainer: LoopTrainer) -> TrainResult:
     peak = peak_rss_mb()
     n = trainer.model.num_gaussians
     return TrainResult(trainer.step, trainer.step >= cfg.iterations, reason, trainer.train_s, peak, n)
-
-
-def peak_rss_mb() -> float:
-    """The process's peak resident memory in MiB: Linux's ``VmHWM``, else ``ru_maxrss``.
-
-    ``VmHWM`` is this program's own peak. ``ru_maxrss`` survives ``exec`` on Linux: a ``vadgs
-    train`` started by a large process (a test runner, a Ray worker) reported its parent's size
-    at the fork (1.7 GB measured for a 0.9 GB run).
-    """
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 1024.0 if sys.platform.startswith("linux") else rss / 2**20  # kB on Linux, bytes on macOS
-
-
-def reset_peak_rss() -> bool:
-    """Start :func:`peak_rss_mb` over from the memory resident now (Linux: ``/proc/self/clear_refs``).
-
-    For measuring one stage's peak in a process that did other work before (a benchmark, a test's
-    subprocess). Returns False where the peak cannot be reset (not Linux, or not permitted): then
-    :func:`peak_rss_mb` keeps the process's whole peak.
-    """
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")  # Linux: reset the peak resident set size (VmHWM) to the current one
-    except OSError:
-        return False
-    return True
 
 
 def add_exception_note(e: BaseException, note: str) -> None:

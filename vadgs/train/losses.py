@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import get_gaussian_kernel1d
 
-from vadgs.checks import FieldCheck, bool_field, check_fields, check_shape, float_field, int_field
+from vadgs.checks import Checked, bool_field, check_shape, checked, float_field, int_field
 
 __all__ = [
     "GeometricLossConfig",
@@ -257,7 +257,7 @@ def depth_loss_hard(
 
 
 @dataclass(frozen=True)
-class GeometricLossConfig:
+class GeometricLossConfig(Checked):
     r"""The paper's geometric loss: weights, the hard term's switch-off and cost (``TrainConfig.geometry``).
 
     The loss of a step (paper, Eq. "Loss Function" and "Implementation Details"):
@@ -321,16 +321,13 @@ class GeometricLossConfig:
         ValueError: hard_every: expected an integer >= 1, got 0
     """
 
-    lambda_normal: float = 0.02
-    lambda_hard: float = 0.1
-    lambda_soft: float = 0.1
-    hard_until: float = 0.8
-    hard_every: int = 8
-    hard_stride: int = 2
-    hard_fused: bool = False
-
-    def __post_init__(self) -> None:
-        check_fields(self, _GEOMETRY_FIELDS)
+    lambda_normal: float = checked(0.02, float_field(0))
+    lambda_hard: float = checked(0.1, float_field(0))
+    lambda_soft: float = checked(0.1, float_field(0))
+    hard_until: float = checked(0.8, float_field(0, 1))
+    hard_every: int = checked(8, int_field(1))
+    hard_stride: int = checked(2, int_field(1))
+    hard_fused: bool = checked(False, bool_field())
 
     def weights(self, step: int, total_steps: int) -> dict[str, float]:
         """The weights ``{"normal", "hard", "soft"}`` at ``step`` of ``total_steps``.
@@ -347,18 +344,6 @@ class GeometricLossConfig:
         (It also needs the view's target depth: a loop asks only for a view with one.)
         """
         return self.weights(step, total_steps)["hard"] > 0 and step % self.hard_every == 0
-
-
-_GEOMETRY_FIELDS: dict[str, FieldCheck] = {
-    "lambda_normal": float_field(0),
-    "lambda_hard": float_field(0),
-    "lambda_soft": float_field(0),
-    "hard_until": float_field(0, 1),
-    "hard_every": int_field(1),
-    "hard_stride": int_field(1),
-    "hard_fused": bool_field(),
-}
-"""The check of each :class:`GeometricLossConfig` field (:func:`vadgs.checks.check_fields`)."""
 
 
 def geometric_weights(

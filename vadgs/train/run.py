@@ -37,6 +37,7 @@ import torch
 from vadgs.data.scene import Scene
 from vadgs.io import write_json
 from vadgs.runfolder import describe_files, is_vadgs_folder, record_files
+from vadgs.runlock import RunLock
 from vadgs.train.checkpoint import (
     CHECKPOINT_NAME,
     Checkpoint,
@@ -49,7 +50,7 @@ from vadgs.train.scenes import (
     open_run_scene,
     prepare_scene,
 )
-from vadgs.train.session import RunLock, reclaim_signals
+from vadgs.train.session import reclaim_signals
 
 if TYPE_CHECKING:
     from vadgs.train.scenes import SceneRef
@@ -261,7 +262,7 @@ def train_scene(
     Raises:
         ValueError, FileNotFoundError: bad inputs, named; errors of training propagate (the
             checkpoint of the last good step stays).
-        RunInUseError: another live process writes into ``out_dir`` (its pid named).
+        vadgs.runlock.RunInUseError: another live process writes into ``out_dir`` (its pid named).
     """
     started = time.perf_counter()
     out = Path(out_dir)

@@ -16,6 +16,16 @@ from typing import Any, BinaryIO, ClassVar
 
 import torch
 
+from vadgs.checks import (
+    Checked,
+    bool_field,
+    checked,
+    float_field,
+    instance_field,
+    int_field,
+    ints_field,
+    names_field,
+)
 from vadgs.data.scene import Scene
 
 __all__ = [
@@ -40,8 +50,8 @@ def open_scene(ref: dict[str, Any]) -> Scene:
     """Load the scene a run refers to: ``{"kind": "benchmark" | "dgp" | "colmap", "path": ..., ...}``.
 
     ``dgp`` references may carry ``cameras`` and ``test_frames``. ``colmap`` references are the
-    recipe of :func:`vadgs.data.colmap.open_colmap_project`, reopened by
-    :func:`~vadgs.data.colmap.reopen_colmap_project`: ``path`` (the model used, the
+    recipe of :func:`vadgs.data.colmap_project.open_colmap_project`, reopened by
+    :func:`~vadgs.data.colmap_project.reopen_colmap_project`: ``path`` (the model used, the
     undistorted copy in the run folder if the input was distorted), ``images``, ``test_every``
     and ``transform`` (the normalising similarity, re-applied as recorded; None: COLMAP's frame).
     """
@@ -62,24 +72,23 @@ def open_scene(ref: dict[str, Any]) -> Scene:
     raise ValueError(f"scene reference: unknown kind {kind!r}")
 
 
-def _check_scale(ref: Any) -> None:
-    if not isinstance(ref.path, (str, Path)) or not str(ref.path):
-        raise ValueError(f"{type(ref).__name__}.path: expected a folder, got {ref.path!r}")
-    object.__setattr__(ref, "path", str(ref.path))
-    if not float(ref.scale) > 0:
-        raise ValueError(f"{type(ref).__name__}.scale: expected > 0, got {ref.scale}")
+def _folder(name: str, value: Any) -> str:
+    """A folder: a non-empty ``str`` or :class:`~pathlib.Path`, stored as a ``str``."""
+    if not isinstance(value, (str, Path)) or not str(value):
+        raise ValueError(f"{name}: expected a folder, got {value!r}")
+    return str(value)
+
+
+_SCALE = float_field(0, lo_open=True)
 
 
 @dataclass(frozen=True)
-class BenchmarkRef:
+class BenchmarkRef(Checked):
     """A rendered benchmark scene: its folder (with ``scene.json``) and image resolution factor."""
 
-    path: str
-    scale: float = 0.5
+    path: str = checked(rule=_folder)
+    scale: float = checked(0.5, _SCALE)
     kind: ClassVar[str] = "benchmark"
-
-    def __post_init__(self) -> None:
-        _check_scale(self)
 
     def to_dict(self) -> dict[str, Any]:
         """The reference a checkpoint stores (:func:`open_scene` reopens it)."""
@@ -87,20 +96,14 @@ class BenchmarkRef:
 
 
 @dataclass(frozen=True)
-class DGPRef:
+class DGPRef(Checked):
     """A DGP scene folder (``scene_*.json``): resolution, cameras (None: all), held-out frames."""
 
-    path: str
-    scale: float = 0.5
-    cameras: tuple[str, ...] | None = None
-    test_frames: tuple[int, ...] = ()
+    path: str = checked(rule=_folder)
+    scale: float = checked(0.5, _SCALE)
+    cameras: tuple[str, ...] | None = checked(None, names_field("camera names", optional=True))
+    test_frames: tuple[int, ...] = checked((), ints_field("frame indices"))
     kind: ClassVar[str] = "dgp"
-
-    def __post_init__(self) -> None:
-        _check_scale(self)
-        if self.cameras is not None:
-            object.__setattr__(self, "cameras", tuple(self.cameras))
-        object.__setattr__(self, "test_frames", tuple(int(f) for f in self.test_frames))
 
     def to_dict(self) -> dict[str, Any]:
         """The reference a checkpoint stores (:func:`open_scene` reopens it)."""
@@ -112,7 +115,7 @@ class DGPRef:
 
 
 @dataclass(frozen=True)
-class ColmapRef:
+class ColmapRef(Checked):
     """A COLMAP model or project folder, as :func:`vadgs.data.open_colmap_project` opens it.
 
     Attributes:
@@ -123,17 +126,12 @@ class ColmapRef:
         normalize: centre the cameras, put up on +z and scale to a median depth of 10 units.
     """
 
-    path: str
-    images: str | None = None
-    scale: float = 1.0
-    test_every: int = 8
-    normalize: bool = True
+    path: str = checked(rule=_folder)
+    images: str | None = checked(None, instance_field(str, optional=True))
+    scale: float = checked(1.0, _SCALE)
+    test_every: int = checked(8, int_field(0, note=" (0: none held out)"))
+    normalize: bool = checked(True, bool_field())
     kind: ClassVar[str] = "colmap"
-
-    def __post_init__(self) -> None:
-        _check_scale(self)
-        if self.test_every < 0:
-            raise ValueError(f"ColmapRef.test_every: expected >= 0, got {self.test_every}")
 
 
 SceneRef = BenchmarkRef | DGPRef | ColmapRef
@@ -185,7 +183,7 @@ def folder_kind(path: str | Path) -> str | None:
 
     ``"benchmark"`` (a ``scene.json``, or that file itself), ``"colmap"`` (a COLMAP model or
     project), ``"run"`` (a vadgs run: a checkpoint or its ``metrics.json``), ``"photos"`` (photos
-    ``vadgs sfm`` takes, :data:`vadgs.data.sfm.PHOTO_SUFFIXES`, in the folder itself).
+    ``vadgs sfm`` takes, :data:`vadgs.data.photos.PHOTO_SUFFIXES`, in the folder itself).
 
     For the messages of a command given the wrong kind of folder (a run where a scene goes, photos
     where a project goes, ...).
@@ -196,7 +194,7 @@ def folder_kind(path: str | Path) -> str | None:
         'benchmark'
     """
     from vadgs.data import find_colmap_model
-    from vadgs.data.sfm import PHOTO_SUFFIXES
+    from vadgs.data.photos import PHOTO_SUFFIXES
     from vadgs.runfolder import is_vadgs_folder
     from vadgs.train.checkpoint import CHECKPOINT_NAME
 
@@ -214,7 +212,7 @@ def folder_kind(path: str | Path) -> str | None:
 
 def _not_a_scene(path: Path, kind: str | None) -> str:
     """Why ``path`` (of :func:`folder_kind` ``kind``) is no scene, and what to run instead."""
-    from vadgs.data.sfm import PHOTO_SUFFIXES
+    from vadgs.data.photos import PHOTO_SUFFIXES
 
     if kind == "run":
         return (

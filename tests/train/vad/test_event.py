@@ -42,7 +42,8 @@ from vadgs.train.vad.event import (
     wave_room,
 )
 from vadgs.train.vad.incomplete import IncompleteInstances
-from vadgs.train.vad.reconstruct import MatchPlan, ViewRender, reconstruct_instance
+from vadgs.train.vad.matching import MatchPlan
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
 from vadgs.train.vad.state import compact_render
 
 C0 = 0.28209479177387814  # the SH band-0 constant
@@ -100,6 +101,20 @@ def _splats(n: int = 4, node_ids: bool = False) -> dict[str, torch.Tensor]:
     return p
 
 
+def _survey(index, instance, views, *args, **kwargs):
+    """An instance cut by no view's border (what the event's plan reads of its survey)."""
+    return SimpleNamespace(cut=dict.fromkeys(views, False))
+
+
+def _per_reference(plan):
+    """``plan_matches`` made of a per-pair ``plan(index, ref, instance, ...)``."""
+
+    def plan_matches(index, refs, instance, *args, **kwargs):
+        return [plan(index, ref, instance, *args, **kwargs) for ref in refs]
+
+    return plan_matches
+
+
 class _Event:
     """A strategy whose events see ``flagged`` (instance → pixels, every event) and reconstruct each
     instance as ``made[instance] = (points, consistent)`` (default ``(3, 7)``); ``tracks``: the
@@ -133,8 +148,9 @@ class _Event:
             return _rec(instance, n, c, track=instance if instance in tracks else None)
 
         monkeypatch.setattr(event_module, "detect", lambda *a, **k: (_rows(flagged), [0]))
+        monkeypatch.setattr(event_module, "survey_instance", _survey)
         # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
-        monkeypatch.setattr(event_module, "plan_match", reconstruct)
+        monkeypatch.setattr(event_module, "plan_matches", _per_reference(reconstruct))
 
     def run(self, params, step=0) -> dict:
         return self.strategy.densify(params, None, self.state, step)
@@ -262,7 +278,7 @@ class TestRendersOfAnEvent:
             return _rec(instance, n, c)
 
         # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
-        monkeypatch.setattr(event_module, "plan_match", reconstruct)
+        monkeypatch.setattr(event_module, "plan_matches", _per_reference(reconstruct))
         entry = ev.run(params)
         assert seen == [(1, 4.0, 4.0), (2, 4.0, 4.0), (3, 4.0, 4.0)]  # views 0, 11, 12, 13: the model before
         assert rendered_with == [4] * 4  # each view rendered once (view 0 kept or rendered at the first ask)
@@ -287,7 +303,7 @@ class TestRendersOfAnEvent:
             return _rec(instance, 5 if instance == 1 else 0, 5)
 
         # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
-        monkeypatch.setattr(event_module, "plan_match", reconstruct)
+        monkeypatch.setattr(event_module, "plan_matches", _per_reference(reconstruct))
         monkeypatch.setattr(event_module, "pick_references", lambda candidates, *a, **k: [0])
         ev.run(params)
         got = [(g["instance"], g["view"], g["added"], float(g["depth"].max())) for g in got]

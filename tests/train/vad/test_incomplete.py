@@ -4,7 +4,6 @@ of :class:`IncompleteConfig`."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -144,16 +143,12 @@ class TestVoxelLabels:
 
 
 class TestIncompleteConfig:
-    """Every field has one check, run at construction (issue 39, item 5); valid values normalised."""
+    """Every field has one rule, next to it (:func:`vadgs.checks.checked`; ``tests/test_config_rules.py``
+    checks every config), run at construction (issue 39, item 5); valid values normalised."""
 
     @pytest.mark.parametrize(("name", "bad"), field_cases(IncompleteConfig))
     def test_bad_value_at_construction(self, name, bad):
         check_bad_value(IncompleteConfig, name, bad)
-
-    def test_every_field_has_a_check(self):
-        from vadgs.train.vad import incomplete
-
-        assert set(incomplete._FIELDS) == {f.name for f in dataclasses.fields(IncompleteConfig)}
 
     def test_messages_and_valid_values(self):
         with pytest.raises(ValueError, match=r"^min_pixels: expected an integer >= 0, got -1$"):

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from vadgs.train.strategy import DefaultStrategy
-from vadgs.train.vad import StrategyContext, VisibilityAwareDensification, check_info
+from vadgs.train.vad import StrategyContext, VisibilityAwareDensification, check_info, info_requirements
 
 try:
     import gsplat.strategy as gsplat_strategy
@@ -67,6 +67,29 @@ def test_vadgs_default_and_gsplat_mcmc():
     check_info(DefaultStrategy(), _gsplat_meta(packed=True), packed=True)
     _first_step(gsplat_strategy.MCMCStrategy(), {})  # MCMC reads nothing from info (it takes lr=)
     check_info(object(), {})  # an unknown base: nothing is known, nothing checked
+
+
+@needs_gsplat
+def test_the_declaration_decides_not_the_module_name():
+    class Mine:  # a user's strategy: declares what it reads
+        def info_keys(self, packed=False):
+            return [{"my_key": "my loop's render"}]
+
+    with pytest.raises(ValueError, match=r"expected key 'my_key' \(read by .*Mine; from my loop's render\)"):
+        check_info(Mine(), {"other": 1})
+    check_info(Mine(), {"my_key": 1})
+
+    class Tuned(gsplat_strategy.DefaultStrategy):  # a subclass of gsplat's: its base's entry
+        pass
+
+    with pytest.raises(ValueError, match=r"expected key 'gaussian_ids' \(read by .*Tuned"):
+        check_info(Tuned(), {k: v for k, v in _gsplat_meta().items() if k != "gaussian_ids"})
+    lookalike = type("Lookalike", (), {"__module__": "gsplat.strategy.custom", "key_for_gradient": "means2d"})
+    assert info_requirements(lookalike()) == []  # a gsplat module name alone declares nothing
+    assert [sorted(a) for a in info_requirements(DefaultStrategy(), packed=True)] == [
+        ["image_size", "raster"],
+        ["gaussian_ids", "height", "means2d", "radii", "width"],
+    ]
 
 
 class _NoBase:

@@ -1,7 +1,5 @@
 """Derived instances of a scene without an instance map (:mod:`vadgs.train.vad.instances`).
 
-:func:`ground_cells`: the cells move with the scene (issue 31), against a naive reference in the
-scene's own ground frame, and the same cells in a turned, shifted, rescaled and tilted copy of it.
 :func:`derive_instance_map` against a naive, pixel-by-pixel reference: ground cells of the voxels,
 grown into the pixels without a voxel, cut to the view's own area, and the moving objects'
 projected boxes painted far to near."""
@@ -13,98 +11,11 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 import torch
 from scipy.spatial import ConvexHull
 
-from vadgs.train.vad.instances import derive_instance_map, ground_cells
+from vadgs.train.vad.instances import derive_instance_map
 from vadgs.train.vad.lengths import scene_lengths
-
-
-def _rot(axis: str, angle: float) -> torch.Tensor:
-    c, s = math.cos(angle), math.sin(angle)
-    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
-    out = torch.eye(3, dtype=torch.float64)
-    out[i, i], out[i, j], out[j, i], out[j, j] = c, -s, s, c
-    return out
-
-
-def _street(n: int = 4000):
-    """Points of a street 60 m long along the world's x, 12 m wide, up to 8 m high; level cameras
-    driving along it (OpenCV axes, z up)."""
-    g = torch.Generator().manual_seed(3)
-    size = torch.tensor([60.0, 12.0, 8.0], dtype=torch.float64)
-    pts = torch.rand(n, 3, generator=g, dtype=torch.float64) * size
-    pts[:, :2] -= torch.tensor([10.0, 6.0], dtype=torch.float64)
-    c2w = torch.eye(4, dtype=torch.float64).repeat(8, 1, 1)
-    forward = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
-    for k in range(8):  # x right, y down, z forward; some pitched down, some turned
-        c2w[k, :3, :3] = _rot("z", 0.3 * (k % 3 - 1)) @ forward.T @ _rot("x", 0.1 * (k % 2))
-        c2w[k, :3, 3] = torch.tensor([5.0 * k, 0.0, 1.5], dtype=torch.float64)
-    return pts, c2w
-
-
-def test_against_the_ground_frame_reference():
-    pts, c2w = _street()
-    cells = ground_cells(pts, c2w, 10.0)
-    # reference: the ground frame by numpy's SVD of the points' x, y (the cameras are level, z up)
-    import numpy as np
-
-    xy = pts[:, :2].numpy()
-    _, _, vt = np.linalg.svd(xy - xy.mean(0), full_matrices=False)
-    uv = torch.from_numpy(xy @ vt.T)
-    uv = uv - torch.from_numpy(np.median(uv.numpy(), axis=0))
-    ij = torch.floor(uv / 10.0 + 0.5).long()
-    keys = [tuple(k) for k in ij.tolist()]
-    # the same partition (labels may differ): points share a cell in one iff in the other
-    first: dict[int, tuple] = {}
-    for c, k in zip(cells.tolist(), keys):
-        assert first.setdefault(c, k) == k
-    assert len(first) == len(set(keys)) == 7 * 3  # 60 m / 10 (a cell centred on the median) x 12 m / 10
-    counts = torch.bincount(cells)
-    assert (counts[:-1] >= counts[1:]).all()  # numbered most points first
-
-
-@pytest.mark.parametrize(
-    "turn, shift, scale, tilt",
-    [
-        (0.7, (3.0, -2.0, 1.0), 1 / 20, 0.0),
-        (2.5, (-40.0, 7.0, 0.0), 3.0, 0.0),
-        (1.2, (0.0, 0.0, 5.0), 0.5, 0.4),
-    ],
-)
-def test_same_cells_in_a_moved_copy(turn, shift, scale, tilt):
-    """Turned about the up, shifted, rescaled (cell size with it), and tilted (the world's z no
-    longer up: the cameras' up decides)."""
-    pts, c2w = _street()
-    R = _rot("x", tilt) @ _rot("z", turn)
-    t = torch.tensor(shift, dtype=torch.float64)
-    moved = c2w.clone()
-    moved[:, :3, :3] = R @ c2w[:, :3, :3]
-    moved[:, :3, 3] = scale * (c2w[:, :3, 3] @ R.T) + t
-    a = ground_cells(pts, c2w, 10.0)
-    b = ground_cells(scale * (pts @ R.T) + t, moved, 10.0 * scale)
-    assert torch.equal(a, b)
-
-
-def test_world_axis_cells_would_differ():
-    """The reason for the frame: square cells on the world's axes cut a turned copy elsewhere."""
-    pts, _ = _street()
-    R = _rot("z", 0.7)
-    naive_a = torch.unique(torch.floor(pts[:, :2] / 10.0), dim=0, return_inverse=True)[1]
-    naive_b = torch.unique(torch.floor((pts @ R.T)[:, :2] / 10.0), dim=0, return_inverse=True)[1]
-    same = (naive_a[:, None] == naive_a[None]) == (naive_b[:, None] == naive_b[None])
-    assert same.float().mean() < 0.95  # many point pairs change from together to apart
-
-
-def test_degenerate_inputs_and_bad_cell_size():
-    pts, c2w = _street(10)
-    assert ground_cells(pts[:0], c2w, 10.0).shape == (0,)
-    assert ground_cells(pts[:1], c2w, 10.0).tolist() == [0]
-    assert ground_cells(pts, c2w[:0], 10.0).shape == (10,)  # no cameras: the world's z is up
-    with pytest.raises(ValueError, match=r"cell_size: expected > 0, got -1"):
-        ground_cells(pts, c2w, -1.0)
-
 
 H, W = 24, 32
 

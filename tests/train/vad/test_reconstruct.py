@@ -1,8 +1,9 @@
-"""The reconstruction of one instance from one reference (:mod:`vadgs.train.vad.reconstruct`): its
-frame (a moving car in its object frame), the supporting views (whole views, the z-buffers' voxels
-when the visibility sets give nothing), the matching (finer for small instances, coarser for large
-ones; the pairs of an event grouped into few PatchMatch calls; its work), what is already explained,
-and a moving object's points following its track."""
+"""The reconstruction of one instance from one reference (:mod:`vadgs.train.vad.reconstruct`): the
+supporting views (whole views, the z-buffers' voxels when the visibility sets give nothing), the
+matching (finer for small instances, coarser for large ones), what is already explained, and a
+moving object's points following its track. Its frame is :mod:`vadgs.train.vad.survey`'s
+(``test_survey.py``), the pairs' PatchMatch calls :mod:`vadgs.train.vad.matching`'s
+(``test_matching.py``)."""
 
 from __future__ import annotations
 
@@ -19,15 +20,8 @@ from vadgs.train.vad import (
     ReconstructConfig,
     build_visibility_index,
 )
-from vadgs.train.vad.reconstruct import (
-    MAX_CALL_PIXEL_VIEWS,
-    ViewRender,
-    instance_frame,
-    match_batches,
-    match_work,
-    reconstruct_instance,
-    select_supports,
-)
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance, select_supports
+from vadgs.train.vad.survey import instance_frame
 
 
 class TestReconstructSteps:
@@ -192,46 +186,9 @@ class TestFinerMatchingOfSmallInstances:
             ReconstructConfig(max_upsample=0)
 
 
-class TestInstanceFrame:
-    """Step 1 (``reconstruct.instance_frame``): a moving car is matched in its object frame."""
-
-    def test_moving_car_in_its_object_frame(self, scene, index):
-        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
-        frame = instance_frame(index, ref, CAR, CAR, ReconstructConfig())
-        assert not isinstance(frame, str)
-        covis = index.track_covis[CAR]
-        assert frame.covis is covis and bool(frame.voxels.all()) and len(frame.voxels) == covis.num_voxels
-        track = scene.tracks[CAR]
-        cams = scene.cameras(list(range(len(scene.views))))
-        checked = 0
-        for v in range(len(scene.views)):
-            pos = scene.frame_position(scene.views[v].frame)
-            assert bool(frame.allowed[v]) == (bool(index.allowed[v]) and bool(track.valid[pos]))
-            if frame.allowed[v]:  # object frame -> camera = world -> camera after the track's pose
-                expected = cams.world_to_cam[v] @ track.object_to_world[pos]
-                torch.testing.assert_close(frame.world_to_cam[v], expected, atol=1e-5, rtol=1e-5)
-                checked += 1
-        assert checked >= 5
-
-    def test_static_instance_in_the_world(self, scene, index):
-        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
-        frame = instance_frame(index, ref, BUILDING, None, ReconstructConfig())
-        assert not isinstance(frame, str)
-        assert frame.covis is index.covis and torch.equal(frame.world_to_cam, index.cameras.world_to_cam)
-        assert torch.equal(frame.voxels, index.labels == BUILDING)  # the facade has LiDAR voxels
-
-    def test_a_track_without_lidar_has_nothing_to_match(self, scene, index):
-        blind = dataclasses.replace(
-            index, track_covis={k: c for k, c in index.track_covis.items() if k != CAR}
-        )
-        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
-        assert instance_frame(blind, ref, CAR, CAR, ReconstructConfig()) == "no_lidar_on_track"
-
-
 class TestWholeSupports:
     def test_supports_of_a_whole_reference_show_it_whole(self, scene, index):
         from vadgs.select import ViewSelectionConfig
-        from vadgs.train.vad.reconstruct import instance_frame
 
         # the sample's short sequence: pairs (k = 2) with one shared voxel, so that groups form
         selection = ViewSelectionConfig(min_shared=1, k=2)
@@ -305,7 +262,6 @@ class TestSeenSupports:
     def test_reference_seeing_one_voxel_asks_supports_to_share_it(self, scene, index):
         """A far cell of a real log's ground grid shows its reference one voxel: supports share that one."""
         from vadgs.select import ViewSelectionConfig, select_views
-        from vadgs.train.vad.reconstruct import instance_frame
 
         ref = self._ref(scene, index)
         blind = self._blind(index, ref)
@@ -389,48 +345,3 @@ class TestSeenSupportsOfATrack:
         # its points, in the car's frame, land on the car in the other views of the reference's camera
         hits = hits_on_car(scene, ref, on.points, lambda v: scene.load_instances([v])[0])
         assert len(hits) >= 2 and min(hits) > 0.7, hits
-
-
-def _inputs(b: int, h: int, w: int, v: int = 4):
-    """A stand-in of one plan's PatchMatch inputs: only its shapes are read."""
-    from types import SimpleNamespace
-
-    return SimpleNamespace(images=torch.zeros(b, 3, h, w), src_images=torch.zeros(b, v, 3, 1, 1))
-
-
-class TestBatches:
-    def test_similar_crops_share_a_call(self):
-        plans = [_inputs(5, 29, 40), _inputs(5, 53, 42), _inputs(5, 24, 80), _inputs(4, 40, 61, v=3)]
-        assert match_batches(plans, 4.0, 2, False) == [[0, 1, 2, 3]]  # padded 53x80 <= 4 x 29x40
-        assert match_batches(plans, None, 2, False) == [[0, 1, 2, 3]]
-        assert sorted(match_batches(plans, 1.0, 2, False)) == [[0], [1], [2], [3]]
-
-    def test_the_padded_size_counts_both_sides(self):
-        plans = [_inputs(3, 20, 140), _inputs(3, 140, 20)]  # padded 140x140: 7 times either
-        assert sorted(match_batches(plans, 4.0, 2, False)) == [[0], [1]]
-        assert match_batches(plans, 8.0, 2, False) == [[0, 1]]
-
-    def test_fewer_views_than_top_k_apart_and_the_call_size_capped(self):
-        apart = [_inputs(2, 30, 30, v=1), _inputs(3, 30, 30)]
-        assert sorted(match_batches(apart, None, 2, False)) == [[0], [1]]
-        assert match_batches([_inputs(2, 30, 30, v=1), _inputs(3, 30, 30, v=1)], None, 2, False) == [[0, 1]]
-        per = 5 * 100 * 100 * 4  # pixel-views of one plan
-        n = MAX_CALL_PIXEL_VIEWS // per + 1  # one plan too many for a call
-        batches = match_batches([_inputs(5, 100, 100) for _ in range(n)], None, 2, False)
-        assert len(batches) == 2 and sum(map(len, batches)) == n
-        assert all(len(b) * per <= MAX_CALL_PIXEL_VIEWS for b in batches)
-
-
-class TestMatchWork:
-    def test_match_work(self):
-        from vadgs.mvs import PatchMatchConfig
-
-        masks = torch.zeros(2, 1, 8, 8, dtype=torch.bool)
-        masks[0, 0, :4] = True  # 32 + 10 reference pixels
-        masks[1, 0, 0] = True
-        masks[1, 0, 1, :2] = True
-        one_level = PatchMatchConfig(iterations=3, pyramid_levels=1)
-        assert match_work(masks, 4, one_level) == 42 * 4 * 3
-        # three levels: 5 sweeps at 1/16 of the pixels, then 2 at 1/4 and 2 at full
-        three = PatchMatchConfig(iterations=5, pyramid_levels=3, fine_iterations=2)
-        assert match_work(masks, 1, three) == 42 * (5 / 16 + 2 / 4 + 2)

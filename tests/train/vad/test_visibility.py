@@ -50,7 +50,7 @@ def test_sampled_ground_frame_keeps_the_grid(monkeypatch):
 _PEAK = r"""
 import json, sys, torch
 torch.set_num_threads(1)
-from vadgs.train.loop import peak_rss_mb, reset_peak_rss
+from vadgs.process import peak_rss_mb, reset_peak_rss
 from vadgs.data import load_scene
 from vadgs.train.vad import visibility
 

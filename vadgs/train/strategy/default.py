@@ -11,15 +11,19 @@ from typing import Any, ClassVar
 
 import torch
 
-from vadgs.checks import FieldCheck, bool_field, check_fields, float_field, int_field
+from vadgs.checks import Checked, bool_field, checked, float_field, int_field
 from vadgs.train.strategy import ops
 from vadgs.train.strategy.base import ConfiguredStrategy
 
-__all__ = ["DefaultStrategy", "DefaultStrategyConfig"]
+__all__ = ["GSPLAT_META", "DefaultStrategy", "DefaultStrategyConfig"]
+
+GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
+"""Where the gsplat keys of a loop's ``info`` come from (for the messages of
+:func:`vadgs.train.vad.check_info`)."""
 
 
 @dataclass(frozen=True)
-class DefaultStrategyConfig:
+class DefaultStrategyConfig(Checked):
     """Settings of the standard adaptive density control (gsplat ``DefaultStrategy`` defaults).
 
     Attributes:
@@ -41,40 +45,19 @@ class DefaultStrategyConfig:
             setting; 0, the default, never pauses).
     """
 
-    prune_opa: float = 0.005
-    grow_grad2d: float = 0.0002
-    grow_scale3d: float = 0.01
-    prune_scale3d: float = 0.1
-    refine_start_iter: int = 500
-    refine_stop_iter: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
-    reset_value: float = 0.01
-    absgrad: bool = False
-    max_gaussians: int = 1_000_000
-    split_factor: float = 1.6
-    pause_refine_after_reset: int = 0
-
-    def __post_init__(self) -> None:
-        check_fields(self, _FIELDS)
-
-
-_FIELDS: dict[str, FieldCheck] = {
-    "prune_opa": float_field(0, 1, hi_open=True),
-    "grow_grad2d": float_field(0),
-    "grow_scale3d": float_field(0),
-    "prune_scale3d": float_field(0, lo_open=True),
-    "refine_start_iter": int_field(0),
-    "refine_stop_iter": int_field(0),
-    "refine_every": int_field(1),
-    "reset_every": int_field(0),
-    "reset_value": float_field(0, 1),
-    "absgrad": bool_field(),
-    "max_gaussians": int_field(1),
-    "split_factor": float_field(0, lo_open=True),
-    "pause_refine_after_reset": int_field(0),
-}
-"""The check of each :class:`DefaultStrategyConfig` field (:func:`vadgs.checks.check_fields`)."""
+    prune_opa: float = checked(0.005, float_field(0, 1, hi_open=True))
+    grow_grad2d: float = checked(0.0002, float_field(0))
+    grow_scale3d: float = checked(0.01, float_field(0))
+    prune_scale3d: float = checked(0.1, float_field(0, lo_open=True))
+    refine_start_iter: int = checked(500, int_field(0))
+    refine_stop_iter: int = checked(15_000, int_field(0))
+    refine_every: int = checked(100, int_field(1))
+    reset_every: int = checked(3000, int_field(0))
+    reset_value: float = checked(0.01, float_field(0, 1))
+    absgrad: bool = checked(False, bool_field())
+    max_gaussians: int = checked(1_000_000, int_field(1))
+    split_factor: float = checked(1.6, float_field(0, lo_open=True))
+    pause_refine_after_reset: int = checked(0, int_field(0))
 
 
 @dataclass(init=False, eq=False)
@@ -107,6 +90,26 @@ class DefaultStrategy(ConfiguredStrategy):
 
     def __init__(self, config: DefaultStrategyConfig | None = None, **settings: Any) -> None:
         self._take_config(config, settings)
+
+    def info_keys(self, packed: bool = False) -> list[dict[str, str]]:
+        """What the step methods read from ``info``: alternatives of ``{key: where it comes from}``.
+
+        vadgs's render (``raster``, ``image_size``) or gsplat's meta (``means2d``, ``width``,
+        ``height``, ``radii``; ``gaussian_ids`` too when ``packed``). The declaration
+        :func:`vadgs.train.vad.check_info` checks a loop's ``info`` against.
+
+        Example:
+            >>> [sorted(a) for a in DefaultStrategy().info_keys()]
+            [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
+        """
+        meta = dict.fromkeys(("means2d", "width", "height", "radii"), GSPLAT_META)
+        if packed:
+            meta["gaussian_ids"] = GSPLAT_META + " with packed=True"
+        own = {
+            "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
+            "image_size": "the view's (H, W)",
+        }
+        return [own, meta]
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         """Statistics allocated at the first update; the scene scale for the size thresholds.

@@ -16,9 +16,13 @@
 - :mod:`~vadgs.train.vad.incomplete`: the incompleteness test (:func:`find_incomplete`);
 - :mod:`~vadgs.train.vad.detect`: an event's detection (per view, from the loop's renders);
 - :mod:`~vadgs.train.vad.references`: which instances to reconstruct, from which reference views;
+- :mod:`~vadgs.train.vad.survey`: an instance's voxels and frame, and what planning reads of it in
+  all its pairs, once;
 - :mod:`~vadgs.train.vad.reconstruct` and its settings :mod:`~vadgs.train.vad.reconstruct_config`:
-  an instance's reconstruction (:func:`reconstruct_instance`: its frame, view selection, PatchMatch,
-  then the steps of the next two modules);
+  an instance's reconstruction (:func:`reconstruct_instance`: its frame, view selection, the plans,
+  PatchMatch, then the steps of the next three modules);
+- :mod:`~vadgs.train.vad.matching`: every (instance, reference) pair's PatchMatch, in few batched
+  calls;
 - :mod:`~vadgs.train.vad.crops`: the crops of an instance's views that PatchMatch runs on, at the
   instance's matching scale;
 - :mod:`~vadgs.train.vad.fusion`: from the matched depth to points and priors (consistency, what

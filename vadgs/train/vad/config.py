@@ -10,19 +10,20 @@ the strategy needs of the loop (a render function, step counts, a generator). Bo
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import torch
 
 from vadgs.checks import (
-    FieldCheck,
+    Checked,
     bool_field,
-    check_fields,
+    checked,
     choice_field,
     float_field,
     instance_field,
     int_field,
     names_field,
+    nested,
 )
 from vadgs.train.vad.incomplete import IncompleteConfig
 from vadgs.train.vad.reconstruct import ViewRender
@@ -30,9 +31,11 @@ from vadgs.train.vad.reconstruct_config import ReconstructConfig
 
 __all__ = ["RANKINGS", "StrategyContext", "VisibilityDensifyConfig"]
 
+RANKINGS = ("class_round_robin", "pixels")
+
 
 @dataclass(frozen=True)
-class VisibilityDensifyConfig:
+class VisibilityDensifyConfig(Checked):
     """Settings of :class:`~vadgs.train.vad.VisibilityAwareDensification` (paper values by default).
 
     VAD-GS is on wherever this config is given (``TrainConfig.vad``); the paper's "w/o voxel
@@ -63,7 +66,7 @@ class VisibilityDensifyConfig:
         max_instances: at most this many instances reconstructed per event, in the order of
             ``ranking`` (``None``, the default: every flagged instance, within ``work_budget``).
         work_budget: an event stops starting new instances once its PatchMatch has done this
-            many pixel-sweeps (:func:`~vadgs.train.vad.reconstruct.match_work`: reference pixels ×
+            many pixel-sweeps (:func:`~vadgs.train.vad.matching.match_work`: reference pixels ×
             source views × sweeps) per training pixel so far (the steps so far × the training
             views' mean pixel count); the instances left are logged as skipped
             (``"work_budget"``) and tried at the next event. The first instance is always tried.
@@ -112,32 +115,29 @@ class VisibilityDensifyConfig:
             the very end would not be trained).
     """
 
-    view_selection: bool = True
-    geometric_losses: bool = True
-    every_cycles: int = 5
-    scene_depth: float | None = None
-    voxel_size: float | None = None
-    cell_size: float | None = None
-    incomplete: IncompleteConfig = field(default_factory=IncompleteConfig)
-    reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
-    max_instances: int | None = None
-    work_budget: float | None = 0.1
-    time_budget: float | None = None
-    index_cache_mb: float = 1024.0
-    render_cache_mb: float = 256.0
-    references: int = 3
-    min_frame_gap: int = 3
-    ranking: str = "class_round_robin"
-    cooldown_events: int = 0
-    whole_reference: bool = True
-    skip_classes: tuple[str, ...] = ("road",)
-    new_opacity: float = 0.5
-    flatness: float = 0.2
-    voxel_depth_prior: bool = True
-    last_event_fraction: float = 0.9
-
-    def __post_init__(self) -> None:
-        check_fields(self, _FIELDS)
+    view_selection: bool = checked(True, bool_field())
+    geometric_losses: bool = checked(True, bool_field())
+    every_cycles: int = checked(5, int_field(1))
+    scene_depth: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    voxel_size: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    cell_size: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    incomplete: IncompleteConfig = nested(IncompleteConfig)
+    reconstruct: ReconstructConfig = nested(ReconstructConfig)
+    max_instances: int | None = checked(None, int_field(0, optional=True))
+    work_budget: float | None = checked(0.1, float_field(0, lo_open=True, optional=True))
+    time_budget: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    index_cache_mb: float = checked(1024.0, float_field(0, lo_open=True))
+    render_cache_mb: float = checked(256.0, float_field(0))
+    references: int = checked(3, int_field(1))
+    min_frame_gap: int = checked(3, int_field(0))
+    ranking: str = checked("class_round_robin", choice_field(RANKINGS))
+    cooldown_events: int = checked(0, int_field(0))
+    whole_reference: bool = checked(True, bool_field())
+    skip_classes: tuple[str, ...] = checked(("road",), names_field("class names"))
+    new_opacity: float = checked(0.5, float_field(0, 1, lo_open=True, hi_open=True))
+    flatness: float = checked(0.2, float_field(0, lo_open=True))
+    voxel_depth_prior: bool = checked(True, bool_field())
+    last_event_fraction: float = checked(0.9, float_field(0, 1))
 
     def effective_reconstruct(self) -> ReconstructConfig:
         """``reconstruct`` as the event runs it: consecutive-frame selection when ``view_selection`` is off.
@@ -152,40 +152,14 @@ class VisibilityDensifyConfig:
         return replace(self.reconstruct, selection=selection)
 
 
-RANKINGS = ("class_round_robin", "pixels")
-
-_FIELDS: dict[str, FieldCheck] = {
-    "view_selection": bool_field(),
-    "geometric_losses": bool_field(),
-    "every_cycles": int_field(1),
-    "scene_depth": float_field(0, lo_open=True, optional=True),
-    "voxel_size": float_field(0, lo_open=True, optional=True),
-    "cell_size": float_field(0, lo_open=True, optional=True),
-    "incomplete": instance_field(IncompleteConfig),
-    "reconstruct": instance_field(ReconstructConfig),
-    "max_instances": int_field(0, optional=True),
-    "work_budget": float_field(0, lo_open=True, optional=True),
-    "time_budget": float_field(0, lo_open=True, optional=True),
-    "index_cache_mb": float_field(0, lo_open=True),
-    "render_cache_mb": float_field(0),
-    "references": int_field(1),
-    "min_frame_gap": int_field(0),
-    "ranking": choice_field(RANKINGS),
-    "cooldown_events": int_field(0),
-    "whole_reference": bool_field(),
-    "skip_classes": names_field("class names"),
-    "new_opacity": float_field(0, 1, lo_open=True, hi_open=True),
-    "flatness": float_field(0, lo_open=True),
-    "voxel_depth_prior": bool_field(),
-    "last_event_fraction": float_field(0, 1),
-}
-"""The check of each :class:`VisibilityDensifyConfig` field (:func:`vadgs.checks.check_fields`), run
-by its ``__post_init__``, hence also on a setting assigned to the strategy after construction
-(which replaces the strategy's config)."""
+def _render_rule(name: str, value: object) -> object:
+    if not callable(value):
+        raise ValueError(f"{name}: expected a function view -> ViewRender, got {type(value).__name__}")
+    return value
 
 
 @dataclass(frozen=True)
-class StrategyContext:
+class StrategyContext(Checked):
     """What the VAD-GS strategy (:class:`~vadgs.train.vad.VisibilityAwareDensification`) needs of the loop.
 
     Attributes:
@@ -207,15 +181,8 @@ class StrategyContext:
         40
     """
 
-    render: Callable[[int], ViewRender]
-    total_steps: int
-    steps_per_cycle: int
-    generator: torch.Generator | None = None
-    track_nodes: Mapping[int, int] | None = None
-
-    def __post_init__(self) -> None:
-        if not callable(self.render):
-            raise ValueError(
-                f"render: expected a function view -> ViewRender, got {type(self.render).__name__}"
-            )
-        check_fields(self, {"total_steps": int_field(0), "steps_per_cycle": int_field(1)})
+    render: Callable[[int], ViewRender] = checked(rule=_render_rule)
+    total_steps: int = checked(rule=int_field(0))
+    steps_per_cycle: int = checked(rule=int_field(1))
+    generator: torch.Generator | None = checked(None, instance_field(torch.Generator, optional=True))
+    track_nodes: Mapping[int, int] | None = checked(None, instance_field(Mapping, optional=True))

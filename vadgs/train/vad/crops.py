@@ -6,10 +6,9 @@ for small instances (a sign), coarser for large ones (a facade). :func:`crop_gro
 crops (:class:`Crops`, sources restricted to each view's :func:`matching_region`: the paper's
 static or dynamic region), which PatchMatch turns into :class:`MatchedCrops`; :func:`render_maps`
 reads the Gaussians' render of a view (the matching's initialisation and the test of what is
-already explained); the helpers resample maps between the scene's resolution and the matching
-scale (:func:`repeat`: nearest upsampling; :func:`pool_valid`: means of the valid pixels of each
-block; :func:`to_scale`: either, as the scale asks) and shift intrinsics to a crop
-(:func:`shift_K`).
+already explained); :func:`to_scale` resamples a map from the scene's resolution to the matching
+scale (:func:`~vadgs.geometry.resample.repeat` or :func:`~vadgs.geometry.resample.pool_valid`, as
+the scale asks).
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.geometry.camera import scale_intrinsics
+from vadgs.geometry.resample import pool_mask, pool_valid, repeat
 from vadgs.mvs.patchmatch import PatchMatchResult
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
@@ -32,10 +32,7 @@ __all__ = [
     "crop_group",
     "match_scale",
     "matching_region",
-    "pool_valid",
     "render_maps",
-    "repeat",
-    "shift_K",
     "to_scale",
 ]
 
@@ -137,54 +134,11 @@ def _align_crops(
     return out, ch2, cw2
 
 
-def repeat(x: torch.Tensor, f: int) -> torch.Tensor:
-    """Nearest upsampling of the last two dims by ``f`` (pixel (y, x) -> block (fy.., fx..))."""
-    return x if f == 1 else x.repeat_interleave(f, -2).repeat_interleave(f, -1)
-
-
-def pool_valid(x: torch.Tensor, valid: torch.Tensor, f: int, unit: bool = False) -> torch.Tensor:
-    """``(C, H, W)`` → ``(C, H/f, W/f)``: the mean of the valid pixels of each ``f x f`` block.
-
-    Zero where fewer than half are valid (``unit``: renormalised, for normals); at ``f = 1``, ``x``
-    with zeros outside ``valid``.
-    """
-    if f == 1:
-        return torch.where(valid, x, torch.zeros_like(x))
-    v = valid.to(x.dtype)
-    cnt = F.avg_pool2d(v[None], f)[0]
-    out = F.avg_pool2d((x * v)[None], f)[0] / cnt.clamp(min=1e-6)
-    if unit:
-        out = F.normalize(out, dim=0)
-    return torch.where(cnt >= 0.5, out, torch.zeros_like(out))
-
-
-def _pool_mask(m: torch.Tensor, f: int) -> torch.Tensor:
-    """Bool ``(..., H, W)`` → ``(..., H/f, W/f)``: blocks where at least half the pixels are set."""
-    if f == 1:
-        return m
-    lead = m.shape[:-2]
-    x = F.avg_pool2d(m.reshape(-1, 1, *m.shape[-2:]).float(), f)
-    return (x >= 0.5).reshape(*lead, *x.shape[-2:])
-
-
 def to_scale(x: torch.Tensor, valid: torch.Tensor, scale: MatchScale, unit: bool = False) -> torch.Tensor:
     """A scene-resolution map ``(C, H, W)`` at the matching scale (valid-pixel means when coarser)."""
     if scale.up > 1:
         return repeat(torch.where(valid, x, torch.zeros_like(x)), scale.up)
     return pool_valid(x, valid, scale.down, unit)
-
-
-def shift_K(K: torch.Tensor, x0: int, y0: int) -> torch.Tensor:
-    """Intrinsics ``(..., 3, 3)`` of the crop whose top-left corner is pixel ``(x0, y0)`` (a copy).
-
-    Example:
-        >>> shift_K(torch.eye(3), 2, 5)[:2, 2].tolist()
-        [-2.0, -5.0]
-    """
-    K = K.clone()
-    K[..., 0, 2] -= x0
-    K[..., 1, 2] -= y0
-    return K
 
 
 def render_maps(
@@ -282,8 +236,8 @@ def crop_group(
         f = scale.down
         images = torch.stack([index.image(v) for v in group])
         if f > 1:
-            masks = [_pool_mask(m, f) for m in masks]
-            regions = _pool_mask(regions, f)
+            masks = [pool_mask(m, f) for m in masks]
+            regions = pool_mask(regions, f)
             corners, ch, cw = [(y0 // f, x0 // f) for y0, x0 in corners], ch // f, cw // f
             K = scale_intrinsics(K, 1.0 / f)
             images = F.avg_pool2d(images, f)

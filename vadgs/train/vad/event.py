@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from vadgs.checks import checking
 from vadgs.train.strategy import ops
 from vadgs.train.vad.config import VisibilityDensifyConfig
 from vadgs.train.vad.detect import EventRenders, detect
@@ -35,17 +36,12 @@ from vadgs.train.vad.event_log import attempt_log, instance_label, log_event, ou
 from vadgs.train.vad.gaussians import flat_gaussians
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.inputs import VisibilityInputs
+from vadgs.train.vad.matching import MatchPlan, match_plans
 from vadgs.train.vad.priors import merge_priors
-from vadgs.train.vad.reconstruct import (
-    InstanceReconstruction,
-    MatchPlan,
-    ViewRender,
-    finish_match,
-    match_plans,
-    plan_match,
-)
+from vadgs.train.vad.reconstruct import InstanceReconstruction, ViewRender, finish_match, plan_matches
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.references import pick_references, rank_instances
+from vadgs.train.vad.survey import survey_instance
 from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
@@ -203,7 +199,7 @@ class EventBudget(NamedTuple):
     """An event's limits (:func:`event_budget`), ``math.inf`` where there is none.
 
     Attributes:
-        work: PatchMatch pixel-sweeps (:func:`~vadgs.train.vad.reconstruct.match_work`).
+        work: PatchMatch pixel-sweeps (:func:`~vadgs.train.vad.matching.match_work`).
         seconds: wall-clock seconds since the event began.
     """
 
@@ -272,7 +268,7 @@ class Attempt(NamedTuple):
     Attributes:
         instance: the instance.
         references: its reference views (:func:`~vadgs.train.vad.references.pick_references`).
-        plans: each reference's :class:`~vadgs.train.vad.reconstruct.MatchPlan` or, when it has
+        plans: each reference's :class:`~vadgs.train.vad.matching.MatchPlan` or, when it has
             nothing to match, its :class:`~vadgs.train.vad.reconstruct.InstanceReconstruction`
             (the reason).
     """
@@ -292,17 +288,18 @@ def plan_instance(
 ) -> Attempt:
     """An instance's references among its flagged ``views`` and each reference's plan.
 
-    :func:`~vadgs.train.vad.references.pick_references` (with ``config.whole_reference``, among
-    the views where the instance is not cut by the image border when there are some), then
-    :func:`~vadgs.train.vad.reconstruct.plan_match` of each reference (selection, crops).
+    The instance surveyed in its flagged views (:func:`~vadgs.train.vad.survey.survey_instance`:
+    one host read), :func:`~vadgs.train.vad.references.pick_references` (with
+    ``config.whole_reference``, among the views where the instance is not cut by the image border
+    when there are some), then :func:`~vadgs.train.vad.reconstruct.plan_matches` of its
+    references (selection, crops).
     """
     cfg = ev.config
-    whole = None
-    if cfg.whole_reference:
-        seen = [v for v, _px in views]
-        whole = [v for v, cut in zip(seen, ev.index.cut_by_border_views(seen, instance)) if not cut]
+    seen = [v for v, _px in views]
+    survey = survey_instance(ev.index, instance, seen, ev.reconstruct)
+    whole = [v for v in seen if not survey.cut[v]] if cfg.whole_reference else None
     refs = pick_references(views, ev.inputs, cfg.references, cfg.min_frame_gap, whole)
-    plans = [plan_match(ev.index, ref, instance, ev.reconstruct, ev.generator, renders) for ref in refs]
+    plans = plan_matches(ev.index, refs, instance, ev.reconstruct, ev.generator, renders, survey=survey)
     return Attempt(instance, refs, plans)
 
 
@@ -314,7 +311,7 @@ def reconstruct_pairs(
 ) -> list[list[InstanceReconstruction]]:
     """The reconstructions of a wave's (instance, reference) pairs, per instance and reference.
 
-    Every plan matched together (:func:`~vadgs.train.vad.reconstruct.match_plans`: few batched
+    Every plan matched together (:func:`~vadgs.train.vad.matching.match_plans`: few batched
     PatchMatch calls), then each finished in the wave's order
     (:func:`~vadgs.train.vad.reconstruct.finish_match`: consistency, fusion), away from the
     points of ``occupied`` in its frame (``None``: the world, else the moving instance's own),
@@ -477,7 +474,8 @@ def add_reconstructions(
     for inst, ref, rec in additions:
         before = renders(ref) if ev.on_addition is not None else None
         node = -1 if rec.track is None else ev.track_nodes[rec.track]
-        new = flat_gaussians(params, rec, None, cfg.new_opacity, cfg.flatness, event, node)
+        with checking(False):  # the reconstruction's tensors are the event's own: no value checks
+            new = flat_gaussians(params, rec, None, cfg.new_opacity, cfg.flatness, event, node)
         ops.add_gaussians(params, optimizers, state, new)
         if ev.on_addition is not None and before is not None:
             ev.on_addition(

@@ -5,10 +5,11 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
 4. :func:`consistent_depth` keeps the pixels whose depth at least ``min_consistent_views`` other
    members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
    relative depth) and completes the textureless parts of static planar instances
-   (:func:`~vadgs.mvs.complete_planar_batch`: all members at once);
+   (:func:`~vadgs.mvs.complete_planar`: all members at once);
 5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
    explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
-   in the instance's frame), thinned to one per cell of the point spacing (:func:`thin_points`);
+   in the instance's frame), thinned to one per cell of the point spacing
+   (:func:`~vadgs.geometry.points.thin_points`);
 6. :func:`depth_priors` gives each member's consistent depth and normals at the scene's
    resolution, the geometric losses' priors.
 """
@@ -22,10 +23,12 @@ import torch
 import torch.nn.functional as F
 
 from vadgs.geometry.camera import invert_rigid
+from vadgs.geometry.points import thin_points
+from vadgs.geometry.resample import pool_valid, repeat
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
-from vadgs.mvs.planar import complete_planar_batch
-from vadgs.train.vad.crops import Crops, MatchedCrops, pool_valid, render_maps, repeat
+from vadgs.mvs.planar import complete_planar
+from vadgs.train.vad.crops import Crops, MatchedCrops, render_maps
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
 
@@ -35,7 +38,6 @@ __all__ = [
     "depth_priors",
     "explained_pixels",
     "fuse_points",
-    "thin_points",
 ]
 
 
@@ -77,7 +79,7 @@ def consistent_depth(
     if planar:  # every member at once: one host read
         dev = depth.device
         others = torch.tensor([[j for j in range(len(group)) if j != m] for m in crops.members], device=dev)
-        depth, plane_n, add = complete_planar_batch(
+        depth, plane_n, add = complete_planar(
             depth, keep, matched.masks, matched.images, matched.K, invert_rigid(w2c),
             crops.images[others], torch.stack(crops.masks)[others][:, :, None], crops.K[others],
             world_to_cam[others], cfg.planar, generator, res.normal,
@@ -123,43 +125,6 @@ def explained_pixels(
     return out & cons.keep
 
 
-def thin_points(
-    points: torch.Tensor, cell: float | torch.Tensor, existing: torch.Tensor | None = None
-) -> torch.Tensor:
-    """Keep one point per ``cell``-sized voxel, and none in a voxel that ``existing`` points occupy.
-
-    Args:
-        points: ``(P, 3)``, in their priority order (the first point of a voxel is kept).
-        cell: voxel edge.
-        existing: optional ``(Q, 3)`` points (same frame) whose voxels are taken.
-
-    Returns:
-        ``(P,)`` bool: the points kept. On the device of ``points``.
-
-    Example:
-        >>> p = torch.tensor([[0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.31, 0.0, 0.0]])
-        >>> thin_points(p, 0.1).tolist()
-        [True, False, True]
-        >>> thin_points(p, 0.1, existing=torch.tensor([[0.35, 0.05, 0.05]])).tolist()
-        [True, False, False]
-    """
-    if points.shape[0] == 0:
-        return torch.zeros(0, dtype=torch.bool, device=points.device)
-    cell = torch.as_tensor(cell, dtype=points.dtype, device=points.device).clamp_min(1e-6)
-    every = points if existing is None else torch.cat([existing.to(points), points])
-    q = torch.floor(every / cell).long()
-    q = q - q.min(0).values
-    span = q.max(0).values + 1
-    keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-    # the first point of each voxel: a stable sort keeps each voxel's points in their order
-    order = torch.argsort(keys, stable=True)
-    ordered = keys[order]
-    first = torch.ones_like(ordered, dtype=torch.bool)
-    first[1:] = ordered[1:] != ordered[:-1]
-    keep = torch.zeros_like(first).scatter_(0, order, first)
-    return keep[every.shape[0] - points.shape[0] :]
-
-
 def fuse_points(
     index: VisibilityIndex,
     cons: ConsistentDepth,
@@ -171,13 +136,16 @@ def fuse_points(
     occupied: torch.Tensor | None,
     generator: torch.Generator | None,
     device: torch.device,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Step 5b: ``(points, normals, colors, spacing)`` of the ``new`` pixels, in the instance's frame.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """Step 5b: ``(points, normals, colors, spacing, consistent)``, the points of the ``new`` pixels.
+
+    Points, normals, colours and spacing in the instance's frame.
 
     One point per pixel (:func:`~vadgs.mvs.fuse_depth_maps`), its spacing the pixel footprint at its
     depth; with ``cfg.thin_points``, one per cell of the spacing (times ``thin_factor`` for a
     coarsely matched instance; cells of the static grid's frame, or a moving object's own) and none
-    in a cell of ``occupied``; at most ``cfg.max_points``, drawn with ``generator``.
+    in a cell of ``occupied``; at most ``cfg.max_points``, drawn with ``generator``. ``consistent``:
+    the consistent pixels (``cons.keep``), counted in the thinning's read.
     """
     fused = fuse_depth_maps(  # one point per such pixel, in the instance's frame
         cons.depth, matched.images, matched.K, matched.world_to_cam, cons.normal, new,
@@ -186,18 +154,21 @@ def fuse_points(
     seed_w2c, seed_K = matched.world_to_cam[fused.view_index], matched.K[fused.view_index]
     z_seed = (seed_w2c[:, 2, :3] * fused.points).sum(-1) + seed_w2c[:, 2, 3]
     points, normals, colors, spacing = fused.points, fused.normals, fused.colors, z_seed / seed_K[:, 0, 0]
+    consistent = cons.keep.sum()
     if cfg.thin_points and points.shape[0]:  # one per cell of the scene resolution's spacing, or coarser
         spacing = spacing * (crops.scale.up * (cfg.thin_factor if crops.scale.down > 1 else 1.0))
         local, taken = points, None if occupied is None else occupied.to(device)
         if track is None:  # cells of the static grid's frame (a moving object's: its own frame)
             local, taken = index.to_ground(local), None if taken is None else index.to_ground(taken)
-        keep = thin_points(local, spacing.median(), taken).nonzero().squeeze(1)  # one read
+        kept = thin_points(local, spacing.median(), taken)
+        n, consistent = torch.stack([kept.sum(), consistent.to(kept.device)]).tolist()  # one read
+        keep = torch.nonzero_static(kept, size=n).squeeze(1)
         points, normals, colors, spacing = points[keep], normals[keep], colors[keep], spacing[keep]
     if points.shape[0] > cfg.max_points:
         g = generator or torch.Generator().manual_seed(0)
         sub = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].to(device)
         points, normals, colors, spacing = points[sub], normals[sub], colors[sub], spacing[sub]
-    return points, normals, colors, spacing
+    return points, normals, colors, spacing, int(consistent)
 
 
 def depth_priors(cons: ConsistentDepth, crops: Crops, size: tuple[int, int]) -> tuple[list, list]:

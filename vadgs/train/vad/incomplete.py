@@ -27,13 +27,13 @@ from typing import NamedTuple
 
 import torch
 
-from vadgs.checks import check_fields, check_shape, float_field, int_field, ints_field
+from vadgs.checks import Checked, check_shape, checked, float_field, int_field, ints_field
 
 __all__ = ["IncompleteConfig", "IncompleteInstances", "find_incomplete", "find_incomplete_ids"]
 
 
 @dataclass(frozen=True)
-class IncompleteConfig:
+class IncompleteConfig(Checked):
     """Thresholds of :func:`find_incomplete` (paper values by default).
 
     Attributes:
@@ -45,25 +45,12 @@ class IncompleteConfig:
         ignore_ids: instance ids never tested (0 = sky / none).
     """
 
-    depth_ratio: float = 1.1
-    alpha_threshold: float = 0.7
-    low_alpha_fraction: float = 0.25
-    min_pixels: int = 20
-    min_alpha_for_depth: float = 0.05
-    ignore_ids: tuple[int, ...] = (0,)
-
-    def __post_init__(self) -> None:
-        check_fields(self, _FIELDS)
-
-
-_FIELDS = {
-    "depth_ratio": float_field(0, lo_open=True),
-    "alpha_threshold": float_field(0, 1),
-    "low_alpha_fraction": float_field(0, 1),
-    "min_pixels": int_field(0),
-    "min_alpha_for_depth": float_field(0, 1),
-    "ignore_ids": ints_field("instance ids"),
-}
+    depth_ratio: float = checked(1.1, float_field(0, lo_open=True))
+    alpha_threshold: float = checked(0.7, float_field(0, 1))
+    low_alpha_fraction: float = checked(0.25, float_field(0, 1))
+    min_pixels: int = checked(20, int_field(0))
+    min_alpha_for_depth: float = checked(0.05, float_field(0, 1))
+    ignore_ids: tuple[int, ...] = checked((0,), ints_field("instance ids"))
 
 
 class IncompleteInstances(NamedTuple):
@@ -164,12 +151,13 @@ def find_incomplete(
         view_of = torch.arange(b, device=ins.device)[:, None].expand_as(ins)
         max_id = int(ins.max()) + 1 if ins.numel() else 1
         key_all = view_of * max_id + ins
-        keys, seg = torch.unique(key_all[keep], return_inverse=True)
+        kept = torch.nonzero(keep.reshape(-1)).squeeze(1)  # one read for the kept pixels' maps
+        keys, seg = torch.unique(key_all.reshape(-1)[kept], return_inverse=True)
         r = keys.numel()
         pixels = torch.bincount(seg, minlength=r)
-        alpha = rendered_alpha.reshape(b, -1)[keep]
-        vd = voxel_depth.reshape(b, -1)[keep]
-        rd = rendered_depth.reshape(b, -1)[keep]
+        alpha = rendered_alpha.reshape(-1)[kept]
+        vd = voxel_depth.reshape(-1)[kept]
+        rd = rendered_depth.reshape(-1)[kept]
         low = torch.bincount(seg, weights=(alpha < cfg.alpha_threshold).double(), minlength=r) / pixels.clamp(
             min=1
         )
@@ -180,10 +168,10 @@ def find_incomplete(
         med = _segment_median(ratio[has_vox].double(), seg[has_vox], r)
         foreign = torch.full((r,), float("nan"), dtype=torch.float64, device=ins.device)
         if voxel_labels is not None:
-            vi = voxel_index.reshape(b, -1)[keep]  # type: ignore[union-attr]
+            vi = voxel_index.reshape(-1)[kept]  # type: ignore[union-attr]
             covered = vi >= 0
             lab = voxel_labels.to(ins.device)[vi[covered]]
-            other = (lab != ins[keep][covered]).double()
+            other = (lab != ins.reshape(-1)[kept][covered]).double()
             cnt = torch.bincount(seg[covered], minlength=r)
             foreign = torch.where(
                 cnt > 0, torch.bincount(seg[covered], weights=other, minlength=r) / cnt.clamp(min=1), foreign
@@ -191,7 +179,7 @@ def find_incomplete(
         flagged = (med > cfg.depth_ratio) | (low > cfg.low_alpha_fraction)
         big = pixels >= cfg.min_pixels
         flagged &= big
-        sel = big
+        sel = torch.nonzero(big).squeeze(1)  # one read for the rows' fields
         return IncompleteInstances(
             view=(keys // max_id)[sel],
             instance=(keys % max_id)[sel],

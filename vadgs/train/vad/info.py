@@ -1,57 +1,73 @@
 """What a training loop's ``info`` must carry for a strategy, checked at the first steps.
 
-:func:`info_requirements` lists, per base strategy (vadgs's or gsplat's ``DefaultStrategy``,
-gsplat's ``MCMCStrategy``), the keys its step methods read; :func:`check_info` names a missing one
-in one line (instead of a ``KeyError`` deep in the base); :func:`check_info_values` checks the
-values :class:`~vadgs.train.vad.VisibilityAwareDensification` itself reads (``view``, the image
-size, a render's ``depth`` / ``alpha``).
+Each base strategy declares the keys its step methods read: vadgs's strategies by a method
+``info_keys(packed)`` (:meth:`~vadgs.train.strategy.DefaultStrategy.info_keys`), gsplat's (which
+vadgs cannot edit) in the table :data:`FOREIGN_INFO_KEYS`. :func:`info_requirements` reads the
+declaration; :func:`check_info` names a missing key in one line (instead of a ``KeyError`` deep in
+the base); :func:`check_info_values` checks the values
+:class:`~vadgs.train.vad.VisibilityAwareDensification` itself reads (``view``, the image size, a
+render's ``depth`` / ``alpha``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
 
 from vadgs.checks import check_size, int_field
-from vadgs.train.strategy import DefaultStrategy
+from vadgs.train.strategy.default import GSPLAT_META
 
-__all__ = ["check_info", "check_info_values", "info_requirements"]
+__all__ = ["FOREIGN_INFO_KEYS", "check_info", "check_info_values", "info_requirements"]
 
-_GSPLAT_META = "the meta dict gsplat's rasterization() returns as its third output"
+
+def _gsplat_default(base: Any, packed: bool) -> list[dict[str, str]]:
+    """Gsplat's ``DefaultStrategy``: its ``key_for_gradient``, the image size, ``radii``, ``gaussian_ids``."""
+    keys = (base.key_for_gradient, "width", "height", "n_cameras", "radii")
+    req = dict.fromkeys(keys, GSPLAT_META)
+    req["gaussian_ids"] = GSPLAT_META + (" with packed=True" if packed else " (None when packed=False)")
+    return [req]
+
+
+def _reads_nothing(base: Any, packed: bool) -> list[dict[str, str]]:
+    return []
+
+
+FOREIGN_INFO_KEYS: dict[str, Callable[[Any, bool], list[dict[str, str]]]] = {
+    "gsplat.strategy.default.DefaultStrategy": _gsplat_default,
+    "gsplat.strategy.mcmc.MCMCStrategy": _reads_nothing,  # it takes lr=, reads no info
+}
+"""What the strategies of other libraries read from ``info``: the class's ``module.qualname`` (gsplat
+need not be imported to look it up; a subclass finds its base's entry) → ``(strategy, packed) ->``
+alternatives of ``{key: where it comes from}``, as a vadgs strategy's ``info_keys`` returns."""
 
 
 def info_requirements(base: Any, packed: bool = False) -> list[dict[str, str]]:
     """What a base strategy reads from the loop's ``info``: alternatives of ``{key: where it comes from}``.
 
-    vadgs's ``DefaultStrategy``: vadgs's render (``raster``, ``image_size``) or gsplat's meta
-    (``means2d``, ``width``, ``height``, ``radii``; ``gaussian_ids`` too when ``packed``); gsplat's
+    The strategy's own declaration (``info_keys(packed)``, vadgs's strategies), else the entry of
+    :data:`FOREIGN_INFO_KEYS` of its class or the nearest base class that has one (gsplat's
     ``DefaultStrategy``: its ``key_for_gradient`` (``means2d``), ``width``, ``height``,
     ``n_cameras``, ``radii`` and ``gaussian_ids`` (None unless ``packed``); gsplat's
-    ``MCMCStrategy``: nothing (it takes ``lr=``). Other bases: nothing is known (an empty list).
+    ``MCMCStrategy``: nothing, it takes ``lr=``). A strategy that declares nothing: nothing is
+    known (an empty list), nothing is checked.
 
     Example:
+        >>> from vadgs.train.strategy import DefaultStrategy
         >>> [sorted(a) for a in info_requirements(DefaultStrategy())]
         [['image_size', 'raster'], ['height', 'means2d', 'radii', 'width']]
+        >>> info_requirements(object())
+        []
     """
-    if isinstance(base, DefaultStrategy):
-        meta = {k: _GSPLAT_META for k in ("means2d", "width", "height", "radii")}
-        if packed:
-            meta["gaussian_ids"] = _GSPLAT_META + " with packed=True"
-        return [
-            {
-                "raster": "vadgs's rasterize_gaussians() output (RenderOutput)",
-                "image_size": "the view's (H, W)",
-            },
-            meta,
-        ]
-    cls = type(base)
-    if not cls.__module__.startswith("gsplat.") or not hasattr(base, "key_for_gradient"):
-        return []  # gsplat's MCMCStrategy reads nothing; unknown bases: not checked
-    req = {k: _GSPLAT_META for k in (base.key_for_gradient, "width", "height", "n_cameras", "radii")}
-    req["gaussian_ids"] = _GSPLAT_META + (" with packed=True" if packed else " (None when packed=False)")
-    return [req]
+    declared = getattr(base, "info_keys", None)
+    if callable(declared):
+        return declared(packed)
+    for cls in type(base).__mro__:
+        read = FOREIGN_INFO_KEYS.get(f"{cls.__module__}.{cls.__qualname__}")
+        if read is not None:
+            return read(base, packed)
+    return []
 
 
 def check_info(base: Any, info: Mapping[str, Any], packed: bool = False) -> None:

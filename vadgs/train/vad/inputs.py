@@ -23,11 +23,12 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 
+from vadgs.data.gsplat_parser import read_gsplat_parser
+from vadgs.data.observations import sfm_observations
 from vadgs.geometry.camera import Cameras, invert_rigid
 
-__all__ = ["TrackTable", "VisibilityInputs", "sfm_observations"]
+__all__ = ["TrackTable", "VisibilityInputs"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -251,6 +252,8 @@ class VisibilityInputs:
     ) -> VisibilityInputs:
         """The inputs of gsplat's COLMAP ``Parser`` (``examples/datasets/colmap.py``), duck-typed.
 
+        The parser is read by :func:`vadgs.data.gsplat_parser.read_gsplat_parser`.
+
         Reads ``image_names``, ``image_paths``, ``camtoworlds`` (``(N, 4, 4)`` OpenCV
         camera-to-world), ``camera_ids``, ``Ks_dict``, ``imsize_dict`` (camera id → ``(W, H)``),
         ``points`` and ``point_indices`` (image name → indices of the points it sees: the TRACK
@@ -274,128 +277,15 @@ class VisibilityInputs:
 
         Only observations by training views count for the visibility (as for a vadgs scene).
         """
-        import numpy as np
-
-        names = list(parser.image_names)
-        n = len(names)
-        if test_every is None:
-            test_every = getattr(parser, "test_every", None)
-        if train_views is None:
-            train_views = [i for i in range(n) if not test_every or i % test_every != 0]
-        cam_ids = [int(c) for c in parser.camera_ids]
-        K = torch.stack([torch.as_tensor(np.asarray(parser.Ks_dict[c])) for c in cam_ids]).float()
-        K[:, :2, 2] -= 0.5  # gsplat / COLMAP: pixel centres at i + 0.5; vadgs: at i
-        c2w = torch.as_tensor(np.asarray(parser.camtoworlds), dtype=torch.float32)
-        if tuple(c2w.shape) != (n, 4, 4):
-            raise ValueError(f"parser.camtoworlds: expected ({n}, 4, 4), got {tuple(c2w.shape)}")
-        hw = [
-            (int(parser.imsize_dict[c][1]), int(parser.imsize_dict[c][0])) for c in cam_ids
-        ]  # (W, H) -> (H, W)
-        big = (max(h for h, _ in hw), max(w for _, w in hw))
-        sizes = None if len(set(hw)) == 1 else tuple(hw)
-        cameras = Cameras(K, invert_rigid(c2w), big)
-        train = set(int(t) for t in train_views)
-        pi, vi = [], []
-        for v, name in enumerate(names):
-            idx = parser.point_indices.get(name)
-            if v in train and idx is not None and len(idx):
-                idx = torch.as_tensor(np.asarray(idx), dtype=torch.int64)
-                pi.append(idx)
-                vi.append(torch.full_like(idx, v))
-        points = torch.as_tensor(np.asarray(parser.points), dtype=torch.float32)
-        pi_t = torch.cat(pi) if pi else torch.zeros(0, dtype=torch.int64)
-        vi_t = torch.cat(vi) if vi else torch.zeros(0, dtype=torch.int64)
-        used = torch.zeros(points.shape[0], dtype=torch.bool)
-        used[pi_t] = True
-        new_id = torch.cumsum(used.long(), 0) - 1  # only the observed points, renumbered
-        paths = list(parser.image_paths)
-        unique_cams = sorted(set(cam_ids))
-        undistort = {c: _undistortion(parser, c) for c in unique_cams}
-
-        def load_image(view: int, size: tuple[int, int] | None = None) -> torch.Tensor:
-            from vadgs.data.images import read_image
-
-            arr = read_image(paths[view])  # float [0, 1], as every vadgs loader decodes a photo
-            remap = undistort[cam_ids[view]]
-            if remap is not None:  # as gsplat's Dataset: remap, then the ROI
-                import cv2
-
-                mapx, mapy, (x, y, w, h) = remap
-                u8 = np.round(arr * 255.0).astype(np.uint8)
-                if np.array_equal(u8.astype(np.float32) / 255.0, arr):  # 8-bit: on uint8, as gsplat
-                    arr = cv2.remap(u8, mapx, mapy, cv2.INTER_LINEAR).astype(np.float32) / 255.0
-                else:  # 16-bit and float images keep their precision
-                    arr = cv2.remap(arr, mapx, mapy, cv2.INTER_LINEAR)
-                arr = arr[y : y + h, x : x + w]
-            img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).float()
-            h, w = size or (sizes[view] if sizes is not None else big)
-            if img.shape[-2:] != (h, w):
-                mode = "bilinear" if h > img.shape[-2] or w > img.shape[-1] else "area"
-                kw = {"align_corners": False} if mode == "bilinear" else {}
-                img = F.interpolate(img[None], size=(h, w), mode=mode, **kw)[0]
-            return img
-
+        d = read_gsplat_parser(parser, train_views, test_every)
         out = cls(
-            cameras=cameras,
-            train_views=tuple(sorted(train)),
-            load_image=load_image,
-            view_cameras=tuple(unique_cams.index(c) for c in cam_ids),
-            view_frames=tuple(range(n)),
-            sizes=sizes,
-            sfm=TrackTable(points[used], new_id[pi_t], vi_t),
-            name=str(getattr(parser, "data_dir", "gsplat parser")),
+            cameras=d.cameras,
+            train_views=d.train_views,
+            load_image=d.load_image,
+            view_cameras=d.view_cameras,
+            view_frames=tuple(range(d.cameras.K.shape[0])),
+            sizes=d.sizes,
+            sfm=TrackTable(d.points, d.point_idx, d.view_idx),
+            name=d.name,
         )
-        return replace(out, scene_depth=out.median_view_depth()) if vi_t.numel() else out
-
-
-def _undistortion(parser: Any, camera_id: int) -> tuple[Any, Any, tuple[int, int, int, int]] | None:
-    """``(mapx, mapy, roi)`` of a distorted camera of gsplat's Parser, None for a pinhole one.
-
-    Raises:
-        ValueError: a fisheye camera, or distortion parameters without the Parser's maps.
-    """
-    params = getattr(parser, "params_dict", {}).get(camera_id)
-    if params is None or len(params) == 0:
-        return None
-    if getattr(parser, "mask_dict", {}).get(camera_id) is not None:
-        raise ValueError(f"parser camera {camera_id}: expected a perspective camera, got a fisheye one")
-    try:
-        maps = parser.mapx_dict[camera_id], parser.mapy_dict[camera_id], parser.roi_undist_dict[camera_id]
-    except (AttributeError, KeyError):
-        raise ValueError(
-            f"parser camera {camera_id}: expected mapx_dict / mapy_dict / roi_undist_dict for its distortion "
-            f"params {list(params)}, got none (undistort the images, or use gsplat's Parser)"
-        ) from None
-    x, y, w, h = (int(v) for v in maps[2])
-    return maps[0], maps[1], (x, y, w, h)
-
-
-def sfm_observations(
-    scene: Any, frames: Sequence[int] | None = None
-) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-    """The scene's SfM points observed by views of ``frames``, with those observations only.
-
-    Args:
-        scene: a scene with ``sfm_points``.
-        frames: frame indices (default: the training frames, or every frame without a split).
-
-    Returns:
-        ``(points (P', 3), (point_idx (T',), view_idx (T',)))``: the points with at least one such
-        observation (renumbered, in their order) and their observations, as
-        :func:`vadgs.geometry.voxelize` takes them.
-
-    Raises:
-        ValueError: if the scene has no ``sfm_points``.
-    """
-    sfm = scene.sfm_points
-    if sfm is None:
-        raise ValueError(f"scene {scene.name!r}: no SfM points (scene.sfm_points)")
-    frames = frames if frames is not None else (scene.train_frames or [f.index for f in scene.frames])
-    wanted = set(int(f) for f in frames)
-    view_ok = torch.tensor([v.frame in wanted and v.group is None for v in scene.views], dtype=torch.bool)
-    keep = view_ok[sfm.view_idx] if sfm.view_idx.numel() else sfm.view_idx.bool()
-    pi, vi = sfm.point_idx[keep], sfm.view_idx[keep]
-    used = torch.zeros(sfm.points.shape[0], dtype=torch.bool)
-    used[pi] = True
-    new_id = torch.cumsum(used.long(), 0) - 1
-    return sfm.points[used], (new_id[pi], vi)
+        return replace(out, scene_depth=out.median_view_depth()) if d.view_idx.numel() else out

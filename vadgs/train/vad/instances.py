@@ -2,8 +2,8 @@
 
 VAD-GS tests and reconstructs per instance. Where a dataset has no segmentation,
 :func:`derive_instance_map` stands in for it: the static voxels are cut into ground cells
-(:func:`ground_cells`, in the scene's :func:`~vadgs.geometry.ground.ground_frame`) and each moving
-object paints its projected 3D box (:func:`box_corners`). The visibility index
+(:func:`~vadgs.geometry.ground.ground_cells`, in the scene's :func:`~vadgs.geometry.ground.ground_frame`)
+and each moving object paints its projected 3D box (:func:`box_corners`). The visibility index
 (:meth:`~vadgs.train.vad.visibility.VisibilityIndex.instances`) calls it on demand.
 """
 
@@ -11,79 +11,67 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import torch
 
-from vadgs.geometry.camera import project_points
-from vadgs.geometry.ground import ground_frame, points_in_frame
+from vadgs.geometry.camera import Cameras, project_points
+from vadgs.train.vad.inputs import VisibilityInputs
 from vadgs.train.vad.lengths import scene_lengths
 
 __all__ = [
+    "InstanceMapSource",
     "box_corners",
     "derive_instance_map",
-    "ground_cells",
 ]
 
 
-def ground_cells(
-    points: torch.Tensor,
-    cam_to_world: torch.Tensor | None,
-    cell_size: float,
-    frame: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> torch.Tensor:
-    """Cell index of each point in a grid of ``cell_size`` ground squares that moves with the scene.
+class InstanceMapSource(Protocol):
+    """What :func:`derive_instance_map` reads of a scene's voxels and tracks.
 
-    The squares lie in the ground plane of :func:`ground_frame`, along its axes, one centred on
-    its origin (the points' median): a rotated, shifted or uniformly scaled copy of a scene
-    (``cell_size`` scaled with it) is cut into the same cells, where square cells fixed to the
-    world's axes would cut it elsewhere. Cells are numbered by their number of points, most first
-    (ties: nearest to the origin, then lowest, first).
-
-    Args:
-        points: ``(M, 3)`` points (voxel centres), world frame.
-        cam_to_world: ``(V, 4, 4)`` OpenCV camera-to-world of the views that saw them (unused
-            when ``frame`` is given).
-        cell_size: the squares' edge, in world units (> 0).
-        frame: :func:`ground_frame` of these points and cameras, when already computed.
-
-    Returns:
-        ``(M,)`` int64 cell index in ``[0, number of cells)``, on the points' device.
-
-    Example:
-        >>> import math
-        >>> pts = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([40.0, 8, 3])
-        >>> c2w = torch.eye(4)[None].repeat(2, 1, 1)
-        >>> c2w[:, :3, :3] = torch.tensor([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # level, z up
-        >>> a = ground_cells(pts, c2w, 10.0)
-        >>> c, s = math.cos(1.0), math.sin(1.0)
-        >>> R = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-        >>> moved = c2w.clone()
-        >>> moved[:, :3, :3] = R @ c2w[:, :3, :3]
-        >>> b = ground_cells(0.05 * (pts @ R.T) + 3.0, moved, 0.5)  # turned, shifted, 1/20
-        >>> int(a.max()) + 1, bool((a == b).all())
-        (5, True)
+    :class:`~vadgs.train.vad.visibility.VisibilityIndex` has it all (the visibility module imports
+    this one, so the index is named by what it offers, not by its class; mypy checks that it
+    offers it).
     """
-    if not cell_size > 0:
-        raise ValueError(f"cell_size: expected > 0, got {cell_size}")
-    if len(points) == 0:
-        return torch.zeros(0, dtype=torch.long, device=points.device)
-    if frame is None:
-        if cam_to_world is None:
-            raise ValueError("cam_to_world: expected the cameras (N, 4, 4) when no frame is given, got None")
-        frame = ground_frame(points, cam_to_world)
-    local = points_in_frame(points, *frame)
-    ij = torch.floor(local[:, :2] / cell_size + 0.5).long()  # the origin in a cell's centre
-    _, cell, count = torch.unique(ij, dim=0, return_inverse=True, return_counts=True)
-    centre = ij.double().norm(dim=1)  # a cell's distance from the origin, in cells
-    dist = torch.zeros(len(count), dtype=local.dtype, device=local.device)
-    dist = dist.scatter_reduce(0, cell, centre, "amax", include_self=False)
-    height = torch.zeros_like(dist).index_add_(0, cell, local[:, 2] / cell_size) / count  # mean height
-    key = [(-int(n), round(float(d), 6), round(float(h), 6)) for n, d, h in zip(count, dist, height)]
-    order = sorted(range(len(count)), key=lambda c: (*key[c], c))
-    rank = torch.empty_like(count)
-    rank[torch.tensor(order, device=count.device)] = torch.arange(len(count), device=count.device)
-    return rank[cell]
+
+    @property
+    def inputs(self) -> VisibilityInputs:
+        """The views' frames (``frame_position``) and the tracks."""
+        ...
+
+    @property
+    def grow(self) -> int:
+        """Pixels a derived map grows beyond the voxels."""
+        ...
+
+    @property
+    def scene_depth(self) -> float:
+        """The scene's length unit (:func:`~vadgs.train.vad.lengths.scene_lengths`)."""
+        ...
+
+    def voxel_raster(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Static voxel depth ``(1, H, W)`` and index ``(H, W)`` (-1: no voxel) of a view."""
+        ...
+
+    def cell_ids(self) -> torch.Tensor:
+        """``(M,)`` derived instance id of each static voxel (its ground cell)."""
+        ...
+
+    def camera(self, view: int) -> Cameras:
+        """The view's camera at its own size."""
+        ...
+
+    def valid(self, view: int) -> torch.Tensor:
+        """``(H, W)`` bool: the view's own pixels (not padding)."""
+        ...
+
+    def box_corners(self, track: int) -> torch.Tensor:
+        """``(8, 3)`` box corners of a track in its object frame."""
+        ...
+
+    def size(self, view: int) -> tuple[int, int]:
+        """``(H, W)`` of the view (its own)."""
+        ...
 
 
 def box_corners(track) -> torch.Tensor:
@@ -105,7 +93,7 @@ def box_corners(track) -> torch.Tensor:
     return torch.where(pick, hi, lo)
 
 
-def derive_instance_map(index: Any, view: int) -> torch.Tensor:
+def derive_instance_map(index: InstanceMapSource, view: int) -> torch.Tensor:
     """An instance map for a scene without one, from the voxel index map and the tracks.
 
     Static pixels take the id of their voxel's ground cell (``index.cell_size`` metres square,
@@ -117,8 +105,8 @@ def derive_instance_map(index: Any, view: int) -> torch.Tensor:
     geometry near what the LiDAR saw.
 
     Args:
-        index: the scene's :class:`~vadgs.train.vad.visibility.VisibilityIndex` (typed ``Any``: the
-            index module imports this one, not the other way round).
+        index: what it reads of the scene (:class:`InstanceMapSource`): the scene's
+            :class:`~vadgs.train.vad.visibility.VisibilityIndex`.
         view: the view's index.
 
     Returns:

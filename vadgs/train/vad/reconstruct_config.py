@@ -6,11 +6,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from vadgs.checks import (
+    Checked,
     bool_field,
-    check_fields,
+    checked,
     choice_field,
     float_field,
     instance_field,
@@ -23,9 +24,12 @@ from vadgs.select.selector import ViewSelectionConfig
 
 __all__ = ["ReconstructConfig"]
 
+_LENGTH = float_field(0, lo_open=True)
+_DOWNSAMPLE = choice_field((1, 2, 4, 8))
+
 
 @dataclass(frozen=True)
-class ReconstructConfig:
+class ReconstructConfig(Checked):
     """Settings of :func:`~vadgs.train.vad.reconstruct.reconstruct_instance`.
 
     Attributes:
@@ -99,7 +103,7 @@ class ReconstructConfig:
             at each view's timestamp); the reason then ends in ``"(seen)"``. ``False``: the
             visibility sets only, as the paper's supplement.
         match_padding: the pairs of an event are matched together
-            (:func:`~vadgs.train.vad.reconstruct.match_plans`): a batched PatchMatch call pads
+            (:func:`~vadgs.train.vad.matching.match_plans`): a batched PatchMatch call pads
             every crop to the largest of the call, whose pixels are at most this many times a
             crop's (the fewer calls, the fewer kernel launches on a GPU; the more padding, the
             more pixels scored: each reference scores the union of the call's masks). 1: equal
@@ -107,60 +111,37 @@ class ReconstructConfig:
             ``patchmatch.top_k`` apart).
     """
 
-    selection: ViewSelectionConfig = field(default_factory=lambda: ViewSelectionConfig(min_shared=2))
-    patchmatch: PatchMatchConfig = field(default_factory=lambda: PatchMatchConfig(iterations=3))
-    margin: int = 6
-    max_crop: int = 160
-    max_reproj_error: float = 2.0
-    max_rel_depth: float = 0.01
-    min_consistent_views: int = 1
-    min_instance_voxels: int = 8
-    min_pixels: int = 16
-    max_points: int = 20000
-    max_upsample: int = 2
-    planar: PlanarCompletionConfig | None = field(default_factory=PlanarCompletionConfig)
-    max_match_pixels: int | None = 2048
-    max_downsample: int = 4
-    depth_margin: tuple[float, float] = (0.5, 2.0)
-    fallback_depth_range: tuple[float, float] | None = None
-    min_depth: float | None = None
-    explained_alpha: float = 0.7
-    explained_tolerance: float = 0.05
-    thin_points: bool = True
-    thin_factor: float = 1.5
-    whole_supports: bool = True
-    seen_supports: bool = True
-    match_padding: float | None = 4.0
-
-    def __post_init__(self) -> None:
-        check_fields(self, _FIELDS)
-
-
-_LENGTH = float_field(0, lo_open=True)
-_DOWNSAMPLE = choice_field((1, 2, 4, 8))
-_FIELDS = {
-    "selection": instance_field(ViewSelectionConfig),
-    "patchmatch": instance_field(PatchMatchConfig),
-    "margin": int_field(0),
-    "max_crop": int_field(8, note=" pixels"),
-    "max_reproj_error": float_field(0, lo_open=True),
-    "max_rel_depth": float_field(0, lo_open=True),
-    "min_consistent_views": int_field(0),
-    "min_instance_voxels": int_field(0),
-    "min_pixels": int_field(0),
-    "max_points": int_field(1),
-    "max_upsample": int_field(1),
-    "planar": instance_field(PlanarCompletionConfig, optional=True),
-    "max_match_pixels": int_field(64, optional=True),
-    "max_downsample": lambda name, value: _DOWNSAMPLE(name, int_field()(name, value)),
-    "depth_margin": pair_field(_LENGTH, rule=lambda near, far: near <= 1 <= far, note="near <= 1 <= far"),
-    "fallback_depth_range": pair_field(_LENGTH, optional=True, rule=lambda lo, hi: lo < hi, note="lo < hi"),
-    "min_depth": float_field(0, lo_open=True, optional=True),
-    "explained_alpha": float_field(0, 1),
-    "explained_tolerance": float_field(0),
-    "thin_points": bool_field(),
-    "thin_factor": float_field(1),
-    "whole_supports": bool_field(),
-    "seen_supports": bool_field(),
-    "match_padding": float_field(1, optional=True),
-}
+    selection: ViewSelectionConfig = checked(
+        rule=instance_field(ViewSelectionConfig), default_factory=lambda: ViewSelectionConfig(min_shared=2)
+    )
+    patchmatch: PatchMatchConfig = checked(
+        rule=instance_field(PatchMatchConfig), default_factory=lambda: PatchMatchConfig(iterations=3)
+    )
+    margin: int = checked(6, int_field(0))
+    max_crop: int = checked(160, int_field(8, note=" pixels"))
+    max_reproj_error: float = checked(2.0, float_field(0, lo_open=True))
+    max_rel_depth: float = checked(0.01, float_field(0, lo_open=True))
+    min_consistent_views: int = checked(1, int_field(0))
+    min_instance_voxels: int = checked(8, int_field(0))
+    min_pixels: int = checked(16, int_field(0))
+    max_points: int = checked(20000, int_field(1))
+    max_upsample: int = checked(2, int_field(1))
+    planar: PlanarCompletionConfig | None = checked(
+        rule=instance_field(PlanarCompletionConfig, optional=True), default_factory=PlanarCompletionConfig
+    )
+    max_match_pixels: int | None = checked(2048, int_field(64, optional=True))
+    max_downsample: int = checked(4, lambda name, value: _DOWNSAMPLE(name, int_field()(name, value)))
+    depth_margin: tuple[float, float] = checked(
+        (0.5, 2.0), pair_field(_LENGTH, rule=lambda near, far: near <= 1 <= far, note="near <= 1 <= far")
+    )
+    fallback_depth_range: tuple[float, float] | None = checked(
+        None, pair_field(_LENGTH, optional=True, rule=lambda lo, hi: lo < hi, note="lo < hi")
+    )
+    min_depth: float | None = checked(None, float_field(0, lo_open=True, optional=True))
+    explained_alpha: float = checked(0.7, float_field(0, 1))
+    explained_tolerance: float = checked(0.05, float_field(0))
+    thin_points: bool = checked(True, bool_field())
+    thin_factor: float = checked(1.5, float_field(1))
+    whole_supports: bool = checked(True, bool_field())
+    seen_supports: bool = checked(True, bool_field())
+    match_padding: float | None = checked(4.0, float_field(1, optional=True))

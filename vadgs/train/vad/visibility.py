@@ -23,12 +23,12 @@ import torch.nn.functional as F
 from vadgs.checks import float_field
 from vadgs.data.cache import ByteCache
 from vadgs.geometry.camera import Cameras, invert_rigid
-from vadgs.geometry.ground import ground_frame, points_in_frame, sample_rows
+from vadgs.geometry.ground import ground_cells, ground_frame, points_in_frame, sample_rows
 from vadgs.geometry.voxel import PointChunk, VoxelGrid, voxelize, voxelize_chunks
 from vadgs.geometry.zbuffer import ZBufferConfig, rasterize_voxels
 from vadgs.select.covisibility import Covisibility
 from vadgs.train.vad.inputs import VisibilityInputs
-from vadgs.train.vad.instances import box_corners, derive_instance_map, ground_cells
+from vadgs.train.vad.instances import box_corners, derive_instance_map
 from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
 
 __all__ = [
@@ -121,6 +121,10 @@ class VisibilityIndex:
 
     def cut_by_border_views(self, views: Sequence[int], instance: int) -> list[bool]:
         """:meth:`cut_by_border` of each of ``views``, in one host read (views of a size batched)."""
+        return [bool(f) for f in self.border_cuts(views, instance).tolist()] if len(views) else []
+
+    def border_cuts(self, views: Sequence[int], instance: int) -> torch.Tensor:
+        """``(len(views),)`` bool on the device: :meth:`cut_by_border` of each view (no read)."""
         by_size: dict[tuple[int, int], list[int]] = {}
         for k, v in enumerate(views):
             by_size.setdefault(self.size(v), []).append(k)
@@ -131,12 +135,11 @@ class VisibilityIndex:
             edges = torch.cat([m[:, 0], m[:, -1], m[:, :, 0], m[:, :, -1]], 1)  # (n, 2w + 2h)
             parts.append(edges.any(1))
             order += ks
+        dev = self.cameras.K.device
         if not parts:
-            return []
-        flags = torch.cat(parts).tolist()
-        out = [False] * len(views)
-        for k, f in zip(order, flags):
-            out[k] = bool(f)
+            return torch.zeros(0, dtype=torch.bool, device=dev)
+        out = torch.zeros(len(views), dtype=torch.bool, device=parts[0].device)
+        out[torch.tensor(order, device=out.device)] = torch.cat(parts)
         return out
 
     def valid(self, view: int) -> torch.Tensor:
@@ -195,9 +198,9 @@ class VisibilityIndex:
     def cell_ids(self) -> torch.Tensor:
         """``(M,)`` derived instance id of each static voxel: its ``cell_size`` ground cell.
 
-        The cells are :func:`ground_cells` of the voxel centres in the static grid's ground frame
-        (:meth:`ground_frame`): they move with the scene, so a rotated, shifted or rescaled copy of
-        it (gsplat's Parser normalisation) is cut into the same cells.
+        The cells are :func:`~vadgs.geometry.ground.ground_cells` of the voxel centres in the static
+        grid's ground frame (:meth:`ground_frame`): they move with the scene, so a rotated, shifted or
+        rescaled copy of it (gsplat's Parser normalisation) is cut into the same cells.
         """
         if self._cells is None:
             eye = torch.eye(3, dtype=torch.float64, device=self.grid.centers.device)
