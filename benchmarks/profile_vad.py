@@ -6,7 +6,7 @@
 
 ``event``: the event's seconds and the cumulative time of its ``plan_matches``, ``match_plans`` and
 ``finish_match`` (a reconstruction in three parts over the event's pairs), ``patchmatch`` and its
-``_costs`` (``_view_costs`` before issue 48). ``step``: after 40 steps (every training
+``match_costs`` (``_view_costs`` before issue 48). ``step``: after 40 steps (every training
 view's voxel maps cached), the aten calls a step makes (torch.profiler) and the reads of tensor
 values by the host (``bool``, ``int``, ``float``, ``item``, ``tolist``: a synchronisation each on a
 GPU) by the vadgs file and line that asks for them (docs/benchmarks.md, "The GPU check").
@@ -47,7 +47,7 @@ def event() -> None:
     seconds = time.perf_counter() - t
     print(f"event {seconds:.2f} s, {ev['attempted']} instances attempted, {ev['added']} added")
     stats = pstats.Stats(prof).stats
-    for name in ("plan_matches", "match_plans", "finish_match", "patchmatch", "_costs"):
+    for name in ("plan_matches", "match_plans", "finish_match", "patchmatch", "match_costs"):
         rows = [(v[1], v[3]) for k, v in stats.items() if k[2] == name]
         calls, cum = sum(r[0] for r in rows), sum(r[1] for r in rows)
         print(f"  {name:22s} {calls:5d} calls  {cum:6.2f} s cumulative")

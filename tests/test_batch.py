@@ -92,9 +92,9 @@ class TestBatchConfig:
 
     def test_train_args_are_parsed_in_the_driver(self, scenes, tmp_path, capsys):
         root, train_args = scenes
-        from vadgs.cli.train import _batch_train
+        from vadgs.cli.train import batch_train_args
 
-        config, kind, options = _batch_train(" ".join(train_args) + " --vad --dgp --cameras a,b")
+        config, kind, options = batch_train_args(" ".join(train_args) + " --vad --dgp --cameras a,b")
         # the config file sets part of the schedule: not scaled to the 60 iterations (vadgs train's rule)
         assert config == TrainConfig.from_dict({**TINY, "vad": {}})
         assert (kind, options) == ("dgp", {"scale": 0.25, "cameras": ["a", "b"]})

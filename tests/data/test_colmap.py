@@ -29,7 +29,7 @@ def _look_at(center: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.concatenate([R, -R @ center[:, None]], axis=1)
 
 
-def _synthetic_model(
+def synthetic_model(
     root: Path,
     model: str = "PINHOLE",
     params: list[float] | None = None,
@@ -78,7 +78,7 @@ def _reprojection(scene: Scene, points: ColmapPoints) -> torch.Tensor:
 
 class TestLoadColmap:
     def test_smoke(self, tmp_path):
-        _synthetic_model(tmp_path / "sparse" / "0")
+        synthetic_model(tmp_path / "sparse" / "0")
         out = load_colmap(tmp_path / "sparse" / "0")
         assert isinstance(out, ColmapScene)
         scene, points = out
@@ -89,7 +89,7 @@ class TestLoadColmap:
         assert repr(scene) == f"Scene({tmp_path.name!r}, 4 photos, 1 camera, 40 SfM points, scale=1.0)"
 
     def test_cardinality(self, tmp_path):
-        _synthetic_model(tmp_path / "m")
+        synthetic_model(tmp_path / "m")
         scene, points = load_colmap(tmp_path / "m")
         assert scene.num_views == 4 and len(scene.frames) == 4
         assert scene.camera_names == ["camera_1"]
@@ -103,7 +103,7 @@ class TestLoadColmap:
         assert points.point_views[0] is points.point_idx
 
     def test_intrinsics_pixel_offset(self, tmp_path):
-        _synthetic_model(tmp_path / "m", params=[70.0, 72.0, 41.0, 29.0])
+        synthetic_model(tmp_path / "m", params=[70.0, 72.0, 41.0, 29.0])
         scene, _ = load_colmap(tmp_path / "m")
         K = scene.cameras_info["camera_1"].K
         # COLMAP pixel centres are at +0.5: vadgs cx = cx_colmap - 0.5
@@ -115,7 +115,7 @@ class TestLoadColmap:
         assert K[0, 2].item() == (W - 1) / 2 and K[1, 2].item() == (H - 1) / 2
 
     def test_poses_points_tracks_exact(self, tmp_path):
-        syn = _synthetic_model(tmp_path / "m")
+        syn = synthetic_model(tmp_path / "m")
         scene, points = load_colmap(tmp_path / "m")
         for v in scene.views:
             name = f"img_{v.frame:02d}.png"
@@ -135,7 +135,7 @@ class TestLoadColmap:
         assert got == want_pairs
 
     def test_reprojection_matches_observations(self, tmp_path):
-        _synthetic_model(tmp_path / "m", params=[70.0, 72.0, 41.0, 29.0])
+        synthetic_model(tmp_path / "m", params=[70.0, 72.0, 41.0, 29.0])
         scene, points = load_colmap(tmp_path / "m")
         err = _reprojection(scene, points)
         assert err.max() < 1e-3
@@ -147,7 +147,7 @@ class TestLoadColmap:
         assert ((uv[:, 0] - points.uv).norm(dim=-1) - 0.5**0.5).abs().max() < 1e-3
 
     def test_rescale(self, tmp_path):
-        _synthetic_model(tmp_path / "m", params=[70.0, 72.0, 41.0, 29.0])
+        synthetic_model(tmp_path / "m", params=[70.0, 72.0, 41.0, 29.0])
         full, _ = load_colmap(tmp_path / "m")
         half, points = load_colmap(tmp_path / "m", scale=0.5)
         assert half.image_size(0) == (H // 2, W // 2)
@@ -157,7 +157,7 @@ class TestLoadColmap:
         assert _reprojection(half, points).max() < 1e-3
 
     def test_text_model(self, tmp_path):
-        syn = _synthetic_model(tmp_path / "bin")
+        syn = synthetic_model(tmp_path / "bin")
         (tmp_path / "txt").mkdir()
         syn["rec"].write_text(str(tmp_path / "txt"))
         _, pa = load_colmap(tmp_path / "bin")
@@ -166,7 +166,7 @@ class TestLoadColmap:
         assert torch.equal(pa.view_idx, pb.view_idx) and torch.equal(pa.point_idx, pb.point_idx)
 
     def test_images_dir(self, tmp_path):
-        _synthetic_model(tmp_path / "proj" / "sparse" / "0")
+        synthetic_model(tmp_path / "proj" / "sparse" / "0")
         images = tmp_path / "proj" / "images"
         images.mkdir()
         from PIL import Image
@@ -217,13 +217,13 @@ class TestLoadColmap:
         assert points.points.shape == (0, 3) and points.point_idx.shape == (0,)
 
     def test_distortion_warns(self, tmp_path):
-        _synthetic_model(tmp_path / "m", model="OPENCV", params=[70.0, 70.0, 40.0, 30.0, 0.1, 0.0, 0.0, 0.0])
+        synthetic_model(tmp_path / "m", model="OPENCV", params=[70.0, 70.0, 40.0, 30.0, 0.1, 0.0, 0.0, 0.0])
         with pytest.warns(UserWarning, match="IGNORES the distortion"):
             scene, _ = load_colmap(tmp_path / "m")
         torch.testing.assert_close(scene.cameras_info["camera_1"].K[0, 2], torch.tensor(39.5))
 
     def test_undistorted_radial_does_not_warn(self, tmp_path):
-        _synthetic_model(tmp_path / "m", model="SIMPLE_RADIAL", params=[70.0, 40.0, 30.0, 0.0])
+        synthetic_model(tmp_path / "m", model="SIMPLE_RADIAL", params=[70.0, 40.0, 30.0, 0.0])
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             load_colmap(tmp_path / "m")
@@ -231,7 +231,7 @@ class TestLoadColmap:
     def test_exception(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no COLMAP model"):
             load_colmap(tmp_path)
-        _synthetic_model(tmp_path / "m")
+        synthetic_model(tmp_path / "m")
         with pytest.raises(ValueError, match="scale"):
             load_colmap(tmp_path / "m", scale=0)
         with pytest.raises(FileNotFoundError, match="images_dir"):
@@ -239,7 +239,7 @@ class TestLoadColmap:
         (tmp_path / "imgs").mkdir()
         with pytest.raises(FileNotFoundError, match="4 registered image"):
             load_colmap(tmp_path / "m", images_dir=tmp_path / "imgs")
-        _synthetic_model(tmp_path / "fish", model="OPENCV_FISHEYE")
+        synthetic_model(tmp_path / "fish", model="OPENCV_FISHEYE")
         with pytest.raises(ValueError, match="unsupported COLMAP camera model OPENCV_FISHEYE"):
             load_colmap(tmp_path / "fish")
         (tmp_path / "bad").mkdir()

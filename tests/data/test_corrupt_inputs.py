@@ -19,7 +19,7 @@ import torch
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 
-from tests.data.test_waymo import N_FRAMES, RI_W, SEG, T0_US, _write_waymo  # noqa: E402
+from tests.data.test_waymo import N_FRAMES, RI_W, SEG, T0_US, write_waymo  # noqa: E402
 from vadgs.data import load_waymo, validate_scene  # noqa: E402
 from vadgs.data.waymo_lidar import (  # noqa: E402
     WAYMO_MAX_RANGE_M,
@@ -54,7 +54,7 @@ def _all_lidar(root: Path) -> list[torch.Tensor]:
 def wod(tmp_path):
     """The test segment of ``test_waymo`` (7 frames, one return per frame)."""
     root = tmp_path / "training"
-    _write_waymo(root)
+    write_waymo(root)
     return root
 
 
@@ -62,7 +62,7 @@ def wod(tmp_path):
 def wod_pose(tmp_path):
     """The test segment with a ``lidar_pose`` component (per-pixel vehicle poses)."""
     root = tmp_path / "training"
-    _write_waymo(root, lidar_pose_shift=0.3)
+    write_waymo(root, lidar_pose_shift=0.3)
     return root
 
 
@@ -171,7 +171,7 @@ class TestCorruptWaymo:
             _all_lidar(wod)
         for comp in ("vehicle_pose", "camera_calibration", "camera_image", "lidar_calibration", "lidar_box"):
             root = wod.parent / f"t_{comp}"
-            _write_waymo(root)
+            write_waymo(root)
             other = root / comp / f"{SEG}.parquet"
             other.write_bytes(other.read_bytes()[: len(other.read_bytes()) // 2])
             with pytest.raises(ValueError, match=rf"^{re.escape(str(other))}: not a readable parquet file"):
@@ -296,7 +296,7 @@ class TestCheckFullLidar:
     def test_loader_lidar_decoded(self, tmp_path):
         """A loaded Waymo scene (LiDAR read from the parquet files): ``full`` decodes it."""
         root = tmp_path / "training"
-        _write_waymo(root)
+        write_waymo(root)
         scene = load_waymo(root, SEG)
         report = validate_scene(scene, full=True)
         assert report.ok and sum(r.item.startswith("lidar (frame") for r in report.rows) == 0
@@ -334,9 +334,9 @@ class TestCorruptNuScenes:
 
     @pytest.fixture
     def nus(self, tmp_path):
-        from tests.data.test_nuscenes import _write_nuscenes
+        from tests.data.test_nuscenes import write_nuscenes
 
-        _write_nuscenes(tmp_path / "nuscenes")
+        write_nuscenes(tmp_path / "nuscenes")
         return tmp_path / "nuscenes"
 
     def _lidar(self, root: Path):
@@ -377,9 +377,9 @@ class TestCorruptDgp:
 
     @pytest.fixture
     def dgp(self, tmp_path):
-        from tests.data.test_dgp import _write_dgp
+        from tests.data.test_dgp import write_dgp
 
-        _write_dgp(tmp_path / "dgp")
+        write_dgp(tmp_path / "dgp")
         return tmp_path / "dgp"
 
     def _lidar(self, root: Path):
@@ -439,10 +439,10 @@ class TestCorruptDgp:
 class TestCorruptColmap:
     def test_non_finite_point(self, tmp_path):
         pytest.importorskip("pycolmap")
-        from tests.data.test_colmap import _synthetic_model
+        from tests.data.test_colmap import synthetic_model
         from vadgs.data import load_colmap
 
-        _synthetic_model(tmp_path / "m")
+        synthetic_model(tmp_path / "m")
         path = tmp_path / "m" / "points3D.bin"
         data = bytearray(path.read_bytes())
         # uint64 count, then the first point: uint64 id, 3 float64 x y z
@@ -457,10 +457,10 @@ class TestCorruptColmap:
     @pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
     def test_empty_file(self, tmp_path, name):
         pytest.importorskip("pycolmap")
-        from tests.data.test_colmap import _synthetic_model
+        from tests.data.test_colmap import synthetic_model
         from vadgs.data import load_colmap
 
-        _synthetic_model(tmp_path / "m")
+        synthetic_model(tmp_path / "m")
         (tmp_path / "m" / name).write_bytes(b"")
         with pytest.raises(ValueError, match=re.escape(str(tmp_path / "m" / name))):
             load_colmap(tmp_path / "m")

@@ -58,7 +58,7 @@ CAM_IN_EGO = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
 W_IMG, H_IMG = 16, 12
 
 
-def _write_dgp(root: Path) -> dict:
+def write_dgp(root: Path) -> dict:
     """Two samples, one camera, one LiDAR (non-identity extrinsics), one moving box, one parked."""
     root.mkdir(parents=True)
     for sub in ("calibration", "ontology", "rgb/CAM", "point_cloud/LIDAR", "bounding_box_3d/LIDAR"):
@@ -186,13 +186,13 @@ class TestPointsInBoxes:
 
 class TestLoadDgpSynthetic:
     def test_smoke(self, tmp_path):
-        _write_dgp(tmp_path / "s")
+        write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s")
         assert isinstance(scene, Scene) and scene.num_views == 2 and scene.camera_names == ["CAM"]
         assert load_dgp(tmp_path / "s" / "scene_abc.json").num_views == 2
 
     def test_frames_and_poses(self, tmp_path):
-        syn = _write_dgp(tmp_path / "s")
+        syn = write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s", recenter=False)
         for fi in range(2):
             e2w = torch.from_numpy(syn["ego"][fi]).float()
@@ -206,7 +206,7 @@ class TestLoadDgpSynthetic:
         assert scene.views[0].timestamp == pytest.approx(-0.1)
 
     def test_recenter(self, tmp_path):
-        syn = _write_dgp(tmp_path / "s")
+        syn = write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s")
         torch.testing.assert_close(scene.frames[0].ego_to_world[:3, 3], torch.zeros(3))
         lid = scene.lidar(1)
@@ -217,7 +217,7 @@ class TestLoadDgpSynthetic:
         torch.testing.assert_close(lid.origin, torch.from_numpy(want_origin).float())
 
     def test_intrinsics_and_scale(self, tmp_path):
-        _write_dgp(tmp_path / "s")
+        write_dgp(tmp_path / "s")
         full = load_dgp(tmp_path / "s")
         torch.testing.assert_close(
             full.cameras_info["CAM"].K, torch.tensor([[20.0, 0, 7.5], [0, 21.0, 5.5], [0, 0, 1]])
@@ -235,7 +235,7 @@ class TestLoadDgpSynthetic:
         """A calibration with OpenCV distortion: pinhole K, images remapped as cv2 would."""
         cv2 = pytest.importorskip("cv2")
         root = tmp_path / "s"
-        _write_dgp(root)
+        write_dgp(root)
         cal_path = root / "calibration" / "c0.json"
         cal = json.loads(cal_path.read_text())
         dist = {"k1": 0.12, "k2": -0.03, "p1": 0.004, "p2": -0.002, "k3": 0.0, "fov": 60.0}
@@ -265,7 +265,7 @@ class TestLoadDgpSynthetic:
 
     def test_other_camera_models_are_refused(self, tmp_path):
         root = tmp_path / "s"
-        _write_dgp(root)
+        write_dgp(root)
         cal_path = root / "calibration" / "c0.json"
         cal = json.loads(cal_path.read_text())
         cal["intrinsics"][1].update({"fisheye": 1, "xi": 0.5})
@@ -274,7 +274,7 @@ class TestLoadDgpSynthetic:
             load_dgp(root)
 
     def test_lidar_lands_in_camera(self, tmp_path):
-        syn = _write_dgp(tmp_path / "s")
+        syn = write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s")
         cams = scene.cameras([0])
         uv, z = project_points(scene.lidar(0).points[None], cams.K, cams.world_to_cam)
@@ -289,7 +289,7 @@ class TestLoadDgpSynthetic:
         )
 
     def test_tracks_and_instances(self, tmp_path):
-        syn = _write_dgp(tmp_path / "s")
+        syn = write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s", recenter=False)
         assert sorted(scene.tracks) == [7, 9]
         assert scene.classes() == {7: "car", 9: "bus_rv_caravan"}
@@ -306,13 +306,13 @@ class TestLoadDgpSynthetic:
         assert scene.lidar(1).instance.tolist() == [0, 0, 0]  # the car moved on by 4 m
 
     def test_split(self, tmp_path):
-        _write_dgp(tmp_path / "s")
+        write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s", test_frames=[1])
         assert scene.train_frames == [0] and scene.test_frames == [1]
         assert scene.train_views == [0] and scene.test_views == [1]
 
     def test_no_lidar(self, tmp_path):
-        _write_dgp(tmp_path / "s")
+        write_dgp(tmp_path / "s")
         scene = load_dgp(tmp_path / "s", lidar=None)
         assert scene.lidar_loader is None and scene.tracks == {}
         with pytest.raises(FileNotFoundError, match="no LiDAR"):
@@ -324,7 +324,7 @@ class TestLoadDgpSynthetic:
         (tmp_path / "empty").mkdir()
         with pytest.raises(FileNotFoundError, match="no scene"):
             load_dgp(tmp_path / "empty")
-        _write_dgp(tmp_path / "s")
+        write_dgp(tmp_path / "s")
         with pytest.raises(ValueError, match="unknown camera 'CAMERA_99'"):
             load_dgp(tmp_path / "s", cameras=["CAMERA_99"])
         with pytest.raises(ValueError, match="lidar: unknown sensor"):
@@ -337,7 +337,7 @@ class TestLoadDgpSynthetic:
     def test_broken_files(self, tmp_path):
         def broken(name: str, edit) -> Path:
             root = tmp_path / name
-            _write_dgp(root)
+            write_dgp(root)
             edit(root)
             return root
 

@@ -180,12 +180,12 @@ class TestModes:
             decode_image(data[:100], "waymo x")
         im = Image.new("RGB", (2, 2))
         im._mode = "I;16S"  # a mode PIL opens but vadgs does not read
-        from vadgs.data.images import _as_rgb
+        from vadgs.data.images import as_rgb
 
         with pytest.raises(
             ValueError, match=r"x\.png: image mode 'I;16S' is not read; expected one of 1, L, P"
         ):
-            _as_rgb(im, "x.png")
+            as_rgb(im, "x.png")
         assert "I;16" in SUPPORTED_MODES and "CMYK" in SUPPORTED_MODES
 
 

@@ -55,7 +55,7 @@ CAM_DT = {"CAM_FRONT": -0.012, "CAM_BACK": 0.03}  # each camera fires off the Li
 BOX_CAM = (3, "CAM_FRONT")  # (frame, camera) where the moving car sits 10 m ahead, aligned
 
 
-def _write_nuscenes(root: Path, version: str = "v1.0-mini") -> dict:
+def write_nuscenes(root: Path, version: str = "v1.0-mini") -> dict:
     """7 keyframes, LIDAR_TOP + CAM_FRONT + CAM_BACK, a moving car, a parked car, a pedestrian."""
     meta = root / version
     meta.mkdir(parents=True)
@@ -215,7 +215,7 @@ def _write_nuscenes(root: Path, version: str = "v1.0-mini") -> dict:
 
 @pytest.fixture
 def nus(tmp_path):
-    syn = _write_nuscenes(tmp_path / "nuscenes")
+    syn = write_nuscenes(tmp_path / "nuscenes")
     return tmp_path / "nuscenes", syn
 
 

@@ -16,7 +16,7 @@ from vadgs.cli import main
 from vadgs.data import open_colmap_project
 from vadgs.data.colmap_model import colmap_world_to_cam
 from vadgs.data.photos import find_photos, photo_groups
-from vadgs.data.sfm import _sequential_pairs, run_sfm
+from vadgs.data.sfm import run_sfm, sequential_pairs
 from vadgs.train.scenes import scene_ref
 
 from .photo_sample import SIDEWAYS, photo_cameras, write_photo_set
@@ -298,7 +298,7 @@ class TestBadInput:
             (tmp_path / name).parent.mkdir(exist_ok=True)
             Image.new("RGB", size).save(tmp_path / name)
         (tmp_path / ".hidden.png").write_bytes(b"")
-        assert _sequential_pairs("abcd", 2) == [("a", "b"), ("a", "c"), ("b", "c"), ("b", "d"), ("c", "d")]
+        assert sequential_pairs("abcd", 2) == [("a", "b"), ("a", "c"), ("b", "c"), ("b", "d"), ("c", "d")]
         names = find_photos(tmp_path)
         assert names == ["a.png", "b.png", "sub/c.jpg"]
         assert photo_groups(tmp_path, names) == [["a.png", "b.png"], ["sub/c.jpg"]]

@@ -37,7 +37,7 @@ INCL = [-0.2, 0.0, 0.1]  # calibration order (lowest first); range-image rows ar
 RI_W = 9  # column 4 of 9 looks straight ahead in the vehicle frame (azimuth 0 after the yaw)
 
 
-def _rigid(yaw: float, t) -> np.ndarray:
+def rigid(yaw: float, t) -> np.ndarray:
     out = np.eye(4)
     c, s = math.cos(yaw), math.sin(yaw)
     out[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
@@ -47,16 +47,16 @@ def _rigid(yaw: float, t) -> np.ndarray:
 
 def _ego(f: int, dx: float = 0.0) -> np.ndarray:
     """Vehicle → global at frame f (10 m/s along YAW), shifted by dx metres along the heading."""
-    return _rigid(YAW, GLOBAL + (f + dx) * np.array([math.cos(YAW), math.sin(YAW), 0.0]))
+    return rigid(YAW, GLOBAL + (f + dx) * np.array([math.cos(YAW), math.sin(YAW), 0.0]))
 
 
 def _moving_world(f: int) -> np.ndarray:
     """The moving car: 10 m ahead of the FRONT camera at frame 3, then 15 m/s along YAW."""
-    return _ego(3) @ _rigid(0.0, (11.5 + 1.5 * (f - 3), 0.0, 1.5))
+    return _ego(3) @ rigid(0.0, (11.5 + 1.5 * (f - 3), 0.0, 1.5))
 
 
-PARKED_WORLD = _rigid(YAW + 1.0, GLOBAL + np.array([5.0, 9.0, 1.0]))
-SIGN_WORLD = _rigid(YAW, GLOBAL + np.array([12.0, -3.0, 2.5]))
+PARKED_WORLD = rigid(YAW + 1.0, GLOBAL + np.array([5.0, 9.0, 1.0]))
+SIGN_WORLD = rigid(YAW, GLOBAL + np.array([12.0, -3.0, 2.5]))
 
 
 def _range(f: int) -> float:
@@ -74,7 +74,7 @@ def _write(root: Path, table: dict, component: str) -> None:
     pq.write_table(pa.table(table), root / component / f"{SEG}.parquet")
 
 
-def _write_waymo(root: Path, distortion: float = 0.0, lidar_pose_shift: float | None = None) -> None:
+def write_waymo(root: Path, distortion: float = 0.0, lidar_pose_shift: float | None = None) -> None:
     """7 frames, FRONT + SIDE_LEFT, the TOP laser, a moving car, a parked car, a sign."""
     ts = [T0_US + 100_000 * f for f in range(N_FRAMES)]
     seg = [SEG] * N_FRAMES
@@ -95,7 +95,7 @@ def _write_waymo(root: Path, distortion: float = 0.0, lidar_pose_shift: float | 
     for k in ("k1", "k2", "p1", "p2", "k3"):
         cal[f"[CameraCalibrationComponent].intrinsic.{k}"] = [0.0, distortion if k == "k1" else 0.0]
     cal["[CameraCalibrationComponent].extrinsic.transform"] = [
-        _rigid(*c[0]).ravel().tolist() for c in CAMS.values()
+        rigid(*c[0]).ravel().tolist() for c in CAMS.values()
     ]
     cal["[CameraCalibrationComponent].width"] = pa.array([c[5] for c in CAMS.values()], pa.int32())
     cal["[CameraCalibrationComponent].height"] = pa.array([c[6] for c in CAMS.values()], pa.int32())
@@ -121,7 +121,7 @@ def _write_waymo(root: Path, distortion: float = 0.0, lidar_pose_shift: float | 
         {
             "key.segment_context_name": [SEG],
             "key.laser_name": pa.array([1], pa.int8()),
-            "[LiDARCalibrationComponent].extrinsic.transform": [_rigid(*LIDAR_EXT).ravel().tolist()],
+            "[LiDARCalibrationComponent].extrinsic.transform": [rigid(*LIDAR_EXT).ravel().tolist()],
             "[LiDARCalibrationComponent].beam_inclination.min": [INCL[0]],
             "[LiDARCalibrationComponent].beam_inclination.max": [INCL[-1]],
             "[LiDARCalibrationComponent].beam_inclination.values": [INCL],
@@ -191,7 +191,7 @@ def _write_waymo(root: Path, distortion: float = 0.0, lidar_pose_shift: float | 
 @pytest.fixture
 def wod(tmp_path):
     root = tmp_path / "training"
-    _write_waymo(root)
+    write_waymo(root)
     return root
 
 
@@ -206,7 +206,7 @@ class TestRangeImage:
         ranges = np.zeros((3, RI_W))
         ranges[1, 4] = 10.0  # straight ahead of the vehicle (the extrinsic's yaw is corrected)
         ranges[0, 0] = 5.0  # top row (0.1 rad up), first column: azimuth π - yaw in the LiDAR frame
-        ext = _rigid(*LIDAR_EXT)
+        ext = rigid(*LIDAR_EXT)
         pts = waymo_range_image_to_points(ranges, ext, np.array([0.1, 0.0, -0.2]))
         np.testing.assert_allclose(pts[1], [11.5, 0.0, 2.0], atol=1e-9)
         az = (2 * (RI_W - 0.5) / RI_W - 1) * math.pi  # in the vehicle frame
@@ -243,7 +243,7 @@ class TestLoadWaymo:
             c2w[:3, 2], torch.tensor([-math.sin(YAW), math.cos(YAW), 0.0]), atol=1e-6, rtol=0
         )
         torch.testing.assert_close(c2w[:3, 1], torch.tensor([0.0, 0.0, -1.0]), atol=1e-6, rtol=0)  # y down
-        want = (_ego(2, CAM_DX[4]) @ _rigid(*CAMS[4][0]))[:3, 3]
+        want = (_ego(2, CAM_DX[4]) @ rigid(*CAMS[4][0]))[:3, 3]
         torch.testing.assert_close(c2w[:3, 3].double(), torch.from_numpy(want), atol=1e-3, rtol=0)
         assert scene.views[scene.view_id(2, "FRONT")].timestamp == pytest.approx(0.205, abs=1e-6)
         rec = load_waymo(wod, SEG)
@@ -273,14 +273,14 @@ class TestLoadWaymo:
             assert float((uv[0, 0] - want).abs().max()) < 0.01
             torch.testing.assert_close(
                 lid.origin.double(),
-                torch.from_numpy((_ego(1) @ _rigid(*LIDAR_EXT))[:3, 3] - GLOBAL),
+                torch.from_numpy((_ego(1) @ rigid(*LIDAR_EXT))[:3, 3] - GLOBAL),
                 atol=1e-3,
                 rtol=0,
             )
 
     def test_lidar_pixel_pose(self, tmp_path):
         root = tmp_path / "training"
-        _write_waymo(root, lidar_pose_shift=0.3)
+        write_waymo(root, lidar_pose_shift=0.3)
         got = load_waymo(root, SEG).lidar(1).points[0].double()
         want = (_ego(1, 0.3) @ np.array([21.5, 0.0, 2.0, 1.0]))[:3] - GLOBAL
         torch.testing.assert_close(got, torch.from_numpy(want), atol=1e-3, rtol=0)
@@ -339,7 +339,7 @@ class TestLoadWaymo:
         """A distorted camera gets the pinhole K of its undistorted image; a world point lands on the
         pixel that the distortion model, applied by hand, maps to the raw pixel it projects to."""
         root = tmp_path / "training"
-        _write_waymo(root, distortion=0.1)  # SIDE_LEFT: k1 = 0.1 (pincushion), FRONT: none
+        write_waymo(root, distortion=0.1)  # SIDE_LEFT: k1 = 0.1 (pincushion), FRONT: none
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             scene = load_waymo(root, SEG)

@@ -17,7 +17,7 @@ pytest.importorskip("embreex")  # make_segment's ray caster
 
 from scipy.spatial import cKDTree  # noqa: E402
 
-from tests.data.test_waymo import _rigid  # noqa: E402  (pyarrow is required by both)
+from tests.data.test_waymo import rigid  # noqa: E402  (pyarrow is required by both)
 from vadgs.data import SegmentConfig, load_scene, load_waymo, make_segment  # noqa: E402
 from vadgs.data.waymo_lidar import (  # noqa: E402
     waymo_beam_inclinations,
@@ -237,7 +237,7 @@ def _points_to_range_image_naive(points, extrinsic, row_inclination, width):
 
 
 class TestPointsToRangeImage:
-    EXT = _rigid(0.3, (1.5, 0.2, 2.0))
+    EXT = rigid(0.3, (1.5, 0.2, 2.0))
     INCL = waymo_beam_inclinations(6, -0.3, 0.1)
 
     def _beam_points(self, n, seed=0):
@@ -249,7 +249,7 @@ class TestPointsToRangeImage:
 
     def test_smoke(self):
         # 10 m straight ahead of the LiDAR (yaw 0.3, 1.5 m forward, 2 m up): column 4 of 9 looks ahead
-        ext = _rigid(0.3, (1.5, 0.0, 2.0))
+        ext = rigid(0.3, (1.5, 0.0, 2.0))
         ranges = waymo_points_to_range_image(np.array([[11.5, 0.0, 2.0]]), ext, np.array([0.0]), 9)
         assert ranges.shape == (1, 9) and ranges[0, 4] == pytest.approx(10.0)
         assert (np.delete(ranges, 4) == -1).all()

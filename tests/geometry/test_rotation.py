@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from torch.autograd import gradcheck
 
 from vadgs.checks import checking
-from vadgs.geometry import quat_multiply, quaternion_to_rotation, rotation_to_quat
+from vadgs.geometry import normals_to_quats, quat_multiply, quaternion_to_rotation, rotation_to_quat
 
 
 def random_quats(n: int, seed: int = 0, dtype=torch.float64, scale: float = 3.0) -> torch.Tensor:
@@ -156,3 +156,10 @@ class TestQuatMultiply:
     def test_gradcheck(self):
         a, b = random_quats(3, seed=13).requires_grad_(), random_quats(3, seed=14).requires_grad_()
         assert gradcheck(quat_multiply, (a, b))
+
+
+class TestNormalsToQuats:
+    def test_third_axis_is_the_normal(self):
+        n = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+        R = quaternion_to_rotation(normals_to_quats(n))
+        assert torch.allclose(R[:, :, 2], n, atol=1e-5)

@@ -24,7 +24,7 @@ from vadgs.mvs import (
     propagation_regions,
     reference_patches,
 )
-from vadgs.mvs.patchmatch import _map_tables, _Pixels, _window_maps
+from vadgs.mvs.patchmatch import MatchPixels, map_tables, window_maps
 
 from .mvs_scenes import plane_scene, texture
 
@@ -61,10 +61,10 @@ class TestPlaneWarp:
         norm = torch.tensor([[2 / (w - 1), 0, -1], [0, 2 / (h - 1), -1], [0, 0, 1]])
         A = norm @ sc.src_K @ src_from_ref[..., :3, :3] @ torch.linalg.inv(K)[:, None]
         b = (norm @ sc.src_K @ src_from_ref[..., :3, 3:]).squeeze(-1)
-        cols, rows = _map_tables(A, torch.linalg.inv(K), pix, rays)
+        cols, rows = map_tables(A, torch.linalg.inv(K), pix, rays)
         src = types.SimpleNamespace(b=b)
         hyp = torch.cat([depth[..., None], normal], -1)[:, None]  # (1, K=1, P, 4)
-        C, nr = _window_maps(src, _Pixels(idx, rays, cols, rows, None), hyp)
+        C, nr = window_maps(src, MatchPixels(idx, rays, cols, rows, None), hyp)
         assert (nr < -1e-6).all()
         off = torch.tensor([[0.0, 0.0], [3.0, -2.0], [-5.0, 5.0]])
         for j in range(v):

@@ -21,7 +21,7 @@ from vadgs.mvs import (
     reference_patch_stats,
     reference_patches,
 )
-from vadgs.mvs.patchmatch import _costs, _map_tables, _Pixels, _Sources
+from vadgs.mvs.patchmatch import MatchPixels, MatchSources, map_tables, match_costs
 
 from ..launch_count import LaunchCounter
 from .mvs_scenes import plane_scene
@@ -128,11 +128,11 @@ def test_batched_costs_match_the_naive_reference(slanted_scene):
     ref = reference_patches(sc.image, off)[:, :, idx]  # (1, S, P)
     wts = bilateral_weights(ref, off, 3.0, 0.2, dim=1)
     st = reference_patch_stats(ref, wts)
-    cols, rows = _map_tables(A, Kinv, pix, rays)
-    px = _Pixels(idx, rays, cols, rows, torch.stack([st.weights * st.valid[:, None], st.normalized], 1))
+    cols, rows = map_tables(A, Kinv, pix, rays)
+    px = MatchPixels(idx, rays, cols, rows, torch.stack([st.weights * st.valid[:, None], st.normalized], 1))
     gray = sc.src_images.reshape(v, 1, h, w)
     one, zero = torch.tensor(1.0), torch.tensor(0.0)
-    src = _Sources(
+    src = MatchSources(
         gray, None, b, torch.nn.functional.pad(off, (0, 1), value=1.0).expand(v, -1, -1), one, zero
     )
     # K = 3 hypotheses per pixel: the true plane, a perturbed one, a random one
@@ -146,7 +146,7 @@ def test_batched_costs_match_the_naive_reference(slanted_scene):
     normals = torch.stack([n_true, n_pert, n_rand], 1)
     hyp = torch.cat([depths[..., None], normals], -1)  # (1, 3, P, 4)
     for chunk in (7, ONE_CHUNK):  # several chunks, and one
-        got, nr = _costs(src, px, hyp, 1e-5, chunk)  # (1, V, 3, P)
+        got, nr = match_costs(src, px, hyp, 1e-5, chunk)  # (1, V, 3, P)
         assert torch.allclose(nr, (normals * rays[:, None]).sum(-1), atol=1e-6)
         for k in range(3):
             dist = -depths[:, k] * (normals[:, k] * rays).sum(-1)

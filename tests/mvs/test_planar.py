@@ -204,14 +204,14 @@ def test_near_is_scipys_distance_transform_within_the_gap(max_gap):
     """The device dilation that replaced scipy's ``distance_transform_edt`` through ``.cpu()``."""
     from scipy import ndimage
 
-    from vadgs.mvs.planar import _near
+    from vadgs.mvs.planar import near_pixels
 
     g = torch.Generator().manual_seed(int(max_gap * 10))
     for density in (0.002, 0.02, 0.2):
         mask = torch.rand(37, 53, generator=g) < density
         mask[0, 0] = True  # at least one set pixel (the transform's zeros)
         edt = torch.from_numpy(ndimage.distance_transform_edt(~mask.numpy()))
-        assert torch.equal(_near(mask[None], max_gap)[0], edt <= max_gap)
+        assert torch.equal(near_pixels(mask[None], max_gap)[0], edt <= max_gap)
 
 
 def test_batch_fills_as_each_case_alone():

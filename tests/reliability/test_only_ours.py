@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from tests.reliability.conftest import TINY
-from tests.reliability.test_run_folder import _error, _tree
+from tests.reliability.test_run_folder import error_line, folder_tree
 from vadgs.cli import main
 from vadgs.runfolder import MANIFEST
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
@@ -35,11 +35,11 @@ def test_manifest_entry_outside_the_run_stops_overwrite(run, tmp_path, capsys, e
     victim.parent.mkdir(parents=True, exist_ok=True)
     victim.write_text("victim")
     _add_entry(run, entry)
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"{run / MANIFEST}: entry {entry!r}" in line and "nothing was removed" in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
     assert victim.read_text() == "victim"
     assert load_checkpoint(run).step == 2  # the old run is whole
 
@@ -48,11 +48,11 @@ def test_absolute_manifest_entry_stops_overwrite(run, tmp_path, capsys):
     victim = tmp_path / "victim.txt"
     victim.write_text("victim")
     _add_entry(run, str(victim))
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"entry {str(victim)!r} is an absolute path" in line and "nothing was removed" in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_manifest_entry_through_a_symlinked_folder_stops_overwrite(run, tmp_path, capsys):
@@ -61,12 +61,12 @@ def test_manifest_entry_through_a_symlinked_folder_stops_overwrite(run, tmp_path
     (user / "v.txt").write_text("victim")
     (run / "notes").symlink_to(user)  # a link the user made inside the run
     _add_entry(run, "notes/v.txt")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"entry 'notes/v.txt' passes through {run / 'notes'}, a symbolic link" in line
     assert str(run / MANIFEST) in line and "nothing was removed" in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 @pytest.mark.parametrize("damage", ["cut", "not_json", "other_format"])
@@ -77,14 +77,14 @@ def test_unreadable_manifest_stops_and_says_how_to_go_on(run, tmp_path, capsys, 
     path.write_text(
         {"cut": text[: len(text) // 2], "not_json": "\0\0", "other_format": '{"files": {}}'}[damage]
     )
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(run), *TINY, *overwrite]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert (
         f"{path}: unreadable" in line and "cannot tell which files" in line and "nothing was changed" in line
     )
     assert "give another folder" in line and "--overwrite" not in line and "--resume" not in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_overwrite_line_lists_what_it_removes_first(run, capsys):
@@ -122,34 +122,34 @@ def _foreign(kind: str, folder: Path) -> None:
 def test_another_tools_files_are_not_a_run(tmp_path, capsys, kind, flags):
     folder = tmp_path / "theirs"
     _foreign(kind, folder)
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", *([] if flags == ["--resume"] else ["--sample"]), "--out", str(folder), *TINY,
                  *flags]) == 2  # fmt: skip
-    line = _error(capsys)
+    line = error_line(capsys)
     if flags != ["--resume"]:
         names = {"metrics": "metrics.json", "checkpoint": CHECKPOINT_NAME, "config": "config.json"}
         assert f"holds {names.get(kind, 'log.jsonl')}, results.csv) nor a vadgs run folder" in line
     assert "--overwrite" not in line and "use --resume" not in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_resume_refuses_another_projects_checkpoint(tmp_path, capsys):
     folder = tmp_path / "theirs"
     _foreign("checkpoint", folder)
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--out", str(folder), "--resume", "--no-progress"]) == 2
-    assert "not a vadgs training checkpoint" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "not a vadgs training checkpoint" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_a_run_without_its_manifest_is_not_vadgs(run, tmp_path, capsys):
     """Nothing kept for compatibility (issue 50): vadgs knows its folders by their manifest only."""
     shutil.rmtree(run / ".vadgs")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     for flags in ([], ["--overwrite"]):
         assert main(["train", "--sample", "--out", str(run), *TINY, *flags]) == 2
-        assert "nor a vadgs run folder" in _error(capsys)
-    assert _tree(tmp_path) == before
+        assert "nor a vadgs run folder" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_another_projects_checkpoint_in_a_run_folder_is_not_written_over(run, tmp_path, capsys):
@@ -160,17 +160,17 @@ def test_another_projects_checkpoint_in_a_run_folder_is_not_written_over(run, tm
     del data["files"][CHECKPOINT_NAME]
     (run / MANIFEST).write_text(json.dumps(data))
     torch.save({"epoch": 3}, run / CHECKPOINT_NAME)  # another project's, put there
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
-    assert f"holds {CHECKPOINT_NAME} that vadgs did not write" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert f"holds {CHECKPOINT_NAME} that vadgs did not write" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_eval_of_a_users_metrics_folder_does_not_call_it_a_run(tmp_path, capsys):
     folder = tmp_path / "theirs"
     _foreign("metrics", folder)
     assert main(["eval", str(folder)]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert "finished run" not in line
 
 
@@ -181,11 +181,11 @@ def test_batch_recognises_its_summary_by_content(tmp_path, capsys):
     theirs = tmp_path / "theirs"
     theirs.mkdir()
     (theirs / "summary.json").write_text('{"acc": 0.93}')  # another tool's summary
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["batch", str(sample_scene_path()), "--out", str(theirs)]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert "holds summary.json) nor a vadgs batch folder" in line and "--overwrite" not in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
     ours = tmp_path / "ours"
     write_summary(BatchSummary(str(ours), (), 0.0))
@@ -227,13 +227,13 @@ def test_sfm_never_writes_into_a_colmap_project_made_elsewhere(photos, tmp_path,
     (project / "database.db").write_bytes(b"SQLite format 3\0")
     if sfm_json is not None:
         (project / "sfm.json").write_text(sfm_json)
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert _sfm(photos, project, *overwrite) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"--out {project}: holds a COLMAP project that vadgs sfm did not write" in line
     assert ("its sfm.json is not vadgs sfm's" if sfm_json else "no sfm.json of vadgs sfm") in line
     assert "--overwrite" not in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_sfm_overwrite_replaces_only_what_it_wrote_and_cleans_a_killed_runs_work(photos, tmp_path, capsys):
@@ -291,10 +291,12 @@ def test_sfm_project_without_its_format_is_not_vadgs(photos, tmp_path, capsys):
     for key in ("format", "images_written"):
         del summary[key]
     (project / "sfm.json").write_text(json.dumps(summary))
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert _sfm(photos, project, "--overwrite") == 2
-    assert "vadgs sfm never writes into it, its images/ least of all: nothing was changed" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "vadgs sfm never writes into it, its images/ least of all: nothing was changed" in error_line(
+        capsys
+    )
+    assert folder_tree(tmp_path) == before
 
 
 # -- make_segment: only what it wrote
@@ -321,7 +323,7 @@ def test_make_segment_refuses_a_folder_it_did_not_write(tmp_path, capsys, overwr
     (folder / "images").mkdir(parents=True)
     (folder / "images" / "holiday.jpg").write_text("jpeg")
     (folder / "scene.json").write_text('{"name": "my scene"}')  # another tool's scene
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     with pytest.raises(ValueError, match="not empty") as e:
         make_segment(folder, overwrite=overwrite, **SEG)
     assert "nor a segment that make_segment wrote" in str(e.value) and "overwrite" not in str(e.value)
@@ -332,7 +334,7 @@ def test_make_segment_refuses_a_folder_it_did_not_write(tmp_path, capsys, overwr
         "holds images, scene.json) nor a segment that make_segment wrote" in line
         and "--overwrite" not in line
     )
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_make_segment_overwrite_removes_only_what_it_wrote(tmp_path):
@@ -365,10 +367,10 @@ def test_make_segment_killed_is_still_its_own_and_a_users_file_in_the_way_is_ref
     data = json.loads((seg2 / MANIFEST).read_text())
     del data["files"]["lidar/000.npz"]  # a file of that name that it did not record
     (seg2 / MANIFEST).write_text(json.dumps(data))
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     with pytest.raises(ValueError, match=r"lidar/000\.npz is not a file make_segment wrote"):
         make_segment(seg2, overwrite=True, **SEG)
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 @pytest.mark.parametrize("command", ["export", "render"])
@@ -376,35 +378,35 @@ def test_make_segment_killed_is_still_its_own_and_a_users_file_in_the_way_is_ref
 def test_export_and_render_out_into_another_tools_folder_refused(run, tmp_path, capsys, command, kind):
     folder = tmp_path / "theirs"
     _foreign(kind, folder)  # a metrics.json / checkpoint.pt made vadgs take it for its own before
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     extra = ["--no-progress", "--views", "0"] if command == "render" else []
     assert main([command, str(run), "--out", str(folder), *extra]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert "already exists and is not an empty directory" in line and "nor a vadgs output folder" in line
     assert "--overwrite" not in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_eval_into_a_run_whose_manifest_is_unreadable_writes_nothing(run, tmp_path, capsys):
     (run / MANIFEST).write_text('{"format": "vadgs-folder-manifest", "files": {')  # cut short
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["eval", str(run), "--no-progress"]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"{run / MANIFEST}: unreadable" in line and "delete it yourself" in line
-    assert _tree(tmp_path) == before  # no eval.json written beside a manifest that cannot record it
+    assert folder_tree(tmp_path) == before  # no eval.json written beside a manifest that cannot record it
 
 
 def test_a_segment_folder_is_no_run_folder_and_a_run_folder_no_segment(run, tmp_path, capsys):
     from vadgs.data.synthetic import make_segment
 
     seg = make_segment(tmp_path / "seg", **SEG)
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(seg), *TINY, "--overwrite"]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert (
         f"--out {seg}: holds a segment that vadgs wrote (its manifest says so), not a vadgs run folder"
         in line
     )
     with pytest.raises(ValueError, match="holds a vadgs run or output folder, not a segment"):
         make_segment(run, overwrite=True, **SEG)
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before

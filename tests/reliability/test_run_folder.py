@@ -22,7 +22,7 @@ from vadgs.runfolder import MANIFEST, check_output_folder, recorded_files
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 
 
-def _tree(root: Path) -> dict[str, str]:
+def folder_tree(root: Path) -> dict[str, str]:
     """Every entry under ``root`` (links not followed): its content's hash, a link's target, or a folder."""
     out = {}
     for dirpath, dirnames, filenames in os.walk(root):
@@ -38,7 +38,7 @@ def _tree(root: Path) -> dict[str, str]:
     return out
 
 
-def _error(capsys) -> str:
+def error_line(capsys) -> str:
     err = capsys.readouterr().err
     assert "Traceback" not in err
     lines = err.strip().splitlines()
@@ -64,22 +64,22 @@ def _user_folder(path: Path) -> Path:
 @pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
 def test_user_folder_refused_and_untouched(tmp_path, capsys, overwrite):
     folder = _user_folder(tmp_path / "mine")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(folder), *TINY, *overwrite]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"destination path '{folder}' already exists and is not an empty directory" in line
     assert "holds config.json, eval.json, export, log.jsonl, ply, ... (6 entries)" in line
-    assert _tree(tmp_path) == before  # config.json and log.jsonl kept too
+    assert folder_tree(tmp_path) == before  # config.json and log.jsonl kept too
 
 
 def test_symlinked_out_to_user_folder_refused(tmp_path, capsys):
     folder = _user_folder(tmp_path / "mine")
     link = tmp_path / "link"
     link.symlink_to(folder)
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(link), *TINY, "--overwrite"]) == 2
-    assert "already exists and is not an empty directory" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "already exists and is not an empty directory" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_python_api_refuses_a_user_folder(tmp_path, tiny_scene, tiny_config):
@@ -88,13 +88,13 @@ def test_python_api_refuses_a_user_folder(tmp_path, tiny_scene, tiny_config):
     from vadgs.train.trainer import Trainer
 
     folder = _user_folder(tmp_path / "mine")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     with pytest.raises(ValueError, match="not an empty directory"):
         Trainer(tiny_scene, tiny_config, out_dir=folder, overwrite=True)
     with pytest.raises(ValueError, match="not an empty directory"):
         ref = scene_ref(tiny_scene.root, scale=0.25)
         train_scene(ref, tiny_config, folder, overwrite=True, progress=False)
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
 
 
 def test_empty_folder_and_new_path_are_fine(tmp_path):
@@ -136,44 +136,44 @@ def test_symlinked_ply_refused_before_anything_is_removed(run, tmp_path, capsys,
     (user / "static.ply").write_text("the user's")
     shutil.rmtree(run / "ply")
     (run / "ply").symlink_to(user if target == "user" else tmp_path / "nowhere")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["train", "--sample", "--out", str(run), *TINY, "--overwrite"]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert f"{run / 'ply'} is a symbolic link" in line and "nothing was removed" in line
-    assert _tree(tmp_path) == before
+    assert folder_tree(tmp_path) == before
     assert load_checkpoint(run).step == 2  # the old run is whole
 
 
 def test_finished_run_without_checkpoint_is_not_told_to_resume(run, capsys):
     (run / CHECKPOINT_NAME).unlink()
     assert main(["train", "--sample", "--out", str(run), *TINY]) == 2
-    line = _error(capsys)
+    line = error_line(capsys)
     assert "finished run whose checkpoint is gone" in line and "--overwrite" in line
     assert "--resume" not in line
 
 
 def test_export_inria_refuses_scene_folder_and_another_model(run, tmp_path, capsys):
     scene = Path(json.loads((run / "config.json").read_text())["scene"]["path"])
-    before_scene = _tree(scene)
+    before_scene = folder_tree(scene)
     assert main(["export", str(run), "--inria", "--out", str(scene)]) == 2
-    assert "scene folder" in _error(capsys)
-    assert _tree(scene) == before_scene
+    assert "scene folder" in error_line(capsys)
+    assert folder_tree(scene) == before_scene
 
     other = tmp_path / "other_model"
     other.mkdir()
     (other / "cfg_args").write_text("Namespace(sh_degree=3)")
     (other / "cameras.json").write_text("[]")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["export", str(run), "--inria", "--out", str(other)]) == 2
-    assert "holds cfg_args, cameras.json that vadgs did not write" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "holds cfg_args, cameras.json that vadgs did not write" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
     assert main(["export", str(run), "--out", str(other)]) == 2  # not --inria: a folder vadgs did not write
-    assert "not an empty directory" in _error(capsys)
+    assert "not an empty directory" in error_line(capsys)
     (run / "cfg_args").write_text("Namespace(sh_degree=3)")  # another model's, in the run folder itself
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["export", str(run), "--inria", "--out", str(run)]) == 2
-    assert "cfg_args that vadgs did not write" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "cfg_args that vadgs did not write" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
     fresh = tmp_path / "fresh"  # a new folder, then again into the folder vadgs wrote
     assert main(["export", str(run), "--inria", "--out", str(fresh)]) == 0
@@ -183,20 +183,20 @@ def test_export_inria_refuses_scene_folder_and_another_model(run, tmp_path, caps
 
 def test_render_panels_into_a_user_folder_refused(run, tmp_path, capsys):
     folder = _user_folder(tmp_path / "mine")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["render", str(run), "--no-progress", "--out", str(folder)]) == 2
-    assert "not an empty directory" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "not an empty directory" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_batch_refuses_a_user_folder(tmp_path, capsys):
     from vadgs.data import sample_scene_path
 
     folder = _user_folder(tmp_path / "mine")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["batch", str(sample_scene_path()), "--out", str(folder)]) == 2
-    assert "not an empty directory" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "not an empty directory" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_sfm_refuses_a_folder_with_no_project(tmp_path, capsys):
@@ -207,10 +207,10 @@ def test_sfm_refuses_a_folder_with_no_project(tmp_path, capsys):
     for p in sorted((sample_scene_path() / "images").rglob("*.png"))[:3]:
         shutil.copy(p, photos / p.name)
     folder = _user_folder(tmp_path / "mine")
-    before = _tree(tmp_path)
+    before = folder_tree(tmp_path)
     assert main(["sfm", str(photos), "--out", str(folder)]) == 2
-    assert "not an empty directory" in _error(capsys)
-    assert _tree(tmp_path) == before
+    assert "not an empty directory" in error_line(capsys)
+    assert folder_tree(tmp_path) == before
 
 
 def test_check_output_folder_lists_a_few_entries(tmp_path):

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from vadgs.cli import main
-from vadgs.cli.__init__ import _one_line
+from vadgs.cli.__init__ import one_line
 from vadgs.train import checkpoint as checkpoint_module
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from vadgs.train.trainer import Trainer
@@ -62,7 +62,7 @@ def test_disk_full_reported_by_torch_zip_writer(
     monkeypatch.setattr(checkpoint_module.shutil, "disk_usage", lambda path: SimpleNamespace(free=free))
     with pytest.raises(OSError) as e:
         Trainer(tiny_scene, config, out_dir=tmp_path, progress=False).train()
-    line = _one_line(e.value)
+    line = one_line(e.value)
     assert e.value.errno == (errno.ENOSPC if free < 1 << 20 else errno.EIO)
     assert f"{tmp_path / CHECKPOINT_NAME}: cannot write ({expected}" in line and "\n" not in line, line
     assert int(load_checkpoint(tmp_path).step) == 4

@@ -7,13 +7,15 @@ its hand-computed matrix.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 import torch.nn.functional as F
 from torch.autograd import gradcheck
 
 from vadgs.geometry import quaternion_to_rotation
-from vadgs.render import eval_sh, rotate_sh, sh_basis, sh_rotation
+from vadgs.render import SH_C0, eval_sh, rotate_sh, sh_basis, sh_rotation
 
 #: (x, y, z) -> (-y, z, -x): the degree-1 basis of 3DGS is C1 times this (sh_basis).
 S1 = torch.tensor([[0.0, -1, 0], [0, 0, 1], [-1, 0, 0]], dtype=torch.float64)
@@ -106,26 +108,55 @@ class TestRotateSh:
         assert gradcheck(lambda s: rotate_sh(s, R), (sh,))
 
 
-def _basis_term_by_term(dirs: torch.Tensor, degree: int) -> torch.Tensor:
-    """3DGS's real SH basis written out one term at a time (its order of operations)."""
-    from vadgs.render.sh import _C1, _C2, _C3, SH_C0
+# 3DGS's constants of the real SH basis (``utils/sh_utils.py``), as its code writes them
+C0 = 0.28209479177387814
+C1 = 0.4886025119029199
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
+
+def test_the_constants_are_the_closed_forms():
+    pi = math.pi
+    closed = [1 / (2 * math.sqrt(pi)), math.sqrt(3 / (4 * pi))]
+    closed += [x * math.sqrt(15 / pi) for x in (1 / 2, -1 / 2)] + [math.sqrt(5 / pi) / 4]
+    closed += [-math.sqrt(15 / pi) / 2, math.sqrt(15 / pi) / 4]
+    a, b, c, d = (
+        math.sqrt(35 / (2 * pi)) / 4,
+        math.sqrt(105 / pi),
+        math.sqrt(21 / (2 * pi)) / 4,
+        math.sqrt(7 / pi) / 4,
+    )
+    closed += [-a, b / 2, -c, d, -c, b / 4, -a]
+    assert [C0, C1, *C2, *C3] == pytest.approx(closed, rel=1e-15)
+    assert SH_C0 == C0
+
+
+def _basis_term_by_term(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """3DGS's real SH basis written out one term at a time (its order of operations and constants)."""
     x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
+    out = [torch.full_like(x, C0)]
     if degree > 0:
-        out += [-_C1 * y, _C1 * z, -_C1 * x]
+        out += [-C1 * y, C1 * z, -C1 * x]
     if degree > 1:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out += [_C2[0] * xy, _C2[1] * yz, _C2[2] * (2.0 * zz - xx - yy), _C2[3] * xz, _C2[4] * (xx - yy)]
+        out += [C2[0] * xy, C2[1] * yz, C2[2] * (2.0 * zz - xx - yy), C2[3] * xz, C2[4] * (xx - yy)]
     if degree > 2:
         out += [
-            _C3[0] * y * (3.0 * xx - yy),
-            _C3[1] * xy * z,
-            _C3[2] * y * (4.0 * zz - xx - yy),
-            _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            _C3[4] * x * (4.0 * zz - xx - yy),
-            _C3[5] * z * (xx - yy),
-            _C3[6] * x * (xx - 3.0 * yy),
+            C3[0] * y * (3.0 * xx - yy),
+            C3[1] * xy * z,
+            C3[2] * y * (4.0 * zz - xx - yy),
+            C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            C3[4] * x * (4.0 * zz - xx - yy),
+            C3[5] * z * (xx - yy),
+            C3[6] * x * (xx - 3.0 * yy),
         ]
     return torch.stack(out, -1)
 

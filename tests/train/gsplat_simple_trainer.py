@@ -295,11 +295,11 @@ def _spherical_harmonics(degrees_to_use, dirs, coeffs, masks=None):
 
 def _rasterize_to_pixels(means2d, conics, colors, opacities, width, height, tile_size, offsets, flatten_ids,
                          backgrounds=None, batch_per_iter=100):  # fmt: skip
-    from vadgs.render.gsplat_backend import _rasterize_to_pixels_torch
+    from vadgs.render.gsplat_backend import rasterize_to_pixels_torch
 
     if means2d.dim() != 3:
         raise NotImplementedError("the CPU stand-in of _rasterize_to_pixels takes (C, N, ...) inputs")
-    return _rasterize_to_pixels_torch(
+    return rasterize_to_pixels_torch(
         means2d, conics, colors, opacities, width, height, tile_size, offsets, flatten_ids, backgrounds
     )
 

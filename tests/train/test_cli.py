@@ -58,7 +58,7 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
 
     import pytest
 
-    from vadgs.cli.train import _SESSION, TrainCommand, _resume_changes, parse_train
+    from vadgs.cli.train import SESSION_FIELDS, TrainCommand, parse_train, resume_changes
     from vadgs.train.checkpoint import RESUMABLE_CHANGES
     from vadgs.train.config import TrainConfig
 
@@ -67,7 +67,7 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
     assert main([*args, "--init.max-points", "200", "--init.sh-degree", "0"]) == 0
     stored = parse_train(["--out", str(out), "--resume"])
     assert stored.train.iterations == 1 and stored.train.init.max_points == 200  # the checkpoint's
-    assert _resume_changes(stored, out) == {}
+    assert resume_changes(stored, out) == {}
     # SCENE on --resume is where a moved scene is now (checked by its fingerprint: test_run_scene.py)
     others = {
         "sample": True, "config": "c.json", "overwrite": True, "scale": 0.5, "dgp": True,
@@ -75,29 +75,29 @@ def test_every_train_flag_has_a_resume_policy(tmp_path, capsys):
         "no_normalize": True, "colmap": "m", "vad": True, "appearance": True,
     }  # fmt: skip
     fields = {f.name for f in dataclasses.fields(TrainCommand)}
-    assert fields == set(others) | set(_SESSION), sorted(fields ^ (set(others) | set(_SESSION)))
+    assert fields == set(others) | set(SESSION_FIELDS), sorted(fields ^ (set(others) | set(SESSION_FIELDS)))
     for name, value in others.items():
         flag = "--" + name.replace("_", "-")
         with pytest.raises(ValueError, match=f"--resume: {flag} cannot be honoured"):
-            _resume_changes(dataclasses.replace(stored, **{name: value}), out)
+            resume_changes(dataclasses.replace(stored, **{name: value}), out)
     changed = {"iterations": 5, "max_minutes": 1.0, "device": "cpu:0", "threads": 1, "cache_gb": 0.5,
                "checkpoint_every": 7, "checkpoint_minutes": 2.0, "log_every": 3}  # fmt: skip
     assert set(changed) == set(RESUMABLE_CHANGES)
     for name, value in changed.items():
         cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, **{name: value}))
-        assert _resume_changes(cmd, out) == {name: value}
+        assert resume_changes(cmd, out) == {name: value}
     cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, seed=3))
     with pytest.raises(ValueError, match="--seed cannot be honoured"):
-        _resume_changes(cmd, out)
+        resume_changes(cmd, out)
     for name, value in (("hard_every", 2), ("lambda_hard", 0.5)):
         geometry = dataclasses.replace(stored.train.geometry, **{name: value})
         cmd = dataclasses.replace(stored, train=dataclasses.replace(stored.train, geometry=geometry))
         flag = r"--geometry\." + name.replace("_", "-")
         with pytest.raises(ValueError, match=flag + " cannot be honoured"):
-            _resume_changes(cmd, out)
+            resume_changes(cmd, out)
     strategy = dataclasses.replace(stored.train.strategy, max_gaussians=5)
     with pytest.raises(ValueError, match=r"--strategy\.max-gaussians cannot be honoured"):
-        _resume_changes(
+        resume_changes(
             dataclasses.replace(stored, train=dataclasses.replace(stored.train, strategy=strategy)), out
         )
     assert TrainConfig.from_dict(stored.train.to_dict()) == stored.train

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from vadgs.cli import _one_line, main
+from vadgs.cli import main, one_line
 from vadgs.io import TMP_GLOB
 from vadgs.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from vadgs.train.divergence import DivergenceError, NonFiniteLossError
@@ -105,7 +105,7 @@ class TestExceptions:
         tr = Trainer(tiny_scene, config, out_dir=tmp_path, extra_losses=corrupt_png_at_7, progress=False)
         with pytest.raises(OSError, match="corrupt PNG") as e:
             tr.train()
-        line = _one_line(e.value)
+        line = one_line(e.value)
         assert "checkpoint of step 7" in line and "--resume" in line, line
         assert int(load_checkpoint(tmp_path).step) == 7
         resumed = Trainer.from_checkpoint(tmp_path, scene=tiny_scene, progress=False)
@@ -123,7 +123,7 @@ class TestExceptions:
         tr = Trainer(tiny_scene, config, out_dir=tmp_path, extra_losses=nan_at_3, progress=False)
         with pytest.raises(NonFiniteLossError, match="step 3") as e:
             tr.train()
-        assert "last good checkpoint: step 2" in _one_line(e.value)
+        assert "last good checkpoint: step 2" in one_line(e.value)
         ckpt = load_checkpoint(tmp_path)
         assert int(ckpt.step) == 2 and bool(torch.isfinite(ckpt.model["params.means"]).all())
 
@@ -180,7 +180,7 @@ class TestExceptions:
         with pytest.raises(OSError) as e:
             tr.train()
         assert e.value.errno == errno.ENOSPC and e.value.filename == str(tmp_path / CHECKPOINT_NAME)
-        line = _one_line(e.value)
+        line = one_line(e.value)
         assert "cannot write (No space left on device); the previous file is kept" in line
         assert "last good checkpoint: step 4" in line and "\n" not in line, line
         assert list(tmp_path.glob(TMP_GLOB)) == []
@@ -302,12 +302,12 @@ def test_failure_notes_on_python_310(monkeypatch):
     (Found by mypy with python_version 3.10: the failure path raised AttributeError there, hiding
     the training error.)
     """
-    from vadgs.train.loop import _add_note
+    from vadgs.train.loop import add_exception_note
 
     e = ValueError("diverged")
     monkeypatch.setattr(sys, "version_info", (3, 10, 13, "final", 0))
-    _add_note(e, "last good checkpoint: step 2")
-    _add_note(e, "continue with: vadgs train --resume")
+    add_exception_note(e, "last good checkpoint: step 2")
+    add_exception_note(e, "continue with: vadgs train --resume")
     monkeypatch.undo()
     assert e.__notes__ == ["last good checkpoint: step 2", "continue with: vadgs train --resume"]
-    assert _one_line(e) == "diverged; last good checkpoint: step 2; continue with: vadgs train --resume"
+    assert one_line(e) == "diverged; last good checkpoint: step 2; continue with: vadgs train --resume"

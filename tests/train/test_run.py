@@ -133,12 +133,12 @@ def test_scene_fingerprint_without_file_digest(tiny_scene, monkeypatch):
     import hashlib
     import io
 
-    from vadgs.train.scenes import _sha256, scene_fingerprint, scene_ref
+    from vadgs.train.scenes import file_sha256, scene_fingerprint, scene_ref
 
-    data = bytes(range(256)) * 5000  # more than one block of _sha256
+    data = bytes(range(256)) * 5000  # more than one block of file_sha256
     fh = io.BytesIO(data)
     fh.seek(7)  # as hashlib.file_digest: from the file's position on
-    assert _sha256(fh) == hashlib.sha256(data[7:]).digest()
+    assert file_sha256(fh) == hashlib.sha256(data[7:]).digest()
     ref = scene_ref(tiny_scene.root, scale=0.25).to_dict()
     expected = scene_fingerprint(ref, tiny_scene)
     monkeypatch.delattr(hashlib, "file_digest", raising=False)

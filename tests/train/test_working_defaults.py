@@ -180,12 +180,12 @@ def vad_run(tmp_path_factory, tiny_scene):
 
 
 def test_demo_figure_labels_match_the_console(vad_run):
-    from vadgs.cli.demo import _completion_label
+    from vadgs.cli.demo import completion_label
 
     trainer, _out, lines, _progress = vad_run
     assert trainer.additions, "the run added Gaussians"
     for snap in trainer.additions:
-        label, total = _completion_label(snap, trainer.state["vad_events"])
+        label, total = completion_label(snap, trainer.state["vad_events"])
         assert total >= snap["added"]
         line = next(x for x in lines if x.startswith(f"step {snap['step'] + 1}: "))
         assert f"{label} (+{total})" in line  # the console's "added to tree 50 (+2217)"

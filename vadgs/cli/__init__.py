@@ -49,6 +49,7 @@ __all__ = [
     "ViewCommand",
     "VisibilityCommand",
     "main",
+    "one_line",
 ]
 
 
@@ -144,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:
         if debug:
             traceback.print_exc()
-        print(f"vadgs {name}: error: {_one_line(e)}", file=sys.stderr)
+        print(f"vadgs {name}: error: {one_line(e)}", file=sys.stderr)
         return 3 if isinstance(e, FloatingPointError) else 2
 
 
@@ -232,7 +233,7 @@ def _colmap_log_level(level: int | None):
         colmap_project.COLMAP_LOG_LEVEL = before
 
 
-def _one_line(e: BaseException) -> str:
+def one_line(e: BaseException) -> str:
     """An exception as one line; unexpected kinds keep their type name and point to ``--debug``.
 
     Notes added to the exception (``add_note``: e.g. the trainer's "last good checkpoint: ...")

@@ -117,7 +117,7 @@ def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path
     after = trainer.render_view(view)
     mask = (scene.load_instances([view])[0] == snap["instance"]).float()
     image = scene.load_images([view])[0]
-    label, total = _completion_label(snap, trainer.state.get("vad_events", []))
+    label, total = completion_label(snap, trainer.state.get("vad_events", []))
     gt = scene.load_depths([view])[0, 0]
     images = [
         image_to_uint8(image * (0.35 + 0.65 * mask)),
@@ -139,7 +139,7 @@ def _completion_panel(trainer, snapshots: list, path: Path, vmax: float) -> Path
 DEMO_FIGURES = ("demo_panel.png", "demo_completion.png")
 
 
-def _completion_label(snap: dict, events: list[dict]) -> tuple[str, int]:
+def completion_label(snap: dict, events: list[dict]) -> tuple[str, int]:
     """The figure's name of an addition and its instance's total, as the console's event line says them.
 
     ``("tree 50", 2217)`` for the line's ``tree 50 (+2217)``: the class and instance id of the

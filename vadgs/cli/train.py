@@ -36,7 +36,14 @@ from vadgs.cli._common import (
 )
 from vadgs.train.config import TrainConfig
 
-__all__ = ["BatchCommand", "TrainCommand", "parse_train"]
+__all__ = [
+    "SESSION_FIELDS",
+    "BatchCommand",
+    "TrainCommand",
+    "batch_train_args",
+    "parse_train",
+    "resume_changes",
+]
 
 
 @dataclass(frozen=True)
@@ -108,7 +115,7 @@ class TrainCommand(Checked):
         if self.resume:
             if not (out / CHECKPOINT_NAME).is_file():
                 raise FileNotFoundError(f"--resume: no checkpoint in {out}")
-            changes = _resume_changes(self, out)
+            changes = resume_changes(self, out)
             outcome = train_scene(
                 None, None, out, resume=True, config_changes=changes, progress=progress, log=print,
                 scene_path=self.scene, scene_flag="SCENE (the folder the scene moved to)",
@@ -140,7 +147,7 @@ class TrainCommand(Checked):
 
 
 # TrainCommand fields of the session, not of the run (the others are refused on --resume)
-_SESSION = ("scene", "out", "resume", "no_progress", "debug", "train")  # SCENE: where it moved
+SESSION_FIELDS = ("scene", "out", "resume", "no_progress", "debug", "train")  # SCENE: where it moved
 
 
 def _read_config_file(path: str) -> tuple[dict, TrainConfig]:
@@ -255,7 +262,7 @@ def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
+def resume_changes(cmd: TrainCommand, out: Path) -> dict:
     """The configuration changes ``--resume`` can honour (said aloud); anything else is refused."""
     from vadgs.train.checkpoint import RESUMABLE_CHANGES, load_checkpoint
 
@@ -271,7 +278,7 @@ def _resume_changes(cmd: TrainCommand, out: Path) -> dict:
     given = [
         "SCENE" if f.name == "scene" else as_flag(f.name)
         for f in dataclasses.fields(TrainCommand)
-        if f.name not in _SESSION and getattr(cmd, f.name) != getattr(defaults, f.name)
+        if f.name not in SESSION_FIELDS and getattr(cmd, f.name) != getattr(defaults, f.name)
     ]
     refused = list(dict.fromkeys(given + [as_flag(k) for k in changed if k not in RESUMABLE_CHANGES]))
     if refused:
@@ -380,7 +387,7 @@ def _init_points(cmd: TrainCommand, scale: float) -> Any:
 # batch
 
 
-def _batch_train(text: str) -> tuple[TrainConfig, str | None, dict]:
+def batch_train_args(text: str) -> tuple[TrainConfig, str | None, dict]:
     """``vadgs batch --train-args``: the TrainConfig, scene kind and scene options they give.
 
     Parsed once, in the driver, with ``vadgs train``'s own flags, so a bad argument fails the
@@ -447,7 +454,7 @@ class BatchCommand(Command):
         from vadgs.batch import BatchConfig, check_batch_folder, run_batch
 
         check_batch_folder(self.out, "--out")
-        train_config, kind, options = _batch_train(self.train_args)
+        train_config, kind, options = batch_train_args(self.train_args)
         shared = {k: getattr(self, k) for k in ("address", "cpus_per_scene", "gpus_per_scene", "threads")}
         config = BatchConfig(**shared, max_retries=self.max_retries, train=train_config, scene_kind=kind,
                              scene_options=options, progress=not self.no_progress)  # fmt: skip

@@ -47,6 +47,7 @@ from PIL import Image, ImageOps
 
 __all__ = [
     "SUPPORTED_MODES",
+    "as_rgb",
     "decode_image",
     "exif_orientation",
     "exif_orientation_tag",
@@ -73,7 +74,12 @@ def _unit8(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _as_rgb(im: Image.Image, path: object) -> np.ndarray:
+def as_rgb(im: Image.Image, path: object) -> np.ndarray:
+    """An opened image as float32 ``(H, W, 3)`` RGB in [0, 1], whatever its mode of :data:`SUPPORTED_MODES`.
+
+    Raises:
+        ValueError: a mode vadgs does not read, naming ``path``, the mode and the modes read.
+    """
     mode = im.mode
     if mode == "P":
         im = im.convert("RGBA" if "transparency" in im.info else "RGB")
@@ -161,7 +167,7 @@ def _decode(source: Path | IO[bytes], name: object, nbytes: int) -> np.ndarray:
     try:
         with warnings_naming(name), Image.open(source) as im:
             im.load()
-            return _as_rgb(im, name)
+            return as_rgb(im, name)
     except ValueError as e:
         if str(e).startswith(str(name)):
             raise

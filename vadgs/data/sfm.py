@@ -94,6 +94,7 @@ __all__ = [
     "SEQUENTIAL_OVERLAP",
     "SfmResult",
     "run_sfm",
+    "sequential_pairs",
 ]
 
 #: ``matcher="auto"`` matches every pair up to this many photos, else sequentially.
@@ -175,7 +176,13 @@ def _remove_dead_work(project: Path, say: Callable[[str], None]) -> None:
         say(f"removed {work}: the work folder of a killed vadgs sfm (pid {pid}, not running)")
 
 
-def _sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
+def sequential_pairs(names: Sequence[str], overlap: int) -> list[tuple[str, str]]:
+    """The pairs matched in sequence: each photo with the ``overlap`` photos after it.
+
+    Example:
+        >>> sequential_pairs("abc", 1)
+        [('a', 'b'), ('b', 'c')]
+    """
     return [
         (a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + overlap, len(names)))
     ]
@@ -351,7 +358,7 @@ def _run_sfm_locked(
         if matcher == "exhaustive":
             pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
         else:
-            pairs = _sequential_pairs(names, SEQUENTIAL_OVERLAP)
+            pairs = sequential_pairs(names, SEQUENTIAL_OVERLAP)
         say(f"matching: {len(pairs)} pairs ({matcher})")
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = nthreads

@@ -69,7 +69,18 @@ from vadgs.mvs.cost import (
     reference_patches,
 )
 
-__all__ = ["PatchMatch", "PatchMatchConfig", "PatchMatchResult", "patchmatch", "propagation_regions"]
+__all__ = [
+    "MatchPixels",
+    "MatchSources",
+    "PatchMatch",
+    "PatchMatchConfig",
+    "PatchMatchResult",
+    "map_tables",
+    "match_costs",
+    "patchmatch",
+    "propagation_regions",
+    "window_maps",
+]
 
 
 @dataclass(frozen=True)
@@ -220,7 +231,7 @@ def _per_reference(x: float | torch.Tensor, dims: int) -> float | torch.Tensor:
     return x if not isinstance(x, torch.Tensor) else x.view(-1, *([1] * dims))
 
 
-class _Pixels(NamedTuple):
+class MatchPixels(NamedTuple):
     """The scored reference pixels of one level, the first colour's then the second's.
 
     A colour is a slice (:meth:`part`), so that a half-sweep reads and writes contiguous runs.
@@ -228,19 +239,21 @@ class _Pixels(NamedTuple):
 
     idx: torch.Tensor  # (B, P) flat pixel indices
     rays: torch.Tensor  # (B, P, 3) K^-1 p~
-    cols: torch.Tensor  # (B, 3, 3, P) [m, j]: m-th entry of K^-1 e_x, K^-1 e_y, K^-1 p~ (see _window_maps)
+    cols: torch.Tensor  # (B, 3, 3, P) [m, j]: m-th entry of K^-1 e_x, K^-1 e_y, K^-1 p~ (see window_maps)
     rows: torch.Tensor  # (B, V, 3, P, 3) A e_x, A e_y, A p~: the hypothesis-free part of the maps
     ref: torch.Tensor  # (B, 2, S, P) bilateral weights (zero where the reference window is flat or
     #   outside the region: such a pixel scores the worst cost) and w (r - mean) / std
 
-    def part(self, sl: slice) -> _Pixels:
+    def part(self, sl: slice) -> MatchPixels:
         """The pixels of ``sl`` (a view of every field)."""
-        return _Pixels(
+        return MatchPixels(
             self.idx[:, sl], self.rays[:, sl], self.cols[..., sl], self.rows[:, :, :, sl], self.ref[..., sl]
         )
 
 
-class _Sources(NamedTuple):
+class MatchSources(NamedTuple):
+    """The source views of one level: grey images, masks and the hypothesis-free homography parts."""
+
     gray: torch.Tensor  # (B*V, 1, Hs, Ws), zero (flat: the worst cost) for a degenerate source
     masks: torch.Tensor | None  # (B*V, 1, Hs, Ws) float or None
     b: torch.Tensor  # (B, V, 3) N K_s t
@@ -249,7 +262,7 @@ class _Sources(NamedTuple):
     zero: torch.Tensor  # () 0
 
 
-def _window_maps(src: _Sources, px: _Pixels, hyp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Plane homographies of ``K`` hypotheses per pixel in grid_sample coordinates, and their validity.
 
     ``hyp`` is ``(B, K, P, 4)``: depth and normal. Returns ``C`` ``(B, V, 3, K, P, 3)`` with
@@ -273,14 +286,14 @@ def _window_maps(src: _Sources, px: _Pixels, hyp: torch.Tensor) -> tuple[torch.T
     return C, nr
 
 
-def _map_tables(
+def map_tables(
     A: torch.Tensor, Kinv: torch.Tensor, pix: torch.Tensor, rays: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The hypothesis-free tables of :func:`_window_maps`, ``cols`` and ``rows``.
+    """The hypothesis-free tables of :func:`window_maps`, ``cols`` and ``rows``.
 
     ``A`` ``(B, V, 3, 3)`` is ``N K_s R K_r^-1``, ``pix`` ``(B, P, 3)`` (or ``(P, 3)``) the pixels, ``rays``
     ``(B, P, 3)`` their ``K_r^-1 p~``. Returns ``cols`` ``(B, 3, 3, P)`` and ``rows``
-    ``(B, V, 3, P, 3)`` (see :class:`_Pixels`).
+    ``(B, V, 3, P, 3)`` (see :class:`MatchPixels`).
     """
     p = pix.shape[-2]
     cols = torch.cat([Kinv[..., :2, None].expand(-1, -1, -1, p), rays.transpose(1, 2)[:, :, None]], 2)
@@ -301,8 +314,8 @@ def _chunk_size(cfg_chunk: int | None, device: torch.device, views: int) -> int:
     return max(1, cfg_chunk // views)
 
 
-def _costs(
-    src: _Sources, px: _Pixels, hyp: torch.Tensor, min_variance: float, chunk: int
+def match_costs(
+    src: MatchSources, px: MatchPixels, hyp: torch.Tensor, min_variance: float, chunk: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-view costs ``(B, V, K, P)`` of ``K`` hypotheses per pixel, ``hyp`` ``(B, K, P, 4)``, and ``nr``.
 
@@ -311,9 +324,9 @@ def _costs(
     ``P``), scored ``chunk`` pixel-hypotheses at a time so that the temporaries stay in cache on the
     CPU (one chunk on other devices). The cost is :func:`vadgs.mvs.ncc_cost_from_stats` (``tests/mvs``
     checks the two against each other) with every reason for the worst cost folded into one mask.
-    ``nr`` ``(B, K, P)`` is ``n^T K^-1 p~`` of each hypothesis (see :func:`_window_maps`).
+    ``nr`` ``(B, K, P)`` is ``n^T K^-1 p~`` of each hypothesis (see :func:`window_maps`).
     """
-    C, nr = _window_maps(src, px, hyp)
+    C, nr = window_maps(src, px, hyp)
     bsz, v, _, k, p, _ = C.shape
     s = src.offsets.shape[1]
     step = max(1, chunk // k)
@@ -832,7 +845,7 @@ def _patchmatch_level(
     Every half-sweep is a fixed handful of batched tensor operations whatever the batch, the views
     and the image size (``tests/mvs/test_patchmatch_launches.py`` counts them), and reads no tensor
     value back to the host: the neighbours' planes of all regions come out of one gather (with the
-    pixel's own, whose costs are kept) and are scored in one :func:`_costs` call, the winner is picked
+    pixel's own, whose costs are kept) and are scored in one :func:`match_costs` call, the winner is picked
     by one ``argmin``, its random refinements are scored in a second call (or, with
     ``joint_scoring``, with the propagated planes in the first, around the likeliest winner), and
     the best of all is kept by one ``gather``. The initial hypotheses are scored first, once.
@@ -863,7 +876,7 @@ def _patchmatch_level(
     src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
     off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
-    src = _Sources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
+    src = MatchSources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
     chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
 
     # Reference: windows, bilateral weights (zero outside the region).
@@ -910,9 +923,9 @@ def _patchmatch_level(
     rays = _take(rays_all, idx)
     st = reference_patch_stats(_take(patches, idx, 2), _take(weights, idx, 2), cfg.min_variance)
     textured = st.valid if textured is None else st.valid & textured
-    cols, rows = _map_tables(A, Kinv, pix, rays)
+    cols, rows = map_tables(A, Kinv, pix, rays)
     ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
-    pixels = _Pixels(idx, rays, cols, rows, ref)
+    pixels = MatchPixels(idx, rays, cols, rows, ref)
     na = lut.shape[0]  # 1: the same pixels for all
     nbr = _neighbour_table(idx[:na], h, w, lut, n_act, cfg.propagation)  # (1 or B, P, 1 + R, L)
     batch = None if region is None else torch.arange(bsz, device=dev).view(bsz, 1, 1, 1)
@@ -956,7 +969,7 @@ def _patchmatch_level(
         # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs; the
         # initial hypotheses' (the better-scoring one where there are two).
         first_hyp = torch.stack(init, 1) if len(init) > 1 else init[0][:, None]  # (B, K, P, 4)
-        costs, nr = _costs(src, pixels, first_hyp, cfg.min_variance, chunk)
+        costs, nr = match_costs(src, pixels, first_hyp, cfg.min_variance, chunk)
         agg = _aggregate(costs, None, cfg)
         record = records(first_hyp, nr, agg, costs)
         if len(init) > 1:
@@ -988,7 +1001,7 @@ def _patchmatch_level(
                     base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
                     cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
-                c, nr = _costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
+                c, nr = match_costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
                 costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
                 nr = torch.cat([cur[:, None, :, 4], nr], 1)
                 vw = (
@@ -1002,7 +1015,7 @@ def _patchmatch_level(
                     win = agg.argmin(1)[:, None, :, None]
                     base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
-                    c, r_nr = _costs(src, px, refined, cfg.min_variance, chunk)
+                    c, r_nr = match_costs(src, px, refined, cfg.min_variance, chunk)
                     record = torch.cat(  # current, propagated, refined
                         [records(cands, nr, agg, costs), records(refined, r_nr, _aggregate(c, vw, cfg), c)], 1
                     )

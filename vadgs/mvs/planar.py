@@ -34,6 +34,7 @@ __all__ = [
     "PlaneFit",
     "complete_planar",
     "fit_plane_ransac",
+    "near_pixels",
 ]
 
 
@@ -141,7 +142,7 @@ def _fit_plane(
     return PlaneFit(normal, offset, inliers)
 
 
-def _near(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
+def near_pixels(mask: torch.Tensor, max_gap: float) -> torch.Tensor:
     """``(B, H, W)`` bool: pixels within Euclidean distance ``max_gap`` of a set pixel of ``mask (B, H, W)``.
 
     ``distance_transform_edt(~mask) <= max_gap`` of each mask, on the mask's device: a dilation by
@@ -323,7 +324,7 @@ def complete_planar(
     inl_map = torch.zeros(b, hw, dtype=torch.bool, device=dev).scatter_(
         1, idx, inl
     )  # padding: non-good pixels
-    near = _near(inl_map.view(b, h, w), cfg.max_gap).view(b, hw)
+    near = near_pixels(inl_map.view(b, h, w), cfg.max_gap).view(b, hw)
     cand = (region.reshape(b, hw) & ~good & near) & accept[:, None]
     # every pixel's depth on its view's plane, its colour against the sources'
     flat = torch.arange(hw, device=dev)

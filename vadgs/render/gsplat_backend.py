@@ -19,7 +19,7 @@ Two implementations, chosen by ``impl``: ``"cuda"`` calls ``gsplat.rasterization
 tensors and gsplat's compiled extension); ``"torch"`` runs the same pipeline with gsplat's
 pure-torch reference functions (``gsplat.cuda._torch_impl``: covariance, projection, tile
 intersection) and a torch transcription of gsplat's ``rasterize_to_pixels`` forward kernel
-(:func:`_rasterize_to_pixels_torch`; gsplat's own ``_rasterize_to_pixels`` calls a CUDA kernel),
+(:func:`rasterize_to_pixels_torch`; gsplat's own ``_rasterize_to_pixels`` calls a CUDA kernel),
 differentiable by autograd. ``"auto"`` picks ``"cuda"`` for CUDA tensors and ``"torch"`` otherwise.
 The torch implementation is a CPU reference for tests (its tile intersection is a Python loop over
 Gaussians), not a fast path: use :func:`~vadgs.render.rasterize_gaussians` on the CPU.
@@ -40,7 +40,7 @@ from vadgs.geometry.camera import camera_centers, invert_rigid
 from vadgs.geometry.rotation import quaternion_to_rotation
 from vadgs.render.common import RasterConfig, RenderOutput, check_no_sh_degree, check_raster_inputs
 
-__all__ = ["GSPLAT_TILE_SIZE", "rasterize_gaussians_gsplat"]
+__all__ = ["GSPLAT_TILE_SIZE", "rasterize_gaussians_gsplat", "rasterize_to_pixels_torch"]
 
 #: gsplat's tile size (its default; ``RasterConfig.tile_size`` is the pure-torch renderer's).
 GSPLAT_TILE_SIZE = 16
@@ -84,7 +84,7 @@ def _shortest_axis_normals(
     return torch.where(facing, -normals, normals)
 
 
-def _rasterize_to_pixels_torch(
+def rasterize_to_pixels_torch(
     means2d: torch.Tensor,
     conics: torch.Tensor,
     colors: torch.Tensor,
@@ -187,7 +187,7 @@ def _gsplat_torch_rasterization(
     """``gsplat.rasterization(..., packed=False, render_mode="RGB+ED", sh_degree=None)`` in pure torch.
 
     gsplat's pure-torch reference functions for the covariances, the projection and the tile
-    intersection, :func:`_rasterize_to_pixels_torch` for the compositing. The radii follow the CUDA
+    intersection, :func:`rasterize_to_pixels_torch` for the compositing. The radii follow the CUDA
     projection (opacity-aware extent ``min(3.33, sqrt(2 log(o / (1/255))))`` and culling of
     ``o < 1/255``; the torch reference uses 3.33 for every Gaussian) so that ``meta["radii"]`` is
     CUDA's. Colours are per camera, ``(C, N, D)``, already activated; gsplat pixel convention.
@@ -250,7 +250,7 @@ def _gsplat_torch_rasterization(
         means2d.detach(), radii, depths.detach(), tile_size, tile_w, tile_h
     )
     offsets = _isect_offset_encode(isect_ids, c, tile_w, tile_h).reshape(c, tile_h, tile_w)
-    render, alphas = _rasterize_to_pixels_torch(
+    render, alphas = rasterize_to_pixels_torch(
         means2d, conics, feats, opac, width, height, tile_size, offsets, flatten_ids, backgrounds
     )
     render = torch.cat([render[..., :-1], render[..., -1:] / alphas.clamp(min=1e-10)], -1)

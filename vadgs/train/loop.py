@@ -28,6 +28,7 @@ from vadgs.train.session import RunLog, stop_on_signals
 __all__ = [
     "LoopTrainer",
     "TrainResult",
+    "add_exception_note",
     "checkpoint_due",
     "run_loop",
     "save_after_failure",
@@ -230,7 +231,7 @@ def run_loop(trainer: LoopTrainer) -> TrainResult:
     return TrainResult(trainer.step, trainer.step >= cfg.iterations, reason, trainer.train_s, peak, n)
 
 
-def _add_note(e: BaseException, note: str) -> None:
+def add_exception_note(e: BaseException, note: str) -> None:
     """``e.add_note(note)``; on Python 3.10 (no add_note) the same ``__notes__`` list, which the CLI reads."""
     if sys.version_info >= (3, 11):
         e.add_note(note)
@@ -278,7 +279,7 @@ def save_after_failure(
                 trainer.save_checkpoint()
                 saved = True
             except OSError as se:
-                _add_note(e, f"(saving the checkpoint failed too: {se})")
+                add_exception_note(e, f"(saving the checkpoint failed too: {se})")
         else:
             saved = True
     if saved:
@@ -287,6 +288,6 @@ def save_after_failure(
         note = f"last good checkpoint: step {trainer.checkpoint_step} in {path}"
     else:
         note = f"no checkpoint was written before step {trainer.step}"
-        _add_note(e, note)
+        add_exception_note(e, note)
         return
-    _add_note(e, f"{note}; continue with: vadgs train --out {trainer.out_dir} --resume")
+    add_exception_note(e, f"{note}; continue with: vadgs train --out {trainer.out_dir} --resume")

@@ -34,6 +34,7 @@ __all__ = [
     "ColmapRef",
     "DGPRef",
     "SceneRef",
+    "file_sha256",
     "folder_kind",
     "locate_scene",
     "open_run_scene",
@@ -359,7 +360,7 @@ FINGERPRINT_CHECKS = (
 _SAMPLE = 4096  # bytes read at each of a file's start, middle and end
 
 
-def _sha256(fh: BinaryIO) -> bytes:
+def file_sha256(fh: BinaryIO) -> bytes:
     """The SHA-256 of a binary file's bytes from its position on (``hashlib.file_digest``: Python 3.11+)."""
     h = hashlib.sha256()
     for block in iter(lambda: fh.read(1 << 20), b""):
@@ -391,7 +392,7 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene) -> str:
     for f in _metadata_files(ref):
         h.update(f"\n{f.name}\n".encode())
         with f.open("rb") as fh:
-            h.update(_sha256(fh))
+            h.update(file_sha256(fh))
 
     def add(p: Path | None, whole: bool = False) -> None:
         if p is None:
@@ -402,7 +403,7 @@ def scene_fingerprint(ref: dict[str, Any], scene: Scene) -> str:
         if size > 0:
             with p.open("rb") as fh:
                 if whole or size <= 3 * _SAMPLE:
-                    h.update(_sha256(fh))
+                    h.update(file_sha256(fh))
                     return
                 for at in (0, size // 2 - _SAMPLE // 2, size - _SAMPLE):
                     fh.seek(at)

@@ -1,13 +1,15 @@
 """The static / dynamic matching regions of the paper's Sec. 4.3 (``crops.matching_region``) on the
-bundled sample, against its instance maps, and the crops that use them."""
+bundled sample, against its instance maps, and the crops that use them; the matching scale of an
+instance (finer for small ones, coarser for large ones)."""
 
+import dataclasses
+
+import pytest
 import torch
 
-from tests.train.vad.test_vad import BUILDING, CAR
-from tests.train.vad.test_vad import index as index
-from tests.train.vad.test_vad import scene as scene
+from tests.train.vad.sample import BUILDING, CAR
 from vadgs.train.vad import ReconstructConfig
-from vadgs.train.vad.crops import MatchScale, crop_group, matching_region
+from vadgs.train.vad.crops import MatchScale, crop_group, match_scale, matching_region
 
 
 def _car_view(scene, index):
@@ -47,3 +49,23 @@ class TestMatchingRegion:
             assert not isinstance(crops, str) and crops.scale == MatchScale(1, 1)
             expected = torch.stack([matching_region(index, u, instance, track) for u in group])[:, None]
             assert torch.equal(crops.regions, expected)
+
+
+class TestMatchScale:
+    def test_small_instances_finer_large_ones_coarser(self):
+        cfg = ReconstructConfig(max_match_pixels=1000, max_downsample=4)
+        assert match_scale(200, (30, 30), 2, cfg) == MatchScale(2, 1)
+        assert match_scale(200, (30, 30), 1, cfg) == MatchScale(1, 1)  # not finer than the files
+        assert match_scale(900, (120, 150), 2, cfg) == MatchScale(1, 1)
+        assert match_scale(3000, (120, 150), 2, cfg) == MatchScale(1, 2)  # 750 px at 1/2
+        assert match_scale(5000, (120, 150), 2, cfg) == MatchScale(1, 4)  # 1250 > 1000 at 1/2
+        assert match_scale(10**6, (120, 150), 2, cfg) == MatchScale(1, 4)  # max_downsample
+        assert match_scale(10**6, (120, 150), 2, dataclasses.replace(cfg, max_match_pixels=None)).value == 1
+
+    def test_bad_config(self):
+        with pytest.raises(ValueError, match="max_downsample"):
+            ReconstructConfig(max_downsample=3)
+        with pytest.raises(ValueError, match="max_match_pixels"):
+            ReconstructConfig(max_match_pixels=10)
+        with pytest.raises(ValueError, match="depth_margin"):
+            ReconstructConfig(depth_margin=(1.5, 2.0))

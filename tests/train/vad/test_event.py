@@ -1,8 +1,8 @@
 """The steps of a VAD-GS event (:mod:`vadgs.train.vad.event`) against naive references and
 hand-computed values: each step alone (:func:`skip_reason`, :func:`candidates`, the budget,
 :func:`reconstruct_pairs`, :func:`add_reconstructions`), which instances an event skips (cooldown,
-a moving object in a static model), what its log counts, :func:`merge_priors` and
-:func:`flat_gaussians`.
+a moving object in a static model) and what its log counts; the Gaussians of a moving object join
+its track's node (on the bundled sample).
 
 The event runs for real (:func:`~vadgs.train.vad.event.run_event` through the strategy's
 ``densify``) on stand-ins of what it reads: the detection's rows, the index's classes and the
@@ -19,16 +19,16 @@ import pytest
 import torch
 
 import vadgs.train.vad.event as event_module
-from vadgs.geometry import quaternion_to_rotation
-from vadgs.geometry.rotation import normals_to_quats
-from vadgs.train.strategy import ops
+from tests.train.vad.sample import CAR
+from vadgs.train.model import GaussianModel
 from vadgs.train.vad import (
     InstanceReconstruction,
+    ReconstructConfig,
     StrategyContext,
     VisibilityAwareDensification,
+    VisibilityDensifyConfig,
     flat_gaussians,
 )
-from vadgs.train.vad.config import VisibilityDensifyConfig
 from vadgs.train.vad.event import (
     Attempt,
     EventBudget,
@@ -43,8 +43,7 @@ from vadgs.train.vad.event import (
 )
 from vadgs.train.vad.incomplete import IncompleteInstances
 from vadgs.train.vad.matching import MatchPlan
-from vadgs.train.vad.priors import merge_priors
-from vadgs.train.vad.reconstruct import ViewRender
+from vadgs.train.vad.reconstruct import ViewRender, reconstruct_instance
 from vadgs.train.vad.state import compact_render
 
 C0 = 0.28209479177387814  # the SH band-0 constant
@@ -495,143 +494,34 @@ class TestAddReconstructions:
         assert entry["skipped"] == {"max_instances": 1}
 
 
-# -- merge_priors ------------------------------------------------------------------------------------
-
-
-def _naive_merge(priors, views, depths, normals):
-    """Pixel by pixel: a view's new depth (and normal) replaces the old one where it is > 0."""
-    out = {v: (d.clone(), n.clone()) for v, (d, n) in priors.items()}
-    for v, d, n in zip(views, depths, normals):
-        if v not in out:
-            out[v] = (d.clone(), n.clone())
-            continue
-        od, on = out[v]
-        for y in range(d.shape[-2]):
-            for x in range(d.shape[-1]):
-                if d[0, y, x] > 0:
-                    od[0, y, x] = d[0, y, x]
-                    on[:, y, x] = n[:, y, x]
-    return out
-
-
-class TestMergePriors:
-    def test_hand_values(self):
-        old_d = torch.tensor([[[1.0, 2.0], [3.0, 0.0]]])
-        old_n = torch.arange(12.0).reshape(3, 2, 2)
-        priors = {4: (old_d, old_n)}
-        new_d = torch.tensor([[[0.0, 5.0], [0.0, 6.0]]])
-        new_n = -torch.ones(3, 2, 2)
-        rec = _rec(1, 0, 0)._replace(views=[4, 8], depth=[new_d, new_d * 2], normal=[new_n, new_n * 2])
-        merge_priors(priors, rec)
-        assert priors[4][0].tolist() == [[[1.0, 5.0], [3.0, 6.0]]]
-        assert priors[4][1][:, 0, 0].tolist() == [0.0, 4.0, 8.0]  # kept: no new depth there
-        assert priors[4][1][:, 1, 1].tolist() == [-1.0, -1.0, -1.0]  # replaced
-        assert priors[8][0] is rec.depth[1] and priors[8][1] is rec.normal[1]  # a new view: as is
-
-    def test_against_naive(self):
-        g = torch.Generator().manual_seed(0)
-
-        def maps():
-            d = torch.rand(1, 5, 6, generator=g)
-            d[torch.rand(1, 5, 6, generator=g) < 0.5] = 0  # half the pixels without depth
-            return d, torch.randn(3, 5, 6, generator=g)
-
-        priors = {v: maps() for v in (0, 2)}
-        for views in ([0, 1], [2, 0, 1], [1, 1]):
-            new = [maps() for _ in views]
-            rec = _rec(1, 0, 0)._replace(views=views, depth=[d for d, _ in new], normal=[n for _, n in new])
-            expect = _naive_merge(priors, views, rec.depth, rec.normal)
-            merge_priors(priors, rec)
-            assert sorted(priors) == sorted(expect)
-            for v in expect:
-                assert torch.equal(priors[v][0], expect[v][0]) and torch.equal(priors[v][1], expect[v][1]), v
-
-
-# -- flat_gaussians ----------------------------------------------------------------------------------
-
-
-def _fused(dtype=torch.float32) -> InstanceReconstruction:
-    """Three fused points: normals +z, +x and a tilted one; spacing 0.1, 0.2 and 0 (clamped)."""
-    return InstanceReconstruction(
-        points=torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]], dtype=dtype),
-        normals=torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.6, 0.8]], dtype=dtype),
-        colors=torch.tensor([[0.5, 0.25, 1.0], [0.0, 0.75, 0.5], [0.1, 0.2, 0.3]], dtype=dtype),
-        spacing=torch.tensor([0.1, 0.2, 0.0], dtype=dtype),
-        track=None,
-        views=[0],
-        depth=[],
-        normal=[],
-        reason="ok",
-    )
-
-
-class TestFlatGaussians:
-    def _check_geometry(self, new, means, quats, scales, opacities, rows, flatness=0.2, opacity=0.3):
-        rec = _fused()
-        assert torch.equal(new[means], rec.points[rows])
-        r = quaternion_to_rotation(new[quats])
-        torch.testing.assert_close(r[:, :, 2], rec.normals[rows])  # the disc's normal: the MVS normal
-        torch.testing.assert_close(r.transpose(1, 2) @ r, torch.eye(3).expand(len(rows), 3, 3))
-        width = [max(float(rec.spacing[k]), 1e-4) for k in rows]
-        expect = [[math.log(w), math.log(w), math.log(w * flatness)] for w in width]
-        torch.testing.assert_close(new[scales], torch.tensor(expect))
-        torch.testing.assert_close(
-            new[opacities], torch.full((len(rows),), math.log(opacity / (1 - opacity)))
+class TestAddReconstructionsOfATrack:
+    def test_new_gaussians_join_the_track_node(self, scene, index):
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
+        rec = reconstruct_instance(
+            index, ref, CAR, ReconstructConfig(max_crop=64), torch.Generator().manual_seed(1)
         )
-
-    def test_vadgs_layout(self):
-        params = {
-            "means": torch.zeros(2, 3),
-            "quats": torch.zeros(2, 4),
-            "log_scales": torch.zeros(2, 3),
-            "opacity_logits": torch.zeros(2),
-            "sh_dc": torch.zeros(2, 1, 3),
-            "sh_rest": torch.zeros(2, 8, 3),
-            "node_ids": torch.zeros(2, dtype=torch.int64),
-            "provenance": torch.zeros(2, dtype=torch.int64),
-        }
-        new = flat_gaussians(params, _fused(), None, new_opacity=0.3, flatness=0.2, event=4, node=2)
-        assert set(new) == set(params)
-        assert new["node_ids"].tolist() == [2, 2, 2] and new["node_ids"].dtype == torch.int64
-        assert flat_gaussians(params, _fused())["node_ids"].tolist() == [-1, -1, -1]  # static by default
-        self._check_geometry(new, "means", "quats", "log_scales", "opacity_logits", [0, 1, 2])
-        expect_dc = [[[(0.5 - 0.5) / C0, (0.25 - 0.5) / C0, (1.0 - 0.5) / C0]]]
-        torch.testing.assert_close(new["sh_dc"][:1], torch.tensor(expect_dc))
-        assert torch.equal(new["sh_rest"], torch.zeros(3, 8, 3))
-        assert new["provenance"].tolist() == [4, 4, 4] and new["provenance"].dtype == torch.int64
-
-    def test_gsplat_colors_layout(self):
-        """gsplat's appearance layout: ``colors`` (N, 3) get the logit of the MVS colour, unknown
-        entries (``features``) zeros of their trailing shape and dtype; ``keep`` selects points."""
-        params = {
-            "means": torch.zeros(2, 3, dtype=torch.float64),
-            "quats": torch.zeros(2, 4, dtype=torch.float64),
-            "scales": torch.zeros(2, 3, dtype=torch.float64),
-            "opacities": torch.zeros(2, dtype=torch.float64),
-            "features": torch.zeros(2, 32, dtype=torch.float16),
-            "colors": torch.zeros(2, 3, dtype=torch.float64),
-        }
-        keep = torch.tensor([True, False, True])
-        new = flat_gaussians(params, _fused(), keep, new_opacity=0.3, flatness=0.5)
-        assert set(new) == set(params)
-        assert all(new[k].dtype == params[k].dtype for k in params)
-        new32 = {k: v.float() for k, v in new.items()}
-        self._check_geometry(new32, "means", "quats", "scales", "opacities", [0, 2], flatness=0.5)
-        eps = 1e-4
-        expect = [
-            [math.log(c / (1 - c)) for c in (0.5, 0.25, 1 - eps)],
-            [math.log(c / (1 - c)) for c in (0.1, 0.2, 0.3)],
-        ]
-        torch.testing.assert_close(
-            new["colors"], torch.tensor(expect, dtype=torch.float64), rtol=1e-5, atol=1e-4
+        t = scene.tracks[CAR]
+        f = len(scene.frames)
+        model = GaussianModel(
+            torch.zeros(1, 3),
+            torch.rand(1, 3),
+            torch.zeros(1, 3),
+            torch.full((1,), -1),
+            t.object_to_world[None],
+            t.valid[None],
+            [CAR],
+            sh_degree=0,
         )
-        assert torch.equal(new["features"], torch.zeros(2, 32, dtype=torch.float16))
-        assert "sh0" not in new and ops.param_names(params).sh_dc is None
-
-    def test_normals_to_quats_is_a_rotation_onto_the_normal(self):
-        n = torch.nn.functional.normalize(
-            torch.randn(50, 3, generator=torch.Generator().manual_seed(1)), dim=-1
-        )
-        r = quaternion_to_rotation(normals_to_quats(n))
-        torch.testing.assert_close(r[:, :, 2], n, atol=1e-5, rtol=0)
-        torch.testing.assert_close(torch.linalg.det(r), torch.ones(50), atol=1e-5, rtol=0)
+        ctx = StrategyContext(lambda v: None, total_steps=1, steps_per_cycle=1, track_nodes={CAR: 0})
+        vad = VisibilityAwareDensification()
+        vad.prepare(context=ctx, index=index)
+        ev = EventInputs(index, vad.inputs, ctx.render, None, vad.config, None, ctx.track_nodes, None)
+        add_reconstructions(ev, model.params, None, None, [(CAR, ref, rec)], ctx.render, 1, 0)
+        assert model.num_gaussians == 1 + rec.points.shape[0]
+        assert (model.node_ids[1:] == 0).all()
+        # the node's means are stored in the object frame and moved by the track's pose
+        fpos = f - 1
+        g = model.gaussians_at(fpos)
+        o2w = t.object_to_world[fpos]
+        expect = rec.points @ o2w[:3, :3].T + o2w[:3, 3]
+        assert torch.allclose(g.means[g.ids >= 1].detach(), expect, atol=1e-4)

@@ -1,9 +1,17 @@
+"""Incompleteness of the instances of a view (:mod:`vadgs.train.vad.incomplete`): :func:`find_incomplete`
+against a naive per-instance reference and the paper's rules, the voxel labels it reads, and the checks
+of :class:`IncompleteConfig`."""
+
+from __future__ import annotations
+
 import math
 
+import numpy as np
 import pytest
 import torch
 
 import vadgs.geometry
+from tests.train.vad.config_cases import check_bad_value, field_cases
 from vadgs.geometry.voxel import voxel_labels
 from vadgs.train.vad.incomplete import IncompleteConfig, find_incomplete
 
@@ -132,3 +140,19 @@ class TestVoxelLabels:
     def test_is_the_geometry_one(self):
         """Moved to :mod:`vadgs.geometry.voxel`; still importable from here."""
         assert voxel_labels is vadgs.geometry.voxel_labels
+
+
+class TestIncompleteConfig:
+    """Every field has one rule, next to it (:func:`vadgs.checks.checked`; ``tests/test_config_rules.py``
+    checks every config), run at construction (issue 39, item 5); valid values normalised."""
+
+    @pytest.mark.parametrize(("name", "bad"), field_cases(IncompleteConfig))
+    def test_bad_value_at_construction(self, name, bad):
+        check_bad_value(IncompleteConfig, name, bad)
+
+    def test_messages_and_valid_values(self):
+        with pytest.raises(ValueError, match=r"^min_pixels: expected an integer >= 0, got -1$"):
+            IncompleteConfig(min_pixels=-1)
+        inc = IncompleteConfig(alpha_threshold=0, low_alpha_fraction=1, ignore_ids=[0, np.int64(3)])
+        assert inc.ignore_ids == (0, 3) and all(type(i) is int for i in inc.ignore_ids)
+        assert IncompleteConfig() == IncompleteConfig()

@@ -1,5 +1,6 @@
 """An instance surveyed once (:mod:`vadgs.train.vad.survey`): what planning reads of it in all its
-pairs, in one host read, equal to the per-pair answers it replaces."""
+pairs, in one host read, equal to the per-pair answers it replaces; its frame (a moving car in its
+object frame, a static instance in the world)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,7 @@ import dataclasses
 import pytest
 import torch
 
-from tests.train.vad.test_vad import BUILDING, CAR
-from tests.train.vad.test_vad import index as index
-from tests.train.vad.test_vad import scene as scene
+from tests.train.vad.sample import BUILDING, CAR
 from vadgs.checks import checking
 from vadgs.train.vad import ReconstructConfig
 from vadgs.train.vad.lengths import scene_lengths
@@ -100,3 +99,39 @@ def test_an_instances_pairs_planned_together_as_one_by_one(scene, index):
     # the survey, then per pair its selection (one read, two when the whole-view choice falls back)
     # and its crops, and the work of all: at most 1 + 3 per pair + 1
     assert counter.host_reads <= 2 + 3 * len(refs), counter.host_reads
+
+
+class TestInstanceFrame:
+    """Step 1 (``survey.instance_frame``): a moving car is matched in its object frame."""
+
+    def test_moving_car_in_its_object_frame(self, scene, index):
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
+        frame = instance_frame(index, ref, CAR, CAR, ReconstructConfig())
+        assert not isinstance(frame, str)
+        covis = index.track_covis[CAR]
+        assert frame.covis is covis and bool(frame.voxels.all()) and len(frame.voxels) == covis.num_voxels
+        track = scene.tracks[CAR]
+        cams = scene.cameras(list(range(len(scene.views))))
+        checked = 0
+        for v in range(len(scene.views)):
+            pos = scene.frame_position(scene.views[v].frame)
+            assert bool(frame.allowed[v]) == (bool(index.allowed[v]) and bool(track.valid[pos]))
+            if frame.allowed[v]:  # object frame -> camera = world -> camera after the track's pose
+                expected = cams.world_to_cam[v] @ track.object_to_world[pos]
+                torch.testing.assert_close(frame.world_to_cam[v], expected, atol=1e-5, rtol=1e-5)
+                checked += 1
+        assert checked >= 5
+
+    def test_static_instance_in_the_world(self, scene, index):
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+        frame = instance_frame(index, ref, BUILDING, None, ReconstructConfig())
+        assert not isinstance(frame, str)
+        assert frame.covis is index.covis and torch.equal(frame.world_to_cam, index.cameras.world_to_cam)
+        assert torch.equal(frame.voxels, index.labels == BUILDING)  # the facade has LiDAR voxels
+
+    def test_a_track_without_lidar_has_nothing_to_match(self, scene, index):
+        blind = dataclasses.replace(
+            index, track_covis={k: c for k, c in index.track_covis.items() if k != CAR}
+        )
+        ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))
+        assert instance_frame(blind, ref, CAR, CAR, ReconstructConfig()) == "no_lidar_on_track"

@@ -1,150 +1,210 @@
-"""The derived instance map of a scene without one (:func:`derive_instance_map`) against a naive,
-pixel-by-pixel reference: ground cells of the voxels, grown into the pixels without a voxel, cut to
-the view's own area, and the moving objects' projected boxes painted far to near."""
+"""The visibility index (:mod:`vadgs.train.vad.visibility`) of the bundled sample: its memory (issue
+40: it reads a segment's LiDAR frame by frame, its memory follows the voxels and a bounded sample of
+points, not the number of sweeps), its bounded view cache, the voxels each view's z-buffer sees, and
+which instances the image border cuts."""
 
 from __future__ import annotations
 
-import itertools
-import math
-from types import SimpleNamespace
+import json
+import subprocess
+import sys
 
-import numpy as np
+import pytest
 import torch
-from scipy.spatial import ConvexHull
 
-from vadgs.train.vad.instances import derive_instance_map
-from vadgs.train.vad.lengths import scene_lengths
-
-H, W = 24, 32
-K = torch.tensor([[20.0, 0.0, 15.3], [0.0, 20.0, 11.7], [0.0, 0.0, 1.0]])
-
-
-def _box(center, half):
-    """``(8, 3)`` corners of an axis-aligned box in its object frame, centred at ``center``."""
-    c, h = torch.tensor(center), torch.tensor(half)
-    return torch.tensor(list(itertools.product((-1.0, 1.0), repeat=3))) * h + c
+from tests.train.vad.sample import BUILDING, CAR
+from vadgs.data import load_scene, sample_scene_path
+from vadgs.data.lidar import accumulate_lidar
+from vadgs.geometry import project_points
+from vadgs.train.vad import (
+    StrategyContext,
+    VisibilityAwareDensification,
+    build_visibility_index,
+    visibility,
+)
 
 
-def _track(position, valid=True):
-    o2w = torch.eye(4)
-    o2w[:3, 3] = torch.tensor(position)
-    return SimpleNamespace(valid=torch.tensor([valid]), object_to_world=o2w[None])
+def test_sampled_ground_frame_keeps_the_grid(monkeypatch):
+    """A sample of about 1 point in 64 for the ground frame: the same points in the grid, the
+    frame's axes within a quarter of a degree, its origin a median of all the points."""
+    scene = load_scene(sample_scene_path())
+    full = build_visibility_index(scene)
+    n = accumulate_lidar(scene).points.shape[0]
+    assert n < visibility.GROUND_FRAME_POINTS  # the sample scene: every point, as before
+    monkeypatch.setattr(visibility, "GROUND_FRAME_POINTS", n // 40)
+    sampled = build_visibility_index(scene)
+    assert int(sampled.grid.counts.sum()) == int(full.grid.counts.sum()) == n
+    assert abs(len(sampled.grid) - len(full.grid)) < 0.05 * len(full.grid)
+    r_full, r_sampled = full.static_to_world[:3, :3], sampled.static_to_world[:3, :3]
+    cos = (torch.trace(r_full.T @ r_sampled) - 1) / 2
+    assert float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))) < 0.25
+    # the origin is still a median of all the points along each axis (to a sample's precision)
+    points = accumulate_lidar(scene).points.double()
+    local = (points - sampled.static_to_world[:3, 3].double()) @ r_sampled.double()
+    below = (local < 0).double().mean(0)
+    assert bool(((below > 0.48) & (below < 0.52)).all()), below
+    # labels: the same instances own voxels
+    assert set(sampled.labels.unique().tolist()) == set(full.labels.unique().tolist())
 
 
-def _index(vox, cells, grow, tracks=None, boxes=None, own=(H, W)):
-    """What ``derive_instance_map`` reads of a :class:`VisibilityIndex` (camera at the origin)."""
-    valid = torch.zeros(H, W, dtype=torch.bool)
-    valid[: own[0], : own[1]] = True
-    return SimpleNamespace(
-        inputs=SimpleNamespace(frame_position=lambda view: 0, tracks=tracks or {}),
-        voxel_raster=lambda view: (None, vox),
-        cell_ids=lambda: cells,
-        grow=grow,
-        camera=lambda view: SimpleNamespace(K=K[None], world_to_cam=torch.eye(4)[None]),
-        valid=lambda view: valid,
-        scene_depth=10.0,
-        box_corners=lambda tid: boxes[tid],
-        size=lambda view: (H, W),
-    )
+_PEAK = r"""
+import json, sys, torch
+torch.set_num_threads(1)
+from vadgs.process import peak_rss_mb, reset_peak_rss
+from vadgs.data import load_scene
+from vadgs.train.vad import visibility
+
+visibility.GROUND_FRAME_POINTS = 50_000  # below both scenes' points: what is left grows with voxels
+
+scene = load_scene(sys.argv[1])
+assert reset_peak_rss()  # the peak from here on
+before = peak_rss_mb() * 2**20
+index = visibility.build_visibility_index(scene)
+peak = peak_rss_mb() * 2**20 - before
+print(json.dumps({"peak": peak, "voxels": len(index.grid), "tracks": len(index.track_grids)}))
+"""
 
 
-def _naive(index) -> tuple[np.ndarray, np.ndarray]:
-    """The map, and per pixel whether its value is certain (not on a box edge, not a nearest-pixel
-    tie between labels): those are the pixels compared."""
-    _, vox = index.voxel_raster(0)
-    cells = index.cell_ids()
-    lab = np.zeros((H, W), dtype=np.int64)
-    for y, x in itertools.product(range(H), range(W)):
-        if vox[y, x] >= 0:
-            lab[y, x] = int(cells[vox[y, x]])
-    certain = np.ones((H, W), dtype=bool)
-    grown = lab.copy()
-    labelled = [(y, x) for y, x in itertools.product(range(H), range(W)) if lab[y, x] > 0]
-    for y, x in itertools.product(range(H), range(W)):
-        if lab[y, x] > 0 or not labelled:
-            continue
-        d2 = {(yy, xx): (yy - y) ** 2 + (xx - x) ** 2 for yy, xx in labelled}
-        best = min(d2.values())
-        if math.sqrt(best) <= index.grow:  # the nearest labelled pixel's id
-            near = {int(lab[p]) for p, d in d2.items() if d == best}
-            grown[y, x] = min(near)
-            certain[y, x] = len(near) == 1
-    lab = np.where(index.valid(0).numpy(), grown, 0)
-    painted = []
-    for tid, t in index.inputs.tracks.items():
-        if not bool(t.valid[0]):
-            continue
-        world = index.box_corners(tid) + t.object_to_world[0, :3, 3]
-        z = world[:, 2]
-        if bool((z < scene_lengths(10.0)["box_near"]).any()):
-            continue
-        uv = (world[:, :2] / z[:, None]) * K[[0, 1], [0, 1]] + K[:2, 2]
-        painted.append((float(z.mean()), tid, ConvexHull(uv.numpy()).equations))
-    for _, tid, eq in sorted(painted, reverse=True):  # far first
-        for y, x in itertools.product(range(H), range(W)):
-            side = eq[:, :2] @ np.array([x, y]) + eq[:, 2]  # <= 0 on every face: inside
-            if side.max() < -1e-3:
-                lab[y, x] = tid
-            elif side.max() <= 1e-3:
-                certain[y, x] = False
-    return lab, certain
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
+def test_index_peak_memory_does_not_grow_with_the_frames(tmp_path):
+    """8 and 32 frames of one generated street: the peak of ``build_visibility_index`` follows its
+    voxels (a longer street: 1.8x), not the LiDAR it reads (4x). The ground frame's sample
+    (``GROUND_FRAME_POINTS``, a fixed bound) is set below both scenes' points, as a segment's is.
+    Before, the index held every sweep with its observing views: 67 MB and 159 MB here."""
+    from vadgs.data.synthetic import make_segment
+
+    out = {}
+    for frames in (8, 32):
+        path = tmp_path / f"seg{frames}"
+        make_segment(path, frames=frames, cameras=1, width=64, height=48, lidar_points=60_000,
+                     moving_cars=1, parked_cars=0, workers=1, progress=False)  # fmt: skip
+        run = subprocess.run([sys.executable, "-c", _PEAK, str(path)], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr[-2000:]
+        out[frames] = json.loads(run.stdout.strip().splitlines()[-1])
+    assert out[32]["tracks"] == out[8]["tracks"] == 1
+    per_voxel = {f: out[f]["peak"] / out[f]["voxels"] for f in out}
+    assert out[32]["voxels"] > 1.5 * out[8]["voxels"]
+    assert per_voxel[32] < 1.25 * per_voxel[8], out  # measured 1.07 and 1.14 kB a voxel
+    assert out[32]["peak"] < 1500 * out[32]["voxels"] + 16 * 2**20, out
 
 
-def _compare(index) -> np.ndarray:
-    got = derive_instance_map(index, 0).numpy()
-    expect, certain = _naive(index)
-    assert got.shape == (H, W) and got.dtype == np.int64
-    assert certain.mean() > 0.8
-    np.testing.assert_array_equal(got[certain], expect[certain])
-    return got
+def test_index_cache_is_bounded_by_its_setting():
+    """``cache_mb`` (``VisibilityDensifyConfig.index_cache_mb``) bounds the per-view maps; a view
+    dropped from the cache is recomputed to the same values."""
+    from vadgs.train.vad.inputs import VisibilityInputs
+
+    scene = load_scene(sample_scene_path())
+    inputs = VisibilityInputs.from_scene(scene)
+    views = list(inputs.train_views)
+    per_view = sum(x.numel() * x.element_size() for x in build_visibility_index(inputs).voxel_depth(0))
+    bound_mb = 3.5 * per_view / 2**20  # room for about three views' voxel depth
+    index = build_visibility_index(inputs, cache_mb=bound_mb)
+    assert index.view_cache.max_bytes == int(bound_mb * 2**20)
+    first = [t.clone() for t in index.voxel_depth(views[0])]
+    for v in views:
+        index.voxel_depth(v)
+        assert index.view_cache.nbytes <= index.view_cache.max_bytes
+    misses = index.view_cache.misses
+    again = index.voxel_depth(views[0])  # dropped long ago: recomputed
+    assert index.view_cache.misses > misses
+    assert all(torch.equal(a, b) for a, b in zip(first, again))
+    strategy = VisibilityAwareDensification(index_cache_mb=2.0)
+    ctx = StrategyContext(render=lambda v: None, total_steps=10, steps_per_cycle=len(views))
+    assert strategy.prepare(inputs, ctx).view_cache.max_bytes == 2 * 2**20
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="cache_mb: expected"):
+            build_visibility_index(inputs, cache_mb=bad)
+        with pytest.raises(ValueError, match="index_cache_mb: expected"):
+            VisibilityAwareDensification(index_cache_mb=bad)
 
 
-class TestDeriveInstanceMap:
-    def test_cells_and_growth_against_naive(self):
-        g = torch.Generator().manual_seed(0)
-        vox = torch.full((H, W), -1, dtype=torch.int64)
-        vox[3:9, 4:12] = torch.randint(0, 5, (6, 8), generator=g)  # two blobs of voxels
-        vox[15:20, 20:28] = torch.randint(5, 9, (5, 8), generator=g)
-        vox[5, 6] = -1  # a hole inside a blob
-        cells = torch.tensor([11, 11, 12, 12, 12, 30, 30, 31, 31])
-        for grow in (0, 2, 6):
-            got = _compare(_index(vox, cells, grow))
-            if grow == 0:  # only the voxels' own pixels
-                assert set(np.unique(got[vox.numpy() < 0])) == {0}
-        got = _compare(_index(vox, cells, 6, own=(20, 26)))  # a smaller view, padded: nothing grows there
-        assert (got[20:] == 0).all() and (got[:, 26:] == 0).all()
+class TestViewCache:
+    def test_bounded_index_gives_the_same_maps(self, scene, index):
+        """A tiny byte budget drops views and recomputes them identically."""
+        from vadgs.data.cache import ByteCache
+        from vadgs.train.vad import build_visibility_index
 
-    def test_no_voxel_in_view(self):
-        vox = torch.full((H, W), -1, dtype=torch.int64)
-        assert (derive_instance_map(_index(vox, torch.tensor([5]), 6), 0) == 0).all()
+        small = build_visibility_index(scene)
+        small.view_cache = ByteCache(max_bytes=3 * 120 * 72 * 12)
+        views = list(scene.train_views)[:8]
+        for v in views + views:
+            d, lab = small.voxel_depth(v)
+            d0, lab0 = index.voxel_depth(v)
+            assert torch.equal(d, d0) and torch.equal(lab, lab0)
+            assert torch.equal(small.instances(v), index.instances(v))
+        assert small.view_cache.nbytes <= small.view_cache.max_bytes
+        assert len(small.view_cache.keys()) < 3 * len(views)
 
-    def test_no_static_voxel_in_the_scene(self):
-        """An empty static grid (every point on a moving object): no cells; a box is still painted."""
-        vox = torch.full((H, W), -1, dtype=torch.int64)
-        empty = torch.zeros(0, dtype=torch.int64)
-        assert (derive_instance_map(_index(vox, empty, 6), 0) == 0).all()
-        tracks, boxes = {7: _track((0.0, 0.0, 20.0))}, {7: _box((0.0, 0.0, 0.0), 2.0)}
-        got = _compare(_index(vox, empty, 6, tracks=tracks, boxes=boxes))
-        assert set(np.unique(got)) == {0, 7}
 
-    def test_boxes_far_to_near_against_naive(self):
-        """Tracks' boxes painted over the cells, the near one over the far one; a track without a
-        pose at the frame and a box across the image plane are not painted."""
-        vox = torch.zeros(H, W, dtype=torch.int64)  # every pixel on voxel 0: cell 50
-        cells = torch.tensor([50])
-        tracks = {
-            7: _track([0.3, 0.2, 8.0]),  # far, large
-            3: _track([-0.9, -0.5, 4.0]),  # near, partly over 7
-            4: _track([0.0, 0.0, 6.0], valid=False),  # no pose at the view's frame
-            9: _track([0.0, 0.0, 0.5]),  # reaches behind the camera
-        }
-        boxes = {
-            7: _box([0.0, 0.0, 0.0], [2.0, 1.5, 1.0]),
-            3: _box([0.0, 0.0, 0.0], [0.6, 0.5, 0.4]),
-            4: _box([0.0, 0.0, 0.0], [5.0, 5.0, 1.0]),
-            9: _box([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]),
-        }
-        got = _compare(_index(vox, cells, 0, tracks, boxes))
-        assert set(np.unique(got)) == {3, 7, 50}
-        yx3 = np.argwhere(got == 3)
-        assert len(yx3) > 0 and (got[tuple(yx3.T)] == 3).all()
+class TestCutByBorder:
+    def test_cut_by_border_is_the_mask_touching_the_image_border(self, scene, index):
+        maps = scene.load_instances(scene.train_views)
+        seen = {True: 0, False: 0}
+        for k, v in enumerate(scene.train_views[:12]):
+            for inst in torch.unique(maps[k]).tolist():
+                if inst <= 0:
+                    continue
+                rows, cols = torch.nonzero(maps[k] == inst, as_tuple=True)
+                h, w = maps[k].shape
+                expected = bool(
+                    rows.min() == 0 or rows.max() == h - 1 or cols.min() == 0 or cols.max() == w - 1
+                )
+                assert index.cut_by_border(v, inst) == expected, (v, inst)
+                seen[expected] += 1
+        assert seen[True] > 5 and seen[False] > 5  # both cases occur in the sample
+        assert not index.cut_by_border(scene.train_views[0], 10**6)  # absent: not cut
+
+
+class TestSeenCovis:
+    """``seen_covis``: an instance's visibility sets, plus the voxels the asked views' z-buffers show."""
+
+    @staticmethod
+    def _ref(scene, index):
+        return max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+
+    def test_seen_covis_against_the_zbuffer(self, scene, index):
+        voxels = index.labels == BUILDING
+        ref = self._ref(scene, index)
+        views = [ref, 3]
+        cov = index.seen_covis(voxels, views)
+        ids = torch.nonzero(voxels).flatten()
+        for v in range(len(scene.views)):
+            expect = set(index.covis.voxels_of(v).tolist())
+            if v in views:
+                vidx = index.voxel_raster(v)[1]
+                expect |= set(vidx[vidx >= 0].tolist())
+            expect = {int(i) for i in torch.nonzero(torch.isin(ids, torch.tensor(sorted(expect)))).flatten()}
+            assert set(cov.voxels_of(v).tolist()) == expect, v
+        assert len(cov.voxels_of(ref)) > len(index.covis.restrict(voxels).voxels_of(ref))  # the z-buffer adds
+
+
+class TestSeenVoxelsOfATrack:
+    """``seen_voxels`` of a moving object: the voxels of its grid a view's z-buffer shows at its timestamp."""
+
+    def test_seen_voxels_of_a_track_are_its_front(self, scene, index):
+        grid = index.track_grids[CAR]
+        track = scene.tracks[CAR]
+        behind = {"seen": [], "all": []}  # voxels > 3 voxel edges behind the true surface (depth maps)
+        for v in scene.train_views:
+            fpos = scene.frame_position(scene.views[v].frame)
+            ids = index.seen_voxels(v, CAR)
+            if not bool(track.valid[fpos]):
+                assert len(ids) == 0
+                continue
+            o2w = track.object_to_world[fpos]
+            cams = scene.cameras([v])
+            h, w = cams.image_size
+            gt = scene.load_depths([v])[0, 0]
+            for name, kept in (("seen", ids), ("all", torch.arange(len(grid)))):
+                world = grid.centers[kept] @ o2w[:3, :3].T + o2w[:3, 3]
+                uv, z = project_points(world[None], cams.K, cams.world_to_cam)
+                u, vv = uv[0, :, 0].round().long(), uv[0, :, 1].round().long()
+                ok = (z[0] > 0) & (u >= 0) & (u < w) & (vv >= 0) & (vv < h)
+                behind[name] += (z[0][ok] - gt[vv[ok], u[ok]] > 3 * 0.2).tolist()
+        assert len(behind["seen"]) > 1000
+        # the z-buffer keeps the car's visible side: almost none of its voxels behind what the view sees,
+        # where its whole grid, posed there, has its far side behind it
+        assert sum(behind["seen"]) / len(behind["seen"]) < 0.005
+        assert sum(behind["all"]) / len(behind["all"]) > 0.03
+        with pytest.raises(ValueError, match="track: expected one of the tracks"):
+            index.seen_voxels(scene.train_views[0], 10**6)

@@ -24,7 +24,14 @@ if TYPE_CHECKING:
     from vadgs.train.vad.reconstruct_config import ReconstructConfig
     from vadgs.train.vad.visibility import VisibilityIndex
 
-__all__ = ["MAX_CALL_PIXEL_VIEWS", "MatchPlan", "match_plans", "match_work"]
+__all__ = [
+    "MAX_CALL_PIXEL_VIEWS",
+    "MatchInputs",
+    "MatchPlan",
+    "match_batches",
+    "match_plans",
+    "match_work",
+]
 
 
 class MatchPlan(NamedTuple):
@@ -55,7 +62,7 @@ class MatchPlan(NamedTuple):
     work: float
 
 
-class _MatchInputs(NamedTuple):
+class MatchInputs(NamedTuple):
     """One plan's PatchMatch inputs, one row per member (``b``), sources ``V`` of size ``(hs, ws)``."""
 
     images: torch.Tensor  # (b, 3, ch, cw)
@@ -72,7 +79,7 @@ class _MatchInputs(NamedTuple):
 
 def _match_inputs(
     index: VisibilityIndex, plan: MatchPlan, render_prior: Callable[[int], Any] | None
-) -> _MatchInputs:
+) -> MatchInputs:
     """Step 3b's inputs of one plan: each member's crop as reference against all other group views."""
     crops, group, world_to_cam = plan.crops, plan.group, plan.world_to_cam
     ch, cw = crops.size
@@ -93,7 +100,7 @@ def _match_inputs(
     shift = torch.zeros(len(corners), 3, 3, device=dev, dtype=crops.K.dtype)
     shift[:, :2, 2] = torch.tensor(corners, device=dev, dtype=crops.K.dtype)
     others = torch.tensor([[j for j in range(len(group)) if j != i] for i in crops.members], device=dev)
-    return _MatchInputs(
+    return MatchInputs(
         torch.stack(ref_imgs),
         torch.stack(ref_masks),
         crops.K[members] - shift,  # shift_K of each member's crop
@@ -113,7 +120,9 @@ def _match_inputs(
 MAX_CALL_PIXEL_VIEWS = 1 << 20
 
 
-def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean: bool) -> list[list[int]]:
+def match_batches(
+    inputs: list[MatchInputs], padding: float | None, top_k: int, mean: bool
+) -> list[list[int]]:
     """The plans matched together, in groups of one PatchMatch call each.
 
     A call's padded crop (the largest height by the largest width) is at most ``padding`` times
@@ -121,6 +130,11 @@ def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean
     fewer source views than the others are padded with views that match nothing, which
     changes nothing but the ``top_k`` fallback of fewer than ``top_k`` views and ``"mean"``
     aggregation (``mean``): such plans are matched only with plans of as many views.
+
+    Only the inputs' shapes are read (``images`` and ``src_images``).
+
+    Returns:
+        The indices of ``inputs`` of each call, in ascending order within a call.
     """
     order = sorted(range(len(inputs)), key=lambda i: -inputs[i].images.shape[-2] * inputs[i].images.shape[-1])
     out: list[dict] = []  # key (exact view count or -1), size, smallest area, references, views, plans
@@ -146,7 +160,7 @@ def _batches(inputs: list[_MatchInputs], padding: float | None, top_k: int, mean
 
 
 def _match_batch(
-    parts: list[_MatchInputs], ranges: list[tuple[float, float]], pm: PatchMatchConfig
+    parts: list[MatchInputs], ranges: list[tuple[float, float]], pm: PatchMatchConfig
 ) -> PatchMatchResult:
     """One :func:`~vadgs.mvs.patchmatch` call on the plans' inputs ``parts``, padded to one size."""
     if len(parts) == 1:
@@ -225,7 +239,7 @@ def match_plans(
 
     A batched call draws other random numbers than one call per plan, and its references score
     the union of their masks (padded pixels score nothing), so results agree with per-plan calls
-    in distribution, not bit for bit (``tests/train/vad/test_event_batch.py``).
+    in distribution, not bit for bit (``tests/train/vad/test_vad_end_to_end.py``).
 
     Returns:
         Per plan, its :class:`~vadgs.train.vad.crops.MatchedCrops`.
@@ -244,7 +258,7 @@ def _match_plans(
     inputs = [_match_inputs(index, plan, render_prior) for plan in plans]
     out: list[MatchedCrops | None] = [None] * len(plans)
     pm = cfg.patchmatch
-    for batch in _batches(inputs, cfg.match_padding, pm.top_k, pm.view_selection == "mean"):
+    for batch in match_batches(inputs, cfg.match_padding, pm.top_k, pm.view_selection == "mean"):
         parts = [inputs[i] for i in batch]
         res = _match_batch(parts, [plans[i].depth_range for i in batch], pm)
         n0 = 0

@@ -21,7 +21,7 @@ flagged by :func:`~vadgs.train.vad.incomplete.find_incomplete`:
    object's own frame), with :func:`vadgs.mvs.fuse_depth_maps` (one point per consistent pixel);
 6. returns each member's consistent depth and normals at the scene's resolution as priors.
 
-This module holds steps 2–3a (``_select_supports``, :func:`plan_matches`) and
+This module holds steps 2–3a (:func:`select_supports`, :func:`plan_matches`) and
 :func:`reconstruct_instance`, which runs them all on the device of the index, in three parts that
 an event runs over all its (instance, reference) pairs: :func:`plan_matches` (steps 1–3a, an
 instance's pairs after one survey of it: a :class:`~vadgs.train.vad.matching.MatchPlan` each),
@@ -69,6 +69,7 @@ __all__ = [
     "finish_match",
     "plan_matches",
     "reconstruct_instance",
+    "select_supports",
 ]
 
 
@@ -122,7 +123,7 @@ class ViewRender(NamedTuple):
     normals: torch.Tensor
 
 
-def _select_supports(
+def select_supports(
     index: VisibilityIndex,
     ref: int,
     instance: int,
@@ -142,6 +143,19 @@ def _select_supports(
     z-buffers were used: the selection's on them when the reference shows any voxel there, else
     the visibility sets'. ``survey``: the instance's (its restricted visibility sets, the views
     allowed and those cut by the border: no read of them here).
+
+    Args:
+        index: the scene's visibility index.
+        ref: the reference view.
+        instance: the instance id.
+        track: the instance's track id when it moves, else None.
+        frame: the instance's frame (:func:`~vadgs.train.vad.survey.instance_frame`).
+        cfg: the reconstruction's settings.
+        generator: the random numbers of the selection.
+        survey: the instance's survey, or None.
+
+    Returns:
+        The :class:`~vadgs.select.ViewSelection` of the supporting views.
     """
     covis = survey.covis if survey is not None and survey.covis is not None else None
     if covis is None:
@@ -281,7 +295,7 @@ def _plan_one(
     if isinstance(got, str):
         return nothing(got)
     frame, stats = got
-    sel = _select_supports(index, ref, instance, track, frame, cfg, generator, survey)  # 2.
+    sel = select_supports(index, ref, instance, track, frame, cfg, generator, survey)  # 2.
     group = [ref, *sel.ids]
     if len(group) < 2:
         return nothing(f"selection:{sel.reason}")
