@@ -10,7 +10,7 @@ from vadgs.geometry import project_points
 from vadgs.train.config import TrainConfig
 from vadgs.train.model import GaussianModel
 from vadgs.train.trainer import Trainer
-from vadgs.train.vad import VisibilityDensifyConfig
+from vadgs.train.vad import InstanceReconstruction, VisibilityDensifyConfig
 
 __all__ = ["BUILDING", "CAR", "SIGN", "hits_on_car", "sample_model", "sample_trainer"]
 
@@ -66,3 +66,23 @@ def hits_on_car(scene, ref, points, instances):
         if int(ok.sum()) >= 50:
             hits.append(float((instances(v)[vv[ok], u[ok]] == CAR).float().mean()))
     return hits
+
+
+def sample_reconstruction(
+    instance: int, points: int, consistent: int, track: int | None = None
+) -> InstanceReconstruction:
+    """A reconstruction of ``points`` random points (``consistent`` pixels), seeded by ``instance``."""
+    g = torch.Generator().manual_seed(instance)
+    return InstanceReconstruction(
+        points=torch.rand(points, 3, generator=g),
+        normals=torch.tensor([[0.0, 0.0, 1.0]]).repeat(points, 1),
+        colors=torch.full((points, 3), 0.5),
+        spacing=torch.full((points,), 0.05),
+        track=track,
+        views=[0],
+        depth=[torch.zeros(1, 4, 4)],
+        normal=[torch.zeros(3, 4, 4)],
+        reason="ok" if points else "explained",
+        work=1.0,
+        consistent=consistent,
+    )

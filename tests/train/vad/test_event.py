@@ -19,10 +19,9 @@ import pytest
 import torch
 
 import vadgs.train.vad.event as event_module
-from tests.train.vad.sample import CAR
+from tests.train.vad.sample import CAR, sample_reconstruction
 from vadgs.train.model import GaussianModel
 from vadgs.train.vad import (
-    InstanceReconstruction,
     ReconstructConfig,
     StrategyContext,
     VisibilityAwareDensification,
@@ -66,23 +65,6 @@ def _rows(flagged: dict[int, int], view: int = 0) -> IncompleteInstances:
         foreign=f,
         pixels=torch.tensor([flagged[i] for i in ids], dtype=torch.int64),
         voxel_pixels=torch.zeros(n, dtype=torch.int64),
-    )
-
-
-def _rec(instance: int, points: int, consistent: int, track: int | None = None) -> InstanceReconstruction:
-    g = torch.Generator().manual_seed(instance)
-    return InstanceReconstruction(
-        points=torch.rand(points, 3, generator=g),
-        normals=torch.tensor([[0.0, 0.0, 1.0]]).repeat(points, 1),
-        colors=torch.full((points, 3), 0.5),
-        spacing=torch.full((points,), 0.05),
-        track=track,
-        views=[0],
-        depth=[torch.zeros(1, 4, 4)],
-        normal=[torch.zeros(3, 4, 4)],
-        reason="ok" if points else "explained",
-        work=1.0,
-        consistent=consistent,
     )
 
 
@@ -145,7 +127,7 @@ class _Event:
         def reconstruct(index, ref, instance, *args, **kwargs):
             self.calls.append(instance)
             n, c = made.get(instance, (3, 7))
-            return _rec(instance, n, c, track=instance if instance in tracks else None)
+            return sample_reconstruction(instance, n, c, track=instance if instance in tracks else None)
 
         monkeypatch.setattr(event_module, "detect", lambda *a, **k: (_rows(flagged), [0]))
         monkeypatch.setattr(event_module, "survey_instance", _survey)
@@ -275,7 +257,7 @@ class TestRendersOfAnEvent:
         def reconstruct(index, ref, instance, config, generator, renders, **kwargs):
             seen.append((instance, float(renders(0).depth.max()), float(renders(instance + 10).depth.max())))
             n, c = {1: (5, 5), 2: (4, 4)}.get(instance, (0, 0))
-            return _rec(instance, n, c)
+            return sample_reconstruction(instance, n, c)
 
         # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
         monkeypatch.setattr(event_module, "plan_matches", _per_reference(reconstruct))
@@ -283,8 +265,8 @@ class TestRendersOfAnEvent:
         assert seen == [(1, 4.0, 4.0), (2, 4.0, 4.0), (3, 4.0, 4.0)]  # views 0, 11, 12, 13: the model before
         assert rendered_with == [4] * 4  # each view rendered once (view 0 kept or rendered at the first ask)
         assert params["means"].shape[0] == 4 + 5 + 4 == 4 + entry["added"]  # both added, in order
-        assert torch.equal(params["means"][4:9], _rec(1, 5, 5).points)
-        assert torch.equal(params["means"][9:], _rec(2, 4, 4).points)
+        assert torch.equal(params["means"][4:9], sample_reconstruction(1, 5, 5).points)
+        assert torch.equal(params["means"][9:], sample_reconstruction(2, 4, 4).points)
 
     def test_on_addition_gets_the_render_before(self, monkeypatch):
         got = []
@@ -300,7 +282,7 @@ class TestRendersOfAnEvent:
 
         def reconstruct(index, ref, instance, config, generator, renders, **kwargs):
             renders(ref)
-            return _rec(instance, 5 if instance == 1 else 0, 5)
+            return sample_reconstruction(instance, 5 if instance == 1 else 0, 5)
 
         # an instance's plan stands for its reconstruction (a plan that is a result is not matched)
         monkeypatch.setattr(event_module, "plan_matches", _per_reference(reconstruct))
@@ -423,11 +405,13 @@ class TestReconstructPairs:
 
         def finish_match(index, plan, matched, config, generator, renders, occupied=None):
             finished.append((matched, None if occupied is None else occupied[:, 0].tolist()))
-            return _rec(plan.instance, 0, 0)._replace(points=torch.full((2, 3), float(plan.ref)))
+            return sample_reconstruction(plan.instance, 0, 0)._replace(
+                points=torch.full((2, 3), float(plan.ref))
+            )
 
         monkeypatch.setattr(event_module, "match_plans", match_plans)
         monkeypatch.setattr(event_module, "finish_match", finish_match)
-        nothing = _rec(4, 0, 0)  # a pair with nothing to match: its result as planned
+        nothing = sample_reconstruction(4, 0, 0)  # a pair with nothing to match: its result as planned
         wave = [
             Attempt(1, [5, 6], [_plan(5, 1, 1.0), _plan(6, 1, 2.0)]),
             Attempt(4, [7], [nothing]),
@@ -471,7 +455,7 @@ class TestAddReconstructions:
         opt["means"].step()
         cfg = VisibilityDensifyConfig(new_opacity=0.3, flatness=0.5)
         ev = EventInputs(None, None, None, None, cfg, None, track_nodes={21: 1, 30: 0}, trained_pixels=None)
-        moving, static = _rec(21, 3, 3, track=21), _rec(4, 2, 2)
+        moving, static = sample_reconstruction(21, 3, 3, track=21), sample_reconstruction(4, 2, 2)
         adds = [(21, 0, moving), (4, 0, static)]
         add_reconstructions(
             ev, params, opt, None, adds, lambda v: pytest.fail("no render without on_addition"), 7, 0

@@ -11,26 +11,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from vadgs.train.vad import InstanceReconstruction
+from tests.train.vad.sample import sample_reconstruction
 from vadgs.train.vad.priors import merge_priors, state_priors, view_targets
-
-
-def _rec(instance: int, points: int, consistent: int, track: int | None = None) -> InstanceReconstruction:
-    g = torch.Generator().manual_seed(instance)
-    return InstanceReconstruction(
-        points=torch.rand(points, 3, generator=g),
-        normals=torch.tensor([[0.0, 0.0, 1.0]]).repeat(points, 1),
-        colors=torch.full((points, 3), 0.5),
-        spacing=torch.full((points,), 0.05),
-        track=track,
-        views=[0],
-        depth=[torch.zeros(1, 4, 4)],
-        normal=[torch.zeros(3, 4, 4)],
-        reason="ok" if points else "explained",
-        work=1.0,
-        consistent=consistent,
-    )
-
 
 # -- merge_priors ------------------------------------------------------------------------------------
 
@@ -58,7 +40,9 @@ class TestMergePriors:
         priors = {4: (old_d, old_n)}
         new_d = torch.tensor([[[0.0, 5.0], [0.0, 6.0]]])
         new_n = -torch.ones(3, 2, 2)
-        rec = _rec(1, 0, 0)._replace(views=[4, 8], depth=[new_d, new_d * 2], normal=[new_n, new_n * 2])
+        rec = sample_reconstruction(1, 0, 0)._replace(
+            views=[4, 8], depth=[new_d, new_d * 2], normal=[new_n, new_n * 2]
+        )
         merge_priors(priors, rec)
         assert priors[4][0].tolist() == [[[1.0, 5.0], [3.0, 6.0]]]
         assert priors[4][1][:, 0, 0].tolist() == [0.0, 4.0, 8.0]  # kept: no new depth there
@@ -76,7 +60,9 @@ class TestMergePriors:
         priors = {v: maps() for v in (0, 2)}
         for views in ([0, 1], [2, 0, 1], [1, 1]):
             new = [maps() for _ in views]
-            rec = _rec(1, 0, 0)._replace(views=views, depth=[d for d, _ in new], normal=[n for _, n in new])
+            rec = sample_reconstruction(1, 0, 0)._replace(
+                views=views, depth=[d for d, _ in new], normal=[n for _, n in new]
+            )
             expect = _naive_merge(priors, views, rec.depth, rec.normal)
             merge_priors(priors, rec)
             assert sorted(priors) == sorted(expect)
