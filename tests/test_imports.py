@@ -13,6 +13,7 @@ from __future__ import annotations
 import ast
 import importlib
 import pkgutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import networkx as nx
@@ -231,6 +232,18 @@ def test_no_private_name_is_imported_from_another_module():
     assert PRIVATE_IMPORTS_ALLOWED <= found, "allowed but gone: shrink PRIVATE_IMPORTS_ALLOWED"
 
 
+def _from_imports(files: list[Path], root: Path) -> Iterator[tuple[Path, ast.ImportFrom, str, list[str]]]:
+    """``(file relative to root, node, module imported from, names)`` of every ``from ... import`` in
+    ``files``, at any depth (module level, in functions, under ``if TYPE_CHECKING:``)."""
+    for path in files:
+        rel = path.relative_to(root)
+        name = ".".join(rel.with_suffix("").parts)
+        package = name.removesuffix(".__init__") if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                yield rel, node, _from_module(node, package), [a.name for a in node.names]
+
+
 def _private_imports_in(files: list[Path], root: Path, modules: dict[str, Path]) -> set[tuple[str, str, str]]:
     """``(file, imported from, name)`` of every private name ``files`` import from ``vadgs`` or ``tests``.
 
@@ -240,25 +253,15 @@ def _private_imports_in(files: list[Path], root: Path, modules: dict[str, Path])
     against, are reachable only under private names).
     """
     found = set()
-    for path in files:
-        rel = path.relative_to(root)
-        name = ".".join(rel.with_suffix("").parts)
-        package = name.removesuffix(".__init__") if path.name == "__init__.py" else name.rpartition(".")[0]
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if not isinstance(node, ast.ImportFrom):
-                continue
-            target = _from_module(node, package)
-            if target.split(".")[0] not in ("vadgs", "tests"):
-                continue
-            for a in node.names:
-                private = a.name.startswith("_") and not a.name.endswith("__")
-                sub = f"{target}.{a.name}"
-                if (
-                    private
-                    and sub not in modules
-                    and not (root / Path(*sub.split("."))).with_suffix(".py").exists()
-                ):
-                    found.add((str(rel), target, a.name))
+    for rel, _node, target, names in _from_imports(files, root):
+        if target.split(".")[0] not in ("vadgs", "tests"):
+            continue
+        for a in names:
+            private = a.startswith("_") and not a.endswith("__")
+            sub = f"{target}.{a}"
+            a_module = sub in modules or (root / Path(*sub.split("."))).with_suffix(".py").exists()
+            if private and not a_module:
+                found.add((str(rel), target, a))
     return found
 
 
@@ -380,20 +383,13 @@ def _misplaced_imports(files: list[Path], modules: dict[str, Path], root: Path) 
     defined in ``module``, a submodule of it, nor listed by it as a package."""
     defines = _defines(modules)
     found = []
-    for path in files:
-        rel = path.relative_to(root)
-        name = ".".join(rel.with_suffix("").parts)
-        package = name.removesuffix(".__init__") if path.name == "__init__.py" else name.rpartition(".")[0]
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if not isinstance(node, ast.ImportFrom):
-                continue
-            target = _from_module(node, package)
-            if target.split(".")[0] != "vadgs" or target not in defines:
-                continue
-            defined, listed = defines[target]
-            for a in node.names:
-                if f"{target}.{a.name}" not in modules and a.name not in defined | listed:
-                    found.append(f"{rel}:{node.lineno} {target}.{a.name}")
+    for rel, node, target, names in _from_imports(files, root):
+        if target.split(".")[0] != "vadgs" or target not in defines:
+            continue
+        defined, listed = defines[target]
+        for a in names:
+            if f"{target}.{a}" not in modules and a not in defined | listed:
+                found.append(f"{rel}:{node.lineno} {target}.{a}")
     return found
 
 
