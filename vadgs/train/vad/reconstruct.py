@@ -54,7 +54,7 @@ from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
 from vadgs.train.vad import reconstruct_config
 from vadgs.train.vad.crops import MatchedCrops, crop_group, render_maps
-from vadgs.train.vad.fusion import consistent_depth, depth_priors, explained_pixels, fuse_points
+from vadgs.train.vad.fusion import consistent_depth, depth_priors, explained_pixels, fuse_points, lidar_check
 from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
 from vadgs.train.vad.matching import MatchPlan, match_plans, match_work
 from vadgs.train.vad.survey import InstanceFrame, InstanceSurvey, reference_frame, survey_instance
@@ -346,7 +346,14 @@ def finish_match(
     with checking(False):  # see reconstruct_instance
         planar = cfg.planar is not None and track is None  # a car is not planar
         cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
-        # 5. the unexplained pixels
+        # 5. the pixels the members' own LiDAR does not contradict, then the unexplained ones
+        disagrees = False
+        if track is None and cfg.max_lidar_error is not None:
+            lidar = lidar_check(index, cons, crops, group, cfg)
+            n_checked, n_bad = torch.stack([lidar.checked.sum(), lidar.contradicted.sum()]).tolist()
+            disagrees = n_checked >= max(cfg.min_pixels, 1) and n_bad > cfg.max_lidar_disagreement * n_checked
+            keep = torch.zeros_like(cons.keep) if disagrees else cons.keep & ~lidar.contradicted
+            cons = cons._replace(keep=keep)
         new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)
         points, normals, colors, spacing, consistent = fuse_points(
             index, cons, matched, crops, new, track, cfg, occupied, generator, dev
@@ -354,6 +361,7 @@ def finish_match(
         full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
         views = [group[i] for i in crops.members]
         reason = "ok" if points.shape[0] else ("explained" if consistent else "no_consistent_pixels")
+        reason = "lidar_disagrees" if disagrees else reason
         reason += " (seen)" if plan.selection.endswith("(seen)") else ""  # selected on the z-buffers
         return InstanceReconstruction(
             points, normals, colors, spacing, track, views, full_depth, full_normal, reason, plan.work,

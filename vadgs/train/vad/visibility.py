@@ -14,7 +14,7 @@ scene (:mod:`vadgs.train.vad.lengths`), derived instance maps where a dataset ha
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -232,6 +232,23 @@ class VisibilityIndex:
             return self.pad(r.depth[0]), self.pad(r.index[0], -1)
 
         return self.view_cache.get(("raster", view), make)
+
+    def observed_depth(self, view: int) -> torch.Tensor:
+        """Depth ``(1, H, W)`` of the static voxels in the view's own visibility set (0 elsewhere; cached).
+
+        The z-buffer of :meth:`voxel_raster` restricted to the voxels the view's own LiDAR sweep
+        (or, for a COLMAP scene, its SfM track) observed (``ZBufferConfig.only_observed``): what
+        the view measured, not what the whole scan holds. The reconstruction's LiDAR check
+        (:func:`~vadgs.train.vad.fusion.lidar_check`) compares the MVS depth with it.
+        """
+
+        def make() -> torch.Tensor:
+            cam = self.camera(view)
+            cam = cam.in_object_frame(self.static_to_world.to(cam.world_to_cam)[None])  # the grid's frame
+            r = rasterize_voxels(self.grid, cam, [view], replace(self.zbuffer, only_observed=True))
+            return self.pad(r.depth[0])
+
+        return self.view_cache.get(("observed", view), make)
 
     def voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
