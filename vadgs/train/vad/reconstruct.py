@@ -86,9 +86,10 @@ class InstanceReconstruction(NamedTuple):
         depth: per group member, ``(1, H, W)`` consistent MVS depth in its full image (0 elsewhere),
             usable as a depth prior.
         normal: per group member, ``(3, H, W)`` MVS normals (camera frame), zeros elsewhere.
-        reason: ``"ok"`` or why nothing (or little) was reconstructed; `` (seen)`` is appended when
-            the supporting views were selected on the views' voxel z-buffers
-            (``ReconstructConfig.seen_supports``).
+        reason: ``"ok"`` or why nothing (or little) was reconstructed (``"lidar_disagrees"``: the
+            members' own LiDAR contradicts most of the checked matches,
+            ``ReconstructConfig.max_lidar_error``); `` (seen)`` is appended when the supporting views
+            were selected on the views' voxel z-buffers (``ReconstructConfig.seen_supports``).
         work: the PatchMatch work done, in pixel-sweeps (:func:`match_work`; 0 when nothing was
             matched): a count that does not depend on the machine, for the event's budget.
         consistent: the group's consistent MVS pixels (at the matching scale): the points fusion
