@@ -348,12 +348,12 @@ def finish_match(
         planar = cfg.planar is not None and track is None  # a car is not planar
         cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
         # 5. the pixels the members' own LiDAR does not contradict, then the unexplained ones
-        disagrees = False
+        disagrees = None  # a 0-d bool on the device: read only when nothing else is left
         if track is None and cfg.max_lidar_error is not None:
             lidar = lidar_check(index, cons, crops, group, cfg)
-            n_checked, n_bad = torch.stack([lidar.checked.sum(), lidar.contradicted.sum()]).tolist()
-            disagrees = n_checked >= max(cfg.min_pixels, 1) and n_bad > cfg.max_lidar_disagreement * n_checked
-            keep = torch.zeros_like(cons.keep) if disagrees else cons.keep & ~lidar.contradicted
+            checked, bad = lidar.checked.sum(), lidar.contradicted.sum()
+            disagrees = (checked >= max(cfg.min_pixels, 1)) & (bad > cfg.max_lidar_disagreement * checked)
+            keep = cons.keep & ~lidar.contradicted & ~disagrees
             cons = cons._replace(keep=keep)
         new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)
         points, normals, colors, spacing, consistent = fuse_points(
@@ -362,7 +362,8 @@ def finish_match(
         full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
         views = [group[i] for i in crops.members]
         reason = "ok" if points.shape[0] else ("explained" if consistent else "no_consistent_pixels")
-        reason = "lidar_disagrees" if disagrees else reason
+        if not points.shape[0] and disagrees is not None and bool(disagrees):
+            reason = "lidar_disagrees"
         reason += " (seen)" if plan.selection.endswith("(seen)") else ""  # selected on the z-buffers
         return InstanceReconstruction(
             points, normals, colors, spacing, track, views, full_depth, full_normal, reason, plan.work,

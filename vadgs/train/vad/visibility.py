@@ -14,7 +14,7 @@ scene (:mod:`vadgs.train.vad.lengths`), derived instance maps where a dataset ha
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -234,19 +234,20 @@ class VisibilityIndex:
         return self.view_cache.get(("raster", view), make)
 
     def observed_depth(self, view: int) -> torch.Tensor:
-        """Depth ``(1, H, W)`` of the static voxels in the view's own visibility set (0 elsewhere; cached).
+        """:meth:`voxel_raster`'s depth where the pixel's voxel is in the view's own visibility set, else 0.
 
-        The z-buffer of :meth:`voxel_raster` restricted to the voxels the view's own LiDAR sweep
-        (or, for a COLMAP scene, its SfM track) observed (``ZBufferConfig.only_observed``): what
-        the view measured, not what the whole scan holds. The reconstruction's LiDAR check
+        ``(1, H, W)``, cached: where the nearest static voxel surface is one the view's own LiDAR
+        sweep (or, for a COLMAP scene, its SfM track) observed: what the view measured, not what
+        the whole scan holds (a nearer voxel seen only from other frames leaves the pixel
+        unmeasured). No read by the host. The reconstruction's LiDAR check
         (:func:`~vadgs.train.vad.fusion.lidar_check`) compares the MVS depth with it.
         """
 
         def make() -> torch.Tensor:
-            cam = self.camera(view)
-            cam = cam.in_object_frame(self.static_to_world.to(cam.world_to_cam)[None])  # the grid's frame
-            r = rasterize_voxels(self.grid, cam, [view], replace(self.zbuffer, only_observed=True))
-            return self.pad(r.depth[0])
+            depth, vidx = self.voxel_raster(view)
+            seen = self.covis.seen_by(view).to(vidx.device)
+            own = (vidx >= 0) & seen[vidx.clamp(min=0)]
+            return torch.where(own[None], depth, torch.zeros_like(depth))
 
         return self.view_cache.get(("observed", view), make)
 
