@@ -37,7 +37,9 @@ keyword settings (``DefaultStrategy(refine_every=50)``, as gsplat's strategies a
 readable and assignable as attributes (``strategy.refine_every = 0`` is checked as the config's
 field is, then replaces the config). An attribute that is neither a setting nor one the strategy
 has (a typo: ``strategy.refine_evrey = 50``) is refused with an ``AttributeError``, as a frozen
-dataclass refuses it; a subclass's ``__init__`` may add its own attributes.
+dataclass refuses it; a subclass's ``__init__`` may add its own attributes. Its two step methods
+are gsplat's, written once: each hands the call's arguments, as one :class:`StrategyStep`, to the
+subclass's :meth:`~ConfiguredStrategy.pre_backward` / :meth:`~ConfiguredStrategy.post_backward`.
 
 ``info`` is either vadgs's (``raster``: the :class:`~vadgs.render.RenderOutput`, ``ids``: the model
 rows it rendered, ``image_size``, ``generator``) or gsplat's (``means2d`` with its gradient,
@@ -51,13 +53,13 @@ import difflib
 import functools
 import inspect
 from collections.abc import MutableMapping
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
 import torch
 
 from vadgs.train.losses import GeometryTargets
 
-__all__ = ["ConfiguredStrategy", "GeometryPriors", "Strategy", "initialize_base_state"]
+__all__ = ["ConfiguredStrategy", "GeometryPriors", "Strategy", "StrategyStep", "initialize_base_state"]
 
 
 @runtime_checkable
@@ -100,6 +102,32 @@ class Strategy(Protocol):
     ) -> None:
         """Called after ``loss.backward()`` and the optimizer step; may add or remove Gaussians."""
         ...
+
+
+class StrategyStep(NamedTuple):
+    """The arguments of one call of a step method, as the training loop passed them.
+
+    :class:`ConfiguredStrategy`'s ``step_pre_backward`` / ``step_post_backward`` hand them to the
+    subclass's :meth:`~ConfiguredStrategy.pre_backward` / :meth:`~ConfiguredStrategy.post_backward`;
+    :meth:`forward_to` passes them on to another strategy (one that a strategy wraps).
+    """
+
+    params: MutableMapping[str, torch.Tensor]
+    """gsplat's mapping of per-Gaussian tensors or vadgs's ``GaussianModel.params``."""
+    optimizers: Any
+    """gsplat's ``{name: optimizer}`` or vadgs's one optimizer with named groups."""
+    state: dict[str, Any]
+    """The strategy's state (:meth:`Strategy.initialize_state`)."""
+    step: int
+    """The step (just taken, in ``step_post_backward``)."""
+    info: dict[str, Any]
+    """What the render reports (vadgs's or gsplat's; see the module docstring)."""
+    kwargs: dict[str, Any]
+    """The further keyword arguments (gsplat's ``packed=``, ``lr=``)."""
+
+    def forward_to(self, method: Any) -> None:
+        """Call a strategy's step ``method`` with these arguments (e.g. a wrapped base's)."""
+        method(self.params, self.optimizers, self.state, self.step, self.info, **self.kwargs)
 
 
 @runtime_checkable
@@ -158,6 +186,38 @@ class ConfiguredStrategy:
                     object.__setattr__(self, "_constructing", depth)
 
             cls.__init__ = constructing  # type: ignore[method-assign]
+
+    def step_pre_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        **kwargs: Any,
+    ) -> None:
+        """Called after the render, before ``loss.backward()``: :meth:`pre_backward` of the arguments."""
+        self.pre_backward(StrategyStep(params, optimizers, state, step, info, kwargs))
+
+    def step_post_backward(
+        self,
+        params: MutableMapping[str, torch.Tensor],
+        optimizers: Any,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        **kwargs: Any,
+    ) -> None:
+        """Called after ``loss.backward()`` and the optimizer step: :meth:`post_backward` of the arguments."""
+        self.post_backward(StrategyStep(params, optimizers, state, step, info, kwargs))
+
+    def pre_backward(self, call: StrategyStep) -> None:
+        """What the strategy does after the render, before ``loss.backward()`` (a subclass's)."""
+        raise NotImplementedError(f"{type(self).__name__}.pre_backward")
+
+    def post_backward(self, call: StrategyStep) -> None:
+        """What the strategy does after ``loss.backward()`` and the optimizer step (a subclass's)."""
+        raise NotImplementedError(f"{type(self).__name__}.post_backward")
 
     def _take_config(self, config: Any, settings: dict[str, Any]) -> None:
         """Set ``config`` (default: the config type's defaults) with ``settings`` replaced in it.

@@ -13,7 +13,7 @@ import torch
 
 from vadgs.checks import Checked, bool_field, checked, float_field, int_field
 from vadgs.train.strategy import ops
-from vadgs.train.strategy.base import ConfiguredStrategy
+from vadgs.train.strategy.base import ConfiguredStrategy, StrategyStep
 
 __all__ = ["GSPLAT_META", "DefaultStrategy", "DefaultStrategyConfig"]
 
@@ -143,53 +143,34 @@ class DefaultStrategy(ConfiguredStrategy):
         """
         ops.check_params(params, optimizers)
 
-    def step_pre_backward(
-        self,
-        params: MutableMapping[str, torch.Tensor],
-        optimizers: Any,
-        state: dict[str, Any],
-        step: int,
-        info: dict[str, Any],
-        **kwargs: Any,
-    ) -> None:
+    def pre_backward(self, call: StrategyStep) -> None:
         """Retain the gradient of the projected means (the rasterizer's ``means2d``).
 
-        ``kwargs``: what another loop passes its strategies (gsplat's ``packed=``, ``lr=``), ignored.
+        ``call.kwargs``: what another loop passes its strategies (gsplat's ``packed=``, ``lr=``), ignored.
         """
+        info = call.info
         means2d = info["raster"].means2d if "raster" in info else info["means2d"]
         if means2d.requires_grad and not means2d.is_leaf:
             means2d.retain_grad()
 
-    def step_post_backward(
-        self,
-        params: MutableMapping[str, torch.Tensor],
-        optimizers: Any,
-        state: dict[str, Any],
-        step: int,
-        info: dict[str, Any],
-        packed: bool = False,
-        **kwargs: Any,
-    ) -> None:
+    def post_backward(self, call: StrategyStep) -> None:
         """Accumulate the gradient statistics; densify, prune and reset opacities on schedule.
 
-        Args:
-            params: the per-Gaussian tensors (vadgs's or gsplat's names).
-            optimizers: vadgs's one optimizer with named groups, or gsplat's ``{name: optimizer}``.
-            state: from :meth:`initialize_state`.
-            step: the step just taken.
-            info: vadgs's (``raster``, ``ids``, ``image_size``, ``generator``) or gsplat's meta.
-            packed: gsplat's meta of ``rasterization(packed=True)``: ``means2d`` ``(nnz, 2)`` and
-                ``radii`` of the rows ``info["gaussian_ids"]`` (gsplat's argument; unused with
-                vadgs's ``info``).
-            kwargs: what another loop passes its strategies (gsplat's MCMC ``lr=``), ignored.
+        ``call``: the step's ``params`` (vadgs's or gsplat's names), ``optimizers`` (vadgs's one
+        optimizer with named groups, or gsplat's ``{name: optimizer}``), ``state`` (from
+        :meth:`initialize_state`), ``step`` (the step just taken), ``info`` (vadgs's ``raster``,
+        ``ids``, ``image_size``, ``generator``, or gsplat's meta) and ``kwargs``: ``packed=True``
+        for gsplat's meta of ``rasterization(packed=True)`` (``means2d`` ``(nnz, 2)`` and ``radii``
+        of the rows ``info["gaussian_ids"]``; unused with vadgs's ``info``); others (gsplat's MCMC
+        ``lr=``) are ignored.
         """
-        cfg = self.config
+        cfg, (params, optimizers, state, step, info, kwargs) = self.config, call
         if step >= cfg.refine_stop_iter:
             return
-        self._update_state(params, state, info, packed)
+        self._update_state(params, state, info, bool(kwargs.get("packed", False)))
         paused = bool(cfg.reset_every) and step % cfg.reset_every < cfg.pause_refine_after_reset
         if step > cfg.refine_start_iter and step % cfg.refine_every == 0 and not paused:
-            state["last_refine"] = self.refine(params, optimizers, state, step, info.get("generator"))
+            state["last_refine"] = self.refine(call)
         if cfg.reset_every and step > 0 and step % cfg.reset_every == 0:
             ops.reset_opacity(params, optimizers, cfg.reset_value)
             state["num_resets"] += 1
@@ -237,20 +218,17 @@ class DefaultStrategy(ConfiguredStrategy):
             state["count"].index_add_(0, gid, seen.to(state["count"].dtype))
 
     @torch.no_grad()
-    def refine(
-        self,
-        params: MutableMapping[str, torch.Tensor],
-        optimizers: Any,
-        state: dict[str, Any],
-        step: int,
-        generator: torch.Generator | None = None,
-    ) -> dict[str, int]:
+    def refine(self, call: StrategyStep) -> dict[str, int]:
         """Grow (clone small / split large high-gradient Gaussians) then prune; resets the statistics.
+
+        Of the step ``call`` (:meth:`post_backward`'s): its ``params``, ``optimizers`` and ``state``;
+        the splits draw from ``info["generator"]`` when the ``info`` has one.
 
         Returns:
             ``{"cloned": .., "split": .., "pruned": .., "total": ..}``.
         """
-        cfg = self.config
+        cfg, (params, optimizers, state) = self.config, call[:3]
+        generator = call.info.get("generator")
         names = ops.param_names(params)
         p = getattr(params, "params", params)
         n = p[names.means].shape[0]

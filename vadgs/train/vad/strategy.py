@@ -20,7 +20,13 @@ import torch
 
 from vadgs.checks import float_field, int_field
 from vadgs.train.losses import GeometryTargets
-from vadgs.train.strategy import ConfiguredStrategy, DefaultStrategy, initialize_base_state, ops
+from vadgs.train.strategy import (
+    ConfiguredStrategy,
+    DefaultStrategy,
+    StrategyStep,
+    initialize_base_state,
+    ops,
+)
 from vadgs.train.vad.config import StrategyContext, VisibilityDensifyConfig
 from vadgs.train.vad.detect import EventRenders, detect, observe_view
 from vadgs.train.vad.event import EventInputs, run_event
@@ -70,16 +76,9 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             trainer does), so that a long event does not look like a frozen run.
         log_size: at most this many events are kept in ``state["pending_log"]`` for the loop to
             pop (the oldest dropped first); ``state["vad_events"]`` keeps one summary per event.
-        **settings: fields of :class:`VisibilityDensifyConfig` replaced in ``config``.
-
-    Example:
-        >>> s = VisibilityAwareDensification(every_cycles=2)
-        >>> s.every_cycles, s.config == VisibilityDensifyConfig(every_cycles=2)
-        (2, True)
-        >>> s.every_cycles = 0
-        Traceback (most recent call last):
-        ...
-        ValueError: every_cycles: expected an integer >= 1, got 0
+        **settings: fields of :class:`VisibilityDensifyConfig` replaced in ``config``
+            (``VisibilityAwareDensification(every_cycles=2)``; the settings read and are assigned
+            as :class:`~vadgs.train.strategy.ConfiguredStrategy`'s example shows).
     """
 
     config_type: ClassVar[type[Any]] = VisibilityDensifyConfig
@@ -160,44 +159,29 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         )
         return state
 
-    def step_pre_backward(
-        self,
-        params: MutableMapping[str, torch.Tensor],
-        optimizers: Any,
-        state: dict[str, Any],
-        step: int,
-        info: dict[str, Any],
-        **kwargs: Any,
-    ) -> None:
-        """The base's ``step_pre_backward`` (given ``kwargs``); at the first step, checks ``info`` for it.
+    def pre_backward(self, call: StrategyStep) -> None:
+        """The base's ``step_pre_backward`` (given ``call.kwargs``); at the first step, checks ``info``.
 
         Raises:
             ValueError: a key the base reads is missing from ``info`` (see :func:`check_info`).
         """
         if not self._info_checked:
-            check_info(self.base, info)
+            check_info(self.base, call.info)
             self._info_checked = True
-        self.base.step_pre_backward(params, optimizers, state, step, info, **kwargs)
+        call.forward_to(self.base.step_pre_backward)
 
-    def step_post_backward(
-        self,
-        params: MutableMapping[str, torch.Tensor],
-        optimizers: Any,
-        state: dict[str, Any],
-        step: int,
-        info: dict[str, Any],
-        **kwargs: Any,
-    ) -> None:
+    def post_backward(self, call: StrategyStep) -> None:
         """Base densification, then a visibility-aware event after every ``every_cycles`` cycles.
 
         Also tests the trained view for incompleteness when ``info`` carries its render.
-        ``kwargs`` (e.g. ``packed=True`` for gsplat's ``DefaultStrategy``, ``lr=`` for its
+        ``call.kwargs`` (e.g. ``packed=True`` for gsplat's ``DefaultStrategy``, ``lr=`` for its
         ``MCMCStrategy``) go to the base.
 
         Raises:
             ValueError: a key the base reads is missing from ``info`` (:func:`check_info`), or a
                 value in it is out of range (:func:`check_info_values`), naming the key.
         """
+        params, optimizers, state, step, info, kwargs = call
         now = time.perf_counter()
         if self._last_call is not None:
             state["vad_train_s"] = state.get("vad_train_s", 0.0) + (now - self._last_call)
@@ -207,7 +191,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             self._post_info_checked = True
         has_inputs = self.inputs is not None or self.index is not None
         check_info_values(info, self._inputs().num_views if has_inputs else None)
-        self.base.step_post_backward(params, optimizers, state, step, info, **kwargs)
+        call.forward_to(self.base.step_post_backward)
         context = self._context()
         if step < self.config.last_event_fraction * context.total_steps:
             self._observe(state, info)
