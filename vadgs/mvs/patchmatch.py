@@ -64,9 +64,11 @@ from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
     bilateral_weights,
+    patch_center_indices,
     patch_offsets,
     reference_patch_stats,
-    reference_patches,
+    spatial_log_weights,
+    window_patches,
 )
 
 __all__ = [
@@ -510,9 +512,10 @@ def _refinements(
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
-    Two perturbed depths (relative: ``z exp(noise[..., i])``) and a perturbed normal (``n`` plus
+    Two perturbed depths (relative: ``z noise[..., i]``) and a perturbed normal (``n`` plus
     ``noise[..., 2:5]``, normalised, kept only when it faces the camera), the ``noise``
-    ``(B, P, 8)`` uniform (``noise[..., 5:]`` is drawn but unused), combined as ``kinds`` says:
+    ``(B, P, 8)`` uniform but for ``noise[..., :2]``, already exponentiated (the relative depth
+    factors; ``noise[..., 5:]`` is drawn but unused), combined as ``kinds`` says:
     ``"p"`` perturbed (the ``i % 2``-th depth, the normal), ``"c"`` current, ``"r"`` random.
     ``kinds`` is a prefix of ACMH's list (see :func:`_patchmatch_level`): the result is the current
     plane repeated, with the perturbed and random parts written over it (a fixed handful of
@@ -523,7 +526,7 @@ def _refinements(
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
     out = cur[:, None, :, :4].repeat(1, k, 1, 1)  # (B, k, P, 4): "c" everywhere, then overwritten
     nd = min(k, 2)  # perturbed depths: kinds 0 and 1 (the i-th draw for kind i)
-    torch.mul(z[..., None], noise[..., :nd].exp(), out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
+    torch.mul(z[..., None], noise[..., :nd], out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
     # the perturbed normal: kinds 0 and 2 (both the first draw; the second is never used)
     m = n + noise[..., 2:5]  # |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
@@ -759,9 +762,17 @@ def patchmatch(
             f"src_world_to_cam: every source of reference(s) {bad} has the reference's camera centre "
             "(zero baseline): depth is unobservable"
         )
+    # The window, the same at every level: offsets (o_x, o_y, 1), the bilateral weights' spatial
+    # term and the samples nearest the centre.
     offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=image.device, dtype=image.dtype)
+    sigma_s = cfg.sigma_spatial if cfg.sigma_spatial is not None else float(cfg.window_radius)
+    window = (
+        F.pad(offsets, (0, 1), value=1.0),
+        spatial_log_weights(offsets, sigma_s),
+        patch_center_indices(cfg.window_radius, cfg.window_step),
+    )
     level = _pyramid(
-        image, src_images, K, src_K, (src_from_ref, usable, offsets), (lo, hi), cfg, init_depth, init_normal,
+        image, src_images, K, src_K, (src_from_ref, usable, window), (lo, hi), cfg, init_depth, init_normal,
         mask, src_masks, cfg.pyramid_levels,
     )  # fmt: skip
     return _result(level, cfg, bsz, nv, *image.shape[-2:])
@@ -854,7 +865,7 @@ def _patchmatch_level(
     upsampled coarse maps (complete), and ``alt_init`` the caller's full-resolution init maps (or
     ``None``), scored against them.
     """
-    src_from_ref, usable, offsets = shared
+    src_from_ref, usable, (off3, spatial, centre) = shared
     lo, hi = depth_range
     bsz, nv = src_images.shape[:2]
     h, w = image.shape[-2:]
@@ -875,21 +886,14 @@ def _patchmatch_level(
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
     src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
-    off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
-    src = MatchSources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
+    one_zero = torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind()
+    src = MatchSources(src_gray, smasks, bvec, off3.expand(bsz * nv, -1, -1), *one_zero)
     chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
 
-    # Reference: windows, bilateral weights (zero outside the region).
-    patches = reference_patches(_to_gray(image), offsets)  # (B, S, HW)
-    sigma_s = cfg.sigma_spatial if cfg.sigma_spatial is not None else float(cfg.window_radius)
-    weights = bilateral_weights(patches, offsets, sigma_s, cfg.sigma_color, dim=1)
-    if mask is not None:
-        region = mask.bool().reshape(bsz, h * w)
-        inside = reference_patches(mask.bool().to(dt), offsets) > 0.5
-        weights = weights * inside
-        weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
-    else:
-        region = None
+    # Reference: windows (their bilateral weights once the scored pixels are known).
+    radius, wstep = cfg.window_radius, cfg.window_step
+    patches = window_patches(_to_gray(image), radius, wstep)  # (B, S, HW)
+    region = None if mask is None else mask.bool().reshape(bsz, h * w)
 
     # The scored pixels of each reference: those of its region (all without one), the first
     # checkerboard colour then the second. With a small object in a large crop the cost follows
@@ -921,7 +925,14 @@ def _patchmatch_level(
         pix = pix_all[idx]
         textured = real & _take(region, idx)
     rays = _take(rays_all, idx)
-    st = reference_patch_stats(_take(patches, idx, 2), _take(weights, idx, 2), cfg.min_variance)
+    # The scored pixels' windows and bilateral weights (zero outside the region), statistics.
+    patches = _take(patches, idx, 2)
+    weights = bilateral_weights(patches, off3[:, :2], 0.0, cfg.sigma_color, centre, dim=1, spatial=spatial)
+    if mask is not None:
+        inside = _take(window_patches(mask.bool().to(dt), radius, wstep), idx, 2) > 0.5
+        weights = weights * inside
+        weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+    st = reference_patch_stats(patches, weights, cfg.min_variance)
     textured = st.valid if textured is None else st.valid & textured
     cols, rows = map_tables(A, Kinv, pix, rays)
     ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
@@ -963,7 +974,7 @@ def _patchmatch_level(
         def keep_best(sl: slice, record: torch.Tensor) -> None:
             """Write the best-scoring of the rows ``record`` ``(B, N, P, 6 + V)`` to the state."""
             best = record[..., 5].argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-            state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
+            torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]), out=state[:, None, sl])
 
         # State of the scored pixels and the sentinel (infinite cost, never chosen when another
         # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs; the
@@ -983,6 +994,7 @@ def _patchmatch_level(
         if upfront:
             u = torch.rand((iterations, bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
             noises = torch.addcmul(scale[0, :, None, None], u, scale[1, :, None, None])
+            noises[..., :2].exp_()  # the relative depth factors (see _refinements)
         for i in range(iterations):
             if kinds:
                 if upfront:
@@ -990,6 +1002,7 @@ def _patchmatch_level(
                 else:
                     u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
                     noise = torch.addcmul(scale[0, i], u, scale[1, i])
+                    noise[..., :2].exp_()
             for sl, px in zip(colours, parts):
                 cur = state[:, sl]
                 cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
