@@ -675,7 +675,7 @@ def _check_finite_together(named: list[tuple[str, torch.Tensor]]) -> None:
     if not checks_enabled():
         return
     sums = torch.stack([t.sum() for _, t in named])
-    if bool((sums - sums == 0).all()):  # x - x is 0 for finite x, NaN for NaN and infinities
+    if bool(torch.isfinite(sums).all()):
         return
     for name, t in named:
         check_finite(t, name)
@@ -880,7 +880,8 @@ def _patchmatch_level(
     norm = torch.tensor(
         [[2 / max(ws - 1, 1), 0, -1], [0, 2 / max(hs - 1, 1), -1], [0, 0, 1]], device=dev, dtype=dt
     )
-    Kinv = torch.linalg.inv(K)
+    # (inv_ex skips the check of a coarse level: K is singular there iff it is at the finest, checked)
+    Kinv = torch.linalg.inv(K) if final else torch.linalg.inv_ex(K).inverse
     NK = norm @ src_K  # (B, V, 3, 3)
     A = torch.bmm((NK @ src_from_ref[..., :3, :3]).view(bsz, nv * 3, 3), Kinv).view(bsz, nv, 3, 3)
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
@@ -903,20 +904,19 @@ def _patchmatch_level(
     # dropped (``slot`` ``h * w``).
     flat = torch.arange(h * w, device=dev)
     xs, ys = flat % w, flat // w
-    even = (xs + ys) % 2 == 0
+    odd = (xs + ys) % 2  # the checkerboard colour
     pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
     rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
     if region is None:  # the same pixels for all references
-        by_colour = [torch.nonzero(even).flatten(), torch.nonzero(~even).flatten()]  # host reads
-        shared = torch.cat(by_colour)
-        n_act, first = shared.shape[0], by_colour[0].shape[0]
+        shared = torch.argsort(odd, stable=True)  # the first colour's pixels, then the second's, in order
+        n_act, first = h * w, (h * w + 1) // 2
         lut = torch.full((1, h * w + 1), n_act, dtype=torch.long, device=dev)
         lut[0, shared] = torch.arange(n_act, device=dev)
         idx = slot = shared.expand(bsz, -1)
         pix = pix_all[shared]
         textured = None
     else:
-        idx, real, first = _scored_pixels(region, even)  # one host read
+        idx, real, first = _scored_pixels(region, odd == 0)  # one host read
         n_act = idx.shape[1]
         slot = torch.where(real, idx, h * w)  # where a pixel's results go (padding: a spare slot)
         lut = torch.full((bsz, h * w + 1), n_act, dtype=torch.long, device=dev)
