@@ -131,10 +131,9 @@ def test_batched_costs_match_the_naive_reference(slanted_scene):
     cols, rows = map_tables(A, Kinv, pix, rays)
     px = MatchPixels(idx, rays, cols, rows, torch.stack([st.weights * st.valid[:, None], st.normalized], 1))
     gray = sc.src_images.reshape(v, 1, h, w)
-    one, zero = torch.tensor(1.0), torch.tensor(0.0)
-    src = MatchSources(
-        gray, None, b, torch.nn.functional.pad(off, (0, 1), value=1.0).expand(v, -1, -1), one, zero
-    )
+    consts = torch.tensor([1.0, 0.0, MAX_COST, float("nan")]).unbind()
+    off3 = torch.nn.functional.pad(off, (0, 1), value=1.0).expand(v, -1, -1)
+    src = MatchSources(gray, None, b, off3, *consts)
     # K = 3 hypotheses per pixel: the true plane, a perturbed one, a random one
     p = idx.shape[0]
     z_true = sc.depth.reshape(1, -1)[:, idx]
@@ -160,3 +159,12 @@ def test_batched_costs_match_the_naive_reference(slanted_scene):
                 c = got[0, j, k]
                 assert torch.allclose(c[seen], want[seen].clamp(0, MAX_COST), atol=2e-4), (chunk, k, j)
                 assert (c[~seen] == MAX_COST).all()
+    # planes seen edge-on or from behind (n^T K^-1 p~ >= -1e-6: NaN maps inside) score the worst
+    # cost in every view, with and without source masks
+    edge = torch.cross(rays, torch.tensor([[[0.3, -0.2, 0.9]]]).expand_as(rays), dim=-1)
+    for n in (torch.nn.functional.normalize(edge, dim=-1), -sc.normal.expand(1, p, 3)):
+        hyp = torch.cat([z_true[..., None], n], -1)[:, None]  # (1, 1, P, 4)
+        for s in (src, src._replace(masks=torch.ones_like(gray))):
+            got, nr = match_costs(s, px, hyp, 1e-5, ONE_CHUNK)
+            assert (nr >= -1e-6).all()
+            assert (got == MAX_COST).all(), got

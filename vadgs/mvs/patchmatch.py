@@ -262,6 +262,8 @@ class MatchSources(NamedTuple):
     offsets: torch.Tensor  # (B*V, S, 3) window offsets (o_x, o_y, 1) (expanded)
     one: torch.Tensor  # () 1, for the fused 1 - ncc
     zero: torch.Tensor  # () 0
+    worst: torch.Tensor  # () MAX_COST
+    nan: torch.Tensor  # () NaN: the maps of a plane seen edge-on or from behind
 
 
 def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -271,7 +273,8 @@ def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[
     ``C[:, :, 0] = H e_x``, ``C[:, :, 1] = H e_y`` and ``C[:, :, 2] = H p~`` (rows as vectors), so
     the window sample at offset ``o`` maps to ``(o_x, o_y, 1) @ C`` (homogeneous coordinates,
     normalised to [-1, 1] for :func:`torch.nn.functional.grid_sample`), and ``nr`` ``(B, K, P)``,
-    ``n^T K^-1 p~`` (the plane is seen edge-on or from behind where ``nr >= -1e-6``).
+    ``n^T K^-1 p~``. Where the plane is seen edge-on or from behind (``nr >= -1e-6``) the maps
+    are NaN, so that the window centre's test of :func:`match_costs` fails (the worst cost).
     ``H = N K_s (R - t n^T / d) K_r^-1`` of :func:`vadgs.geometry.plane_homography` is
     ``A - b m^T`` with ``m = K_r^-T n / d`` and ``d = -z nr``, so ``C = rows + b u^T`` with
     ``u = (-m_x, -m_y, 1 / z) = (n^T K^-1 e_x, n^T K^-1 e_y, nr) / (z nr)`` (because
@@ -283,7 +286,7 @@ def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[
     t = torch.addcmul(t, n[:, None, ..., 1], cols[:, 1])
     t = torch.addcmul(t, n[:, None, ..., 2], cols[:, 2])  # (B, 3, K, P): n^T K^-1 (e_x, e_y, p~)
     nr = t[:, 2]
-    u = t / (z * nr.clamp_max(-1e-6))[:, None]  # finite even where the plane is rejected
+    u = t / (z * torch.where(nr < -1e-6, nr, src.nan))[:, None]  # NaN where the plane is rejected
     C = torch.addcmul(px.rows[:, :, :, None], src.b[:, :, None, None, None], u[:, None, ..., None])
     return C, nr
 
@@ -349,12 +352,13 @@ def match_costs(
         variances.append(var)
     cost = torch.cat(costs, dim=-1) if len(costs) > 1 else costs[0]
     var = torch.cat(variances, dim=-1) if len(variances) > 1 else variances[0]
-    # The worst cost where a window is flat, where the plane is seen edge-on, where the window
-    # centre does not land in front of the source camera inside its image (and mask).
+    # The worst cost where a window is flat, where the window centre does not land in front of the
+    # source camera inside its image (and mask), where the plane is seen edge-on (NaN maps: the
+    # comparisons are False).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    outside = torch.linalg.vector_norm(c0[..., :2], ord=math.inf, dim=-1) > cz  # or behind
-    bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
+    inside = torch.linalg.vector_norm(c0[..., :2], ord=math.inf, dim=-1) <= cz  # and in front
+    good = (var >= min_variance) & inside
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
         m = F.grid_sample(
@@ -364,8 +368,8 @@ def match_costs(
             padding_mode="zeros",
             align_corners=True,
         )
-        bad = bad | (m.view(bsz, v, k, p) < 0.5)
-    return cost.masked_fill_(bad, MAX_COST), nr
+        good = good & (m.view(bsz, v, k, p) >= 0.5)
+    return torch.where(good, cost, src.worst), nr
 
 
 def _view_weights(
@@ -887,8 +891,8 @@ def _patchmatch_level(
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
     src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
-    one_zero = torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind()
-    src = MatchSources(src_gray, smasks, bvec, off3.expand(bsz * nv, -1, -1), *one_zero)
+    consts = torch.tensor([1.0, 0.0, MAX_COST, math.nan], device=dev, dtype=dt).unbind()
+    src = MatchSources(src_gray, smasks, bvec, off3.expand(bsz * nv, -1, -1), *consts)
     chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
 
     # Reference: windows (their bilateral weights once the scored pixels are known).
