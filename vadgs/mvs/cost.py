@@ -47,6 +47,7 @@ __all__ = [
     "patch_offsets",
     "reference_patch_stats",
     "reference_patches",
+    "reference_terms",
     "spatial_log_weights",
     "window_patches",
 ]
@@ -319,6 +320,48 @@ def reference_patch_stats(
     valid = var[:, 0] >= min_variance
     normalized = weighted * torch.rsqrt(var.clamp_min(min_variance)) * valid[:, None]  # zero where flat
     return ReferencePatchStats(weights, normalized, valid)
+
+
+def reference_terms(
+    ref_patches: torch.Tensor,
+    weights: torch.Tensor,
+    min_variance: float = 1e-5,
+    keep: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""The reference half of the NCC as PatchMatch scores it, stacked, and where it is usable.
+
+    As :func:`reference_patch_stats` without the guards that a caller who masks flat patches
+    does not need: where the patch is flat (or not kept) the weights are zero, so that the source
+    side's weighted variance is zero and the cost is masked as the worst, and the normalised term
+    is left undefined (NaN or infinite) there.
+
+    Args:
+        ref_patches: ``(B, S, P)`` reference samples.
+        weights: ``(B, S, P)`` bilateral weights summing to one over ``S``.
+        min_variance: threshold below which the reference patch is flat.
+        keep: optional ``(B, P)`` bool, the pixels to score (others get zero weights too).
+
+    Returns:
+        ``(B, 2, S, P)`` the weights (zero where not usable) and :math:`w_s (r_s - \bar r) /
+        \sigma_r`, and ``(B, P)`` bool where usable (textured and kept).
+
+    Example:
+        >>> r = torch.tensor([[[0.1], [0.5], [0.3], [0.9]]])  # B = 1, S = 4, P = 1
+        >>> terms, usable = reference_terms(r, torch.full_like(r, 0.25))
+        >>> st = reference_patch_stats(r, torch.full_like(r, 0.25))
+        >>> bool(torch.equal(terms[:, 1], st.normalized)), usable
+        (True, tensor([[True]]))
+    """
+    dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
+    check_shape(weights, "weights", ("B", "S", "P"), dims)
+    mean = (ref_patches * weights).sum(1, keepdim=True)
+    centered = ref_patches - mean
+    weighted = centered * weights
+    var = (weighted * centered).sum(1, keepdim=True)
+    usable = var[:, 0] >= min_variance
+    if keep is not None:
+        usable = usable & keep
+    return torch.stack([weights * usable[:, None], weighted * var.rsqrt()], 1), usable
 
 
 def ncc_cost_from_stats(

@@ -44,6 +44,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
@@ -66,7 +67,7 @@ from vadgs.mvs.cost import (
     bilateral_weights,
     patch_center_indices,
     patch_offsets,
-    reference_patch_stats,
+    reference_terms,
     spatial_log_weights,
     window_patches,
 )
@@ -372,19 +373,38 @@ def match_costs(
     return torch.where(good, cost, src.worst), nr
 
 
+def _drop_limits(cfg: PatchMatchConfig, device: torch.device, dtype: torch.dtype) -> torch.Tensor | None:
+    """``(2, 1)``: the largest ``dtype`` value under ``good_threshold``, and ``bad_threshold``.
+
+    A view is dropped where its second-lowest cost exceeds the first (fewer than two good costs)
+    or its ``(N - 3)``-th lowest exceeds the second (more than three bad costs): one comparison
+    of both order statistics (see :func:`_view_weights`). ``None`` for a dtype numpy lacks.
+    """
+    np_dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}.get(dtype)
+    if np_dtype is None:
+        return None
+    good = np.nextafter(np_dtype(cfg.good_threshold), np_dtype(-np.inf))
+    return torch.tensor([[float(good)], [cfg.bad_threshold]], device=device, dtype=dtype)
+
+
 def _view_weights(
-    costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor
+    costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor, limits: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, their sum, where > 0.
 
     The sum ``(B, 1, P)`` and its mask serve every :func:`_aggregate` call of a half-sweep.
+    ``limits``: :func:`_drop_limits`'s.
     """
     good = costs < cfg.good_threshold
     n_good = good.sum(2)
-    dropped = n_good < 2
     n = costs.shape[2]
-    if n > 3:  # more than three bad costs: the 4th largest is bad
-        dropped = dropped | (costs.kthvalue(n - 3, dim=2).values > cfg.bad_threshold)
+    if n > 5 and limits is not None:  # the 2nd and the (N - 3)-th lowest costs, compared at once
+        low = costs.topk(n - 3, dim=2, largest=False).values  # ascending
+        dropped = (low[:, :, 1 : n - 3 : n - 5] > limits).any(2)
+    else:
+        dropped = n_good < 2
+        if n > 3:  # more than three bad costs: the 4th largest is bad
+            dropped = dropped | (costs.kthvalue(n - 3, dim=2).values > cfg.bad_threshold)
     conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
     weights = (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
     wsum = weights.sum(1, keepdim=True)
@@ -894,6 +914,7 @@ def _patchmatch_level(
     consts = torch.tensor([1.0, 0.0, MAX_COST, math.nan], device=dev, dtype=dt).unbind()
     src = MatchSources(src_gray, smasks, bvec, off3.expand(bsz * nv, -1, -1), *consts)
     chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
+    limits = _drop_limits(cfg, dev, dt)
 
     # Reference: windows (their bilateral weights once the scored pixels are known).
     radius, wstep = cfg.window_radius, cfg.window_step
@@ -936,10 +957,8 @@ def _patchmatch_level(
         inside = _take(window_patches(mask.bool().to(dt), radius, wstep), idx, 2) > 0.5
         weights = weights * inside
         weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
-    st = reference_patch_stats(patches, weights, cfg.min_variance)
-    textured = st.valid if textured is None else st.valid & textured
+    ref, textured = reference_terms(patches, weights, cfg.min_variance, textured)  # (B, 2, S, P)
     cols, rows = map_tables(A, Kinv, pix, rays)
-    ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
     pixels = MatchPixels(idx, rays, cols, rows, ref)
     na = lut.shape[0]  # 1: the same pixels for all
     nbr = _neighbour_table(idx[:na], h, w, lut, n_act, cfg.propagation)  # (1 or B, P, 1 + R, L)
@@ -1022,7 +1041,7 @@ def _patchmatch_level(
                 costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
                 nr = torch.cat([cur[:, None, :, 4], nr], 1)
                 vw = (
-                    _view_weights(costs[:, :, :n_prop], cfg, src.zero)
+                    _view_weights(costs[:, :, :n_prop], cfg, src.zero, limits)
                     if cfg.view_selection == "acmh"
                     else None
                 )
