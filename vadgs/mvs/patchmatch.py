@@ -1063,6 +1063,10 @@ def _patchmatch_level(
         normal = _put(normal, slot, state[:, :n_act, 1:4], padded)
     if not final:
         return _Level(depth, normal, None, None, None)
+    if region is None:  # every pixel scored: its row of the state, at the inverse permutation
+        inv = lut[0, : h * w]
+        rows = state[:, inv, 5:]  # (B, HW, 1 + V): aggregated and per-view costs
+        return _Level(depth, normal, rows[..., 0], rows[..., 1:].transpose(1, 2), textured[:, inv])
     # with a spare slot for the padding's results (see _put)
     agg_full = torch.full((bsz, h * w + 1), MAX_COST, device=dev, dtype=dt)
     view_cost = torch.full((bsz, h * w + 1, nv), MAX_COST, device=dev, dtype=dt)
