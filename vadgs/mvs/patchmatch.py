@@ -523,10 +523,11 @@ def _propagate(
     hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
     den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
     hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
-    # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den
-    z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0])
+    # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den. Where the plane is seen edge-on
+    # or from behind (den >= -1e-6) the depth is clamped to a bound, and the plane is rejected
+    # when it is scored.
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
-    z = z.clamp_(lo, hi)
+    z = (hq[..., 0] * hq[..., 4] / den).clamp_(lo, hi)
     return torch.cat([z[..., None], hq[..., 1:4]], -1), nb_cost[..., 0].transpose(1, 2)
 
 
