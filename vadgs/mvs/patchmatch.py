@@ -389,10 +389,11 @@ def _drop_limits(cfg: PatchMatchConfig, device: torch.device, dtype: torch.dtype
 
 def _view_weights(
     costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor, limits: torch.Tensor | None
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, their sum, where > 0.
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, and where any is > 0.
 
-    The sum ``(B, 1, P)`` and its mask serve every :func:`_aggregate` call of a half-sweep.
+    The weights are normalised to sum to one over the views (NaN where none is selected: the
+    mask ``(B, 1, P)`` is False there), once for every :func:`_aggregate` call of a half-sweep.
     ``limits``: :func:`_drop_limits`'s.
     """
     good = costs < cfg.good_threshold
@@ -408,12 +409,12 @@ def _view_weights(
     conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
     weights = (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
     wsum = weights.sum(1, keepdim=True)
-    return weights, wsum, wsum > 0
+    return weights / wsum, wsum > 0
 
 
 def _aggregate(
     costs: torch.Tensor,
-    weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+    weights: tuple[torch.Tensor, torch.Tensor] | None,
     cfg: PatchMatchConfig,
 ) -> torch.Tensor:
     """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``.
@@ -425,9 +426,8 @@ def _aggregate(
     topk = costs.topk(min(cfg.top_k, costs.shape[1]), dim=1, largest=False).values.mean(1)
     if cfg.view_selection == "topk" or weights is None:
         return topk
-    w, wsum, has = weights
-    weighted = (costs * w[:, :, None]).sum(1) / wsum
-    return torch.where(has, weighted, topk)
+    w, has = weights
+    return torch.where(has, (costs * w[:, :, None]).sum(1), topk)
 
 
 def _scored_pixels(active: torch.Tensor, even: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
@@ -1028,7 +1028,6 @@ def _patchmatch_level(
                     noise = torch.addcmul(scale[0, i], u, scale[1, i])
                     noise[..., :2].exp_()
             for sl, px in zip(colours, parts):
-                cur = state[:, sl]
                 cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
                 n_prop = cands.shape[1]  # current and propagated: what the view weights see
                 if kinds and cfg.joint_scoring:
@@ -1038,9 +1037,8 @@ def _patchmatch_level(
                     base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
                     cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
-                c, nr = match_costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
-                costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
-                nr = torch.cat([cur[:, None, :, 4], nr], 1)
+                # the pixel's own plane (re-intersected with its ray) scored with the others
+                costs, nr = match_costs(src, px, cands, cfg.min_variance, chunk)  # (B, V, N, P)
                 vw = (
                     _view_weights(costs[:, :, :n_prop], cfg, src.zero, limits)
                     if cfg.view_selection == "acmh"
