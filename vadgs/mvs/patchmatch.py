@@ -928,16 +928,16 @@ def _patchmatch_level(
     # with the worst cost). References of different regions are padded to the most pixels of each
     # colour with pixels that score nothing, are never propagated from and whose results are
     # dropped (``slot`` ``h * w``).
-    flat = torch.arange(h * w, device=dev)
-    xs, ys = flat % w, flat // w
+    exact = h * w <= 2 / torch.finfo(dt).eps  # pixel indices are whole numbers of dt (2^24 for float32)
+    flat = torch.arange(h * w, device=dev, dtype=dt if exact else torch.long)
+    xs, ys = flat % w, flat.div(w, rounding_mode="floor")
     odd = (xs + ys) % 2  # the checkerboard colour
     pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
     rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
     if region is None:  # the same pixels for all references
         shared = torch.argsort(odd, stable=True)  # the first colour's pixels, then the second's, in order
         n_act, first = h * w, (h * w + 1) // 2
-        lut = torch.full((1, h * w + 1), n_act, dtype=torch.long, device=dev)
-        lut[0, shared] = torch.arange(n_act, device=dev)
+        lut = F.pad(torch.argsort(shared), (0, 1), value=n_act)[None]  # the inverse permutation, the sentinel
         idx = slot = shared.expand(bsz, -1)
         pix = pix_all[shared]
         textured = None
