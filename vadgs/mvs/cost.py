@@ -228,7 +228,8 @@ def bilateral_weights(
         center = x[..., center_index[0] : center_index[0] + 1]
     else:
         center = x[..., center_index].mean(-1, keepdim=True)
-    logw = spatial - (x - center) ** 2 / (2 * sigma_color**2)
+    d = x - center
+    logw = torch.addcmul(spatial, d, d, value=-1 / (2 * sigma_color**2))
     return torch.softmax(logw, dim=-1).movedim(-1, dim)
 
 
