@@ -253,6 +253,12 @@ class TestPatchMatch:
             )
         with pytest.raises(ValueError, match="propagation"):
             PatchMatchConfig(propagation="diagonal")
+        bad = sc.world_to_cam.clone()
+        bad[0, 3, 0] = 0.5  # not a rigid transform
+        with pytest.raises(ValueError, match=r"world_to_cam: expected a transform with last row .*\[0.5, 0"):
+            run(sc._replace(world_to_cam=bad))
+        with pytest.raises(ValueError, match="world_to_cam: expected finite"):
+            run(sc._replace(world_to_cam=sc.world_to_cam * float("nan")))
 
     def test_degenerate_baseline(self, fronto_scene):
         sc = fronto_scene

@@ -61,7 +61,6 @@ from vadgs.checks import (
     float_field,
     int_field,
 )
-from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
     bilateral_weights,
@@ -688,22 +687,30 @@ def _check_images(
         ("world_to_cam", world_to_cam),
         ("src_world_to_cam", src_world_to_cam),
     ]
-    _check_finite_together([*named, ("image", image), ("src_images", src_images)])
+    _check_finite_together([*named, ("image", image), ("src_images", src_images)], world_to_cam)
 
 
-def _check_finite_together(named: list[tuple[str, torch.Tensor]]) -> None:
-    """:func:`vadgs.checks.check_finite` of every tensor with one host read when all pass.
+def _check_finite_together(named: list[tuple[str, torch.Tensor]], world_to_cam: torch.Tensor) -> None:
+    """:func:`vadgs.checks.check_finite` of every tensor, and ``world_to_cam``'s last rows, in one read.
 
     The sums of the tensors are finite when the tensors are (unless a sum overflows; then the
-    tensors are checked one by one, which names the first non-finite one or passes).
+    tensors are checked one by one, which names the first non-finite one or passes). The last row
+    of each ``world_to_cam`` is ``(0, 0, 0, 1)`` within 1e-5 (rigid transforms, as
+    :func:`vadgs.geometry.invert_rigid` checks).
     """
     if not checks_enabled():
         return
-    sums = torch.stack([t.sum() for _, t in named])
-    if bool(torch.isfinite(sums).all()):
+    rows = world_to_cam[..., 3, :]
+    off = (rows - torch.tensor([0.0, 0.0, 0.0, 1.0], device=rows.device, dtype=rows.dtype)).abs()
+    sums = torch.stack([t.sum() for _, t in named] + [off.amax()])
+    if bool((sums - sums == 0).all() & (sums[-1] <= 1e-5)):  # x - x is 0 for finite x, else NaN
         return
     for name, t in named:
         check_finite(t, name)
+    bad = (off > 1e-5).any(-1)
+    if bool(bad.any()):
+        got = rows[int(bad.nonzero()[0, 0])].tolist()
+        raise ValueError(f"world_to_cam: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 @torch.no_grad()
@@ -778,7 +785,12 @@ def patchmatch(
     )  # fmt: skip
     _check_images(image, src_images, K, src_K, world_to_cam, src_world_to_cam, cfg)
     bsz, nv = src_images.shape[:2]
-    ref_to_world = invert_rigid(world_to_cam)
+    # [R^T | -R^T t] (vadgs.geometry.invert_rigid, whose checks _check_images made)
+    rot_t = world_to_cam[:, :3, :3].transpose(-1, -2)
+    last = torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], device=image.device, dtype=world_to_cam.dtype)
+    ref_to_world = torch.cat(
+        [torch.cat([rot_t, -rot_t @ world_to_cam[:, :3, 3:]], -1), last.expand(bsz, -1, -1)], -2
+    )
     src_from_ref = torch.bmm(src_world_to_cam.reshape(bsz, nv * 4, 4), ref_to_world).view(bsz, nv, 4, 4)
     usable = src_from_ref[..., :3, 3].norm(dim=-1) > 1e-6 * _per_reference(lo, 1)  # (B, V): baseline
     if not bool(usable.any(-1).all()):
