@@ -206,6 +206,9 @@ def propagation_regions(kind: str = "acmh") -> list[list[tuple[int, int]]]:
 
 
 def _to_gray(x: torch.Tensor) -> torch.Tensor:
+    """``(*, 1, H, W)`` grey levels of ``(*, C, H, W)`` images (RGB, or the mean of the channels)."""
+    if x.shape[-3] == 1:
+        return x
     return rgb_to_grayscale(x) if x.shape[-3] == 3 else x.mean(-3, keepdim=True)
 
 
@@ -799,6 +802,8 @@ def patchmatch(
             f"src_world_to_cam: every source of reference(s) {bad} has the reference's camera centre "
             "(zero baseline): depth is unobservable"
         )
+    # Grey levels, once for every level (flat for a degenerate source: the worst cost).
+    gray, src_gray = _to_gray(image), _to_gray(src_images) * usable[..., None, None, None]
     # The window, the same at every level: offsets (o_x, o_y, 1), the bilateral weights' spatial
     # term and the samples nearest the centre.
     offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=image.device, dtype=image.dtype)
@@ -809,7 +814,7 @@ def patchmatch(
         patch_center_indices(cfg.window_radius, cfg.window_step),
     )
     level = _pyramid(
-        image, src_images, K, src_K, (src_from_ref, usable, window), (lo, hi), cfg, init_depth, init_normal,
+        gray, src_gray, K, src_K, (src_from_ref, window), (lo, hi), cfg, init_depth, init_normal,
         mask, src_masks, cfg.pyramid_levels,
     )  # fmt: skip
     return _result(level, cfg, bsz, nv, *image.shape[-2:])
@@ -898,11 +903,12 @@ def _patchmatch_level(
     ``joint_scoring``, with the propagated planes in the first, around the likeliest winner), and
     the best of all is kept by one ``gather``. The initial hypotheses are scored first, once.
 
-    ``alt_init`` is given at a finer pyramid level: ``init_depth`` / ``init_normal`` are then the
+    ``image`` ``(B, 1, H, W)`` and ``src_images`` ``(B, V, 1, Hs, Ws)`` are grey (zero for a
+    degenerate source). ``alt_init`` is given at a finer pyramid level: ``init_depth`` / ``init_normal`` are then the
     upsampled coarse maps (complete), and ``alt_init`` the caller's full-resolution init maps (or
     ``None``), scored against them.
     """
-    src_from_ref, usable, (off3, spatial, centre) = shared
+    src_from_ref, (off3, spatial, centre) = shared
     lo, hi = depth_range
     bsz, nv = src_images.shape[:2]
     h, w = image.shape[-2:]
@@ -922,7 +928,7 @@ def _patchmatch_level(
     NK = norm @ src_K  # (B, V, 3, 3)
     A = torch.bmm((NK @ src_from_ref[..., :3, :3]).view(bsz, nv * 3, 3), Kinv).view(bsz, nv, 3, 3)
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
-    src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
+    src_gray = src_images.reshape(bsz * nv, 1, hs, ws)  # grey, zero for a degenerate source
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
     consts = torch.tensor([1.0, 0.0, MAX_COST, math.nan], device=dev, dtype=dt).unbind()
     src = MatchSources(src_gray, smasks, bvec, off3.expand(bsz * nv, -1, -1), *consts)
@@ -931,7 +937,7 @@ def _patchmatch_level(
 
     # Reference: windows (their bilateral weights once the scored pixels are known).
     radius, wstep = cfg.window_radius, cfg.window_step
-    patches = window_patches(_to_gray(image), radius, wstep)  # (B, S, HW)
+    patches = window_patches(image, radius, wstep)  # (B, S, HW)
     region = None if mask is None else mask.bool().reshape(bsz, h * w)
 
     # The scored pixels of each reference: those of its region (all without one), the first
