@@ -821,10 +821,9 @@ def patchmatch(
 
 
 class _Level(NamedTuple):
-    """What one pyramid level hands on: full-image maps, flat (``HW`` last but for the normals)."""
+    """What one pyramid level hands on: full-image maps, flat (``HW`` last but for the planes)."""
 
-    depth: torch.Tensor  # (B, HW) raw depth
-    normal: torch.Tensor  # (B, HW, 3) raw normals
+    planes: torch.Tensor  # (B, HW, 4) raw depth and normal
     agg: torch.Tensor | None  # (B, HW) aggregated cost (finest level only)
     view_cost: torch.Tensor | None  # (B, V, HW) (finest level only)
     textured: torch.Tensor | None  # (B, HW) scored, in the region, textured (finest level only)
@@ -877,12 +876,12 @@ def _pyramid(
         final=False,
     )
     bsz = image.shape[0]
-    up_depth = _downsample(coarse.depth.view(bsz, 1, hc, wc), (h, w), "nearest")
-    up_normal = _downsample(coarse.normal.transpose(1, 2).reshape(bsz, 3, hc, wc), (h, w), "nearest")
+    # (B, 4, H, W) depth and normal in one, channels last (the finer level reads it as (B, HW, 4))
+    up = _downsample(coarse.planes.view(bsz, hc, wc, 4).permute(0, 3, 1, 2), (h, w), "nearest")
     done = cfg.iterations + (levels - 2) * cfg.fine_iterations
     fine = cfg if cfg.fine_propagation is None else replace(cfg, propagation=cfg.fine_propagation)
     return _patchmatch_level(
-        image, src_images, K, src_K, shared, depth_range, fine, up_depth, up_normal, mask, src_masks, done,
+        image, src_images, K, src_K, shared, depth_range, fine, up, None, mask, src_masks, done,
         cfg.fine_iterations,
         (init_depth, init_normal), final,
     )  # fmt: skip
@@ -904,9 +903,9 @@ def _patchmatch_level(
     the best of all is kept by one ``gather``. The initial hypotheses are scored first, once.
 
     ``image`` ``(B, 1, H, W)`` and ``src_images`` ``(B, V, 1, Hs, Ws)`` are grey (zero for a
-    degenerate source). ``alt_init`` is given at a finer pyramid level: ``init_depth`` / ``init_normal`` are then the
-    upsampled coarse maps (complete), and ``alt_init`` the caller's full-resolution init maps (or
-    ``None``), scored against them.
+    degenerate source). ``alt_init`` is given at a finer pyramid level: ``init_depth`` is then the
+    upsampled coarse planes ``(B, 4, H, W)`` (depth and normal, complete, channels last), and
+    ``alt_init`` the caller's full-resolution init maps (or ``None``), scored against them.
     """
     src_from_ref, (off3, spatial, centre) = shared
     lo, hi = depth_range
@@ -989,13 +988,15 @@ def _patchmatch_level(
     # Initial hypotheses: random, overridden where an init is given; with an alternative
     # (coarse-to-fine: the caller's full-resolution init), the better-scoring of the two.
     if alt_init is not None:  # a finer pyramid level: the upsampled coarse maps are complete
-        depth, normal = init_depth.reshape(bsz, h * w), init_normal.reshape(bsz, 3, h * w).transpose(1, 2)
+        planes = init_depth.permute(0, 2, 3, 1).reshape(bsz, h * w, 4)  # a view (channels last)
+        depth, normal = planes[..., 0], planes[..., 1:]
     else:
         depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
         normal = _random_normals(rays_all, gen)
         depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
+        planes = torch.cat([depth[..., None], normal], -1)  # (B, HW, 4)
     if n_act:
-        init = [_take(torch.cat([depth[..., None], normal], -1), idx)]
+        init = [_take(planes, idx)]
         if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
             init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
@@ -1076,14 +1077,13 @@ def _patchmatch_level(
                     record = records(cands, nr, agg, costs)
                 keep_best(sl, record)
         padded = region is not None
-        depth = _put(depth, slot, state[:, :n_act, 0], padded)
-        normal = _put(normal, slot, state[:, :n_act, 1:4], padded)
+        planes = _put(planes, slot, state[:, :n_act, :4], padded)
     if not final:
-        return _Level(depth, normal, None, None, None)
+        return _Level(planes, None, None, None)
     if region is None:  # every pixel scored: its row of the state, at the inverse permutation
         inv = lut[0, : h * w]
         rows = state[:, inv, 5:]  # (B, HW, 1 + V): aggregated and per-view costs
-        return _Level(depth, normal, rows[..., 0], rows[..., 1:].transpose(1, 2), textured[:, inv])
+        return _Level(planes, rows[..., 0], rows[..., 1:].transpose(1, 2), textured[:, inv])
     # with a spare slot for the padding's results (see _put)
     agg_full = torch.full((bsz, h * w + 1), MAX_COST, device=dev, dtype=dt)
     view_cost = torch.full((bsz, h * w + 1, nv), MAX_COST, device=dev, dtype=dt)
@@ -1097,15 +1097,15 @@ def _patchmatch_level(
         view_cost[:, : h * w].transpose(1, 2),
         valid[:, : h * w],
     )
-    return _Level(depth, normal, agg_full, view_cost, valid)
+    return _Level(planes, agg_full, view_cost, valid)
 
 
 def _result(level: _Level, cfg: PatchMatchConfig, bsz: int, nv: int, h: int, w: int) -> PatchMatchResult:
     assert level.agg is not None and level.view_cost is not None and level.textured is not None
     valid = level.textured & (level.agg <= cfg.max_cost)  # depths are in [near, far] by construction
-    raw = level.depth.reshape(bsz, 1, h, w)
+    raw = level.planes[..., 0].reshape(bsz, 1, h, w)
     valid = valid.reshape(bsz, 1, h, w)
-    normal_map = level.normal.transpose(1, 2).reshape(bsz, 3, h, w)
+    normal_map = level.planes[..., 1:].transpose(1, 2).reshape(bsz, 3, h, w)
     return PatchMatchResult(
         depth=raw * valid,
         normal=normal_map * valid,
