@@ -81,9 +81,8 @@ def patch_offsets(
         raise ValueError(f"patch_offsets: expected radius >= 0 and step >= 1, got {radius=}, {step=}")
     n = radius * 2 // step + 1
     span = (n - 1) * step
-    axis = torch.arange(n, device=device, dtype=dtype or torch.float32) * step - span / 2
-    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
-    return torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)
+    axis = [k * step - span / 2 for k in range(n)]  # whole or half numbers: exact in any float dtype
+    return torch.tensor([[x, y] for y in axis for x in axis], device=device, dtype=dtype or torch.float32)
 
 
 def patch_center_indices(radius: int, step: int = 1) -> list[int]:

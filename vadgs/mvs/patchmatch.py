@@ -382,11 +382,19 @@ def _drop_limits(cfg: PatchMatchConfig, device: torch.device, dtype: torch.dtype
     or its ``(N - 3)``-th lowest exceeds the second (more than three bad costs): one comparison
     of both order statistics (see :func:`_view_weights`). ``None`` for a dtype numpy lacks.
     """
-    np_dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}.get(dtype)
-    if np_dtype is None:
+    good = _adjacent(cfg.good_threshold, dtype, -math.inf)
+    if good is None:
         return None
-    good = np.nextafter(np_dtype(cfg.good_threshold), np_dtype(-np.inf))
-    return torch.tensor([[float(good)], [cfg.bad_threshold]], device=device, dtype=dtype)
+    return torch.tensor([[good], [cfg.bad_threshold]], device=device, dtype=dtype)
+
+
+def _adjacent(x: float, dtype: torch.dtype, toward: float) -> float | None:
+    """The ``dtype`` number next to ``x`` (as ``dtype`` rounds it) toward ``toward``.
+
+    ``None`` for a dtype that numpy lacks (bfloat16).
+    """
+    np_dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}.get(dtype)
+    return None if np_dtype is None else float(np.nextafter(np_dtype(x), np_dtype(toward)))
 
 
 def _view_weights(
@@ -706,7 +714,10 @@ def _check_finite_together(named: list[tuple[str, torch.Tensor]], world_to_cam: 
     rows = world_to_cam[..., 3, :]
     off = (rows - torch.tensor([0.0, 0.0, 0.0, 1.0], device=rows.device, dtype=rows.dtype)).abs()
     sums = torch.stack([t.sum() for _, t in named] + [off.amax()])
-    if bool((sums - sums == 0).all() & (sums[-1] <= 1e-5)):  # x - x is 0 for finite x, else NaN
+    # |sum| < inf: finite (not NaN); the last row's largest offset <= 1e-5 (< the next number)
+    tol = _adjacent(1e-5, rows.dtype, math.inf) or 1e-5
+    limits = torch.tensor([math.inf] * len(named) + [tol], device=rows.device, dtype=rows.dtype)
+    if bool((sums.abs() < limits).all()):
         return
     for name, t in named:
         check_finite(t, name)
