@@ -206,10 +206,16 @@ def propagation_regions(kind: str = "acmh") -> list[list[tuple[int, int]]]:
 
 
 def _to_gray(x: torch.Tensor) -> torch.Tensor:
-    """``(*, 1, H, W)`` grey levels of ``(*, C, H, W)`` images (RGB, or the mean of the channels)."""
+    """``(*, 1, H, W)`` grey levels of ``(*, C, H, W)`` images (RGB, or the mean of the channels).
+
+    kornia's weights, given as a tensor made on the host (kornia fills its own on the device:
+    four launches), round from the same numbers: the same grey levels.
+    """
     if x.shape[-3] == 1:
         return x
-    return rgb_to_grayscale(x) if x.shape[-3] == 3 else x.mean(-3, keepdim=True)
+    if x.shape[-3] != 3:
+        return x.mean(-3, keepdim=True)
+    return rgb_to_grayscale(x, torch.tensor([0.299, 0.587, 0.114], device=x.device, dtype=x.dtype))
 
 
 def _random_normals(rays: torch.Tensor, gen: torch.Generator | None) -> torch.Tensor:
@@ -860,48 +866,155 @@ def _scaled(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
 
 def _pyramid(
     image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
-    levels: int, final: bool = True,
+    levels: int,
 ) -> _Level:  # fmt: skip
-    """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at this one."""
-    h, w = image.shape[-2:]
-    hs, ws = src_images.shape[-2:]
-    if levels <= 1 or cfg.iterations == 0 or min(h, w, hs, ws) < 8:
-        return _patchmatch_level(
-            image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
-            0, cfg.iterations, None, final,
-        )  # fmt: skip
-    hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
-    coarse = _pyramid(
-        _downsample(image, (hc, wc), "area"),
-        _downsample(src_images, (hsc, wsc), "area"),
-        _scaled(K, wc / w, hc / h),
-        _scaled(src_K, wsc / ws, hsc / hs),
-        shared,
-        depth_range,
-        cfg,
-        None if init_depth is None else _downsample(init_depth, (hc, wc), "nearest"),
-        None if init_normal is None else _downsample(init_normal, (hc, wc), "nearest"),
-        None if mask is None else _downsample(mask, (hc, wc), "nearest"),
-        None if src_masks is None else _downsample(src_masks, (hsc, wsc), "nearest"),
-        levels - 1,
-        final=False,
-    )
-    bsz = image.shape[0]
-    # (B, 4, H, W) depth and normal in one, channels last (the finer level reads it as (B, HW, 4))
-    up = _downsample(coarse.planes.view(bsz, hc, wc, 4).permute(0, 3, 1, 2), (h, w), "nearest")
-    done = cfg.iterations + (levels - 2) * cfg.fine_iterations
+    """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at the next, up to this one.
+
+    Every level's scored pixels are set up first, so that the reference windows' weights and
+    statistics of all levels come out of one pass.
+    """
+    # The levels, finest first: images, cameras, init maps, regions.
+    pyr = [(image, src_images, K, src_K, init_depth, init_normal, mask, src_masks)]
+    while (
+        len(pyr) < levels and cfg.iterations > 0 and min(*pyr[-1][0].shape[-2:], *pyr[-1][1].shape[-2:]) >= 8
+    ):
+        img, src, k, sk, d0, n0, m, sm = pyr[-1]
+        h, w = img.shape[-2:]
+        hs, ws = src.shape[-2:]
+        hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
+        pyr.append(
+            (
+                _downsample(img, (hc, wc), "area"),
+                _downsample(src, (hsc, wsc), "area"),
+                _scaled(k, wc / w, hc / h),
+                _scaled(sk, wsc / ws, hsc / hs),
+                None if d0 is None else _downsample(d0, (hc, wc), "nearest"),
+                None if n0 is None else _downsample(n0, (hc, wc), "nearest"),
+                None if m is None else _downsample(m, (hc, wc), "nearest"),
+                None if sm is None else _downsample(sm, (hsc, wsc), "nearest"),
+            )
+        )
+    pixels = [_level_pixels(lv[0], lv[2], lv[6], i == 0) for i, lv in enumerate(pyr)]
+    terms = _level_terms(pixels, cfg, shared[1])
+    # The coarsest level from random (or given) hypotheses, then each finer one from the upsampled
+    # planes of the coarser (with the caller's init maps at that level as an alternative).
     fine = cfg if cfg.fine_propagation is None else replace(cfg, propagation=cfg.fine_propagation)
-    return _patchmatch_level(
-        image, src_images, K, src_K, shared, depth_range, fine, up, None, mask, src_masks, done,
-        cfg.fine_iterations,
-        (init_depth, init_normal), final,
-    )  # fmt: skip
+    level = None
+    for i in range(len(pyr) - 1, -1, -1):
+        img, src, k, sk, d0, n0, m, sm = pyr[i]
+        if level is None:
+            level = _patchmatch_level(
+                img, src, k, sk, shared, depth_range, cfg, d0, n0, sm, 0, cfg.iterations, None, i == 0,
+                pixels[i], terms[i],
+            )  # fmt: skip
+            continue
+        bsz, (h, w), (hc, wc) = img.shape[0], img.shape[-2:], pyr[i + 1][0].shape[-2:]
+        # (B, 4, H, W) depth and normal in one, channels last (the finer level reads it as (B, HW, 4))
+        up = _downsample(level.planes.view(bsz, hc, wc, 4).permute(0, 3, 1, 2), (h, w), "nearest")
+        done = cfg.iterations + (len(pyr) - 2 - i) * cfg.fine_iterations
+        level = _patchmatch_level(
+            img, src, k, sk, shared, depth_range, fine, up, None, sm, done, cfg.fine_iterations, (d0, n0),
+            i == 0, pixels[i], terms[i],
+        )  # fmt: skip
+    assert level is not None
+    return level
+
+
+class _Pixels(NamedTuple):
+    """The scored pixels of one level (see :func:`_level_pixels`)."""
+
+    Kinv: torch.Tensor  # (B, 3, 3)
+    rays_all: torch.Tensor  # (B, HW, 3) K^-1 p~ of every pixel
+    idx: torch.Tensor  # (B, P) the scored pixels, the first colour's then the second's
+    slot: torch.Tensor  # (B, P) where their results go (HW for the padding)
+    lut: torch.Tensor  # (1 or B, HW + 1) the scored pixel of each pixel (P: none, the sentinel)
+    pix: torch.Tensor  # (B or 1, P, 3) p~
+    keep: torch.Tensor | None  # (B, P) real and in the region (None: no region)
+    region: torch.Tensor | None  # (B, HW) bool
+    first: int  # where the second colour starts
+    gray: torch.Tensor  # (B, 1, H, W) the reference images
+    mask: torch.Tensor | None  # (B, 1, H, W) their regions
+
+
+def _level_pixels(image: torch.Tensor, K: torch.Tensor, mask: torch.Tensor | None, final: bool) -> _Pixels:
+    """The scored pixels of each reference and their windows at one level (``image`` grey).
+
+    Those of its region (all without one), the first checkerboard colour then the second. With a
+    small object in a large crop the cost follows the object, not the crop; pixels outside are
+    never propagated from (as when they were scored with the worst cost). References of
+    different regions are padded to the most pixels of each colour with pixels that score
+    nothing, are never propagated from and whose results are dropped (``slot`` ``h * w``).
+    """
+    bsz = image.shape[0]
+    h, w = image.shape[-2:]
+    dev, dt = image.device, image.dtype
+    # (inv_ex skips the check of a coarse level: K is singular there iff it is at the finest, checked)
+    Kinv = torch.linalg.inv(K) if final else torch.linalg.inv_ex(K).inverse
+    region = None if mask is None else mask.bool().reshape(bsz, h * w)
+    exact = h * w <= 2 / torch.finfo(dt).eps  # pixel indices are whole numbers of dt (2^24 for float32)
+    flat = torch.arange(h * w, device=dev, dtype=dt if exact else torch.long)
+    xs, ys = flat % w, flat.div(w, rounding_mode="floor")
+    odd = (xs + ys) % 2  # the checkerboard colour
+    pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
+    rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
+    if region is None:  # the same pixels for all references
+        shared = torch.argsort(odd, stable=True)  # the first colour's pixels, then the second's, in order
+        n_act, first = h * w, (h * w + 1) // 2
+        lut = F.pad(torch.argsort(shared), (0, 1), value=n_act)[None]  # the inverse permutation, the sentinel
+        idx = slot = shared.expand(bsz, -1)
+        pix = pix_all[shared]
+        keep = None
+    else:
+        idx, real, first = _scored_pixels(region, odd == 0)  # one host read
+        n_act = idx.shape[1]
+        slot = torch.where(real, idx, h * w)  # where a pixel's results go (padding: a spare slot)
+        lut = torch.full((bsz, h * w + 1), n_act, dtype=torch.long, device=dev)
+        lut = lut.scatter_(1, slot, torch.arange(n_act, device=dev).expand_as(slot))
+        lut[:, h * w] = n_act  # the sentinel
+        pix = pix_all[idx]
+        keep = real & _take(region, idx)
+    return _Pixels(Kinv, rays_all, idx, slot, lut, pix, keep, region, first, image, mask)
+
+
+def _level_terms(
+    pixels: list[_Pixels], cfg: PatchMatchConfig, window
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Each level's reference terms ``(B, 2, S, P)`` and textured pixels ``(B, P)``, in one pass.
+
+    The windows of the scored pixels of every level side by side, their bilateral weights (zero
+    outside the region) and :func:`vadgs.mvs.cost.reference_terms`; the pixels are independent,
+    so that each level's are what a pass of its own gives, bit for bit.
+    """
+    off3, spatial, centre = window
+    radius, wstep = cfg.window_radius, cfg.window_step
+
+    def joined(parts: list[torch.Tensor], dim: int) -> torch.Tensor:
+        return torch.cat(parts, dim) if len(parts) > 1 else parts[0]
+
+    patches = joined([_take(window_patches(px.gray, radius, wstep), px.idx, 2) for px in pixels], 2)
+    weights = bilateral_weights(patches, off3[:, :2], 0.0, cfg.sigma_color, centre, dim=1, spatial=spatial)
+    keep = None
+    masks = [px.mask for px in pixels if px.mask is not None]
+    if masks:  # regions at every level
+        dt = patches.dtype
+        windows = [window_patches(m.bool().to(dt), radius, wstep) for m in masks]
+        inside = joined([_take(x, px.idx, 2) for x, px in zip(windows, pixels)], 2) > 0.5
+        weights = weights * inside
+        weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+        keep = joined([px.keep for px in pixels if px.keep is not None], 1)
+    ref, textured = reference_terms(patches, weights, cfg.min_variance, keep)
+    out, p0 = [], 0
+    for px in pixels:
+        p = px.idx.shape[1]
+        out.append((ref[..., p0 : p0 + p], textured[:, p0 : p0 + p]))
+        p0 += p
+    return out
 
 
 def _patchmatch_level(
-    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, src_masks,
     start_iteration: int, iterations: int, alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None,
-    final: bool,
+    final: bool, scored: _Pixels, terms: tuple[torch.Tensor, torch.Tensor],
 ) -> _Level:  # fmt: skip
     """PatchMatch at one resolution (inputs already checked).
 
@@ -917,8 +1030,9 @@ def _patchmatch_level(
     degenerate source). ``alt_init`` is given at a finer pyramid level: ``init_depth`` is then the
     upsampled coarse planes ``(B, 4, H, W)`` (depth and normal, complete, channels last), and
     ``alt_init`` the caller's full-resolution init maps (or ``None``), scored against them.
+    ``scored`` and ``terms``: the level's :func:`_level_pixels` and :func:`_level_terms`.
     """
-    src_from_ref, (off3, spatial, centre) = shared
+    src_from_ref, (off3, _, _) = shared
     lo, hi = depth_range
     bsz, nv = src_images.shape[:2]
     h, w = image.shape[-2:]
@@ -933,8 +1047,7 @@ def _patchmatch_level(
     norm = torch.tensor(
         [[2 / max(ws - 1, 1), 0, -1], [0, 2 / max(hs - 1, 1), -1], [0, 0, 1]], device=dev, dtype=dt
     )
-    # (inv_ex skips the check of a coarse level: K is singular there iff it is at the finest, checked)
-    Kinv = torch.linalg.inv(K) if final else torch.linalg.inv_ex(K).inverse
+    Kinv, rays_all, idx, slot, lut, pix, _, region, first = scored[:9]
     NK = norm @ src_K  # (B, V, 3, 3)
     A = torch.bmm((NK @ src_from_ref[..., :3, :3]).view(bsz, nv * 3, 3), Kinv).view(bsz, nv, 3, 3)
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
@@ -945,54 +1058,14 @@ def _patchmatch_level(
     chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
     limits = _drop_limits(cfg, dev, dt)
 
-    # Reference: windows (their bilateral weights once the scored pixels are known).
-    radius, wstep = cfg.window_radius, cfg.window_step
-    patches = window_patches(image, radius, wstep)  # (B, S, HW)
-    region = None if mask is None else mask.bool().reshape(bsz, h * w)
-
-    # The scored pixels of each reference: those of its region (all without one), the first
-    # checkerboard colour then the second. With a small object in a large crop the cost follows
-    # the object, not the crop; pixels outside are never propagated from (as when they were scored
-    # with the worst cost). References of different regions are padded to the most pixels of each
-    # colour with pixels that score nothing, are never propagated from and whose results are
-    # dropped (``slot`` ``h * w``).
-    exact = h * w <= 2 / torch.finfo(dt).eps  # pixel indices are whole numbers of dt (2^24 for float32)
-    flat = torch.arange(h * w, device=dev, dtype=dt if exact else torch.long)
-    xs, ys = flat % w, flat.div(w, rounding_mode="floor")
-    odd = (xs + ys) % 2  # the checkerboard colour
-    pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
-    rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
-    if region is None:  # the same pixels for all references
-        shared = torch.argsort(odd, stable=True)  # the first colour's pixels, then the second's, in order
-        n_act, first = h * w, (h * w + 1) // 2
-        lut = F.pad(torch.argsort(shared), (0, 1), value=n_act)[None]  # the inverse permutation, the sentinel
-        idx = slot = shared.expand(bsz, -1)
-        pix = pix_all[shared]
-        textured = None
-    else:
-        idx, real, first = _scored_pixels(region, odd == 0)  # one host read
-        n_act = idx.shape[1]
-        slot = torch.where(real, idx, h * w)  # where a pixel's results go (padding: a spare slot)
-        lut = torch.full((bsz, h * w + 1), n_act, dtype=torch.long, device=dev)
-        lut = lut.scatter_(1, slot, torch.arange(n_act, device=dev).expand_as(slot))
-        lut[:, h * w] = n_act  # the sentinel
-        pix = pix_all[idx]
-        textured = real & _take(region, idx)
+    n_act = idx.shape[1]
     rays = _take(rays_all, idx)
-    # The scored pixels' windows and bilateral weights (zero outside the region), statistics.
-    patches = _take(patches, idx, 2)
-    weights = bilateral_weights(patches, off3[:, :2], 0.0, cfg.sigma_color, centre, dim=1, spatial=spatial)
-    if mask is not None:
-        inside = _take(window_patches(mask.bool().to(dt), radius, wstep), idx, 2) > 0.5
-        weights = weights * inside
-        weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
-    ref, textured = reference_terms(patches, weights, cfg.min_variance, textured)  # (B, 2, S, P)
+    ref, textured = terms  # (B, 2, S, P), (B, P)
     cols, rows = map_tables(A, Kinv, pix, rays)
     pixels = MatchPixels(idx, rays, cols, rows, ref)
     na = lut.shape[0]  # 1: the same pixels for all
     nbr = _neighbour_table(idx[:na], h, w, lut, n_act, cfg.propagation)  # (1 or B, P, 1 + R, L)
     batch = None if region is None else torch.arange(bsz, device=dev).view(bsz, 1, 1, 1)
-    del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
     parts = [pixels.part(sl)._replace(rays=rays[:, sl].clone()) for sl in colours]  # contiguous
 
