@@ -62,7 +62,7 @@ class TestPlaneWarp:
         A = norm @ sc.src_K @ src_from_ref[..., :3, :3] @ torch.linalg.inv(K)[:, None]
         b = (norm @ sc.src_K @ src_from_ref[..., :3, 3:]).squeeze(-1)
         cols, rows = map_tables(A, torch.linalg.inv(K), pix, rays)
-        src = types.SimpleNamespace(b=b)
+        src = types.SimpleNamespace(b=b, nan=torch.tensor(float("nan")))
         hyp = torch.cat([depth[..., None], normal], -1)[:, None]  # (1, K=1, P, 4)
         C, nr = window_maps(src, MatchPixels(idx, rays, cols, rows, None), hyp)
         assert (nr < -1e-6).all()
