@@ -125,9 +125,9 @@ class PatchMatchConfig(Checked):
         joint_scoring: score the random refinements together with the propagated planes, in one
             cost evaluation per half-sweep, around the likeliest winner known before scoring (the
             plane of lowest cost where it was last scored) instead of around the propagation's
-            winner: about a fifth fewer kernel launches (904 instead of 1,160 for the defaults,
-            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.7 % instead of
-            32.4 % of the raw depths within 1 %, mean of seeds 0-2).
+            winner: about a quarter fewer kernel launches (744 instead of 984 for the defaults,
+            ``docs/benchmarks.md``), less accurate (street_a frame 20: 29.6 % instead of 32.4 %
+            of the raw depths within 1 %, mean of seeds 0-2).
     """
 
     iterations: int = checked(3, int_field(0))
