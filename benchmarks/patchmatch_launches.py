@@ -229,7 +229,7 @@ def main() -> None:
             for row in rows.values() if rows else ():
                 for key in ("seconds", "joint_seconds"):
                     if key in row:
-                        row[key] = statistics.median(row[key])
+                        row[key] = statistics.median(row[key]) if row[key] else float("nan")  # --rounds 0
         print(f"new: {REPO}; old: {args.old}")
         head = "launches (one chunk) | host reads | launches (CPU chunks) | CPU ms (median)"
         print(f"| problem | {head} | joint_scoring: launches, CPU ms |")

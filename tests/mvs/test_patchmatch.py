@@ -62,7 +62,7 @@ class TestPlaneWarp:
         A = norm @ sc.src_K @ src_from_ref[..., :3, :3] @ torch.linalg.inv(K)[:, None]
         b = (norm @ sc.src_K @ src_from_ref[..., :3, 3:]).squeeze(-1)
         cols, rows = map_tables(A, torch.linalg.inv(K), pix, rays)
-        src = types.SimpleNamespace(b=b)
+        src = types.SimpleNamespace(b=b, nan=torch.tensor(float("nan")))
         hyp = torch.cat([depth[..., None], normal], -1)[:, None]  # (1, K=1, P, 4)
         C, nr = window_maps(src, MatchPixels(idx, rays, cols, rows, None), hyp)
         assert (nr < -1e-6).all()
@@ -253,6 +253,12 @@ class TestPatchMatch:
             )
         with pytest.raises(ValueError, match="propagation"):
             PatchMatchConfig(propagation="diagonal")
+        bad = sc.world_to_cam.clone()
+        bad[0, 3, 0] = 0.5  # not a rigid transform
+        with pytest.raises(ValueError, match=r"world_to_cam: expected a transform with last row .*\[0.5, 0"):
+            run(sc._replace(world_to_cam=bad))
+        with pytest.raises(ValueError, match="world_to_cam: expected finite"):
+            run(sc._replace(world_to_cam=sc.world_to_cam * float("nan")))
 
     def test_degenerate_baseline(self, fronto_scene):
         sc = fronto_scene

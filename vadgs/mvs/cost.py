@@ -43,9 +43,13 @@ __all__ = [
     "bilateral_ncc",
     "bilateral_weights",
     "ncc_cost_from_stats",
+    "patch_center_indices",
     "patch_offsets",
     "reference_patch_stats",
     "reference_patches",
+    "reference_terms",
+    "spatial_log_weights",
+    "window_patches",
 ]
 
 #: The worst photometric cost (``1 - NCC`` for perfectly anti-correlated patches).
@@ -77,9 +81,75 @@ def patch_offsets(
         raise ValueError(f"patch_offsets: expected radius >= 0 and step >= 1, got {radius=}, {step=}")
     n = radius * 2 // step + 1
     span = (n - 1) * step
-    axis = torch.arange(n, device=device, dtype=dtype or torch.float32) * step - span / 2
-    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
-    return torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)
+    axis = [k * step - span / 2 for k in range(n)]  # whole or half numbers: exact in any float dtype
+    return torch.tensor([[x, y] for y in axis for x in axis], device=device, dtype=dtype or torch.float32)
+
+
+def patch_center_indices(radius: int, step: int = 1) -> list[int]:
+    """Indices of the samples of :func:`patch_offsets` nearest to the window centre (no tensor read).
+
+    One sample (the centre) when the window has an odd number of samples per axis, else the four
+    around it, in increasing order: what :func:`bilateral_weights` finds from the offsets.
+
+    Example:
+        >>> patch_center_indices(1), patch_center_indices(5, 2)
+        ([4], [14, 15, 20, 21])
+    """
+    if radius < 0 or step < 1:
+        raise ValueError(f"patch_center_indices: expected radius >= 0 and step >= 1, got {radius=}, {step=}")
+    n = radius * 2 // step + 1
+    axis = [(n - 1) // 2] if n % 2 else [n // 2 - 1, n // 2]
+    return [iy * n + ix for iy in axis for ix in axis]
+
+
+def window_patches(gray: torch.Tensor, radius: int, step: int = 1) -> torch.Tensor:
+    """:func:`reference_patches` of the window :func:`patch_offsets` ``(radius, step)``, as one unfold.
+
+    The same values in the same order; two kernels (a replicate pad and an unfold) instead of one
+    slice per sample. A window whose offsets are not whole pixels (an odd span: ``radius=4,
+    step=3``) is gathered by :func:`reference_patches`.
+
+    Args:
+        gray: ``(B, 1, H, W)`` images.
+        radius: half-size of the window in pixels (>= 0).
+        step: sampling step in pixels (>= 1).
+
+    Returns:
+        ``(B, S, H * W)`` patch samples, sample-major.
+
+    Example:
+        >>> img = torch.rand(2, 1, 7, 9)
+        >>> bool((window_patches(img, 3, 2) == reference_patches(img, patch_offsets(3, 2))).all())
+        True
+    """
+    dims = check_shape(gray, "gray", ("B", 1, "H", "W"))
+    if radius < 0 or step < 1:
+        raise ValueError(f"window_patches: expected radius >= 0 and step >= 1, got {radius=}, {step=}")
+    n = radius * 2 // step + 1
+    span = (n - 1) * step
+    if span % 2:
+        return reference_patches(gray, patch_offsets(radius, step, gray.device, gray.dtype))
+    pad = span // 2
+    padded = F.pad(gray, (pad, pad, pad, pad), mode="replicate")
+    return F.unfold(padded, n, dilation=step).view(dims["B"], n * n, dims["H"] * dims["W"])
+
+
+def spatial_log_weights(offsets: torch.Tensor, sigma_spatial: float) -> torch.Tensor:
+    """The spatial term of :func:`bilateral_weights`' log-weights, ``-|o|^2 / (2 sigma_spatial^2)``.
+
+    Args:
+        offsets: ``(S, 2)`` sample offsets.
+        sigma_spatial: spatial standard deviation in pixels.
+
+    Returns:
+        ``(S,)`` log-weights.
+
+    Example:
+        >>> spatial_log_weights(torch.tensor([[0.0, 0.0], [1.0, 1.0]]), 1.0)
+        tensor([-0., -1.])
+    """
+    check_shape(offsets, "offsets", ("S", 2))
+    return -(offsets**2).sum(-1) / (2 * sigma_spatial**2)
 
 
 def reference_patches(gray: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -112,8 +182,9 @@ def bilateral_weights(
     offsets: torch.Tensor,
     sigma_spatial: float,
     sigma_color: float,
-    center_index: int | None = None,
+    center_index: int | list[int] | None = None,
     dim: int = -1,
+    spatial: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """COLMAP's bilateral weights of reference patches, normalised to sum to one.
 
@@ -122,10 +193,14 @@ def bilateral_weights(
         offsets: ``(S, 2)`` their offsets from the patch centre.
         sigma_spatial: spatial standard deviation in pixels (COLMAP: the window radius).
         sigma_color: intensity standard deviation (COLMAP: 0.2 on [0, 1] intensities).
-        center_index: index of the sample holding the centre intensity :math:`r_0`; default the
-            sample nearest to offset ``(0, 0)``. When the window has no centre sample (even
-            number of samples per axis) the mean of the samples nearest the centre is used.
+        center_index: index of the sample holding the centre intensity :math:`r_0`, or a list
+            of indices whose mean is used; default the sample nearest to offset ``(0, 0)``. When
+            the window has no centre sample (even number of samples per axis) the mean of the
+            samples nearest the centre is used (:func:`patch_center_indices` lists them without
+            reading the offsets back to the host).
         dim: the sample axis of ``ref_patches`` (``-2`` for the sample-major ``(B, S, P)``).
+        spatial: the spatial log-weights :func:`spatial_log_weights` ``(offsets, sigma_spatial)``
+            if already computed (PatchMatch computes them once per call).
 
     Returns:
         Non-negative weights shaped as ``ref_patches``, summing to one along ``dim``.
@@ -139,14 +214,21 @@ def bilateral_weights(
     check_shape(offsets, "offsets", ("S", 2))
     x = ref_patches.movedim(dim, -1)
     check_shape(x, "ref_patches (sample axis last)", ("*", offsets.shape[0]))
-    off = offsets.to(ref_patches)
-    dist2 = (off**2).sum(-1)
+    if spatial is None:
+        spatial = spatial_log_weights(offsets.to(ref_patches), sigma_spatial)
     if center_index is None:
+        off = offsets.to(ref_patches)
+        dist2 = (off**2).sum(-1)
         nearest = torch.nonzero(dist2 <= dist2.min() + 1e-6).flatten()
         center = x[..., nearest].mean(-1, keepdim=True)
-    else:
+    elif isinstance(center_index, int):
         center = x[..., center_index : center_index + 1]
-    logw = -dist2 / (2 * sigma_spatial**2) - (x - center) ** 2 / (2 * sigma_color**2)
+    elif len(center_index) == 1:
+        center = x[..., center_index[0] : center_index[0] + 1]
+    else:
+        center = x[..., center_index].mean(-1, keepdim=True)
+    d = x - center
+    logw = torch.addcmul(spatial, d, d, value=-1 / (2 * sigma_color**2))
     return torch.softmax(logw, dim=-1).movedim(-1, dim)
 
 
@@ -230,13 +312,56 @@ def reference_patch_stats(
     """
     dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
     check_shape(weights, "weights", ("B", "S", "P"), dims)
-    mean = (weights * ref_patches).sum(1, keepdim=True)
+    # the patches first: the products take their layout, whatever the weights' (sums in one order)
+    mean = (ref_patches * weights).sum(1, keepdim=True)
     centered = ref_patches - mean
-    var = (weights * centered * centered).sum(1, keepdim=True)
+    weighted = centered * weights
+    var = (weighted * centered).sum(1, keepdim=True)
     valid = var[:, 0] >= min_variance
-    normalized = weights * centered * torch.rsqrt(var.clamp_min(min_variance))
-    normalized = torch.where(valid[:, None], normalized, torch.zeros_like(normalized))
+    normalized = weighted * torch.rsqrt(var.clamp_min(min_variance)) * valid[:, None]  # zero where flat
     return ReferencePatchStats(weights, normalized, valid)
+
+
+def reference_terms(
+    ref_patches: torch.Tensor,
+    weights: torch.Tensor,
+    min_variance: float = 1e-5,
+    keep: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""The reference half of the NCC as PatchMatch scores it, stacked, and where it is usable.
+
+    As :func:`reference_patch_stats` without the guards that a caller who masks flat patches
+    does not need: where the patch is flat (or not kept) the weights are zero, so that the source
+    side's weighted variance is zero and the cost is masked as the worst, and the normalised term
+    is left undefined (NaN or infinite) there.
+
+    Args:
+        ref_patches: ``(B, S, P)`` reference samples.
+        weights: ``(B, S, P)`` bilateral weights summing to one over ``S``.
+        min_variance: threshold below which the reference patch is flat.
+        keep: optional ``(B, P)`` bool, the pixels to score (others get zero weights too).
+
+    Returns:
+        ``(B, 2, S, P)`` the weights (zero where not usable) and :math:`w_s (r_s - \bar r) /
+        \sigma_r`, and ``(B, P)`` bool where usable (textured and kept).
+
+    Example:
+        >>> r = torch.tensor([[[0.1], [0.5], [0.3], [0.9]]])  # B = 1, S = 4, P = 1
+        >>> terms, usable = reference_terms(r, torch.full_like(r, 0.25))
+        >>> st = reference_patch_stats(r, torch.full_like(r, 0.25))
+        >>> bool(torch.equal(terms[:, 1], st.normalized)), usable
+        (True, tensor([[True]]))
+    """
+    dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
+    check_shape(weights, "weights", ("B", "S", "P"), dims)
+    mean = (ref_patches * weights).sum(1, keepdim=True)
+    centered = ref_patches - mean
+    weighted = centered * weights
+    var = (weighted * centered).sum(1, keepdim=True)
+    usable = var[:, 0] >= min_variance
+    if keep is not None:
+        usable = usable & keep
+    return torch.stack([weights * usable[:, None], weighted * var.rsqrt()], 1), usable
 
 
 def ncc_cost_from_stats(

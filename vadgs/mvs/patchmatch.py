@@ -44,6 +44,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
@@ -60,13 +61,14 @@ from vadgs.checks import (
     float_field,
     int_field,
 )
-from vadgs.geometry import invert_rigid
 from vadgs.mvs.cost import (
     MAX_COST,
     bilateral_weights,
+    patch_center_indices,
     patch_offsets,
-    reference_patch_stats,
-    reference_patches,
+    reference_terms,
+    spatial_log_weights,
+    window_patches,
 )
 
 __all__ = [
@@ -123,9 +125,9 @@ class PatchMatchConfig(Checked):
         joint_scoring: score the random refinements together with the propagated planes, in one
             cost evaluation per half-sweep, around the likeliest winner known before scoring (the
             plane of lowest cost where it was last scored) instead of around the propagation's
-            winner: about a fifth fewer kernel launches (904 instead of 1,160 for the defaults,
-            ``docs/benchmarks.md``), slightly less accurate (street_a frame 20: 29.7 % instead of
-            32.4 % of the raw depths within 1 %, mean of seeds 0-2).
+            winner: about a quarter fewer kernel launches (744 instead of 984 for the defaults,
+            ``docs/benchmarks.md``), less accurate (street_a frame 20: 29.6 % instead of 32.4 %
+            of the raw depths within 1 %, mean of seeds 0-2).
     """
 
     iterations: int = checked(3, int_field(0))
@@ -204,7 +206,16 @@ def propagation_regions(kind: str = "acmh") -> list[list[tuple[int, int]]]:
 
 
 def _to_gray(x: torch.Tensor) -> torch.Tensor:
-    return rgb_to_grayscale(x) if x.shape[-3] == 3 else x.mean(-3, keepdim=True)
+    """``(*, 1, H, W)`` grey levels of ``(*, C, H, W)`` images (RGB, or the mean of the channels).
+
+    kornia's weights, given as a tensor made on the host (kornia fills its own on the device:
+    four launches), round from the same numbers: the same grey levels.
+    """
+    if x.shape[-3] == 1:
+        return x
+    if x.shape[-3] != 3:
+        return x.mean(-3, keepdim=True)
+    return rgb_to_grayscale(x, torch.tensor([0.299, 0.587, 0.114], device=x.device, dtype=x.dtype))
 
 
 def _random_normals(rays: torch.Tensor, gen: torch.Generator | None) -> torch.Tensor:
@@ -260,6 +271,8 @@ class MatchSources(NamedTuple):
     offsets: torch.Tensor  # (B*V, S, 3) window offsets (o_x, o_y, 1) (expanded)
     one: torch.Tensor  # () 1, for the fused 1 - ncc
     zero: torch.Tensor  # () 0
+    worst: torch.Tensor  # () MAX_COST
+    nan: torch.Tensor  # () NaN: the maps of a plane seen edge-on or from behind
 
 
 def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -269,7 +282,8 @@ def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[
     ``C[:, :, 0] = H e_x``, ``C[:, :, 1] = H e_y`` and ``C[:, :, 2] = H p~`` (rows as vectors), so
     the window sample at offset ``o`` maps to ``(o_x, o_y, 1) @ C`` (homogeneous coordinates,
     normalised to [-1, 1] for :func:`torch.nn.functional.grid_sample`), and ``nr`` ``(B, K, P)``,
-    ``n^T K^-1 p~`` (the plane is seen edge-on or from behind where ``nr >= -1e-6``).
+    ``n^T K^-1 p~``. Where the plane is seen edge-on or from behind (``nr >= -1e-6``) the maps
+    are NaN, so that the window centre's test of :func:`match_costs` fails (the worst cost).
     ``H = N K_s (R - t n^T / d) K_r^-1`` of :func:`vadgs.geometry.plane_homography` is
     ``A - b m^T`` with ``m = K_r^-T n / d`` and ``d = -z nr``, so ``C = rows + b u^T`` with
     ``u = (-m_x, -m_y, 1 / z) = (n^T K^-1 e_x, n^T K^-1 e_y, nr) / (z nr)`` (because
@@ -281,7 +295,7 @@ def window_maps(src: MatchSources, px: MatchPixels, hyp: torch.Tensor) -> tuple[
     t = torch.addcmul(t, n[:, None, ..., 1], cols[:, 1])
     t = torch.addcmul(t, n[:, None, ..., 2], cols[:, 2])  # (B, 3, K, P): n^T K^-1 (e_x, e_y, p~)
     nr = t[:, 2]
-    u = t / (z * nr.clamp_max(-1e-6))[:, None]  # finite even where the plane is rejected
+    u = t / (z * torch.where(nr < -1e-6, nr, src.nan))[:, None]  # NaN where the plane is rejected
     C = torch.addcmul(px.rows[:, :, :, None], src.b[:, :, None, None, None], u[:, None, ..., None])
     return C, nr
 
@@ -347,12 +361,13 @@ def match_costs(
         variances.append(var)
     cost = torch.cat(costs, dim=-1) if len(costs) > 1 else costs[0]
     var = torch.cat(variances, dim=-1) if len(variances) > 1 else variances[0]
-    # The worst cost where a window is flat, where the plane is seen edge-on, where the window
-    # centre does not land in front of the source camera inside its image (and mask).
+    # The worst cost where a window is flat, where the window centre does not land in front of the
+    # source camera inside its image (and mask), where the plane is seen edge-on (NaN maps: the
+    # comparisons are False).
     c0 = C[:, :, 2]  # (B, V, K, P, 3)
     cz = c0[..., 2]
-    outside = torch.linalg.vector_norm(c0[..., :2], ord=math.inf, dim=-1) > cz  # or behind
-    bad = (var < min_variance) | outside | (nr >= -1e-6)[:, None]
+    inside = torch.linalg.vector_norm(c0[..., :2], ord=math.inf, dim=-1) <= cz  # and in front
+    good = (var >= min_variance) & inside
     if src.masks is not None:
         cxy = c0[..., :2] / cz.clamp_min(1e-9)[..., None]
         m = F.grid_sample(
@@ -362,32 +377,60 @@ def match_costs(
             padding_mode="zeros",
             align_corners=True,
         )
-        bad = bad | (m.view(bsz, v, k, p) < 0.5)
-    return cost.masked_fill_(bad, MAX_COST), nr
+        good = good & (m.view(bsz, v, k, p) >= 0.5)
+    return torch.where(good, cost, src.worst), nr
+
+
+def _drop_limits(cfg: PatchMatchConfig, device: torch.device, dtype: torch.dtype) -> torch.Tensor | None:
+    """``(2, 1)``: the largest ``dtype`` value under ``good_threshold``, and ``bad_threshold``.
+
+    A view is dropped where its second-lowest cost exceeds the first (fewer than two good costs)
+    or its ``(N - 3)``-th lowest exceeds the second (more than three bad costs): one comparison
+    of both order statistics (see :func:`_view_weights`). ``None`` for a dtype numpy lacks.
+    """
+    good = _adjacent(cfg.good_threshold, dtype, -math.inf)
+    if good is None:
+        return None
+    return torch.tensor([[good], [cfg.bad_threshold]], device=device, dtype=dtype)
+
+
+def _adjacent(x: float, dtype: torch.dtype, toward: float) -> float | None:
+    """The ``dtype`` number next to ``x`` (as ``dtype`` rounds it) toward ``toward``.
+
+    ``None`` for a dtype that numpy lacks (bfloat16).
+    """
+    np_dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}.get(dtype)
+    return None if np_dtype is None else float(np.nextafter(np_dtype(x), np_dtype(toward)))
 
 
 def _view_weights(
-    costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, their sum, where > 0.
+    costs: torch.Tensor, cfg: PatchMatchConfig, zero: torch.Tensor, limits: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """ACMH view weights ``(B, V, P)`` of the costs ``(B, V, N, P)`` of N hypotheses, and where any is > 0.
 
-    The sum ``(B, 1, P)`` and its mask serve every :func:`_aggregate` call of a half-sweep.
+    The weights are normalised to sum to one over the views (NaN where none is selected: the
+    mask ``(B, 1, P)`` is False there), once for every :func:`_aggregate` call of a half-sweep.
+    ``limits``: :func:`_drop_limits`'s.
     """
     good = costs < cfg.good_threshold
     n_good = good.sum(2)
-    dropped = n_good < 2
     n = costs.shape[2]
-    if n > 3:  # more than three bad costs: the 4th largest is bad
-        dropped = dropped | (costs.kthvalue(n - 3, dim=2).values > cfg.bad_threshold)
+    if n > 5 and limits is not None:  # the 2nd and the (N - 3)-th lowest costs, compared at once
+        low = costs.topk(n - 3, dim=2, largest=False).values  # ascending
+        dropped = (low[:, :, 1 : n - 3 : n - 5] > limits).any(2)
+    else:
+        dropped = n_good < 2
+        if n > 3:  # more than three bad costs: the 4th largest is bad
+            dropped = dropped | (costs.kthvalue(n - 3, dim=2).values > cfg.bad_threshold)
     conf = torch.addcmul(zero, costs, costs, value=-0.5 / cfg.beta**2).exp_().mul_(good)
     weights = (conf.sum(2) / n_good).masked_fill_(dropped, 0.0)
     wsum = weights.sum(1, keepdim=True)
-    return weights, wsum, wsum > 0
+    return weights / wsum, wsum > 0
 
 
 def _aggregate(
     costs: torch.Tensor,
-    weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None,
+    weights: tuple[torch.Tensor, torch.Tensor] | None,
     cfg: PatchMatchConfig,
 ) -> torch.Tensor:
     """Aggregated costs ``(B, N, P)`` of per-view costs ``(B, V, N, P)``.
@@ -399,9 +442,8 @@ def _aggregate(
     topk = costs.topk(min(cfg.top_k, costs.shape[1]), dim=1, largest=False).values.mean(1)
     if cfg.view_selection == "topk" or weights is None:
         return topk
-    w, wsum, has = weights
-    weighted = (costs * w[:, :, None]).sum(1) / wsum
-    return torch.where(has, weighted, topk)
+    w, has = weights
+    return torch.where(has, (costs * w[:, :, None]).sum(1), topk)
 
 
 def _scored_pixels(active: torch.Tensor, even: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
@@ -497,10 +539,11 @@ def _propagate(
     hq = torch.gather(hyp[..., :5], 1, q.view(bsz, p * r, 1).expand(-1, -1, 5)).view(bsz, p, r, 5)
     den = torch.bmm(hq[..., 1:4].reshape(bsz * p, r, 3), rays.reshape(bsz * p, 3, 1)).view(bsz, p, r)
     hq, den = hq.transpose(1, 2), den.transpose(1, 2)  # (B, 1 + R, P, 5), n_q^T K^-1 p~ (B, 1 + R, P)
-    # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den
-    z = torch.where(den < -1e-6, hq[..., 0] * hq[..., 4] / den, hq[..., 0])
+    # z n^T K^-1 p~ is the plane's constant: z_p = z_q nr_q / den. Where the plane is seen edge-on
+    # or from behind (den >= -1e-6) the depth is clamped to a bound, and the plane is rejected
+    # when it is scored.
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
-    z = z.clamp_(lo, hi)
+    z = (hq[..., 0] * hq[..., 4] / den).clamp_(lo, hi)
     return torch.cat([z[..., None], hq[..., 1:4]], -1), nb_cost[..., 0].transpose(1, 2)
 
 
@@ -510,9 +553,10 @@ def _refinements(
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
-    Two perturbed depths (relative: ``z exp(noise[..., i])``) and a perturbed normal (``n`` plus
+    Two perturbed depths (relative: ``z noise[..., i]``) and a perturbed normal (``n`` plus
     ``noise[..., 2:5]``, normalised, kept only when it faces the camera), the ``noise``
-    ``(B, P, 8)`` uniform (``noise[..., 5:]`` is drawn but unused), combined as ``kinds`` says:
+    ``(B, P, 8)`` uniform but for ``noise[..., :2]``, already exponentiated (the relative depth
+    factors; ``noise[..., 5:]`` is drawn but unused), combined as ``kinds`` says:
     ``"p"`` perturbed (the ``i % 2``-th depth, the normal), ``"c"`` current, ``"r"`` random.
     ``kinds`` is a prefix of ACMH's list (see :func:`_patchmatch_level`): the result is the current
     plane repeated, with the perturbed and random parts written over it (a fixed handful of
@@ -523,7 +567,7 @@ def _refinements(
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
     out = cur[:, None, :, :4].repeat(1, k, 1, 1)  # (B, k, P, 4): "c" everywhere, then overwritten
     nd = min(k, 2)  # perturbed depths: kinds 0 and 1 (the i-th draw for kind i)
-    torch.mul(z[..., None], noise[..., :nd].exp(), out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
+    torch.mul(z[..., None], noise[..., :nd], out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
     # the perturbed normal: kinds 0 and 2 (both the first draw; the second is never used)
     m = n + noise[..., 2:5]  # |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
@@ -660,22 +704,33 @@ def _check_images(
         ("world_to_cam", world_to_cam),
         ("src_world_to_cam", src_world_to_cam),
     ]
-    _check_finite_together([*named, ("image", image), ("src_images", src_images)])
+    _check_finite_together([*named, ("image", image), ("src_images", src_images)], world_to_cam)
 
 
-def _check_finite_together(named: list[tuple[str, torch.Tensor]]) -> None:
-    """:func:`vadgs.checks.check_finite` of every tensor with one host read when all pass.
+def _check_finite_together(named: list[tuple[str, torch.Tensor]], world_to_cam: torch.Tensor) -> None:
+    """:func:`vadgs.checks.check_finite` of every tensor, and ``world_to_cam``'s last rows, in one read.
 
     The sums of the tensors are finite when the tensors are (unless a sum overflows; then the
-    tensors are checked one by one, which names the first non-finite one or passes).
+    tensors are checked one by one, which names the first non-finite one or passes). The last row
+    of each ``world_to_cam`` is ``(0, 0, 0, 1)`` within 1e-5 (rigid transforms, as
+    :func:`vadgs.geometry.invert_rigid` checks).
     """
     if not checks_enabled():
         return
-    sums = torch.stack([t.sum() for _, t in named])
-    if bool((sums - sums == 0).all()):  # x - x is 0 for finite x, NaN for NaN and infinities
+    rows = world_to_cam[..., 3, :]
+    off = (rows - torch.tensor([0.0, 0.0, 0.0, 1.0], device=rows.device, dtype=rows.dtype)).abs()
+    sums = torch.stack([t.sum() for _, t in named] + [off.amax()])
+    # |sum| < inf: finite (not NaN); the last row's largest offset <= 1e-5 (< the next number)
+    tol = _adjacent(1e-5, rows.dtype, math.inf) or 1e-5
+    limits = torch.tensor([math.inf] * len(named) + [tol], device=rows.device, dtype=rows.dtype)
+    if bool((sums.abs() < limits).all()):
         return
     for name, t in named:
         check_finite(t, name)
+    bad = (off > 1e-5).any(-1)
+    if bool(bad.any()):
+        got = rows[int(bad.nonzero()[0, 0])].tolist()
+        raise ValueError(f"world_to_cam: expected a transform with last row (0, 0, 0, 1), got {got}")
 
 
 @torch.no_grad()
@@ -750,7 +805,12 @@ def patchmatch(
     )  # fmt: skip
     _check_images(image, src_images, K, src_K, world_to_cam, src_world_to_cam, cfg)
     bsz, nv = src_images.shape[:2]
-    ref_to_world = invert_rigid(world_to_cam)
+    # [R^T | -R^T t] (vadgs.geometry.invert_rigid, whose checks _check_images made)
+    rot_t = world_to_cam[:, :3, :3].transpose(-1, -2)
+    last = torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], device=image.device, dtype=world_to_cam.dtype)
+    ref_to_world = torch.cat(
+        [torch.cat([rot_t, -rot_t @ world_to_cam[:, :3, 3:]], -1), last.expand(bsz, -1, -1)], -2
+    )
     src_from_ref = torch.bmm(src_world_to_cam.reshape(bsz, nv * 4, 4), ref_to_world).view(bsz, nv, 4, 4)
     usable = src_from_ref[..., :3, 3].norm(dim=-1) > 1e-6 * _per_reference(lo, 1)  # (B, V): baseline
     if not bool(usable.any(-1).all()):
@@ -759,19 +819,28 @@ def patchmatch(
             f"src_world_to_cam: every source of reference(s) {bad} has the reference's camera centre "
             "(zero baseline): depth is unobservable"
         )
+    # Grey levels, once for every level (flat for a degenerate source: the worst cost).
+    gray, src_gray = _to_gray(image), _to_gray(src_images) * usable[..., None, None, None]
+    # The window, the same at every level: offsets (o_x, o_y, 1), the bilateral weights' spatial
+    # term and the samples nearest the centre.
     offsets = patch_offsets(cfg.window_radius, cfg.window_step, device=image.device, dtype=image.dtype)
+    sigma_s = cfg.sigma_spatial if cfg.sigma_spatial is not None else float(cfg.window_radius)
+    window = (
+        F.pad(offsets, (0, 1), value=1.0),
+        spatial_log_weights(offsets, sigma_s),
+        patch_center_indices(cfg.window_radius, cfg.window_step),
+    )
     level = _pyramid(
-        image, src_images, K, src_K, (src_from_ref, usable, offsets), (lo, hi), cfg, init_depth, init_normal,
+        gray, src_gray, K, src_K, (src_from_ref, window), (lo, hi), cfg, init_depth, init_normal,
         mask, src_masks, cfg.pyramid_levels,
     )  # fmt: skip
     return _result(level, cfg, bsz, nv, *image.shape[-2:])
 
 
 class _Level(NamedTuple):
-    """What one pyramid level hands on: full-image maps, flat (``HW`` last but for the normals)."""
+    """What one pyramid level hands on: full-image maps, flat (``HW`` last but for the planes)."""
 
-    depth: torch.Tensor  # (B, HW) raw depth
-    normal: torch.Tensor  # (B, HW, 3) raw normals
+    planes: torch.Tensor  # (B, HW, 4) raw depth and normal
     agg: torch.Tensor | None  # (B, HW) aggregated cost (finest level only)
     view_cost: torch.Tensor | None  # (B, V, HW) (finest level only)
     textured: torch.Tensor | None  # (B, HW) scored, in the region, textured (finest level only)
@@ -797,48 +866,155 @@ def _scaled(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
 
 def _pyramid(
     image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
-    levels: int, final: bool = True,
+    levels: int,
 ) -> _Level:  # fmt: skip
-    """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at this one."""
-    h, w = image.shape[-2:]
-    hs, ws = src_images.shape[-2:]
-    if levels <= 1 or cfg.iterations == 0 or min(h, w, hs, ws) < 8:
-        return _patchmatch_level(
-            image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
-            0, cfg.iterations, None, final,
-        )  # fmt: skip
-    hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
-    coarse = _pyramid(
-        _downsample(image, (hc, wc), "area"),
-        _downsample(src_images, (hsc, wsc), "area"),
-        _scaled(K, wc / w, hc / h),
-        _scaled(src_K, wsc / ws, hsc / hs),
-        shared,
-        depth_range,
-        cfg,
-        None if init_depth is None else _downsample(init_depth, (hc, wc), "nearest"),
-        None if init_normal is None else _downsample(init_normal, (hc, wc), "nearest"),
-        None if mask is None else _downsample(mask, (hc, wc), "nearest"),
-        None if src_masks is None else _downsample(src_masks, (hsc, wsc), "nearest"),
-        levels - 1,
-        final=False,
-    )
-    bsz = image.shape[0]
-    up_depth = _downsample(coarse.depth.view(bsz, 1, hc, wc), (h, w), "nearest")
-    up_normal = _downsample(coarse.normal.transpose(1, 2).reshape(bsz, 3, hc, wc), (h, w), "nearest")
-    done = cfg.iterations + (levels - 2) * cfg.fine_iterations
+    """Coarse-to-fine: solve at half resolution, upsample the hypotheses, refine at the next, up to this one.
+
+    Every level's scored pixels are set up first, so that the reference windows' weights and
+    statistics of all levels come out of one pass.
+    """
+    # The levels, finest first: images, cameras, init maps, regions.
+    pyr = [(image, src_images, K, src_K, init_depth, init_normal, mask, src_masks)]
+    while (
+        len(pyr) < levels and cfg.iterations > 0 and min(*pyr[-1][0].shape[-2:], *pyr[-1][1].shape[-2:]) >= 8
+    ):
+        img, src, k, sk, d0, n0, m, sm = pyr[-1]
+        h, w = img.shape[-2:]
+        hs, ws = src.shape[-2:]
+        hc, wc, hsc, wsc = (h + 1) // 2, (w + 1) // 2, (hs + 1) // 2, (ws + 1) // 2
+        pyr.append(
+            (
+                _downsample(img, (hc, wc), "area"),
+                _downsample(src, (hsc, wsc), "area"),
+                _scaled(k, wc / w, hc / h),
+                _scaled(sk, wsc / ws, hsc / hs),
+                None if d0 is None else _downsample(d0, (hc, wc), "nearest"),
+                None if n0 is None else _downsample(n0, (hc, wc), "nearest"),
+                None if m is None else _downsample(m, (hc, wc), "nearest"),
+                None if sm is None else _downsample(sm, (hsc, wsc), "nearest"),
+            )
+        )
+    pixels = [_level_pixels(lv[0], lv[2], lv[6], i == 0) for i, lv in enumerate(pyr)]
+    terms = _level_terms(pixels, cfg, shared[1])
+    # The coarsest level from random (or given) hypotheses, then each finer one from the upsampled
+    # planes of the coarser (with the caller's init maps at that level as an alternative).
     fine = cfg if cfg.fine_propagation is None else replace(cfg, propagation=cfg.fine_propagation)
-    return _patchmatch_level(
-        image, src_images, K, src_K, shared, depth_range, fine, up_depth, up_normal, mask, src_masks, done,
-        cfg.fine_iterations,
-        (init_depth, init_normal), final,
-    )  # fmt: skip
+    level = None
+    for i in range(len(pyr) - 1, -1, -1):
+        img, src, k, sk, d0, n0, m, sm = pyr[i]
+        if level is None:
+            level = _patchmatch_level(
+                img, src, k, sk, shared, depth_range, cfg, d0, n0, sm, 0, cfg.iterations, None, i == 0,
+                pixels[i], terms[i],
+            )  # fmt: skip
+            continue
+        bsz, (h, w), (hc, wc) = img.shape[0], img.shape[-2:], pyr[i + 1][0].shape[-2:]
+        # (B, 4, H, W) depth and normal in one, channels last (the finer level reads it as (B, HW, 4))
+        up = _downsample(level.planes.view(bsz, hc, wc, 4).permute(0, 3, 1, 2), (h, w), "nearest")
+        done = cfg.iterations + (len(pyr) - 2 - i) * cfg.fine_iterations
+        level = _patchmatch_level(
+            img, src, k, sk, shared, depth_range, fine, up, None, sm, done, cfg.fine_iterations, (d0, n0),
+            i == 0, pixels[i], terms[i],
+        )  # fmt: skip
+    assert level is not None
+    return level
+
+
+class _Pixels(NamedTuple):
+    """The scored pixels of one level (see :func:`_level_pixels`)."""
+
+    Kinv: torch.Tensor  # (B, 3, 3)
+    rays_all: torch.Tensor  # (B, HW, 3) K^-1 p~ of every pixel
+    idx: torch.Tensor  # (B, P) the scored pixels, the first colour's then the second's
+    slot: torch.Tensor  # (B, P) where their results go (HW for the padding)
+    lut: torch.Tensor  # (1 or B, HW + 1) the scored pixel of each pixel (P: none, the sentinel)
+    pix: torch.Tensor  # (B or 1, P, 3) p~
+    keep: torch.Tensor | None  # (B, P) real and in the region (None: no region)
+    region: torch.Tensor | None  # (B, HW) bool
+    first: int  # where the second colour starts
+    gray: torch.Tensor  # (B, 1, H, W) the reference images
+    mask: torch.Tensor | None  # (B, 1, H, W) their regions
+
+
+def _level_pixels(image: torch.Tensor, K: torch.Tensor, mask: torch.Tensor | None, final: bool) -> _Pixels:
+    """The scored pixels of each reference and their windows at one level (``image`` grey).
+
+    Those of its region (all without one), the first checkerboard colour then the second. With a
+    small object in a large crop the cost follows the object, not the crop; pixels outside are
+    never propagated from (as when they were scored with the worst cost). References of
+    different regions are padded to the most pixels of each colour with pixels that score
+    nothing, are never propagated from and whose results are dropped (``slot`` ``h * w``).
+    """
+    bsz = image.shape[0]
+    h, w = image.shape[-2:]
+    dev, dt = image.device, image.dtype
+    # (inv_ex skips the check of a coarse level: K is singular there iff it is at the finest, checked)
+    Kinv = torch.linalg.inv(K) if final else torch.linalg.inv_ex(K).inverse
+    region = None if mask is None else mask.bool().reshape(bsz, h * w)
+    exact = h * w <= 2 / torch.finfo(dt).eps  # pixel indices are whole numbers of dt (2^24 for float32)
+    flat = torch.arange(h * w, device=dev, dtype=dt if exact else torch.long)
+    xs, ys = flat % w, flat.div(w, rounding_mode="floor")
+    odd = (xs + ys) % 2  # the checkerboard colour
+    pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
+    rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
+    if region is None:  # the same pixels for all references
+        shared = torch.argsort(odd, stable=True)  # the first colour's pixels, then the second's, in order
+        n_act, first = h * w, (h * w + 1) // 2
+        lut = F.pad(torch.argsort(shared), (0, 1), value=n_act)[None]  # the inverse permutation, the sentinel
+        idx = slot = shared.expand(bsz, -1)
+        pix = pix_all[shared]
+        keep = None
+    else:
+        idx, real, first = _scored_pixels(region, odd == 0)  # one host read
+        n_act = idx.shape[1]
+        slot = torch.where(real, idx, h * w)  # where a pixel's results go (padding: a spare slot)
+        lut = torch.full((bsz, h * w + 1), n_act, dtype=torch.long, device=dev)
+        lut = lut.scatter_(1, slot, torch.arange(n_act, device=dev).expand_as(slot))
+        lut[:, h * w] = n_act  # the sentinel
+        pix = pix_all[idx]
+        keep = real & _take(region, idx)
+    return _Pixels(Kinv, rays_all, idx, slot, lut, pix, keep, region, first, image, mask)
+
+
+def _level_terms(
+    pixels: list[_Pixels], cfg: PatchMatchConfig, window
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Each level's reference terms ``(B, 2, S, P)`` and textured pixels ``(B, P)``, in one pass.
+
+    The windows of the scored pixels of every level side by side, their bilateral weights (zero
+    outside the region) and :func:`vadgs.mvs.cost.reference_terms`; the pixels are independent,
+    so that each level's are what a pass of its own gives, bit for bit.
+    """
+    off3, spatial, centre = window
+    radius, wstep = cfg.window_radius, cfg.window_step
+
+    def joined(parts: list[torch.Tensor], dim: int) -> torch.Tensor:
+        return torch.cat(parts, dim) if len(parts) > 1 else parts[0]
+
+    patches = joined([_take(window_patches(px.gray, radius, wstep), px.idx, 2) for px in pixels], 2)
+    weights = bilateral_weights(patches, off3[:, :2], 0.0, cfg.sigma_color, centre, dim=1, spatial=spatial)
+    keep = None
+    masks = [px.mask for px in pixels if px.mask is not None]
+    if masks:  # regions at every level
+        dt = patches.dtype
+        windows = [window_patches(m.bool().to(dt), radius, wstep) for m in masks]
+        inside = joined([_take(x, px.idx, 2) for x, px in zip(windows, pixels)], 2) > 0.5
+        weights = weights * inside
+        weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+        keep = joined([px.keep for px in pixels if px.keep is not None], 1)
+    ref, textured = reference_terms(patches, weights, cfg.min_variance, keep)
+    out, p0 = [], 0
+    for px in pixels:
+        p = px.idx.shape[1]
+        out.append((ref[..., p0 : p0 + p], textured[:, p0 : p0 + p]))
+        p0 += p
+    return out
 
 
 def _patchmatch_level(
-    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, mask, src_masks,
+    image, src_images, K, src_K, shared, depth_range, cfg, init_depth, init_normal, src_masks,
     start_iteration: int, iterations: int, alt_init: tuple[torch.Tensor | None, torch.Tensor | None] | None,
-    final: bool,
+    final: bool, scored: _Pixels, terms: tuple[torch.Tensor, torch.Tensor],
 ) -> _Level:  # fmt: skip
     """PatchMatch at one resolution (inputs already checked).
 
@@ -850,11 +1026,13 @@ def _patchmatch_level(
     ``joint_scoring``, with the propagated planes in the first, around the likeliest winner), and
     the best of all is kept by one ``gather``. The initial hypotheses are scored first, once.
 
-    ``alt_init`` is given at a finer pyramid level: ``init_depth`` / ``init_normal`` are then the
-    upsampled coarse maps (complete), and ``alt_init`` the caller's full-resolution init maps (or
-    ``None``), scored against them.
+    ``image`` ``(B, 1, H, W)`` and ``src_images`` ``(B, V, 1, Hs, Ws)`` are grey (zero for a
+    degenerate source). ``alt_init`` is given at a finer pyramid level: ``init_depth`` is then the
+    upsampled coarse planes ``(B, 4, H, W)`` (depth and normal, complete, channels last), and
+    ``alt_init`` the caller's full-resolution init maps (or ``None``), scored against them.
+    ``scored`` and ``terms``: the level's :func:`_level_pixels` and :func:`_level_terms`.
     """
-    src_from_ref, usable, offsets = shared
+    src_from_ref, (off3, _, _) = shared
     lo, hi = depth_range
     bsz, nv = src_images.shape[:2]
     h, w = image.shape[-2:]
@@ -869,80 +1047,40 @@ def _patchmatch_level(
     norm = torch.tensor(
         [[2 / max(ws - 1, 1), 0, -1], [0, 2 / max(hs - 1, 1), -1], [0, 0, 1]], device=dev, dtype=dt
     )
-    Kinv = torch.linalg.inv(K)
+    Kinv, rays_all, idx, slot, lut, pix, _, region, first = scored[:9]
     NK = norm @ src_K  # (B, V, 3, 3)
     A = torch.bmm((NK @ src_from_ref[..., :3, :3]).view(bsz, nv * 3, 3), Kinv).view(bsz, nv, 3, 3)
     bvec = (NK @ src_from_ref[..., :3, 3:]).squeeze(-1)
-    src_gray = _to_gray(src_images.reshape(bsz * nv, -1, hs, ws)) * usable.reshape(-1, 1, 1, 1)
+    src_gray = src_images.reshape(bsz * nv, 1, hs, ws)  # grey, zero for a degenerate source
     smasks = None if src_masks is None else src_masks.reshape(bsz * nv, 1, hs, ws).to(dt)
-    off3 = F.pad(offsets, (0, 1), value=1.0).expand(bsz * nv, -1, -1)
-    src = MatchSources(src_gray, smasks, bvec, off3, *torch.tensor([1.0, 0.0], device=dev, dtype=dt).unbind())
+    consts = torch.tensor([1.0, 0.0, MAX_COST, math.nan], device=dev, dtype=dt).unbind()
+    src = MatchSources(src_gray, smasks, bvec, off3.expand(bsz * nv, -1, -1), *consts)
     chunk = _chunk_size(cfg.chunk_size, dev, nv * bsz)  # pixel-views of all references
+    limits = _drop_limits(cfg, dev, dt)
 
-    # Reference: windows, bilateral weights (zero outside the region).
-    patches = reference_patches(_to_gray(image), offsets)  # (B, S, HW)
-    sigma_s = cfg.sigma_spatial if cfg.sigma_spatial is not None else float(cfg.window_radius)
-    weights = bilateral_weights(patches, offsets, sigma_s, cfg.sigma_color, dim=1)
-    if mask is not None:
-        region = mask.bool().reshape(bsz, h * w)
-        inside = reference_patches(mask.bool().to(dt), offsets) > 0.5
-        weights = weights * inside
-        weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
-    else:
-        region = None
-
-    # The scored pixels of each reference: those of its region (all without one), the first
-    # checkerboard colour then the second. With a small object in a large crop the cost follows
-    # the object, not the crop; pixels outside are never propagated from (as when they were scored
-    # with the worst cost). References of different regions are padded to the most pixels of each
-    # colour with pixels that score nothing, are never propagated from and whose results are
-    # dropped (``slot`` ``h * w``).
-    flat = torch.arange(h * w, device=dev)
-    xs, ys = flat % w, flat // w
-    even = (xs + ys) % 2 == 0
-    pix_all = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1).to(dt)  # (HW, 3)
-    rays_all = pix_all @ Kinv.transpose(-1, -2)  # (B, HW, 3)
-    if region is None:  # the same pixels for all references
-        by_colour = [torch.nonzero(even).flatten(), torch.nonzero(~even).flatten()]  # host reads
-        shared = torch.cat(by_colour)
-        n_act, first = shared.shape[0], by_colour[0].shape[0]
-        lut = torch.full((1, h * w + 1), n_act, dtype=torch.long, device=dev)
-        lut[0, shared] = torch.arange(n_act, device=dev)
-        idx = slot = shared.expand(bsz, -1)
-        pix = pix_all[shared]
-        textured = None
-    else:
-        idx, real, first = _scored_pixels(region, even)  # one host read
-        n_act = idx.shape[1]
-        slot = torch.where(real, idx, h * w)  # where a pixel's results go (padding: a spare slot)
-        lut = torch.full((bsz, h * w + 1), n_act, dtype=torch.long, device=dev)
-        lut = lut.scatter_(1, slot, torch.arange(n_act, device=dev).expand_as(slot))
-        lut[:, h * w] = n_act  # the sentinel
-        pix = pix_all[idx]
-        textured = real & _take(region, idx)
+    n_act = idx.shape[1]
     rays = _take(rays_all, idx)
-    st = reference_patch_stats(_take(patches, idx, 2), _take(weights, idx, 2), cfg.min_variance)
-    textured = st.valid if textured is None else st.valid & textured
+    ref, textured = terms  # (B, 2, S, P), (B, P)
     cols, rows = map_tables(A, Kinv, pix, rays)
-    ref = torch.stack([st.weights * textured[:, None], st.normalized], 1)  # (B, 2, S, P)
     pixels = MatchPixels(idx, rays, cols, rows, ref)
     na = lut.shape[0]  # 1: the same pixels for all
     nbr = _neighbour_table(idx[:na], h, w, lut, n_act, cfg.propagation)  # (1 or B, P, 1 + R, L)
     batch = None if region is None else torch.arange(bsz, device=dev).view(bsz, 1, 1, 1)
-    del patches, weights
     colours = [sl for sl in (slice(0, first), slice(first, n_act)) if sl.stop > sl.start]
     parts = [pixels.part(sl)._replace(rays=rays[:, sl].clone()) for sl in colours]  # contiguous
 
     # Initial hypotheses: random, overridden where an init is given; with an alternative
     # (coarse-to-fine: the caller's full-resolution init), the better-scoring of the two.
     if alt_init is not None:  # a finer pyramid level: the upsampled coarse maps are complete
-        depth, normal = init_depth.reshape(bsz, h * w), init_normal.reshape(bsz, 3, h * w).transpose(1, 2)
+        planes = init_depth.permute(0, 2, 3, 1).reshape(bsz, h * w, 4)  # a view (channels last)
+        depth, normal = planes[..., 0], planes[..., 1:]
     else:
         depth = _random_depth((bsz, h * w), lo, hi, gen, rays_all)
         normal = _random_normals(rays_all, gen)
         depth, normal = _apply_init(depth, normal, init_depth, init_normal, rays_all, lo, hi)
+        planes = torch.cat([depth[..., None], normal], -1)  # (B, HW, 4)
     if n_act:
-        init = [_take(torch.cat([depth[..., None], normal], -1), idx)]
+        init = [_take(planes, idx)]
         if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
             init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
@@ -963,7 +1101,7 @@ def _patchmatch_level(
         def keep_best(sl: slice, record: torch.Tensor) -> None:
             """Write the best-scoring of the rows ``record`` ``(B, N, P, 6 + V)`` to the state."""
             best = record[..., 5].argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-            state[:, sl] = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))[:, 0]
+            torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]), out=state[:, None, sl])
 
         # State of the scored pixels and the sentinel (infinite cost, never chosen when another
         # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs; the
@@ -983,6 +1121,7 @@ def _patchmatch_level(
         if upfront:
             u = torch.rand((iterations, bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
             noises = torch.addcmul(scale[0, :, None, None], u, scale[1, :, None, None])
+            noises[..., :2].exp_()  # the relative depth factors (see _refinements)
         for i in range(iterations):
             if kinds:
                 if upfront:
@@ -990,8 +1129,8 @@ def _patchmatch_level(
                 else:
                     u = torch.rand((bsz, n_act, 8), generator=gen, device=dev, dtype=dt)
                     noise = torch.addcmul(scale[0, i], u, scale[1, i])
+                    noise[..., :2].exp_()
             for sl, px in zip(colours, parts):
-                cur = state[:, sl]
                 cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
                 n_prop = cands.shape[1]  # current and propagated: what the view weights see
                 if kinds and cfg.joint_scoring:
@@ -1001,11 +1140,10 @@ def _patchmatch_level(
                     base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
                     refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
                     cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
-                c, nr = match_costs(src, px, cands[:, 1:], cfg.min_variance, chunk)
-                costs = torch.cat([cur[:, None, :, 6:].permute(0, 3, 1, 2), c], 2)  # (B, V, N, P)
-                nr = torch.cat([cur[:, None, :, 4], nr], 1)
+                # the pixel's own plane (re-intersected with its ray) scored with the others
+                costs, nr = match_costs(src, px, cands, cfg.min_variance, chunk)  # (B, V, N, P)
                 vw = (
-                    _view_weights(costs[:, :, :n_prop], cfg, src.zero)
+                    _view_weights(costs[:, :, :n_prop], cfg, src.zero, limits)
                     if cfg.view_selection == "acmh"
                     else None
                 )
@@ -1023,10 +1161,13 @@ def _patchmatch_level(
                     record = records(cands, nr, agg, costs)
                 keep_best(sl, record)
         padded = region is not None
-        depth = _put(depth, slot, state[:, :n_act, 0], padded)
-        normal = _put(normal, slot, state[:, :n_act, 1:4], padded)
+        planes = _put(planes, slot, state[:, :n_act, :4], padded)
     if not final:
-        return _Level(depth, normal, None, None, None)
+        return _Level(planes, None, None, None)
+    if region is None:  # every pixel scored: its row of the state, at the inverse permutation
+        inv = lut[0, : h * w]
+        rows = state[:, inv, 5:]  # (B, HW, 1 + V): aggregated and per-view costs
+        return _Level(planes, rows[..., 0], rows[..., 1:].transpose(1, 2), textured[:, inv])
     # with a spare slot for the padding's results (see _put)
     agg_full = torch.full((bsz, h * w + 1), MAX_COST, device=dev, dtype=dt)
     view_cost = torch.full((bsz, h * w + 1, nv), MAX_COST, device=dev, dtype=dt)
@@ -1040,15 +1181,15 @@ def _patchmatch_level(
         view_cost[:, : h * w].transpose(1, 2),
         valid[:, : h * w],
     )
-    return _Level(depth, normal, agg_full, view_cost, valid)
+    return _Level(planes, agg_full, view_cost, valid)
 
 
 def _result(level: _Level, cfg: PatchMatchConfig, bsz: int, nv: int, h: int, w: int) -> PatchMatchResult:
     assert level.agg is not None and level.view_cost is not None and level.textured is not None
     valid = level.textured & (level.agg <= cfg.max_cost)  # depths are in [near, far] by construction
-    raw = level.depth.reshape(bsz, 1, h, w)
+    raw = level.planes[..., 0].reshape(bsz, 1, h, w)
     valid = valid.reshape(bsz, 1, h, w)
-    normal_map = level.normal.transpose(1, 2).reshape(bsz, 3, h, w)
+    normal_map = level.planes[..., 1:].transpose(1, 2).reshape(bsz, 3, h, w)
     return PatchMatchResult(
         depth=raw * valid,
         normal=normal_map * valid,
