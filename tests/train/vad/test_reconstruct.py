@@ -121,7 +121,7 @@ class TestLidarCheck:
                 assert 0.98 * n_off <= n_on < n_off  # a few pixels contradicted, at the facade's edges
                 assert 0.98 * off.points.shape[0] <= on.points.shape[0] <= off.points.shape[0]
             d = torch.cdist(on.points, pts[ins == inst]).min(1).values
-            assert float(d.median()) < 0.1
+            assert float(d.median()) < (0.1 if inst == BUILDING else 0.2)  # the sign: a few pixels at 120x72
 
     def test_a_sweep_that_disagrees_drops_the_reconstruction(self, scene, index, monkeypatch):
         """A sweep 30 % nearer than every match: nothing added, no prior, reason ``lidar_disagrees``;
