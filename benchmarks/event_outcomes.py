@@ -242,7 +242,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", help="a scene folder (scene.json)")
     ap.add_argument("--scale", type=float, default=0.5)
-    ap.add_argument("--off", default="seen_supports", help="a boolean ReconstructConfig field")
+    ap.add_argument("--off", default="seen_supports", help="a ReconstructConfig setting: False, or None")
     ap.add_argument("--breakdown", action="store_true", help="why the no_voxels pairs saw none")
     ap.add_argument("--cycle", type=Path, help="checkpoint of the trained cycle: resumed, or written")
     ap.add_argument("--held-out", action="store_true", help="the added points against the test LiDAR")
@@ -301,8 +301,10 @@ def main() -> None:
         )
     print(f"view selection: {on.strategy.reconstruct.selection}", flush=True)
     off = copy.deepcopy(on)
-    off.strategy.reconstruct = dataclasses.replace(off.strategy.reconstruct, **{args.off: False})
-    for name, trainer in ((f"{args.off}=False", off), (f"{args.off}=True", on)):
+    was = getattr(off.strategy.reconstruct, args.off)
+    off_value = False if isinstance(was, bool) else None  # a bool setting, else an optional one
+    off.strategy.reconstruct = dataclasses.replace(off.strategy.reconstruct, **{args.off: off_value})
+    for name, trainer in ((f"{args.off}={off_value}", off), (f"{args.off}={was}", on)):
         pairs.clear()
         t1 = time.perf_counter()
         trainer.train_step()  # the event's step

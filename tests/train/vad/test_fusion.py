@@ -3,7 +3,7 @@
 Ground truth: a known plane ``n . X = d`` seen by three cameras (identity rotations, centres on a
 line across it); each member's depth is the plane's z-depth at its pixels, so a fused point must lie
 on the plane, with the plane's normal and the colour of its pixel. The render comparisons of step 5a
-and the resampling of step 6 are checked against loops over the pixels.
+the LiDAR check of step 5 and the resampling of step 6 are checked against loops over the pixels.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from vadgs.train.vad.fusion import (
     depth_priors,
     explained_pixels,
     fuse_points,
+    lidar_check,
 )
 from vadgs.train.vad.reconstruct import ViewRender
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
@@ -261,6 +262,86 @@ class TestExplainedPixels:
         assert not explained_pixels(_Unpadded(), cons, crops, [7, 9], cfg, None).any()
         pairs = {v: (r.depth, r.normals) for v, r in renders.items()}  # (depth, normals): no alpha
         assert not explained_pixels(_Unpadded(), cons, crops, [7, 9], cfg, pairs.__getitem__).any()
+
+
+class _Sweeps:
+    """The index as :func:`lidar_check` reads it: each view's own measured depth."""
+
+    def __init__(self, depth: dict[int, torch.Tensor]):
+        self.depth = depth
+
+    def observed_depth(self, view: int) -> torch.Tensor:
+        return self.depth[view]
+
+
+class TestLidarCheck:
+    size = (16, 18)  # the views' (H, W)
+
+    def case(self, scale: MatchScale):
+        """MVS depth near 2-3 m; each view's sweep measured 60 % of the pixels, a third of those
+        20 % nearer than the MVS surface (a surface the matches put behind it)."""
+        g = torch.Generator().manual_seed(3)
+        up, down = scale.up, scale.down
+        crop = (6 * up // down, 8 * up // down)  # at the matching scale
+        corner = (2 * up // down, 4 * up // down)
+        crops = crops_of([0, 1], [corner] * 2, crop, scale)
+        mvs = 2.0 + torch.rand(2, 1, *crop, generator=g)
+        keep = torch.rand(2, 1, *crop, generator=g) > 0.2
+        sweeps = {}
+        for k, view in enumerate((7, 9)):
+            d = torch.zeros(1, *self.size)
+            # the MVS depth at the scene's resolution (a block's value for every pixel of it)
+            block = mvs[k] if up == 1 and down == 1 else None
+            if up > 1:
+                block = mvs[k][:, ::up, ::up]
+            elif down > 1:
+                block = mvs[k].repeat_interleave(down, 1).repeat_interleave(down, 2)
+            y0, x0 = corner[0] * down // up, corner[1] * down // up
+            d[:, y0 : y0 + block.shape[1], x0 : x0 + block.shape[2]] = block
+            near = torch.rand(1, *self.size, generator=g) < 1 / 3
+            d = torch.where(near, 0.8 * d, d)
+            d[torch.rand(1, *self.size, generator=g) < 0.4] = 0.0  # no return there
+            sweeps[view] = d
+        return crops, ConsistentDepth(mvs, torch.zeros(2, 3, *crop), keep), _Sweeps(sweeps)
+
+    def reference(self, crops, cons, sweeps, group, tol):
+        """A loop over the members' crop pixels, the sweep resampled to the matching scale."""
+        up, down = crops.scale.up, crops.scale.down
+        ch, cw = crops.size
+        checked, bad = torch.zeros_like(cons.keep), torch.zeros_like(cons.keep)
+        for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
+            s = sweeps.depth[group[i]]
+            for y in range(ch):
+                for x in range(cw):
+                    Y, X = y0 + y, x0 + x  # at the matching scale
+                    if up > 1:
+                        d = float(s[0, Y // up, X // up])
+                    else:
+                        b = s[0, Y * down : (Y + 1) * down, X * down : (X + 1) * down]
+                        d = float(b[b > 0].mean()) if (b > 0).float().mean() >= 0.5 else 0.0
+                    m = float(cons.depth[k, 0, y, x])
+                    checked[k, 0, y, x] = bool(cons.keep[k, 0, y, x]) and d > 0
+                    bad[k, 0, y, x] = bool(checked[k, 0, y, x]) and abs(m - d) > tol * d
+        return checked, bad
+
+    @pytest.mark.parametrize("scale", [MatchScale(), MatchScale(up=2), MatchScale(down=2)])
+    def test_against_a_loop(self, scale):
+        crops, cons, sweeps = self.case(scale)
+        cfg = ReconstructConfig(max_lidar_error=0.1)
+        got = lidar_check(sweeps, cons, crops, [7, 9], cfg)
+        checked, bad = self.reference(crops, cons, sweeps, [7, 9], 0.1)
+        assert torch.equal(got.checked, checked) and torch.equal(got.contradicted, bad)
+        n_checked, n_bad = int(checked.sum()), int(bad.sum())
+        assert 0 < n_bad < n_checked < int(cons.keep.sum())  # the case has every kind
+        if scale == MatchScale():  # at one scale: exactly the pixels whose sweep is 20 % nearer
+            assert 0.2 < n_bad / n_checked < 0.5
+
+    def test_off_checks_nothing(self):
+        crops, cons, sweeps = self.case(MatchScale())
+        got = lidar_check(sweeps, cons, crops, [7, 9], ReconstructConfig(max_lidar_error=None))
+        assert not got.checked.any() and not got.contradicted.any()
+        loose = lidar_check(sweeps, cons, crops, [7, 9], ReconstructConfig(max_lidar_error=0.3))
+        assert loose.checked.any() and not loose.contradicted.any()  # 20 % is within 30 %
 
 
 class TestDepthPriors:

@@ -94,6 +94,66 @@ class TestReconstructSteps:
         )
 
 
+class TestLidarCheck:
+    """The members' own LiDAR (``observed_depth``) drops the MVS depth it contradicts."""
+
+    @staticmethod
+    def _ref(scene, index):
+        return max(scene.train_views, key=lambda v: int((index.instances(v) == BUILDING).sum()))
+
+    def test_rendered_sweeps_agree_with_the_matches(self, scene, index, gt_points):
+        """On the sample (exact LiDAR) the check keeps nearly every prior pixel of the facade, and
+        changes nothing on the sign above the LiDAR's reach (no sweep saw it: nothing to check)."""
+        g = torch.Generator
+        pts, _, ins, _ = gt_points
+        for inst in (BUILDING, SIGN):
+            ref = max(scene.train_views, key=lambda v: int((index.instances(v) == inst).sum()))
+            cfg = ReconstructConfig(max_crop=96, max_match_pixels=None, max_points=10**6)
+            on = reconstruct_instance(index, ref, inst, cfg, g().manual_seed(0))
+            off = reconstruct_instance(
+                index, ref, inst, dataclasses.replace(cfg, max_lidar_error=None), g().manual_seed(0)
+            )
+            assert on.reason == off.reason == "ok"
+            n_on, n_off = (sum(int((d > 0).sum()) for d in r.depth) for r in (on, off))
+            if inst == SIGN:
+                assert torch.equal(on.points, off.points) and n_on == n_off
+            else:
+                assert 0.98 * n_off <= n_on < n_off  # a few pixels contradicted, at the facade's edges
+                assert 0.98 * off.points.shape[0] <= on.points.shape[0] <= off.points.shape[0]
+            d = torch.cdist(on.points, pts[ins == inst]).min(1).values
+            assert float(d.median()) < (0.1 if inst == BUILDING else 0.2)  # the sign: a few pixels at 120x72
+
+    def test_a_sweep_that_disagrees_drops_the_reconstruction(self, scene, index, monkeypatch):
+        """A sweep 30 % nearer than every match: nothing added, no prior, reason ``lidar_disagrees``;
+        the check off, the same matches give points."""
+        ref = self._ref(scene, index)
+        cfg = ReconstructConfig(max_crop=96, max_match_pixels=None)
+        true_depth = index.observed_depth
+        monkeypatch.setattr(index, "observed_depth", lambda v: 0.7 * true_depth(v))
+        g = torch.Generator
+        rec = reconstruct_instance(index, ref, BUILDING, cfg, g().manual_seed(0))
+        assert rec.reason == "lidar_disagrees" and rec.points.shape[0] == 0
+        assert all(int((d > 0).sum()) == 0 for d in rec.depth)
+        off = reconstruct_instance(
+            index, ref, BUILDING, dataclasses.replace(cfg, max_lidar_error=None), g().manual_seed(0)
+        )
+        assert off.reason == "ok" and off.points.shape[0] > 200
+        # a wider tolerance lets the 30 % through
+        loose = reconstruct_instance(
+            index, ref, BUILDING, dataclasses.replace(cfg, max_lidar_error=0.5), g().manual_seed(0)
+        )
+        assert loose.points.shape[0] >= 0.95 * off.points.shape[0]
+
+    def test_settings_are_checked(self):
+        for field, bad, msg in (
+            ("max_lidar_error", 0.0, "max_lidar_error: expected"),
+            ("max_lidar_error", -0.1, "max_lidar_error: expected"),
+            ("max_lidar_disagreement", 1.5, "max_lidar_disagreement: expected"),
+        ):
+            with pytest.raises(ValueError, match=msg):
+                ReconstructConfig(**{field: bad})
+
+
 class TestMovingObject:
     def test_reconstruction_in_object_frame_follows_the_track(self, scene, index):
         ref = max(scene.train_views, key=lambda v: int((index.instances(v) == CAR).sum()))

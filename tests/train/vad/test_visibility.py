@@ -208,3 +208,22 @@ class TestSeenVoxelsOfATrack:
         assert sum(behind["all"]) / len(behind["all"]) > 0.03
         with pytest.raises(ValueError, match="track: expected one of the tracks"):
             index.seen_voxels(scene.train_views[0], 10**6)
+
+
+class TestObservedDepth:
+    """``observed_depth``: the z-buffer of the voxels the view's own sweep observed."""
+
+    def test_observed_depth_is_the_true_surface_where_the_sweep_saw_it(self, scene, index):
+        gt = scene.load_depths(scene.train_views[:10])
+        covered, full = 0, 0
+        for k, v in enumerate(scene.train_views[:10]):
+            obs, allv = index.observed_depth(v)[0], index.voxel_raster(v)[0][0]
+            assert obs.shape == allv.shape
+            m = (obs > 0) & (gt[k, 0] > 0)
+            rel = ((obs[m] - gt[k, 0][m]).abs() / gt[k, 0][m]).median()
+            assert rel < 0.02, (v, float(rel))  # the surface the view's LiDAR hit
+            covered, full = covered + int((obs > 0).sum()), full + int((allv > 0).sum())
+            # where the whole scan shows nothing, the view's own voxels show nothing either
+            assert not bool(((obs > 0) & (allv == 0)).any())
+        assert 0.2 * full < covered < full  # the view's own sweep: a part of what the scan holds
+        assert index.observed_depth(scene.train_views[0]) is index.observed_depth(scene.train_views[0])

@@ -101,7 +101,8 @@ def _failed(instances: list[Mapping[str, Any]]) -> str:
     """``"N added nothing (class id: reason; ...), "`` of the attempted instances, or ``""`` when all added.
 
     The reasons are :class:`~vadgs.train.vad.reconstruct.InstanceReconstruction`'s (``explained``: the
-    model already explains the points; ``no_consistent_pixels``; ``selection:...``).
+    model already explains the points; ``no_consistent_pixels``; ``lidar_disagrees``: the views' own
+    LiDAR contradicts most of the checked matches; ``selection:...``).
     """
     failed = [e for e in instances if not e["added"]]
     if not failed:

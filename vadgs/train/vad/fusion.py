@@ -6,10 +6,11 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
    members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
    relative depth) and completes the textureless parts of static planar instances
    (:func:`~vadgs.mvs.complete_planar`: all members at once);
-5. :func:`explained_pixels` finds the consistent pixels an opaque rendered surface already
-   explains; :func:`fuse_points` makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`,
-   in the instance's frame), thinned to one per cell of the point spacing
-   (:func:`~vadgs.geometry.points.thin_points`);
+5. :func:`lidar_check` drops the consistent pixels of a static instance that the members' own
+   LiDAR contradicts (all of them when most of those it can check are); :func:`explained_pixels`
+   finds the consistent pixels an opaque rendered surface already explains; :func:`fuse_points`
+   makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`, in the instance's
+   frame), thinned to one per cell of the point spacing (:func:`~vadgs.geometry.points.thin_points`);
 6. :func:`depth_priors` gives each member's consistent depth and normals at the scene's
    resolution, the geometric losses' priors.
 """
@@ -34,10 +35,12 @@ from vadgs.train.vad.visibility import VisibilityIndex
 
 __all__ = [
     "ConsistentDepth",
+    "LidarCheck",
     "consistent_depth",
     "depth_priors",
     "explained_pixels",
     "fuse_points",
+    "lidar_check",
 ]
 
 
@@ -123,6 +126,50 @@ def explained_pixels(
         mvs = cons.depth[k]
         out[k] = (a >= cfg.explained_alpha) & (d > 0) & (d <= mvs * (1 + cfg.explained_tolerance))
     return out & cons.keep
+
+
+class LidarCheck(NamedTuple):
+    """Step 5a's LiDAR check (:func:`lidar_check`), per member crop ``(b, 1, ch, cw)`` bool.
+
+    Attributes:
+        checked: consistent pixels where the member's own sweep measured a depth.
+        contradicted: those of ``checked`` whose MVS depth is more than ``max_lidar_error`` off it.
+    """
+
+    checked: torch.Tensor
+    contradicted: torch.Tensor
+
+
+def lidar_check(
+    index: VisibilityIndex,
+    cons: ConsistentDepth,
+    crops: Crops,
+    group: list[int],
+    cfg: ReconstructConfig,
+) -> LidarCheck:
+    """Step 5a: the consistent pixels of a static instance that the members' own LiDAR contradicts.
+
+    Each member's MVS depth is compared with the depth its own sweep measured
+    (:meth:`VisibilityIndex.observed_depth`, resampled to the matching scale and cropped as the
+    member's crop): contradicted where that depth exists and the MVS depth is more than
+    ``cfg.max_lidar_error`` (relative) off it. Everything False when ``max_lidar_error`` is None.
+    """
+    checked = torch.zeros_like(cons.keep)
+    contradicted = torch.zeros_like(cons.keep)
+    if cfg.max_lidar_error is None:
+        return LidarCheck(checked, contradicted)
+    ch, cw = crops.size
+    dev = cons.depth.device
+    for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
+        d = index.observed_depth(group[i]).to(dev, cons.depth.dtype)
+        if crops.scale.up > 1:
+            d = repeat(d, crops.scale.up)
+        elif crops.scale.down > 1:
+            d = pool_valid(d, d > 0, crops.scale.down)
+        d = d[:, y0 : y0 + ch, x0 : x0 + cw]
+        checked[k] = cons.keep[k] & (d > 0)
+        contradicted[k] = checked[k] & ((cons.depth[k] - d).abs() > cfg.max_lidar_error * d)
+    return LidarCheck(checked, contradicted)
 
 
 def fuse_points(

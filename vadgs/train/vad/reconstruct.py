@@ -54,7 +54,7 @@ from vadgs.select.covisibility import Covisibility
 from vadgs.select.selector import ViewSelection, select_views
 from vadgs.train.vad import reconstruct_config
 from vadgs.train.vad.crops import MatchedCrops, crop_group, render_maps
-from vadgs.train.vad.fusion import consistent_depth, depth_priors, explained_pixels, fuse_points
+from vadgs.train.vad.fusion import consistent_depth, depth_priors, explained_pixels, fuse_points, lidar_check
 from vadgs.train.vad.lengths import REFERENCE_DEPTH, scene_lengths
 from vadgs.train.vad.matching import MatchPlan, match_plans, match_work
 from vadgs.train.vad.survey import InstanceFrame, InstanceSurvey, reference_frame, survey_instance
@@ -86,9 +86,10 @@ class InstanceReconstruction(NamedTuple):
         depth: per group member, ``(1, H, W)`` consistent MVS depth in its full image (0 elsewhere),
             usable as a depth prior.
         normal: per group member, ``(3, H, W)`` MVS normals (camera frame), zeros elsewhere.
-        reason: ``"ok"`` or why nothing (or little) was reconstructed; `` (seen)`` is appended when
-            the supporting views were selected on the views' voxel z-buffers
-            (``ReconstructConfig.seen_supports``).
+        reason: ``"ok"`` or why nothing (or little) was reconstructed (``"lidar_disagrees"``: the
+            members' own LiDAR contradicts most of the checked matches,
+            ``ReconstructConfig.max_lidar_error``); `` (seen)`` is appended when the supporting views
+            were selected on the views' voxel z-buffers (``ReconstructConfig.seen_supports``).
         work: the PatchMatch work done, in pixel-sweeps (:func:`match_work`; 0 when nothing was
             matched): a count that does not depend on the machine, for the event's budget.
         consistent: the group's consistent MVS pixels (at the matching scale): the points fusion
@@ -346,7 +347,14 @@ def finish_match(
     with checking(False):  # see reconstruct_instance
         planar = cfg.planar is not None and track is None  # a car is not planar
         cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
-        # 5. the unexplained pixels
+        # 5. the pixels the members' own LiDAR does not contradict, then the unexplained ones
+        disagrees = None  # a 0-d bool on the device: read only when nothing else is left
+        if track is None and cfg.max_lidar_error is not None:
+            lidar = lidar_check(index, cons, crops, group, cfg)
+            checked, bad = lidar.checked.sum(), lidar.contradicted.sum()
+            disagrees = (checked >= max(cfg.min_pixels, 1)) & (bad > cfg.max_lidar_disagreement * checked)
+            keep = cons.keep & ~lidar.contradicted & ~disagrees
+            cons = cons._replace(keep=keep)
         new = cons.keep & ~explained_pixels(index, cons, crops, group, cfg, render_prior)
         points, normals, colors, spacing, consistent = fuse_points(
             index, cons, matched, crops, new, track, cfg, occupied, generator, dev
@@ -354,6 +362,8 @@ def finish_match(
         full_depth, full_normal = depth_priors(cons, crops, index.cameras.image_size)  # 6.
         views = [group[i] for i in crops.members]
         reason = "ok" if points.shape[0] else ("explained" if consistent else "no_consistent_pixels")
+        if not points.shape[0] and disagrees is not None and bool(disagrees):
+            reason = "lidar_disagrees"
         reason += " (seen)" if plan.selection.endswith("(seen)") else ""  # selected on the z-buffers
         return InstanceReconstruction(
             points, normals, colors, spacing, track, views, full_depth, full_normal, reason, plan.work,

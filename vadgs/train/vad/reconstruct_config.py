@@ -78,6 +78,18 @@ class ReconstructConfig(Checked):
             render has at least this opacity and a depth in front of, or within
             ``explained_tolerance`` (relative) of, the MVS depth; it still gives a depth prior.
         explained_tolerance: see ``explained_alpha``.
+        max_lidar_error: the LiDAR check of a static instance's reconstruction: a consistent
+            pixel whose MVS depth is more than this fraction off the depth the member view's own
+            sweep measured there (:meth:`VisibilityIndex.observed_depth
+            <vadgs.train.vad.visibility.VisibilityIndex.observed_depth>`: the voxels of its own
+            visibility set) gives neither a point nor a prior. A real log's small baselines and
+            exposure changes let wrong matches pass the consistency check (PandaSet 002: 57.8 % of
+            the priors that met a return of their own view's sweep were more than 10 % off it,
+            ``docs/results.md``). None: no check (the paper's).
+        max_lidar_disagreement: when more than this share of the checked pixels (those with such a
+            depth, at least ``min_pixels``) fail the LiDAR check, the whole reconstruction is
+            dropped (reason ``"lidar_disagrees"``): its unchecked pixels come from the same wrong
+            matches.
         thin_points: keep one point per cell of the point spacing (the members see the same
             surface: without it, each surface patch becomes one point per member), at the scene's
             resolution or at the coarser matching scale; the points' ``spacing`` (the new Gaussians'
@@ -140,6 +152,8 @@ class ReconstructConfig(Checked):
     min_depth: float | None = checked(None, float_field(0, lo_open=True, optional=True))
     explained_alpha: float = checked(0.7, float_field(0, 1))
     explained_tolerance: float = checked(0.05, float_field(0))
+    max_lidar_error: float | None = checked(0.1, float_field(0, lo_open=True, optional=True))
+    max_lidar_disagreement: float = checked(0.5, float_field(0, 1))
     thin_points: bool = checked(True, bool_field())
     thin_factor: float = checked(1.5, float_field(1))
     whole_supports: bool = checked(True, bool_field())

@@ -233,6 +233,24 @@ class VisibilityIndex:
 
         return self.view_cache.get(("raster", view), make)
 
+    def observed_depth(self, view: int) -> torch.Tensor:
+        """:meth:`voxel_raster`'s depth where the pixel's voxel is in the view's own visibility set, else 0.
+
+        ``(1, H, W)``, cached: where the nearest static voxel surface is one the view's own LiDAR
+        sweep (or, for a COLMAP scene, its SfM track) observed: what the view measured, not what
+        the whole scan holds (a nearer voxel seen only from other frames leaves the pixel
+        unmeasured). No read by the host. The reconstruction's LiDAR check
+        (:func:`~vadgs.train.vad.fusion.lidar_check`) compares the MVS depth with it.
+        """
+
+        def make() -> torch.Tensor:
+            depth, vidx = self.voxel_raster(view)
+            seen = self.covis.seen_by(view).to(vidx.device)
+            own = (vidx >= 0) & seen[vidx.clamp(min=0)]
+            return torch.where(own[None], depth, torch.zeros_like(depth))
+
+        return self.view_cache.get(("observed", view), make)
+
     def voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
 
