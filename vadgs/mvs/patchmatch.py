@@ -130,8 +130,9 @@ class PatchMatchConfig(Checked):
             ``docs/benchmarks.md``), less accurate (street_a frame 20: 29.6 % instead of 32.4 %
             of the raw depths within 1 %, mean of seeds 0-2).
         compile: run each half-sweep through one :func:`torch.compile` of :func:`_half_sweep`
-            (``dynamic=True``, compiled once per process and reused: no recompile for another call
-            of the same batch, views and crop). Meant for CUDA, where the half-sweep's ~100 kernel
+            (``dynamic=True``, compiled once per process and reused: the pixel count and the depth
+            bounds are symbolic, so another crop size or depth range compiles nothing new; a
+            finer pyramid level adds one graph). Meant for CUDA, where the half-sweep's ~100 kernel
             launches become a few fused kernels; it works on the CPU too (that is how it is
             tested) but is no faster there. The first call compiles (seconds to a minute); the
             eager path (``False``) is the reference it is tested against (depths within 1e-4
@@ -353,9 +354,12 @@ def match_costs(
     bsz, v, _, k, p, _ = C.shape
     s = src.offsets.shape[1]
     step = max(1, chunk // k)
+    # compiled (PatchMatchConfig.compile): one pass, so that the pixel count stays symbolic (a
+    # loop over it would pin it: a recompile for every crop size)
+    traced = torch.compiler.is_compiling()
+    spans = [(0, p)] if traced else [(p0, min(step, p - p0)) for p0 in range(0, p, step)]
     costs, variances = [], []
-    for p0 in range(0, p, step):
-        pc = min(step, p - p0)
+    for p0, pc in spans:
         cc = C[..., p0 : p0 + pc, :].reshape(bsz * v, 3, k * pc * 3)
         xyz = torch.bmm(src.offsets, cc).view(bsz * v, s, k * pc, 3)  # (o_x, o_y, 1) @ C
         grid = xyz[..., :2] / xyz[..., 2:].clamp_min(1e-9)  # behind the camera: far outside
@@ -1245,7 +1249,9 @@ def _patchmatch_level(
                 rand = _random_planes(px.rays, cfg, lo, hi, gen) if kinds else None
                 nz = None if noise is None else noise[:, sl]
                 args = (state, nbr[:, sl], px, nz, rand, src, cfg, lo, hi, batch, chunk, limits)
-                if cfg.compile:
+                if cfg.compile:  # depth bounds as tensors: a float would be a constant of the graph
+                    bounds = [torch.as_tensor(x, device=dev, dtype=dt) for x in (lo, hi)]
+                    args = (*args[:7], *bounds, *args[9:])
                     state[:, sl] = _compiled_half_sweep()(*args)[:, 0]
                 else:
                     _half_sweep(*args, out=state[:, None, sl])  # written into the state: no copy
