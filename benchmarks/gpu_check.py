@@ -16,7 +16,9 @@ Sections, in the order they run, each a function returning a dict; each records 
   selections, PatchMatch runs and ``reconstruct_instance`` calls (one per instance and reference
   view: crops, selection, PatchMatch, consistency, fusion) timed as they happen (synchronised),
   then the first call of each replayed (median after a warm-up): ms per operation, next to the
-  paper's ~48 ms per operation (RTX 4090).
+  paper's ~48 ms per operation (RTX 4090). The first PatchMatch call is replayed once more with
+  ``PatchMatchConfig.compile=True`` (``ops.patchmatch.compiled``): the compile's seconds, ms per
+  call and CUDA kernels per call (profiler) against the eager ones, and their agreement.
 - ``segment_memory``: ``vadgs.data.synthetic.make_segment`` (when importable) generates a segment
   (timed), ~100 steps with VAD-GS train on it at its working resolution and one event runs: peak
   GPU memory (``torch.cuda.max_memory_allocated``) and the host's peak RSS. The raster backend is
@@ -555,6 +557,48 @@ def _event(trainer) -> dict[str, Any]:
     return trainer.strategy.densify(trainer.model.params, trainer.optimizer, trainer.state, trainer.step)
 
 
+def _cuda_kernels(fn) -> int | None:
+    """CUDA kernels one call of ``fn`` launches (the profiler's count), ``None`` without CUDA."""
+    if not torch.cuda.is_available():
+        return None
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    return sum(1 for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA)
+
+
+def _patchmatch_compiled(fn, args, kwargs, reps: int, device: str) -> dict[str, Any]:
+    """The event's first PatchMatch call, eager and with ``PatchMatchConfig.compile``: the compile
+    (first call) time, ms per call, CUDA kernels per call, and how well the two agree."""
+    import dataclasses
+
+    try:
+        cfg = args[7]
+        fast = (*args[:7], dataclasses.replace(cfg, compile=True), *args[8:])
+        eager_call = lambda: fn(*args, **kwargs)  # noqa: E731
+        compiled_call = lambda: fn(*fast, **kwargs)  # noqa: E731
+        _sync(device)
+        t = time.perf_counter()
+        got = compiled_call()
+        _sync(device)
+        first_s = time.perf_counter() - t
+        ref = eager_call()
+        rel = (got.raw_depth - ref.raw_depth).abs() / ref.raw_depth.clamp_min(1e-12)
+        return {
+            "first_call_s": first_s,  # the compile, once per process
+            "median_ms": _median_ms(compiled_call, reps, device),
+            "eager_median_ms": _median_ms(eager_call, reps, device),
+            "kernels": _cuda_kernels(compiled_call),
+            "eager_kernels": _cuda_kernels(eager_call),
+            "depth_within_1e-4": float((rel <= 1e-4).float().mean()),
+            "mask_agree": float((got.mask == ref.mask).float().mean()),
+        }
+    except Exception as exc:  # a failed compile is a figure too, not the end of the check
+        return {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"[:500]}
+
+
 def vad_ops(chk: Check, budget: float) -> dict[str, Any]:
     s = chk.sizes
     trainer = _vad_trainer(chk.device, s["ops_scale"], "torch", s)
@@ -585,6 +629,8 @@ def vad_ops(chk: Check, budget: float) -> dict[str, Any]:
                 fn, args, kwargs = rec["first"]
                 call = lambda fn=fn, args=args, kwargs=kwargs: fn(*args, **kwargs)  # noqa: E731
                 row["replay_median_ms"] = _median_ms(call, s["ops_reps"], chk.device)
+                if label == "patchmatch":  # beside it: the same call with the half-sweep compiled
+                    row["compiled"] = _patchmatch_compiled(fn, args, kwargs, s["ops_reps"], chk.device)
             if label == "zbuffer":
                 row["views_in_first_call"] = len(args[1]) if len(args) > 1 else None
                 row["voxels_in_first_call"] = len(args[0]) if args and hasattr(args[0], "__len__") else None

@@ -39,8 +39,9 @@ Everything runs under :func:`torch.no_grad` and on the device of its inputs.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -128,6 +129,14 @@ class PatchMatchConfig(Checked):
             winner: about a quarter fewer kernel launches (744 instead of 984 for the defaults,
             ``docs/benchmarks.md``), less accurate (street_a frame 20: 29.6 % instead of 32.4 %
             of the raw depths within 1 %, mean of seeds 0-2).
+        compile: run each half-sweep through one :func:`torch.compile` of :func:`_half_sweep`
+            (``dynamic=True``, compiled once per process and reused: the pixel count and the depth
+            bounds are symbolic, so another crop size or depth range compiles nothing new; a
+            finer pyramid level adds one graph). Meant for CUDA, where the half-sweep's ~100 kernel
+            launches become a few fused kernels; it works on the CPU too (that is how it is
+            tested) but is no faster there. The first call compiles (seconds to a minute); the
+            eager path (``False``) is the reference it is tested against (depths within 1e-4
+            relative on >= 99 % of the pixels of ``tests/mvs/test_patchmatch_compile.py``).
     """
 
     iterations: int = checked(3, int_field(0))
@@ -152,6 +161,7 @@ class PatchMatchConfig(Checked):
     fine_iterations: int = checked(1, int_field(0))
     fine_propagation: str | None = checked(None, choice_field(("acmh", "cross", None)))
     joint_scoring: bool = checked(False, bool_field())
+    compile: bool = checked(False, bool_field())
 
 
 class PatchMatchResult(NamedTuple):
@@ -344,9 +354,12 @@ def match_costs(
     bsz, v, _, k, p, _ = C.shape
     s = src.offsets.shape[1]
     step = max(1, chunk // k)
+    # compiled (PatchMatchConfig.compile): one pass, so that the pixel count stays symbolic (a
+    # loop over it would pin it: a recompile for every crop size)
+    traced = torch.compiler.is_compiling()
+    spans = [(0, p)] if traced else [(p0, min(step, p - p0)) for p0 in range(0, p, step)]
     costs, variances = [], []
-    for p0 in range(0, p, step):
-        pc = min(step, p - p0)
+    for p0, pc in spans:
         cc = C[..., p0 : p0 + pc, :].reshape(bsz * v, 3, k * pc * 3)
         xyz = torch.bmm(src.offsets, cc).view(bsz * v, s, k * pc, 3)  # (o_x, o_y, 1) @ C
         grid = xyz[..., :2] / xyz[..., 2:].clamp_min(1e-9)  # behind the camera: far outside
@@ -548,8 +561,8 @@ def _propagate(
 
 
 def _refinements(
-    cur: torch.Tensor, rays: torch.Tensor, noise: torch.Tensor, kinds: list[tuple[str, str]], lo, hi,
-    gen: torch.Generator | None,
+    cur: torch.Tensor, rays: torch.Tensor, noise: torch.Tensor, kinds: Sequence[tuple[str, str]], lo, hi,
+    rand: tuple[torch.Tensor, torch.Tensor] | None,
 ) -> torch.Tensor:  # fmt: skip
     """``(B, len(kinds), P, 4)`` random refinements of the hypotheses ``cur`` ``(B, P, 4)``.
 
@@ -560,25 +573,134 @@ def _refinements(
     ``"p"`` perturbed (the ``i % 2``-th depth, the normal), ``"c"`` current, ``"r"`` random.
     ``kinds`` is a prefix of ACMH's list (see :func:`_patchmatch_level`): the result is the current
     plane repeated, with the perturbed and random parts written over it (a fixed handful of
-    launches). ``lo``, ``hi``: numbers or ``(B,)`` tensors.
+    launches). ``lo``, ``hi``: numbers or ``(B,)`` tensors. ``rand``: the random depths ``(B, P)``
+    and normals ``(B, P, 3)`` of the ``"r"`` kinds (:func:`_random_planes`, drawn by the caller),
+    ``None`` when ``kinds`` has none.
     """
     k = len(kinds)  # a prefix of ("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")
     z, n = cur[..., 0], cur[..., 1:4]
     lo, hi = _per_reference(lo, 2), _per_reference(hi, 2)
     out = cur[:, None, :, :4].repeat(1, k, 1, 1)  # (B, k, P, 4): "c" everywhere, then overwritten
     nd = min(k, 2)  # perturbed depths: kinds 0 and 1 (the i-th draw for kind i)
-    torch.mul(z[..., None], noise[..., :nd], out=out[:, :nd, :, 0].transpose(1, 2)).clamp_(lo, hi)
+    # (torch.compile traces no non-contiguous ``out=``: there, the same numbers by assignment)
+    traced = torch.compiler.is_compiling()
+    pd = out[:, :nd, :, 0].transpose(1, 2)
+    if traced:
+        pd.copy_((z[..., None] * noise[..., :nd]).clamp(lo, hi))
+    else:
+        torch.mul(z[..., None], noise[..., :nd], out=pd).clamp_(lo, hi)
     # the perturbed normal: kinds 0 and 2 (both the first draw; the second is never used)
     m = n + noise[..., 2:5]  # |m| >= 1/2
     m = m / torch.linalg.vector_norm(m, dim=-1, keepdim=True)
     facing = torch.bmm(m.view(-1, 1, 3), rays.reshape(-1, 3, 1)).view(*m.shape[:-1], 1, 1) < -1e-3
     pn = out[:, 0:3:2, :, 1:4].transpose(1, 2)  # (B, P, 1 or 2, 3)
-    torch.where(facing.expand_as(pn), m[:, :, None].expand_as(pn), n[:, :, None].expand_as(pn), out=pn)
+    if traced:
+        pn.copy_(torch.where(facing, m[:, :, None], n[:, :, None]).expand_as(pn))
+    else:
+        torch.where(facing.expand_as(pn), m[:, :, None].expand_as(pn), n[:, :, None].expand_as(pn), out=pn)
     if k > 3:  # random hypotheses: depths for kinds 3 and 4, normals for kinds 3 and 5
-        rd, rn = _random_depth(z.shape, lo, hi, gen, z), _random_normals(rays, gen)
+        if rand is None:
+            raise ValueError(f"rand: expected the random planes of kinds {list(kinds)}, got None")
+        rd, rn = rand
         out[:, 3:5, :, 0] = rd[:, None]
         out[:, 3:6:2, :, 1:4] = rn[:, None]
     return out
+
+
+#: ACMH's refinement kinds (see :func:`_refinements`); ``num_refine`` takes a prefix.
+REFINE_KINDS = (("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r"))
+
+
+def _random_planes(
+    rays: torch.Tensor, cfg: PatchMatchConfig, lo, hi, gen: torch.Generator | None
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The random depths ``(B, P)`` and normals ``(B, P, 3)`` of a half-sweep's refinements.
+
+    ``None`` when ``cfg.num_refine <= 3`` (no random kind). Drawn outside :func:`_half_sweep`
+    (before it, in the order the refinements use them), so that the half-sweep draws nothing.
+    """
+    if cfg.num_refine <= 3:
+        return None
+    return _random_depth(rays.shape[:-1], lo, hi, gen, rays), _random_normals(rays, gen)
+
+
+def _records(cands: torch.Tensor, nr: torch.Tensor, agg: torch.Tensor, costs: torch.Tensor) -> torch.Tensor:
+    """``(B, N, P, 6 + V)`` state rows of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``)."""
+    return torch.cat([cands, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
+
+
+def _half_sweep(
+    state: torch.Tensor, nbr: torch.Tensor, px: MatchPixels, noise: torch.Tensor | None,
+    rand: tuple[torch.Tensor, torch.Tensor] | None, src: MatchSources, cfg: PatchMatchConfig, lo, hi,
+    batch: torch.Tensor | None, chunk: int, limits: torch.Tensor | None, out: torch.Tensor | None = None,
+) -> torch.Tensor:  # fmt: skip
+    """One red/black half-sweep: the new state rows ``(B, 1, P, 6 + V)`` of one colour's pixels.
+
+    A pure function of its inputs (no random draw, no host read, no closure), so that it can be
+    compiled as one unit (``PatchMatchConfig.compile``): propagation (the best-cost neighbour of
+    each region, :func:`_propagate`), the candidates scored by :func:`match_costs`, ACMH's view
+    weights and the aggregation, the random refinements of the winner (or, with ``joint_scoring``,
+    of the likeliest winner, scored with the others), and the best of all.
+
+    Args:
+        state: ``(B, N + 1, 6 + V)`` depth, normal, ``n^T K^-1 p~``, aggregated and per-view
+            costs of every scored pixel of the level and the sentinel (see :func:`_patchmatch_level`).
+        nbr: ``(1 or B, P, 1 + R, L)`` this colour's rows of :func:`_neighbour_table`.
+        px: this colour's :class:`MatchPixels`.
+        noise: ``(B, P, 8)`` the refinements' noise (see :func:`_refinements`); ``None`` when
+            ``cfg.num_refine`` is 0.
+        rand: :func:`_random_planes`'s draws for these pixels.
+        src: the level's :class:`MatchSources`.
+        cfg: the settings.
+        lo: the near bound (a number or a ``(B,)`` tensor).
+        hi: the far bound.
+        batch: ``arange(B)`` as ``(B, 1, 1, 1)`` when ``nbr`` is of each reference, else ``None``.
+        chunk: :func:`match_costs`'s chunk.
+        limits: :func:`_drop_limits`'s.
+        out: where to write the rows (a view of the state: no copy), or ``None`` (a new tensor).
+
+    Returns:
+        The best-scoring row of each pixel, ``(B, 1, P, 6 + V)`` (``out`` when given).
+    """
+    kinds = REFINE_KINDS[: cfg.num_refine]
+    cands, nb_cost = _propagate(state, state[..., 5], nbr, px.rays, lo, hi, batch)
+    n_prop = cands.shape[1]  # current and propagated: what the view weights see
+    if kinds and cfg.joint_scoring:
+        assert noise is not None
+        # Refine the likeliest winner: the plane of lowest cost where it was scored
+        # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
+        likely = nb_cost.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+        base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
+        refined = _refinements(base, px.rays, noise, kinds, lo, hi, rand)
+        cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
+    # the pixel's own plane (re-intersected with its ray) scored with the others
+    costs, nr = match_costs(src, px, cands, cfg.min_variance, chunk)  # (B, V, N, P)
+    vw = _view_weights(costs[:, :, :n_prop], cfg, src.zero, limits) if cfg.view_selection == "acmh" else None
+    agg = _aggregate(costs, vw, cfg)  # (B, N, P)
+    if kinds and not cfg.joint_scoring:
+        assert noise is not None
+        # Refine the propagation's winner (ACMH), scored with the same view weights.
+        win = agg.argmin(1)[:, None, :, None]
+        base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
+        refined = _refinements(base, px.rays, noise, kinds, lo, hi, rand)
+        c, r_nr = match_costs(src, px, refined, cfg.min_variance, chunk)
+        record = torch.cat(  # current, propagated, refined
+            [_records(cands, nr, agg, costs), _records(refined, r_nr, _aggregate(c, vw, cfg), c)], 1
+        )
+    else:
+        record = _records(cands, nr, agg, costs)
+    best = record[..., 5].argmin(1)[:, None, :, None]  # (B, 1, P, 1)
+    return torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]), out=out)
+
+
+@functools.cache
+def _compiled_half_sweep() -> Callable[..., torch.Tensor]:
+    """:func:`_half_sweep` through :func:`torch.compile` (``dynamic=True``), made once per process.
+
+    ``PatchMatchConfig.compile``'s: one compiled function for every call, so that a call of the
+    same batch, views and crop reuses the compiled code (``torch._dynamo`` caches by guards).
+    """
+    return torch.compile(_half_sweep, dynamic=True)
 
 
 def _apply_init(depth, normal, init_depth, init_normal, rays, lo, hi):
@@ -1084,7 +1206,7 @@ def _patchmatch_level(
         if alt_init is not None and (alt_init[0] is not None or alt_init[1] is not None):
             alt_d, alt_n = _apply_init(depth, normal, *alt_init, rays_all, lo, hi)
             init.append(_take(torch.cat([alt_d[..., None], alt_n], -1), idx))
-        kinds = [("p", "p"), ("p", "c"), ("c", "p"), ("r", "r"), ("r", "c"), ("c", "r")][: cfg.num_refine]
+        kinds = REFINE_KINDS[: cfg.num_refine]
         its = range(start_iteration, start_iteration + iterations)
         halves = [
             [cfg.depth_perturbation * 0.5**it] * 2 + [cfg.normal_perturbation * 0.5**it] * 6 for it in its
@@ -1094,22 +1216,13 @@ def _patchmatch_level(
             [[[-x for x in h] for h in halves], [[2 * x for x in h] for h in halves]], device=dev, dtype=dt
         )
 
-        def records(cands, nr, agg, costs) -> torch.Tensor:
-            """``(B, N, P, 6 + V)`` state rows of ``cands`` ``(B, N, P, 4)`` (costs ``(B, V, N, P)``)."""
-            return torch.cat([cands, nr[..., None], agg[..., None], costs.permute(0, 2, 3, 1)], -1)
-
-        def keep_best(sl: slice, record: torch.Tensor) -> None:
-            """Write the best-scoring of the rows ``record`` ``(B, N, P, 6 + V)`` to the state."""
-            best = record[..., 5].argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-            torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]), out=state[:, None, sl])
-
         # State of the scored pixels and the sentinel (infinite cost, never chosen when another
         # neighbour exists): depth, normal, n^T K^-1 p~, aggregated cost, per-view costs; the
         # initial hypotheses' (the better-scoring one where there are two).
         first_hyp = torch.stack(init, 1) if len(init) > 1 else init[0][:, None]  # (B, K, P, 4)
         costs, nr = match_costs(src, pixels, first_hyp, cfg.min_variance, chunk)
         agg = _aggregate(costs, None, cfg)
-        record = records(first_hyp, nr, agg, costs)
+        record = _records(first_hyp, nr, agg, costs)
         if len(init) > 1:
             best = agg.argmin(1)[:, None, :, None]
             record = torch.gather(record, 1, best.expand(-1, -1, -1, record.shape[-1]))
@@ -1123,6 +1236,7 @@ def _patchmatch_level(
             noises = torch.addcmul(scale[0, :, None, None], u, scale[1, :, None, None])
             noises[..., :2].exp_()  # the relative depth factors (see _refinements)
         for i in range(iterations):
+            noise = None
             if kinds:
                 if upfront:
                     noise = noises[i]
@@ -1131,35 +1245,16 @@ def _patchmatch_level(
                     noise = torch.addcmul(scale[0, i], u, scale[1, i])
                     noise[..., :2].exp_()
             for sl, px in zip(colours, parts):
-                cands, nb_cost = _propagate(state, state[..., 5], nbr[:, sl], px.rays, lo, hi, batch)
-                n_prop = cands.shape[1]  # current and propagated: what the view weights see
-                if kinds and cfg.joint_scoring:
-                    # Refine the likeliest winner: the plane of lowest cost where it was scored
-                    # (this pixel's, or a neighbour's), so that one scoring serves every candidate.
-                    likely = nb_cost.argmin(1)[:, None, :, None]  # (B, 1, P, 1)
-                    base = torch.gather(cands, 1, likely.expand(-1, -1, -1, 4))[:, 0]
-                    refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
-                    cands = torch.cat([cands, refined], 1)  # (B, N, P, 4): current, propagated, refined
-                # the pixel's own plane (re-intersected with its ray) scored with the others
-                costs, nr = match_costs(src, px, cands, cfg.min_variance, chunk)  # (B, V, N, P)
-                vw = (
-                    _view_weights(costs[:, :, :n_prop], cfg, src.zero, limits)
-                    if cfg.view_selection == "acmh"
-                    else None
-                )
-                agg = _aggregate(costs, vw, cfg)  # (B, N, P)
-                if kinds and not cfg.joint_scoring:
-                    # Refine the propagation's winner (ACMH), scored with the same view weights.
-                    win = agg.argmin(1)[:, None, :, None]
-                    base = torch.gather(cands, 1, win.expand(-1, -1, -1, 4))[:, 0]
-                    refined = _refinements(base, px.rays, noise[:, sl], kinds, lo, hi, gen)
-                    c, r_nr = match_costs(src, px, refined, cfg.min_variance, chunk)
-                    record = torch.cat(  # current, propagated, refined
-                        [records(cands, nr, agg, costs), records(refined, r_nr, _aggregate(c, vw, cfg), c)], 1
-                    )
+                # the random draws stay outside the half-sweep (in the order its refinements use them)
+                rand = _random_planes(px.rays, cfg, lo, hi, gen) if kinds else None
+                nz = None if noise is None else noise[:, sl]
+                args = (state, nbr[:, sl], px, nz, rand, src, cfg, lo, hi, batch, chunk, limits)
+                if cfg.compile:  # depth bounds as tensors: a float would be a constant of the graph
+                    bounds = [torch.as_tensor(x, device=dev, dtype=dt) for x in (lo, hi)]
+                    args = (*args[:7], *bounds, *args[9:])
+                    state[:, sl] = _compiled_half_sweep()(*args)[:, 0]
                 else:
-                    record = records(cands, nr, agg, costs)
-                keep_best(sl, record)
+                    _half_sweep(*args, out=state[:, None, sl])  # written into the state: no copy
         padded = region is not None
         planes = _put(planes, slot, state[:, :n_act, :4], padded)
     if not final:
