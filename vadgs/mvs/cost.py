@@ -291,6 +291,17 @@ class ReferencePatchStats(NamedTuple):
     valid: torch.Tensor
 
 
+def _weighted_moments(ref_patches: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``w (r - mean)`` ``(B, S, P)`` and the weighted variance ``(B, 1, P)`` of checked patches."""
+    dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
+    check_shape(weights, "weights", ("B", "S", "P"), dims)
+    # the patches first: the products take their layout, whatever the weights' (sums in one order)
+    mean = (ref_patches * weights).sum(1, keepdim=True)
+    centered = ref_patches - mean
+    weighted = centered * weights
+    return weighted, (weighted * centered).sum(1, keepdim=True)
+
+
 def reference_patch_stats(
     ref_patches: torch.Tensor, weights: torch.Tensor, min_variance: float = 1e-5
 ) -> ReferencePatchStats:
@@ -310,13 +321,7 @@ def reference_patch_stats(
         >>> ncc_cost_from_stats(r[:, None], st)
         tensor([[[0.]]])
     """
-    dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
-    check_shape(weights, "weights", ("B", "S", "P"), dims)
-    # the patches first: the products take their layout, whatever the weights' (sums in one order)
-    mean = (ref_patches * weights).sum(1, keepdim=True)
-    centered = ref_patches - mean
-    weighted = centered * weights
-    var = (weighted * centered).sum(1, keepdim=True)
+    weighted, var = _weighted_moments(ref_patches, weights)
     valid = var[:, 0] >= min_variance
     normalized = weighted * torch.rsqrt(var.clamp_min(min_variance)) * valid[:, None]  # zero where flat
     return ReferencePatchStats(weights, normalized, valid)
@@ -352,12 +357,7 @@ def reference_terms(
         >>> bool(torch.equal(terms[:, 1], st.normalized)), usable
         (True, tensor([[True]]))
     """
-    dims = check_shape(ref_patches, "ref_patches", ("B", "S", "P"))
-    check_shape(weights, "weights", ("B", "S", "P"), dims)
-    mean = (ref_patches * weights).sum(1, keepdim=True)
-    centered = ref_patches - mean
-    weighted = centered * weights
-    var = (weighted * centered).sum(1, keepdim=True)
+    weighted, var = _weighted_moments(ref_patches, weights)
     usable = var[:, 0] >= min_variance
     if keep is not None:
         usable = usable & keep

@@ -29,7 +29,7 @@ from vadgs.geometry.resample import pool_valid, repeat
 from vadgs.mvs.consistency import geometric_consistency
 from vadgs.mvs.fusion import FusionConfig, fuse_depth_maps
 from vadgs.mvs.planar import complete_planar
-from vadgs.train.vad.crops import Crops, MatchedCrops, render_maps
+from vadgs.train.vad.crops import Crops, MatchedCrops, render_maps, to_scale
 from vadgs.train.vad.reconstruct_config import ReconstructConfig
 from vadgs.train.vad.visibility import VisibilityIndex
 
@@ -162,11 +162,7 @@ def lidar_check(
     dev = cons.depth.device
     for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
         d = index.observed_depth(group[i]).to(dev, cons.depth.dtype)
-        if crops.scale.up > 1:
-            d = repeat(d, crops.scale.up)
-        elif crops.scale.down > 1:
-            d = pool_valid(d, d > 0, crops.scale.down)
-        d = d[:, y0 : y0 + ch, x0 : x0 + cw]
+        d = to_scale(d, d > 0, crops.scale)[:, y0 : y0 + ch, x0 : x0 + cw]
         checked[k] = cons.keep[k] & (d > 0)
         contradicted[k] = checked[k] & ((cons.depth[k] - d).abs() > cfg.max_lidar_error * d)
     return LidarCheck(checked, contradicted)
