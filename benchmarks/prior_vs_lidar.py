@@ -10,6 +10,7 @@ voxels the view's own sweep observed, and those with the track's mask eroded by 
 
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --scale 0.5
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --tracks-only
+    OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --per-view 8
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ def main() -> None:
     ap.add_argument("checkpoint", help="a VAD-GS run's checkpoint")
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--tracks-only", action="store_true", help="the tracks' grids alone, three ways")
+    ap.add_argument("--per-view", type=int, default=0, help="then the N views with most checked pixels")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")
@@ -90,6 +92,7 @@ def main() -> None:
     tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
     groups: dict[str, list[float]] = defaultdict(lambda: [0, 0, 0.0])  # pixels, > 10 % off, sum AbsRel
     per_track: dict[int, list[int]] = defaultdict(lambda: [0, 0])
+    views: list[tuple[int, int, int, int, int, float]] = []  # view, prior, on a return, front, behind, depth
     for v in scene.train_views:
         targets = tr.strategy.geometry_targets(tr.state, v)
         if targets is None or targets.depth is None:
@@ -99,6 +102,12 @@ def main() -> None:
         inst = index.instances(v)[: prior.shape[0], : prior.shape[1]].cpu()
         both = (prior > 0) & (sweep > 0)
         rel = (prior - sweep).abs() / sweep.clamp_min(1e-6)
+        signed = (prior[both] - sweep[both]) / sweep[both]
+        has = prior > 0
+        views.append(
+            (v, int(has.sum()), int(both.sum()), int((signed < -0.1).sum()), int((signed > 0.1).sum()),
+             float(prior[has].median()) if bool(has.any()) else 0.0)
+        )  # fmt: skip
         moving = torch.isin(inst, tracks)
         for name, m in (("tracks", both & moving), ("the rest", both & ~moving)):
             g = groups[name]
@@ -113,6 +122,17 @@ def main() -> None:
         print(
             f"{name}: {int(n)} pixels with a prior and a return, "
             f"{100 * off / max(n, 1):.1f} % off by > 10 %, mean AbsRel {total / max(n, 1):.3f}"
+        )
+    tot = [sum(row[i] for row in views) for i in range(1, 5)]
+    print(
+        f"all: {len(views)} views with a prior, {tot[0]} prior pixels, {tot[1]} on a return of the view's "
+        f"sweep: {100 * tot[2] / max(tot[1], 1):.1f} % in front by > 10 %, "
+        f"{100 * tot[3] / max(tot[1], 1):.1f} % behind"
+    )
+    for v, n, on, front, behind, depth in sorted(views, key=lambda r: -r[2])[: args.per_view]:
+        print(
+            f"  {scene.views[v].camera} f{scene.views[v].frame}: {n} prior pixels at {depth:.1f} m (median), "
+            f"{on} on a return: {front} in front, {behind} behind by > 10 %"
         )
     for t, (n, off) in sorted(per_track.items(), key=lambda x: -x[1][0])[:10]:
         print(

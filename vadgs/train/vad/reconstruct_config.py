@@ -84,7 +84,7 @@ class ReconstructConfig(Checked):
             <vadgs.train.vad.visibility.VisibilityIndex.observed_depth>`: the voxels of its own
             visibility set) gives neither a point nor a prior. A real log's small baselines and
             exposure changes let wrong matches pass the consistency check (PandaSet 002: 57.8 % of
-            the priors that met a return of their own view's sweep were more than 10 % off it,
+            the static priors that met a return of their own view's sweep were more than 10 % off it,
             ``docs/results.md``). Scenes with LiDAR only: a COLMAP scene's visibility sets are SfM
             tracks, whose sparse voxels measure no pixel's depth. None: no check (the paper's).
         max_lidar_disagreement: when more than this share of the checked pixels (those with such a
