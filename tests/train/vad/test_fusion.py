@@ -270,7 +270,7 @@ class _Sweeps:
     def __init__(self, depth: dict[int, torch.Tensor]):
         self.depth = depth
 
-    def observed_depth(self, view: int) -> torch.Tensor:
+    def observed_depth(self, view: int, track: int | None = None) -> torch.Tensor:
         return self.depth[view]
 
 

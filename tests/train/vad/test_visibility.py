@@ -227,3 +227,25 @@ class TestObservedDepth:
             assert not bool(((obs > 0) & (allv == 0)).any())
         assert 0.2 * full < covered < full  # the view's own sweep: a part of what the scan holds
         assert index.observed_depth(scene.train_views[0]) is index.observed_depth(scene.train_views[0])
+
+    def test_a_tracks_observed_depth_is_its_surface_at_the_views_time(self, scene, index):
+        """A moving car's grid gathers its points from every frame; posed at a view's time, the
+        voxels that view's own sweep observed lie on the car's true surface, where the car is the
+        nearest voxel surface, and cover less of it than the whole grid does."""
+        views = [v for v in scene.train_views if int((index.instances(v) == CAR).sum()) > 50][:8]
+        assert len(views) >= 4
+        gt = scene.load_depths(views)
+        covered, full = 0, 0
+        for k, v in enumerate(views):
+            obs = index.observed_depth(v, CAR)[0]
+            depth, label = index.voxel_depth(v)
+            m = (obs > 0) & (gt[k, 0] > 0)
+            assert int(m.sum()) > 20, v
+            rel = ((obs[m] - gt[k, 0][m]).abs() / gt[k, 0][m]).median()
+            assert rel < 0.02, (v, float(rel))
+            assert bool((label[obs > 0] == CAR).all())  # only where the car is in front
+            assert torch.equal(obs[obs > 0], depth[0][obs > 0])
+            covered, full = covered + int((obs > 0).sum()), full + int((label == CAR).sum())
+        assert 0.1 * full < covered < full
+        with pytest.raises(ValueError, match="track: expected one of the tracks"):
+            index.observed_depth(views[0], 10**6)

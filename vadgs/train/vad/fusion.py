@@ -6,7 +6,7 @@ After PatchMatch (:func:`~vadgs.train.vad.reconstruct.reconstruct_instance`, pap
    members confirm (:func:`~vadgs.mvs.geometric_consistency`: forward–backward reprojection,
    relative depth) and completes the textureless parts of static planar instances
    (:func:`~vadgs.mvs.complete_planar`: all members at once);
-5. :func:`lidar_check` drops the consistent pixels of a static instance that the members' own
+5. :func:`lidar_check` drops the consistent pixels of an instance that the members' own
    LiDAR contradicts (all of them when most of those it can check are); :func:`explained_pixels`
    finds the consistent pixels an opaque rendered surface already explains; :func:`fuse_points`
    makes a point of every other one (:func:`~vadgs.mvs.fuse_depth_maps`, in the instance's
@@ -146,13 +146,16 @@ def lidar_check(
     crops: Crops,
     group: list[int],
     cfg: ReconstructConfig,
+    track: int | None = None,
 ) -> LidarCheck:
-    """Step 5a: the consistent pixels of a static instance that the members' own LiDAR contradicts.
+    """Step 5a: the consistent pixels of an instance that the members' own LiDAR contradicts.
 
     Each member's MVS depth is compared with the depth its own sweep measured
     (:meth:`VisibilityIndex.observed_depth`, resampled to the matching scale and cropped as the
     member's crop): contradicted where that depth exists and the MVS depth is more than
     ``cfg.max_lidar_error`` (relative) off it. Everything False when ``max_lidar_error`` is None.
+    ``track``: a moving object's, against the voxels of its grid the member's sweep observed
+    (posed at the member's time; a camera's depth is the same in the object's frame).
     """
     checked = torch.zeros_like(cons.keep)
     contradicted = torch.zeros_like(cons.keep)
@@ -161,7 +164,7 @@ def lidar_check(
     ch, cw = crops.size
     dev = cons.depth.device
     for k, (i, (y0, x0)) in enumerate(zip(crops.members, crops.corners)):
-        d = index.observed_depth(group[i]).to(dev, cons.depth.dtype)
+        d = index.observed_depth(group[i], track).to(dev, cons.depth.dtype)
         d = to_scale(d, d > 0, crops.scale)[:, y0 : y0 + ch, x0 : x0 + cw]
         checked[k] = cons.keep[k] & (d > 0)
         contradicted[k] = checked[k] & ((cons.depth[k] - d).abs() > cfg.max_lidar_error * d)

@@ -349,9 +349,9 @@ def finish_match(
         cons = consistent_depth(matched, crops, group, w2c, planar, cfg, generator)  # 4.
         # 5. the pixels the members' own LiDAR does not contradict, then the unexplained ones
         disagrees = None  # a 0-d bool on the device: read only when nothing else is left
-        # a static instance of a scene with LiDAR (an SfM track's sparse voxels measure no pixel)
-        if track is None and cfg.max_lidar_error is not None and index.inputs.lidar is not None:
-            lidar = lidar_check(index, cons, crops, group, cfg)
+        # on a scene with LiDAR (an SfM track's sparse voxels measure no pixel)
+        if cfg.max_lidar_error is not None and index.inputs.lidar is not None:
+            lidar = lidar_check(index, cons, crops, group, cfg, track)
             checked, bad = lidar.checked.sum(), lidar.contradicted.sum()
             disagrees = (checked >= max(cfg.min_pixels, 1)) & (bad > cfg.max_lidar_disagreement * checked)
             keep = cons.keep & ~lidar.contradicted & ~disagrees

@@ -78,11 +78,12 @@ class ReconstructConfig(Checked):
             render has at least this opacity and a depth in front of, or within
             ``explained_tolerance`` (relative) of, the MVS depth; it still gives a depth prior.
         explained_tolerance: see ``explained_alpha``.
-        max_lidar_error: the LiDAR check of a static instance's reconstruction: a consistent
+        max_lidar_error: the LiDAR check of an instance's reconstruction: a consistent
             pixel whose MVS depth is more than this fraction off the depth the member view's own
             sweep measured there (:meth:`VisibilityIndex.observed_depth
             <vadgs.train.vad.visibility.VisibilityIndex.observed_depth>`: the voxels of its own
-            visibility set) gives neither a point nor a prior. A real log's small baselines and
+            visibility set; for a moving object, those of its grid, posed at the view's time)
+            gives neither a point nor a prior. A real log's small baselines and
             exposure changes let wrong matches pass the consistency check (PandaSet 002: 57.8 % of
             the static priors that met a return of their own view's sweep were more than 10 % off it,
             ``docs/results.md``). Scenes with LiDAR only: a COLMAP scene's visibility sets are SfM

@@ -233,7 +233,7 @@ class VisibilityIndex:
 
         return self.view_cache.get(("raster", view), make)
 
-    def observed_depth(self, view: int) -> torch.Tensor:
+    def observed_depth(self, view: int, track: int | None = None) -> torch.Tensor:
         """:meth:`voxel_raster`'s depth where the pixel's voxel is in the view's own visibility set, else 0.
 
         ``(1, H, W)``, cached: where the nearest static voxel surface is one the view's own LiDAR
@@ -241,15 +241,28 @@ class VisibilityIndex:
         the whole scan holds (a nearer voxel seen only from other frames leaves the pixel
         unmeasured). No read by the host. The reconstruction's LiDAR check
         (:func:`~vadgs.train.vad.fusion.lidar_check`) compares the MVS depth with it.
+
+        ``track``: the same for a moving object's grid posed at the view's timestamp (its voxels
+        that the view's own sweep observed, gathered with that frame's box, so a label's jitter
+        does not move them), where it is the nearest voxel surface of :meth:`voxel_depth`; 0
+        everywhere when its pose is unknown there. None: the static grid's.
+
+        Raises:
+            ValueError: if ``track`` is not a track of the inputs.
         """
+        if track is not None:
+            self._check_track(track)
 
         def make() -> torch.Tensor:
-            depth, vidx = self.voxel_raster(view)
-            seen = self.covis.seen_by(view).to(vidx.device)
+            depth, vidx = self.voxel_raster(view) if track is None else self._track_raster(view, track)
+            covis = self.covis if track is None else self.track_covis[track]
+            seen = covis.seen_by(view).to(vidx.device)
             own = (vidx >= 0) & seen[vidx.clamp(min=0)]
+            if track is not None:
+                own &= self.voxel_depth(view)[1] == track  # its surface is the nearest there
             return torch.where(own[None], depth, torch.zeros_like(depth))
 
-        return self.view_cache.get(("observed", view), make)
+        return self.view_cache.get(("observed", view, track), make)
 
     def voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Voxel depth ``(1, H, W)`` of a view from the static grid and every moving object's grid.
@@ -278,18 +291,12 @@ class VisibilityIndex:
         depth, vidx = self.voxel_raster(view)
         label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
         depth = depth.clone()
-        fpos = self.inputs.frame_position(view)
-        cams = self.camera(view)
-        for tid, grid in self.track_grids.items():
-            track = self.inputs.tracks[tid]
-            if not bool(track.valid[fpos]):
+        for tid in self.track_grids:
+            r = self._raster_track(view, tid)
+            if r is None:
                 continue
-            o2w = track.object_to_world[fpos].to(cams.world_to_cam)
-            obj_cams = Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size)
-            r = rasterize_voxels(grid, obj_cams, config=self.zbuffer)
-            r = r._replace(depth=self.pad(r.depth))
-            closer = (r.depth[0] > 0) & ((depth == 0) | (r.depth[0] < depth))
-            depth = torch.where(closer, r.depth[0], depth)
+            closer = (r[0] > 0) & ((depth == 0) | (r[0] < depth))
+            depth = torch.where(closer, r[0], depth)
             label = torch.where(closer[0], torch.full_like(label, tid), label)
         return depth, label
 
@@ -304,8 +311,8 @@ class VisibilityIndex:
         Raises:
             ValueError: if ``track`` is not a track of the inputs.
         """
-        if track is not None and track not in self.inputs.tracks:
-            raise ValueError(f"track: expected one of the tracks {sorted(self.inputs.tracks)}, got {track}")
+        if track is not None:
+            self._check_track(track)
         if track is None:
 
             def make() -> torch.Tensor:
@@ -315,18 +322,37 @@ class VisibilityIndex:
             return self.view_cache.get(("seen", view), make)
         return self.view_cache.get(("seen_track", view, track), lambda: self._seen_track(view, track))
 
-    def _seen_track(self, view: int, track: int) -> torch.Tensor:
+    def _check_track(self, track: int) -> None:
+        if track not in self.inputs.tracks:
+            raise ValueError(f"track: expected one of the tracks {sorted(self.inputs.tracks)}, got {track}")
+
+    def _raster_track(self, view: int, track: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """A track's grid z-buffered at the view's timestamp (None where it has no pose or grid)."""
         grid = self.track_grids.get(track)
-        dev = self.cameras.K.device
         fpos = self.inputs.frame_position(view)
         if grid is None or not bool(self.inputs.tracks[track].valid[fpos]):
-            return torch.zeros(0, dtype=torch.long, device=dev)
+            return None
         cams = self.camera(view)
         o2w = self.inputs.tracks[track].object_to_world[fpos].to(cams.world_to_cam)
         r = rasterize_voxels(
             grid, Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size), config=self.zbuffer
         )
-        vidx = self.pad(r.index[0], -1)
+        return self.pad(r.depth[0]), self.pad(r.index[0], -1)
+
+    def _track_raster(self, view: int, track: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`_raster_track` (cached), an empty z-buffer where it is None."""
+
+        def make() -> tuple[torch.Tensor, torch.Tensor]:
+            r = self._raster_track(view, track)
+            if r is None:
+                depth, vidx = self.voxel_raster(view)
+                return torch.zeros_like(depth), torch.full_like(vidx, -1)
+            return r
+
+        return self.view_cache.get(("track_raster", view, track), make)
+
+    def _seen_track(self, view: int, track: int) -> torch.Tensor:
+        vidx = self._track_raster(view, track)[1]
         front = self.voxel_depth(view)[1] == track  # its surface is the nearest there
         return torch.unique(vidx[front & (vidx >= 0)])
 
