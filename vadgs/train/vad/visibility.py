@@ -254,12 +254,13 @@ class VisibilityIndex:
             self._check_track(track)
 
         def make() -> torch.Tensor:
-            depth, vidx = self.voxel_raster(view) if track is None else self._track_raster(view, track)
-            covis = self.covis if track is None else self.track_covis[track]
+            if track is None:
+                (depth, vidx), covis = self.voxel_raster(view), self.covis
+            else:  # the track's voxels where its surface is the nearest
+                depth, label, vidx = self._voxel_surface(view)
+                covis, vidx = self.track_covis[track], torch.where(label == track, vidx, -1)
             seen = covis.seen_by(view).to(vidx.device)
             own = (vidx >= 0) & seen[vidx.clamp(min=0)]
-            if track is not None:
-                own &= self.voxel_depth(view)[1] == track  # its surface is the nearest there
             return torch.where(own[None], depth, torch.zeros_like(depth))
 
         return self.view_cache.get(("observed", view, track), make)
@@ -274,7 +275,8 @@ class VisibilityIndex:
             ``(depth, label)``: the nearest voxel surface (0 where empty) and the instance label of
             its voxel (``(H, W)`` int64, 0 where empty; a track's id on its voxels).
         """
-        return self.view_cache.get(("voxel_depth", view), lambda: self._voxel_depth(view))
+        depth, label, _ = self._voxel_surface(view)
+        return depth, label
 
     def own_voxel_depth(self, view: int) -> torch.Tensor:
         """:meth:`voxel_depth` only where the voxel is of the pixel's own instance, else 0: ``(1, H, W)``.
@@ -287,18 +289,29 @@ class VisibilityIndex:
             lambda: own_instance_depth(*self.voxel_depth(view), self.instances(view)),
         )
 
-    def _voxel_depth(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _voxel_surface(self, view: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`voxel_depth`'s ``(depth, label)`` and the nearest voxel's id in its own grid (cached)."""
+        return self.view_cache.get(("voxel_surface", view), lambda: self._make_voxel_surface(view))
+
+    def _make_voxel_surface(self, view: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         depth, vidx = self.voxel_raster(view)
         label = torch.where(vidx >= 0, self.labels[vidx.clamp(min=0)], torch.zeros_like(vidx))
-        depth = depth.clone()
-        for tid in self.track_grids:
-            r = self._raster_track(view, tid)
-            if r is None:
+        depth, vidx = depth.clone(), vidx.clone()  # not the static z-buffer's cached tensors
+        fpos = self.inputs.frame_position(view)
+        cams = self.camera(view)
+        for tid, grid in self.track_grids.items():
+            track = self.inputs.tracks[tid]
+            if not bool(track.valid[fpos]):
                 continue
-            closer = (r[0] > 0) & ((depth == 0) | (r[0] < depth))
-            depth = torch.where(closer, r[0], depth)
+            o2w = track.object_to_world[fpos].to(cams.world_to_cam)
+            obj_cams = Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size)
+            r = rasterize_voxels(grid, obj_cams, config=self.zbuffer)
+            d, i = self.pad(r.depth[0]), self.pad(r.index[0], -1)
+            closer = (d > 0) & ((depth == 0) | (d < depth))
+            depth = torch.where(closer, d, depth)
             label = torch.where(closer[0], torch.full_like(label, tid), label)
-        return depth, label
+            vidx = torch.where(closer[0], i, vidx)
+        return depth, label, vidx
 
     def seen_voxels(self, view: int, track: int | None = None) -> torch.Tensor:
         """Sorted ids of the voxels a view's z-buffer shows (occlusion included; cached).
@@ -326,35 +339,9 @@ class VisibilityIndex:
         if track not in self.inputs.tracks:
             raise ValueError(f"track: expected one of the tracks {sorted(self.inputs.tracks)}, got {track}")
 
-    def _raster_track(self, view: int, track: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """A track's grid z-buffered at the view's timestamp (None where it has no pose or grid)."""
-        grid = self.track_grids.get(track)
-        fpos = self.inputs.frame_position(view)
-        if grid is None or not bool(self.inputs.tracks[track].valid[fpos]):
-            return None
-        cams = self.camera(view)
-        o2w = self.inputs.tracks[track].object_to_world[fpos].to(cams.world_to_cam)
-        r = rasterize_voxels(
-            grid, Cameras(cams.K, cams.world_to_cam @ o2w[None], cams.image_size), config=self.zbuffer
-        )
-        return self.pad(r.depth[0]), self.pad(r.index[0], -1)
-
-    def _track_raster(self, view: int, track: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`_raster_track` (cached), an empty z-buffer where it is None."""
-
-        def make() -> tuple[torch.Tensor, torch.Tensor]:
-            r = self._raster_track(view, track)
-            if r is None:
-                depth, vidx = self.voxel_raster(view)
-                return torch.zeros_like(depth), torch.full_like(vidx, -1)
-            return r
-
-        return self.view_cache.get(("track_raster", view, track), make)
-
     def _seen_track(self, view: int, track: int) -> torch.Tensor:
-        vidx = self._track_raster(view, track)[1]
-        front = self.voxel_depth(view)[1] == track  # its surface is the nearest there
-        return torch.unique(vidx[front & (vidx >= 0)])
+        _, label, vidx = self._voxel_surface(view)
+        return torch.unique(vidx[(label == track) & (vidx >= 0)])  # where its surface is the nearest
 
     def seen_covis(
         self, voxels: torch.Tensor, views: Sequence[int], track: int | None = None
