@@ -324,8 +324,6 @@ class VisibilityIndex:
         Raises:
             ValueError: if ``track`` is not a track of the inputs.
         """
-        if track is not None:
-            self._check_track(track)
         if track is None:
 
             def make() -> torch.Tensor:
@@ -333,6 +331,7 @@ class VisibilityIndex:
                 return torch.unique(vidx[vidx >= 0])
 
             return self.view_cache.get(("seen", view), make)
+        self._check_track(track)
         return self.view_cache.get(("seen_track", view, track), lambda: self._seen_track(view, track))
 
     def _check_track(self, track: int) -> None:
