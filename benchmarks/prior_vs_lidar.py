@@ -11,6 +11,12 @@ voxels the view's own sweep observed, and those with the track's mask eroded by 
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --scale 0.5
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --tracks-only
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --per-view 8
+    OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --in-front
+
+``--in-front`` tells, of the static prior pixels more than 10 % in front of the view's own sweep,
+how many the LiDAR check could see (a voxel of the view's own sweep nearest there:
+``VisibilityIndex.observed_depth``) and where the whole scan's voxel z-buffer puts the surface
+against the prior: within 10 %, nearer, farther, or none.
 """
 
 from __future__ import annotations
@@ -73,6 +79,35 @@ def tracks_only(scene, index) -> None:
         )
 
 
+def in_front(scene, tr, index) -> None:
+    """Print what the voxels say where a static prior lies > 10 % in front of the view's sweep."""
+    tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
+    counts = dict(in_front=0, checked=0, scan_agrees=0, scan_nearer=0, scan_farther=0, scan_none=0)
+    for v in scene.train_views:
+        targets = tr.strategy.geometry_targets(tr.state, v)
+        if targets is None or targets.depth is None:
+            continue
+        prior = targets.depth[0, 0].cpu()
+        h, w = prior.shape
+        sweep = lidar_depth_map(scene, v)[0, 0]
+        static = ~torch.isin(index.instances(v)[:h, :w].cpu(), tracks)
+        m = (prior > 0) & (sweep > 0) & (prior < 0.9 * sweep) & static
+        scan = index.voxel_depth(v)[0][0, :h, :w].cpu()[m]
+        rel = (prior[m] - scan) / scan.clamp_min(1e-6)
+        counts["in_front"] += int(m.sum())
+        counts["checked"] += int((index.observed_depth(v)[0, :h, :w].cpu()[m] > 0).sum())
+        counts["scan_none"] += int((scan == 0).sum())
+        counts["scan_agrees"] += int(((scan > 0) & (rel.abs() <= 0.1)).sum())
+        counts["scan_nearer"] += int(((scan > 0) & (rel > 0.1)).sum())
+        counts["scan_farther"] += int(((scan > 0) & (rel < -0.1)).sum())
+    print(
+        f"static prior pixels > 10 % in front of the view's sweep: {counts['in_front']}; the check sees "
+        f"{counts['checked']} of them; the scan's voxel z-buffer there: within 10 % of the prior "
+        f"{counts['scan_agrees']}, nearer {counts['scan_nearer']}, farther {counts['scan_farther']}, "
+        f"none {counts['scan_none']}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene")
@@ -80,6 +115,7 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--tracks-only", action="store_true", help="the tracks' grids alone, three ways")
     ap.add_argument("--per-view", type=int, default=0, help="then the N views with most checked pixels")
+    ap.add_argument("--in-front", action="store_true", help="the static priors in front of the sweep")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")
@@ -88,6 +124,9 @@ def main() -> None:
     index = tr.strategy.prepare()
     if args.tracks_only:
         tracks_only(scene, index)
+        return
+    if args.in_front:
+        in_front(scene, tr, index)
         return
     tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
     groups: dict[str, list[float]] = defaultdict(lambda: [0, 0, 0.0])  # pixels, > 10 % off, sum AbsRel
