@@ -79,6 +79,40 @@ class TestDepthAndNormal:
         tn = torch.randn(1, 3, 3, 3, dtype=torch.float64)
         assert torch.autograd.gradcheck(lambda a: L.normal_loss(a, tn), (n,))
 
+    def test_min_share(self):
+        """Fewer pixels with a target than ``min_share`` of the image: their sum over that share."""
+        pred = torch.rand(2, 1, 10, 10) * 10 + 1
+        tgt = torch.zeros(2, 1, 10, 10)
+        tgt[0, 0, :2, :3] = torch.rand(2, 3) * 10 + 1  # 6 of 200 pixels
+        err = ((pred - tgt).abs() / tgt.clamp(min=1e-6))[tgt > 0]
+        assert L.depth_loss(pred, tgt).item() == pytest.approx(err.mean().item(), rel=1e-6)
+        assert L.depth_loss(pred, tgt, min_share=0.1).item() == pytest.approx(err.sum().item() / 20, rel=1e-6)
+        assert L.depth_loss(pred, tgt, min_share=0.01).item() == pytest.approx(err.mean().item(), rel=1e-6)
+        full = torch.rand(2, 1, 10, 10) + 1  # every pixel: the mean whatever the share
+        assert L.depth_loss(pred, full, min_share=1.0).item() == pytest.approx(L.depth_loss(pred, full).item())
+        n, tn = torch.randn(1, 3, 10, 10), torch.zeros(1, 3, 10, 10)
+        tn[:, 2, :1, :5] = -1.0  # 5 of 100 pixels
+        cos = torch.nn.functional.normalize(n, dim=1)[:, 2, :1, :5] * -1.0
+        assert L.normal_loss(n, tn, min_share=0.5).item() == pytest.approx((1 - cos).sum().item() / 50, rel=1e-5)
+
+    def test_geometric_losses_min_share(self):
+        """One pixel with a prior: its gradient is the image share's, not the whole term's."""
+        t = L.GeometryTargets(depth=torch.zeros(1, 1, 10, 10), normal=torch.zeros(1, 3, 10, 10))
+        t.depth[0, 0, 4, 4] = 2.0
+        t.normal[0, 2, 4, 4] = -1.0
+        d = torch.full((1, 1, 10, 10), 3.0, requires_grad=True)
+        n = torch.zeros(1, 3, 10, 10)
+        n[:, 0] = 1.0
+        w = L.geometric_weights(0, 10)
+        mean = L.geometric_losses(t, d, n, w, min_share=0.0)
+        share = L.geometric_losses(t, d, n, w)  # the config's default, 0.1: 10 pixels
+        assert L.GeometricLossConfig().min_prior_share == 0.1
+        assert mean["soft"].item() == pytest.approx(0.1 * 0.5)
+        assert share["soft"].item() == pytest.approx(0.1 * 0.5 / 10)
+        assert share["normal"].item() == pytest.approx(mean["normal"].item() / 10)
+        (g,) = torch.autograd.grad(share["soft"], d)
+        assert g[0, 0, 4, 4].item() == pytest.approx(0.1 / 2.0 / 10) and g.count_nonzero() == 1
+
     def test_hard_switched_off_after_80_percent(self):
         w = [L.geometric_weights(s, 100)["hard"] for s in range(100)]
         assert w[:80] == [0.1] * 80 and w[80:] == [0.0] * 20
@@ -131,6 +165,7 @@ class TestGeometricLossConfig:
             ({"hard_every": 2.5}, "hard_every: expected an integer >= 1, got 2.5"),
             ({"hard_stride": 0}, "hard_stride: expected an integer >= 1, got 0"),
             ({"hard_fused": 1}, "hard_fused: expected True or False, got 1"),
+            ({"min_prior_share": 1.5}, r"min_prior_share: expected a finite number in \[0, 1\], got 1.5"),
         ],
     )
     def test_checks(self, changes, message):

@@ -203,7 +203,9 @@ class Objective:
             if targets.depth is not None and geo.hard_applies(step, cfg.iterations):
                 hard = render_hard(view, geo.hard_stride)
             terms.update(
-                L.geometric_losses(targets, out.raster.depth, out.raster.normals, w, hard, geo.hard_stride)
+                L.geometric_losses(
+                    targets, out.raster.depth, out.raster.normals, w, hard, geo.hard_stride, geo.min_prior_share
+                )
             )
         if self.extra_losses is not None:
             terms.update(self.extra_losses(step, out, view))
