@@ -89,11 +89,13 @@ class TestDepthAndNormal:
         assert L.depth_loss(pred, tgt, min_share=0.1).item() == pytest.approx(err.sum().item() / 20, rel=1e-6)
         assert L.depth_loss(pred, tgt, min_share=0.01).item() == pytest.approx(err.mean().item(), rel=1e-6)
         full = torch.rand(2, 1, 10, 10) + 1  # every pixel: the mean whatever the share
-        assert L.depth_loss(pred, full, min_share=1.0).item() == pytest.approx(L.depth_loss(pred, full).item())
+        mean = L.depth_loss(pred, full).item()
+        assert L.depth_loss(pred, full, min_share=1.0).item() == pytest.approx(mean)
         n, tn = torch.randn(1, 3, 10, 10), torch.zeros(1, 3, 10, 10)
         tn[:, 2, :1, :5] = -1.0  # 5 of 100 pixels
         cos = torch.nn.functional.normalize(n, dim=1)[:, 2, :1, :5] * -1.0
-        assert L.normal_loss(n, tn, min_share=0.5).item() == pytest.approx((1 - cos).sum().item() / 50, rel=1e-5)
+        expected = (1 - cos).sum().item() / 50
+        assert L.normal_loss(n, tn, min_share=0.5).item() == pytest.approx(expected, rel=1e-5)
 
     def test_geometric_losses_min_share(self):
         """One pixel with a prior: its gradient is the image share's, not the whole term's."""

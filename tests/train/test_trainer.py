@@ -238,6 +238,27 @@ class TestHardDepth:
         with pytest.raises(ValueError, match="hard_depth: expected spatial size"):
             L.geometric_losses(t, d, torch.zeros(1, 3, 5, 7), w, hard, hard_stride=1)
 
+    def test_objective_sums_a_few_prior_pixels_over_the_share(self, tiny_scene, tiny_config):
+        """The step's soft and normal terms on 12 prior pixels: divided by ``min_prior_share`` of the view's."""
+        from vadgs.train import losses as L
+
+        v = tiny_scene.train_views[0]
+        h, w = tiny_scene.image_size(v)
+        depth, normal = torch.zeros(1, 1, h, w), torch.zeros(1, 3, h, w)
+        depth[..., 2:5, 3:7] = 5.0
+        normal[:, 2, 2:5, 3:7] = -1.0
+        targets = L.GeometryTargets(depth=depth, normal=normal)
+        terms = {}
+        for share in (0.0, 0.5):
+            config = dataclasses.replace(tiny_config, geometry=GeometricLossConfig(min_prior_share=share))
+            tr = Trainer(tiny_scene, config, progress=False, geometry_targets=lambda _: targets)
+            with torch.no_grad():
+                out = tr.render_view(v)
+                terms[share] = tr.objective(10**6, v, out, lambda *_: torch.zeros(()))  # past the hard term
+        assert "hard" not in terms[0.5] and terms[0.0]["soft"] > 0 and terms[0.0]["normal"] > 0
+        for name in ("soft", "normal"):
+            torch.testing.assert_close(terms[0.5][name], terms[0.0][name] * 12 / (0.5 * h * w))
+
     def test_bad_stride(self):
         with pytest.raises(ValueError, match="hard_stride: expected an integer >= 1, got 0"):
             TrainConfig(geometry=GeometricLossConfig(hard_stride=0))
