@@ -239,7 +239,7 @@ class TestHardDepth:
             L.geometric_losses(t, d, torch.zeros(1, 3, 5, 7), w, hard, hard_stride=1)
 
     def test_objective_sums_a_few_prior_pixels_over_the_share(self, tiny_scene, tiny_config):
-        """The step's soft and normal terms on 12 prior pixels: divided by ``min_prior_share`` of the view's."""
+        """The step's soft and normal terms on 12 prior pixels: divided by min_prior_share of the view's."""
         from vadgs.train import losses as L
 
         v = tiny_scene.train_views[0]

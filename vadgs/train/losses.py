@@ -74,7 +74,7 @@ class GeometryTargets(NamedTuple):
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None, min_share: float = 0.0) -> torch.Tensor:
-    """The mean of ``x`` over ``mask``, or its sum over ``min_share`` of ``x``'s elements if ``mask`` has fewer."""
+    """The mean of ``x`` over ``mask``, or its sum over ``min_share`` of its elements if mask has fewer."""
     if mask is None:
         return x.mean()
     m = mask.to(x.dtype).expand_as(x)

@@ -204,7 +204,13 @@ class Objective:
                 hard = render_hard(view, geo.hard_stride)
             terms.update(
                 L.geometric_losses(
-                    targets, out.raster.depth, out.raster.normals, w, hard, geo.hard_stride, geo.min_prior_share
+                    targets,
+                    out.raster.depth,
+                    out.raster.normals,
+                    w,
+                    hard,
+                    geo.hard_stride,
+                    min_share=geo.min_prior_share,
                 )
             )
         if self.extra_losses is not None:
