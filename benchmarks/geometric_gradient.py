@@ -58,7 +58,7 @@ def main() -> None:
         for view in sorted(priors)[: args.views]:
             out_ = tr.render_view(view)
             m2 = out_.raster.means2d
-            terms = tr.objective(tr.step, view, out_, lambda v, s: tr.render_hard_depth(v, s))
+            terms = tr.objective(tr.step, view, out_, tr.render_hard_depth)
             colour = torch.stack([t for k, t in terms.items() if k in COLOUR]).sum()
             geo = [t for k, t in terms.items() if k in GEOMETRIC]
             (gc,) = torch.autograd.grad(colour, m2, retain_graph=True)
@@ -70,14 +70,15 @@ def main() -> None:
             pushed = int(((nc < threshold) & (nt >= threshold) & vis).sum())
             over = int(((nt >= threshold) & vis).sum())
             px = int((priors[view][0] > 0).sum())
+            colour_sum, geo_sum = float(nc[vis].sum()), float(ng[vis].sum())
             print(
                 f"view {view}: {px} prior px; "
                 + ", ".join(f"{k} {float(t.detach()):.4f}" for k, t in terms.items())
-                + f"; gradient colour {float(nc[vis].sum()):.3f} geometric {float(ng[vis].sum()):.3f}; "
+                + f"; gradient colour {colour_sum:.3f} geometric {geo_sum:.3f}; "
                 f"over the threshold {over}, pushed over by the geometric terms {pushed}"
             )
-            total["colour"] += float(nc[vis].sum())
-            total["geometric"] += float(ng[vis].sum())
+            total["colour"] += colour_sum
+            total["geometric"] += geo_sum
             total["pushed"] += pushed
             total["over"] += over
         print(
