@@ -374,4 +374,7 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             )
         n = self._inputs().num_views
         view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
-        return view_targets(state_priors(state), self.prepare(), view, self.config.voxel_depth_prior)
+        cfg = self.config
+        return view_targets(
+            state_priors(state), self.prepare(), view, cfg.voxel_depth_prior, cfg.mvs_prior_beyond_voxels
+        )
