@@ -76,10 +76,10 @@ def _strategy(vd, vlabel, ins, **settings):
     return s, s.initialize_state()
 
 
-def _naive(vd, vlabel, ins, mvs=None, voxel_prior=True):
+def _naive(vd, vlabel, ins, mvs=None, voxel_prior=True, beyond_voxels=False):
     out = torch.zeros(1, 1, H, W)
     for y, x in itertools.product(range(H), range(W)):
-        if mvs is not None and mvs[0, y, x] > 0:
+        if mvs is not None and mvs[0, y, x] > 0 and not (beyond_voxels and vd[0, y, x] > 0):
             out[0, 0, y, x] = mvs[0, y, x]
         elif voxel_prior and vlabel[y, x] == ins[y, x]:  # the pixel's own instance's voxel only
             out[0, 0, y, x] = vd[0, y, x]
@@ -118,6 +118,18 @@ class TestGeometryTargets:
         s, state = _strategy(vd, vlabel, ins, geometric_losses=False)
         state["vad_priors"][1] = (mvs, normal)
         assert s.geometry_targets(state, 1) is None
+
+    @pytest.mark.parametrize("voxel_prior", [True, False])
+    def test_mvs_prior_beyond_voxels(self, voxel_prior):
+        vd, vlabel, ins, mvs, normal = _maps(4)
+        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=voxel_prior, mvs_prior_beyond_voxels=True)
+        state["vad_priors"][1] = (mvs, normal)
+        t = s.geometry_targets(state, 1)
+        expect = _naive(vd, vlabel, ins, mvs, voxel_prior, beyond_voxels=True)
+        assert torch.equal(t.depth, expect)
+        assert not torch.equal(expect, _naive(vd, vlabel, ins, mvs, voxel_prior))  # it drops some MVS pixels
+        reached = vd[:, :H, :W] > 0
+        assert bool((t.normal[0][reached.expand(3, H, W)] == 0).all())  # no normal prior on a voxel surface
 
 
 class TestGeometryTargetsErrors:
