@@ -63,11 +63,11 @@ def _maps(seed: int = 0):
     return vd, vlabel, ins, mvs, normal
 
 
-def _strategy(vd, vlabel, ins, **settings):
-    """A strategy prepared with a stand-in of the index (two views of size ``(H, W)``)."""
+def _strategy(vd, vlabel, ins, lidar=True, **settings):
+    """A strategy prepared with a stand-in of the index (two views of size ``(H, W)``; LiDAR or SfM)."""
     s = VisibilityAwareDensification(**settings)
     s.index = SimpleNamespace(
-        inputs=SimpleNamespace(num_views=2),
+        inputs=SimpleNamespace(num_views=2, lidar=(lambda track, views: []) if lidar else None),
         voxel_depth=lambda view: (vd, vlabel),
         instances=lambda view: ins,
         own_voxel_depth=lambda view: own_instance_depth(vd, vlabel, ins),  # the index's, uncached
@@ -130,6 +130,11 @@ class TestGeometryTargets:
         assert not torch.equal(expect, _naive(vd, vlabel, ins, mvs, voxel_prior))  # it drops some MVS pixels
         reached = vd[:, :H, :W] > 0
         assert bool((t.normal[0][reached.expand(3, H, W)] == 0).all())  # no normal prior on a voxel surface
+        s, state = _strategy(
+            vd, vlabel, ins, False, voxel_depth_prior=voxel_prior, mvs_prior_beyond_voxels=True
+        )
+        state["vad_priors"][1] = (mvs, normal)  # a COLMAP scene: its SfM voxels measure no ray, all kept
+        assert torch.equal(s.geometry_targets(state, 1).depth, _naive(vd, vlabel, ins, mvs, voxel_prior))
 
 
 class TestGeometryTargetsErrors:

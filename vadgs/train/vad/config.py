@@ -114,9 +114,10 @@ class VisibilityDensifyConfig(Checked):
         mvs_prior_beyond_voxels: keep the MVS depth and normal priors only where the view's voxel
             z-buffer is empty (beyond the LiDAR's reach: the paper's sign above it, a facade out of
             range); where a voxel surface is on the ray, the voxel depth (``voxel_depth_prior``) and
-            the trainer's LiDAR loss measure it. False (default): everywhere, as the paper. On a
-            real log, where the MVS depth at the LiDAR's edges is often off, the losses on it cost
-            PSNR* and depth (PandaSet 002, ``docs/results.md``).
+            the trainer's LiDAR loss measure it. Scenes with LiDAR only: a COLMAP scene's voxels
+            are its sparse SfM points, which leave most rays unmeasured. False (default):
+            everywhere, as the paper. On a real log, where the MVS depth at the LiDAR's edges is
+            often off, the losses on it cost PSNR* and depth (PandaSet 002, ``docs/results.md``).
         last_event_fraction: no event after this fraction of the iterations (Gaussians added at
             the very end would not be trained).
     """

@@ -375,6 +375,5 @@ class VisibilityAwareDensification(ConfiguredStrategy):
         n = self._inputs().num_views
         view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
         cfg = self.config
-        return view_targets(
-            state_priors(state), self.prepare(), view, cfg.voxel_depth_prior, cfg.mvs_prior_beyond_voxels
-        )
+        beyond = cfg.mvs_prior_beyond_voxels and self._inputs().lidar is not None  # LiDAR voxels only
+        return view_targets(state_priors(state), self.prepare(), view, cfg.voxel_depth_prior, beyond)
