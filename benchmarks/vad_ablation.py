@@ -67,8 +67,9 @@ VARIANTS = {
     "thin2": VisibilityDensifyConfig(reconstruct=ReconstructConfig(thin_factor=2.0)),
     "thin3": VisibilityDensifyConfig(reconstruct=ReconstructConfig(thin_factor=3.0)),
     "thin1.5": VisibilityDensifyConfig(reconstruct=ReconstructConfig(thin_factor=1.5)),
-    # the MVS priors only beyond the voxels (issue 47: a real log's MVS depth at the LiDAR's edges)
-    "mvs_prior_beyond_voxels": VisibilityDensifyConfig(mvs_prior_beyond_voxels=True),
+    # the MVS priors everywhere, as the paper (the default keeps them beyond the voxels only, since
+    # round 33: a real log's MVS depth at the LiDAR's edges, issue 47)
+    "mvs_prior_everywhere": VisibilityDensifyConfig(mvs_prior_beyond_voxels=False),
 }
 
 

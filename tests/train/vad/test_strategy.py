@@ -100,7 +100,7 @@ class TestGeometryTargets:
 
     def test_mvs_depth_first(self):
         vd, vlabel, ins, mvs, normal = _maps(2)
-        s, state = _strategy(vd, vlabel, ins)
+        s, state = _strategy(vd, vlabel, ins, mvs_prior_beyond_voxels=False)  # the paper's: everywhere
         state["vad_priors"][1] = (mvs, normal)
         t = s.geometry_targets(state, 1)
         assert torch.equal(t.depth, _naive(vd, vlabel, ins, mvs))
@@ -109,7 +109,7 @@ class TestGeometryTargets:
 
     def test_switches(self):
         vd, vlabel, ins, mvs, normal = _maps(3)
-        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=False)
+        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=False, mvs_prior_beyond_voxels=False)
         state["vad_priors"][1] = (mvs, normal)
         assert torch.equal(
             s.geometry_targets(state, 1).depth, _naive(vd, vlabel, ins, mvs, voxel_prior=False)
@@ -122,7 +122,7 @@ class TestGeometryTargets:
     @pytest.mark.parametrize("voxel_prior", [True, False])
     def test_mvs_prior_beyond_voxels(self, voxel_prior):
         vd, vlabel, ins, mvs, normal = _maps(4)
-        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=voxel_prior, mvs_prior_beyond_voxels=True)
+        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=voxel_prior)  # the default
         state["vad_priors"][1] = (mvs, normal)
         t = s.geometry_targets(state, 1)
         expect = _naive(vd, vlabel, ins, mvs, voxel_prior, beyond_voxels=True)
@@ -130,9 +130,7 @@ class TestGeometryTargets:
         assert not torch.equal(expect, _naive(vd, vlabel, ins, mvs, voxel_prior))  # it drops some MVS pixels
         reached = vd[:, :H, :W] > 0
         assert bool((t.normal[0][reached.expand(3, H, W)] == 0).all())  # no normal prior on a voxel surface
-        s, state = _strategy(
-            vd, vlabel, ins, False, voxel_depth_prior=voxel_prior, mvs_prior_beyond_voxels=True
-        )
+        s, state = _strategy(vd, vlabel, ins, False, voxel_depth_prior=voxel_prior)
         state["vad_priors"][1] = (mvs, normal)  # a COLMAP scene: its SfM voxels measure no ray, all kept
         assert torch.equal(s.geometry_targets(state, 1).depth, _naive(vd, vlabel, ins, mvs, voxel_prior))
 
