@@ -13,6 +13,13 @@ voxels the view's own sweep observed, and those with the track's mask eroded by 
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --per-view 8
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002 RUN/checkpoint.pt --in-front
 
+``--reach`` splits the MVS prior pixels by what the view's voxel z-buffer has on their ray (a
+voxel of the pixel's own instance, another's only, none: beyond the LiDAR's reach) and gives each
+part's accuracy against the view's sweep; the split ``mvs_prior_beyond_voxels`` makes (on by
+default: the losses keep the last part only)::
+
+    OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002-36 RUN/checkpoint.pt --reach
+
 ``--in-front`` tells, of the static prior pixels more than 10 % in front of the view's own sweep,
 how many the LiDAR check could see (a voxel of the view's own sweep nearest there:
 ``VisibilityIndex.observed_depth``) and where the whole scan's voxel z-buffer puts the surface
@@ -34,6 +41,7 @@ from vadgs.data.lidar import lidar_depth_map
 from vadgs.geometry import Cameras
 from vadgs.geometry.zbuffer import rasterize_voxels
 from vadgs.train.trainer import Trainer
+from vadgs.train.vad.priors import state_priors
 
 
 def track_depth(index, view: int, observed: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -108,6 +116,47 @@ def in_front(scene, tr, index) -> None:
     )
 
 
+def reach(scene, tr, index) -> None:
+    """Print the MVS priors split by the voxel z-buffer on their ray, with their accuracy."""
+    priors = state_priors(tr.state)  # the MVS priors as the events kept them, before view_targets
+    tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
+    parts: dict[tuple[str, str], list[float]] = defaultdict(
+        lambda: [0, 0, 0, 0.0]
+    )  # px, returns, off, AbsRel
+    for v in scene.train_views:
+        if v not in priors:
+            continue
+        h, w = index.size(v)
+        prior = priors[v][0][0, :h, :w].cpu()
+        sweep = lidar_depth_map(scene, v)[0, 0]
+        vox = index.voxel_depth(v)[0][0, :h, :w].cpu()
+        own = index.own_voxel_depth(v)[0, :h, :w].cpu()
+        track = torch.isin(index.instances(v)[:h, :w].cpu(), tracks)
+        has = prior > 0
+        where = {
+            "own instance's voxel": has & (own > 0),
+            "another's voxel only": has & (vox > 0) & (own == 0),
+        }
+        where["no voxel (beyond)"] = has & (vox == 0)
+        for name, m in where.items():
+            for kind, k in (("static", ~track), ("track", track)):
+                mm = m & k
+                on = mm & (sweep > 0)
+                rel = ((prior[on] - sweep[on]) / sweep[on]).abs()
+                p = parts[(name, kind)]
+                p[0] += int(mm.sum())
+                p[1] += int(on.sum())
+                p[2] += int((rel > 0.1).sum())
+                p[3] += float(rel.sum())
+    total = sum(p[0] for p in parts.values())
+    print(f"{len(priors)} views with MVS priors, {total} prior pixels")
+    for (name, kind), (n, on, off, rel) in parts.items():
+        print(
+            f"{name:22s} {kind:6s}: {n:7d} px ({100 * n / max(total, 1):5.1f} %); on a return {on:6d}: "
+            f"{100 * off / max(on, 1):5.1f} % off by > 10 %, AbsRel {rel / max(on, 1):.3f}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("scene")
@@ -116,6 +165,7 @@ def main() -> None:
     ap.add_argument("--tracks-only", action="store_true", help="the tracks' grids alone, three ways")
     ap.add_argument("--per-view", type=int, default=0, help="then the N views with most checked pixels")
     ap.add_argument("--in-front", action="store_true", help="the static priors in front of the sweep")
+    ap.add_argument("--reach", action="store_true", help="the MVS priors by the voxels on their ray")
     args = ap.parse_args()
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")
@@ -127,6 +177,9 @@ def main() -> None:
         return
     if args.in_front:
         in_front(scene, tr, index)
+        return
+    if args.reach:
+        reach(scene, tr, index)
         return
     tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
     groups: dict[str, list[float]] = defaultdict(lambda: [0, 0, 0.0])  # pixels, > 10 % off, sum AbsRel
