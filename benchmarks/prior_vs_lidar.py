@@ -16,7 +16,8 @@ voxels the view's own sweep observed, and those with the track's mask eroded by 
 ``--reach`` splits the MVS prior pixels by what the view's voxel z-buffer has on their ray (a
 voxel of the pixel's own instance, another's only, none: beyond the LiDAR's reach) and gives each
 part's accuracy against the view's sweep; the split ``mvs_prior_beyond_voxels`` makes (on by
-default: the losses keep the last part only)::
+default: the events keep the last part only, so this reads a run trained with
+``--vad.no-mvs-prior-beyond-voxels``, the paper's priors everywhere)::
 
     OMP_NUM_THREADS=1 python benchmarks/prior_vs_lidar.py scenes/ps002-36 RUN/checkpoint.pt --reach
 
@@ -116,9 +117,16 @@ def in_front(scene, tr, index) -> None:
     )
 
 
+def _tally(acc: list[float], rel: torch.Tensor) -> None:
+    """Add to ``acc``'s last three: the pixels with a return, those > 10 % off, their sum of AbsRel."""
+    acc[-3] += rel.numel()
+    acc[-2] += int((rel > 0.1).sum())
+    acc[-1] += float(rel.sum())
+
+
 def reach(scene, tr, index) -> None:
     """Print the MVS priors split by the voxel z-buffer on their ray, with their accuracy."""
-    priors = state_priors(tr.state)  # the MVS priors as the events kept them, before view_targets
+    priors = state_priors(tr.state)  # the MVS priors as the events kept them (merge_priors)
     tracks = torch.tensor(sorted(scene.tracks), dtype=torch.long)
     parts: dict[tuple[str, str], list[float]] = defaultdict(
         lambda: [0, 0, 0, 0.0]
@@ -142,12 +150,8 @@ def reach(scene, tr, index) -> None:
             for kind, k in (("static", ~track), ("track", track)):
                 mm = m & k
                 on = mm & (sweep > 0)
-                rel = ((prior[on] - sweep[on]) / sweep[on]).abs()
-                p = parts[(name, kind)]
-                p[0] += int(mm.sum())
-                p[1] += int(on.sum())
-                p[2] += int((rel > 0.1).sum())
-                p[3] += float(rel.sum())
+                parts[(name, kind)][0] += int(mm.sum())
+                _tally(parts[(name, kind)], ((prior[on] - sweep[on]) / sweep[on]).abs())
     total = sum(p[0] for p in parts.values())
     print(f"{len(priors)} views with MVS priors, {total} prior pixels")
     for (name, kind), (n, on, off, rel) in parts.items():
@@ -202,10 +206,7 @@ def main() -> None:
         )  # fmt: skip
         moving = torch.isin(inst, tracks)
         for name, m in (("tracks", both & moving), ("the rest", both & ~moving)):
-            g = groups[name]
-            g[0] += int(m.sum())
-            g[1] += int((rel[m] > 0.1).sum())
-            g[2] += float(rel[m].sum())
+            _tally(groups[name], rel[m])
         for t in inst[both & moving].unique().tolist():
             m = both & (inst == t)
             per_track[t][0] += int(m.sum())
