@@ -58,7 +58,7 @@ def _event(parser, transform: np.ndarray, moved=None):
     the parser in that frame (default: ``parser`` transformed).
 
     Returns:
-        ``(strategy, event, in_cell)``: ``in_cell`` the share of the new Gaussians that lie, back in
+        ``(strategy, event, in_cell, state)``: ``in_cell`` the share of the new Gaussians that lie, back in
         the sample's frame, in the deleted cell.
     """
     inputs0 = VisibilityInputs.from_gsplat_parser(parser)
@@ -96,7 +96,7 @@ def _event(parser, transform: np.ndarray, moved=None):
     state = vad.initialize_state()
     event = vad.densify(splats, optimizers, state, step=20)
     new = (splats["means"][n0:].detach() - t[:3, 3]) @ torch.linalg.inv(t[:3, :3]).T
-    return vad, event, float(in_cell(new).float().mean()) if len(new) else 0.0
+    return vad, event, float(in_cell(new).float().mean()) if len(new) else 0.0, state
 
 
 def _similarity(scale: float, angle: float = 0.0, shift=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -113,8 +113,8 @@ def at_scale_1(parser):
 
 
 def test_same_event_at_scale_1_and_1_20(parser, at_scale_1):
-    a_vad, a, a_in = at_scale_1
-    b_vad, b, b_in = _event(parser, _similarity(1 / 20))
+    a_vad, a, a_in, _ = at_scale_1
+    b_vad, b, b_in, _ = _event(parser, _similarity(1 / 20))
     assert a_vad.lengths["scene_depth"] == pytest.approx(11.27, abs=0.01)
     assert b_vad.lengths["scene_depth"] == pytest.approx(a_vad.lengths["scene_depth"] / 20, rel=1e-4)
     assert b_vad.lengths["voxel_size"] == pytest.approx(a_vad.lengths["voxel_size"] / 20, rel=1e-4)
@@ -155,8 +155,8 @@ def test_through_gsplats_parser_normalisation(project, parser, at_scale_1, monke
     prepare_data(project, 2)
     gs = Parser(str(project), factor=2, normalize=True, test_every=8)
     assert gs.scene_scale == pytest.approx(0.378, abs=0.001)  # gsplat's scene_scale: not a depth
-    a_vad, a, _ = at_scale_1
-    vad, ev, inside = _event(parser, gs.transform, gs)
+    a_vad, a, _, _ = at_scale_1
+    vad, ev, inside, _ = _event(parser, gs.transform, gs)
     scale = float(np.linalg.norm(gs.transform[:3, 0]))
     assert vad.lengths["scene_depth"] == pytest.approx(a_vad.lengths["scene_depth"] * scale, rel=0.01)
     va, vb = len(a_vad.index.grid), len(vad.index.grid)
@@ -174,8 +174,8 @@ def test_same_event_turned_shifted_and_scaled(parser, at_scale_1):
     """A turned (0.7 rad about the up), shifted and 1/20 copy: the voxels, cells, flagged instances,
     references and supports are the same, and the new Gaussians as many: measured 636 against 620
     (635 at 1/20 unturned: the rest is float rounding in PatchMatch)."""
-    a_vad, a, _ = at_scale_1
-    vad, ev, inside = _event(parser, _similarity(1 / 20, 0.7, (3.0, -2.0, 1.0)))
+    a_vad, a, _, _ = at_scale_1
+    vad, ev, inside, _ = _event(parser, _similarity(1 / 20, 0.7, (3.0, -2.0, 1.0)))
     assert len(a_vad.index.grid) == len(vad.index.grid)
     assert torch.equal(vad.index.cell_ids(), a_vad.index.cell_ids())
     assert ev["flagged_instances"] == a["flagged_instances"] >= 1
@@ -183,3 +183,15 @@ def test_same_event_turned_shifted_and_scaled(parser, at_scale_1):
     assert [i["views"] for i in ev["instances"]] == [i["views"] for i in a["instances"]]
     assert abs(ev["added"] - a["added"]) <= 0.05 * a["added"], (ev["added"], a["added"])
     assert inside > 0.75, inside
+
+
+def test_priors_on_the_voxels_of_an_sfm_scene(at_scale_1):
+    """A COLMAP scene's voxels are its sparse SfM points: the MVS priors are kept on them too
+    (``mvs_prior_beyond_voxels`` applies on scenes with LiDAR only)."""
+    vad, _, _, state = at_scale_1
+    assert vad.config.mvs_prior_beyond_voxels and vad.index.inputs.lidar is None  # the default, SfM
+    on_voxels = sum(
+        int(((d > 0) & (vad.index.voxel_depth(v)[0].to(d.device) > 0)).sum())
+        for v, (d, _) in state["vad_priors"].items()
+    )
+    assert on_voxels > 50, on_voxels

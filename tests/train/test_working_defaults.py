@@ -191,6 +191,20 @@ def test_demo_figure_labels_match_the_console(vad_run):
         assert f"{label} (+{total})" in line  # the console's "added to tree 50 (+2217)"
 
 
+def test_priors_only_beyond_the_voxels(vad_run):
+    """On a scene with LiDAR (``mvs_prior_beyond_voxels``, the default), the events keep the MVS
+    depth and normals only where the view's voxel z-buffer is empty."""
+    trainer, _out, _lines, _progress = vad_run
+    index = trainer.strategy.prepare()
+    assert trainer.strategy.config.mvs_prior_beyond_voxels and index.inputs.lidar is not None
+    kept = 0
+    for v, (d, n) in trainer.state["vad_priors"].items():
+        reached = index.voxel_depth(v)[0].to(d.device) > 0
+        assert not (d[reached] != 0).any() and not (n[reached.expand_as(n)] != 0).any(), v
+        kept += int((d > 0).sum())
+    assert kept > 50, kept
+
+
 class TestProgress:
     def test_one_line_per_event_without_bar_and_event_progress(self, vad_run):
         trainer, _out, lines, progress = vad_run

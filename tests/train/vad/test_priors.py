@@ -69,6 +69,38 @@ class TestMergePriors:
             for v in expect:
                 assert torch.equal(priors[v][0], expect[v][0]) and torch.equal(priors[v][1], expect[v][1]), v
 
+    def test_beyond_the_voxels_against_naive(self):
+        """With ``beyond``, the new depth and normals only where the view's voxel z-buffer is empty;
+        the old priors (kept, as cut when they came) elsewhere, pixel by pixel."""
+        g = torch.Generator().manual_seed(3)
+        vox = {v: torch.rand(1, 5, 6, generator=g) * 10 + 1 for v in (0, 1)}
+        for d in vox.values():
+            d[torch.rand(1, 5, 6, generator=g) < 0.5] = 0  # beyond the voxels
+        index = SimpleNamespace(voxel_depth=lambda view: (vox[view], torch.zeros(5, 6, dtype=torch.long)))
+
+        def maps():
+            d = torch.rand(1, 5, 6, generator=g) + 1
+            d[torch.rand(1, 5, 6, generator=g) < 0.3] = 0
+            return d, torch.randn(3, 5, 6, generator=g)
+
+        priors: dict = {}
+        for views in ([0, 1], [1, 0]):
+            new = [maps() for _ in views]
+            cut = [(d * (vox[v] == 0), n * (vox[v] == 0)) for v, (d, n) in zip(views, new)]
+            expect = _naive_merge(priors, views, [d for d, _ in cut], [n for _, n in cut])
+            rec = sample_reconstruction(1, 0, 0)._replace(
+                views=views, depth=[d for d, _ in new], normal=[n for _, n in new]
+            )
+            merge_priors(priors, rec, index)
+            for v in expect:
+                assert torch.equal(priors[v][0], expect[v][0]) and torch.equal(priors[v][1], expect[v][1]), v
+        for v, (d, n) in priors.items():
+            assert not (d[vox[v] > 0] != 0).any() and not (n[(vox[v] > 0).expand(3, 5, 6)] != 0).any()
+            assert (d > 0).any()  # MVS pixels kept beyond the voxels
+        everywhere: dict = {}
+        merge_priors(everywhere, rec)
+        assert any((d[vox[v] > 0] > 0).any() for v, (d, _) in everywhere.items())  # the default keeps all
+
 
 # -- state_priors and view_targets -------------------------------------------------------------------
 
@@ -89,15 +121,9 @@ PH, PW = 5, 7  # the index's (padded) maps
 H, W = 4, 6  # the view's own size
 
 
-def _index(own_depth, voxel_depth=None):
-    """A stand-in of the index: every view of size ``(H, W)``, its own-instance voxel depth ``own_depth``
-    and its voxel z-buffer's depth ``voxel_depth`` (default: ``own_depth``)."""
-    vd = own_depth if voxel_depth is None else voxel_depth
-    return SimpleNamespace(
-        own_voxel_depth=lambda view: own_depth,
-        voxel_depth=lambda view: (vd, torch.zeros(vd.shape[1:], dtype=torch.long)),
-        size=lambda view: (H, W),
-    )
+def _index(own_depth):
+    """A stand-in of the index: every view of size ``(H, W)``, its own-instance voxel depth ``own_depth``."""
+    return SimpleNamespace(own_voxel_depth=lambda view: own_depth, size=lambda view: (H, W))
 
 
 class TestViewTargets:
@@ -124,29 +150,3 @@ class TestViewTargets:
         mvs, normal = torch.ones(1, PH, PW), torch.ones(3, PH, PW)
         t = view_targets({0: (mvs, normal)}, _index(own), 0, voxel_depth_prior=False)
         assert torch.equal(t.depth, torch.ones(1, 1, H, W)) and t.normal.shape == (1, 3, H, W)
-
-    @pytest.mark.parametrize("voxel_prior", [True, False])
-    def test_mvs_prior_beyond_voxels(self, voxel_prior):
-        """The MVS depth and normals only where the voxel z-buffer is empty; the voxel depth of the
-        pixel's own instance elsewhere (with the voxel prior), pixel by pixel."""
-        g = torch.Generator().manual_seed(3)
-        vox = torch.rand(1, PH, PW, generator=g) * 10 + 1
-        vox[torch.rand(1, PH, PW, generator=g) < 0.5] = 0  # beyond the voxels
-        own = torch.where(torch.rand(1, PH, PW, generator=g) < 0.5, vox, torch.zeros_like(vox))
-        mvs = torch.rand(1, PH, PW, generator=g) * 10 + 1
-        mvs[torch.rand(1, PH, PW, generator=g) < 0.3] = 0
-        normal = torch.randn(3, PH, PW, generator=g)
-        t = view_targets({1: (mvs, normal)}, _index(own, vox), 1, voxel_prior, mvs_beyond_voxels=True)
-        expect_d, expect_n = torch.zeros(1, 1, H, W), torch.zeros(1, 3, H, W)
-        for y, x in itertools.product(range(H), range(W)):
-            if vox[0, y, x] == 0:  # the normals as the default leaves them, only beyond the voxels
-                expect_n[0, :, y, x] = normal[:, y, x]
-            if vox[0, y, x] == 0 and mvs[0, y, x] > 0:
-                expect_d[0, 0, y, x] = mvs[0, y, x]
-            elif voxel_prior:
-                expect_d[0, 0, y, x] = own[0, y, x]
-        assert torch.equal(t.depth, expect_d) and torch.equal(t.normal, expect_n)
-        kept = (vox[0, :H, :W] == 0) & (mvs[0, :H, :W] > 0)
-        assert 0 < int(kept.sum()) < int((mvs[0, :H, :W] > 0).sum())  # some MVS pixels kept, some dropped
-        everywhere = view_targets({1: (mvs, normal)}, _index(own, vox), 1, voxel_prior)
-        assert not torch.equal(everywhere.depth, t.depth)  # the default keeps them all

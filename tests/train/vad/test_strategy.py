@@ -63,11 +63,11 @@ def _maps(seed: int = 0):
     return vd, vlabel, ins, mvs, normal
 
 
-def _strategy(vd, vlabel, ins, lidar=True, **settings):
-    """A strategy prepared with a stand-in of the index (two views of size ``(H, W)``; LiDAR or SfM)."""
+def _strategy(vd, vlabel, ins, **settings):
+    """A strategy prepared with a stand-in of the index (two views of size ``(H, W)``)."""
     s = VisibilityAwareDensification(**settings)
     s.index = SimpleNamespace(
-        inputs=SimpleNamespace(num_views=2, lidar=(lambda track, views: []) if lidar else None),
+        inputs=SimpleNamespace(num_views=2),
         voxel_depth=lambda view: (vd, vlabel),
         instances=lambda view: ins,
         own_voxel_depth=lambda view: own_instance_depth(vd, vlabel, ins),  # the index's, uncached
@@ -76,10 +76,10 @@ def _strategy(vd, vlabel, ins, lidar=True, **settings):
     return s, s.initialize_state()
 
 
-def _naive(vd, vlabel, ins, mvs=None, voxel_prior=True, beyond_voxels=False):
+def _naive(vd, vlabel, ins, mvs=None, voxel_prior=True):
     out = torch.zeros(1, 1, H, W)
     for y, x in itertools.product(range(H), range(W)):
-        if mvs is not None and mvs[0, y, x] > 0 and not (beyond_voxels and vd[0, y, x] > 0):
+        if mvs is not None and mvs[0, y, x] > 0:
             out[0, 0, y, x] = mvs[0, y, x]
         elif voxel_prior and vlabel[y, x] == ins[y, x]:  # the pixel's own instance's voxel only
             out[0, 0, y, x] = vd[0, y, x]
@@ -100,7 +100,7 @@ class TestGeometryTargets:
 
     def test_mvs_depth_first(self):
         vd, vlabel, ins, mvs, normal = _maps(2)
-        s, state = _strategy(vd, vlabel, ins, mvs_prior_beyond_voxels=False)  # the paper's: everywhere
+        s, state = _strategy(vd, vlabel, ins)
         state["vad_priors"][1] = (mvs, normal)
         t = s.geometry_targets(state, 1)
         assert torch.equal(t.depth, _naive(vd, vlabel, ins, mvs))
@@ -109,7 +109,7 @@ class TestGeometryTargets:
 
     def test_switches(self):
         vd, vlabel, ins, mvs, normal = _maps(3)
-        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=False, mvs_prior_beyond_voxels=False)
+        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=False)
         state["vad_priors"][1] = (mvs, normal)
         assert torch.equal(
             s.geometry_targets(state, 1).depth, _naive(vd, vlabel, ins, mvs, voxel_prior=False)
@@ -118,21 +118,6 @@ class TestGeometryTargets:
         s, state = _strategy(vd, vlabel, ins, geometric_losses=False)
         state["vad_priors"][1] = (mvs, normal)
         assert s.geometry_targets(state, 1) is None
-
-    @pytest.mark.parametrize("voxel_prior", [True, False])
-    def test_mvs_prior_beyond_voxels(self, voxel_prior):
-        vd, vlabel, ins, mvs, normal = _maps(4)
-        s, state = _strategy(vd, vlabel, ins, voxel_depth_prior=voxel_prior)  # the default
-        state["vad_priors"][1] = (mvs, normal)
-        t = s.geometry_targets(state, 1)
-        expect = _naive(vd, vlabel, ins, mvs, voxel_prior, beyond_voxels=True)
-        assert torch.equal(t.depth, expect)
-        assert not torch.equal(expect, _naive(vd, vlabel, ins, mvs, voxel_prior))  # it drops some MVS pixels
-        reached = vd[:, :H, :W] > 0
-        assert bool((t.normal[0][reached.expand(3, H, W)] == 0).all())  # no normal prior on a voxel surface
-        s, state = _strategy(vd, vlabel, ins, False, voxel_depth_prior=voxel_prior)
-        state["vad_priors"][1] = (mvs, normal)  # a COLMAP scene: its SfM voxels measure no ray, all kept
-        assert torch.equal(s.geometry_targets(state, 1).depth, _naive(vd, vlabel, ins, mvs, voxel_prior))
 
 
 class TestGeometryTargetsErrors:

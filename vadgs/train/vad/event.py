@@ -380,7 +380,9 @@ def reconstruct_instances(
     (:func:`reconstruct_pairs`). So the instances attempted are those of one instance at a
     time.
     Per instance, in rank order: its depth priors merged into ``state["vad_priors"]`` (with
-    ``config.geometric_losses``) and ``state["vad_last_done"]`` set to this event.
+    ``config.geometric_losses``; only those beyond the voxels with ``config.mvs_prior_beyond_voxels``
+    on a scene with LiDAR, :func:`~vadgs.train.vad.priors.merge_priors`) and
+    ``state["vad_last_done"]`` set to this event.
 
     Args:
         ev: the event's inputs.
@@ -400,6 +402,7 @@ def reconstruct_instances(
     outcomes: dict[str, int] = {}
     skipped: dict[str, int] = {}
     occupied: dict[int | None, list[torch.Tensor]] = {}  # frame (None: world, else track) → points
+    beyond = ev.index if cfg.mvs_prior_beyond_voxels and ev.inputs.lidar is not None else None  # LiDAR voxels
     work = seconds = 0.0
     pending = list(enumerate(ranked))
     while pending:
@@ -427,7 +430,7 @@ def reconstruct_instances(
                 if rec.points.shape[0]:  # added when the event ends (add_reconstructions)
                     additions.append((attempt.instance, ref, rec._replace(depth=[], normal=[])))
                 if cfg.geometric_losses:
-                    merge_priors(state["vad_priors"], rec)
+                    merge_priors(state["vad_priors"], rec, beyond)
                 _count(outcomes, outcome_name(rec.reason))
             state["vad_last_done"][attempt.instance] = event
             cls = classes.get(attempt.instance, "?")

@@ -20,12 +20,25 @@ from vadgs.train.vad.visibility import VisibilityIndex
 __all__ = ["merge_priors", "state_priors", "view_targets"]
 
 
-def merge_priors(priors: dict[int, tuple[torch.Tensor, torch.Tensor]], rec: InstanceReconstruction) -> None:
+def merge_priors(
+    priors: dict[int, tuple[torch.Tensor, torch.Tensor]],
+    rec: InstanceReconstruction,
+    beyond: VisibilityIndex | None = None,
+) -> None:
     """Keep the MVS depth and normals of ``rec``'s views in ``priors`` (``state["vad_priors"]``).
 
     Where a view already has priors, the new ones replace them only where the new depth exists.
+    With ``beyond`` (the scene's index, when the strategy's ``mvs_prior_beyond_voxels`` is on a
+    scene with LiDAR), the new depth and normals are kept only where the view's voxel z-buffer
+    (:meth:`~vadgs.train.vad.visibility.VisibilityIndex.voxel_depth`) is empty: beyond the
+    LiDAR's reach (a sign above it, a facade out of range), where nothing else measures the
+    surface; elsewhere the voxel depth (:func:`view_targets`) and the trainer's LiDAR loss do.
+    The voxel grid is fixed after ``prepare``, so this is done once, here, not at every step.
     """
     for v, d, n in zip(rec.views, rec.depth, rec.normal):
+        if beyond is not None:
+            reached = beyond.voxel_depth(v)[0].to(d.device) > 0
+            d, n = d.masked_fill(reached, 0.0), n.masked_fill(reached, 0.0)
         old = priors.get(v)
         if old is not None:
             has = d > 0
@@ -53,7 +66,6 @@ def view_targets(
     index: VisibilityIndex,
     view: int,
     voxel_depth_prior: bool = True,
-    mvs_beyond_voxels: bool = False,
 ) -> GeometryTargets | None:
     """The targets of a view's geometric losses: its MVS depth and normals, else the voxel depth.
 
@@ -61,20 +73,14 @@ def view_targets(
     :class:`~vadgs.train.vad.visibility.VisibilityIndex`. With ``voxel_depth_prior``, pixels
     without MVS depth take the voxel depth — only where the voxel belongs to the pixel's own
     instance (elsewhere the z-buffer sees through missing geometry, e.g. the facade behind a sign,
-    and would pull it backwards). With ``mvs_beyond_voxels``, the MVS depth and normals are kept only
-    where the view's voxel z-buffer (:meth:`~vadgs.train.vad.visibility.VisibilityIndex.voxel_depth`)
-    is empty: beyond the LiDAR's reach (a sign above it, a facade out of range), where nothing else
-    measures the surface; elsewhere the voxel depth (with ``voxel_depth_prior``) and the trainer's
-    LiDAR loss do. ``None`` when the view has neither. Tensors ``(1, 1, H, W)`` /
-    ``(1, 3, H, W)`` at the view's own size (the index's maps may be padded), on the device of the
-    MVS priors, or of the index for a view without them.
+    and would pull it backwards). On a scene with LiDAR the MVS priors are by default only those
+    beyond the voxels (:func:`merge_priors`' ``beyond``). ``None`` when the view has neither.
+    Tensors ``(1, 1, H, W)`` / ``(1, 3, H, W)`` at the view's own size (the index's maps may be
+    padded), on the device of the MVS priors, or of the index for a view without them.
     """
     depth, normal = None, None
     if view in priors:
         depth, normal = priors[view]
-        if mvs_beyond_voxels:
-            reached = index.voxel_depth(view)[0].to(depth.device) > 0
-            depth, normal = depth.masked_fill(reached, 0.0), normal.masked_fill(reached, 0.0)
     if voxel_depth_prior:
         vd = index.own_voxel_depth(view)  # kept per view
         depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))

@@ -374,6 +374,4 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             )
         n = self._inputs().num_views
         view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
-        cfg = self.config
-        beyond = cfg.mvs_prior_beyond_voxels and self._inputs().lidar is not None  # LiDAR voxels only
-        return view_targets(state_priors(state), self.prepare(), view, cfg.voxel_depth_prior, beyond)
+        return view_targets(state_priors(state), self.prepare(), view, self.config.voxel_depth_prior)
