@@ -123,7 +123,7 @@ H, W = 4, 6  # the view's own size
 
 def _index(own_depth):
     """A stand-in of the index: every view of size ``(H, W)``, its own-instance voxel depth ``own_depth``."""
-    return SimpleNamespace(own_voxel_depth=lambda view: own_depth, size=lambda view: (H, W))
+    return SimpleNamespace(own_voxel_depth=lambda view, tracks=True: own_depth, size=lambda view: (H, W))
 
 
 class TestViewTargets:

@@ -70,18 +70,24 @@ def _strategy(vd, vlabel, ins, **settings):
         inputs=SimpleNamespace(num_views=2),
         voxel_depth=lambda view: (vd, vlabel),
         instances=lambda view: ins,
-        own_voxel_depth=lambda view: own_instance_depth(vd, vlabel, ins),  # the index's, uncached
+        own_voxel_depth=lambda view, tracks=True: own_instance_depth(  # the index's, uncached
+            vd, vlabel if tracks else vlabel.masked_fill(vlabel == TRACK, -1), ins
+        ),
         size=lambda view: (H, W),
     )
     return s, s.initialize_state()
 
 
-def _naive(vd, vlabel, ins, mvs=None, voxel_prior=True):
+TRACK = 2  # the stand-in index's moving object
+
+
+def _naive(vd, vlabel, ins, mvs=None, voxel_prior=True, tracks=False):
     out = torch.zeros(1, 1, H, W)
     for y, x in itertools.product(range(H), range(W)):
         if mvs is not None and mvs[0, y, x] > 0:
             out[0, 0, y, x] = mvs[0, y, x]
-        elif voxel_prior and vlabel[y, x] == ins[y, x]:  # the pixel's own instance's voxel only
+        elif voxel_prior and vlabel[y, x] == ins[y, x] and (tracks or vlabel[y, x] != TRACK):
+            # the pixel's own instance's voxel only; a moving object's with voxel_prior_tracks
             out[0, 0, y, x] = vd[0, y, x]
     return out
 
@@ -95,8 +101,15 @@ class TestGeometryTargets:
         assert t.normal is None and t.depth.shape == (1, 1, H, W)
         expect = _naive(vd, vlabel, ins)
         assert torch.equal(t.depth, expect)
-        own = (vlabel == ins)[:H, :W] & (vd[0, :H, :W] > 0)
+        own = (vlabel == ins)[:H, :W] & (vd[0, :H, :W] > 0) & (vlabel[:H, :W] != TRACK)
         assert 0 < int(own.sum()) < H * W and bool((t.depth[0, 0][~own] == 0).all())
+
+    def test_voxel_prior_tracks(self):
+        vd, vlabel, ins, _, _ = _maps(1)
+        s, state = _strategy(vd, vlabel, ins, voxel_prior_tracks=True)
+        expect = _naive(vd, vlabel, ins, tracks=True)
+        assert torch.equal(s.geometry_targets(state, 1).depth, expect)
+        assert not torch.equal(expect, _naive(vd, vlabel, ins))  # the moving object's pixels added
 
     def test_mvs_depth_first(self):
         vd, vlabel, ins, mvs, normal = _maps(2)

@@ -249,3 +249,25 @@ class TestObservedDepth:
         assert 0.1 * full < covered < full
         with pytest.raises(ValueError, match="track: expected one of the tracks"):
             index.observed_depth(views[0], 10**6)
+
+
+class TestOwnVoxelDepth:
+    """``own_voxel_depth``: the voxel depth where the voxel is of the pixel's own instance; with
+    ``tracks=False`` the static voxels only (the default of the geometric losses' voxel prior)."""
+
+    def test_against_the_pixels_labels(self, scene, index):
+        views = [v for v in scene.train_views if int((index.instances(v) == CAR).sum()) > 50][:4]
+        assert views
+        tracks = set(index.track_grids)
+        assert CAR in tracks and BUILDING not in tracks
+        for v in views:
+            depth, label = index.voxel_depth(v)
+            ins = index.instances(v)
+            every, static = index.own_voxel_depth(v), index.own_voxel_depth(v, tracks=False)
+            own = label == ins
+            moving = torch.tensor([int(t) in tracks for t in label.flatten().tolist()]).view_as(label)
+            assert torch.equal(every[0], torch.where(own, depth[0], 0.0))
+            assert torch.equal(static[0], torch.where(own & ~moving, depth[0], 0.0))
+            assert int(((every[0] > 0) & (static[0] == 0) & (label == CAR)).sum()) > 20  # the car's
+            assert int((static[0] > 0).sum()) > 100  # the static scene's kept
+        assert index.own_voxel_depth(views[0], tracks=False) is index.own_voxel_depth(views[0], tracks=False)

@@ -66,6 +66,7 @@ def view_targets(
     index: VisibilityIndex,
     view: int,
     voxel_depth_prior: bool = True,
+    voxel_prior_tracks: bool = False,
 ) -> GeometryTargets | None:
     """The targets of a view's geometric losses: its MVS depth and normals, else the voxel depth.
 
@@ -73,8 +74,10 @@ def view_targets(
     :class:`~vadgs.train.vad.visibility.VisibilityIndex`. With ``voxel_depth_prior``, pixels
     without MVS depth take the voxel depth — only where the voxel belongs to the pixel's own
     instance (elsewhere the z-buffer sees through missing geometry, e.g. the facade behind a sign,
-    and would pull it backwards). On a scene with LiDAR the MVS priors are by default only those
-    beyond the voxels (:func:`merge_priors`' ``beyond``). ``None`` when the view has neither.
+    and would pull it backwards); on a moving object's pixels only with ``voxel_prior_tracks``
+    (:meth:`~vadgs.train.vad.visibility.VisibilityIndex.own_voxel_depth`). On a scene with LiDAR
+    the MVS priors are by default only those beyond the voxels (:func:`merge_priors`'
+    ``beyond``). ``None`` when the view has neither.
     Tensors ``(1, 1, H, W)`` / ``(1, 3, H, W)`` at the view's own size (the index's maps may be
     padded), on the device of the MVS priors, or of the index for a view without them.
     """
@@ -82,7 +85,7 @@ def view_targets(
     if view in priors:
         depth, normal = priors[view]
     if voxel_depth_prior:
-        vd = index.own_voxel_depth(view)  # kept per view
+        vd = index.own_voxel_depth(view, voxel_prior_tracks)  # kept per view
         depth = vd if depth is None else torch.where(depth > 0, depth, vd.to(depth.device))
     if depth is None:
         return None

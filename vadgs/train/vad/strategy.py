@@ -374,4 +374,6 @@ class VisibilityAwareDensification(ConfiguredStrategy):
             )
         n = self._inputs().num_views
         view = int_field(0, n - 1, note=f" (a view of the inputs' {n})")("view", view)
-        return view_targets(state_priors(state), self.prepare(), view, self.config.voxel_depth_prior)
+        cfg = self.config
+        priors = state_priors(state)
+        return view_targets(priors, self.prepare(), view, cfg.voxel_depth_prior, cfg.voxel_prior_tracks)

@@ -278,16 +278,22 @@ class VisibilityIndex:
         depth, label, _ = self._voxel_surface(view)
         return depth, label
 
-    def own_voxel_depth(self, view: int) -> torch.Tensor:
+    def own_voxel_depth(self, view: int, tracks: bool = True) -> torch.Tensor:
         """:meth:`voxel_depth` only where the voxel is of the pixel's own instance, else 0: ``(1, H, W)``.
 
         The geometric losses' voxel depth prior (:func:`~vadgs.train.vad.priors.view_targets`):
-        elsewhere the z-buffer sees through missing geometry. Cached per view.
+        elsewhere the z-buffer sees through missing geometry. ``tracks=False``: the static voxels
+        only (a moving object's pixels get none). Cached per view.
         """
-        return self.view_cache.get(
-            ("own_voxel_depth", view),
-            lambda: own_instance_depth(*self.voxel_depth(view), self.instances(view)),
-        )
+
+        def make() -> torch.Tensor:
+            depth, label = self.voxel_depth(view)
+            if not tracks and self.track_grids:
+                ids = torch.tensor(sorted(self.track_grids), dtype=label.dtype, device=label.device)
+                label = label.masked_fill(torch.isin(label, ids), -1)  # no instance is -1
+            return own_instance_depth(depth, label, self.instances(view))
+
+        return self.view_cache.get(("own_voxel_depth", view, tracks), make)
 
     def _voxel_surface(self, view: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`voxel_depth`'s ``(depth, label)`` and the nearest voxel's id in its own grid (cached)."""
