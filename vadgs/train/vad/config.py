@@ -120,8 +120,9 @@ class VisibilityDensifyConfig(Checked):
             loss on the view's own sweep still measures them.
         mvs_prior_beyond_voxels: keep the MVS depth and normal priors only where the view's voxel
             z-buffer is empty (beyond the LiDAR's reach: the paper's sign above it, a facade out of
-            range); where a voxel surface is on the ray, the voxel depth (``voxel_depth_prior``) and
-            the trainer's LiDAR loss measure it. Scenes with LiDAR only: a COLMAP scene's voxels
+            range); where a voxel surface is on the ray, the trainer's LiDAR loss measures it, and
+            on the static voxels the voxel depth (``voxel_depth_prior``). Cut once, when an event
+            keeps its priors. Scenes with LiDAR only: a COLMAP scene's voxels
             are its sparse SfM points, which leave most rays unmeasured. True by default, a
             documented deviation (False: everywhere, as the paper): on a real log the MVS depth at
             the LiDAR's edges is often off (PandaSet 002: 30 % of the priors on a return of the
