@@ -110,6 +110,7 @@ class _Event:
             train_views=(0,),
             tracks=dict.fromkeys(tracks),
             views=[SimpleNamespace(camera="front", frame=0)],
+            lidar=None,  # no LiDAR: the priors are kept as the reconstructions give them
         )
         s.index = SimpleNamespace(
             classes=lambda: dict.fromkeys(flagged, "thing"), cut_by_border=lambda view, inst: False
