@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
+import runpy
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +15,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "thin_lidar.py"
 
 @pytest.fixture(scope="module")
 def thin():
-    spec = importlib.util.spec_from_file_location("thin_lidar", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.thin_scene
+    return runpy.run_path(str(SCRIPT))["thin_scene"]
 
 
 def test_training_sweeps_thinned_test_sweeps_whole(thin, tmp_path):
