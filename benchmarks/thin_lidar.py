@@ -23,6 +23,9 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from vadgs.data.scene import read_lidar_npz, write_lidar_npz
 
 
 def thin_scene(src: Path, out: Path, keep: float, seed: int = 0) -> dict[str, int]:
@@ -49,17 +52,15 @@ def thin_scene(src: Path, out: Path, keep: float, seed: int = 0) -> dict[str, in
         rel = frame.get("lidar")
         if not rel:
             continue
-        (out / rel).parent.mkdir(parents=True, exist_ok=True)
         if frame["index"] in test:
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src / rel, out / rel)
             continue
-        with np.load(src / rel) as f:
-            arrays = {k: f[k] for k in f.files}
-        n = len(arrays["points"])
+        sweep = read_lidar_npz(src / rel)
+        n = len(sweep.points)
         rng = np.random.default_rng([seed, int(frame["index"])])
-        kept = np.sort(rng.choice(n, size=max(1, round(keep * n)), replace=False))
-        arrays = {k: v[kept] if k != "origin" and v.ndim and len(v) == n else v for k, v in arrays.items()}
-        np.savez(out / rel, **arrays)
+        kept = torch.from_numpy(np.sort(rng.choice(n, size=max(1, round(keep * n)), replace=False)))
+        write_lidar_npz(out / rel, sweep._replace(points=sweep.points[kept], instance=sweep.instance[kept]))
         before += n
         after += len(kept)
     return {"points_before": before, "points_after": after}

@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image
 
 from vadgs.data.box_masks import box_instance_map
-from vadgs.data.scene import Scene
+from vadgs.data.scene import Scene, write_lidar_npz
 from vadgs.io import atomic_write, safe_filename, write_json
 
 __all__ = ["export_scene"]
@@ -85,18 +85,8 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True, box_mask
         if f.ego_to_world is not None:
             fm["ego_to_world"] = _list(f.ego_to_world)
         if lidar and scene.lidar_loader is not None:
-            lf = scene.lidar(f.index)
             rel = f"lidar/{f.index:06d}.npz"
-            arrays = {
-                "points": lf.points.float().numpy(),
-                "instance": lf.instance.numpy().astype(np.int32),
-                "origin": lf.origin.float().numpy(),
-            }
-
-            def save_npz(tmp: Path, arrays: dict[str, np.ndarray] = arrays) -> None:
-                np.savez(tmp, **arrays)  # type: ignore[arg-type]  # stubs: **arrays might fill allow_pickle
-
-            atomic_write(out / rel, save_npz)
+            write_lidar_npz(out / rel, scene.lidar(f.index))
             fm["lidar"] = rel
         frames.append(fm)
     meta = {
