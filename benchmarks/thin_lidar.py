@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vadgs.data.scene import read_lidar_npz, write_lidar_npz
+from vadgs.data.export import write_lidar_npz
+from vadgs.data.scene import read_lidar_npz
 
 
 def thin_scene(src: Path, out: Path, keep: float, seed: int = 0) -> dict[str, int]:

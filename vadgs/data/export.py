@@ -14,14 +14,42 @@ import numpy as np
 from PIL import Image
 
 from vadgs.data.box_masks import box_instance_map
-from vadgs.data.scene import Scene, write_lidar_npz
+from vadgs.data.scene import LidarFrame, Scene
 from vadgs.io import atomic_write, safe_filename, write_json
 
-__all__ = ["export_scene"]
+__all__ = ["export_scene", "write_lidar_npz"]
 
 
 def _list(t) -> list:
     return [[float(v) for v in row] for row in t.double().tolist()]
+
+
+def write_lidar_npz(path: str | Path, lidar: LidarFrame) -> None:
+    """Write ``lidar`` atomically as a benchmark LiDAR ``.npz``.
+
+    :func:`~vadgs.data.scene.read_lidar_npz` reads it back: ``points`` float32 ``(N, 3)``,
+    ``instance`` int32 ``(N,)``, ``origin`` float32 ``(3,)``.
+
+    Example:
+        >>> import tempfile
+        >>> import torch
+        >>> from vadgs.data.scene import read_lidar_npz
+        >>> lf = LidarFrame(torch.rand(5, 3), torch.arange(5), torch.zeros(3))
+        >>> with tempfile.TemporaryDirectory() as d:
+        ...     write_lidar_npz(Path(d) / "000000.npz", lf)
+        ...     torch.equal(read_lidar_npz(Path(d) / "000000.npz").points, lf.points)
+        True
+    """
+    arrays = {
+        "points": lidar.points.float().numpy(),
+        "instance": lidar.instance.numpy().astype(np.int32),
+        "origin": lidar.origin.float().numpy(),
+    }
+
+    def save(tmp: Path) -> None:
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]  # stubs: **arrays might fill allow_pickle
+
+    atomic_write(Path(path), save)
 
 
 def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True, box_masks: bool = False) -> Path:
@@ -49,6 +77,8 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True, box_mask
 
     Example:
         >>> import tempfile
+        >>> import torch
+        >>> from vadgs.data.scene import read_lidar_npz
         >>> from vadgs.data import load_scene, sample_scene_path
         >>> scene = load_scene(sample_scene_path())
         >>> with tempfile.TemporaryDirectory() as d:

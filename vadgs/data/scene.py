@@ -26,7 +26,6 @@ from PIL import Image
 
 from vadgs.data.images import read_image
 from vadgs.geometry.camera import Cameras, invert_rigid
-from vadgs.io import atomic_write
 
 __all__ = [
     "CameraInfo",
@@ -41,7 +40,6 @@ __all__ = [
     "read_depth",
     "read_lidar_npz",
     "read_rgb",
-    "write_lidar_npz",
 ]
 
 
@@ -529,31 +527,6 @@ def read_lidar_npz(path: Path) -> LidarFrame:
         torch.from_numpy(ins.astype(np.int64)),
         torch.from_numpy(origin.astype(np.float32)),
     )
-
-
-def write_lidar_npz(path: str | Path, lidar: LidarFrame) -> None:
-    """Write ``lidar`` as a benchmark LiDAR ``.npz`` (what :func:`read_lidar_npz` reads), atomically.
-
-    ``points`` float32 ``(N, 3)``, ``instance`` int32 ``(N,)``, ``origin`` float32 ``(3,)``.
-
-    Example:
-        >>> import tempfile
-        >>> lf = LidarFrame(torch.rand(5, 3), torch.arange(5), torch.zeros(3))
-        >>> with tempfile.TemporaryDirectory() as d:
-        ...     write_lidar_npz(Path(d) / "000000.npz", lf)
-        ...     torch.equal(read_lidar_npz(Path(d) / "000000.npz").points, lf.points)
-        True
-    """
-    arrays = {
-        "points": lidar.points.float().numpy(),
-        "instance": lidar.instance.numpy().astype(np.int32),
-        "origin": lidar.origin.float().numpy(),
-    }
-
-    def save(tmp: Path) -> None:
-        np.savez(tmp, **arrays)  # type: ignore[arg-type]  # stubs: **arrays might fill allow_pickle
-
-    atomic_write(Path(path), save)
 
 
 def npz_headers(path: str | Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
