@@ -8,8 +8,9 @@ output: ``scene.json``, ``lidar/*.npz``) in which each training frame's sweep ke
 ``--keep`` fraction of its points (the same points whatever the machine: one generator seeded by
 ``--seed`` and the frame's index), so that the same real images can be trained from a sparse
 LiDAR. The test frames' sweeps stay whole: the depth evaluation (``depth.lidar``) measures
-against the full held-out sweep. Everything else (images, instance maps) is linked, not copied. Used for issue
-47 (docs/results.md, "A real log")::
+against the full held-out sweep (copied). The other folders (images, instance maps, ``gt/``) are
+hard-linked, not copied; the top-level files (``scene.json``) are copied. Used for issue 47
+(docs/results.md, "A real log")::
 
     python benchmarks/thin_lidar.py scenes/ps002-36 scenes/ps002-36-sparse --keep 0.25
 """

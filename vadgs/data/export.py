@@ -77,8 +77,6 @@ def export_scene(scene: Scene, out_dir: str | Path, lidar: bool = True, box_mask
 
     Example:
         >>> import tempfile
-        >>> import torch
-        >>> from vadgs.data.scene import read_lidar_npz
         >>> from vadgs.data import load_scene, sample_scene_path
         >>> scene = load_scene(sample_scene_path())
         >>> with tempfile.TemporaryDirectory() as d:

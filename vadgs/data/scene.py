@@ -1,4 +1,4 @@
-"""The scene object shared by every loader, and the readers of its files (and the LiDAR's writer).
+"""The scene object shared by every loader, and the readers of its files.
 
 A :class:`Scene` holds cameras, frames and views, LiDAR per frame, the instance table, the tracks
 of rigidly moving objects, the train/test split and (COLMAP scenes) sparse points. Per-view
